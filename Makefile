@@ -1,0 +1,30 @@
+# One-command install and the project's jobs. Everything runs inside .venv.
+PYTHON_SYS ?= python3.11
+VENV := .venv
+PY := $(VENV)/bin/python
+PRESET ?= small
+SEED ?= 0
+DATA ?= data/$(PRESET)
+RUNS ?= runs/$(PRESET)
+
+.PHONY: install test lint dataset ablation clean
+
+install: $(VENV)/.installed
+
+# Re-runs only when the dependency list changes.
+$(VENV)/.installed: pyproject.toml
+	test -x $(PY) || $(PYTHON_SYS) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	# Pinned first: it takes the local CPU build; an unpinned torch pulls gigabytes of CUDA packages.
+	$(PY) -m pip install --quiet torch==2.13.0
+	$(PY) -m pip install --quiet -e ".[dev]"
+	touch $@
+
+test: install
+	$(PY) -m pytest -q
+
+lint: install
+	$(VENV)/bin/ruff check .
+
+clean:
+	rm -rf $(VENV) .pytest_cache

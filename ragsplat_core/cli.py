@@ -1,0 +1,44 @@
+"""The `ragsplat` console entry: one subcommand per job, each in its own module.
+
+A subcommand module defines `add_arguments(parser)` and `run(args) -> int`. Only the chosen module is
+imported, so `ragsplat --help` stays fast and no stage pulls in another stage's heavy dependencies.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# name -> (module, one-line help). A subcommand is listed only once it does real work.
+COMMANDS: dict[str, tuple[str, str]] = {}
+
+
+class UsageError(Exception):
+    """Bad input from the user: printed as one line, exit code 2, nothing deleted."""
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    top = argparse.ArgumentParser(prog="ragsplat", description="Refraction-aware Gaussian splatting toolkit")
+    sub = top.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (_, text) in COMMANDS.items():
+        sub.add_parser(name, help=text, add_help=False)
+    if not argv or argv[0] not in COMMANDS:
+        args = top.parse_args(argv)
+        top.print_help()
+        return 0 if args.command is None and not argv else 2
+    name = argv[0]
+    module = importlib.import_module(COMMANDS[name][0])
+    parser = argparse.ArgumentParser(prog=f"ragsplat {name}", description=COMMANDS[name][1])
+    module.add_arguments(parser)
+    args = parser.parse_args(argv[1:])
+    try:
+        return int(module.run(args) or 0)
+    except UsageError as err:
+        print(f"ragsplat {name}: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
