@@ -1,20 +1,284 @@
-"""Refraction at a calm planar air-water interface."""
+"""Refraction at a calm planar air-water interface: true -> apparent Gaussians (RA-GS).
+
+Geometry, per camera: centre C at height H above the plane z = level, a submerged point P at depth
+d = level - z > 0 and horizontal offset v = P_xy - C_xy, r = |v|. The light path from P bends at the
+interface point at radius s = H tan(theta_a) with sin(theta_a) = n sin(theta_w). The apparent point P'
+is where the straight air ray through the interface point reaches depth d' below the plane.
+
+The unknown is alpha = tan(theta_a) / r (= s / (H r)), which stays finite at nadir (r = 0). With
+D = sqrt(n^2 + (n^2 - 1) r^2 alpha^2) one has tan(theta_w) = r alpha / D, and Snell's law plus the
+geometry H tan(theta_a) + d tan(theta_w) = r become
+
+    g(alpha) = alpha (H + d / D) - 1 = 0,      g'(alpha) = H + d n^2 / D^3 > 0.
+
+g is increasing and concave, so iterations started below the root climb towards it. Two lower bounds are
+known in closed form: the paraxial 1 / (H + d / n) and, since tan(theta_w) < 1 / sqrt(n^2 - 1),
+(r sqrt(n^2 - 1) - d) / (H r sqrt(n^2 - 1)) at grazing views; the solve starts from the larger one and
+takes Halley steps (Newton alone crawls through the knee where the water leg saturates, H << d ~ r),
+kept inside [lower bound, 1 / H].
+The apparent point (the paper's Eq. 5 rewritten in alpha) is
+
+    d' = d n^2 / D^3  (so z' = level - d'),   P'_xy = C_xy + rho v  with  rho = r'/r = alpha (H + d').
+
+At n = 1: D = 1, alpha = 1 / (H + d), d' = d, rho = 1. Gradients never pass through the solver loop: one
+final Newton step with a detached slope turns the solve into implicit differentiation, so gradients
+reach the points, the camera, the water level and n.
+"""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+
+SCALE_MODES = ("none", "isotropic", "determinant", "anisotropic")
+GAMMA = 2.2  # display gamma for the optional colour correction c' = n^(-2/gamma) c
 
 
 @dataclass(frozen=True)
 class WaterSurface:
-    """Horizontal water plane z = level (world metres) with refractive index n relative to air."""
+    """Horizontal water plane z = level (world metres) with refractive index n relative to air.
+
+    `level` and `n` may be 0-d tensors that require grad, for calibrating them.
+    """
 
     level: float = 0.0
     n: float = 1.33
 
     def __post_init__(self):
-        if not math.isfinite(self.level):
+        if not math.isfinite(float(self.level)):
             raise ValueError(f"water level must be finite, got {self.level}")
-        if not (math.isfinite(self.n) and self.n >= 1.0):
+        if not (math.isfinite(float(self.n)) and float(self.n) >= 1.0):
             raise ValueError(f"refractive index must be finite and >= 1, got {self.n}")
+
+    @property
+    def is_identity(self) -> bool:
+        """True when refraction is exactly the identity: n == 1 and nothing asks for its gradient."""
+        return float(self.n) == 1.0 and not (torch.is_tensor(self.n) and self.n.requires_grad)
+
+
+# Halley steps after the lower-bound start: measured over the stability domain (`ragsplat bench
+# refraction`), 3 steps reach float32 round-off and 4 reach float64 round-off.
+SOLVER_STEPS = {torch.float64: 4, torch.float32: 3, torch.float16: 2, torch.bfloat16: 2}
+
+
+def solve_alpha(r2, d, H, n, steps: int | None = None):
+    """Snell solve in alpha = tan(theta_a) / r. Broadcasts; r2 = r^2 [N], d > 0 [N], H > 0, n >= 1.
+
+    Returns alpha [N] carrying implicit-function gradients w.r.t. r2, d, H and n.
+    """
+    dtype = torch.result_type(r2, d)
+    steps = SOLVER_STEPS.get(dtype, 4) if steps is None else steps
+    n = torch.as_tensor(n, dtype=dtype, device=r2.device)
+    H = torch.as_tensor(H, dtype=dtype, device=r2.device)
+    with torch.no_grad():
+        r2_, d_, H_, n_ = r2.detach(), d.detach(), H.detach(), n.detach()
+        n2, m2 = n_ * n_, (n_ - 1) * (n_ + 1)  # not n^2 - 1: cancellation near n = 1
+        rm = torch.sqrt(r2_ * m2)  # r sqrt(n^2 - 1)
+        paraxial = 1 / (H_ + d_ / n_)
+        # Grazing bound; where r m <= d it is non-positive and the paraxial bound is the larger one.
+        grazing = (rm - d_) / (H_ * torch.clamp(rm, min=torch.finfo(dtype).tiny))
+        lower = torch.maximum(paraxial, grazing)
+        upper = 1 / H_  # the water leg only adds to the radius
+        alpha = lower
+        for _ in range(steps):
+            D = torch.sqrt(n2 + m2 * r2_ * alpha * alpha)
+            g = alpha * (H_ + d_ / D) - 1
+            g1 = H_ + d_ * n2 / D**3
+            g2 = -3 * d_ * n2 * m2 * r2_ * alpha / D**5
+            # Halley; g' > 0 and g'' <= 0 keep the denominator >= 2 g'^2 above the root, and the clamp
+            # guards the step from below.
+            den = torch.clamp(2 * g1 * g1 - g * g2, min=0.5 * g1 * g1)
+            alpha = torch.minimum(torch.maximum(alpha - 2 * g * g1 / den, lower), upper)
+        slope = H_ + d_ * n2 / torch.sqrt(n2 + m2 * r2_ * alpha * alpha) ** 3
+    # One tracked Newton step at the root: value unchanged to round-off, gradient = -dg/dx / g'.
+    D = torch.sqrt(n * n + (n - 1) * (n + 1) * r2 * alpha * alpha)
+    return alpha - (alpha * (H + d / D) - 1) / slope
+
+
+def apparent_offsets(r2, d, H, n, steps: int | None = None):
+    """(rho = r'/r, apparent depth d') for broadcast r2 [N], d [N], H, n. See the module docstring."""
+    alpha = solve_alpha(r2, d, H, n, steps)
+    D = torch.sqrt(n * n + (n - 1) * (n + 1) * r2 * alpha * alpha)
+    d_app = d * n * n / D**3
+    return alpha * (H + d_app), d_app
+
+
+class _Local(NamedTuple):
+    v: torch.Tensor  # [M, 2] horizontal offset from the camera nadir
+    r2: torch.Tensor  # [M]
+    d: torch.Tensor  # [M] true depth
+    H: torch.Tensor  # [] camera height
+    n: torch.Tensor  # []
+
+
+def _local(points, camera_center, water) -> _Local:
+    level = torch.as_tensor(water.level, dtype=points.dtype, device=points.device)
+    n = torch.as_tensor(water.n, dtype=points.dtype, device=points.device)
+    C = torch.as_tensor(camera_center, dtype=points.dtype, device=points.device)
+    v = points[:, :2] - C[:2]
+    return _Local(v, (v * v).sum(-1), level - points[:, 2], C[2] - level, n)
+
+
+def _check_camera(camera_center, water) -> None:
+    if not float(camera_center[2]) > float(water.level):
+        raise ValueError(f"camera centre z = {float(camera_center[2])} is not above the water level "
+                         f"{float(water.level)}: refraction needs the camera in air")
+
+
+def _submerged(points, water):  # [N] bool
+    return points[:, 2] < torch.as_tensor(water.level, dtype=points.dtype, device=points.device)
+
+
+def apparent_points(points, camera_center, water: WaterSurface, steps: int | None = None):
+    """True points [N, 3] -> apparent points [N, 3] seen from camera_center [3] through the water.
+
+    Points at or above the level are returned unchanged. Raises ValueError for a camera not above the level.
+    """
+    _check_camera(camera_center, water)
+    if water.is_identity:
+        return points.clone()
+    wet = _submerged(points, water)
+    loc = _local(points[wet], camera_center, water)
+    rho, d_app = apparent_offsets(loc.r2, loc.d, loc.H, loc.n, steps)
+    C = torch.as_tensor(camera_center, dtype=points.dtype, device=points.device)
+    moved = torch.cat([C[:2] + rho[:, None] * loc.v, (water.level - d_app)[:, None]], -1)
+    return points.index_put((wet,), moved)
+
+
+class _Derivatives(NamedTuple):
+    """rho, d' and their total derivatives w.r.t. r2 and d, for the submerged points [M]."""
+
+    rho: torch.Tensor
+    d_app: torch.Tensor
+    rho_r2: torch.Tensor
+    rho_d: torch.Tensor
+    dapp_r2: torch.Tensor
+    dapp_d: torch.Tensor
+
+
+def _derivatives(loc: _Local, steps: int | None) -> _Derivatives:
+    n2, m2 = loc.n * loc.n, (loc.n - 1) * (loc.n + 1)
+    alpha = solve_alpha(loc.r2, loc.d, loc.H, loc.n, steps)
+    D = torch.sqrt(n2 + m2 * loc.r2 * alpha * alpha)
+    D3 = D**3
+    d_app = loc.d * n2 / D3
+    slope = loc.H + d_app  # g'(alpha)
+    # Implicit derivatives of alpha from g(alpha; r2, d) = 0.
+    alpha_r2 = m2 * loc.d * alpha**3 / (2 * D3 * slope)
+    alpha_d = -alpha / (D * slope)
+    # dD/dx = dD/dalpha * dalpha/dx + explicit part (only r2 appears explicitly).
+    D_alpha = m2 * loc.r2 * alpha / D
+    D_r2 = m2 * alpha * alpha / (2 * D) + D_alpha * alpha_r2
+    D_d = D_alpha * alpha_d
+    dapp_r2 = -3 * d_app / D * D_r2
+    dapp_d = n2 / D3 - 3 * d_app / D * D_d
+    rho = alpha * slope
+    return _Derivatives(rho, d_app, alpha_r2 * slope + alpha * dapp_r2, alpha_d * slope + alpha * dapp_d,
+                        dapp_r2, dapp_d)
+
+
+def _jacobian(loc: _Local, der: _Derivatives):  # [M, 3, 3]
+    v = loc.v
+    top_left = der.rho[:, None, None] * torch.eye(2, dtype=v.dtype, device=v.device) \
+        + 2 * der.rho_r2[:, None, None] * v[:, :, None] * v[:, None, :]
+    top_right = -(v * der.rho_d[:, None])[:, :, None]  # d/dz = -d/dd
+    bottom_left = (-2 * der.dapp_r2[:, None] * v)[:, None, :]  # z' = level - d'
+    bottom_right = der.dapp_d[:, None, None]  # dz'/dz = dd'/dd
+    return torch.cat([torch.cat([top_left, top_right], 2), torch.cat([bottom_left, bottom_right], 2)], 1)
+
+
+def apparent_jacobian(points, camera_center, water: WaterSurface, steps: int | None = None):
+    """d apparent / d true [N, 3, 3] in world axes; identity for points at or above the level."""
+    _check_camera(camera_center, water)
+    N = points.shape[0]
+    J = torch.eye(3, dtype=points.dtype, device=points.device).expand(N, 3, 3).clone()
+    if water.is_identity:
+        return J
+    wet = _submerged(points, water)
+    loc = _local(points[wet], camera_center, water)
+    return J.index_put((wet,), _jacobian(loc, _derivatives(loc, steps)))
+
+
+def _column_norms(loc: _Local, der: _Derivatives):  # [M, 3]: |J e_x|, |J e_y|, |J e_z| without forming J
+    v2 = loc.v * loc.v
+    xy = der.rho**2 + (4 * der.rho * der.rho_r2 + 4 * der.rho_r2**2 * loc.r2 + 4 * der.dapp_r2**2)[:, None] * v2
+    z = loc.r2 * der.rho_d**2 + der.dapp_d**2
+    return torch.sqrt(torch.cat([xy, z[:, None]], -1))
+
+
+def _abs_det(loc: _Local, der: _Derivatives):  # [M]: tangential rho times the radial-vertical 2x2 block
+    j11 = der.rho + 2 * loc.r2 * der.rho_r2
+    return torch.abs(der.rho * (j11 * der.dapp_d - 2 * loc.r2 * der.rho_d * der.dapp_r2))
+
+
+def quat_to_rotmat(quats):  # [N, 4] wxyz, any norm -> [N, 3, 3]
+    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], -1).reshape(-1, 3, 3)
+
+
+def covariance(quats, scales):  # [N, 4], [N, 3] -> [N, 3, 3]
+    M = quat_to_rotmat(quats) * scales[:, None, :]
+    return M @ M.transpose(1, 2)
+
+
+class ApparentGaussians(NamedTuple):
+    means: torch.Tensor  # [N, 3]
+    scales: torch.Tensor  # [N, 3]
+    quats: torch.Tensor  # [N, 4]
+    opacities: torch.Tensor  # [N]
+    colors: torch.Tensor  # [N, ...]
+    covars: torch.Tensor | None  # [N, 3, 3] for scale="anisotropic", else None
+
+
+def refract_gaussians(means, scales, quats, opacities, colors, camera_center, water: WaterSurface,
+                      position: bool = True, scale: str = "isotropic", opacity: bool = True,
+                      color: bool = False, steps: int | None = None) -> ApparentGaussians:
+    """Map true Gaussians to the apparent ones one camera sees through the water (RA-GS, per view).
+
+    means [N, 3], scales [N, 3] (linear), quats [N, 4] (wxyz), opacities [N] in [0, 1], colors [N, ...]
+    (linear factors apply to every channel), camera_center [3]. Only Gaussians whose centre is below the
+    level change. `scale`: "none"; "isotropic" (the paper: s' = S s, S = (|J e_x| |J e_y| |J e_z|)^(1/3));
+    "determinant" (S = |det J|^(1/3)); "anisotropic" (covars = J Sigma J^T, scales left as given).
+    Opacity: alpha' = alpha / n^2. Colour: c' = n^(-2/gamma) c.
+    """
+    if scale not in SCALE_MODES:
+        raise ValueError(f"scale must be one of {SCALE_MODES}, got {scale!r}")
+    _check_camera(camera_center, water)
+    covars = covariance(quats, scales) if scale == "anisotropic" else None
+    if water.is_identity or not (position or opacity or color or scale != "none"):
+        return ApparentGaussians(means, scales, quats, opacities, colors, covars)
+    wet = _submerged(means, water)
+    all_wet = bool(wet.all())
+
+    def put(full, part):  # writes the submerged rows; skips the scatter when every Gaussian is submerged
+        return part if all_wet else full.index_put((wet,), part)
+
+    def take(full):
+        return full if all_wet else full[wet]
+
+    if position or scale != "none":
+        loc = _local(take(means), camera_center, water)
+        der = _derivatives(loc, steps) if scale != "none" else None
+        if position:
+            rho, d_app = (der.rho, der.d_app) if der else apparent_offsets(loc.r2, loc.d, loc.H, loc.n, steps)
+            C = torch.as_tensor(camera_center, dtype=means.dtype, device=means.device)
+            means = put(means, torch.cat([C[:2] + rho[:, None] * loc.v, (water.level - d_app)[:, None]], -1))
+        if scale in ("isotropic", "determinant"):
+            factor = (_column_norms(loc, der).prod(-1) if scale == "isotropic" else _abs_det(loc, der)) ** (1 / 3)
+            scales = put(scales, take(scales) * factor[:, None])
+        elif scale == "anisotropic":
+            J = _jacobian(loc, der)
+            covars = put(covars, J @ take(covars) @ J.transpose(1, 2))
+    n2 = torch.as_tensor(water.n, dtype=means.dtype, device=means.device) ** 2
+    if opacity:
+        opacities = put(opacities, take(opacities) / n2)
+    if color:
+        colors = put(colors, take(colors) * n2 ** (-1 / GAMMA))
+    return ApparentGaussians(means, scales, quats, opacities, colors, covars)
