@@ -48,15 +48,19 @@ class WaterSurface:
     n: float = 1.33
 
     def __post_init__(self):
-        if not math.isfinite(float(self.level)):
+        if not math.isfinite(_value(self.level)):
             raise ValueError(f"water level must be finite, got {self.level}")
-        if not (math.isfinite(float(self.n)) and float(self.n) >= 1.0):
+        if not (math.isfinite(_value(self.n)) and _value(self.n) >= 1.0):
             raise ValueError(f"refractive index must be finite and >= 1, got {self.n}")
 
     @property
     def is_identity(self) -> bool:
         """True when refraction is exactly the identity: n == 1 and nothing asks for its gradient."""
-        return float(self.n) == 1.0 and not (torch.is_tensor(self.n) and self.n.requires_grad)
+        return _value(self.n) == 1.0 and not (torch.is_tensor(self.n) and self.n.requires_grad)
+
+
+def _value(x) -> float:
+    return float(x.detach()) if torch.is_tensor(x) else float(x)
 
 
 # Halley steps after the lower-bound start: measured over the stability domain (`ragsplat bench
@@ -123,9 +127,9 @@ def _local(points, camera_center, water) -> _Local:
 
 
 def _check_camera(camera_center, water) -> None:
-    if not float(camera_center[2]) > float(water.level):
-        raise ValueError(f"camera centre z = {float(camera_center[2])} is not above the water level "
-                         f"{float(water.level)}: refraction needs the camera in air")
+    if not _value(camera_center[2]) > _value(water.level):
+        raise ValueError(f"camera centre z = {_value(camera_center[2])} is not above the water level "
+                         f"{_value(water.level)}: refraction needs the camera in air")
 
 
 def _submerged(points, water):  # [N] bool
@@ -204,7 +208,7 @@ def apparent_jacobian(points, camera_center, water: WaterSurface, steps: int | N
 
 def _column_norms(loc: _Local, der: _Derivatives):  # [M, 3]: |J e_x|, |J e_y|, |J e_z| without forming J
     v2 = loc.v * loc.v
-    xy = der.rho**2 + (4 * der.rho * der.rho_r2 + 4 * der.rho_r2**2 * loc.r2 + 4 * der.dapp_r2**2)[:, None] * v2
+    xy = der.rho[:, None] ** 2 + (4 * der.rho * der.rho_r2 + 4 * der.rho_r2**2 * loc.r2 + 4 * der.dapp_r2**2)[:, None] * v2
     z = loc.r2 * der.rho_d**2 + der.dapp_d**2
     return torch.sqrt(torch.cat([xy, z[:, None]], -1))
 

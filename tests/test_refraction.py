@@ -1,0 +1,259 @@
+"""Refraction transform, tested from physics (Snell's law, geometry) rather than from its own formulas."""
+
+import math
+
+import pytest
+import torch
+
+from ragsplat_core.refraction import (
+    WaterSurface,
+    apparent_jacobian,
+    apparent_points,
+    covariance,
+    refract_gaussians,
+)
+
+f64 = torch.float64
+CAM = torch.tensor([1.0, -2.0, 30.0], dtype=f64)
+WATER = WaterSurface(level=0.5, n=1.33)
+
+
+def random_points(n=200, seed=0, depth=(0.01, 20.0), radius=60.0):
+    g = torch.Generator().manual_seed(seed)
+    xy = (torch.rand(n, 2, generator=g, dtype=f64) - 0.5) * 2 * radius
+    z = WATER.level - (depth[0] + torch.rand(n, generator=g, dtype=f64) * (depth[1] - depth[0]))
+    return torch.cat([xy, z[:, None]], -1)
+
+
+def point_from_air_angle(theta_a_deg, d, H, n, azimuth=0.7, cam=CAM, level=WATER.level):
+    """True point whose refracted ray leaves the water at air angle theta_a (built forwards by Snell)."""
+    ta = math.radians(theta_a_deg)
+    tw = math.asin(math.sin(ta) / n)
+    r = H * math.tan(ta) + d * math.tan(tw)
+    return torch.tensor([[cam[0] + r * math.cos(azimuth), cam[1] + r * math.sin(azimuth), level - d]], dtype=f64)
+
+
+def test_normal_incidence_does_not_bend():
+    p = torch.tensor([[CAM[0], CAM[1], WATER.level - 4.0]], dtype=f64)
+    q = apparent_points(p, CAM, WATER)
+    assert q[0, 0] == CAM[0] and q[0, 1] == CAM[1]
+    assert float(q[0, 2]) == pytest.approx(WATER.level - 4.0 / WATER.n, rel=0, abs=1e-14)
+
+
+@pytest.mark.parametrize("theta_a", [5.0, 30.0, 60.0, 85.0])
+def test_snell_holds_and_apparent_point_is_on_the_air_ray(theta_a):
+    H = float(CAM[2]) - WATER.level
+    d = 7.0
+    p = point_from_air_angle(theta_a, d, H, WATER.n)
+    q = apparent_points(p, CAM, WATER)[0]
+    # The air ray from the camera through the apparent point must meet the plane at the radius built above.
+    to_q = q - CAM
+    t = (WATER.level - CAM[2]) / to_q[2]
+    hit = CAM + t * to_q
+    s_expected = H * math.tan(math.radians(theta_a))
+    assert float(torch.linalg.norm(hit[:2] - CAM[:2])) == pytest.approx(s_expected, rel=1e-12)
+    # Snell's law at that interface point, from the two legs' directions.
+    air = (hit - CAM) / torch.linalg.norm(hit - CAM)
+    wet = (p[0] - hit) / torch.linalg.norm(p[0] - hit)
+    sin_a = float(torch.linalg.norm(air[:2]))
+    sin_w = float(torch.linalg.norm(wet[:2]))
+    assert sin_a == pytest.approx(WATER.n * sin_w, rel=1e-12)
+    assert sin_a == pytest.approx(math.sin(math.radians(theta_a)), rel=1e-12)
+    # The three legs lie in one vertical plane through the camera nadir (azimuth preserved).
+    assert float(torch.atan2(q[1] - CAM[1], q[0] - CAM[0])) == pytest.approx(0.7, abs=1e-12)
+
+
+def test_paper_closed_form_apparent_position():
+    # Eq. 5: r' = r + (n^2 - 1) z tan^3(theta_w), z' = (1/n) (cos ta / cos tw)^3 z (z relative to the level).
+    H, d, n = float(CAM[2]) - WATER.level, 3.0, WATER.n
+    ta = math.radians(40.0)
+    tw = math.asin(math.sin(ta) / n)
+    p = point_from_air_angle(40.0, d, H, n)
+    q = apparent_points(p, CAM, WATER)[0]
+    r = H * math.tan(ta) + d * math.tan(tw)
+    r_app = r + (n * n - 1) * (-d) * math.tan(tw) ** 3
+    z_app = (math.cos(ta) / math.cos(tw)) ** 3 * (-d) / n
+    assert float(torch.linalg.norm(q[:2] - CAM[:2])) == pytest.approx(r_app, rel=1e-12)
+    assert float(q[2]) - WATER.level == pytest.approx(z_app, rel=1e-12)
+
+
+def test_apparent_is_closer_to_nadir_and_shallower():
+    p = random_points()
+    q = apparent_points(p, CAM, WATER)
+    r = torch.linalg.norm(p[:, :2] - CAM[:2], dim=1)
+    r_app = torch.linalg.norm(q[:, :2] - CAM[:2], dim=1)
+    assert bool((r_app < r).all())
+    assert bool(((WATER.level - q[:, 2]) < (WATER.level - p[:, 2])).all())
+    assert bool(((WATER.level - q[:, 2]) > 0).all())
+
+
+def test_n_one_is_exact_identity():
+    water = WaterSurface(level=0.5, n=1.0)
+    p = random_points()
+    assert torch.equal(apparent_points(p, CAM, water), p)
+    assert torch.equal(apparent_jacobian(p, CAM, water), torch.eye(3, dtype=f64).expand(len(p), 3, 3))
+    out = refract_gaussians(p, torch.ones_like(p), torch.tensor([[1.0, 0, 0, 0]]).expand(len(p), 4),
+                            torch.full((len(p),), 0.5), torch.rand(len(p), 3), CAM, water, color=True)
+    assert torch.equal(out.means, p) and torch.equal(out.opacities, torch.full((len(p),), 0.5))
+
+
+def test_n_one_as_tensor_is_identity_to_round_off():
+    # A calibrated n keeps its gradient path; at n = 1 the formulas themselves collapse to the identity.
+    n = torch.tensor(1.0, dtype=f64, requires_grad=True)
+    p = random_points()
+    q = apparent_points(p, CAM, WaterSurface(level=0.5, n=n))
+    torch.testing.assert_close(q, p, rtol=1e-13, atol=1e-12)
+
+
+def test_above_water_untouched():
+    p = torch.tensor([[3.0, 1.0, 0.6], [3.0, 1.0, 0.5], [3.0, 1.0, 0.2]], dtype=f64)  # above, on, below
+    q = apparent_points(p, CAM, WATER)
+    assert torch.equal(q[:2], p[:2]) and not torch.equal(q[2], p[2])
+    J = apparent_jacobian(p, CAM, WATER)
+    assert torch.equal(J[:2], torch.eye(3, dtype=f64).expand(2, 3, 3))
+    out = refract_gaussians(p, torch.ones(3, 3, dtype=f64), torch.tensor([[1.0, 0, 0, 0]], dtype=f64).expand(3, 4),
+                            torch.full((3,), 0.8, dtype=f64), torch.ones(3, 3, dtype=f64), CAM, WATER, color=True)
+    assert torch.equal(out.means[:2], p[:2]) and torch.equal(out.scales[:2], torch.ones(2, 3, dtype=f64))
+    assert torch.equal(out.opacities[:2], torch.full((2,), 0.8, dtype=f64))
+    assert float(out.opacities[2]) == pytest.approx(0.8 / 1.33**2)
+    assert torch.equal(out.colors[:2], torch.ones(2, 3, dtype=f64))
+    torch.testing.assert_close(out.colors[2], torch.full((3,), 1.33 ** (-2 / 2.2), dtype=f64))
+
+
+def test_camera_not_above_water_raises():
+    p = random_points(5)
+    for z in (0.5, 0.0):
+        with pytest.raises(ValueError, match="not above the water"):
+            apparent_points(p, torch.tensor([0.0, 0.0, z], dtype=f64), WATER)
+
+
+def central_difference_jacobian(p, cam, water, h=1e-6):
+    cols = []
+    for k in range(3):
+        e = torch.zeros(3, dtype=f64)
+        e[k] = h
+        cols.append((apparent_points(p + e, cam, water) - apparent_points(p - e, cam, water)) / (2 * h))
+    return torch.stack(cols, -1)
+
+
+EXTREME = [  # (label, points, camera) spanning the stiff regimes
+    ("typical", random_points(50, seed=1), CAM),
+    ("near nadir", torch.tensor([[1.0 + 1e-7, -2.0, -5.0], [1.0, -2.0 + 1e-3, -9.0]], dtype=f64), CAM),
+    ("near surface", torch.tensor([[5.0, 3.0, 0.5 - 1e-3], [40.0, 3.0, 0.5 - 1e-2]], dtype=f64), CAM),
+    ("grazing", torch.tensor([[900.0, -2.0, -20.0], [600.0, 400.0, -3.0]], dtype=f64), CAM),
+    ("low camera", torch.tensor([[20.0, 0.0, -10.0], [0.5, 0.2, -1.0]], dtype=f64),
+     torch.tensor([0.0, 0.0, 0.6], dtype=f64)),
+    ("deep", torch.tensor([[10.0, 5.0, -99.0], [100.0, 0.0, -80.0]], dtype=f64), CAM),
+]
+
+
+@pytest.mark.parametrize("label,p,cam", EXTREME, ids=[e[0] for e in EXTREME])
+def test_jacobian_matches_central_differences(label, p, cam):
+    J = apparent_jacobian(p, cam, WATER)
+    fd = central_difference_jacobian(p, cam, WATER)
+    scale = J.abs().amax(dim=(1, 2), keepdim=True)
+    assert float(((J - fd).abs() / scale).max()) < 1e-6
+
+
+def test_jacobian_matches_paper_eq6_lifted_to_3d():
+    H, d, n = float(CAM[2]) - WATER.level, 6.0, WATER.n
+    for theta_a in (10.0, 35.0, 70.0):
+        p = point_from_air_angle(theta_a, d, H, n, azimuth=0.0)  # radial direction = world x
+        ta = math.radians(theta_a)
+        tw = math.asin(math.sin(ta) / n)
+        z = -d
+        r = H * math.tan(ta) + d * math.tan(tw)
+        z_app = (math.cos(ta) / math.cos(tw)) ** 3 * z / n
+        r_app = r + (n * n - 1) * z * math.tan(tw) ** 3
+        sec2 = 1 / math.cos(tw) ** 2
+        delta = n * H * math.cos(tw) / math.cos(ta) ** 3 - z * sec2
+        bracket = 1 - n * n * math.cos(tw) ** 2 / math.cos(ta) ** 2
+        j11 = 1 + 3 * (n * n - 1) * z * math.tan(tw) ** 2 * sec2 / delta
+        j12 = (n * n - 1) * math.tan(tw) ** 3 * (1 + 3 * z * sec2 / delta)
+        j21 = 3 * z_app * math.tan(tw) / delta * bracket
+        j22 = z_app / z + 3 * z_app * math.tan(tw) ** 2 / delta * bracket
+        expected = torch.tensor([[j11, 0, j12], [0, r_app / r, 0], [j21, 0, j22]], dtype=f64)
+        torch.testing.assert_close(apparent_jacobian(p, CAM, WATER)[0], expected, rtol=1e-10, atol=1e-12)
+
+
+def test_gradients_finite_at_nadir_and_n_one():
+    for n in (1.33, 1.0):
+        n_t = torch.tensor(n, dtype=f64, requires_grad=True)
+        level = torch.tensor(0.5, dtype=f64, requires_grad=True)
+        water = WaterSurface(level=level, n=n_t)
+        p = torch.tensor([[1.0, -2.0, -5.0], [1.0, -2.0, 0.5 - 1e-4]], dtype=f64, requires_grad=True)
+        scales = torch.full((2, 3), 0.1, dtype=f64, requires_grad=True)
+        out = refract_gaussians(p, scales, torch.tensor([[1.0, 0.2, 0, 0]], dtype=f64).expand(2, 4),
+                                torch.full((2,), 0.5, dtype=f64), torch.ones(2, 3, dtype=f64), CAM, water)
+        (out.means.sum() + out.scales.sum() + out.opacities.sum()).backward()
+        for g in (p.grad, scales.grad, n_t.grad, level.grad):
+            assert g is not None and bool(torch.isfinite(g).all())
+
+
+def test_gradcheck_typical_and_extreme():
+    for label, p, cam in EXTREME:
+        p = p[:2].clone().requires_grad_(True)
+        n = torch.tensor(1.33, dtype=f64, requires_grad=True)
+        level = torch.tensor(0.5, dtype=f64, requires_grad=True)
+        cam_t = cam.clone().requires_grad_(True)
+
+        def f(p, n, level, cam_t):
+            return apparent_points(p, cam_t, WaterSurface(level=level, n=n))
+
+        assert torch.autograd.gradcheck(f, (p, n, level, cam_t), eps=1e-7, atol=1e-6, rtol=1e-5), label
+
+        def g(p, n):
+            q = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=f64).expand(len(p), 4)
+            out = refract_gaussians(p, torch.full_like(p, 0.2), q, torch.full((len(p),), 0.5, dtype=f64),
+                                    torch.ones_like(p), cam, WaterSurface(level=0.5, n=n))
+            return out.means, out.scales, out.opacities
+
+        assert torch.autograd.gradcheck(g, (p, n), eps=1e-7, atol=1e-6, rtol=1e-5), label
+
+
+def test_scale_modes_at_nadir_by_hand():
+    # At nadir the map is locally diag(1, 1, 1/n): horizontal unchanged, vertical compressed by n.
+    n = WATER.n
+    p = torch.tensor([[CAM[0], CAM[1], -3.0]], dtype=f64)
+    torch.testing.assert_close(apparent_jacobian(p, CAM, WATER)[0], torch.diag(torch.tensor([1, 1, 1 / n], dtype=f64)))
+    args = (p, torch.full((1, 3), 0.2, dtype=f64), torch.tensor([[1.0, 0, 0, 0]], dtype=f64),
+            torch.full((1,), 0.5, dtype=f64), torch.ones(1, 3, dtype=f64), CAM, WATER)
+    none = refract_gaussians(*args, scale="none")
+    iso = refract_gaussians(*args, scale="isotropic")
+    det = refract_gaussians(*args, scale="determinant")
+    ani = refract_gaussians(*args, scale="anisotropic")
+    assert torch.equal(none.scales, args[1]) and none.covars is None
+    torch.testing.assert_close(iso.scales, torch.full((1, 3), 0.2 * n ** (-1 / 3), dtype=f64))
+    torch.testing.assert_close(det.scales, torch.full((1, 3), 0.2 * n ** (-1 / 3), dtype=f64))
+    torch.testing.assert_close(ani.covars[0], torch.diag(torch.tensor([0.04, 0.04, 0.04 / n**2], dtype=f64)))
+    torch.testing.assert_close(ani.scales, args[1])
+
+
+def test_scale_modes_off_nadir_match_jacobian():
+    p = random_points(20, seed=3)
+    J = apparent_jacobian(p, CAM, WATER)
+    quats = torch.nn.functional.normalize(torch.randn(20, 4, dtype=f64), dim=-1)
+    scales = torch.rand(20, 3, dtype=f64) + 0.1
+    args = (p, scales, quats, torch.full((20,), 0.5, dtype=f64), torch.ones(20, 3, dtype=f64), CAM, WATER)
+    iso = refract_gaussians(*args, scale="isotropic")
+    det = refract_gaussians(*args, scale="determinant")
+    ani = refract_gaussians(*args, scale="anisotropic")
+    torch.testing.assert_close(iso.scales, scales * torch.linalg.norm(J, dim=1).prod(-1, keepdim=True) ** (1 / 3))
+    torch.testing.assert_close(det.scales, scales * torch.linalg.det(J).abs()[:, None] ** (1 / 3))
+    torch.testing.assert_close(ani.covars, J @ covariance(quats, scales) @ J.transpose(1, 2))
+    # The paper's observation: the determinant shrinks more than the geometric mean of axis stretches.
+    assert bool((det.scales <= iso.scales + 1e-12).all())
+
+
+def test_unknown_scale_mode_raises():
+    p = random_points(2)
+    with pytest.raises(ValueError, match="scale must be"):
+        refract_gaussians(p, p, p, p[:, 0], p, CAM, WATER, scale="sphere")
+
+
+def test_float32_close_to_float64():
+    p = random_points(500, seed=5)
+    q64 = apparent_points(p, CAM, WATER)
+    q32 = apparent_points(p.float(), CAM.float(), WATER)
+    dist = torch.linalg.norm(p - CAM, dim=1)
+    assert float((torch.linalg.norm(q32.double() - q64, dim=1) / dist).max()) < 2e-6
