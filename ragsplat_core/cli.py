@@ -11,7 +11,10 @@ import importlib
 import sys
 
 # name -> (module, one-line help). A subcommand is listed only once it does real work.
-COMMANDS: dict[str, tuple[str, str]] = {}
+COMMANDS: dict[str, tuple[str, str]] = {
+    "stability": ("ragsplat_core.stability", "numerical stability report of the refraction transform"),
+    "bench": ("ragsplat_core.bench", "benchmarks: refraction solvers, rasterizer, training step"),
+    "dataset": ("datagen.cli", "render the synthetic riverbed dataset (Blender Cycles, resumable, shardable)"),}
 
 
 class UsageError(Exception):
