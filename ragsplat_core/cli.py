@@ -14,7 +14,9 @@ import sys
 COMMANDS: dict[str, tuple[str, str]] = {
     "stability": ("ragsplat_core.stability", "numerical stability report of the refraction transform"),
     "bench": ("ragsplat_core.bench", "benchmarks: refraction solvers, rasterizer, training step"),
-    "dataset": ("datagen.cli", "render the synthetic riverbed dataset (Blender Cycles, resumable, shardable)"),}
+    "dataset": ("datagen.cli", "render the synthetic riverbed dataset (Blender Cycles, resumable, shardable)"),
+    "ablation": ("eval.ablation", "train every variant, evaluate, and print Tables 1 and 2 beside the paper's"),
+    "train": ("ragsplat_core.train_cli", "train one RA-GS variant on a dataset directory (resumable)"),}
 
 
 class UsageError(Exception):

@@ -1,0 +1,244 @@
+"""Generate a dataset: bed assets, Blender job, one render process, resume/shard, metadata merge.
+
+`generate(spec, out, shard=(i, N))` is idempotent: it writes what is missing and never deletes. Views are
+split round-robin between shards (view k belongs to shard k mod N); whichever run finds every file present
+writes the merged metadata (transforms.json, COLMAP model, scene.json).
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from datagen import flight, layout
+from datagen.bed import Bed, ground_truth_grid, make_bed, mesh, write_ply
+from datagen.spec import SceneSpec, validate
+from ragsplat_core.camera import Camera
+
+FAR = 2000.0  # half-size (m) of the floor and water planes: beyond every view's horizon-free field
+
+
+class DatasetError(Exception):
+    """Bad input (not a bug): one line for the user, nothing deleted."""
+
+
+@dataclass
+class RenderStats:
+    images: int = 0
+    build_s: float = 0.0  # Blender start-up to scene ready (bed mesh, materials, device)
+    render_s: float = 0.0  # inside bpy.ops.render.render: Cycles sync + path tracing + Blender's file write
+    device: str = ""
+    events: list[dict] = field(default_factory=list)
+
+
+def passes_for(spec: SceneSpec) -> tuple[str, ...]:
+    return layout.PASSES if spec.water is not None else ("dry", "depth")
+
+
+def radiance_factor(spec: SceneSpec) -> float:
+    """Colour of the refraction BSDF: 1/n^2 (etendue: L_air = L_water / n^2) or 1 when switched off."""
+    w = spec.water
+    return 1.0 / w.n**2 if (w is not None and w.radiance_scale) else 1.0
+
+
+def _prepare_out(spec: SceneSpec, out: Path) -> None:
+    """Create `out` or check it holds this very spec; refuse anything else (nothing is ever deleted)."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise DatasetError(f"cannot create output directory {out}: {err.strerror}") from None
+    if not out.is_dir() or not os.access(out, os.W_OK | os.X_OK):
+        raise DatasetError(f"output directory {out} is not writable")
+    saved = out / "scene" / "spec.json"
+    if saved.exists():
+        if json.loads(saved.read_text()) != json.loads(json.dumps(spec.to_dict())):  # tuples -> lists
+            raise DatasetError(f"{out} holds a dataset made with another spec or seed "
+                               f"(see {saved}); choose another --out")
+    elif any(out.iterdir()):
+        raise DatasetError(f"{out} is not empty and holds no ragsplat dataset; choose an empty or new --out")
+    (out / "scene").mkdir(exist_ok=True)
+    (out / "gt").mkdir(exist_ok=True)
+    layout.write_json(saved, spec.to_dict())
+
+
+def _geometry(spec: SceneSpec, bed: Bed) -> dict[str, np.ndarray]:
+    """Everything Blender meshes: bed, the floor frame around it, the water plane (arrays for the npz)."""
+    size = bed.heights.shape[0] * bed.texel  # the albedo image's period (m)
+
+    def uv(xy):  # texel i's centre is at x0 + i * texel
+        return (np.asarray(xy)[:, :2] - bed.x0 + bed.texel / 2) / size
+
+    verts, tris = mesh(bed)
+    geo = {"bed_verts": verts, "bed_tris": tris, "bed_uv": uv(verts)}
+    # Floor: a flat frame at the bed's border height from one cell inside the border out to FAR, so no
+    # crack can open at the seam (the overlap is coplanar and carries the same texture).
+    a, f, z = bed.x0 + bed.cell, FAR, bed.z0
+    b = bed.x0 + bed.extent - bed.cell
+    fv = np.array([[a, a, z], [b, a, z], [b, b, z], [a, b, z], [-f, -f, z], [f, -f, z], [f, f, z], [-f, f, z]])
+    ft = np.array([[4, 5, 1], [4, 1, 0], [5, 6, 2], [5, 2, 1], [6, 7, 3], [6, 3, 2], [7, 4, 0], [7, 0, 3]])
+    geo.update(floor_verts=fv, floor_tris=ft, floor_uv=uv(fv))
+    if spec.water is not None:
+        lv = spec.water.level
+        geo.update(water_verts=np.array([[-f, -f, lv], [f, -f, lv], [f, f, lv], [-f, f, lv]]),
+                   water_tris=np.array([[0, 1, 2], [0, 2, 3]]))  # counter-clockwise: normal +Z
+    return geo
+
+
+def _write_bed_assets(spec: SceneSpec, out: Path) -> None:
+    """Heightfield-derived files, each written once (atomically) and reused by later runs and shards."""
+    files = [out / "scene" / "geometry.npz", out / "scene" / "albedo.png", out / "gt" / "bed.ply",
+             out / "gt" / "bed_grid.npy"]
+    if all(p.exists() for p in files):
+        return
+    bed = make_bed(spec)
+    geo = _geometry(spec, bed)
+    tmp = layout.temp_path(files[0])
+    with open(tmp, "wb") as fh:
+        np.savez(fh, **geo)
+    os.replace(tmp, files[0])
+    # Blender reads images bottom row first: flip so that texel row j (y index) is at v = (j + 0.5) / M.
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(bed.albedo[::-1, :, ::-1]))  # cv2 wants BGR
+    if not ok:
+        raise RuntimeError("PNG encoding of the albedo texture failed")
+    layout.write_atomic(files[1], png.tobytes())
+    tmp = layout.temp_path(files[2])
+    write_ply(tmp, geo["bed_verts"], geo["bed_tris"])
+    os.replace(tmp, files[2])
+    layout.write_npy(files[3], ground_truth_grid(bed, flight.eval_region(spec)))
+
+
+def run_blender(job: dict, workdir: Path, progress=None) -> RenderStats:
+    """Render `job` in one Blender (bpy) process; `progress(event)` is called after each finished image."""
+    jobfile = workdir / f"job.{os.getpid()}.json"
+    layout.write_json(jobfile, job)
+    stats = RenderStats()
+    with open(workdir / "blender.log", "a") as log:
+        proc = subprocess.Popen([sys.executable, "-m", "blender_scenes.render", str(jobfile)],
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+        for line in proc.stdout:
+            if not line.startswith("@@ragsplat "):
+                log.write(line)
+                continue
+            event = json.loads(line.removeprefix("@@ragsplat "))
+            stats.events.append(event)
+            if event["event"] == "ready":
+                stats.device, stats.build_s = event["device"], event["build_s"]
+            else:
+                stats.images += 1
+                stats.render_s += event["render_s"]
+                if progress is not None:
+                    progress(event)
+        code = proc.wait()
+    jobfile.unlink()
+    if code != 0:
+        raise RuntimeError(f"Blender render process failed (exit {code}); see {workdir / 'blender.log'}")
+    return stats
+
+
+def _job(spec: SceneSpec, out: Path, cam: Camera, tasks: list[dict]) -> dict:
+    texture = {"kind": "texture", "image": str(out / "scene" / "albedo.png")}
+    objects = [{"name": "bed", "material": texture}, {"name": "floor", "material": texture}]
+    if spec.water is not None:
+        objects.append({"name": "water", "material": {"kind": "refraction", "ior": spec.water.n,
+                                                      "color": radiance_factor(spec)}})
+    r = spec.render
+    return {
+        "geometry": str(out / "scene" / "geometry.npz"),
+        "objects": objects,
+        "water": "water" if spec.water is not None else None,
+        "light": vars(spec.light),
+        "render": {"samples": r.samples, "device": r.device, "threads": r.threads, "seed": spec.seed,
+                   "filter_width": r.filter_width, "depth_filter": r.depth_filter, "exposure": r.exposure},
+        "camera": {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
+                   "cy": cam.cy},
+        "tasks": tasks,
+    }
+
+
+def scene_metadata(spec: SceneSpec, poses) -> dict:
+    region = flight.eval_region(spec)
+    corners = np.array([[region[a], region[b]] for a in ("xmin", "xmax") for b in ("ymin", "ymax")])
+    return {
+        "spec": spec.to_dict(),
+        "seed": spec.seed,
+        "versions": {"ragsplat": importlib.metadata.version("ragsplat"), "bpy": importlib.metadata.version("bpy"),
+                     "numpy": np.__version__, "python": platform.python_version()},
+        "eval_region": region,
+        "water": None if spec.water is None else {"level": spec.water.level, "n": spec.water.n},
+        "radiance": {"refraction_color": radiance_factor(spec),
+                     "model": "1/n^2 (etendue)" if radiance_factor(spec) != 1.0 else "none"},
+        "flight": {"footprint_m": flight.footprint(spec), "spacing_m": flight.spacing(spec),
+                   "gsd_m": flight.gsd(spec), "nadir_views_at_eval_corners": int(
+                       flight.nadir_views_covering(spec, corners).min()),
+                   "train_views": sum(p.split == "train" for p in poses),
+                   "test_views": sum(p.split == "test" for p in poses)},
+        "passes": list(passes_for(spec)),
+        "depth": {"channel": layout.DEPTH_CHANNEL, "meaning": "z-depth (m) along the optical axis, dry scene",
+                  "no_hit": layout.NO_HIT},
+        "bed_grid_step_m": 0.05,
+    }
+
+
+def _merge(spec: SceneSpec, out: Path, poses) -> None:
+    kinds = passes_for(spec)
+    layout.write_json(out / "transforms.json", layout.transforms(poses, spec.water, kinds))
+    layout.write_colmap(out / "colmap" / "sparse" / "0", poses, "wet" if "wet" in kinds else "dry")
+    layout.write_json(out / "scene.json", scene_metadata(spec, poses))
+
+
+def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1), progress: bool = True) -> dict:
+    """Render the missing images of this shard, then merge metadata if the whole dataset is present."""
+    t0 = time.perf_counter()
+    validate(spec)
+    index, count = shard
+    out = Path(out)
+    _prepare_out(spec, out)
+    poses = flight.plan(spec)
+    _write_bed_assets(spec, out)
+    kinds = passes_for(spec)
+    mine = [p for k, p in enumerate(poses) if k % count == index]
+    tasks = [{"pass": kind, "name": p.name, "c2w_gl": p.camera.c2w_gl.tolist(),
+              "out": str(layout.output_path(out, kind, p.name))}
+             for kind in kinds for p in mine if not layout.output_path(out, kind, p.name).exists()]
+    stats = RenderStats()
+    if tasks:
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(tasks), unit="img", desc=f"{spec.preset}: {len(mine)} views x {len(kinds)}",
+                       file=sys.stderr)
+        stats = run_blender(_job(spec, out, poses[0].camera, tasks), out / "scene",
+                            progress=(lambda e: bar.update(1)) if bar else None)
+        if bar:
+            bar.close()
+    complete = all(layout.output_path(out, k, p.name).exists() for k in kinds for p in poses)
+    if complete:
+        _merge(spec, out, poses)
+    summary = {"rendered": stats.images, "skipped": len(mine) * len(kinds) - len(tasks),
+               "render_s": stats.render_s, "build_s": stats.build_s, "wall_s": time.perf_counter() - t0,
+               "device": stats.device,
+               "complete": complete, "views": len(poses), "gsd_m": flight.gsd(spec)}
+    if stats.images:
+        runs = out / "scene" / f"timing-{index}-{count}.json"  # one file per shard: no write races
+        history = json.loads(runs.read_text()) if runs.exists() else []
+        history.append({**summary, "shard": f"{index}/{count}",
+                        "per_image": [e for e in stats.events if e["event"] == "done"]})
+        layout.write_json(runs, history)
+    return summary
+
+
+def overhead_fraction(summary: dict) -> float:
+    """Time outside Cycles' render calls as a fraction of the time inside them."""
+    return (summary["wall_s"] - summary["render_s"]) / summary["render_s"] if summary["render_s"] else math.nan

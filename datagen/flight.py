@@ -1,0 +1,125 @@
+"""UAV flight plan: a pure function of the scene spec.
+
+Training views: a nadir grid whose spacing gives the spec's forward/side overlap of the footprints ON THE BED,
+plus oblique rings (one per tilt) at the spec's azimuth step, each aimed so that its refracted optical axis
+hits the scene centre on the mean bed plane. Held-out test views: nadirs between grid points and ring views
+at azimuths offset from the training ones.
+
+Refraction shrinks the footprint on the bed: a ray leaving the camera at angle a from the vertical continues
+under water at asin(sin(a) / n), so the half-footprint is h tan(a) + d tan(asin(sin(a) / n)) instead of the
+dry (h + d) tan(a). Using the dry footprint would overstate the overlap.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from datagen.spec import SceneSpec
+from ragsplat_core.camera import Camera
+
+
+@dataclass(frozen=True)
+class Pose:
+    name: str  # "0000": also the image file stem
+    kind: str  # "nadir" | "oblique20" | "oblique40" ...
+    split: str  # "train" | "test"
+    camera: Camera
+
+
+def ground_offset(angle: float, altitude: float, depth: float, n: float) -> float:
+    """Horizontal distance from the camera to where a ray at `angle` (rad from vertical) meets the bed."""
+    return altitude * math.tan(angle) + depth * math.tan(math.asin(math.sin(angle) / n))
+
+
+def footprint(spec: SceneSpec) -> float:
+    """Side (m) of a nadir view's footprint on the mean bed plane, measured along an image axis."""
+    f = spec.flight
+    return 2 * ground_offset(math.radians(f.fov_deg / 2), f.altitude, spec.bed.depth, spec.n)
+
+
+def spacing(spec: SceneSpec) -> float:
+    """Distance (m) between neighbouring nadir views for the spec's overlap (same forward and side)."""
+    return (1.0 - spec.flight.overlap) * footprint(spec)
+
+
+def gsd(spec: SceneSpec) -> float:
+    """Ground sample distance (m/px) on the mean bed at the centre of a nadir image.
+
+    d(ground offset)/d(tan a) at a = 0 is h + d / n: the bed looks d / n deep (paraxial apparent depth).
+    """
+    f = spec.flight
+    fx = Camera.intrinsics_from_fov(f.width, f.width, f.fov_deg)[0]
+    return (f.altitude + spec.bed.depth / spec.n) / fx
+
+
+def nadir_positions(spec: SceneSpec, between: bool = False) -> np.ndarray:
+    """Horizontal camera positions [K, 2] of the nadir grid (or of the midpoints between its points)."""
+    rows, cols = spec.flight.grid
+    if between:
+        rows, cols = rows - 1, cols - 1
+    s = spacing(spec)
+    xs = (np.arange(cols) - (cols - 1) / 2) * s
+    ys = (np.arange(rows) - (rows - 1) / 2) * s
+    gx, gy = np.meshgrid(xs, ys)  # row-major: a serpentine is not needed, order is only naming
+    return np.stack([gx.ravel(), gy.ravel()], -1)
+
+
+def eval_region(spec: SceneSpec) -> dict[str, float]:
+    """The bed region evaluated for geometry: the nadir grid's cells (every point seen by most nadirs)."""
+    rows, cols = spec.flight.grid
+    s = spacing(spec)
+    return {"xmin": -cols * s / 2, "xmax": cols * s / 2, "ymin": -rows * s / 2, "ymax": rows * s / 2}
+
+
+def nadir_views_covering(spec: SceneSpec, xy) -> np.ndarray:
+    """How many training nadirs see each bed point [N, 2] on the mean plane (square footprints)."""
+    half = footprint(spec) / 2
+    d = np.abs(np.asarray(xy, float)[:, None, :] - nadir_positions(spec)[None])  # [N, K, 2]
+    return np.all(d <= half, axis=-1).sum(-1)
+
+
+def _camera(spec: SceneSpec, eye, target, up) -> Camera:
+    f = spec.flight
+    return Camera.look_at(eye, target, f.width, f.width, f.fov_deg, up=up)
+
+
+def _nadir(spec: SceneSpec, xy) -> Camera:
+    z = spec.level + spec.flight.altitude
+    # Image up = world +y, so nadir images are north-up.
+    return _camera(spec, [xy[0], xy[1], z], [xy[0], xy[1], z - 1.0], (0.0, 1.0, 0.0))
+
+
+def _oblique(spec: SceneSpec, tilt_deg: float, azimuth_deg: float) -> Camera:
+    """Camera on the ring of `tilt_deg` whose refracted optical axis hits (0, 0, level - depth)."""
+    h = spec.flight.altitude
+    tilt, az = math.radians(tilt_deg), math.radians(azimuth_deg)
+    radius = ground_offset(tilt, h, spec.bed.depth, spec.n)
+    direction = np.array([math.cos(az), math.sin(az)])
+    eye = [*(radius * direction), spec.level + h]
+    # Aim at the point where the axis enters the water: h tan(tilt) from the camera, towards the centre.
+    target = [*((radius - h * math.tan(tilt)) * direction), spec.level]
+    return _camera(spec, eye, target, (0.0, 0.0, 1.0))
+
+
+def _azimuths(step: float, offset: float) -> list[float]:
+    return [offset + k * step for k in range(math.floor(360.0 / step + 1e-9))]
+
+
+def plan(spec: SceneSpec) -> list[Pose]:
+    """All poses, training first: nadir grid, oblique rings by tilt; then test nadirs and test rings."""
+    f = spec.flight
+    views: list[tuple[str, str, Camera]] = []
+    for xy in nadir_positions(spec):
+        views.append(("nadir", "train", _nadir(spec, xy)))
+    for tilt in f.tilts:
+        for az in _azimuths(f.azimuth_step, 0.0):
+            views.append((f"oblique{tilt:g}", "train", _oblique(spec, tilt, az)))
+    for xy in nadir_positions(spec, between=True):
+        views.append(("nadir", "test", _nadir(spec, xy)))
+    for tilt in f.tilts:
+        for az in _azimuths(f.test_azimuth_step, f.test_azimuth_offset):
+            views.append((f"oblique{tilt:g}", "test", _oblique(spec, tilt, az)))
+    return [Pose(f"{i:04d}", kind, split, cam) for i, (kind, split, cam) in enumerate(views)]

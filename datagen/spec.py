@@ -1,0 +1,173 @@
+"""Typed scene spec for the synthetic riverbed and its presets.
+
+A `SceneSpec` fully determines a dataset: with the same spec (seed included) the generator writes the same
+files. `preset(name)` gives the three sizes; `validate(spec)` raises `SpecError` (one line) for a spec that
+cannot make a bathymetric dataset. The resolved spec is written to `scene.json` by the generator.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, replace
+
+
+class SpecError(ValueError):
+    """A spec that cannot produce a dataset; the message is one line for the user."""
+
+
+@dataclass(frozen=True)
+class StoneClass:
+    radius: float  # m, mean horizontal semi-axis
+    density: float  # stones per square metre
+    height: float  # cap height as a fraction of the radius
+
+
+@dataclass(frozen=True)
+class BedSpec:
+    size: float = 40.0  # side of the square heightfield (m), centred on the world origin
+    cell: float = 0.025  # mesh vertex spacing (m); an integer multiple of texel
+    texel: float = 0.0125  # albedo texture pixel (m); the heightfield is built at this resolution
+    depth: float = 10.0  # mean depth of the bed below the water level (m)
+    undulation: float = 0.4  # amplitude (m) of the low-frequency relief
+    wavelength: float = 8.0  # shortest wavelength (m) in that relief
+    taper: float = 2.0  # border width (m) over which relief and stones fade into the flat floor
+    stones: tuple[StoneClass, ...] = (
+        StoneClass(0.30, 1.5, 0.5),
+        StoneClass(0.15, 6.0, 0.55),
+        StoneClass(0.07, 20.0, 0.6),
+    )
+
+
+@dataclass(frozen=True)
+class WaterSpec:
+    level: float = 0.0  # z of the flat water plane (m)
+    n: float = 1.33  # refractive index relative to air
+    radiance_scale: bool = True  # refraction colour 1/n^2 (Cycles does not apply the radiance drop itself)
+
+
+@dataclass(frozen=True)
+class FlightSpec:
+    width: int = 800  # image width = height (px): square images
+    fov_deg: float = 70.0  # horizontal field of view
+    altitude: float = 12.0  # flight height above the water level (m)
+    overlap: float = 0.85  # forward and side overlap of the nadir grid, on the bed
+    grid: tuple[int, int] = (4, 4)  # nadir rows (along y) x columns (along x)
+    tilts: tuple[float, ...] = (20.0, 40.0)  # oblique rings: optical axis angle from the vertical (deg)
+    azimuth_step: float = 10.0  # training azimuth step on each ring (deg)
+    test_azimuth_offset: float = 5.0  # held-out ring views sit between training azimuths
+    test_azimuth_step: float = 60.0  # held-out ring views every this many degrees
+
+
+@dataclass(frozen=True)
+class LightSpec:
+    sun_elevation: float = 55.0  # deg above the horizon
+    sun_azimuth: float = 30.0  # deg, counter-clockwise from +x
+    sun_strength: float = 3.0  # W/m^2 (Blender sun units)
+    sun_angle: float = 1.0  # angular diameter (deg): slightly soft shadows
+    sky_strength: float = 0.3  # sky texture multiplier
+
+
+@dataclass(frozen=True)
+class RenderSpec:
+    samples: int = 256  # Cycles samples per pixel for the colour passes
+    device: str = "auto"  # "CPU", "GPU" or "auto" (GPU when Cycles finds one)
+    threads: int = 0  # 0: all cores
+    filter_width: float = 1.5  # colour passes (px, Blackman-Harris)
+    depth_filter: float = 0.01  # depth pass: a near-point filter gives the exact surface at the pixel centre
+    exposure: float = 0.0  # stops
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    preset: str
+    seed: int = 0
+    bed: BedSpec = field(default_factory=BedSpec)
+    water: WaterSpec | None = field(default_factory=WaterSpec)
+    flight: FlightSpec = field(default_factory=FlightSpec)
+    light: LightSpec = field(default_factory=LightSpec)
+    render: RenderSpec = field(default_factory=RenderSpec)
+
+    @property
+    def level(self) -> float:
+        """Reference height: the water plane, or z = 0 for a dry scene."""
+        return self.water.level if self.water is not None else 0.0
+
+    @property
+    def n(self) -> float:
+        return self.water.n if self.water is not None else 1.0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> SceneSpec:
+        bed = dict(d["bed"])
+        bed["stones"] = tuple(StoneClass(**s) for s in bed["stones"])
+        flight = dict(d["flight"])
+        flight["grid"] = tuple(flight["grid"])
+        flight["tilts"] = tuple(flight["tilts"])
+        return cls(preset=d["preset"], seed=int(d["seed"]), bed=BedSpec(**bed),
+                   water=None if d["water"] is None else WaterSpec(**d["water"]),
+                   flight=FlightSpec(**flight), light=LightSpec(**d["light"]), render=RenderSpec(**d["render"]))
+
+
+# Presets. smoke: CI scale (seconds). small: the default of `make dataset`, about 10 min on 2 CPU cores.
+# paper: the paper's setup (800 x 800, 70 deg, about 90 training views, bed 10 m deep).
+PRESETS: dict[str, SceneSpec] = {
+    "smoke": SceneSpec(
+        preset="smoke",
+        bed=BedSpec(size=10.0, cell=0.05, texel=0.025, depth=2.0, undulation=0.1, wavelength=4.0, taper=0.5,
+                    stones=(StoneClass(0.25, 2.0, 0.5), StoneClass(0.12, 8.0, 0.55))),
+        flight=FlightSpec(width=64, altitude=3.0, grid=(2, 2), azimuth_step=90.0, test_azimuth_step=180.0),
+        render=RenderSpec(samples=16, device="CPU"),
+    ),
+    "small": SceneSpec(
+        preset="small",
+        bed=BedSpec(size=16.0, cell=0.02, texel=0.01, depth=3.0, undulation=0.15, wavelength=5.0, taper=1.0,
+                    stones=(StoneClass(0.20, 2.0, 0.5), StoneClass(0.10, 8.0, 0.55),
+                            StoneClass(0.05, 25.0, 0.6))),
+        flight=FlightSpec(width=256, altitude=4.0, grid=(3, 3), azimuth_step=10.0, test_azimuth_step=60.0),
+        render=RenderSpec(samples=32, device="CPU"),
+    ),
+    "paper": SceneSpec(preset="paper"),
+}
+
+
+def preset(name: str, seed: int | None = None) -> SceneSpec:
+    if name not in PRESETS:
+        raise SpecError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+    spec = PRESETS[name]
+    return spec if seed is None else replace(spec, seed=int(seed))
+
+
+def validate(spec: SceneSpec) -> None:
+    """Raise SpecError naming the first problem; a spec that passes can be planned and rendered."""
+    b, f, r = spec.bed, spec.flight, spec.render
+    if spec.water is not None and not (math.isfinite(spec.water.n) and spec.water.n >= 1.0):
+        raise SpecError(f"water refractive index must be finite and >= 1, got {spec.water.n}")
+    if not (f.altitude > 0 and math.isfinite(f.altitude)):
+        raise SpecError(f"camera under water: flight altitude {f.altitude} m must be above the water level")
+    if not (b.depth > 0 and math.isfinite(b.depth)):
+        raise SpecError(f"bed depth {b.depth} m must be positive (the bed lies below the water level)")
+    if b.undulation + max((s.radius * s.height for s in b.stones), default=0.0) >= b.depth:
+        raise SpecError("bed relief reaches the water surface: reduce undulation/stones or increase depth")
+    if not (0.0 < f.overlap < 1.0):
+        raise SpecError(f"overlap must be in (0, 1), got {f.overlap} (zero overlap leaves nothing to match)")
+    if not (0.0 < f.fov_deg < 180.0):
+        raise SpecError(f"field of view must be in (0, 180) degrees, got {f.fov_deg}")
+    if f.width < 8:
+        raise SpecError(f"image width must be at least 8 px, got {f.width}")
+    if min(f.grid) < 1:
+        raise SpecError(f"nadir grid must have at least 1 x 1 views, got {f.grid}")
+    if any(not (0.0 < t < 90.0 - f.fov_deg / 2) for t in f.tilts):
+        raise SpecError(f"oblique tilts {f.tilts} must be in (0, {90 - f.fov_deg / 2:g}) deg to stay below the horizon")
+    if not (0.0 < f.azimuth_step <= 360.0 and 0.0 < f.test_azimuth_step <= 360.0):
+        raise SpecError("azimuth steps must be in (0, 360] degrees")
+    if b.texel <= 0 or b.cell <= 0 or abs(b.cell / b.texel - round(b.cell / b.texel)) > 1e-9:
+        raise SpecError(f"bed cell {b.cell} must be a positive integer multiple of texel {b.texel}")
+    if b.taper < 2 * b.cell or 2 * b.taper >= b.size:
+        raise SpecError(f"bed taper {b.taper} m must be at least two cells and less than half the bed size")
+    if r.samples < 1 or r.device not in ("CPU", "GPU", "auto") or r.threads < 0:
+        raise SpecError(f"bad render settings: samples {r.samples}, device {r.device!r}, threads {r.threads}")
+    if not (r.filter_width > 0 and r.depth_filter > 0):
+        raise SpecError("pixel filter widths must be positive")

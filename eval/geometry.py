@@ -1,0 +1,208 @@
+"""Geometry for Table 2: a bed height grid extracted from trained Gaussians, scored against the GT grid.
+
+Extraction (the paper's Section 3, "Geometry Extraction"):
+1. cull Gaussians below an opacity threshold (and, when a region is given, those whose centre lies more
+   than `region_margin` outside it: samples spent far away say nothing about the bed);
+2. draw `n_samples` points, split between Gaussians in proportion to their volume (product of the three
+   standard deviations) with largest-remainder rounding, so the total is exact; each point is a draw of the
+   Gaussian truncated to Mahalanobis radius `sigma_cut` (2 sigma);
+3. local-plane noise filter (CloudCompare's "noise filter", relative mode): for every point, fit a plane
+   to its neighbours within `filter_radius` (at most `filter_max_neighbours` nearest), drop the point when
+   its distance to that plane exceeds `filter_k` x the standard deviation of the neighbours' distances
+   (never below `filter_min_tol`, so exactly planar patches do not reject on rounding), and drop points
+   with fewer than `filter_min_neighbours` neighbours (isolated);
+4. a horizontal grid of `cell` metres with a node at `origin` (pass a node of the GT grid so both grids
+   share their nodes; otherwise a half-cell offset alone costs ~2.5 cm of Chamfer): one point per occupied
+   cell at its node (the cell centre) with the median height of the cell's points.
+
+Metrics against the GT grid points: accuracy = mean distance prediction -> GT, completeness = GT ->
+prediction, Chamfer = their mean (metres, unsquared); precision / recall / F1 at each threshold with a
+strict `<` (a distance equal to the threshold does not count).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+@dataclass(frozen=True)
+class ExtractConfig:
+    min_opacity: float = 0.1
+    n_samples: int = 200_000
+    sigma_cut: float = 2.0
+    region_margin: float = 0.5  # metres around the evaluation region whose Gaussians are sampled
+    filter_radius: float = 0.10
+    filter_max_neighbours: int = 32
+    filter_min_neighbours: int = 6
+    filter_k: float = 2.0
+    filter_min_tol: float = 1e-3  # metres
+    cell: float = 0.05
+    seed: int = 0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _np(x) -> np.ndarray:
+    """Tensor or array -> float64 numpy (detached, on the CPU)."""
+    if hasattr(x, "detach"):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x, dtype=np.float64)
+
+
+def quat_to_rotmat(quats: np.ndarray) -> np.ndarray:  # [N, 4] wxyz, any norm -> [N, 3, 3]
+    w, x, y, z = (quats / np.linalg.norm(quats, axis=1, keepdims=True)).T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], axis=1)
+
+
+def largest_remainder(weights: np.ndarray, total: int) -> np.ndarray:
+    """Non-negative integer counts proportional to `weights` summing exactly to `total`.
+
+    Floors of the quotas, then one extra to each of the largest fractional parts (ties: lower index).
+    """
+    weights = np.asarray(weights, dtype=np.float64)
+    if total < 0 or (weights < 0).any() or not np.isfinite(weights).all():
+        raise ValueError("largest_remainder needs finite non-negative weights and total >= 0")
+    if total == 0 or weights.sum() <= 0:
+        return np.zeros(len(weights), dtype=np.int64)
+    quota = weights * (total / weights.sum())
+    counts = np.floor(quota).astype(np.int64)
+    short = total - int(counts.sum())
+    if short > 0:
+        order = np.argsort(-(quota - counts), kind="stable")
+        counts[order[:short]] += 1
+    return counts
+
+
+def truncated_normal(n: int, cut: float, rng: np.random.Generator) -> np.ndarray:
+    """[n, 3] standard normal draws conditioned on norm <= cut (rejection sampling)."""
+    out, have = np.empty((n, 3)), 0
+    while have < n:
+        z = rng.standard_normal((max(2 * (n - have), 64), 3))
+        z = z[np.einsum("ij,ij->i", z, z) <= cut * cut][: n - have]
+        out[have: have + len(z)] = z
+        have += len(z)
+    return out
+
+
+def sample_gaussians(means, scales, quats, opacities, cfg: ExtractConfig, region: dict | None = None):
+    """Steps 1-2: points [M, 3] (M = cfg.n_samples unless nothing survives culling) and the kept mask [N]."""
+    means, scales, quats, opac = _np(means), _np(scales), _np(quats), _np(opacities).reshape(-1)
+    keep = opac >= cfg.min_opacity
+    if region is not None:
+        m = cfg.region_margin
+        keep &= ((means[:, 0] >= region["xmin"] - m) & (means[:, 0] <= region["xmax"] + m)
+                 & (means[:, 1] >= region["ymin"] - m) & (means[:, 1] <= region["ymax"] + m))
+    idx = np.flatnonzero(keep)
+    counts = largest_remainder(np.prod(scales[idx], axis=1), cfg.n_samples)
+    owner = np.repeat(idx, counts)  # [M]
+    rng = np.random.default_rng(cfg.seed)
+    z = truncated_normal(len(owner), cfg.sigma_cut, rng) * scales[owner]  # [M, 3] in local axes
+    rot = quat_to_rotmat(quats[owner])  # [M, 3, 3]
+    return means[owner] + np.einsum("mij,mj->mi", rot, z), keep
+
+
+def plane_filter(points: np.ndarray, cfg: ExtractConfig, chunk: int = 20_000) -> np.ndarray:
+    """Step 3: bool mask [M] of the points the local-plane noise filter keeps."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=bool)
+    tree = cKDTree(points)
+    k = min(cfg.filter_max_neighbours + 1, len(points))  # +1: the query point finds itself first
+    keep = np.zeros(len(points), dtype=bool)
+    for s in range(0, len(points), chunk):
+        p = points[s: s + chunk]  # [C, 3]
+        dist, nb = tree.query(p, k=k, distance_upper_bound=cfg.filter_radius)
+        dist, nb = dist.reshape(len(p), k)[:, 1:], nb.reshape(len(p), k)[:, 1:]  # drop the point itself
+        valid = np.isfinite(dist)  # [C, K]
+        cnt = valid.sum(1)
+        q = points[np.where(valid, nb, 0)]  # [C, K, 3]
+        w = valid[..., None].astype(np.float64)
+        centre = (q * w).sum(1) / np.maximum(cnt, 1)[:, None]  # [C, 3]
+        d = (q - centre[:, None]) * w
+        cov = np.einsum("cki,ckj->cij", d, d)
+        normal = np.linalg.eigh(cov)[1][:, :, 0]  # [C, 3] smallest-eigenvalue direction
+        nd = np.einsum("cki,ci->ck", d, normal)  # neighbours' signed plane distances (0 where invalid)
+        std = np.sqrt((nd**2).sum(1) / np.maximum(cnt, 1))
+        own = np.abs(np.einsum("ci,ci->c", p - centre, normal))
+        tol = np.maximum(cfg.filter_k * std, cfg.filter_min_tol)
+        keep[s: s + chunk] = (cnt >= cfg.filter_min_neighbours) & (own <= tol)
+    return keep
+
+
+def grid_median(points: np.ndarray, cell: float, origin: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """Step 4: [G, 3] grid nodes origin + (i, j) * cell, each with the median z of the points in its cell
+    (the square of side `cell` centred on the node), sorted by cell."""
+    if len(points) == 0:
+        return np.zeros((0, 3))
+    ij = np.floor((points[:, :2] - np.asarray(origin)) / cell + 0.5).astype(np.int64)  # [M, 2]
+    cells, inv = np.unique(ij, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    order = np.lexsort((points[:, 2], inv))  # by cell, then height
+    z_sorted, cell_sorted = points[order, 2], inv[order]
+    starts = np.searchsorted(cell_sorted, np.arange(len(cells)))
+    ends = np.append(starts[1:], len(points))
+    lo, hi = (starts + ends - 1) // 2, (starts + ends) // 2
+    med = 0.5 * (z_sorted[lo] + z_sorted[hi])
+    xy = cells * cell + np.asarray(origin)
+    return np.column_stack([xy, med])
+
+
+def in_region(points: np.ndarray, region: dict, tol: float = 0.0) -> np.ndarray:  # [M] bool, horizontal only
+    """Inside the region grown by `tol` (so grid nodes computed as origin + i * cell that land a rounding
+    error past an edge still count)."""
+    return ((points[:, 0] >= region["xmin"] - tol) & (points[:, 0] <= region["xmax"] + tol)
+            & (points[:, 1] >= region["ymin"] - tol) & (points[:, 1] <= region["ymax"] + tol))
+
+
+def extract_surface(means, scales, quats, opacities, cfg: ExtractConfig = ExtractConfig(),
+                    region: dict | None = None, origin: tuple[float, float] | None = None
+                    ) -> tuple[np.ndarray, dict]:
+    """Gaussians (means [N,3], scales [N,3] linear, quats [N,4] wxyz, opacities [N] in [0,1]; tensors or
+    arrays) -> height-grid points [G, 3] (inside `region` when given) and counts of every stage.
+
+    `origin` is a node of the output grid: pass one of the GT grid (default: region (xmin, ymin), else 0).
+    """
+    pts, kept = sample_gaussians(means, scales, quats, opacities, cfg, region)
+    mask = plane_filter(pts, cfg)
+    if origin is None:
+        origin = (region["xmin"], region["ymin"]) if region is not None else (0.0, 0.0)
+    origin = (float(origin[0]), float(origin[1]))
+    grid = grid_median(pts[mask], cfg.cell, origin)
+    if region is not None:
+        grid = grid[in_region(grid, region, tol=1e-6 * cfg.cell)]
+    stats = {"gaussians": len(kept), "gaussians_sampled": int(kept.sum()), "samples": len(pts),
+             "samples_after_filter": int(mask.sum()), "grid_points": len(grid),
+             "config": cfg.to_dict(), "grid_origin": list(origin)}
+    return grid, stats
+
+
+def geometry_metrics(pred: np.ndarray, gt: np.ndarray, thresholds=(0.10, 0.30)) -> dict:
+    """Chamfer and F1 of predicted points [P, 3] against GT points [G, 3] (metres; fractions, not %).
+
+    With no predicted points the distances are None and precision/recall/F1 are 0.
+    """
+    pred, gt = np.asarray(pred, np.float64).reshape(-1, 3), np.asarray(gt, np.float64).reshape(-1, 3)
+    if len(gt) == 0:
+        raise ValueError("geometry_metrics: the ground-truth point set is empty")
+    out = {"n_pred": len(pred), "n_gt": len(gt), "thresholds": [float(t) for t in thresholds]}
+    if len(pred) == 0:
+        out.update(accuracy=None, completeness=None, chamfer=None)
+        for t in thresholds:
+            out.update({f"precision@{t:g}": 0.0, f"recall@{t:g}": 0.0, f"f1@{t:g}": 0.0})
+        return out
+    d_pred = cKDTree(gt).query(pred)[0]  # [P] prediction -> GT
+    d_gt = cKDTree(pred).query(gt)[0]  # [G] GT -> prediction
+    acc, comp = float(d_pred.mean()), float(d_gt.mean())
+    out.update(accuracy=acc, completeness=comp, chamfer=0.5 * (acc + comp))
+    for t in thresholds:
+        p, r = float((d_pred < t).mean()), float((d_gt < t).mean())
+        out.update({f"precision@{t:g}": p, f"recall@{t:g}": r,
+                    f"f1@{t:g}": 0.0 if p + r == 0 else 2 * p * r / (p + r)})
+    return out

@@ -1,0 +1,163 @@
+"""Appearance metrics for Table 1: PSNR, SSIM (the 3DGS one, shared with the training loss) and LPIPS (VGG).
+
+Images are float tensors in [0, 1], either [H, W, 3] or [B, 3, H, W].
+
+LPIPS is the published VGG variant (Zhang et al. 2018, v0.1): torchvision's ImageNet VGG16 `features`
+trunk, re-implemented here in plain torch with torchvision's layer indices (so its `vgg16-397923af.pth`
+state dict loads as is), plus the learned 1x1 linear heads shipped in `eval/weights/lpips_vgg_v0.1.pth`
+(BSD-2-Clause, see `eval/weights/LICENSE-lpips`). The ImageNet weights are not downloaded: they come from
+a user-given path or torch's hub cache and are checked against the checksum in torchvision's file name.
+Without them LPIPS is reported as unavailable, never computed with another network.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from ragsplat_core.ssim import ssim
+
+__all__ = ["LPIPS", "VGG16_FILE", "load_lpips", "psnr", "ssim", "vgg16_features_init"]
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+LPIPS_LIN_FILE = WEIGHTS_DIR / "lpips_vgg_v0.1.pth"
+LPIPS_LIN_SHA256 = "a78928a0af1e5f0fcb1f3b9e8f8c3a2a5a3de244d830ad5c1feddc79b8432868"
+# torchvision names its checkpoints <arch>-<first 8 hex digits of the file's sha256>.pth
+VGG16_FILE = "vgg16-397923af.pth"
+VGG16_SHA256_PREFIX = "397923af"
+
+# torchvision vgg16 `features`: conv layer index -> (in, out) channels; a ReLU follows each conv and
+# max-pools sit at 4, 9, 16, 23. LPIPS taps relu1_2, relu2_2, relu3_3, relu4_3, relu5_3.
+VGG16_CONVS = {0: (3, 64), 2: (64, 64), 5: (64, 128), 7: (128, 128), 10: (128, 256), 12: (256, 256),
+               14: (256, 256), 17: (256, 512), 19: (512, 512), 21: (512, 512), 24: (512, 512),
+               26: (512, 512), 28: (512, 512)}
+VGG16_POOLS = (4, 9, 16, 23)
+VGG16_TAPS = (3, 8, 15, 22, 29)
+LPIPS_CHANNELS = (64, 128, 256, 512, 512)
+# LPIPS ScalingLayer: maps [-1, 1] inputs to ImageNet-normalised ones
+LPIPS_SHIFT = (-0.030, -0.088, -0.188)
+LPIPS_SCALE = (0.458, 0.448, 0.450)
+
+
+def _bchw(img: torch.Tensor) -> torch.Tensor:
+    if img.dim() == 3 and img.shape[-1] == 3:
+        return img.permute(2, 0, 1).unsqueeze(0)
+    if img.dim() == 4 and img.shape[1] == 3:
+        return img
+    raise ValueError(f"expected [H, W, 3] or [B, 3, H, W], got {tuple(img.shape)}")
+
+
+def psnr(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
+    """PSNR in dB for data range 1, from the MSE over all pixels and channels (and the batch)."""
+    if img1.shape != img2.shape:
+        raise ValueError(f"psnr: shapes differ: {tuple(img1.shape)} vs {tuple(img2.shape)}")
+    mse = torch.mean((img1 - img2) ** 2)
+    return -10.0 * torch.log10(mse)  # +inf for identical images
+
+
+def sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def vgg16_features_init(seed: int = 0) -> dict[str, torch.Tensor]:
+    """A randomly initialised trunk in the torchvision key layout (for tests: the metric's structure
+    without ImageNet weights; never used to report LPIPS)."""
+    gen = torch.Generator().manual_seed(seed)
+    state = {}
+    for idx, (cin, cout) in VGG16_CONVS.items():
+        std = (2.0 / (cin * 9)) ** 0.5  # He init keeps activations from vanishing through 13 layers
+        state[f"features.{idx}.weight"] = torch.randn(cout, cin, 3, 3, generator=gen) * std
+        state[f"features.{idx}.bias"] = torch.zeros(cout)
+    return state
+
+
+class LPIPS:
+    """LPIPS-VGG distance. Holds tensors only (no nn.Module): trunk convs keyed like torchvision."""
+
+    def __init__(self, trunk: dict[str, torch.Tensor], lins: list[torch.Tensor]):
+        missing = [f"features.{i}.{p}" for i in VGG16_CONVS for p in ("weight", "bias")
+                   if f"features.{i}.{p}" not in trunk]
+        if missing:
+            raise ValueError(f"VGG16 state dict lacks {missing[0]} (and {len(missing) - 1} more)")
+        for i, (cin, cout) in VGG16_CONVS.items():
+            if tuple(trunk[f"features.{i}.weight"].shape) != (cout, cin, 3, 3):
+                raise ValueError(f"features.{i}.weight has shape {tuple(trunk[f'features.{i}.weight'].shape)}")
+        if [tuple(w.shape) for w in lins] != [(1, c, 1, 1) for c in LPIPS_CHANNELS]:
+            raise ValueError(f"LPIPS linear weights have shapes {[tuple(w.shape) for w in lins]}")
+        self.trunk = {k: v.detach().float() for k, v in trunk.items() if k.startswith("features.")}
+        self.lins = [w.detach().float() for w in lins]
+
+    def to(self, device) -> LPIPS:
+        self.trunk = {k: v.to(device) for k, v in self.trunk.items()}
+        self.lins = [w.to(device) for w in self.lins]
+        return self
+
+    def _features(self, x: torch.Tensor) -> list[torch.Tensor]:
+        taps = []
+        for idx in range(VGG16_TAPS[-1] + 1):
+            if idx in VGG16_CONVS:
+                x = F.conv2d(x, self.trunk[f"features.{idx}.weight"], self.trunk[f"features.{idx}.bias"],
+                             padding=1)
+            elif idx in VGG16_POOLS:
+                x = F.max_pool2d(x, kernel_size=2, stride=2)
+            else:
+                x = F.relu(x)
+            if idx in VGG16_TAPS:
+                taps.append(x)
+        return taps
+
+    def __call__(self, img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
+        """Mean LPIPS over the batch for images in [0, 1] ([H,W,3] or [B,3,H,W]); differentiable."""
+        if img1.shape != img2.shape:
+            raise ValueError(f"lpips: shapes differ: {tuple(img1.shape)} vs {tuple(img2.shape)}")
+        a, b = _bchw(img1).float(), _bchw(img2).float()
+        shift = torch.tensor(LPIPS_SHIFT, device=a.device).view(1, 3, 1, 1)
+        scale = torch.tensor(LPIPS_SCALE, device=a.device).view(1, 3, 1, 1)
+        fa = self._features(((2 * a - 1) - shift) / scale)
+        fb = self._features(((2 * b - 1) - shift) / scale)
+        total = 0.0
+        for xa, xb, w in zip(fa, fb, self.lins):
+            # unit-normalise each feature vector along channels (lpips.normalize_tensor, eps 1e-10)
+            na = xa / (torch.sqrt((xa**2).sum(1, keepdim=True)) + 1e-10)
+            nb = xb / (torch.sqrt((xb**2).sum(1, keepdim=True)) + 1e-10)
+            total = total + F.conv2d((na - nb) ** 2, w).mean(dim=(2, 3))  # [B, 1]
+        return total.mean()
+
+
+def load_lin_weights(path: Path = LPIPS_LIN_FILE) -> list[torch.Tensor]:
+    digest = sha256(path)
+    if digest != LPIPS_LIN_SHA256:
+        raise ValueError(f"{path}: sha256 {digest[:12]}... is not the lpips v0.1 VGG head")
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    return [state[f"lin{i}.model.1.weight"] for i in range(len(LPIPS_CHANNELS))]
+
+
+def default_vgg16_path() -> Path:
+    return Path(torch.hub.get_dir()) / "checkpoints" / VGG16_FILE
+
+
+def load_vgg16_trunk(path: Path) -> dict[str, torch.Tensor]:
+    """torchvision's ImageNet VGG16 state dict, after checking the sha256 prefix of its file name."""
+    digest = sha256(path)
+    if not digest.startswith(VGG16_SHA256_PREFIX):
+        raise ValueError(f"{path}: sha256 starts {digest[:8]}, expected {VGG16_SHA256_PREFIX} "
+                         f"(torchvision's {VGG16_FILE}); refusing another network under the LPIPS name")
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
+def load_lpips(vgg16_path: str | Path | None = None) -> tuple[LPIPS | None, str]:
+    """(metric, "") or (None, one-line reason). `vgg16_path` defaults to torch's hub cache."""
+    path = Path(vgg16_path) if vgg16_path else default_vgg16_path()
+    if not path.is_file():
+        return None, f"VGG16 ImageNet weights not found at {path} (give --vgg16 PATH to {VGG16_FILE})"
+    try:
+        return LPIPS(load_vgg16_trunk(path), load_lin_weights()), ""
+    except (ValueError, RuntimeError, KeyError, OSError) as err:
+        return None, str(err).splitlines()[0]

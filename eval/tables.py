@@ -1,0 +1,103 @@
+"""Tables 1 (appearance) and 2 (geometry) as Markdown, our values beside the paper's published ones.
+
+A variant's row is the dict the ablation runner stores per variant (see `eval/ablation.py`):
+    {"appearance": {"refr": {"ssim", "psnr", "lpips"} | None, "dry": {...} | None},
+     "num_gaussians": int, "train_time_s": float,
+     "geometry": {"chamfer", "precision@0.1", "recall@0.1", "f1@0.1", ... "@0.3"} | None}
+Geometry fractions are printed as percentages, like the paper. Our missing or non-finite values print as
+`n/a`; a cell the paper leaves empty stays empty; a variant the paper does not have prints `-`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+VARIANTS = ("3dgs", "position", "position+scale", "position+opacity", "full", "full+anisotropic",
+            "full+color")
+PUBLISHED_FILE = Path(__file__).resolve().parent / "published_tables.json"
+
+# (header, paper column in published_tables.json, how to read ours from a row, format)
+T1_COLUMNS = [
+    ("SSIM refr", "ssim_refr", ("appearance", "refr", "ssim"), "{:.3f}"),
+    ("PSNR refr", "psnr_refr", ("appearance", "refr", "psnr"), "{:.2f}"),
+    ("LPIPS refr", "lpips_refr", ("appearance", "refr", "lpips"), "{:.3f}"),
+    ("SSIM dry", "ssim_dry", ("appearance", "dry", "ssim"), "{:.3f}"),
+    ("PSNR dry", "psnr_dry", ("appearance", "dry", "psnr"), "{:.2f}"),
+    ("LPIPS dry", "lpips_dry", ("appearance", "dry", "lpips"), "{:.3f}"),
+    ("Gaussians (K)", "gaussians_k", ("num_gaussians",), "{:.1f}"),
+    ("Time (min)", "time_min", ("train_time_s",), "{:.1f}"),
+]
+T2_COLUMNS = [
+    ("CD (m)", "cd_m", ("geometry", "chamfer"), "{:.3f}"),
+    ("P@10cm (%)", "precision_10cm", ("geometry", "precision@0.1"), "{:.2f}"),
+    ("R@10cm (%)", "recall_10cm", ("geometry", "recall@0.1"), "{:.2f}"),
+    ("F1@10cm (%)", "f1_10cm", ("geometry", "f1@0.1"), "{:.2f}"),
+    ("P@30cm (%)", "precision_30cm", ("geometry", "precision@0.3"), "{:.2f}"),
+    ("R@30cm (%)", "recall_30cm", ("geometry", "recall@0.3"), "{:.2f}"),
+    ("F1@30cm (%)", "f1_30cm", ("geometry", "f1@0.3"), "{:.2f}"),
+]
+# ours -> the paper's unit
+_UNIT = {"num_gaussians": 1e-3, "train_time_s": 1 / 60}
+_PERCENT = {"precision", "recall", "f1"}
+
+
+def load_published(path: Path = PUBLISHED_FILE) -> dict:
+    return json.loads(Path(path).read_text())
+
+
+def _ours(row: dict | None, keys: tuple[str, ...]) -> float | None:
+    value = row
+    for k in keys:
+        if not isinstance(value, dict) or value.get(k) is None:
+            return None
+        value = value[k]
+    value = float(value) * _UNIT.get(keys[-1], 1.0)
+    if keys[-1].split("@")[0] in _PERCENT:
+        value *= 100.0
+    return value
+
+
+def _paper(published: dict, table: str, variant: str, column: str):
+    """The paper's value, None when the paper left the cell empty, or '-' when it has no such row."""
+    t = published[table]
+    if variant not in t["rows"]:
+        return "-"
+    return t["rows"][variant][t["columns"].index(column)]
+
+
+def _fmt(value, fmt: str, missing: str = "n/a") -> str:
+    if isinstance(value, str):
+        return value
+    if value is None or not math.isfinite(value):
+        return missing
+    return fmt.format(value)
+
+
+def _table(rows: dict[str, dict], published: dict, table: str, columns) -> str:
+    head = ["Variant"]
+    for name, _, _, _ in columns:
+        head += [name, "paper"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for variant in [v for v in VARIANTS if v in rows] + [v for v in rows if v not in VARIANTS]:
+        cells = [variant]
+        for _, pcol, keys, fmt in columns:
+            cells += [_fmt(_ours(rows[variant], keys), fmt), _fmt(_paper(published, table, variant, pcol), fmt, "")]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def table1(rows: dict[str, dict], published: dict, notes: list[str] = ()) -> str:
+    """Appearance. `refr` = rendered through the interface vs the with-water test images, `dry` = the true
+    Gaussians rendered without it vs the dry test images."""
+    text = "### Table 1: appearance on held-out views (ours | paper)\n\n"
+    text += _table(rows, published, "table1_appearance", T1_COLUMNS)
+    return text + "".join(f"\n- {n}" for n in notes) + ("\n" if notes else "")
+
+
+def table2(rows: dict[str, dict], published: dict, notes: list[str] = ()) -> str:
+    """Geometry against the GT 5 cm grid inside the evaluation region."""
+    text = "### Table 2: geometry vs ground-truth bed grid (ours | paper)\n\n"
+    text += _table(rows, published, "table2_geometry", T2_COLUMNS)
+    return text + "".join(f"\n- {n}" for n in notes) + ("\n" if notes else "")

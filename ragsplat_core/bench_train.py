@@ -1,0 +1,125 @@
+"""`ragsplat bench train-step`: median time of one training iteration, per rasterizer backend and size.
+
+Each timed iteration is `Trainer.train_step` itself (SH colours, the refraction transform for `full`,
+rasterize, L1 + SSIM loss, backward, NaN checks, Adam, densification statistics) at 256 x 256 on a
+synthetic under-water bed seen from a nadir and four 20-degree oblique cameras, with N Gaussians on a grid
+over the nadir footprint (all in view), SH degree 3 active and no growing or pruning during the timing
+(refinement starts later in the paper schedule), so N stays fixed. `3dgs` and `full` iterations alternate
+in one loop so both see the same machine state; the overhead ratio is median(full) / median(3dgs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from ragsplat_core.camera import Camera
+from ragsplat_core.data import Dataset, View
+from ragsplat_core.refraction import WaterSurface
+from ragsplat_core.synthetic import bed_scene, render_views
+
+SIZE = 256
+ALTITUDE = 4.0  # camera height above the water (m)
+DEPTH = 3.0  # bed depth below the water (m)
+
+
+def backends_available() -> list[tuple[str, str]]:
+    """(backend, device) pairs this machine can run."""
+    from ragsplat_core.rasterize import gsplat_available
+
+    pairs = [("cpu", "cpu"), ("torch", "cpu")]
+    if torch.cuda.is_available():
+        pairs.append(("torch", "cuda"))
+        if gsplat_available():
+            pairs.append(("gsplat", "cuda"))
+    return pairs
+
+
+def _dataset(count: int, water: WaterSurface, device: str) -> Dataset:
+    """Five views of a textured bed rendered through the water, kept in memory."""
+    half = (ALTITUDE + DEPTH / water.n) * math.tan(math.radians(35.0))  # nadir footprint on the bed (paraxial)
+    cams = [Camera.look_at([0.0, 0.0, ALTITUDE], [0.0, 0.0, -DEPTH], SIZE, SIZE, 70.0)]
+    for k in range(4):
+        a = k * math.pi / 2
+        r = ALTITUDE * math.tan(math.radians(20.0))
+        cams.append(Camera.look_at([r * math.cos(a), r * math.sin(a), ALTITUDE], [0.0, 0.0, -DEPTH], SIZE, SIZE,
+                                   70.0, up=(0.0, 0.0, 1.0)))
+    scene = bed_scene(count, half, DEPTH, seed=1, device=device)
+    views = []
+    for i, v in enumerate(render_views(scene, cams, water)):
+        rgb = (v["image"].cpu() * 255 + 0.5).to(torch.uint8)
+        views.append(View(f"{i:04d}", "train", "bench", v["camera"], rgb, None, "", None, None))
+    region = {"xmin": -half, "xmax": half, "ymin": -half, "ymax": half}
+    return Dataset(Path("."), water, views, None, region)
+
+
+def bench_train_step(counts=(10_000, 40_000), pairs=None, steps: int = 10, warmup: int = 3, seed: int = 0,
+                     log=print) -> list[dict]:
+    """One row per (backend, device, N): median seconds per iteration for 3dgs and full, and their ratio."""
+    from ragsplat_core.train import Trainer, preset_config
+
+    water = WaterSurface(0.0, 1.33)
+    rows = []
+    for backend, device in pairs or backends_available():
+        for count in counts:
+            ds = _dataset(count, water, device)
+            trainers = {}
+            for variant in ("3dgs", "full"):
+                # paper schedule (30k): refinement starts at 500, after the timed steps; SH degree 3 at once
+                cfg = preset_config("paper", variant=variant, seed=seed, backend=backend, device=device,
+                                    init_depth=DEPTH, init_count=count, sh_degree_every=1, checkpoint_every=0)
+                trainers[variant] = Trainer(cfg, ds, None)
+            times = {v: [] for v in trainers}
+            for i in range(warmup + steps):
+                for variant, tr in trainers.items():
+                    t0 = time.perf_counter()
+                    tr.train_step()
+                    if device == "cuda":
+                        torch.cuda.synchronize()
+                    if i >= warmup:
+                        times[variant].append(time.perf_counter() - t0)
+            med = {v: statistics.median(t) for v, t in times.items()}
+            row = {"backend": backend, "device": device, "size": f"{SIZE}x{SIZE}",
+                   "gaussians": trainers["full"].num_gaussians, "steps": steps,
+                   "median_s_3dgs": med["3dgs"], "median_s_full": med["full"], "ratio_full_3dgs": med["full"] / med["3dgs"],
+                   "all_s_3dgs": times["3dgs"], "all_s_full": times["full"]}
+            rows.append(row)
+            log(f"{backend:>6} {device:>4} {row['gaussians']:>6} {med['3dgs']:10.4f} {med['full']:10.4f} "
+                f"{row['ratio_full_3dgs']:8.3f}")
+    return rows
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--counts", type=int, nargs="+", default=[10_000, 40_000], help="Gaussian counts")
+    parser.add_argument("--backends", nargs="+", help="backend:device pairs, e.g. cpu:cpu torch:cuda "
+                        "(default: all available)")
+    parser.add_argument("--steps", type=int, default=10, help="timed iterations per variant")
+    parser.add_argument("--warmup", type=int, default=3, help="untimed iterations first (JIT, caches)")
+    parser.add_argument("--json", help="also write the rows (with every timing) to this JSON file")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ragsplat_core.cli import UsageError
+
+    pairs = None
+    if args.backends:
+        pairs = [tuple(p.split(":")) for p in args.backends]
+        if any(len(p) != 2 for p in pairs):
+            raise UsageError(f"--backends takes backend:device pairs, got {' '.join(args.backends)}")
+        for p in pairs:
+            if p not in backends_available():
+                raise UsageError(f"backend {p[0]} on {p[1]} is not available here: {backends_available()}")
+    print(f"train-step benchmark: {SIZE}x{SIZE}, median of {args.steps} iterations after {args.warmup} warm-up; "
+          f"torch {torch.__version__}, {torch.get_num_threads()} threads, {platform.processor() or platform.machine()}")
+    print(f"{'backend':>6} {'dev':>4} {'N':>6} {'3dgs (s)':>10} {'full (s)':>10} {'full/3dgs':>8}")
+    rows = bench_train_step(args.counts, pairs, args.steps, args.warmup)
+    if args.json:
+        Path(args.json).write_text(json.dumps({"rows": rows, "torch": torch.__version__}, indent=1))
+    return 0

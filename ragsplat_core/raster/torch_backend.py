@@ -1,0 +1,85 @@
+"""Reference compositing in plain PyTorch: tile-based, autograd end to end, any device.
+
+Tiles are processed in chunks with their Gaussian lists padded to the chunk's longest list (tiles are
+grouped by list length so the padding stays small); each chunk is checkpointed, so memory does not grow
+with the image size times the depth complexity. Per pixel, front to back, as in 3DGS:
+alpha_i = min(0.99, o_i exp(power_i)), skipped when below 1/255; the pixel stops before the first Gaussian
+that would take its transmittance below 1e-4. Written without a sequential loop: with every alpha in the
+list, the inclusive running product of (1 - alpha) stays >= 1e-4 exactly for the Gaussians that 3DGS
+composites, because it is non-increasing.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch.utils.checkpoint import checkpoint
+
+from ragsplat_core.raster.project import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE, Bins, Projected
+
+# Elements of one [tiles, pixels, Gaussians] intermediate per chunk: bounds the reference's memory.
+CHUNK_ELEMENTS = 1 << 20
+
+
+def composite(proj: Projected, opacities: torch.Tensor, colors: torch.Tensor, bins: Bins, width: int,
+              height: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(colour sum [H, W, 3] without background, final transmittance [H, W], weighted z sum [H, W])."""
+    device = colors.device
+    if len(bins.gauss) == 0:  # nothing on screen; the empty sum keeps the outputs in the graph
+        zero = colors[:0].sum() + proj.means2d[:0].sum()
+        return (torch.zeros(height, width, 3, dtype=colors.dtype, device=device) + zero,
+                torch.ones(height, width, dtype=colors.dtype, device=device) + zero,
+                torch.zeros(height, width, dtype=colors.dtype, device=device) + zero)
+    n_tiles = bins.tiles_x * bins.tiles_y
+    counts = bins.offsets[1:] - bins.offsets[:-1]  # [n_tiles]
+    pix = torch.arange(TILE * TILE, device=device)
+    py, px = pix // TILE, pix % TILE  # [256] pixel offsets inside a tile
+    by_len = torch.sort(counts, stable=True).indices
+    feats = torch.cat([colors, proj.depths[:, None]], -1)  # [N, 4]: what gets composited
+    cnt = counts[by_len].tolist()
+    out_rows, out_tiles = [], []
+    start = 0
+    while start < n_tiles:
+        # Grow the chunk while its padded size stays in budget (tiles are sorted by list length).
+        stop = start + 1
+        while stop < n_tiles and (stop + 1 - start) * TILE * TILE * max(cnt[stop], 1) <= CHUNK_ELEMENTS:
+            stop += 1
+        tiles = by_len[start:stop]  # [t]
+        args = (tiles, max(cnt[stop - 1], 1), proj, opacities, feats, bins, px, py)
+        # Recomputed in backward instead of kept: memory stays one chunk's worth of [t, 256, k] tensors.
+        out_rows.append(checkpoint(_composite_tiles, *args, use_reentrant=False) if torch.is_grad_enabled()
+                        else _composite_tiles(*args))
+        out_tiles.append(tiles)
+        start = stop
+    res = torch.cat(out_rows)  # [n_tiles, 256, 5] in chunk order
+    res = res[torch.argsort(torch.cat(out_tiles))]  # tile order
+    res = res.reshape(bins.tiles_y, bins.tiles_x, TILE, TILE, 5).permute(0, 2, 1, 3, 4)
+    res = res.reshape(bins.tiles_y * TILE, bins.tiles_x * TILE, 5)[:height, :width]
+    return res[..., :3], res[..., 4], res[..., 3]
+
+
+def _composite_tiles(tiles, k, proj, opacities, feats, bins, px, py):
+    """Composites tiles [t] with lists padded to k. Returns [t, 256, 5]: colour (3), z sum, transmittance."""
+    slot = torch.arange(k, device=tiles.device)
+    first = bins.offsets[tiles]  # [t]
+    valid = slot[None, :] < (bins.offsets[tiles + 1] - first)[:, None]  # [t, k]
+    gauss = torch.cat([bins.gauss, bins.gauss.new_zeros(1)])  # a valid index for the padding slots
+    idx = gauss[torch.where(valid, first[:, None] + slot[None, :], len(bins.gauss))]  # [t, k]
+    ty, tx = tiles // bins.tiles_x, tiles % bins.tiles_x
+    cu = (tx[:, None] * TILE + px[None, :]).to(feats.dtype) + 0.5  # [t, 256] pixel centres
+    cv = (ty[:, None] * TILE + py[None, :]).to(feats.dtype) + 0.5
+    m = proj.means2d[idx]  # [t, k, 2]
+    con = proj.conics[idx]  # [t, k, 3]
+    dx = m[:, None, :, 0] - cu[:, :, None]  # [t, 256, k]
+    dy = m[:, None, :, 1] - cv[:, :, None]
+    power = -0.5 * (con[:, None, :, 0] * dx * dx + con[:, None, :, 2] * dy * dy) - con[:, None, :, 1] * dx * dy
+    alpha = torch.clamp(opacities[idx][:, None, :] * torch.exp(power), max=ALPHA_MAX)
+    use = valid[:, None, :] & (power <= 0) & (alpha >= ALPHA_MIN)
+    alpha = torch.where(use, alpha, torch.zeros_like(alpha))
+    with torch.no_grad():
+        keep = torch.cumprod(1 - alpha, -1) >= T_MIN
+    alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
+    trans = torch.cumprod(1 - alpha, -1)  # [t, 256, k] inclusive
+    before = torch.cat([torch.ones_like(trans[..., :1]), trans[..., :-1]], -1)
+    weights = alpha * before  # [t, 256, k]
+    acc = weights @ feats[idx]  # [t, 256, 4]
+    return torch.cat([acc, trans[..., -1:]], -1)

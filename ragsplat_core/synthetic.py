@@ -1,0 +1,113 @@
+"""Small synthetic scenes rendered with our own rasterizer: for the benchmark and the end-to-end tests.
+
+`bed_scene` makes a textured bed of Gaussians under water; `render_views` renders it (through the water with
+`refract_gaussians`, and without) from a ring of cameras; `write_dataset` stores views in the dataset
+layout of the README so the real loader and trainer read them. Nothing here touches Blender.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import torch
+
+from ragsplat_core.camera import Camera
+from ragsplat_core.data import write_png
+from ragsplat_core.refraction import WaterSurface
+
+
+def write_dataset(root: str | Path, views: list[dict], water: WaterSurface | None,
+                  eval_region: dict | None = None) -> Path:
+    """Write `views` (dicts with camera, image [H,W,3] in [0,1], optional dry, split, kind) as a dataset.
+
+    All cameras must share intrinsics (the contract stores them once).
+    """
+    root = Path(root)
+    cam0: Camera = views[0]["camera"]
+    frames = []
+    for i, v in enumerate(views):
+        cam: Camera = v["camera"]
+        if (cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy) != (cam0.width, cam0.height, cam0.fx,
+                                                                       cam0.fy, cam0.cx, cam0.cy):
+            raise ValueError("write_dataset: all views must share intrinsics")
+        name = f"{i:04d}"
+        wet = f"images/{'wet' if water is not None else 'dry'}/{name}.png"
+        write_png(root / wet, v["image"])
+        frame = {"file_path": wet, "transform_matrix": cam.c2w_gl.tolist(), "w2c": cam.w2c.tolist(),
+                 "split": v.get("split", "train"), "name": name, "kind": v.get("kind", "nadir")}
+        if v.get("dry") is not None:
+            frame["dry_file_path"] = f"images/dry/{name}.png"
+            if water is not None:
+                write_png(root / frame["dry_file_path"], v["dry"])
+        frames.append(frame)
+    meta = {"camera_model": "OPENCV", "fl_x": cam0.fx, "fl_y": cam0.fy, "cx": cam0.cx, "cy": cam0.cy,
+            "w": cam0.width, "h": cam0.height,
+            "water": None if water is None else {"level": water.level, "n": water.n}, "frames": frames}
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "transforms.json").write_text(json.dumps(meta, indent=1))
+    scene = {"generator": "ragsplat_core.synthetic"}
+    if eval_region is not None:
+        scene["eval_region"] = eval_region
+    (root / "scene.json").write_text(json.dumps(scene, indent=1))
+    return root
+
+
+def ring_cameras(count: int, size: int, height: float, radius: float, fov_deg: float = 70.0,
+                 target=(0.0, 0.0, -1.0), nadir: bool = True) -> list[Camera]:
+    """`count` cameras on a circle of `radius` at `height` looking at `target`, plus one nadir if asked."""
+    cams = [Camera.look_at([0.0, 0.0, height], [0.0, 0.0, target[2]], size, size, fov_deg)] if nadir else []
+    for k in range(count):
+        a = 2 * math.pi * k / count
+        eye = [radius * math.cos(a), radius * math.sin(a), height]
+        cams.append(Camera.look_at(eye, target, size, size, fov_deg, up=(0.0, 0.0, 1.0)))
+    return cams
+
+
+def bed_scene(count: int, half: float, depth: float, seed: int = 0, dtype=torch.float32,
+              device=None) -> dict[str, torch.Tensor]:
+    """`count` Gaussians on a wavy bed z = -depth + 0.1 depth sin(.) over [-half, half]^2, textured colours.
+
+    Returns activated tensors: means [N,3], quats [N,4], scales [N,3] (linear), opacities [N], colors [N,3].
+    """
+    g = torch.Generator().manual_seed(seed)
+    xy = (torch.rand(count, 2, generator=g, dtype=torch.float64) * 2 - 1) * half
+    z = -depth + 0.1 * depth * torch.sin(2.0 * xy[:, 0] / half) * torch.cos(1.5 * xy[:, 1] / half)
+    means = torch.cat([xy, z[:, None]], 1)
+    spacing = 2 * half / math.sqrt(count)
+    scales = spacing * (0.6 + 0.4 * torch.rand(count, 3, generator=g, dtype=torch.float64))
+    scales[:, 2] *= 0.3  # flat, like stones lying on the bed
+    quats = torch.nn.functional.normalize(torch.randn(count, 4, generator=g, dtype=torch.float64), dim=-1)
+    quats[:, 1:3] *= 0.2  # mostly rotated about the vertical
+    quats = torch.nn.functional.normalize(quats, dim=-1)
+    # Checker-like albedo so that photometric matching has texture to lock on to.
+    cell = torch.floor(xy / (half / 4)).sum(1) % 2
+    base = torch.stack([0.35 + 0.4 * cell, 0.3 + 0.25 * (1 - cell), 0.25 + 0.1 * cell], 1)
+    colors = (base + 0.15 * torch.rand(count, 3, generator=g, dtype=torch.float64)).clamp(0, 1)
+    out = {"means": means, "quats": quats, "scales": scales,
+           "opacities": torch.full((count,), 0.95, dtype=torch.float64), "colors": colors}
+    return {k: v.to(dtype=dtype, device=device) for k, v in out.items()}
+
+
+def render_views(scene: dict[str, torch.Tensor], cameras: list[Camera], water: WaterSurface | None,
+                 backend: str = "auto", background=(0.0, 0.0, 0.0)) -> list[dict]:
+    """Render `scene` (from `bed_scene`) from each camera: `image` through the water with the full RA-GS
+    transform (position, isotropic scale, opacity), `dry` without it, and the dry expected `depth`."""
+    from ragsplat_core.rasterize import rasterize
+    from ragsplat_core.refraction import refract_gaussians
+
+    out = []
+    for cam in cameras:
+        s = scene
+        with torch.no_grad():
+            dry, _, depth, _ = rasterize(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"], cam,
+                                         background, backend=backend)
+            wet = dry
+            if water is not None:
+                c = torch.as_tensor(cam.camera_center, dtype=s["means"].dtype, device=s["means"].device)
+                a = refract_gaussians(s["means"], s["scales"], s["quats"], s["opacities"], s["colors"], c, water)
+                wet, _, _, _ = rasterize(a.means, a.quats, a.scales, a.opacities, a.colors, cam, background,
+                                         backend=backend)
+        out.append({"camera": cam, "image": wet.clamp(0, 1), "dry": dry.clamp(0, 1), "depth": depth})
+    return out

@@ -1,0 +1,163 @@
+"""End to end at smoke scale: `ragsplat dataset` writes the contracted layout; dry z-depth unprojects onto
+the exported bed mesh; reruns resume, shards split and merge, bad output directories are refused."""
+
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+from datagen.layout import NO_HIT, read_depth
+from ragsplat_core.camera import Camera
+from ragsplat_core.cli import main
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory):
+    out = tmp_path_factory.mktemp("data") / "smoke"
+    assert main(["dataset", "--preset", "smoke", "--out", str(out), "--quiet"]) == 0
+    return out
+
+
+def test_layout_and_transforms_contract(smoke):
+    tf = json.loads((smoke / "transforms.json").read_text())
+    scene = json.loads((smoke / "scene.json").read_text())
+    assert tf["camera_model"] == "OPENCV" and tf["water"] == {"level": 0.0, "n": 1.33}
+    assert (tf["w"], tf["h"]) == (64, 64) and tf["cx"] == 32.0
+    frames = tf["frames"]
+    assert len(frames) == scene["flight"]["train_views"] + scene["flight"]["test_views"]
+    assert {f["split"] for f in frames} == {"train", "test"}
+    assert {f["kind"] for f in frames} == {"nadir", "oblique20", "oblique40"}
+    for f in frames:
+        for key in ("file_path", "dry_file_path", "depth_file_path"):
+            assert (smoke / f[key]).is_file()
+        assert f["file_path"].startswith("images/wet/")
+        cam = Camera.from_c2w_gl(f["transform_matrix"], tf["w"], tf["h"],
+                                 intrinsics=(tf["fl_x"], tf["fl_y"], tf["cx"], tf["cy"]))
+        np.testing.assert_allclose(cam.w2c, f["w2c"], atol=1e-12)
+    img = cv2.imread(str(smoke / frames[0]["file_path"]), cv2.IMREAD_UNCHANGED)
+    assert img.dtype == np.uint8 and img.shape == (64, 64, 3)
+    assert set(scene["eval_region"]) == {"xmin", "xmax", "ymin", "ymax"} and scene["seed"] == 0
+    assert scene["radiance"]["refraction_color"] == pytest.approx(1 / 1.33**2)
+    assert scene["versions"]["bpy"] == "5.0.1"
+    # The refraction colour 1/n^2 darkens the wet render against the dry one (sRGB: about n^(-2/2.2)).
+    wet = cv2.imread(str(smoke / frames[0]["file_path"])).astype(float).mean()
+    dry = cv2.imread(str(smoke / frames[0]["dry_file_path"])).astype(float).mean()
+    assert 0.65 < wet / dry < 0.85
+    grid = np.load(smoke / "gt" / "bed_grid.npy")
+    r = scene["eval_region"]
+    assert grid.dtype == np.float64 and grid[:, 0].min() >= r["xmin"] and grid[:, 0].max() <= r["xmax"]
+
+
+def test_colmap_model_matches_transforms(smoke):
+    tf = json.loads((smoke / "transforms.json").read_text())
+    folder = smoke / "colmap" / "sparse" / "0"
+    cam_line = next(l for l in (folder / "cameras.txt").read_text().splitlines() if not l.startswith("#"))
+    assert cam_line.split()[1:4] == ["PINHOLE", "64", "64"]
+    rows = [l.split() for l in (folder / "images.txt").read_text().splitlines() if l and not l.startswith("#")]
+    assert len(rows) == len(tf["frames"])
+    for row, frame in zip(rows, tf["frames"]):
+        w, x, y, z = map(float, row[1:5])
+        R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+        w2c = np.array(frame["w2c"])
+        np.testing.assert_allclose(R, w2c[:3, :3], atol=1e-9)
+        np.testing.assert_allclose(list(map(float, row[5:8])), w2c[:3, 3], atol=1e-9)
+        assert row[9] == frame["file_path"].removeprefix("images/")
+
+
+def bed_height(mesh: trimesh.Trimesh, xy: np.ndarray) -> np.ndarray:
+    """Height of the PLY mesh at xy [N, 2] by point-in-triangle search (independent of the grid code)."""
+    tri = mesh.triangles  # [F, 3, 3]
+    tree = cKDTree(tri[:, :, :2].mean(1))
+    _, cand = tree.query(xy, k=8)
+    a, b, c = (tri[cand, k, :2] for k in range(3))  # [N, 8, 2]
+    v0, v1, v2 = b - a, c - a, xy[:, None] - a
+    den = v0[..., 0] * v1[..., 1] - v1[..., 0] * v0[..., 1]
+    s = (v2[..., 0] * v1[..., 1] - v1[..., 0] * v2[..., 1]) / den
+    t = (v0[..., 0] * v2[..., 1] - v2[..., 0] * v0[..., 1]) / den
+    inside = (s >= -1e-9) & (t >= -1e-9) & (s + t <= 1 + 1e-9)
+    assert inside.any(1).all()
+    k = inside.argmax(1)
+    n = np.arange(len(xy))
+    z = tri[cand[n, k]][..., 2]  # [N, 3]
+    return z[:, 0] + s[n, k] * (z[:, 1] - z[:, 0]) + t[n, k] * (z[:, 2] - z[:, 0])
+
+
+def test_dry_depth_unprojects_onto_the_bed_mesh(smoke):
+    tf = json.loads((smoke / "transforms.json").read_text())
+    mesh = trimesh.load(smoke / "gt" / "bed.ply", process=False)
+    lo, hi = mesh.vertices[:, :2].min(0) + 0.1, mesh.vertices[:, :2].max(0) - 0.1
+    worst, count = 0.0, 0
+    for f in tf["frames"]:
+        cam = Camera.from_c2w_gl(f["transform_matrix"], tf["w"], tf["h"],
+                                 intrinsics=(tf["fl_x"], tf["fl_y"], tf["cx"], tf["cy"]))
+        depth = read_depth(smoke / f["depth_file_path"]).astype(np.float64)
+        assert depth.shape == (tf["h"], tf["w"]) and np.all(depth > 0)
+        j, i = np.nonzero(depth < NO_HIT)
+        pts = cam.unproject(np.stack([i + 0.5, j + 0.5], -1), depth[j, i])
+        on_bed = np.all((pts[:, :2] > lo) & (pts[:, :2] < hi), axis=1)  # the rest is the flat floor
+        err = np.abs(pts[on_bed, 2] - bed_height(mesh, pts[on_bed, :2]))
+        worst, count = max(worst, err.max()), count + on_bed.sum()
+    print(f"\ndry depth -> bed mesh: {count} pixels, max vertical error {worst * 1e6:.1f} um")
+    assert count > 10000 and worst < 0.01
+
+
+def test_rerun_resumes_and_shards_merge(smoke, tmp_path):
+    copy = tmp_path / "copy"
+    shutil.copytree(smoke, copy)
+    before = {p: p.stat().st_mtime_ns for p in copy.rglob("*.png")}
+    assert main(["dataset", "--preset", "smoke", "--out", str(copy), "--quiet"]) == 0
+    assert {p: p.stat().st_mtime_ns for p in copy.rglob("*.png")} == before  # nothing re-rendered
+    original = (copy / "transforms.json").read_text()
+    # Lose two views and the merged metadata (as after a kill); shard 0/2 owns view 2, shard 1/2 view 1.
+    for name in ("0001", "0002"):
+        for p in (copy / "images" / "wet" / f"{name}.png", copy / "images" / "dry" / f"{name}.png",
+                  copy / "gt" / "depth" / f"{name}.exr"):
+            p.unlink()
+    (copy / "transforms.json").unlink()
+    assert main(["dataset", "--preset", "smoke", "--out", str(copy), "--shard", "0/2", "--quiet"]) == 0
+    assert (copy / "images" / "wet" / "0002.png").exists() and not (copy / "images" / "wet" / "0001.png").exists()
+    assert not (copy / "transforms.json").exists()  # incomplete: no merge yet
+    assert main(["dataset", "--preset", "smoke", "--out", str(copy), "--shard", "1/2", "--quiet"]) == 0
+    assert (copy / "transforms.json").read_text() == original
+    for name in ("0001", "0002"):  # re-rendered bit-identically (same seed)
+        assert (copy / "images" / "wet" / f"{name}.png").read_bytes() == \
+            (smoke / "images" / "wet" / f"{name}.png").read_bytes()
+    assert not list(copy.rglob("*.tmp")) and not list(copy.rglob(".*.render"))
+
+
+def test_refuses_foreign_or_mismatched_output(smoke, tmp_path, capsys):
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "keep.txt").write_text("mine")
+    assert main(["dataset", "--preset", "smoke", "--out", str(foreign)]) == 2
+    assert [p.name for p in foreign.iterdir()] == ["keep.txt"]
+    assert main(["dataset", "--preset", "smoke", "--seed", "5", "--out", str(smoke)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(line.startswith("ragsplat dataset: error:") for line in err)
+    assert main(["dataset", "--preset", "smoke", "--out", str(tmp_path / "x"), "--shard", "2/2"]) == 2
+
+
+def test_dry_scene_renders_only_dry_passes(tmp_path):
+    out = tmp_path / "dry"
+    assert main(["dataset", "--preset", "smoke", "--no-water", "--out", str(out), "--quiet"]) == 0
+    assert not (out / "images" / "wet").exists()
+    tf = json.loads((out / "transforms.json").read_text())
+    assert tf["water"] is None and all(f["file_path"].startswith("images/dry/") for f in tf["frames"])
+    assert json.loads((out / "scene.json").read_text())["passes"] == ["dry", "depth"]
+
+
+def test_radiance_scale_switch(tmp_path):
+    out = tmp_path / "bright"
+    # One view (shard 0 of 17) is enough: without the 1/n^2 colour, wet and dry are about equally bright.
+    assert main(["dataset", "--preset", "smoke", "--no-radiance-scale", "--shard", "0/17", "--out", str(out),
+                 "--quiet"]) == 0
+    wet = cv2.imread(str(out / "images" / "wet" / "0000.png")).astype(float).mean()
+    dry = cv2.imread(str(out / "images" / "dry" / "0000.png")).astype(float).mean()
+    assert 0.95 < wet / dry < 1.05
+    assert json.loads((out / "scene" / "spec.json").read_text())["water"]["radiance_scale"] is False

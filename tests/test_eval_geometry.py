@@ -1,0 +1,134 @@
+import numpy as np
+import pytest
+import torch
+
+from eval.geometry import (
+    ExtractConfig,
+    extract_surface,
+    geometry_metrics,
+    grid_median,
+    largest_remainder,
+    plane_filter,
+    quat_to_rotmat,
+    sample_gaussians,
+)
+
+
+def plane_grid(nx, ny, step, z=0.0):
+    x, y = np.meshgrid(np.arange(nx) * step, np.arange(ny) * step, indexing="ij")
+    return np.column_stack([x.ravel(), y.ravel(), np.full(x.size, z)])
+
+
+def test_largest_remainder_hand_cases():
+    # quotas 3.5, 2.1, 1.4: floors 3, 2, 1 leave one, which goes to the largest remainder (0.5)
+    assert largest_remainder([0.5, 0.3, 0.2], 7).tolist() == [4, 2, 1]
+    assert largest_remainder([1, 1, 1], 10).tolist() == [4, 3, 3]  # tie: lower index first
+    c = largest_remainder(np.random.default_rng(0).random(1000), 12345)
+    assert c.sum() == 12345 and (c >= 0).all()
+    assert largest_remainder([0, 0], 5).tolist() == [0, 0]
+
+
+def test_metrics_plane_shifted_5cm():
+    gt = plane_grid(20, 20, 0.05)
+    pred = gt + [0, 0, 0.05]
+    m = geometry_metrics(pred, gt)
+    assert m["accuracy"] == pytest.approx(0.05) and m["completeness"] == pytest.approx(0.05)
+    assert m["chamfer"] == pytest.approx(0.05)
+    for t in ("0.1", "0.3"):
+        assert m[f"precision@{t}"] == 1.0 and m[f"recall@{t}"] == 1.0 and m[f"f1@{t}"] == 1.0
+
+
+def test_metrics_strict_threshold():
+    # dyadic spacing so every distance is exact: a shift equal to the threshold does not count
+    gt = plane_grid(8, 8, 0.0625)
+    m = geometry_metrics(gt + [0, 0, 0.25], gt, thresholds=(0.125, 0.25, 0.5))
+    assert m["precision@0.25"] == 0.0 and m["recall@0.25"] == 0.0 and m["f1@0.25"] == 0.0
+    assert m["f1@0.125"] == 0.0 and m["f1@0.5"] == 1.0
+
+
+def test_metrics_half_coverage_hand_values():
+    # GT 10 x 10 at 1/16 m; the prediction covers the first 5 columns exactly. Missing columns lie
+    # 1, 2, 3, 4, 5 steps (0.0625 .. 0.3125 m) from the last predicted column.
+    step = 0.0625
+    gt = plane_grid(10, 10, step)
+    pred = plane_grid(5, 10, step)
+    m = geometry_metrics(pred, gt, thresholds=(0.125, 0.25))
+    assert m["accuracy"] == 0.0
+    assert m["completeness"] == pytest.approx(10 * step * (1 + 2 + 3 + 4 + 5) / 100)
+    assert m["chamfer"] == pytest.approx(m["completeness"] / 2)
+    assert m["precision@0.125"] == 1.0
+    assert m["recall@0.125"] == pytest.approx(0.6)  # 50 covered + the 1-step column; 2 steps = 0.125 fails <
+    assert m["f1@0.125"] == pytest.approx(2 * 0.6 / 1.6)
+    assert m["recall@0.25"] == pytest.approx(0.8)  # 50 + columns at 1, 2, 3 steps (0.1875 < 0.25)
+
+
+def test_metrics_empty_prediction():
+    m = geometry_metrics(np.zeros((0, 3)), plane_grid(3, 3, 0.05))
+    assert m["chamfer"] is None and m["f1@0.1"] == 0.0
+
+
+def test_quat_rotation_matches_axis_angle():
+    # 90 degrees about z: x -> y
+    q = np.array([[np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)]])
+    np.testing.assert_allclose(quat_to_rotmat(q)[0] @ [1, 0, 0], [0, 1, 0], atol=1e-12)
+
+
+def test_sampling_counts_truncation_and_culling():
+    means = np.array([[0, 0, 0], [5, 0, 0], [10, 0, 0.0]])
+    scales = np.array([[0.1, 0.1, 0.1], [0.2, 0.1, 0.1], [1.0, 1.0, 1.0]])
+    quats = np.array([[1, 0, 0, 0], [0.9, 0.1, 0.3, 0.2], [1, 0, 0, 0.0]])
+    opac = np.array([0.9, 0.9, 0.01])  # the huge third one is culled by opacity
+    cfg = ExtractConfig(n_samples=3001, sigma_cut=2.0, min_opacity=0.1)
+    pts, keep = sample_gaussians(torch.tensor(means), torch.tensor(scales), torch.tensor(quats),
+                                 torch.tensor(opac), cfg)
+    assert keep.tolist() == [True, True, False] and len(pts) == 3001
+    near0 = np.linalg.norm(pts - means[0], axis=1) < 1
+    assert near0.sum() == 1000  # volumes 1 : 2 -> 1000.33 / 2000.67 -> 1000 / 2001
+    rot = quat_to_rotmat(quats[1:2])[0]
+    local = (pts[~near0] - means[1]) @ rot / scales[1]  # back to standard-normal coordinates
+    r = np.linalg.norm(local, axis=1)
+    assert r.max() <= 2.0 and r.max() > 1.9  # truncated at 2 sigma, and the cut is reached
+    np.testing.assert_allclose(local.mean(0), 0, atol=0.1)
+
+
+def test_plane_filter_drops_floaters_and_isolated():
+    rng = np.random.default_rng(0)
+    bed = np.column_stack([rng.random((4000, 2)) * 2, 0.002 * rng.standard_normal(4000)])
+    floaters = np.column_stack([rng.random((20, 2)) * 2, np.full(20, 0.05)])
+    lonely = np.array([[5.0, 5.0, 0.0]])
+    pts = np.vstack([bed, floaters, lonely])
+    keep = plane_filter(pts, ExtractConfig(filter_radius=0.1, filter_k=2.0))
+    assert keep[:4000].mean() > 0.9
+    assert not keep[4000:].any()
+
+
+def test_grid_median_ignores_one_floater():
+    pts = np.array([[0.01, 0.01, 0.0], [0.02, 0.03, 0.1], [0.04, 0.02, 10.0], [0.08, 0.01, -1.0]])
+    g = grid_median(pts, 0.05, origin=(-0.025, -0.025))  # nodes at odd multiples of 2.5 cm
+    np.testing.assert_allclose(g, [[0.025, 0.025, 0.1], [0.075, 0.025, -1.0]])
+    # with nodes on multiples of 5 cm the cells are centred on them: the first three points split
+    g = grid_median(pts, 0.05, origin=(0.0, 0.0))
+    np.testing.assert_allclose(g, [[0.0, 0.0, 0.0], [0.0, 0.05, 0.1], [0.05, 0.0, 10.0], [0.1, 0.0, -1.0]])
+
+
+def test_extraction_recovers_a_flat_bed():
+    # flat discs tiling the plane z = -1, small opaque floaters half a metre above it (their samples are
+    # outvoted by the bed in every cell's median) and one huge faint blob that culling must remove
+    step = 0.05
+    bed = plane_grid(40, 40, step, z=-1.0)
+    n = len(bed)
+    fl = np.column_stack([np.random.default_rng(1).random((5, 2)) * 2, np.full(5, -0.5)])
+    means = np.vstack([bed, fl, [[1.0, 1.0, -0.7]]])
+    scales = np.vstack([np.tile([0.03, 0.03, 0.003], (n, 1)), np.tile([0.01, 0.01, 0.01], (5, 1)),
+                        [[1.0, 1.0, 1.0]]])
+    quats = np.tile([1.0, 0, 0, 0], (n + 6, 1))
+    opac = np.append(np.full(n + 5, 0.8), 0.05)
+    region = {"xmin": 0.2, "xmax": 1.7, "ymin": 0.2, "ymax": 1.7}
+    cfg = ExtractConfig(n_samples=40_000)
+    grid, stats = extract_surface(means, scales, quats, opac, cfg, region)
+    assert stats["samples"] == 40_000 and stats["gaussians_sampled"] == n + 5
+    assert stats["config"]["n_samples"] == 40_000
+    gt = plane_grid(31, 31, step, z=-1.0) + [0.2, 0.2, 0]
+    m = geometry_metrics(grid, gt)
+    assert m["chamfer"] < 0.005 and m["f1@0.1"] == 1.0
+    assert np.abs(grid[:, 2] + 1).max() < 0.01  # no cell took a floater's height

@@ -1,0 +1,105 @@
+import math
+
+import pytest
+import torch
+
+from ragsplat_core.gaussians import (
+    activated,
+    colors_for_view,
+    eval_sh,
+    init_grid,
+    init_points,
+    num_sh_bases,
+    rgb_to_sh,
+    sh_degree,
+)
+from ragsplat_core.refraction import WaterSurface
+
+
+def _sphere(n=6_000):
+    """Fibonacci sphere: near-uniform unit directions [n, 3] for quadrature (weights 4 pi / n)."""
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1 - 2 * i / n
+    phi = math.pi * (3 - math.sqrt(5)) * i
+    r = torch.sqrt(1 - z * z)
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1)
+
+
+def _basis(dirs, degree):
+    k = num_sh_bases(degree)
+    # each basis function alone: one-hot coefficients, the same in all three channels
+    c = torch.eye(k, dtype=dirs.dtype)[:, None, :, None].expand(k, len(dirs), k, 3).reshape(-1, k, 3)
+    return eval_sh(degree, c, dirs.repeat(k, 1))[:, 0].reshape(k, len(dirs)).T  # [n, k]
+
+
+def test_sh_basis_is_orthonormal():
+    dirs = _sphere()
+    Y = _basis(dirs, 3)
+    gram = Y.T @ Y * (4 * math.pi / len(dirs))
+    assert torch.allclose(gram, torch.eye(16, dtype=gram.dtype), atol=2e-3)
+
+
+def test_sh_signs_match_3dgs():
+    # 3DGS: band 1 is (-C1 y, C1 z, -C1 x); a +x direction must give a negative Y_3
+    d = torch.tensor([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]], dtype=torch.float64)
+    Y = _basis(d, 1)
+    assert Y[0, 3] < 0 and Y[1, 1] < 0 and Y[2, 2] > 0
+
+
+def test_lower_degree_ignores_higher_coeffs():
+    g = torch.Generator().manual_seed(0)
+    c = torch.randn(5, 16, 3, generator=g, dtype=torch.float64)
+    d = torch.nn.functional.normalize(torch.randn(5, 3, generator=g, dtype=torch.float64), dim=-1)
+    c2 = c.clone()
+    c2[:, 4:] = 0
+    assert torch.allclose(eval_sh(1, c, d), eval_sh(3, c2, d))
+    assert not torch.allclose(eval_sh(3, c, d), eval_sh(1, c, d))
+
+
+def test_rgb_round_trip_and_view_colors():
+    splats = init_grid(-1, 1, -1, 1, -2.0, 0.5, degree=2, rgb=0.3, dtype=torch.float64)
+    assert sh_degree(splats) == 2
+    cam = torch.tensor([0.0, 0.0, 5.0], dtype=torch.float64)
+    assert torch.allclose(colors_for_view(splats, cam, 2), torch.full((16, 3), 0.3, dtype=torch.float64))
+    with torch.no_grad():
+        splats["shN"][:, 0] = 1.0  # band-1 y term: the colour now depends on the view
+    c_active0 = colors_for_view(splats, cam, 0)
+    assert torch.allclose(c_active0, torch.full_like(c_active0, 0.3))
+    assert not torch.allclose(colors_for_view(splats, cam, 1), c_active0)
+    assert float(colors_for_view(splats, cam, 1).detach().min()) >= 0.0  # clamped
+    assert torch.allclose(rgb_to_sh(torch.tensor(0.5)), torch.tensor(0.0))
+
+
+def test_init_grid_layout():
+    s = init_grid(0.0, 2.0, -1.0, 1.0, -10.0, 0.25, degree=3, opacity=0.1)
+    assert s["means"].shape == (8 * 8, 3) and s["shN"].shape == (64, 15, 3) and s["sh0"].shape == (64, 1, 3)
+    assert torch.allclose(s["means"][:, 2], torch.tensor(-10.0))
+    xs = torch.unique(s["means"][:, 0])
+    assert torch.allclose(xs, 0.125 + 0.25 * torch.arange(8.0))
+    scales, quats, opac = activated(s)
+    assert torch.allclose(scales, torch.tensor(0.25)) and torch.allclose(opac, torch.tensor(0.1))
+    assert torch.allclose(quats, torch.tensor([1.0, 0, 0, 0]).expand(64, 4))
+    assert "shN" not in init_grid(0, 1, 0, 1, 0, 0.5, degree=0)
+    with pytest.raises(ValueError, match="degree"):
+        init_grid(0, 1, 0, 1, 0, 0.5, degree=4)
+    with pytest.raises(ValueError, match="spacing"):
+        init_grid(0, 1, 0, 1, 0, 0.0)
+
+
+def test_init_points_scales_underwater_depth():
+    pts = torch.tensor([[0.0, 0, 1.0], [1.0, 0, -3.0], [0, 1.0, -6.0], [1.0, 1.0, -1.5]], dtype=torch.float64)
+    rgb = torch.rand(4, 3, dtype=torch.float64)
+    water = WaterSurface(level=-1.0, n=1.5)
+    s = init_points(pts, rgb, water, degree=1)
+    # depth below the level (level - z) times n; the point above the water unchanged
+    assert torch.allclose(s["means"][:, 2], torch.tensor([1.0, -4.0, -8.5, -1.75], dtype=torch.float64))
+    assert torch.allclose(s["means"][:, :2], pts[:, :2])
+    assert torch.allclose(colors_for_view(s, torch.zeros(3, dtype=torch.float64), 0), rgb)
+    assert torch.allclose(init_points(pts, rgb, water, depth_scale=1.0)["means"], pts)
+    assert torch.allclose(init_points(pts, rgb, None)["means"], pts)
+    # scale: mean distance to the 3 nearest neighbours (all other points here)
+    m = s["means"]
+    d0 = torch.cdist(m, m)[0, 1:].mean()
+    assert torch.allclose(torch.exp(s["scales"][0]), d0.expand(3))
+    with pytest.raises(ValueError, match="non-finite"):
+        init_points(pts * float("nan"), rgb, None)

@@ -1,0 +1,233 @@
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from ragsplat_core import train as train_mod
+from ragsplat_core.camera import Camera
+from ragsplat_core.cli import main
+from ragsplat_core.data import load_dataset
+from ragsplat_core.gaussians import activated, colors_for_view
+from ragsplat_core.ply import load_ply
+from ragsplat_core.rasterize import rasterize
+from ragsplat_core.refraction import WaterSurface
+from ragsplat_core.synthetic import bed_scene, render_views, ring_cameras, write_dataset
+from ragsplat_core.train import VARIANTS, Trainer, TrainingDiverged, footprint, preset_config
+
+WATER = WaterSurface(0.0, 1.33)
+REGION = {"xmin": -0.8, "xmax": 0.8, "ymin": -0.8, "ymax": 0.8}
+
+
+def _tiny(root, water=WATER, size=20):
+    views = render_views(bed_scene(300, 1.0, 1.0, seed=2), ring_cameras(5, size, 1.5, 0.8, target=(0, 0, -1)),
+                         water)
+    views[-1]["split"] = "test"
+    return write_dataset(root, views, water, REGION)
+
+
+@pytest.fixture(scope="module")
+def wet(tmp_path_factory):
+    return load_dataset(_tiny(tmp_path_factory.mktemp("wet")))
+
+
+def _cfg(**kw):
+    base = {"iterations": 12, "init_depth": 1.0, "init_count": 120, "checkpoint_every": 0}
+    base.update(kw)
+    return preset_config("smoke", **base)
+
+
+def test_variants_and_config_errors():
+    assert list(VARIANTS) == ["3dgs", "position", "position+scale", "position+opacity", "full",
+                              "full+anisotropic", "full+color"]
+    assert VARIANTS["3dgs"] is None
+    assert VARIANTS["full"] == {"position": True, "scale": "isotropic", "opacity": True, "color": False}
+    assert VARIANTS["full+anisotropic"]["scale"] == "anisotropic" and VARIANTS["full+color"]["color"]
+    with pytest.raises(ValueError, match="unknown variant"):
+        _cfg(variant="nope")
+    with pytest.raises(ValueError, match="unknown preset"):
+        preset_config("huge")
+    with pytest.raises(ValueError, match="init_points"):
+        _cfg(init="points")
+
+
+def test_schedules_scale_with_iterations():
+    cfg = preset_config("small", iterations=3000)
+    assert cfg.schedule.refine_start_iter == 50 and cfg.schedule.reset_every == 300 and cfg.sh_every == 100
+    tr_lr = Trainer.means_lr
+
+    class Fake:  # means_lr only reads cfg and scene_scale
+        scene_scale = 2.0
+
+    Fake.cfg = cfg
+    assert tr_lr(Fake, 0) == pytest.approx(2.0 * cfg.lr_means)
+    assert tr_lr(Fake, 3000) == pytest.approx(2.0 * cfg.lr_means_final)
+    assert tr_lr(Fake, 1500) == pytest.approx(2.0 * math.sqrt(cfg.lr_means * cfg.lr_means_final))
+
+
+def test_footprint_through_water():
+    cam = Camera.look_at([0.0, 0.0, 2.0], [0.0, 0.0, -1.0], 10, 10, 90.0)  # corner rays at 54.7 deg
+    theta = math.atan(math.sqrt(2))  # corner ray angle from the vertical
+    for water, expect in [(None, 3.0 * math.tan(theta)),
+                          (WATER, 2.0 * math.tan(theta) + math.tan(math.asin(math.sin(theta) / 1.33)))]:
+        box = footprint([cam], water, -1.0)
+        assert np.allclose(box, [-expect / math.sqrt(2), expect / math.sqrt(2)] * 2, atol=1e-9)
+
+
+def test_grid_init_at_bed_depth(wet):
+    tr = Trainer(_cfg(init_depth=0.7), wet)
+    m = tr.splats["means"].detach()
+    assert torch.allclose(m[:, 2], torch.tensor(-0.7))
+    # the evaluation region grown by 10 % on each side
+    assert float(m[:, 0].min()) > -0.96 and float(m[:, 0].max()) < 0.96 and float(m[:, 0].max()) > 0.8
+    assert abs(tr.num_gaussians - 120) <= 30
+    with pytest.raises(ValueError, match="bed depth"):
+        Trainer(_cfg(init_depth=None), wet)
+    generated = dataclasses.replace(wet, scene={"spec": {"bed": {"depth": 0.6}}})  # as datagen writes it
+    assert torch.allclose(Trainer(_cfg(init_depth=None), generated).splats["means"][:, 2], torch.tensor(-0.6))
+
+
+def test_points_init(wet, tmp_path):
+    pts = np.array([[0.0, 0.0, -0.5, 1, 0, 0], [0.2, 0.0, -0.6, 0, 1, 0], [0.0, 0.3, -0.4, 0, 0, 1]])
+    np.save(tmp_path / "pc.npy", pts)
+    tr = Trainer(_cfg(init="points", init_points=str(tmp_path / "pc.npy")), wet)
+    assert torch.allclose(tr.splats["means"][:, 2].detach(), torch.tensor(pts[:, 2] * 1.33, dtype=torch.float32))
+
+
+def test_dry_scene_never_calls_refraction(tmp_path, monkeypatch):
+    def boom(*a, **k):
+        raise AssertionError("refract_gaussians called for a scene without water")
+
+    monkeypatch.setattr(train_mod, "refract_gaussians", boom)
+    dry = load_dataset(_tiny(tmp_path / "dry", water=None))
+    tr = Trainer(_cfg(variant="full", iterations=3), dry)
+    assert tr.flags is None
+    tr.train()
+    identity = load_dataset(_tiny(tmp_path / "n1", water=WaterSurface(0.0, 1.0)))
+    Trainer(_cfg(variant="full", iterations=2), identity).train()
+
+
+def test_variant_3dgs_skips_refraction(wet, monkeypatch):
+    calls = []
+    real = train_mod.refract_gaussians
+    monkeypatch.setattr(train_mod, "refract_gaussians", lambda *a, **k: calls.append(k) or real(*a, **k))
+    Trainer(_cfg(variant="3dgs", iterations=2), wet).train()
+    assert calls == []
+    Trainer(_cfg(variant="position+opacity", iterations=2), wet).train()
+    assert calls == [VARIANTS["position+opacity"]] * 2
+
+
+@pytest.mark.parametrize("variant", ["full", "full+color", "full+anisotropic"])
+def test_render_without_interface_is_the_true_scene(wet, variant):
+    tr = Trainer(_cfg(variant=variant, iterations=2), wet)
+    tr.train()
+    cam = wet.test[0].camera
+    center = torch.tensor(cam.camera_center, dtype=torch.float32)
+    scales, quats, opac = activated(tr.splats)
+    with torch.no_grad():
+        want, _, _, _ = rasterize(tr.splats["means"], quats, scales, opac,
+                                  colors_for_view(tr.splats, center, tr.active_sh_degree), cam, tr.background)
+    img, _, _ = tr.render(cam, interface=False)
+    assert torch.allclose(img, want.clamp(0, 1))
+    wet_img, _, _ = tr.render(cam, interface=True)
+    assert (wet_img - img).abs().max() > 1e-3
+    if variant == "full+color":  # through the water the albedo is darkened by n^(-2/2.2) on top of opacity
+        assert float(wet_img.mean()) < float(img.mean())
+
+
+def test_outputs_resume_and_determinism(wet, tmp_path):
+    cfg = _cfg(variant="full", iterations=14, checkpoint_every=5)
+    a = Trainer(cfg, wet, tmp_path / "a")
+    stats = a.train()
+    assert stats["iterations"] == 14 and stats["num_gaussians"] == a.num_gaussians
+    meta = json.loads((tmp_path / "a/config.json").read_text())
+    assert meta["config"]["seed"] == 0 and meta["config"]["variant"] == "full"
+    assert meta["refraction_applied"] == VARIANTS["full"] and "torch" in meta["versions"]
+    assert train_mod.TrainConfig.from_dict(meta["config"]) == cfg
+    ply = load_ply(tmp_path / "a/point_cloud.ply")
+    for k, v in ply.items():
+        assert torch.equal(v, a.splats[k].detach()), k
+    # interrupted after 9 steps (checkpoint at 5 plus 4 lost steps), rerun from the checkpoint
+    b = Trainer(cfg, wet, tmp_path / "b")
+    for _ in range(9):
+        b.train_step()
+        if b.step % 5 == 0:
+            b.save_checkpoint()
+    c = Trainer(cfg, wet, tmp_path / "b")
+    assert c.step == 5
+    c.train()
+    for k in a.splats:
+        assert torch.equal(a.splats[k], c.splats[k]), k
+    with pytest.raises(ValueError, match="different settings .*seed"):
+        Trainer(_cfg(variant="full", iterations=14, checkpoint_every=5, seed=1), wet, tmp_path / "a")
+
+
+def test_callbacks_at_eval_steps(wet):
+    seen = []
+    tr = Trainer(_cfg(iterations=9), wet)
+    tr.train(callbacks=[lambda t, s: seen.append((s, t.elapsed, t.num_gaussians))], eval_steps=[3, 6, 50])
+    assert [s for s, _, _ in seen] == [3, 6, 9]
+    assert seen[0][1] > 0 and seen[0][1] <= seen[1][1] <= seen[2][1] == tr.elapsed
+
+
+def test_nan_is_reported_with_iteration_and_parameter(wet):
+    tr = Trainer(_cfg(iterations=5), wet)
+    tr.train_step()
+    tr.splats["scales"].register_hook(lambda g: g * float("nan") if tr.step == 2 else g)
+    with pytest.raises(TrainingDiverged, match=r"iteration 2: non-finite gradient of parameter 'scales'"):
+        tr.train_step()
+    tr = Trainer(_cfg(iterations=5), wet)
+    tr.train_step()
+    with torch.no_grad():
+        tr.splats["sh0"][0, 0, 0] = float("inf")
+    with pytest.raises(TrainingDiverged, match=r"iteration 2: loss is .* parameter 'sh0' \(1 of"):
+        tr.train_step()
+
+
+def test_cli_train(wet, tmp_path, capsys):
+    out = tmp_path / "run"
+    args = ["train", "--data", str(wet.root), "--out", str(out), "--preset", "smoke", "--iterations", "3",
+            "--variant", "position", "--init-depth", "1.0", "--no-progress", "--seed", "3"]
+    assert main(args) == 0
+    assert json.loads((out / "config.json").read_text())["config"]["seed"] == 3
+    assert (out / "point_cloud.ply").exists() and (out / "ckpt.pt").exists()
+    assert main(args) == 0  # finished run: resumes at the end, nothing to do
+    assert main(["train", "--data", str(tmp_path / "none"), "--out", str(out)]) == 2
+    assert main(args[:-2] + ["--seed", "4"]) == 2  # the checkpoint was written with other settings
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "does not exist" in err[0] and "different settings" in err[1]
+
+
+def test_refraction_aware_training_recovers_depth(tmp_path):
+    """End to end: a textured bed 2 m under water, 10 oblique views; both runs start from a flat grid half
+    way between the apparent depth (d / n) and the true depth. Plain 3DGS must drift up towards the
+    apparent bed, the full RA-GS transform must not, and both must fit the images better than at the start."""
+    d, half = 2.0, 1.5
+    views = render_views(bed_scene(1500, half, d, seed=0), ring_cameras(10, 64, 1.5, 2.5, target=(0, 0, -d)),
+                         WATER)
+    for i, v in enumerate(views):
+        v["split"] = "test" if i % 4 == 3 else "train"
+    ds = load_dataset(write_dataset(tmp_path / "e2e", views, WATER, {"xmin": -1, "xmax": 1, "ymin": -1, "ymax": 1}))
+
+    def bed_error(tr):  # opacity-weighted signed height error of the Gaussians over the central region
+        m = tr.splats["means"].detach()
+        truth = -d + 0.1 * d * torch.sin(2.0 * m[:, 0] / half) * torch.cos(1.5 * m[:, 1] / half)
+        w = torch.sigmoid(tr.splats["opacities"].detach()) * ((m[:, 0].abs() < 1) & (m[:, 1].abs() < 1))
+        return float(((m[:, 2] - truth) * w).sum() / w.sum())
+
+    err, losses = {}, {}
+    for variant in ("3dgs", "full"):
+        cfg = preset_config("smoke", variant=variant, iterations=120, init_depth=(d + d / WATER.n) / 2,
+                            init_count=400, lr_means=2e-3)
+        tr = Trainer(cfg, ds)
+        start = bed_error(tr)
+        hist = []
+        tr.train(on_step=lambda t, hist=hist: hist.append(t.last["loss"]))
+        err[variant] = bed_error(tr)
+        losses[variant] = (np.mean(hist[:10]), np.mean(hist[-10:]))
+        assert losses[variant][1] < 0.8 * losses[variant][0], (variant, losses)
+    assert start == pytest.approx((d - d / WATER.n) / 2, abs=0.02)  # above the bed to begin with
+    assert err["3dgs"] > start + 0.01, err  # pulled up towards the apparent depth
+    assert err["full"] < err["3dgs"] - 0.02, err
