@@ -23,6 +23,14 @@ $(VENV)/.installed: pyproject.toml
 test: install
 	$(PY) -m pytest -q
 
+# Renders the synthetic riverbed (resumes: finished views are skipped).
+dataset: install
+	$(VENV)/bin/ragsplat dataset --preset $(PRESET) --out $(DATA) --seed $(SEED)
+
+# The main job: dataset if missing, every variant trained and evaluated, tables beside the paper's.
+ablation: dataset
+	$(VENV)/bin/ragsplat ablation --preset $(PRESET) --data $(DATA) --out $(RUNS) --seed $(SEED)
+
 lint: install
 	$(VENV)/bin/ruff check .
 
