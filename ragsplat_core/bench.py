@@ -7,6 +7,7 @@ import importlib
 # target -> (module with add_arguments/run, one-line help)
 TARGETS = {
     "refraction": ("ragsplat_core.bench_refraction", "Snell solvers: error against run time; refract_gaussians cost"),
+    "raster": ("ragsplat_core.bench_raster", "rasterizer: forward+backward time and peak RSS per backend"),
 }
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 # name -> (module, one-line help). A subcommand is listed only once it does real work.
@@ -24,6 +25,9 @@ class UsageError(Exception):
 
 
 def main(argv: list[str] | None = None) -> int:
+    # OpenMP threads that spin while waiting make torch and numba 10-80x slower on a shared or
+    # oversubscribed CPU (measured); it only takes effect if set before torch is imported.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     argv = sys.argv[1:] if argv is None else list(argv)
     top = argparse.ArgumentParser(prog="ragsplat", description="Refraction-aware Gaussian splatting toolkit")
     sub = top.add_subparsers(dest="command", metavar="COMMAND")
