@@ -67,7 +67,8 @@ def evaluate_views(render: Callable, views, lpips_metric=None) -> dict:
     """Appearance on `views` (objects with `.name`, `.kind`, `.image`, `.dry` as in `ragsplat_core.data`).
 
     `render(view, interface: bool) -> [H, W, 3]` renders through the interface (True) or the true
-    Gaussians without it (False). Renders are clamped to [0, 1] (as 3DGS evaluates them). Returns
+    Gaussians without it (False). Renders are clamped to [0, 1] (as 3DGS evaluates them); the metrics run
+    on the render's device, where `lpips_metric` must already be (`LPIPS.to`). Returns
     {"refr": {"psnr", "ssim", "lpips"}, "dry": {...} or None, "per_view": [...]}.
     """
     per_view = []
@@ -78,7 +79,8 @@ def evaluate_views(render: Callable, views, lpips_metric=None) -> dict:
                 entry[cond] = None
                 continue
             with torch.no_grad():
-                img = render(view, cond == "refr").clamp(0, 1).to(target.device, target.dtype)
+                img = render(view, cond == "refr").clamp(0, 1)
+                target = target.to(img.device, img.dtype)  # metrics run where the render is (LPIPS too)
                 entry[cond] = {"psnr": float(metrics.psnr(img, target)), "ssim": float(metrics.ssim(img, target)),
                                "lpips": None if lpips_metric is None else float(lpips_metric(img, target))}
         per_view.append(entry)

@@ -97,9 +97,7 @@ def sample_gaussians(means, scales, quats, opacities, cfg: ExtractConfig, region
     means, scales, quats, opac = _np(means), _np(scales), _np(quats), _np(opacities).reshape(-1)
     keep = opac >= cfg.min_opacity
     if region is not None:
-        m = cfg.region_margin
-        keep &= ((means[:, 0] >= region["xmin"] - m) & (means[:, 0] <= region["xmax"] + m)
-                 & (means[:, 1] >= region["ymin"] - m) & (means[:, 1] <= region["ymax"] + m))
+        keep &= in_region(means, region, tol=cfg.region_margin)
     idx = np.flatnonzero(keep)
     counts = largest_remainder(np.prod(scales[idx], axis=1), cfg.n_samples)
     owner = np.repeat(idx, counts)  # [M]

@@ -17,8 +17,8 @@ from ragsplat_core.synthetic import bed_scene, render_views, ring_cameras, write
 def dataset(tmp_path_factory):
     root = tmp_path_factory.mktemp("data")
     water = WaterSurface(0.0, 1.33)
-    scene = bed_scene(300, half=1.0, depth=1.0, seed=0)
-    cams = ring_cameras(4, 24, height=2.0, radius=0.8) + ring_cameras(2, 24, 2.2, 0.5, nadir=False)
+    scene = bed_scene(200, half=1.0, depth=1.0, seed=0)
+    cams = ring_cameras(4, 16, height=2.0, radius=0.8) + ring_cameras(2, 16, 2.2, 0.5, nadir=False)
     views = render_views(scene, cams, water, backend="torch")
     for i, v in enumerate(views):
         v["split"] = "train" if i < 5 else "test"
