@@ -87,16 +87,19 @@ def solve_alpha(r2, d, H, n, steps: int | None = None):
         lower = torch.maximum(paraxial, grazing)
         upper = 1 / H_  # the water leg only adds to the radius
         alpha = lower
+        c, dn2 = m2 * r2_, d_ * n2  # loop invariants
         for _ in range(steps):
-            D = torch.sqrt(n2 + m2 * r2_ * alpha * alpha)
-            g = alpha * (H_ + d_ / D) - 1
-            g1 = H_ + d_ * n2 / D**3
-            g2 = -3 * d_ * n2 * m2 * r2_ * alpha / D**5
+            D2 = n2 + c * alpha * alpha
+            inv_D = torch.rsqrt(D2)
+            g = alpha * (H_ + d_ * inv_D) - 1
+            water_slope = dn2 * inv_D / D2  # d n^2 / D^3
+            g1 = H_ + water_slope
+            g2 = -3 * c * alpha * water_slope / D2
             # Halley; g' > 0 and g'' <= 0 keep the denominator >= 2 g'^2 above the root, and the clamp
             # guards the step from below.
             den = torch.clamp(2 * g1 * g1 - g * g2, min=0.5 * g1 * g1)
             alpha = torch.minimum(torch.maximum(alpha - 2 * g * g1 / den, lower), upper)
-        slope = H_ + d_ * n2 / torch.sqrt(n2 + m2 * r2_ * alpha * alpha) ** 3
+        slope = H_ + dn2 / torch.sqrt(n2 + c * alpha * alpha) ** 3
     # One tracked Newton step at the root: value unchanged to round-off, gradient = -dg/dx / g'.
     D = torch.sqrt(n * n + (n - 1) * (n + 1) * r2 * alpha * alpha)
     return alpha - (alpha * (H + d / D) - 1) / slope
