@@ -97,13 +97,17 @@ def time_one(backend: str, n: int, size: int, repeats: int, warmup: int = 2, see
             times.append(t2 - t0)
             fwd.append(t1 - t0)
             cpu.append(c2 - c0)
-    return {"backend": meta["backend"] + ("-cuda" if device == "cuda" and backend == "torch" else ""), "n": n, "size": size, "footprint": footprint, "repeats": repeats,
-            "median_s": statistics.median(times), "min_s": min(times), "forward_median_s": statistics.median(fwd),
-            "cpu_median_s": statistics.median(cpu),
-            "visible": int(meta["visible"].sum()), "mean_tiles_per_gaussian": float(
-                meta["tiles_touched"].float().mean()), "rss_before_mb": rss_before, "peak_rss_mb": _rss_mb(),
-            "threads": torch.get_num_threads(), "load_avg_1min": os.getloadavg()[0],
-            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "")}
+    name = "torch-cuda" if (backend, device) == ("torch", "cuda") else meta["backend"]
+    row = {"backend": name, "n": n, "size": size, "footprint": footprint, "repeats": repeats,
+           "median_s": statistics.median(times), "min_s": min(times),
+           "forward_median_s": statistics.median(fwd),
+           "cpu_median_s": statistics.median(cpu), "visible": int(meta["visible"].sum()),
+           "mean_tiles_per_gaussian": float(meta["tiles_touched"].float().mean()),
+           "rss_before_mb": rss_before, "peak_rss_mb": _rss_mb(), "threads": torch.get_num_threads(),
+           "load_avg_1min": os.getloadavg()[0], "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "")}
+    if device == "cuda":  # RSS says little about GPU memory
+        row["peak_cuda_mb"] = torch.cuda.max_memory_allocated() / 2**20
+    return row
 
 
 def bench_rasterizer(sizes=(10_000, 40_000), size: int = 256, repeats: int = 7, backends=None,
@@ -139,13 +143,14 @@ def available_backends() -> list[str]:
 
 
 def format_table(rows: list[dict]) -> str:
-    head = (f"{'backend':<10} {'thr':>3} {'N':>7} {'size':>5} {'footprint':>9} {'fwd+bwd s':>10} {'fwd s':>7} "
-            f"{'CPU s':>6} {'peak RSS MB':>12} {'tiles/G':>8} {'load':>5}")
+    head = (f"{'backend':<10} {'thr':>3} {'N':>7} {'size':>5} {'footprint':>9} {'fwd+bwd s':>10} "
+            f"{'fwd s':>7} {'CPU s':>6} {'peak RSS MB':>12} {'tiles/G':>8} {'load':>5}")
     lines = [head, "-" * len(head)]
     for r in rows:
-        lines.append(f"{r['backend']:<10} {r['threads']:>3} {r['n']:>7} {r['size']:>5} {r['footprint']:>9.1f} {r['median_s']:>10.3f} "
-                     f"{r['forward_median_s']:>7.3f} {r['cpu_median_s']:>6.3f} {r['peak_rss_mb']:>12.0f} {r['mean_tiles_per_gaussian']:>8.2f} "
-                     f"{r['load_avg_1min']:>5.1f}")
+        lines.append(f"{r['backend']:<10} {r['threads']:>3} {r['n']:>7} {r['size']:>5} "
+                     f"{r['footprint']:>9.1f} {r['median_s']:>10.3f} {r['forward_median_s']:>7.3f} "
+                     f"{r['cpu_median_s']:>6.3f} {r['peak_rss_mb']:>12.0f} "
+                     f"{r['mean_tiles_per_gaussian']:>8.2f} {r['load_avg_1min']:>5.1f}")
     return "\n".join(lines)
 
 
@@ -167,7 +172,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    rows = bench_rasterizer(args.n, args.size, args.repeats, args.backends, args.out, args.footprint, args.threads)
+    rows = bench_rasterizer(args.n, args.size, args.repeats, args.backends, args.out, args.footprint,
+                            args.threads)
     print(format_table(rows))
     print(f"written {args.out}")
     return 0
@@ -179,7 +185,8 @@ def _main(argv=None) -> int:
     parser.add_argument("--one", help=argparse.SUPPRESS)  # internal: one (backend, N) in this process
     args = parser.parse_args(argv)
     if args.one:
-        backend, device = {"torch-cuda": ("torch", "cuda"), "gsplat": ("gsplat", "cuda")}.get(args.one, (args.one, "cpu"))
+        on_cuda = {"torch-cuda": ("torch", "cuda"), "gsplat": ("gsplat", "cuda")}
+        backend, device = on_cuda.get(args.one, (args.one, "cpu"))
         print(json.dumps(time_one(backend, args.n[0], args.size, args.repeats, device=device,
                                   footprint=args.footprint[0], threads=args.threads[0])))
         return 0

@@ -109,7 +109,8 @@ def _rasterize_gsplat(means, quats, scales, opacities, colors, camera, backgroun
     renders, alphas, info = rasterization(
         means.float(), _f32(quats), _f32(scales), opacities.float(), colors.float(), viewmat, K, camera.width,
         camera.height, near_plane=0.01, eps2d=0.3, packed=False, tile_size=16,
-        backgrounds=background.float()[None], render_mode="RGB+ED", rasterize_mode="classic", covars=_f32(covars))
+        backgrounds=background.float()[None], render_mode="RGB+ED", rasterize_mode="classic",
+        covars=_f32(covars))
     renders, alphas = renders.to(dtype), alphas.to(dtype)
     full = info["means2d"]  # [1, N, 2], a non-leaf tensor of the graph
     means2d = full[0].detach()

@@ -229,8 +229,7 @@ def test_backend_choice_and_errors():
 
 def test_no_gaussians_renders_background():
     cam = nadir(8, 8)
-    empty = [torch.zeros(0, k, dtype=torch.float64) for k in (3, 4, 3)] + [torch.zeros(0, dtype=torch.float64),
-                                                                          torch.zeros(0, 3, dtype=torch.float64)]
+    empty = [torch.zeros((0, *shape), dtype=torch.float64) for shape in ((3,), (4,), (3,), (), (3,))]
     for backend in BACKENDS:
         image, alpha, depth, _ = rasterize(*empty, cam, [0.5, 0.5, 0.5], backend=backend)
         assert torch.all(image == 0.5) and torch.all(alpha == 0) and torch.all(depth == 0)

@@ -96,7 +96,8 @@ def test_torch_backend_on_cuda_matches_cpu_reference():
     cam, params, weights = crowded_scene()
     ref_out, ref_grads, _ = render_and_grads("torch", params, cam, weights)
     out, grads, _ = render_and_grads("torch", [p.cuda() for p in params], cam, [w.cuda() for w in weights])
-    for a, b, name in zip(out + grads, ref_out + ref_grads, ["image", "alpha", "depth"] + NAMES + ["means2d"]):
+    names = ["image", "alpha", "depth"] + NAMES + ["means2d"]
+    for a, b, name in zip(out + grads, ref_out + ref_grads, names):
         assert a.is_cuda
         assert_close_scaled(a, b, 1e-9, name)
 

@@ -2,9 +2,11 @@
 
 Same semantics as the torch reference (`torch_backend.py`). The projection stays in PyTorch (O(N), autograd);
 only the O(pixels x Gaussians) compositing is here. Per tile, Gaussians are visited front to back and each
-one only touches the pixels of its own screen box inside the tile (the opacity-aware box of `project.py`,
-outside which alpha < 1/255), so a Gaussian of a few pixels costs a few pixels, not the tile's 256. A tile
-stops once every pixel in it is saturated (transmittance would drop below 1e-4).
+one only touches the pixels of the tile inside its alpha >= 1/255 ellipse (row by row, each row's span
+solved from the conic, within the opacity-aware box of `project.py`), so a Gaussian of a few pixels costs
+a few pixels, not the tile's 256. A tile stops once every pixel in it is saturated (transmittance would
+drop below 1e-4). Forward and backward evaluate alpha with the same float32 code, so they skip the same
+(pixel, Gaussian) pairs.
 
 Backward (as 3DGS): per pixel, walk its composited Gaussians back to front from the last one, restoring the
 transmittance by division by (1 - alpha) and keeping running sums of what lies behind. Each (tile,

@@ -75,7 +75,8 @@ def project(means: torch.Tensor, covars: torch.Tensor, opacities: torch.Tensor, 
     tx = z * torch.clamp(x / z, -(cx / fx + 0.3 * tan_x), (W - cx) / fx + 0.3 * tan_x)
     ty = z * torch.clamp(y / z, -(cy / fy + 0.3 * tan_y), (H - cy) / fy + 0.3 * tan_y)
     zero = torch.zeros_like(z)
-    J = torch.stack([fx / z, zero, -fx * tx / (z * z), zero, fy / z, -fy * ty / (z * z)], -1).reshape(-1, 2, 3)
+    J = torch.stack([fx / z, zero, -fx * tx / (z * z), zero, fy / z, -fy * ty / (z * z)], -1)
+    J = J.reshape(-1, 2, 3)
     JW = J @ R  # [N, 2, 3]
     cov2d = JW @ covars @ JW.transpose(1, 2)  # [N, 2, 2]
     a = cov2d[:, 0, 0] + EPS2D
@@ -98,7 +99,8 @@ def project(means: torch.Tensor, covars: torch.Tensor, opacities: torch.Tensor, 
         j1 = torch.floor(vd + ey - 0.5).clamp(-1, H)
         ok = ok & torch.isfinite(ex + ey + ud + vd)
         visible = ok & (i1 >= 0) & (i0 <= W - 1) & (j1 >= 0) & (j0 <= H - 1) & (i0 <= i1) & (j0 <= j1)
-        box = torch.stack([i0.clamp(0, W - 1), i1.clamp(0, W - 1), j0.clamp(0, H - 1), j1.clamp(0, H - 1)], -1)
+        box = torch.stack([i0.clamp(0, W - 1), i1.clamp(0, W - 1), j0.clamp(0, H - 1), j1.clamp(0, H - 1)],
+                          -1)
         box = torch.where(visible[:, None], box, torch.zeros_like(box)).to(torch.int64)
         radii = torch.where(visible, torch.ceil(torch.maximum(ex, ey)), torch.zeros_like(ex)).to(torch.int32)
     return Projected(means2d, conics, pc[:, 2], box, visible, radii)

@@ -46,8 +46,8 @@ def composite(proj: Projected, opacities: torch.Tensor, colors: torch.Tensor, bi
         tiles = by_len[start:stop]  # [t]
         args = (tiles, max(cnt[stop - 1], 1), proj, opacities, feats, bins, px, py)
         # Recomputed in backward instead of kept: memory stays one chunk's worth of [t, 256, k] tensors.
-        out_rows.append(checkpoint(_composite_tiles, *args, use_reentrant=False) if torch.is_grad_enabled()
-                        else _composite_tiles(*args))
+        out_rows.append(checkpoint(_composite_tiles, *args, use_reentrant=False, preserve_rng_state=False)
+                        if torch.is_grad_enabled() else _composite_tiles(*args))
         out_tiles.append(tiles)
         start = stop
     res = torch.cat(out_rows)  # [n_tiles, 256, 5] in chunk order
@@ -71,7 +71,8 @@ def _composite_tiles(tiles, k, proj, opacities, feats, bins, px, py):
     con = proj.conics[idx]  # [t, k, 3]
     dx = m[:, None, :, 0] - cu[:, :, None]  # [t, 256, k]
     dy = m[:, None, :, 1] - cv[:, :, None]
-    power = -0.5 * (con[:, None, :, 0] * dx * dx + con[:, None, :, 2] * dy * dy) - con[:, None, :, 1] * dx * dy
+    ca, cb, cc = con[:, None, :, 0], con[:, None, :, 1], con[:, None, :, 2]
+    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
     alpha = torch.clamp(opacities[idx][:, None, :] * torch.exp(power), max=ALPHA_MAX)
     use = valid[:, None, :] & (power <= 0) & (alpha >= ALPHA_MIN)
     alpha = torch.where(use, alpha, torch.zeros_like(alpha))
