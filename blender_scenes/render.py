@@ -181,15 +181,12 @@ def _setup(job: dict) -> tuple[bpy.types.Scene, bpy.types.Object, bpy.types.Obje
     _world(job["light"])
 
     cd = bpy.data.cameras.new("camera")
-    if cam["fx"] != cam["fy"]:
-        raise ValueError("only square pixels (fx == fy) are supported")
+    if cam["fx"] != cam["fy"] or (cam["cx"], cam["cy"]) != (cam["width"] / 2, cam["height"] / 2):
+        raise ValueError("only square pixels (fx == fy) and a centred principal point are supported")
     size = max(cam["width"], cam["height"])
     cd.sensor_fit, cd.sensor_width = "HORIZONTAL" if cam["width"] >= cam["height"] else "VERTICAL", 36.0
     cd.sensor_height = 36.0
-    cd.lens = cam["fx"] * 36.0 / size
-    # Principal point: Blender shifts in units of the larger side; +shift_y moves the image centre up.
-    cd.shift_x = (cam["width"] / 2 - cam["cx"]) / size
-    cd.shift_y = (cam["cy"] - cam["height"] / 2) / size
+    cd.lens = cam["fx"] * 36.0 / size  # focal length in sensor millimetres along the fitted (larger) side
     cd.clip_start, cd.clip_end = 0.01, 1e5
     camera = bpy.data.objects.new("camera", cd)
     scene.collection.objects.link(camera)
