@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from ragsplat_core.ssim import ssim
+from ragsplat_core.ssim import channels_first, ssim
 
 __all__ = ["LPIPS", "VGG16_FILE", "load_lpips", "psnr", "ssim", "vgg16_features_init"]
 
@@ -40,14 +40,6 @@ LPIPS_CHANNELS = (64, 128, 256, 512, 512)
 # LPIPS ScalingLayer: maps [-1, 1] inputs to ImageNet-normalised ones
 LPIPS_SHIFT = (-0.030, -0.088, -0.188)
 LPIPS_SCALE = (0.458, 0.448, 0.450)
-
-
-def _bchw(img: torch.Tensor) -> torch.Tensor:
-    if img.dim() == 3 and img.shape[-1] == 3:
-        return img.permute(2, 0, 1).unsqueeze(0)
-    if img.dim() == 4 and img.shape[1] == 3:
-        return img
-    raise ValueError(f"expected [H, W, 3] or [B, 3, H, W], got {tuple(img.shape)}")
 
 
 def psnr(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
@@ -117,7 +109,7 @@ class LPIPS:
         """Mean LPIPS over the batch for images in [0, 1] ([H,W,3] or [B,3,H,W]); differentiable."""
         if img1.shape != img2.shape:
             raise ValueError(f"lpips: shapes differ: {tuple(img1.shape)} vs {tuple(img2.shape)}")
-        a, b = _bchw(img1).float(), _bchw(img2).float()
+        a, b = channels_first(img1).float(), channels_first(img2).float()
         shift = torch.tensor(LPIPS_SHIFT, device=a.device).view(1, 3, 1, 1)
         scale = torch.tensor(LPIPS_SCALE, device=a.device).view(1, 3, 1, 1)
         fa = self._features(((2 * a - 1) - shift) / scale)

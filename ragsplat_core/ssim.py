@@ -23,22 +23,20 @@ def gaussian_window(size: int = WINDOW, sigma: float = SIGMA, dtype=None, device
     return (g / g.sum()).to(dtype=dtype, device=device)  # [size]
 
 
-def _channels_first(img: torch.Tensor) -> torch.Tensor:
+def channels_first(img: torch.Tensor) -> torch.Tensor:
     """[H,W,3] -> [1,3,H,W]; [B,3,H,W] is returned as is."""
-    if img.dim() == 3:
-        if img.shape[-1] != 3:
-            raise ValueError(f"ssim: a 3-D image must be [H, W, 3], got {tuple(img.shape)}")
+    if img.dim() == 3 and img.shape[-1] == 3:
         return img.permute(2, 0, 1).unsqueeze(0)
     if img.dim() == 4 and img.shape[1] == 3:
         return img
-    raise ValueError(f"ssim: expected [H, W, 3] or [B, 3, H, W], got {tuple(img.shape)}")
+    raise ValueError(f"expected an image [H, W, 3] or [B, 3, H, W], got {tuple(img.shape)}")
 
 
 def ssim_map(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
     """Per-pixel SSIM, [B, 3, H, W], for inputs [H,W,3] (treated as B=1) or [B,3,H,W] in [0, 1]."""
     if img1.shape != img2.shape:
         raise ValueError(f"ssim: shapes differ: {tuple(img1.shape)} vs {tuple(img2.shape)}")
-    a, b = _channels_first(img1), _channels_first(img2)
+    a, b = channels_first(img1), channels_first(img2)
     ch = a.shape[1]
     # The five local moments in one pass; the 11x11 window is separable and zero padding commutes with
     # the split (the row pass of a padded row is zero), so two 1-D convolutions give exactly 3DGS's 2-D
