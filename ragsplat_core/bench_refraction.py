@@ -14,6 +14,7 @@ to the apparent point; error is relative to |P - C| against the float64 bisectio
 
 from __future__ import annotations
 
+import functools
 import json
 import statistics
 import sys
@@ -139,7 +140,7 @@ def solver_table(cases: int, repeats: int, seed: int) -> list[dict]:
                 with torch.no_grad():
                     r_app, d_app = fn(*inputs, steps)
                     err = torch.sqrt((r_app.double() - r_ref) ** 2 + (d_app.double() - d_ref) ** 2) / dist
-                    seconds = _median_time(lambda: fn(*inputs, steps), repeats)
+                    seconds = _median_time(functools.partial(fn, *inputs, steps), repeats)
                 bad = int((~torch.isfinite(err)).sum())
                 finite = err[torch.isfinite(err)]
                 rows.append({"dtype": str(dtype).removeprefix("torch."), "solver": name, "steps": steps,
@@ -161,10 +162,11 @@ def transform_table(sizes, repeats: int, seed: int) -> list[dict]:
         opac = torch.rand(size, generator=gen)
         colors = torch.rand(size, 3, generator=gen)
         with torch.no_grad():
-            fwd = _median_time(lambda: refract_gaussians(means, scales, quats, opac, colors, cam, water), repeats)
+            fwd = _median_time(functools.partial(refract_gaussians, means, scales, quats, opac, colors, cam, water),
+                               repeats)
         leaves = [t.clone().requires_grad_(True) for t in (means, scales, opac)]
 
-        def fwd_bwd():
+        def fwd_bwd(leaves=leaves, quats=quats, colors=colors):
             out = refract_gaussians(leaves[0], leaves[1], quats, leaves[2], colors, cam, water)
             (out.means.sum() + out.scales.sum() + out.opacities.sum()).backward()
 

@@ -27,14 +27,14 @@ JACOBIAN_TARGET = 1e-6
 
 # regime -> log10 ranges (or linear for n) of (r, d, H, n); r is sampled log-uniformly, then a share set to 0.
 REGIMES = {
-    "nadir": dict(r=(-12, -3), d=(-4, 2), H=(-1, 3), n=(1.0, 1.6), r_zero=0.25),
-    "near-surface": dict(r=(-3, 3), d=(-4, -2), H=(-1, 3), n=(1.0, 1.6)),
-    "grazing": dict(r=(2, 3), d=(-4, 2), H=(-1, 0.5), n=(1.0, 1.6)),
-    "low camera": dict(r=(-3, 3), d=(-4, 2), H=(-1, -0.5), n=(1.0, 1.6)),
-    "deep": dict(r=(-3, 3), d=(1.5, 2), H=(-1, 3), n=(1.0, 1.6)),
-    "n ~ 1": dict(r=(-3, 3), d=(-4, 2), H=(-1, 3), n=(1.0, 1.0 + 1e-4), n_one=0.25),
-    "typical survey": dict(r=(-1, 2), d=(-1, 1), H=(1, 2.1), n=(1.33, 1.34)),
-    "full domain": dict(r=(-6, 3), d=(-4, 2), H=(-1, 3), n=(1.0, 1.6), r_zero=0.05, n_one=0.05),
+    "nadir": {"r": (-12, -3), "d": (-4, 2), "H": (-1, 3), "n": (1.0, 1.6), "r_zero": 0.25},
+    "near-surface": {"r": (-3, 3), "d": (-4, -2), "H": (-1, 3), "n": (1.0, 1.6)},
+    "grazing": {"r": (2, 3), "d": (-4, 2), "H": (-1, 0.5), "n": (1.0, 1.6)},
+    "low camera": {"r": (-3, 3), "d": (-4, 2), "H": (-1, -0.5), "n": (1.0, 1.6)},
+    "deep": {"r": (-3, 3), "d": (1.5, 2), "H": (-1, 3), "n": (1.0, 1.6)},
+    "n ~ 1": {"r": (-3, 3), "d": (-4, 2), "H": (-1, 3), "n": (1.0, 1.0 + 1e-4), "n_one": 0.25},
+    "typical survey": {"r": (-1, 2), "d": (-1, 1), "H": (1, 2.1), "n": (1.33, 1.34)},
+    "full domain": {"r": (-6, 3), "d": (-4, 2), "H": (-1, 3), "n": (1.0, 1.6), "r_zero": 0.05, "n_one": 0.05},
 }
 
 
@@ -157,7 +157,7 @@ def run_sweep(cfg: StabilityConfig) -> dict:
                 k = int(torch.nan_to_num(err, nan=math.inf).argmax())
                 e = float(err[k]) if torch.isfinite(err[k]) else math.inf
                 if e > worst[0]:
-                    worst = (e, {key: float(t[k]) for key, t in zip("x y depth H n".split(), inputs)})
+                    worst = (e, {key: float(t[k]) for key, t in zip(["x", "y", "depth", "H", "n"], inputs)})
             err = torch.cat(errs)
             jac = _jacobian_error(regime, cfg, gen) if dtype == torch.float64 else None
             ok = worst[0] <= TARGETS[dtype_name] and bad_v == 0 and bad_g == 0

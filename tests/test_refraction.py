@@ -202,7 +202,7 @@ def test_gradcheck_typical_and_extreme():
 
         assert torch.autograd.gradcheck(f, (p, n, level, cam_t), eps=1e-7, atol=1e-6, rtol=1e-5), label
 
-        def g(p, n):
+        def g(p, n, cam=cam):
             q = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=f64).expand(len(p), 4)
             out = refract_gaussians(p, torch.full_like(p, 0.2), q, torch.full((len(p),), 0.5, dtype=f64),
                                     torch.ones_like(p), cam, WaterSurface(level=0.5, n=n))
