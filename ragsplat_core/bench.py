@@ -8,6 +8,7 @@ import importlib
 TARGETS = {
     "refraction": ("ragsplat_core.bench_refraction", "Snell solvers: error against run time; refract_gaussians cost"),
     "raster": ("ragsplat_core.bench_raster", "rasterizer: forward+backward time and peak RSS per backend"),
+    "train-step": ("ragsplat_core.bench_train", "median time per training iteration; refraction overhead full/3dgs"),
 }
 
 

@@ -19,10 +19,11 @@ from ragsplat_core.refraction import WaterSurface
 
 
 def write_dataset(root: str | Path, views: list[dict], water: WaterSurface | None,
-                  eval_region: dict | None = None) -> Path:
+                  eval_region: dict | None = None, bed: dict | None = None) -> Path:
     """Write `views` (dicts with camera, image [H,W,3] in [0,1], optional dry, split, kind) as a dataset.
 
-    All cameras must share intrinsics (the contract stores them once).
+    All cameras must share intrinsics (the contract stores them once). `bed` ({"depth", "size"} of a square
+    bed centred on the origin) goes to scene.json as `spec.bed`, where the generator puts it.
     """
     root = Path(root)
     cam0: Camera = views[0]["camera"]
@@ -50,6 +51,8 @@ def write_dataset(root: str | Path, views: list[dict], water: WaterSurface | Non
     scene = {"generator": "ragsplat_core.synthetic"}
     if eval_region is not None:
         scene["eval_region"] = eval_region
+    if bed is not None:
+        scene["spec"] = {"bed": bed}
     (root / "scene.json").write_text(json.dumps(scene, indent=1))
     return root
 

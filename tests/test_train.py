@@ -80,13 +80,18 @@ def test_grid_init_at_bed_depth(wet):
     tr = Trainer(_cfg(init_depth=0.7), wet)
     m = tr.splats["means"].detach()
     assert torch.allclose(m[:, 2], torch.tensor(-0.7))
-    # the evaluation region grown by 10 % on each side
-    assert float(m[:, 0].min()) > -0.96 and float(m[:, 0].max()) < 0.96 and float(m[:, 0].max()) > 0.8
+    # a regular grid filling what the training views see of the plane z = -0.7
+    box = footprint([v.camera for v in wet.train], wet.water, -0.7)
+    step_x, step_y = (float(m[:, k].unique().diff().mean()) for k in (0, 1))
+    assert float(m[:, 0].min()) == pytest.approx(box[0] + step_x / 2, rel=1e-4)
+    assert float(m[:, 1].max()) == pytest.approx(box[3] - step_y / 2, rel=1e-4)
     assert abs(tr.num_gaussians - 120) <= 30
     with pytest.raises(ValueError, match="bed depth"):
         Trainer(_cfg(init_depth=None), wet)
-    generated = dataclasses.replace(wet, scene={"spec": {"bed": {"depth": 0.6}}})  # as datagen writes it
-    assert torch.allclose(Trainer(_cfg(init_depth=None), generated).splats["means"][:, 2], torch.tensor(-0.6))
+    # as datagen writes it: the depth, and a bed size that clips the grid
+    generated = dataclasses.replace(wet, scene={"spec": {"bed": {"depth": 0.6, "size": 1.0}}})
+    m = Trainer(_cfg(init_depth=None), generated).splats["means"].detach()
+    assert torch.allclose(m[:, 2], torch.tensor(-0.6)) and float(m[:, :2].abs().max()) < 0.5
 
 
 def test_points_init(wet, tmp_path):
@@ -181,8 +186,13 @@ def test_nan_is_reported_with_iteration_and_parameter(wet):
     tr = Trainer(_cfg(iterations=5), wet)
     tr.train_step()
     with torch.no_grad():
-        tr.splats["sh0"][0, 0, 0] = float("inf")
-    with pytest.raises(TrainingDiverged, match=r"iteration 2: loss is .* parameter 'sh0' \(1 of"):
+        tr.splats["sh0"][:, 0, 0] = float("inf")  # every Gaussian: whichever the next view sees
+    with pytest.raises(TrainingDiverged, match=r"iteration 2: loss is .* parameter 'sh0' \(\d+ of"):
+        tr.train_step()
+    tr = Trainer(_cfg(iterations=5), wet)
+    with torch.no_grad():
+        tr.splats["quats"][0] = float("nan")  # off screen or not: caught after the step
+    with pytest.raises(TrainingDiverged, match=r"iteration 1: .*parameter 'quats'"):
         tr.train_step()
 
 
@@ -209,7 +219,8 @@ def test_refraction_aware_training_recovers_depth(tmp_path):
                          WATER)
     for i, v in enumerate(views):
         v["split"] = "test" if i % 4 == 3 else "train"
-    ds = load_dataset(write_dataset(tmp_path / "e2e", views, WATER, {"xmin": -1, "xmax": 1, "ymin": -1, "ymax": 1}))
+    region = {"xmin": -1, "xmax": 1, "ymin": -1, "ymax": 1}
+    ds = load_dataset(write_dataset(tmp_path / "e2e", views, WATER, region, bed={"depth": d, "size": 2 * half}))
 
     def bed_error(tr):  # opacity-weighted signed height error of the Gaussians over the central region
         m = tr.splats["means"].detach()
@@ -220,14 +231,14 @@ def test_refraction_aware_training_recovers_depth(tmp_path):
     err, losses = {}, {}
     for variant in ("3dgs", "full"):
         cfg = preset_config("smoke", variant=variant, iterations=120, init_depth=(d + d / WATER.n) / 2,
-                            init_count=400, lr_means=2e-3)
+                            init_count=400)
         tr = Trainer(cfg, ds)
         start = bed_error(tr)
         hist = []
         tr.train(on_step=lambda t, hist=hist: hist.append(t.last["loss"]))
         err[variant] = bed_error(tr)
         losses[variant] = (np.mean(hist[:10]), np.mean(hist[-10:]))
-        assert losses[variant][1] < 0.8 * losses[variant][0], (variant, losses)
+        assert losses[variant][1] < 0.9 * losses[variant][0], (variant, losses)
     assert start == pytest.approx((d - d / WATER.n) / 2, abs=0.02)  # above the bed to begin with
     assert err["3dgs"] > start + 0.01, err  # pulled up towards the apparent depth
     assert err["full"] < err["3dgs"] - 0.02, err
