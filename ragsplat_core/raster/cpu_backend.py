@@ -49,15 +49,20 @@ def _row_span(mx, dy, ca, cb, cc, r2, i0, i1):
     return max(i0, np.int64(np.ceil(centre - half))), min(i1, np.int64(np.floor(centre + half)))
 
 
+@njit(cache=True, inline="always")
+def _tile_box(t, tiles_x, width, height):
+    """Pixel box [x0, x1) x [y0, y1) of tile t (row-major), clipped to the image."""
+    ty = t // tiles_x
+    x0 = (t - ty * tiles_x) * TILE
+    y0 = ty * TILE
+    return x0, y0, min(x0 + TILE, width), min(y0 + TILE, height)
+
+
 @njit(cache=True, parallel=True)
 def _forward(mean2d, conic, opac, feat, box, gauss, offsets, width, height, tiles_x,
              out_feat, out_t, out_last):
     for t in prange(offsets.shape[0] - 1):
-        ty = t // tiles_x
-        x0 = (t - ty * tiles_x) * TILE
-        y0 = ty * TILE
-        x1 = min(x0 + TILE, width)
-        y1 = min(y0 + TILE, height)
+        x0, y0, x1, y1 = _tile_box(t, tiles_x, width, height)
         tw = x1 - x0
         npx = tw * (y1 - y0)
         trans = np.ones(npx, np.float32)
@@ -110,11 +115,7 @@ def _forward(mean2d, conic, opac, feat, box, gauss, offsets, width, height, tile
 def _backward(mean2d, conic, opac, feat, box, gauss, offsets, width, height, tiles_x,
               final_t, last, g_feat, g_t, out):
     for t in prange(offsets.shape[0] - 1):
-        ty = t // tiles_x
-        x0 = (t - ty * tiles_x) * TILE
-        y0 = ty * TILE
-        x1 = min(x0 + TILE, width)
-        y1 = min(y0 + TILE, height)
+        x0, y0, x1, y1 = _tile_box(t, tiles_x, width, height)
         tw = x1 - x0
         npx = tw * (y1 - y0)
         trans = np.empty(npx, np.float32)  # transmittance after the Gaussian being visited
