@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 
 from .refraction import SOLVER_STEPS, WaterSurface, apparent_offsets, refract_gaussians
-from .stability import REGIMES, reference, sample
+from .stability import REGIMES, apparent_from_tan_a, reference, sample
 
 
 def _apparent_from_alpha(alpha, r2, d, H, n):  # -> r', d'
@@ -53,13 +53,6 @@ def _quartic(r, d, H, n):  # coefficients of the paper's Eq. 2, highest first, z
     return (1 - n2, 2 * (n2 - 1) * r, (1 - n2) * r * r - n2 * H * H + d * d, 2 * n2 * H * H * r, -n2 * H * H * r * r)
 
 
-def _from_s(s, r, d, H, n):  # interface radius -> (r', d') on the air ray
-    tan_a = s / H
-    tan_w = tan_a / torch.sqrt(n * n + (n - 1) * (n + 1) * tan_a * tan_a)
-    d_app = d * ((1 + tan_w * tan_w) / (1 + tan_a * tan_a)) ** 1.5 / n
-    return s + d_app * tan_a, d_app
-
-
 def newton_s(r, d, H, n, steps):
     a4, a3, a2, a1, a0 = _quartic(r, d, H, n)
     s = r * H / (H + d / n)
@@ -67,7 +60,7 @@ def newton_s(r, d, H, n, steps):
         f = (((a4 * s + a3) * s + a2) * s + a1) * s + a0
         df = ((4 * a4 * s + 3 * a3) * s + 2 * a2) * s + a1
         s = s - f / df
-    return _from_s(s, r, d, H, n)
+    return apparent_from_tan_a(s / H, d, H, n)
 
 
 def ferrari(r, d, H, n, steps=None):
@@ -101,7 +94,7 @@ def ferrari(r, d, H, n, steps=None):
             else:
                 better = residual < best
                 best, best_s = torch.where(better, residual, best), torch.where(better, s, best_s)
-    return _from_s(best_s, r, d, H, n)
+    return apparent_from_tan_a(best_s / H, d, H, n)
 
 
 def bisection_alpha(r, d, H, n, steps):

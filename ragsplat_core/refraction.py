@@ -119,6 +119,8 @@ class _Local(NamedTuple):
     d: torch.Tensor  # [M] true depth
     H: torch.Tensor  # [] camera height
     n: torch.Tensor  # []
+    origin: torch.Tensor  # [2] camera nadir
+    level: torch.Tensor  # []
 
 
 def _local(points, camera_center, water) -> _Local:
@@ -126,7 +128,11 @@ def _local(points, camera_center, water) -> _Local:
     n = torch.as_tensor(water.n, dtype=points.dtype, device=points.device)
     C = torch.as_tensor(camera_center, dtype=points.dtype, device=points.device)
     v = points[:, :2] - C[:2]
-    return _Local(v, (v * v).sum(-1), level - points[:, 2], C[2] - level, n)
+    return _Local(v, (v * v).sum(-1), level - points[:, 2], C[2] - level, n, C[:2], level)
+
+
+def _place(loc: _Local, rho, d_app):  # [M, 3] apparent points from r'/r and d'
+    return torch.cat([loc.origin + rho[:, None] * loc.v, (loc.level - d_app)[:, None]], -1)
 
 
 def _check_camera(camera_center, water) -> None:
@@ -149,10 +155,7 @@ def apparent_points(points, camera_center, water: WaterSurface, steps: int | Non
         return points.clone()
     wet = _submerged(points, water)
     loc = _local(points[wet], camera_center, water)
-    rho, d_app = apparent_offsets(loc.r2, loc.d, loc.H, loc.n, steps)
-    C = torch.as_tensor(camera_center, dtype=points.dtype, device=points.device)
-    moved = torch.cat([C[:2] + rho[:, None] * loc.v, (water.level - d_app)[:, None]], -1)
-    return points.index_put((wet,), moved)
+    return points.index_put((wet,), _place(loc, *apparent_offsets(loc.r2, loc.d, loc.H, loc.n, steps)))
 
 
 class _Derivatives(NamedTuple):
@@ -275,8 +278,7 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
         der = _derivatives(loc, steps) if scale != "none" else None
         if position:
             rho, d_app = (der.rho, der.d_app) if der else apparent_offsets(loc.r2, loc.d, loc.H, loc.n, steps)
-            C = torch.as_tensor(camera_center, dtype=means.dtype, device=means.device)
-            means = put(means, torch.cat([C[:2] + rho[:, None] * loc.v, (water.level - d_app)[:, None]], -1))
+            means = put(means, _place(loc, rho, d_app))
         if scale in ("isotropic", "determinant"):
             factor = (_column_norms(loc, der).prod(-1) if scale == "isotropic" else _abs_det(loc, der)) ** (1 / 3)
             scales = put(scales, take(scales) * factor[:, None])

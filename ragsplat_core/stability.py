@@ -85,7 +85,11 @@ def reference(r, d, H, n, halvings: int = 200):
         tan_w = mid / torch.sqrt(n * n + (n - 1) * (n + 1) * mid * mid)  # from sin(ta) = n sin(tw)
         short = H * mid + d * tan_w < r
         lo, hi = torch.where(short, mid, lo), torch.where(short, hi, mid)
-    tan_a = (lo + hi) / 2
+    return apparent_from_tan_a((lo + hi) / 2, d, H, n)
+
+
+def apparent_from_tan_a(tan_a, d, H, n):
+    """(r', d') on the air ray leaving the camera at tan(theta_a), by the paper's Eq. 5 in angles."""
     tan_w = tan_a / torch.sqrt(n * n + (n - 1) * (n + 1) * tan_a * tan_a)
     cos_ratio2 = (1 + tan_w * tan_w) / (1 + tan_a * tan_a)  # (cos ta / cos tw)^2
     d_app = d * cos_ratio2**1.5 / n
