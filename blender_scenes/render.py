@@ -11,9 +11,9 @@ Materials: {"kind": "texture", "image": png} (diffuse albedo, repeating), {"kind
 
 Passes: "wet" renders with the water object, "dry" without; both 8-bit sRGB PNG, 'Standard' view transform.
 "depth" renders without water at 1 sample with a 0.01 px pixel filter (exact surface at the pixel centre)
-and stores Cycles' z-depth via datagen.layout.write_depth. Every file is written to a temporary name and
+and stores Cycles' z-depth via ragsplat_core.dataset.layout.write_depth. Every file is written to a temporary name and
 renamed, so a killed run never leaves a partial file. One line per finished task on stdout, prefixed
-PROTOCOL, carries the timings.
+PROTOCOL, carries the timings (`blender_scenes.protocol`).
 """
 
 from __future__ import annotations
@@ -30,9 +30,9 @@ import bpy
 import numpy as np
 from mathutils import Matrix, Vector
 
-from datagen.layout import NO_HIT, temp_path, write_depth
-
-PROTOCOL = "@@ragsplat "
+from blender_scenes.protocol import PROTOCOL
+from ragsplat_core.dataset.layout import NO_HIT, write_depth
+from ragsplat_core.outputs import temp_path
 
 
 def _say(**event) -> None:

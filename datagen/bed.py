@@ -155,7 +155,7 @@ def height_at(bed: Bed, xy: np.ndarray) -> np.ndarray:
     return np.where(lower, h00 + s * (h10 - h00) + t * (h11 - h10), h00 + t * (h01 - h00) + s * (h11 - h01))
 
 
-def ground_truth_grid(bed: Bed, region: dict[str, float], step: float = 0.05) -> np.ndarray:
+def ground_truth_grid(bed: Bed, region: dict[str, float], step: float) -> np.ndarray:
     """Points [N, 3] float64 on a `step` horizontal grid over `region`, at the exact mesh height."""
     xs = np.arange(region["xmin"], region["xmax"] + 1e-9, step)
     ys = np.arange(region["ymin"], region["ymax"] + 1e-9, step)

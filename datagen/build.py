@@ -7,30 +7,29 @@ writes the merged metadata (transforms.json, COLMAP model, scene.json).
 
 from __future__ import annotations
 
-import importlib.metadata
 import json
 import math
 import os
-import platform
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from datagen import flight, layout
+from blender_scenes.protocol import PROTOCOL
+from datagen import flight
 from datagen.bed import Bed, ground_truth_grid, make_bed, mesh, write_ply
 from datagen.spec import SceneSpec, validate
 from ragsplat_core.camera import Camera
+from ragsplat_core.dataset import layout
+from ragsplat_core.errors import OutputError, RagsplatError
+from ragsplat_core.outputs import atomic_path, versions, write_bytes, write_json
 
 FAR = 2000.0  # half-size (m) of the floor and water planes: beyond every view's horizon-free field
-
-
-class DatasetError(Exception):
-    """Bad input (not a bug): one line for the user, nothing deleted."""
 
 
 @dataclass
@@ -57,19 +56,19 @@ def _prepare_out(spec: SceneSpec, out: Path) -> None:
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise DatasetError(f"cannot create output directory {out}: {err.strerror}") from None
+        raise OutputError(f"cannot create output directory {out}: {err.strerror}") from None
     if not out.is_dir() or not os.access(out, os.W_OK | os.X_OK):
-        raise DatasetError(f"output directory {out} is not writable")
+        raise OutputError(f"output directory {out} is not writable")
     saved = out / "scene" / "spec.json"
     if saved.exists():
         if json.loads(saved.read_text()) != json.loads(json.dumps(spec.to_dict())):  # tuples -> lists
-            raise DatasetError(f"{out} holds a dataset made with another spec or seed "
-                               f"(see {saved}); choose another --out")
+            raise OutputError(f"{out} holds a dataset made with another spec or seed "
+                              f"(see {saved}); choose another --out")
     elif any(out.iterdir()):
-        raise DatasetError(f"{out} is not empty and holds no ragsplat dataset; choose an empty or new --out")
+        raise OutputError(f"{out} is not empty and holds no ragsplat dataset; choose an empty or new --out")
     (out / "scene").mkdir(exist_ok=True)
     (out / "gt").mkdir(exist_ok=True)
-    layout.write_json(saved, spec.to_dict())
+    write_json(saved, spec.to_dict())
 
 
 def _geometry(spec: SceneSpec, bed: Bed) -> dict[str, np.ndarray]:
@@ -97,40 +96,37 @@ def _geometry(spec: SceneSpec, bed: Bed) -> dict[str, np.ndarray]:
 
 def _write_bed_assets(spec: SceneSpec, out: Path) -> None:
     """Heightfield-derived files, each written once (atomically) and reused by later runs and shards."""
-    files = [out / "scene" / "geometry.npz", out / "scene" / "albedo.png", out / "gt" / "bed.ply",
-             out / "gt" / "bed_grid.npy"]
+    files = [out / "scene" / "geometry.npz", out / "scene" / "albedo.png", out / layout.GT_MESH,
+             out / layout.GT_GRID]
     if all(p.exists() for p in files):
         return
     bed = make_bed(spec)
     geo = _geometry(spec, bed)
-    tmp = layout.temp_path(files[0])
-    with open(tmp, "wb") as fh:
+    with atomic_path(files[0]) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **geo)
-    os.replace(tmp, files[0])
     # Blender reads images bottom row first: flip so that texel row j (y index) is at v = (j + 0.5) / M.
     ok, png = cv2.imencode(".png", np.ascontiguousarray(bed.albedo[::-1, :, ::-1]))  # cv2 wants BGR
     if not ok:
         raise RuntimeError("PNG encoding of the albedo texture failed")
-    layout.write_atomic(files[1], png.tobytes())
-    tmp = layout.temp_path(files[2])
-    write_ply(tmp, geo["bed_verts"], geo["bed_tris"])
-    os.replace(tmp, files[2])
-    layout.write_npy(files[3], ground_truth_grid(bed, flight.eval_region(spec)))
+    write_bytes(files[1], png.tobytes())
+    with atomic_path(files[2]) as tmp:
+        write_ply(tmp, geo["bed_verts"], geo["bed_tris"])
+    layout.write_npy(files[3], ground_truth_grid(bed, flight.eval_region(spec), layout.GT_GRID_STEP))
 
 
-def run_blender(job: dict, workdir: Path, progress=None) -> RenderStats:
+def run_blender(job: dict, workdir: Path, progress: Callable[[dict], None] | None = None) -> RenderStats:
     """Render `job` in one Blender (bpy) process; `progress(event)` is called after each finished image."""
     jobfile = workdir / f"job.{os.getpid()}.json"
-    layout.write_json(jobfile, job)
+    write_json(jobfile, job)
     stats = RenderStats()
     with open(workdir / "blender.log", "a") as log:
         proc = subprocess.Popen([sys.executable, "-m", "blender_scenes.render", str(jobfile)],
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
         for line in proc.stdout:
-            if not line.startswith("@@ragsplat "):
+            if not line.startswith(PROTOCOL):
                 log.write(line)
                 continue
-            event = json.loads(line.removeprefix("@@ragsplat "))
+            event = json.loads(line.removeprefix(PROTOCOL))
             stats.events.append(event)
             if event["event"] == "ready":
                 stats.device, stats.build_s = event["device"], event["build_s"]
@@ -142,7 +138,7 @@ def run_blender(job: dict, workdir: Path, progress=None) -> RenderStats:
         code = proc.wait()
     jobfile.unlink()
     if code != 0:
-        raise RuntimeError(f"Blender render process failed (exit {code}); see {workdir / 'blender.log'}")
+        raise RagsplatError(f"Blender render process failed (exit {code}); see {workdir / 'blender.log'}")
     return stats
 
 
@@ -169,36 +165,42 @@ def _job(spec: SceneSpec, out: Path, cam: Camera, tasks: list[dict]) -> dict:
 def scene_metadata(spec: SceneSpec, poses) -> dict:
     region = flight.eval_region(spec)
     corners = np.array([[region[a], region[b]] for a in ("xmin", "xmax") for b in ("ymin", "ymax")])
-    return {
-        "spec": spec.to_dict(),
-        "seed": spec.seed,
-        "versions": {"ragsplat": importlib.metadata.version("ragsplat"), "bpy": importlib.metadata.version("bpy"),
-                     "numpy": np.__version__, "python": platform.python_version()},
-        "eval_region": region,
-        "water": None if spec.water is None else {"level": spec.water.level, "n": spec.water.n},
-        "radiance": {"refraction_color": radiance_factor(spec),
-                     "model": "1/n^2 (etendue)" if radiance_factor(spec) != 1.0 else "none"},
-        "flight": {"footprint_m": flight.footprint(spec), "spacing_m": flight.spacing(spec),
-                   "gsd_m": flight.gsd(spec), "nadir_views_at_eval_corners": int(
-                       flight.nadir_views_covering(spec, corners).min()),
-                   "train_views": sum(p.split == "train" for p in poses),
-                   "test_views": sum(p.split == "test" for p in poses)},
-        "passes": list(passes_for(spec)),
-        "depth": {"channel": layout.DEPTH_CHANNEL, "meaning": "z-depth (m) along the optical axis, dry scene",
-                  "no_hit": layout.NO_HIT},
-        "bed_grid_step_m": 0.05,
-    }
+    return layout.scene_json(
+        spec.to_dict(), region,
+        seed=spec.seed,
+        versions=versions("bpy"),
+        water=None if spec.water is None else {"level": spec.water.level, "n": spec.water.n},
+        radiance={"refraction_color": radiance_factor(spec),
+                  "model": "1/n^2 (etendue)" if radiance_factor(spec) != 1.0 else "none"},
+        flight={"footprint_m": flight.footprint(spec), "spacing_m": flight.spacing(spec),
+                "gsd_m": flight.gsd(spec), "nadir_views_at_eval_corners": int(
+                    flight.nadir_views_covering(spec, corners).min()),
+                "train_views": sum(p.split == "train" for p in poses),
+                "test_views": sum(p.split == "test" for p in poses)},
+        passes=list(passes_for(spec)),
+        depth={"channel": layout.DEPTH_CHANNEL, "meaning": "z-depth (m) along the optical axis, dry scene",
+               "no_hit": layout.NO_HIT},
+        bed_grid_step_m=layout.GT_GRID_STEP,
+    )
 
 
 def _merge(spec: SceneSpec, out: Path, poses) -> None:
     kinds = passes_for(spec)
-    layout.write_json(out / "transforms.json", layout.transforms(poses, spec.water, kinds))
-    layout.write_colmap(out / "colmap" / "sparse" / "0", poses, "wet" if "wet" in kinds else "dry")
-    layout.write_json(out / "scene.json", scene_metadata(spec, poses))
+    image = "wet" if "wet" in kinds else "dry"
+    frames = [layout.frame(p.name, p.camera, p.split, p.kind, layout.relative_path(image, p.name),
+                           layout.relative_path("dry", p.name), layout.relative_path("depth", p.name))
+              for p in poses]
+    write_json(out / layout.TRANSFORMS, layout.transforms_json(poses[0].camera, frames, spec.water))
+    layout.write_colmap(out / layout.COLMAP, poses, image)
+    write_json(out / layout.SCENE, scene_metadata(spec, poses))
 
 
-def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1), progress: bool = True) -> dict:
-    """Render the missing images of this shard, then merge metadata if the whole dataset is present."""
+def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
+             progress: Callable[[dict], None] | None = None) -> dict:
+    """Render the missing images of this shard, then merge metadata if the whole dataset is present.
+
+    `progress(event)` gets {"event": "plan", "images", "views", "passes"} before rendering starts and the
+    renderer's {"event": "done", ...} after each image."""
     t0 = time.perf_counter()
     validate(spec)
     index, count = shard
@@ -213,16 +215,9 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1), progre
              for kind in kinds for p in mine if not layout.output_path(out, kind, p.name).exists()]
     stats = RenderStats()
     if tasks:
-        bar = None
-        if progress:
-            from tqdm import tqdm
-
-            bar = tqdm(total=len(tasks), unit="img", desc=f"{spec.preset}: {len(mine)} views x {len(kinds)}",
-                       file=sys.stderr)
-        stats = run_blender(_job(spec, out, poses[0].camera, tasks), out / "scene",
-                            progress=(lambda e: bar.update(1)) if bar else None)
-        if bar:
-            bar.close()
+        if progress is not None:
+            progress({"event": "plan", "images": len(tasks), "views": len(mine), "passes": len(kinds)})
+        stats = run_blender(_job(spec, out, poses[0].camera, tasks), out / "scene", progress)
     complete = all(layout.output_path(out, k, p.name).exists() for k in kinds for p in poses)
     if complete:
         _merge(spec, out, poses)
@@ -235,7 +230,7 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1), progre
         history = json.loads(runs.read_text()) if runs.exists() else []
         history.append({**summary, "shard": f"{index}/{count}",
                         "per_image": [e for e in stats.events if e["event"] == "done"]})
-        layout.write_json(runs, history)
+        write_json(runs, history)
     return summary
 
 

@@ -6,7 +6,16 @@ import argparse
 from dataclasses import replace
 from pathlib import Path
 
-from ragsplat_core.cli import UsageError
+
+def shard(text: str) -> tuple[int, int]:
+    """`i/N` -> (i, N) with N >= 1 and 0 <= i < N (an argparse type: errors exit 2 with the usage)."""
+    try:
+        i, n = (int(v) for v in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must look like i/N (e.g. 0/4), got {text!r}") from None
+    if not (n >= 1 and 0 <= i < n):
+        raise argparse.ArgumentTypeError(f"{text}: need N >= 1 and 0 <= i < N")
+    return i, n
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -14,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--preset", default="small", help=f"scene size: {', '.join(PRESETS)} (default: small)")
     parser.add_argument("--out", required=True, type=Path, help="dataset directory (created; reruns resume)")
-    parser.add_argument("--shard", default="0/1", metavar="i/N",
+    parser.add_argument("--shard", default=(0, 1), type=shard, metavar="i/N",
                         help="render only views k with k mod N == i (0 <= i < N); merge when all are done")
     parser.add_argument("--seed", type=int, default=0, help="scene seed (default 0): same seed, same data")
     parser.add_argument("--no-water", action="store_true", help="dry scene: render only the dry set")
@@ -23,34 +32,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def parse_shard(text: str) -> tuple[int, int]:
-    try:
-        i, n = (int(v) for v in text.split("/"))
-    except ValueError:
-        raise UsageError(f"--shard must look like i/N (e.g. 0/4), got {text!r}") from None
-    if not (n >= 1 and 0 <= i < n):
-        raise UsageError(f"--shard {text}: need N >= 1 and 0 <= i < N")
-    return i, n
-
-
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from datagen import flight
-    from datagen.build import DatasetError, generate, overhead_fraction
-    from datagen.spec import SpecError, preset, validate
+    from datagen.build import generate, overhead_fraction
+    from datagen.spec import preset, validate
+    from ragsplat_core.cli.progress import bar
 
-    shard = parse_shard(args.shard)
+    spec = preset(args.preset, seed=args.seed)
+    if args.no_radiance_scale and spec.water is not None:
+        spec = replace(spec, water=replace(spec.water, radiance_scale=False))
+    if args.no_water:
+        spec = replace(spec, water=None)
+    validate(spec)
+    print(f"{spec.preset}: {len(flight.plan(spec))} views, {spec.flight.width} px, ground sample distance "
+          f"{flight.gsd(spec) * 100:.2f} cm/px on the bed ({spec.bed.depth:g} m deep), seed {spec.seed}")
+    bars = []
+
+    def progress(event: dict) -> None:
+        if event["event"] == "plan":
+            bars.append(bar(event["images"], f"{spec.preset}: {event['views']} views x {event['passes']}", "img",
+                            disable=args.quiet))
+        else:
+            bars[-1].update(1)
+
     try:
-        spec = preset(args.preset, seed=args.seed)
-        if args.no_radiance_scale and spec.water is not None:
-            spec = replace(spec, water=replace(spec.water, radiance_scale=False))
-        if args.no_water:
-            spec = replace(spec, water=None)
-        validate(spec)
-        print(f"{spec.preset}: {len(flight.plan(spec))} views, {spec.flight.width} px, ground sample distance "
-              f"{flight.gsd(spec) * 100:.2f} cm/px on the bed ({spec.bed.depth:g} m deep), seed {spec.seed}")
-        summary = generate(spec, args.out, shard=shard, progress=not args.quiet)
-    except (SpecError, DatasetError) as err:
-        raise UsageError(str(err)) from None
+        summary = generate(spec, args.out, shard=args.shard, progress=progress)
+    finally:
+        for b in bars:
+            b.close()
     if summary["rendered"]:
         per = summary["render_s"] / summary["rendered"]
         print(f"rendered {summary['rendered']} images on {summary['device']} in {summary['wall_s']:.1f} s: "

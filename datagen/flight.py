@@ -5,9 +5,9 @@ plus oblique rings (one per tilt) at the spec's azimuth step, each aimed so that
 hits the scene centre on the mean bed plane. Held-out test views: nadirs between grid points and ring views
 at azimuths offset from the training ones.
 
-Refraction shrinks the footprint on the bed: a ray leaving the camera at angle a from the vertical continues
-under water at asin(sin(a) / n), so the half-footprint is h tan(a) + d tan(asin(sin(a) / n)) instead of the
-dry (h + d) tan(a). Using the dry footprint would overstate the overlap.
+Refraction shrinks the footprint on the bed (`ragsplat_core.snell.ground_offset`): the half-footprint is
+h tan(a) + d tan(asin(sin(a) / n)) instead of the dry (h + d) tan(a). Using the dry footprint would overstate
+the overlap.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import numpy as np
 
 from datagen.spec import SceneSpec
 from ragsplat_core.camera import Camera
+from ragsplat_core.snell import ground_offset
 
 
 @dataclass(frozen=True)
@@ -27,11 +28,6 @@ class Pose:
     kind: str  # "nadir" | "oblique20" | "oblique40" ...
     split: str  # "train" | "test"
     camera: Camera
-
-
-def ground_offset(angle: float, altitude: float, depth: float, n: float) -> float:
-    """Horizontal distance from the camera to where a ray at `angle` (rad from vertical) meets the bed."""
-    return altitude * math.tan(angle) + depth * math.tan(math.asin(math.sin(angle) / n))
 
 
 def footprint(spec: SceneSpec) -> float:

@@ -10,9 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field, replace
 
-
-class SpecError(ValueError):
-    """A spec that cannot produce a dataset; the message is one line for the user."""
+from ragsplat_core.errors import SpecError
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,10 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
+import torch
 from scipy.spatial import cKDTree
+
+from ragsplat_core.gaussians import quat_to_rotmat
 
 
 @dataclass(frozen=True)
@@ -51,15 +54,6 @@ def _np(x) -> np.ndarray:
     if hasattr(x, "detach"):
         x = x.detach().cpu().numpy()
     return np.asarray(x, dtype=np.float64)
-
-
-def quat_to_rotmat(quats: np.ndarray) -> np.ndarray:  # [N, 4] wxyz, any norm -> [N, 3, 3]
-    w, x, y, z = (quats / np.linalg.norm(quats, axis=1, keepdims=True)).T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], axis=1)
 
 
 def largest_remainder(weights: np.ndarray, total: int) -> np.ndarray:
@@ -103,7 +97,7 @@ def sample_gaussians(means, scales, quats, opacities, cfg: ExtractConfig, region
     owner = np.repeat(idx, counts)  # [M]
     rng = np.random.default_rng(cfg.seed)
     z = truncated_normal(len(owner), cfg.sigma_cut, rng) * scales[owner]  # [M, 3] in local axes
-    rot = quat_to_rotmat(quats[owner])  # [M, 3, 3]
+    rot = quat_to_rotmat(torch.from_numpy(quats[owner])).numpy()  # [M, 3, 3]
     return means[owner] + np.einsum("mij,mj->mi", rot, z), keep
 
 

@@ -1,4 +1,5 @@
-"""Appearance metrics for Table 1: PSNR, SSIM (the 3DGS one, shared with the training loss) and LPIPS (VGG).
+"""Appearance metrics for Table 1: PSNR and SSIM (the 3DGS one, shared with the training loss: from
+`ragsplat_core.ssim`) and LPIPS (VGG).
 
 Images are float tensors in [0, 1], either [H, W, 3] or [B, 3, H, W].
 
@@ -18,7 +19,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from ragsplat_core.ssim import channels_first, ssim
+from ragsplat_core.ssim import channels_first, psnr, ssim
 
 __all__ = ["LPIPS", "VGG16_FILE", "load_lpips", "psnr", "ssim", "vgg16_features_init"]
 
@@ -40,14 +41,6 @@ LPIPS_CHANNELS = (64, 128, 256, 512, 512)
 # LPIPS ScalingLayer: maps [-1, 1] inputs to ImageNet-normalised ones
 LPIPS_SHIFT = (-0.030, -0.088, -0.188)
 LPIPS_SCALE = (0.458, 0.448, 0.450)
-
-
-def psnr(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
-    """PSNR in dB for data range 1, from the MSE over all pixels and channels (and the batch)."""
-    if img1.shape != img2.shape:
-        raise ValueError(f"psnr: shapes differ: {tuple(img1.shape)} vs {tuple(img2.shape)}")
-    mse = torch.mean((img1 - img2) ** 2)
-    return -10.0 * torch.log10(mse)  # +inf for identical images
 
 
 def sha256(path: Path) -> str:

@@ -1,4 +1,4 @@
-"""Gaussian scene parameters, their initialisation, and spherical-harmonics colour.
+"""Gaussian scene parameters, their initialisation, rotation and covariance, and spherical-harmonics colour.
 
 Parameters live in a `torch.nn.ParameterDict` (the layout gsplat uses), keyed by
 - `means`     [N, 3]  world position (metres; the TRUE position for underwater Gaussians)
@@ -12,11 +12,13 @@ Parameters live in a `torch.nn.ParameterDict` (the layout gsplat uses), keyed by
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from ragsplat_core.refraction import WaterSurface
+if TYPE_CHECKING:  # refraction imports `covariance` from here
+    from ragsplat_core.refraction import WaterSurface
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -25,6 +27,22 @@ SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.092548
 SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
          -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
 PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
+
+
+def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
+    """Quaternions [N, 4] (w, x, y, z), any non-zero norm -> rotation matrices [N, 3, 3]."""
+    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], -1).reshape(-1, 3, 3)
+
+
+def covariance(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+    """World covariance R S S R^T [N, 3, 3] from quaternions [N, 4] and linear scales [N, 3]."""
+    M = quat_to_rotmat(quats) * scales[:, None, :]  # R diag(s)
+    return M @ M.transpose(1, 2)
 
 
 def num_sh_bases(degree: int) -> int:

@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ragsplat_core.outputs import atomic_path
+
 
 def _columns(num_rest: int) -> list[str]:
     return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
@@ -39,12 +41,9 @@ def save_ply(path: str | Path, splats) -> Path:
     cols = _columns(rest.shape[1] * 3)
     header = "ply\nformat binary_little_endian 1.0\n" + f"element vertex {n}\n"
     header += "".join(f"property float {c}\n" for c in cols) + "end_header\n"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(header.encode("ascii"))
         f.write(np.ascontiguousarray(data).tobytes())
-    tmp.replace(path)
     return path
 
 

@@ -28,7 +28,8 @@ import importlib.util
 import torch
 
 from ragsplat_core.camera import Camera
-from ragsplat_core.raster.project import bin_tiles, covariance, project
+from ragsplat_core.gaussians import covariance
+from ragsplat_core.raster.project import bin_tiles, project
 
 BACKENDS = ("auto", "torch", "cpu", "gsplat")
 

@@ -33,6 +33,8 @@ from typing import NamedTuple
 
 import torch
 
+from ragsplat_core.gaussians import covariance
+
 SCALE_MODES = ("none", "isotropic", "determinant", "anisotropic")
 GAMMA = 2.2  # display gamma for the optional colour correction c' = n^(-2/gamma) c
 
@@ -222,20 +224,6 @@ def _column_norms(loc: _Local, der: _Derivatives):  # [M, 3]: |J e_x|, |J e_y|, 
 def _abs_det(loc: _Local, der: _Derivatives):  # [M]: tangential rho times the radial-vertical 2x2 block
     j11 = der.rho + 2 * loc.r2 * der.rho_r2
     return torch.abs(der.rho * (j11 * der.dapp_d - 2 * loc.r2 * der.rho_d * der.dapp_r2))
-
-
-def quat_to_rotmat(quats):  # [N, 4] wxyz, any norm -> [N, 3, 3]
-    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], -1).reshape(-1, 3, 3)
-
-
-def covariance(quats, scales):  # [N, 4], [N, 3] -> [N, 3, 3]
-    M = quat_to_rotmat(quats) * scales[:, None, :]
-    return M @ M.transpose(1, 2)
 
 
 class ApparentGaussians(NamedTuple):

@@ -1,4 +1,5 @@
-"""SSIM exactly as 3D Gaussian Splatting computes it (the trainer's loss and the evaluation share it).
+"""Image similarity shared by the training loss and the evaluation: SSIM exactly as 3D Gaussian Splatting
+computes it, and PSNR.
 
 11-tap Gaussian window (sigma 1.5), applied per channel with zero padding (padding 5), so the map
 has the image size and its border is biased by the padding; the score is the mean over the whole map and
@@ -58,3 +59,11 @@ def ssim(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
     For a batch the mean runs over the batch too (as in the 3DGS loss).
     """
     return ssim_map(img1, img2).mean()
+
+
+def psnr(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
+    """PSNR in dB for data range 1, from the MSE over all pixels and channels (and the batch)."""
+    if img1.shape != img2.shape:
+        raise ValueError(f"psnr: shapes differ: {tuple(img1.shape)} vs {tuple(img2.shape)}")
+    mse = torch.mean((img1 - img2) ** 2)
+    return -10.0 * torch.log10(mse)  # +inf for identical images

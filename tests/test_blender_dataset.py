@@ -10,9 +10,11 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from datagen.layout import NO_HIT, read_depth
 from ragsplat_core.camera import Camera
-from ragsplat_core.cli import main
+from ragsplat_core.cli.main import main
+from ragsplat_core.dataset.layout import NO_HIT, read_depth
+
+pytestmark = pytest.mark.blender
 
 
 @pytest.fixture(scope="module")
@@ -140,7 +142,9 @@ def test_refuses_foreign_or_mismatched_output(smoke, tmp_path, capsys):
     assert main(["dataset", "--preset", "smoke", "--seed", "5", "--out", str(smoke)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and all(line.startswith("ragsplat dataset: error:") for line in err)
-    assert main(["dataset", "--preset", "smoke", "--out", str(tmp_path / "x"), "--shard", "2/2"]) == 2
+    with pytest.raises(SystemExit) as bad_shard:  # argparse: usage and exit 2
+        main(["dataset", "--preset", "smoke", "--out", str(tmp_path / "x"), "--shard", "2/2"])
+    assert bad_shard.value.code == 2
 
 
 def test_dry_scene_renders_only_dry_passes(tmp_path):

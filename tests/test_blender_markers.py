@@ -13,6 +13,8 @@ from datagen.build import run_blender
 from ragsplat_core.camera import Camera
 from ragsplat_core.refraction import WaterSurface, apparent_points
 
+pytestmark = pytest.mark.blender
+
 WIDTH, FOV, ALTITUDE, DEPTH, N = 160, 70.0, 3.0, 2.0, 1.33
 MARKER_RADIUS = 0.06  # m: about 3 px across at this scale
 

@@ -52,7 +52,7 @@ def test_height_at_is_the_triangulated_mesh(smoke_bed, tmp_path):
 def test_ground_truth_grid_covers_eval_region_at_5cm(smoke_bed):
     spec = preset("smoke")
     region = flight.eval_region(spec)
-    g = ground_truth_grid(smoke_bed, region)
+    g = ground_truth_grid(smoke_bed, region, 0.05)
     assert g.dtype == np.float64 and g.shape[1] == 3
     xs = np.unique(g[:, 0].round(9))
     np.testing.assert_allclose(np.diff(xs), 0.05, atol=1e-9)

@@ -3,41 +3,19 @@
 import json
 from dataclasses import replace
 
-import numpy as np
 import pytest
 
 from eval import ablation
 from ragsplat_core import train
-from ragsplat_core.cli import main
-from ragsplat_core.refraction import WaterSurface
-from ragsplat_core.synthetic import bed_scene, render_views, ring_cameras, write_dataset
+from ragsplat_core.cli.main import main
 
 
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    root = tmp_path_factory.mktemp("data")
-    water = WaterSurface(0.0, 1.33)
-    scene = bed_scene(200, half=1.0, depth=1.0, seed=0)
-    cams = ring_cameras(4, 16, height=2.0, radius=0.8) + ring_cameras(2, 16, 2.2, 0.5, nadir=False)
-    views = render_views(scene, cams, water, backend="torch")
-    for i, v in enumerate(views):
-        v["split"] = "train" if i < 5 else "test"
-    write_dataset(root, views, water, {"xmin": -0.5, "xmax": 0.5, "ymin": -0.5, "ymax": 0.5})
-    meta = json.loads((root / "scene.json").read_text())
-    (root / "scene.json").write_text(json.dumps({**meta, "spec": {"bed": {"depth": 1.0}}}))
-    x, y = np.meshgrid(np.arange(-10, 11) * 0.05, np.arange(-10, 11) * 0.05, indexing="ij")
-    z = -1.0 + 0.1 * np.sin(2.0 * x) * np.cos(1.5 * y)  # bed_scene's surface
-    (root / "gt").mkdir()
-    np.save(root / "gt" / "bed_grid.npy", np.column_stack([x.ravel(), y.ravel(), z.ravel()]))
-    return root
-
-
-def test_ablation_command(dataset, tmp_path, monkeypatch, capsys):
+def test_ablation_command(evaluable_dataset, tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(train.PRESETS, "smoke", replace(train.PRESETS["smoke"], iterations=6, init_count=200,
                                                           backend="torch"))
     monkeypatch.setitem(ablation.PRESETS, "smoke", replace(ablation.PRESETS["smoke"], checkpoints=3))
     out = tmp_path / "runs"
-    argv = ["ablation", "--data", str(dataset), "--out", str(out), "--preset", "smoke", "--variants", "3dgs",
+    argv = ["ablation", "--data", str(evaluable_dataset), "--out", str(out), "--preset", "smoke", "--variants", "3dgs",
             "full", "--vgg16", str(tmp_path / "absent.pth")]
     assert main(argv) == 0
     printed = capsys.readouterr().out

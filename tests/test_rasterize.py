@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from ragsplat_core.camera import Camera
-from ragsplat_core.raster.project import covariance, quat_to_rotmat
+from ragsplat_core.gaussians import covariance, quat_to_rotmat
 from ragsplat_core.rasterize import rasterize
 
 NADIR_R = np.diag([1.0, -1.0, -1.0])  # looks down world -z; camera x = world x, camera y = world -y

@@ -5,8 +5,8 @@ import pytest
 import torch
 
 from ragsplat_core.camera import Camera
+from ragsplat_core.gaussians import covariance
 from ragsplat_core.raster import torch_backend
-from ragsplat_core.raster.project import covariance
 from ragsplat_core.rasterize import gsplat_available, rasterize
 
 NAMES = ["means", "quats", "scales", "opacities", "colors", "background"]

@@ -3,9 +3,15 @@ import math
 import pytest
 import torch
 
-from ragsplat_core.gaussians import init_grid
-from ragsplat_core.raster.project import quat_to_rotmat
-from ragsplat_core.strategy import DefaultStrategy, DensifyConfig, duplicate, remove, reset_opacity, split
+from ragsplat_core.gaussians import init_grid, quat_to_rotmat
+from ragsplat_core.train.strategy import (
+    DefaultStrategy,
+    DensifyConfig,
+    duplicate,
+    remove,
+    reset_opacity,
+    split,
+)
 
 
 def _setup(n_side=4, seed=0):

@@ -5,27 +5,27 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import WATER, render_dataset
 
-from ragsplat_core import train as train_mod
+from ragsplat_core.bench.synthetic import bed_scene, render_views, ring_cameras, write_dataset
 from ragsplat_core.camera import Camera
-from ragsplat_core.cli import main
-from ragsplat_core.data import load_dataset
+from ragsplat_core.cli.main import main
+from ragsplat_core.dataset import BedInfo, load_dataset
+from ragsplat_core.errors import OutputError, TrainingDiverged
 from ragsplat_core.gaussians import activated, colors_for_view
 from ragsplat_core.ply import load_ply
 from ragsplat_core.rasterize import rasterize
 from ragsplat_core.refraction import WaterSurface
-from ragsplat_core.synthetic import bed_scene, render_views, ring_cameras, write_dataset
-from ragsplat_core.train import VARIANTS, Trainer, TrainingDiverged, footprint, preset_config
+from ragsplat_core.snell import footprint
+from ragsplat_core.train import VARIANTS, TrainConfig, Trainer, preset_config
+from ragsplat_core.train import trainer as train_mod
 
-WATER = WaterSurface(0.0, 1.33)
 REGION = {"xmin": -0.8, "xmax": 0.8, "ymin": -0.8, "ymax": 0.8}
 
 
 def _tiny(root, water=WATER, size=20):
-    views = render_views(bed_scene(300, 1.0, 1.0, seed=2), ring_cameras(5, size, 1.5, 0.8, target=(0, 0, -1)),
-                         water)
-    views[-1]["split"] = "test"
-    return write_dataset(root, views, water, REGION)
+    cams = ring_cameras(5, size, 1.5, 0.8, target=(0, 0, -1))
+    return render_dataset(root, bed_scene(300, 1.0, 1.0, seed=2), cams, water, 1, REGION)
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +89,7 @@ def test_grid_init_at_bed_depth(wet):
     with pytest.raises(ValueError, match="bed depth"):
         Trainer(_cfg(init_depth=None), wet)
     # as datagen writes it: the depth, and a bed size that clips the grid
-    generated = dataclasses.replace(wet, scene={"spec": {"bed": {"depth": 0.6, "size": 1.0}}})
+    generated = dataclasses.replace(wet, bed=BedInfo(depth=0.6, size=1.0))
     m = Trainer(_cfg(init_depth=None), generated).splats["means"].detach()
     assert torch.allclose(m[:, 2], torch.tensor(-0.6)) and float(m[:, :2].abs().max()) < 0.5
 
@@ -150,7 +150,7 @@ def test_outputs_resume_and_determinism(wet, tmp_path):
     meta = json.loads((tmp_path / "a/config.json").read_text())
     assert meta["config"]["seed"] == 0 and meta["config"]["variant"] == "full"
     assert meta["refraction_applied"] == VARIANTS["full"] and "torch" in meta["versions"]
-    assert train_mod.TrainConfig.from_dict(meta["config"]) == cfg
+    assert TrainConfig.from_dict(meta["config"]) == cfg
     ply = load_ply(tmp_path / "a/point_cloud.ply")
     for k, v in ply.items():
         assert torch.equal(v, a.splats[k].detach()), k
@@ -165,7 +165,7 @@ def test_outputs_resume_and_determinism(wet, tmp_path):
     c.train()
     for k in a.splats:
         assert torch.equal(a.splats[k], c.splats[k]), k
-    with pytest.raises(ValueError, match="different settings .*seed"):
+    with pytest.raises(OutputError, match="different settings .*seed"):
         Trainer(_cfg(variant="full", iterations=14, checkpoint_every=5, seed=1), wet, tmp_path / "a")
 
 

@@ -40,22 +40,6 @@ class Projected(NamedTuple):
     radii: torch.Tensor  # [N] int32 max half-extent in pixels, 0 where not visible
 
 
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """Quaternions [N, 4] (w, x, y, z), any norm -> rotation matrices [N, 3, 3]."""
-    q = quats / quats.norm(dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    rows = [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]
-    return torch.stack(rows, -1).reshape(-1, 3, 3)
-
-
-def covariance(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
-    """World covariance R S S R^T [N, 3, 3] from quaternions [N, 4] and linear scales [N, 3]."""
-    M = quat_to_rotmat(quats) * scales[:, None, :]  # R diag(s)
-    return M @ M.transpose(1, 2)
-
-
 def project(means: torch.Tensor, covars: torch.Tensor, opacities: torch.Tensor, camera: Camera) -> Projected:
     """EWA-project Gaussians (means [N, 3], world covariances [N, 3, 3], opacities [N]) into `camera`."""
     dtype, device = means.dtype, means.device

@@ -7,12 +7,11 @@ its own process so its peak RSS is its own. Rows also give the process CPU time 
 1-minute load average: on a shared machine wall time depends on what else runs. With more runnable
 threads than cores, OpenMP's default spin-waiting makes torch ops tens of times slower; run with
 OMP_WAIT_POLICY=PASSIVE (recorded per row) or one thread there.
-Library use: `bench_rasterizer(...)` returns the rows; `format_table(rows)` prints them.
+`bench_rasterizer(...)` returns the rows; `format_table(rows)` formats them.
 """
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import json
 import math
@@ -22,7 +21,6 @@ import statistics
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -110,24 +108,28 @@ def time_one(backend: str, n: int, size: int, repeats: int, warmup: int = 2, see
     return row
 
 
+# One (backend, N, ...) timed in a fresh interpreter, so its peak RSS is its own: kwargs of `time_one` in,
+# the row as JSON out (last line of stdout).
+_WORKER = ("import json, sys; from ragsplat_core.bench.raster import time_one; "
+           "print(json.dumps(time_one(**json.loads(sys.argv[1]))))")
+_ON_CUDA = {"torch-cuda": ("torch", "cuda"), "gsplat": ("gsplat", "cuda")}
+
+
 def bench_rasterizer(sizes=(10_000, 40_000), size: int = 256, repeats: int = 7, backends=None,
-                     out: str | Path | None = None, footprints=(1.0,), threads=(0,)) -> list[dict]:
-    """Runs every (backend, threads, footprint, N) in a fresh process; returns the rows (also written as
-    JSON to `out`). threads 0 = the libraries' default (one per core)."""
+                     footprints=(1.0,), threads=(0,)) -> list[dict]:
+    """Runs every (backend, threads, footprint, N) in a fresh process and returns the rows. Backends are
+    names of `available_backends()`; threads 0 = the libraries' default (one per core)."""
     backends = list(backends or available_backends())
     rows = []
-    for backend, nthreads, footprint, n in itertools.product(backends, threads, footprints, sizes):
-        cmd = [sys.executable, "-m", "ragsplat_core.bench_raster", "--one", backend, "--n", str(n),
-               "--size", str(size), "--repeats", str(repeats), "--footprint", str(footprint),
-               "--threads", str(nthreads)]
-        done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    for name, nthreads, footprint, n in itertools.product(backends, threads, footprints, sizes):
+        backend, device = _ON_CUDA.get(name, (name, "cpu"))
+        kwargs = {"backend": backend, "n": n, "size": size, "repeats": repeats, "device": device,
+                  "footprint": footprint, "threads": nthreads}
+        done = subprocess.run([sys.executable, "-c", _WORKER, json.dumps(kwargs)], capture_output=True, text=True,
+                              check=False)
         if done.returncode != 0:
-            raise RuntimeError(f"benchmark of {backend} at N={n} failed: {done.stderr.strip()[-500:]}")
+            raise RuntimeError(f"benchmark of {name} at N={n} failed: {done.stderr.strip()[-500:]}")
         rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
-    if out is not None:
-        Path(out).parent.mkdir(parents=True, exist_ok=True)
-        Path(out).write_text(json.dumps({"rows": rows, "cpu_count": len(os.sched_getaffinity(0))}, indent=2)
-                             + "\n")
     return rows
 
 
@@ -156,42 +158,3 @@ def format_table(rows: list[dict]) -> str:
 
 def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--n", type=int, nargs="+", default=[10_000, 40_000], help="Gaussian counts")
-    parser.add_argument("--size", type=int, default=256, help="image width = height in pixels")
-    parser.add_argument("--repeats", type=int, default=7, help="timed iterations (median reported)")
-    parser.add_argument("--backends", nargs="+", default=None,
-                        help="backends to run (default: every available one)")
-    parser.add_argument("--footprint", type=float, nargs="+", default=[1.0],
-                        help="in-plane Gaussian size factors (1 = sigma 0.6-1.2x the mean spacing)")
-    parser.add_argument("--threads", type=int, nargs="+", default=[0],
-                        help="torch/numba threads per run (0 = one per core)")
-    parser.add_argument("--out", default="runs/bench/raster.json", help="JSON output path")
-
-
-def run(args) -> int:
-    rows = bench_rasterizer(args.n, args.size, args.repeats, args.backends, args.out, args.footprint,
-                            args.threads)
-    print(format_table(rows))
-    print(f"written {args.out}")
-    return 0
-
-
-def _main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m ragsplat_core.bench_raster", description=__doc__)
-    add_arguments(parser)
-    parser.add_argument("--one", help=argparse.SUPPRESS)  # internal: one (backend, N) in this process
-    args = parser.parse_args(argv)
-    if args.one:
-        on_cuda = {"torch-cuda": ("torch", "cuda"), "gsplat": ("gsplat", "cuda")}
-        backend, device = on_cuda.get(args.one, (args.one, "cpu"))
-        print(json.dumps(time_one(backend, args.n[0], args.size, args.repeats, device=device,
-                                  footprint=args.footprint[0], threads=args.threads[0])))
-        return 0
-    return run(args)
-
-
-if __name__ == "__main__":
-    sys.exit(_main())

@@ -1,4 +1,4 @@
-"""`ragsplat bench refraction`: error against run time of Snell solvers, and the cost of refract_gaussians.
+"""Error against run time of Snell solvers, and the cost of refract_gaussians (`ragsplat bench refraction`).
 
 Every solver maps the same cases (drawn over the stability domain, see `stability.REGIMES["full domain"]`)
 to the apparent point; error is relative to |P - C| against the float64 bisection reference of
@@ -15,16 +15,13 @@ to the apparent point; error is relative to |P - C| against the float64 bisectio
 from __future__ import annotations
 
 import functools
-import json
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import torch
 
-from .refraction import SOLVER_STEPS, WaterSurface, apparent_offsets, refract_gaussians
-from .stability import REGIMES, apparent_from_tan_a, reference, sample
+from ragsplat_core.bench.stability import REGIMES, apparent_from_tan_a, reference, sample
+from ragsplat_core.refraction import SOLVER_STEPS, WaterSurface, apparent_offsets, refract_gaussians
 
 
 def _apparent_from_alpha(alpha, r2, d, H, n):  # -> r', d'
@@ -182,22 +179,3 @@ def format_tables(solvers: list[dict], transform: list[dict]) -> str:
         lines.append(f"{row['gaussians']:>10} {row['forward_s']:>10.4f} {row['forward_mgaussians_per_s']:>7.2f} "
                      f"{row['forward_backward_s']:>10.4f} {row['forward_backward_mgaussians_per_s']:>7.2f}")
     return "\n".join(lines)
-
-
-def add_arguments(parser) -> None:
-    parser.add_argument("--cases", type=int, default=200_000, help="cases per solver and dtype")
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=Path("runs/bench_refraction.json"))
-
-
-def run(args) -> int:
-    solvers = solver_table(args.cases, args.repeats, args.seed)
-    transform = transform_table([10_000, 100_000], args.repeats, args.seed)
-    print(format_tables(solvers, transform))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"cases": args.cases, "repeats": args.repeats, "seed": args.seed,
-                                    "threads": torch.get_num_threads(), "torch": torch.__version__,
-                                    "solvers": solvers, "refract_gaussians": transform}, indent=2))
-    print(f"wrote {args.out}", file=sys.stderr)
-    return 0

@@ -7,14 +7,14 @@ layout of the README so the real loader and trainer read them. Nothing here touc
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import torch
 
 from ragsplat_core.camera import Camera
-from ragsplat_core.data import write_png
+from ragsplat_core.dataset import layout
+from ragsplat_core.outputs import write_json
 from ragsplat_core.refraction import WaterSurface
 
 
@@ -34,26 +34,16 @@ def write_dataset(root: str | Path, views: list[dict], water: WaterSurface | Non
                                                                        cam0.fy, cam0.cx, cam0.cy):
             raise ValueError("write_dataset: all views must share intrinsics")
         name = f"{i:04d}"
-        wet = f"images/{'wet' if water is not None else 'dry'}/{name}.png"
-        write_png(root / wet, v["image"])
-        frame = {"file_path": wet, "transform_matrix": cam.c2w_gl.tolist(), "w2c": cam.w2c.tolist(),
-                 "split": v.get("split", "train"), "name": name, "kind": v.get("kind", "nadir")}
-        if v.get("dry") is not None:
-            frame["dry_file_path"] = f"images/dry/{name}.png"
-            if water is not None:
-                write_png(root / frame["dry_file_path"], v["dry"])
-        frames.append(frame)
-    meta = {"camera_model": "OPENCV", "fl_x": cam0.fx, "fl_y": cam0.fy, "cx": cam0.cx, "cy": cam0.cy,
-            "w": cam0.width, "h": cam0.height,
-            "water": None if water is None else {"level": water.level, "n": water.n}, "frames": frames}
-    root.mkdir(parents=True, exist_ok=True)
-    (root / "transforms.json").write_text(json.dumps(meta, indent=1))
-    scene = {"generator": "ragsplat_core.synthetic"}
-    if eval_region is not None:
-        scene["eval_region"] = eval_region
-    if bed is not None:
-        scene["spec"] = {"bed": bed}
-    (root / "scene.json").write_text(json.dumps(scene, indent=1))
+        image = layout.relative_path("wet" if water is not None else "dry", name)
+        layout.write_png(root / image, v["image"])
+        dry = layout.relative_path("dry", name) if v.get("dry") is not None else None
+        if dry is not None and water is not None:
+            layout.write_png(root / dry, v["dry"])
+        frames.append(layout.frame(name, cam, v.get("split", "train"), v.get("kind", "nadir"), image, dry))
+    write_json(root / layout.TRANSFORMS, layout.transforms_json(cam0, frames, water), indent=1)
+    spec = {"bed": bed} if bed is not None else {}
+    write_json(root / layout.SCENE, layout.scene_json(spec, eval_region, generator="ragsplat_core.bench.synthetic"),
+               indent=1)
     return root
 
 

@@ -1,7 +1,7 @@
-"""Load a dataset directory (the data contract in the README) into cameras, image tensors and splits.
+"""Read a dataset directory (the data contract of `layout`) into cameras, image tensors, bed info and
+ground truth.
 
 Every problem with the files on disk raises `DatasetError`: one line naming the file and what is wrong.
-`DatasetError` is both a `UsageError` (the CLI prints it and exits 2) and a `ValueError`.
 
 Images are kept as uint8 tensors (a quarter of the memory of float32 at the paper's size) and converted
 to float32 in [0, 1] on access (`View.image`, `View.dry`); no colour-space conversion is applied: the
@@ -15,12 +15,12 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
 from ragsplat_core.camera import Camera
-from ragsplat_core.cli import UsageError
+from ragsplat_core.dataset import layout
+from ragsplat_core.errors import DatasetError
 from ragsplat_core.refraction import WaterSurface
 
 SPLITS = ("train", "test")
@@ -28,8 +28,20 @@ _POSE_TOL = 1e-4  # w2c and transform_matrix must describe the same pose (metres
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 
 
-class DatasetError(UsageError, ValueError):
-    """A missing, unreadable or inconsistent dataset file (one line)."""
+@dataclass(frozen=True)
+class BedInfo:
+    """What the generator says about the bed (scene.json `spec.bed`); None where it does not say."""
+
+    depth: float | None = None  # mean depth below the water level (m)
+    size: float | None = None  # side of the square bed centred on the origin (m)
+
+
+@dataclass(eq=False)
+class GroundTruth:
+    """The exact bed for scoring geometry."""
+
+    grid: np.ndarray  # [N, 3] float64 bed points on a regular horizontal grid over `region`
+    region: dict[str, float]  # {"xmin", "xmax", "ymin", "ymax"}: the evaluated part of the bed
 
 
 @dataclass(eq=False)
@@ -60,9 +72,9 @@ class Dataset:
     root: Path
     water: WaterSurface | None  # None: a dry-only scene (trained as plain 3DGS)
     views: list[View]
-    scene: dict | None = None  # scene.json, when present
-    eval_region: dict | None = None  # {"xmin", "xmax", "ymin", "ymax"} from scene.json
-    transforms: dict = field(default_factory=dict)  # the raw transforms.json
+    bed: BedInfo = field(default_factory=BedInfo)
+    eval_region: dict[str, float] | None = None  # {"xmin", "xmax", "ymin", "ymax"} from scene.json
+    ground_truth: GroundTruth | None = None  # loaded on request (`load_dataset(ground_truth=True)`)
 
     def split(self, name: str) -> list[View]:
         if name not in SPLITS:
@@ -92,36 +104,17 @@ def _fail(path: Path, what: str) -> DatasetError:
     return DatasetError(f"{path}: {what}")
 
 
-def read_png(path: Path, width: int | None = None, height: int | None = None) -> torch.Tensor:
-    """An 8-bit RGB(A) or grey PNG -> [H, W, 3] uint8 tensor (alpha dropped); checks the size if given."""
+def read_image(path: Path, width: int, height: int) -> torch.Tensor:
+    """[H, W, 3] uint8 tensor of an 8-bit PNG whose size must be width x height."""
     if not path.is_file():
         raise _fail(path, "image file is missing")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise _fail(path, "not a readable image")
-    if img.dtype != np.uint8:
-        raise _fail(path, f"expected an 8-bit image, got {img.dtype}")
-    if img.ndim == 2:
-        img = np.repeat(img[:, :, None], 3, axis=2)
-    elif img.shape[2] == 4:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
-    elif img.shape[2] == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-    else:
-        raise _fail(path, f"unsupported channel count {img.shape[2]}")
-    if width is not None and (img.shape[1], img.shape[0]) != (width, height):
+    try:
+        img = layout.read_png(path)
+    except ValueError as err:
+        raise DatasetError(str(err)) from None
+    if (img.shape[1], img.shape[0]) != (width, height):
         raise _fail(path, f"image is {img.shape[1]} x {img.shape[0]}, transforms.json says {width} x {height}")
-    return torch.from_numpy(np.ascontiguousarray(img))
-
-
-def write_png(path: Path, image: torch.Tensor) -> None:
-    """[H, W, 3] float in [0, 1] (or uint8) -> 8-bit PNG, rounding to nearest; parent folders are created."""
-    arr = image.detach().cpu()
-    if arr.dtype != torch.uint8:
-        arr = (arr.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), cv2.cvtColor(arr.numpy(), cv2.COLOR_RGB2BGR)):
-        raise OSError(f"{path}: could not write PNG")
+    return torch.from_numpy(img)
 
 
 def _read_json(path: Path) -> dict:
@@ -193,15 +186,17 @@ def _camera(frame: dict, intr: tuple, size: tuple[int, int], path: Path, where: 
     return cams[-1]
 
 
-def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: bool = True) -> Dataset:
+def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: bool = True,
+                 ground_truth: bool = False) -> Dataset:
     """Read `root/transforms.json` (+ `scene.json` if present) and the images of the chosen splits.
 
-    `load_dry=False` skips the dry images (training reads only the wet ones). Raises DatasetError.
+    `load_dry=False` skips the dry images (training reads only the wet ones); `ground_truth=True` also
+    loads the ground-truth bed grid and requires it. Raises DatasetError.
     """
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset directory does not exist")
-    tpath = root / "transforms.json"
+    tpath = root / layout.TRANSFORMS
     meta = _read_json(tpath)
     model = meta.get("camera_model", "OPENCV")
     if model not in ("OPENCV", "PINHOLE"):
@@ -239,23 +234,48 @@ def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: b
         camera = _camera(frame, intr, size, tpath, where)
         if split not in splits:
             continue
-        rgb = read_png(root / frame["file_path"], *size)
+        rgb = read_image(root / frame["file_path"], *size)
         dry_path = frame.get("dry_file_path")
-        dry = read_png(root / dry_path, *size) if (load_dry and dry_path) else None
+        dry = read_image(root / dry_path, *size) if (load_dry and dry_path) else None
         views.append(View(name, split, str(frame.get("kind", "")), camera, rgb, dry, frame["file_path"],
                           dry_path, frame.get("depth_file_path")))
     if "train" in splits and not any(v.split == "train" for v in views):
         raise _fail(tpath, "no frame has split 'train'")
 
-    scene, region = None, None
-    if (root / "scene.json").exists():
-        scene = _read_json(root / "scene.json")
+    bed, region = BedInfo(), None
+    spath = root / layout.SCENE
+    if spath.exists():
+        scene = _read_json(spath)
+        spec = scene.get("spec")
+        spec_bed = spec.get("bed") if isinstance(spec, dict) else None
+        if isinstance(spec_bed, dict):
+            bed = BedInfo(depth=_positive(spec_bed.get("depth")), size=_positive(spec_bed.get("size")))
         if "eval_region" in scene:
             region = scene["eval_region"]
             if not isinstance(region, dict):
-                raise _fail(root / "scene.json", "'eval_region' must be an object {xmin, xmax, ymin, ymax}")
-            region = {k: _number(region, k, root / "scene.json", "eval_region.") for k in
-                      ("xmin", "xmax", "ymin", "ymax")}
+                raise _fail(spath, "'eval_region' must be an object {xmin, xmax, ymin, ymax}")
+            region = {k: _number(region, k, spath, "eval_region.") for k in ("xmin", "xmax", "ymin", "ymax")}
             if region["xmin"] >= region["xmax"] or region["ymin"] >= region["ymax"]:
-                raise _fail(root / "scene.json", f"eval_region is empty: {region}")
-    return Dataset(root, water, views, scene, region, meta)
+                raise _fail(spath, f"eval_region is empty: {region}")
+    truth = _ground_truth(root, region) if ground_truth else None
+    return Dataset(root, water, views, bed, region, truth)
+
+
+def _positive(value) -> float | None:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+    return float(value) if ok else None
+
+
+def _ground_truth(root: Path, region: dict | None) -> GroundTruth:
+    if region is None:
+        raise _fail(root / layout.SCENE, "no eval_region (the ground truth needs one)")
+    path = root / layout.GT_GRID
+    if not path.is_file():
+        raise _fail(path, "ground-truth bed grid is missing")
+    try:
+        grid = np.load(path)
+    except (OSError, ValueError) as err:
+        raise _fail(path, f"not a readable .npy array ({err})") from None
+    if grid.ndim != 2 or grid.shape[1] != 3 or len(grid) == 0 or not np.isfinite(grid).all():
+        raise _fail(path, f"expected a non-empty finite float array [N, 3], got shape {grid.shape}")
+    return GroundTruth(grid, region)

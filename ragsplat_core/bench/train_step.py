@@ -1,4 +1,4 @@
-"""`ragsplat bench train-step`: median time of one training iteration, per rasterizer backend and size.
+"""Median time of one training iteration, per rasterizer backend and size (`ragsplat bench train-step`).
 
 Each timed iteration is `Trainer.train_step` itself (SH colours, the refraction transform for `full`,
 rasterize, L1 + SSIM loss, backward, NaN checks, Adam, densification statistics) at 256 x 256 on a
@@ -13,20 +13,17 @@ axis), so the transform's own cost, forward + backward of `refract_gaussians`, i
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
-import platform
 import statistics
 import time
 from pathlib import Path
 
 import torch
 
+from ragsplat_core.bench.synthetic import bed_scene, render_views
 from ragsplat_core.camera import Camera
-from ragsplat_core.data import Dataset, View
+from ragsplat_core.dataset.load import BedInfo, Dataset, View
 from ragsplat_core.refraction import WaterSurface
-from ragsplat_core.synthetic import bed_scene, render_views
 
 SIZE = 256
 ALTITUDE = 4.0  # camera height above the water (m)
@@ -60,8 +57,8 @@ def _dataset(count: int, water: WaterSurface, device: str) -> Dataset:
         rgb = (v["image"].cpu() * 255 + 0.5).to(torch.uint8)
         views.append(View(f"{i:04d}", "train", "bench", v["camera"], rgb, None, "", None, None))
     # a bed exactly the nadir footprint: the trainer's grid is clipped to it, so every Gaussian is in view
-    spec = {"spec": {"bed": {"size": 2 * half, "depth": DEPTH}}}
-    return Dataset(Path("."), water, views, spec, {"xmin": -half, "xmax": half, "ymin": -half, "ymax": half})
+    return Dataset(Path("."), water, views, BedInfo(depth=DEPTH, size=2 * half),
+                   {"xmin": -half, "xmax": half, "ymin": -half, "ymax": half})
 
 
 def _transform_time(tr, steps: int, device: str) -> float:
@@ -124,33 +121,3 @@ def bench_train_step(counts=(10_000, 40_000), pairs=None, steps: int = 10, warmu
             log(f"{backend:>6} {device:>4} {row['gaussians']:>6} {med['3dgs']:10.4f} {med['full']:10.4f} "
                 f"{row['ratio_full_3dgs']:9.3f} {med['transform']:10.4f} {row['transform_share_of_3dgs']:9.3f}")
     return rows
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--counts", type=int, nargs="+", default=[10_000, 40_000], help="Gaussian counts")
-    parser.add_argument("--backends", nargs="+", help="backend:device pairs, e.g. cpu:cpu torch:cuda "
-                        "(default: all available)")
-    parser.add_argument("--steps", type=int, default=10, help="timed iterations per variant")
-    parser.add_argument("--warmup", type=int, default=3, help="untimed iterations first (JIT, caches)")
-    parser.add_argument("--json", help="also write the rows (with every timing) to this JSON file")
-
-
-def run(args: argparse.Namespace) -> int:
-    from ragsplat_core.cli import UsageError
-
-    pairs = None
-    if args.backends:
-        pairs = [tuple(p.split(":")) for p in args.backends]
-        if any(len(p) != 2 for p in pairs):
-            raise UsageError(f"--backends takes backend:device pairs, got {' '.join(args.backends)}")
-        for p in pairs:
-            if p not in backends_available():
-                raise UsageError(f"backend {p[0]} on {p[1]} is not available here: {backends_available()}")
-    print(f"train-step benchmark: {SIZE}x{SIZE}, median of {args.steps} iterations after {args.warmup} warm-up; "
-          f"torch {torch.__version__}, {torch.get_num_threads()} threads, {platform.processor() or platform.machine()}")
-    print(f"{'backend':>6} {'dev':>4} {'N':>6} {'3dgs (s)':>10} {'full (s)':>10} {'full/3dgs':>9} "
-          f"{'refr (s)':>10} {'refr/3dgs':>9}")
-    rows = bench_train_step(args.counts, pairs, args.steps, args.warmup)
-    if args.json:
-        Path(args.json).write_text(json.dumps({"rows": rows, "torch": torch.__version__}, indent=1))
-    return 0

@@ -1,4 +1,5 @@
-"""Tables 1 (appearance) and 2 (geometry) as Markdown, our values beside the paper's published ones.
+"""The ablation's outputs: Tables 1 (appearance) and 2 (geometry) as Markdown with our values beside the
+paper's published ones, the error-against-time plot, and results.json (`write_outputs`).
 
 A variant's row is the dict the ablation runner stores per variant (see `eval/ablation.py`):
     {"appearance": {"refr": {"ssim", "psnr", "lpips"} | None, "dry": {...} | None},
@@ -14,8 +15,11 @@ import json
 import math
 from pathlib import Path
 
-VARIANTS = ("3dgs", "position", "position+scale", "position+opacity", "full", "full+anisotropic",
-            "full+color")
+import numpy as np
+
+from ragsplat_core.outputs import atomic_path, write_bytes, write_json
+from ragsplat_core.train.config import VARIANTS
+
 PUBLISHED_FILE = Path(__file__).resolve().parent / "published_tables.json"
 
 # (header, paper column in published_tables.json, how to read ours from a row, format)
@@ -101,3 +105,83 @@ def table2(rows: dict[str, dict], published: dict, notes: list[str] = ()) -> str
     text = "### Table 2: geometry vs ground-truth bed grid (ours | paper)\n\n"
     text += _table(rows, published, "table2_geometry", T2_COLUMNS)
     return text + "".join(f"\n- {n}" for n in notes) + ("\n" if notes else "")
+
+
+PANELS = (("psnr_refr", "PSNR refr (dB)"), ("psnr_dry", "PSNR dry (dB)"), ("f1@0.1", "F1 @ 10 cm (%)"))
+
+
+def error_vs_time(curves: dict[str, list[dict]], path: str | Path, title: str = "") -> Path:
+    """PSNR (both conditions) and F1@10cm against training wall-clock time, one curve per variant, as a
+    three-panel PNG at `path`. A curve is the list the ablation records at its evaluation points,
+    [{"iteration", "time_s", "psnr_refr", "psnr_dry", "f1@0.1"}]; `time_s` is training time only
+    (evaluation pauses the clock), so curves of different variants compare. Points with a None value are
+    left out of that panel."""
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only, no display
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2), constrained_layout=True)
+    colors = {v: plt.cm.tab10(i % 10) for i, v in enumerate(curves)}  # one colour per variant in every panel
+    legend = {}
+    for ax, (key, label) in zip(axes, PANELS):
+        for variant, curve in curves.items():
+            pts = [(c["time_s"] / 60, c[key]) for c in curve if c.get(key) is not None]
+            if not pts:
+                continue
+            x, y = zip(*pts)
+            if key == "f1@0.1":
+                y = [100 * v for v in y]
+            legend[variant] = ax.plot(x, y, marker="o", ms=3, color=colors[variant], label=variant)[0]
+        ax.set_xlabel("training wall-clock time (min)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    if legend:
+        fig.legend(list(legend.values()), list(legend), loc="outside right center")
+    if title:
+        fig.suptitle(title)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return Path(path)
+
+
+def notes(rows: dict[str, dict], lpips_reason: str) -> list[str]:
+    out = []
+    if lpips_reason:
+        out.append(f"LPIPS n/a: {lpips_reason}")
+    if "3dgs" in rows:
+        out.append("3dgs has no interface model: its `refr` values compare its plain render with the "
+                   "with-water images (the paper leaves these cells empty).")
+    out.append("Time: training wall clock on this machine (evaluation checkpoints excluded); the paper's is "
+               "an RTX 3090 at 800 x 800, 30k iterations.")
+    return out
+
+
+def write_outputs(out: Path, rows: dict[str, dict], header: dict, lpips_reason: str) -> str:
+    """results.json, table1.md, table2.md, error_vs_time.png from the rows; returns the tables' text."""
+    published = load_published()
+    ordered = {v: rows[v] for v in VARIANTS if v in rows}
+    t1 = table1(ordered, published, notes(ordered, lpips_reason))
+    t2 = table2(ordered, published, [f"Geometry: {header.get('geometry_note', '')}".rstrip(": ")])
+    write_bytes(out / "table1.md", t1.encode())
+    write_bytes(out / "table2.md", t2.encode())
+    curves = {v: r.get("curve", []) for v, r in ordered.items()}
+    error_vs_time(curves, out / "error_vs_time.png", title=f"error vs training time ({header.get('preset', '')})")
+    results = {**header, "lpips": {"available": not lpips_reason, "reason": lpips_reason or None},
+               "published": published, "variants": ordered}
+    write_json(out / "results.json", jsonable(results), indent=1)
+    return t1 + "\n" + t2
+
+
+def jsonable(x):
+    """Non-finite floats -> None (strict JSON), numpy scalars -> Python numbers."""
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if isinstance(x, (np.floating, np.integer)):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x

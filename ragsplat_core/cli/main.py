@@ -1,7 +1,8 @@
 """The `ragsplat` console entry: one subcommand per job, each in its own module.
 
 A subcommand module defines `add_arguments(parser)` and `run(args) -> int`. Only the chosen module is
-imported, so `ragsplat --help` stays fast and no stage pulls in another stage's heavy dependencies.
+imported, so `ragsplat --help` stays fast and no stage pulls in another stage's heavy dependencies. Every
+`RagsplatError` a command raises becomes one line on stderr and exit code 2.
 """
 
 from __future__ import annotations
@@ -11,17 +12,23 @@ import importlib
 import os
 import sys
 
-# name -> (module, one-line help). A subcommand is listed only once it does real work.
+# name -> (module, one-line help), in workflow order: make data, train, evaluate; then the diagnostics.
 COMMANDS: dict[str, tuple[str, str]] = {
-    "stability": ("ragsplat_core.stability", "numerical stability report of the refraction transform"),
-    "bench": ("ragsplat_core.bench", "benchmarks: refraction solvers, rasterizer, training step"),
     "dataset": ("datagen.cli", "render the synthetic riverbed dataset (Blender Cycles, resumable, shardable)"),
-    "ablation": ("eval.ablation", "train every variant, evaluate, and print Tables 1 and 2 beside the paper's"),
-    "train": ("ragsplat_core.train_cli", "train one RA-GS variant on a dataset directory (resumable)"),}
+    "train": ("ragsplat_core.cli.train", "train one RA-GS variant on a dataset directory (resumable)"),
+    "ablation": ("eval.cli", "train every variant, evaluate, and print Tables 1 and 2 beside the paper's"),
+    "stability": ("ragsplat_core.cli.stability", "numerical stability report of the refraction transform"),
+    "bench": ("ragsplat_core.cli.bench", "benchmarks: refraction solvers, rasterizer, training step"),
+}
 
 
-class UsageError(Exception):
-    """Bad input from the user: printed as one line, exit code 2, nothing deleted."""
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("ragsplat")
+    except PackageNotFoundError:  # a source tree that was never installed
+        return "unknown"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -30,6 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     argv = sys.argv[1:] if argv is None else list(argv)
     top = argparse.ArgumentParser(prog="ragsplat", description="Refraction-aware Gaussian splatting toolkit")
+    top.add_argument("--version", action="version", version=f"ragsplat {_version()}")
     sub = top.add_subparsers(dest="command", metavar="COMMAND")
     for name, (_, text) in COMMANDS.items():
         sub.add_parser(name, help=text, add_help=False)
@@ -42,9 +50,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog=f"ragsplat {name}", description=COMMANDS[name][1])
     module.add_arguments(parser)
     args = parser.parse_args(argv[1:])
+    from ragsplat_core.errors import RagsplatError
+
     try:
         return int(module.run(args) or 0)
-    except UsageError as err:
+    except RagsplatError as err:
         print(f"ragsplat {name}: error: {err}", file=sys.stderr)
         return 2
 

@@ -16,190 +16,30 @@ checkpoint), `point_cloud.ply` (standard 3DGS PLY), `train_stats.json` (time, Ga
 
 from __future__ import annotations
 
-import json
 import math
-import os
-import platform
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, fields
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from ragsplat_core.camera import Camera
-from ragsplat_core.data import Dataset
+from ragsplat_core.dataset.load import Dataset
+from ragsplat_core.errors import ConfigError, DatasetError, OutputError, TrainingDiverged
 from ragsplat_core.gaussians import PARAM_NAMES, activated, colors_for_view, init_grid, init_points
+from ragsplat_core.outputs import atomic_path, versions, write_json
 from ragsplat_core.ply import save_ply
 from ragsplat_core.rasterize import rasterize
-from ragsplat_core.refraction import WaterSurface, refract_gaussians
-from ragsplat_core.ssim import ssim
-from ragsplat_core.strategy import PAPER_ITERATIONS, DefaultStrategy, DensifyConfig
+from ragsplat_core.refraction import refract_gaussians
+from ragsplat_core.snell import footprint
+from ragsplat_core.ssim import psnr, ssim
+from ragsplat_core.train.config import VARIANTS, TrainConfig
+from ragsplat_core.train.strategy import DefaultStrategy
 
-# variant -> refract_gaussians flags (None: plain 3DGS, no refraction work at all)
-VARIANTS: dict[str, dict | None] = {
-    "3dgs": None,
-    "position": {"position": True, "scale": "none", "opacity": False, "color": False},
-    "position+scale": {"position": True, "scale": "isotropic", "opacity": False, "color": False},
-    "position+opacity": {"position": True, "scale": "none", "opacity": True, "color": False},
-    "full": {"position": True, "scale": "isotropic", "opacity": True, "color": False},
-    "full+anisotropic": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
-    "full+color": {"position": True, "scale": "isotropic", "opacity": True, "color": True},
-}
 CHECKPOINT = "ckpt.pt"
 PLY = "point_cloud.ply"
-
-
-class TrainingDiverged(RuntimeError):
-    """A non-finite loss or parameter; the message names the iteration and the parameter."""
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    variant: str = "full"
-    preset: str = "small"
-    seed: int = 0
-    iterations: int = 1500
-    # initialisation: "grid" (the paper: a horizontal grid at the bed depth) or "points" (a point cloud file)
-    init: str = "grid"
-    init_depth: float | None = None  # grid depth below the water level (m); None: scene.json spec.bed.depth
-    init_count: int = 10_000  # grid Gaussians (approximately: a square grid over the views' footprint)
-    init_points: str | None = None  # .npy [N, 3] or [N, 6] (xyz, rgb in [0, 1]) for init="points"
-    init_opacity: float = 0.1
-    sh_degree: int = 3
-    sh_degree_every: int = 1000  # raise the active SH degree by one every this many iterations (at 30k)
-    # Adam learning rates (3DGS / gsplat defaults); means decays exponentially to lr_means_final
-    lr_means: float = 1.6e-4  # x scene scale (camera extent)
-    lr_means_final: float = 1.6e-6
-    lr_scales: float = 5e-3
-    lr_quats: float = 1e-3
-    lr_opacities: float = 5e-2
-    lr_sh0: float = 2.5e-3
-    lr_shN: float = 2.5e-3 / 20
-    ssim_lambda: float = 0.2
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    densify: DensifyConfig = field(default_factory=DensifyConfig)  # at 30k iterations; scaled to `iterations`
-    backend: str = "auto"
-    device: str = "auto"  # "auto": CUDA when available, else CPU
-    checkpoint_every: int = 500  # also written at the end; 0: only at the end
-
-    def __post_init__(self):
-        if self.variant not in VARIANTS:
-            raise ValueError(f"unknown variant {self.variant!r}; choose one of {', '.join(VARIANTS)}")
-        if self.iterations < 1:
-            raise ValueError(f"iterations must be >= 1, got {self.iterations}")
-        if self.init not in ("grid", "points"):
-            raise ValueError(f"init must be 'grid' or 'points', got {self.init!r}")
-        if self.init == "points" and not self.init_points:
-            raise ValueError("init='points' needs init_points (a .npy point cloud)")
-        if not 0 <= self.sh_degree <= 3:
-            raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}")
-        if self.init_depth is not None and not self.init_depth > 0:
-            raise ValueError(f"init_depth is a depth below the water level and must be > 0, got {self.init_depth}")
-
-    @property
-    def schedule(self) -> DensifyConfig:
-        """The densification schedule stretched to this run's iteration count."""
-        return self.densify.scaled(self.iterations)
-
-    @property
-    def sh_every(self) -> int:
-        return max(1, round(self.sh_degree_every * self.iterations / PAPER_ITERATIONS))
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["background"] = list(self.background)
-        d["refraction"] = VARIANTS[self.variant]
-        d["densify_scaled"] = asdict(self.schedule)
-        d["sh_every_scaled"] = self.sh_every
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> TrainConfig:
-        names = {f.name for f in fields(cls)}
-        kw = {k: v for k, v in d.items() if k in names}
-        kw["densify"] = DensifyConfig(**kw.get("densify", {}))
-        kw["background"] = tuple(kw.get("background", (0.0, 0.0, 0.0)))
-        return cls(**kw)
-
-
-# Presets: smoke (CI, seconds), small (the 2-core CPU default of `make ablation`), paper (30k, a GPU).
-# The short presets start the position rate 10x higher (1.6e-3): with the 30k schedule squeezed into 1500
-# steps the default rate lets a Gaussian travel at most about 0.3 m (sum of the per-step rates x extent),
-# less than the refraction shift it must be free to follow (0.74 m at 3 m depth). Measured on the small
-# dataset at 1500 steps, 1x vs 10x: full F1@10cm 0.66 -> 0.95, 3dgs 0.63 -> 0.57 (README).
-SHORT_LR_MEANS = 1.6e-3
-PRESETS: dict[str, TrainConfig] = {
-    "smoke": TrainConfig(preset="smoke", iterations=150, init_count=1_500, sh_degree=1, checkpoint_every=0,
-                         lr_means=SHORT_LR_MEANS, densify=DensifyConfig(max_gaussians=4_000)),
-    "small": TrainConfig(preset="small", iterations=1500, init_count=16_000, lr_means=SHORT_LR_MEANS,
-                         densify=DensifyConfig(max_gaussians=40_000)),
-    "paper": TrainConfig(preset="paper", iterations=30_000, init_count=40_000, checkpoint_every=5000),
-}
-
-
-def preset_config(name: str, **overrides) -> TrainConfig:
-    if name not in PRESETS:
-        raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
-    return replace(PRESETS[name], **overrides)
-
-
-def psnr(img: torch.Tensor, ref: torch.Tensor) -> float:
-    mse = float(torch.mean((img.detach().float() - ref.float()) ** 2))
-    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
-
-
-def footprint(cameras: list[Camera], water: WaterSurface | None, z: float) -> tuple[float, float, float, float]:
-    """(xmin, xmax, ymin, ymax) where the image-corner rays of `cameras` meet the plane `z` (refracted at the
-    water when it is above the plane); rays that never reach it are ignored."""
-    pts = []
-    for cam in cameras:
-        px = np.array([[0, 0], [cam.width, 0], [0, cam.height], [cam.width, cam.height]], float)
-        far = cam.unproject(px, np.ones(4))  # [4, 3] world points at z-depth 1
-        origin = cam.camera_center
-        d = far - origin
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        o = np.repeat(origin[None], 4, 0)
-        if water is not None and water.level > z and origin[2] > water.level:
-            t = (water.level - o[:, 2]) / np.where(d[:, 2] < 0, d[:, 2], np.nan)
-            o = o + t[:, None] * d
-            # Snell in vector form at the horizontal interface (normal +z): keep the horizontal direction,
-            # sin(theta_w) = sin(theta_a) / n
-            sin_a = np.linalg.norm(d[:, :2], axis=1)
-            sin_w = sin_a / water.n
-            horiz = d[:, :2] / np.maximum(sin_a, 1e-12)[:, None]
-            d = np.concatenate([horiz * sin_w[:, None], -np.sqrt(1 - sin_w**2)[:, None]], 1)
-        t = (z - o[:, 2]) / np.where(d[:, 2] < 0, d[:, 2], np.nan)
-        hit = o + t[:, None] * d
-        pts.append(hit[np.isfinite(hit).all(1) & (t > 0)])
-    pts = np.concatenate(pts)
-    if len(pts) == 0:
-        raise ValueError(f"no camera sees the plane z = {z}")
-    return float(pts[:, 0].min()), float(pts[:, 0].max()), float(pts[:, 1].min()), float(pts[:, 1].max())
-
-
-def _bed(ds: Dataset) -> dict:
-    """The generator's bed spec (scene.json `spec.bed`: `depth` below the water, square `size` centred on the
-    origin), or {} for a dataset that has none."""
-    bed = ((ds.scene or {}).get("spec") or {}).get("bed")
-    return bed if isinstance(bed, dict) else {}
-
-
-def _positive(value) -> float | None:
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
-    return float(value) if ok else None
-
-
-def _versions() -> dict:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        own = version("ragsplat")
-    except PackageNotFoundError:  # running from a source tree that was never installed
-        own = "unknown"
-    return {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
-            "ragsplat": own}
 
 
 class Trainer:
@@ -212,14 +52,14 @@ class Trainer:
         self.device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto"
                                    else cfg.device)
         if self.device.type == "cuda" and not torch.cuda.is_available():
-            raise ValueError(f"device {cfg.device!r} requested but CUDA is not available here")
+            raise ConfigError(f"device {cfg.device!r} requested but CUDA is not available here")
         self.water = dataset.water
         flags = VARIANTS[cfg.variant]
         # A dry scene (or n = 1) trains as plain 3DGS: the transform is skipped, not run as an identity.
         self.flags = None if (flags is None or self.water is None or self.water.is_identity) else flags
         self.views = dataset.train
         if not self.views:
-            raise ValueError("the dataset has no training views")
+            raise DatasetError(f"{dataset.root}: the dataset has no training views")
         self.targets = [v.image.to(self.device) for v in self.views]  # [H, W, 3] each
         self.centers = [torch.tensor(v.camera.camera_center, dtype=torch.float32, device=self.device)
                         for v in self.views]
@@ -246,29 +86,32 @@ class Trainer:
         cfg = self.cfg
         if cfg.init == "points":
             if not Path(cfg.init_points).is_file():
-                raise ValueError(f"{cfg.init_points}: point cloud file is missing")
+                raise ConfigError(f"{cfg.init_points}: point cloud file is missing")
             arr = np.load(cfg.init_points)
             if arr.ndim != 2 or arr.shape[1] not in (3, 6):
-                raise ValueError(f"{cfg.init_points}: expected an array [N, 3] or [N, 6], got {arr.shape}")
+                raise ConfigError(f"{cfg.init_points}: expected an array [N, 3] or [N, 6], got {arr.shape}")
             pts = torch.from_numpy(arr[:, :3]).float()
             rgb = torch.from_numpy(arr[:, 3:]).float() if arr.shape[1] == 6 else torch.full_like(pts, 0.5)
             return init_points(pts, rgb, self.water, cfg.sh_degree, cfg.init_opacity)
-        bed = _bed(self.ds)
-        depth = cfg.init_depth if cfg.init_depth is not None else _positive(bed.get("depth"))
+        bed = self.ds.bed
+        depth = cfg.init_depth if cfg.init_depth is not None else bed.depth
         if depth is None:
-            raise ValueError("grid initialisation needs the bed depth: scene.json has no spec.bed.depth, "
-                             "give init_depth (--init-depth)")
+            raise ConfigError("grid initialisation needs the bed depth: scene.json has no spec.bed.depth, "
+                              "give init_depth (--init-depth)")
         level = self.water.level if self.water is not None else 0.0
         z = level - depth
         # Everything the training views see of the plane (images are filled with bed to their edges, and
         # an uncovered part would render as background), clipped to the bed when its size is known.
-        box = footprint([v.camera for v in self.views], self.water, z)
-        size = _positive(bed.get("size"))
-        if size is not None:
-            h = size / 2
+        try:
+            box = footprint([v.camera for v in self.views], self.water, z)
+        except ValueError as err:
+            raise DatasetError(f"{self.ds.root}: {err}") from None
+        if bed.size is not None:
+            h = bed.size / 2
             box = (max(box[0], -h), min(box[1], h), max(box[2], -h), min(box[3], h))
             if box[0] >= box[1] or box[2] >= box[3]:
-                raise ValueError(f"the training views do not see the {size} m bed at depth {depth} m")
+                raise DatasetError(f"{self.ds.root}: the training views do not see the {bed.size} m bed "
+                                   f"at depth {depth} m")
         spacing = math.sqrt((box[1] - box[0]) * (box[3] - box[2]) / cfg.init_count)
         return init_grid(*box, z, spacing, cfg.sh_degree, cfg.init_opacity)
 
@@ -360,7 +203,7 @@ class Trainer:
         if bad:
             raise TrainingDiverged(f"iteration {step}: {bad} after the optimizer step")
         self.strategy.step_post_backward(self.splats, self.optimizers, self.strat_state, step, info)
-        self.last = {"loss": float(loss.detach()), "psnr": psnr(img, gt), "n": self.num_gaussians}
+        self.last = {"loss": float(loss.detach()), "psnr": float(psnr(img.detach(), gt)), "n": self.num_gaussians}
         return self.last
 
     def _nonfinite_report(self) -> str:
@@ -400,7 +243,7 @@ class Trainer:
             save_ply(self.out / PLY, self.splats)
         stats = self.stats()
         if self.out is not None:
-            (self.out / "train_stats.json").write_text(json.dumps(stats, indent=1))
+            write_json(self.out / "train_stats.json", stats, indent=1)
         for cb in callbacks:
             cb(self, self.step)
         return stats
@@ -415,8 +258,8 @@ class Trainer:
         meta = {"config": self.cfg.to_dict(), "dataset": str(self.ds.root), "scene_scale": self.scene_scale,
                 "water": None if self.water is None else asdict(self.water), "refraction_applied": self.flags,
                 "device": str(self.device),
-                "num_train_views": len(self.views), "versions": _versions()}
-        (self.out / "config.json").write_text(json.dumps(meta, indent=1))
+                "num_train_views": len(self.views), "versions": versions("torch")}
+        write_json(self.out / "config.json", meta, indent=1)
 
     def save_checkpoint(self, path: str | Path | None = None) -> Path:
         path = Path(path) if path is not None else self.out / CHECKPOINT
@@ -425,10 +268,8 @@ class Trainer:
                 "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
                 "strategy": {k: (v.cpu() if torch.is_tensor(v) else v) for k, v in self.strat_state.items()},
                 "generator": self.gen.get_state(), "order": list(self._order), "last": self.last}
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        torch.save(data, tmp)
-        os.replace(tmp, path)  # atomic: a kill never leaves a half-written checkpoint
+        with atomic_path(path) as tmp:  # a kill never leaves a half-written checkpoint
+            torch.save(data, tmp)
         return path
 
     def _load(self, path: Path) -> None:
@@ -436,8 +277,8 @@ class Trainer:
         saved = TrainConfig.from_dict(data["config"])
         if saved != self.cfg:
             diff = [f.name for f in fields(TrainConfig) if getattr(saved, f.name) != getattr(self.cfg, f.name)]
-            raise ValueError(f"{path}: checkpoint was written with different settings ({', '.join(diff)}); "
-                             "use another output directory or the same settings")
+            raise OutputError(f"{path}: checkpoint was written with different settings ({', '.join(diff)}); "
+                              "use another output directory or the same settings")
         self.splats = torch.nn.ParameterDict(
             {k: torch.nn.Parameter(v.to(self.device)) for k, v in data["splats"].items()})
         self.optimizers = self._make_optimizers()

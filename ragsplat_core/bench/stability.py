@@ -1,25 +1,21 @@
-"""`ragsplat stability`: numerical stability of the refraction transform over the whole domain.
+"""Numerical stability of the refraction transform over the whole domain (`ragsplat stability`).
 
 Cases are drawn per regime (nadir, near-surface, grazing, low camera, deep, n ~ 1, typical survey and the
 full domain), each with the camera at (0, 0, H) over the plane z = 0. For every dtype the report gives,
 per regime, the apparent-point error relative to |P - C| against a bracketed float64 reference (bisection
 on the same Snell geometry, 200 halvings, from the dtype-rounded inputs), NaN/Inf counts in values and in
 autograd gradients (w.r.t. x, y, depth, H and n), the worst case's inputs, and in float64 the Jacobian's
-relative error against central differences. Exits 1 when a target is missed.
+relative error against central differences; `passed` says whether every target was met.
 """
 
 from __future__ import annotations
 
-import json
 import math
-import sys
-import time
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 
 import torch
 
-from .refraction import WaterSurface, apparent_jacobian, apparent_offsets, apparent_points
+from ragsplat_core.refraction import WaterSurface, apparent_jacobian, apparent_offsets, apparent_points
 
 DOMAIN = {"r": (0.0, 1e3), "d": (1e-4, 100.0), "H": (0.1, 1e3), "n": (1.0, 1.6)}
 TARGETS = {"float64": 1e-10, "float32": 2e-6}
@@ -190,24 +186,3 @@ def format_table(results: dict) -> str:
                          f"({worst})")
     lines.append(f"\n{'all targets met' if results['passed'] else 'TARGETS MISSED'}")
     return "\n".join(lines)
-
-
-def add_arguments(parser) -> None:
-    parser.add_argument("--cases", type=int, default=StabilityConfig.cases_per_regime,
-                        help="cases per regime and dtype (8 regimes)")
-    parser.add_argument("--dtypes", nargs="+", default=list(StabilityConfig.dtypes), choices=["float64", "float32"])
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=Path("runs/stability.json"), help="JSON report path")
-
-
-def run(args) -> int:
-    cfg = StabilityConfig(cases_per_regime=args.cases, dtypes=tuple(args.dtypes), seed=args.seed)
-    start = time.perf_counter()
-    results = run_sweep(cfg)
-    results["seconds"] = time.perf_counter() - start
-    results["torch"] = torch.__version__
-    print(format_table(results))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(results, indent=2))
-    print(f"wrote {args.out} ({results['seconds']:.0f} s)", file=sys.stderr)
-    return 0 if results["passed"] else 1

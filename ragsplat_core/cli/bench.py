@@ -1,0 +1,116 @@
+"""`ragsplat bench TARGET`: benchmarks that print figures and write JSON (never timed assertions).
+
+Targets: `refraction` (Snell solvers: error against run time; the cost of refract_gaussians), `raster`
+(rasterizer forward+backward time and peak memory per backend), `train-step` (median time per training
+iteration, refraction overhead full / 3dgs). The measuring code lives in `ragsplat_core.bench`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import sys
+from pathlib import Path
+
+from ragsplat_core.errors import ConfigError
+from ragsplat_core.outputs import write_json
+
+
+def _refraction_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--cases", type=int, default=200_000, help="cases per solver and dtype")
+    parser.add_argument("--repeats", type=int, default=5, help="timed repetitions per solver (median reported)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed of the cases")
+    parser.add_argument("--out", type=Path, default=Path("runs/bench/refraction.json"), help="JSON output path")
+
+
+def _refraction(args: argparse.Namespace) -> int:
+    import torch
+
+    from ragsplat_core.bench.refraction import format_tables, solver_table, transform_table
+
+    solvers = solver_table(args.cases, args.repeats, args.seed)
+    transform = transform_table([10_000, 100_000], args.repeats, args.seed)
+    print(format_tables(solvers, transform))
+    write_json(args.out, {"cases": args.cases, "repeats": args.repeats, "seed": args.seed,
+                          "threads": torch.get_num_threads(), "torch": torch.__version__,
+                          "solvers": solvers, "refract_gaussians": transform})
+    print(f"wrote {args.out}", file=sys.stderr)
+    return 0
+
+
+def _raster_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--n", type=int, nargs="+", default=[10_000, 40_000], help="Gaussian counts")
+    parser.add_argument("--size", type=int, default=256, help="image width = height in pixels")
+    parser.add_argument("--repeats", type=int, default=7, help="timed iterations (median reported)")
+    parser.add_argument("--backends", nargs="+", default=None,
+                        help="backends to run: cpu, torch, torch-cuda, gsplat (default: every available one)")
+    parser.add_argument("--footprint", type=float, nargs="+", default=[1.0],
+                        help="in-plane Gaussian size factors (1 = sigma 0.6-1.2x the mean spacing)")
+    parser.add_argument("--threads", type=int, nargs="+", default=[0],
+                        help="torch/numba threads per run (0 = one per core)")
+    parser.add_argument("--out", type=Path, default=Path("runs/bench/raster.json"), help="JSON output path")
+
+
+def _raster(args: argparse.Namespace) -> int:
+    import os
+
+    from ragsplat_core.bench.raster import bench_rasterizer, format_table
+
+    rows = bench_rasterizer(args.n, args.size, args.repeats, args.backends, args.footprint, args.threads)
+    print(format_table(rows))
+    write_json(args.out, {"rows": rows, "cpu_count": len(os.sched_getaffinity(0))})
+    print(f"wrote {args.out}", file=sys.stderr)
+    return 0
+
+
+def _train_step_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--counts", type=int, nargs="+", default=[10_000, 40_000], help="Gaussian counts")
+    parser.add_argument("--backends", nargs="+", help="backend:device pairs, e.g. cpu:cpu torch:cuda "
+                        "(default: all available)")
+    parser.add_argument("--steps", type=int, default=10, help="timed iterations per variant")
+    parser.add_argument("--warmup", type=int, default=3, help="untimed iterations first (JIT, caches)")
+    parser.add_argument("--out", type=Path, default=Path("runs/bench/train_step.json"),
+                        help="JSON output path (every timing of every row)")
+
+
+def _train_step(args: argparse.Namespace) -> int:
+    import torch
+
+    from ragsplat_core.bench.train_step import SIZE, backends_available, bench_train_step
+
+    pairs = None
+    if args.backends:
+        pairs = [tuple(p.split(":")) for p in args.backends]
+        if any(len(p) != 2 for p in pairs):
+            raise ConfigError(f"--backends takes backend:device pairs, got {' '.join(args.backends)}")
+        for p in pairs:
+            if p not in backends_available():
+                raise ConfigError(f"backend {p[0]} on {p[1]} is not available here: {backends_available()}")
+    print(f"train-step benchmark: {SIZE}x{SIZE}, median of {args.steps} iterations after {args.warmup} warm-up; "
+          f"torch {torch.__version__}, {torch.get_num_threads()} threads, {platform.processor() or platform.machine()}")
+    print(f"{'backend':>6} {'dev':>4} {'N':>6} {'3dgs (s)':>10} {'full (s)':>10} {'full/3dgs':>9} "
+          f"{'refr (s)':>10} {'refr/3dgs':>9}")
+    rows = bench_train_step(args.counts, pairs, args.steps, args.warmup)
+    write_json(args.out, {"rows": rows, "torch": torch.__version__}, indent=1)
+    print(f"wrote {args.out}", file=sys.stderr)
+    return 0
+
+
+# target -> (one-line help, add arguments, run)
+TARGETS = {
+    "refraction": ("Snell solvers: error against run time; refract_gaussians cost", _refraction_arguments,
+                   _refraction),
+    "raster": ("rasterizer: forward+backward time and peak RSS per backend", _raster_arguments, _raster),
+    "train-step": ("median time per training iteration; refraction overhead full/3dgs", _train_step_arguments,
+                   _train_step),
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="target", required=True, metavar="TARGET")
+    for name, (text, arguments, _) in TARGETS.items():
+        arguments(sub.add_parser(name, help=text, description=text))
+
+
+def run(args: argparse.Namespace) -> int:
+    return TARGETS[args.target][2](args)

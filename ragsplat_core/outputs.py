@@ -1,0 +1,75 @@
+"""What every file ragsplat writes shares: atomic writes and the provenance stamp.
+
+Every result is written to a temporary sibling and renamed into place, so a killed run never leaves a
+half-written file that looks finished. numpy only (no torch): the dataset generator uses it too.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import platform
+import subprocess
+from collections.abc import Iterator
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent  # the source tree (for the git commit)
+
+
+def temp_path(path: Path) -> Path:
+    """A sibling name for writing `path` before an atomic rename (same folder: same file system)."""
+    path = Path(path)
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yields a temporary path to write; on success it is renamed to `path` (parents are created), on an
+    exception it is removed."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temp_path(path)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def write_bytes(path: str | Path, data: bytes) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
+def write_json(path: str | Path, obj, indent: int = 2) -> None:
+    write_bytes(path, (json.dumps(obj, indent=indent) + "\n").encode())
+
+
+def _package(name: str) -> str | None:
+    try:
+        return version(name)
+    except PackageNotFoundError:
+        return None
+
+
+def git_commit() -> str | None:
+    """HEAD of the source tree, or None outside a git checkout."""
+    try:
+        done = subprocess.run(["git", "rev-parse", "HEAD"], check=False, cwd=ROOT, capture_output=True,
+                              text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip() or None
+
+
+def versions(*packages: str) -> dict:
+    """The provenance stamp: Python, platform, ragsplat, numpy, git commit, plus each named package's
+    installed version (None when it is not installed)."""
+    import numpy as np
+
+    stamp = {"python": platform.python_version(), "platform": platform.platform(),
+             "ragsplat": _package("ragsplat"), "numpy": np.__version__, "git_commit": git_commit()}
+    stamp.update({name: _package(name) for name in packages})
+    return stamp

@@ -1,0 +1,37 @@
+"""Shared fixtures: tiny synthetic datasets rendered with our own rasterizer (no Blender, seconds).
+
+Tests that start Blender carry the `blender` marker (`pytest -m "not blender"` skips them)."""
+
+import numpy as np
+import pytest
+
+from ragsplat_core.bench.synthetic import bed_scene, render_views, ring_cameras, write_dataset
+from ragsplat_core.dataset import layout
+from ragsplat_core.refraction import WaterSurface
+
+WATER = WaterSurface(0.0, 1.33)
+
+
+def render_dataset(root, scene, cameras, water, test_views: int, region: dict, bed: dict | None = None,
+                   backend: str = "auto"):
+    """Render `scene` from `cameras` (the last `test_views` held out) and write it as a dataset."""
+    views = render_views(scene, cameras, water, backend=backend)
+    for i, v in enumerate(views):
+        v["split"] = "train" if i < len(views) - test_views else "test"
+    return write_dataset(root, views, water, region, bed)
+
+
+@pytest.fixture(scope="session")
+def evaluable_dataset(tmp_path_factory):
+    """A bed 1 m under water seen by 5 training and 2 held-out views, with bed depth, evaluation region and
+    a ground-truth grid of the bed surface: everything `ragsplat ablation` reads."""
+    root = tmp_path_factory.mktemp("data")
+    scene = bed_scene(200, half=1.0, depth=1.0, seed=0)
+    cams = ring_cameras(4, 16, height=2.0, radius=0.8) + ring_cameras(2, 16, 2.2, 0.5, nadir=False)
+    render_dataset(root, scene, cams, WATER, 2, {"xmin": -0.5, "xmax": 0.5, "ymin": -0.5, "ymax": 0.5},
+                   bed={"depth": 1.0}, backend="torch")
+    x, y = np.meshgrid(np.arange(-10, 11) * 0.05, np.arange(-10, 11) * 0.05, indexing="ij")
+    z = -1.0 + 0.1 * np.sin(2.0 * x) * np.cos(1.5 * y)  # bed_scene's surface
+    (root / "gt").mkdir()
+    layout.write_npy(root / layout.GT_GRID, np.column_stack([x.ravel(), y.ravel(), z.ravel()]))
+    return root
