@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import struct
 import sys
 import time
@@ -32,7 +31,7 @@ from mathutils import Matrix, Vector
 
 from blender_scenes.protocol import PROTOCOL
 from ragsplat_core.dataset.layout import NO_HIT, write_depth
-from ragsplat_core.outputs import temp_path
+from ragsplat_core.outputs import temp_path, write_bytes
 
 
 def _say(**event) -> None:
@@ -221,10 +220,9 @@ def _depth_from_multilayer(path: Path) -> np.ndarray:
     return depth
 
 
-def _strip_png_text(path: Path) -> dict[str, str]:
-    """Drop the PNG's text chunks (Cycles stamps its timings there, which would make the bytes differ
-    between identical renders) and return them."""
-    data = path.read_bytes()
+def _strip_png_text(data: bytes) -> tuple[bytes, dict[str, str]]:
+    """The PNG without its text chunks (Cycles stamps its timings there, which would make the bytes differ
+    between identical renders), and those texts."""
     keep, text, pos = [data[:8]], {}, 8
     while pos < len(data):
         length = struct.unpack(">I", data[pos:pos + 4])[0]
@@ -235,8 +233,7 @@ def _strip_png_text(path: Path) -> dict[str, str]:
         else:
             keep.append(chunk)
         pos += 12 + length
-    path.write_bytes(b"".join(keep))
-    return text
+    return b"".join(keep), text
 
 
 def _seconds(stamp: str) -> float:
@@ -258,20 +255,20 @@ def main(argv: list[str]) -> int:
         camera.matrix_world = Matrix(task["c2w_gl"])
         out = Path(task["out"])
         out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = temp_path(out).with_suffix(".render")  # write_depth uses temp_path(out) itself
+        tmp = temp_path(out).with_suffix(".render")  # Blender's own file; the result is written atomically
         scene.render.filepath = str(tmp)
         t_render = time.perf_counter()
         bpy.ops.render.render(write_still=True)
         t_saved = time.perf_counter()
         if current == "depth":
             write_depth(out, _depth_from_multilayer(tmp))
-            tmp.unlink()
             cycles_s = None
         else:
-            stamps = _strip_png_text(tmp)
+            png, stamps = _strip_png_text(tmp.read_bytes())
             cycles_s = sum(_seconds(v) for k, v in stamps.items()
                            if k.endswith((".render_time", ".synchronization_time")))
-            os.replace(tmp, out)
+            write_bytes(out, png)
+        tmp.unlink()
         t_end = time.perf_counter()
         _say(event="done", name=task["name"], kind=current, render_s=t_saved - t_render, cycles_s=cycles_s,
              total_s=t_end - t_start)

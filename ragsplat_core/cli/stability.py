@@ -16,8 +16,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--cases", type=int, default=StabilityConfig.cases_per_regime,
                         help="cases per regime and dtype (8 regimes)")
-    parser.add_argument("--dtypes", nargs="+", default=list(StabilityConfig.dtypes), choices=["float64", "float32"])
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--dtypes", nargs="+", default=list(StabilityConfig.dtypes), choices=["float64", "float32"],
+                        help="floating-point types to sweep (default: both)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed of the cases")
     parser.add_argument("--out", type=Path, default=Path("runs/stability.json"), help="JSON report path")
 
 
