@@ -28,6 +28,7 @@ import importlib.util
 import torch
 
 from ragsplat_core.camera import Camera
+from ragsplat_core.errors import ConfigError
 from ragsplat_core.gaussians import covariance
 from ragsplat_core.raster.project import bin_tiles, project
 
@@ -76,15 +77,15 @@ def gsplat_available() -> bool:
 
 def _choose(backend: str, means: torch.Tensor) -> str:
     if backend not in BACKENDS:
-        raise ValueError(f"unknown rasterizer backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+        raise ConfigError(f"unknown rasterizer backend {backend!r}; choose one of {', '.join(BACKENDS)}")
     if backend == "auto":
         if means.is_cuda:
             return "gsplat" if gsplat_available() else "torch"
         return "cpu" if means.device.type == "cpu" else "torch"
     if backend == "cpu" and means.device.type != "cpu":
-        raise ValueError(f"backend 'cpu' needs CPU tensors, got {means.device}; use 'torch' or 'gsplat'")
+        raise ConfigError(f"backend 'cpu' needs CPU tensors, got {means.device}; use 'torch' or 'gsplat'")
     if backend == "gsplat" and not (means.is_cuda and gsplat_available()):
-        raise ValueError("backend 'gsplat' needs the gsplat package and CUDA tensors")
+        raise ConfigError("backend 'gsplat' needs the gsplat package and CUDA tensors")
     return backend
 
 
