@@ -5,6 +5,8 @@ PY := $(VENV)/bin/python
 # Spinning OpenMP waits make torch/numba 10-80x slower when jobs share the 2 cores (measured).
 export OMP_WAIT_POLICY ?= PASSIVE
 PRESET ?= small
+# The training preset of a dataset preset: small-bed -> small, paper-reach -> paper.
+TRAIN_PRESET ?= $(firstword $(subst -, ,$(PRESET)))
 SEED ?= 0
 DATA ?= data/$(PRESET)
 RUNS ?= runs/$(PRESET)
@@ -31,7 +33,7 @@ dataset: install
 
 # The main job: dataset if missing, every variant trained and evaluated, tables beside the paper's.
 ablation: dataset
-	$(VENV)/bin/ragsplat ablation --preset $(PRESET) --data $(DATA) --out $(RUNS) --seed $(SEED)
+	$(VENV)/bin/ragsplat ablation --preset $(TRAIN_PRESET) --data $(DATA) --out $(RUNS) --seed $(SEED)
 
 lint: install
 	$(VENV)/bin/ruff check .

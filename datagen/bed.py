@@ -2,11 +2,15 @@
 
 The heightfield is built on the texel grid (x_i = x0 + i * texel, same in y; array index [j, i] = [y, x]);
 the mesh takes every `stride`-th sample and splits each cell along the same diagonal, so the rendered surface
-is exactly `height_at` and `gt/bed.ply`. Relief: a sum of low-frequency waves plus rounded (half-ellipsoid)
-stones in a few size classes, merged by maximum. Albedo: a per-stone colour with speckle, sand-coloured
-noise between stones. Towards the border relief and stones fade into the flat mean plane (z = level - depth)
-and the albedo into the periodic noise, so a flat floor textured with the same repeating image continues
-the bed seamlessly beyond its edge.
+is exactly `height_at` and `gt/bed.ply`. Two kinds of relief, then rounded (half-ellipsoid) stones in a few
+size classes merged by maximum:
+- the paper's gravel bed: a sum of low-frequency waves around the mean plane z = level - depth; towards
+  the border relief and stones fade into that plane and the albedo into periodic noise, so a flat floor
+  textured with the same repeating image continues the bed seamlessly beyond its edge;
+- a river reach (`ReachSpec`): a channel along x with pools, riffles, point bars and banks above the
+  water; towards the border it fades into one cross-section `profile(y)`, which the floor extrudes along x
+  to the horizon, with flat land beyond the banks.
+Albedo: a per-stone colour with speckle, sand-coloured noise between stones, soil and grass on dry land.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from datagen.spec import SceneSpec
+from ragsplat_core.dataset.layout import Surface
 
 
 @dataclass(frozen=True)
@@ -24,9 +29,10 @@ class Bed:
     x0: float  # world x (= y) of texel 0
     texel: float  # m
     stride: int  # mesh vertex every `stride` texels
-    z0: float  # the flat floor height: level - depth
+    z0: float  # the flat floor height: level - depth (gravel bed) or the land beyond the banks (reach)
     heights: np.ndarray  # [M, M] float64 world z on the texel grid, index [j (y), i (x)]
     albedo: np.ndarray  # [M, M, 3] uint8 sRGB on the same grid
+    profile: np.ndarray | None = None  # [M] world z of the border cross-section by texel row (reach only)
 
     @property
     def cell(self) -> float:
@@ -65,27 +71,32 @@ def make_bed(spec: SceneSpec) -> Bed:
     x0 = -cells * b.cell / 2
     coords = x0 + np.arange(m) * b.texel  # [M]
     gx, gy = np.meshgrid(coords, coords)  # [M, M], index [j, i]
+    reach = spec.reach
 
-    # Low-frequency relief: a few plane waves with random direction and phase, wavelengths >= b.wavelength.
-    relief = np.zeros((m, m))
-    for _ in range(6):
-        theta, phase = rng.uniform(0, 2 * math.pi, 2)
-        wl = b.wavelength * rng.uniform(1.0, 3.0)
-        relief += np.cos(2 * math.pi * (gx * math.cos(theta) + gy * math.sin(theta)) / wl + phase)
-    relief *= b.undulation / 3.0  # six unit waves: std ~1.7, peaks ~ the spec's amplitude
+    if reach is None:
+        # Low-frequency relief: peaks about the spec's amplitude, wavelengths >= b.wavelength.
+        relief = _wave_field(rng, gx, gy, b.wavelength) * (b.undulation / 3.0)
+        classes = list(b.stones)
+    else:
+        relief, profile = _reach_relief(reach, gx, gy, coords, rng)  # heights above the water level
+        classes = [reach.boulders, *b.stones]
 
     # Stones: half-ellipsoids sunk 30 % into the relief, merged by maximum; `owner` remembers the top stone.
     z = relief.copy()
     owner = np.full((m, m), -1, dtype=np.int64)
     stones = []
     area = (m * b.texel) ** 2
-    for cls in sorted(b.stones, key=lambda s: -s.radius):
+    for cls in sorted(classes, key=lambda s: -s.radius):
         for _ in range(rng.poisson(cls.density * area)):
             cx, cy = rng.uniform(coords[0], coords[-1], 2)
             a = cls.radius * math.exp(0.25 * rng.standard_normal())
             bb = a * rng.uniform(0.55, 1.0)
             rot = rng.uniform(0, math.pi)
             h = cls.height * bb * rng.uniform(0.8, 1.2)
+            if reach is not None:  # boulders in the channel, gravel in the channel and on the bars
+                ground = relief[np.searchsorted(coords, cy).clip(0, m - 1), np.searchsorted(coords, cx).clip(0, m - 1)]
+                if ground >= (-0.3 if cls is reach.boulders else reach.bar_height + 0.05):
+                    continue
             stones.append((cx, cy, a, bb, rot, h))
     for sid, (cx, cy, a, bb, rot, h) in enumerate(stones):
         i0, i1 = np.searchsorted(coords, [cx - a, cx + a])
@@ -102,13 +113,20 @@ def make_bed(spec: SceneSpec) -> Bed:
         top = cap > patch
         patch[top] = cap[top]
         owner[j0:j1, i0:i1][top] = sid
-    z -= z.mean()
 
-    # Fade to the flat plane over `taper` metres from the edge (exactly flat on the outermost cell).
+    # Fade over `taper` metres from the edge (exactly the border shape on the outermost cell): to the flat
+    # mean plane for the gravel bed, to the border cross-section for a reach.
     edge = np.minimum.reduce([gx - coords[0], coords[-1] - gx, gy - coords[0], coords[-1] - gy])
     fade = _smoothstep((edge - b.cell) / (b.taper - b.cell))  # [M, M]
-    z0 = spec.level - b.depth
-    heights = z0 + fade * z
+    if reach is None:
+        z -= z.mean()
+        z0 = spec.level - b.depth
+        heights = z0 + fade * z
+        border = None
+    else:
+        heights = spec.level + profile[:, None] + fade * (z - profile[:, None])
+        border = spec.level + profile
+        z0 = float(border[0])  # the land beyond the banks
 
     # Albedo (linear reflectance, then sRGB-encoded for the PNG): stones get a colour and speckle,
     # the gaps sand; the background noise is periodic so the floor can repeat it.
@@ -118,11 +136,70 @@ def make_bed(spec: SceneSpec) -> Bed:
     speckle = _periodic_noise(rng, m, 1.0)[..., None]  # [M, M, 1] texel-scale grain
     mottle = _periodic_noise(rng, m, 0.05 / b.texel)[..., None]  # 5 cm blotches in the sand
     sand = np.array([0.38, 0.34, 0.27]) * (1 + 0.25 * mottle + 0.15 * speckle)
+    if reach is not None:  # soil and grass above the bars, reaching full cover at the bank top
+        patches = _periodic_noise(rng, m, 0.5 / b.texel)[..., None]  # 50 cm patches of grass and soil
+        green = _smoothstep(0.5 + patches)  # [M, M, 1] share of grass
+        land = (green * np.array([0.10, 0.16, 0.05]) + (1 - green) * np.array([0.22, 0.17, 0.11])) \
+            * (1 + 0.2 * mottle + 0.15 * speckle)
+        dry = _smoothstep((heights - spec.level - reach.bar_height) / (reach.bank_height - reach.bar_height))
+        sand = (1 - dry[..., None]) * sand + dry[..., None] * land
     stone_col = palette[np.maximum(owner, 0)] * (1 + 0.2 * speckle)
     w = (owner >= 0)[..., None] * fade[..., None]
     rho = np.clip((1 - w) * sand + w * stone_col, 0.02, 0.9)
     albedo = np.round(255 * _linear_to_srgb(rho)).astype(np.uint8)
-    return Bed(x0=float(x0), texel=b.texel, stride=stride, z0=float(z0), heights=heights, albedo=albedo)
+    return Bed(x0=float(x0), texel=b.texel, stride=stride, z0=float(z0), heights=heights, albedo=albedo,
+               profile=border)
+
+
+def _reach_relief(r, gx: np.ndarray, gy: np.ndarray, coords: np.ndarray, rng: np.random.Generator):
+    """(heights above the water [M, M], border cross-section [M] by row) of a river reach along x.
+
+    The centreline meanders as meander * sin(k x + phase), k = pi / pool_spacing, so the bends (pools) are
+    pool_spacing apart and the crossings between them are riffles. At a bend the thalweg moves towards the
+    outer bank, the outer bank is steep, and on the inner side a gravel bar emerges. Across the channel the
+    depth is D(x) (1 - |s|^q) with s in [-1, 1] from one water line to the other through the thalweg; above
+    the water line the ground rises to the bar and then to the bank top. The border cross-section is the
+    same construction at a riffle with the centreline at y = 0.
+    """
+    phase = rng.uniform(0, 2 * math.pi)
+    land = 0.05 * r.bank_height * _wave_field(rng, gx, gy, 3.0)  # gentle relief of the land and bars
+
+    def heights(bend: np.ndarray, centre: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """bend in [-1, 1]: signed bend strength (+: the +y bank is the outer one); centre: centreline y."""
+        strength = np.abs(bend)
+        half = 0.5 * r.width * (1 + 0.15 * (1 - strength))  # riffles are wider
+        depth = r.max_depth * (r.riffle_depth + (1 - r.riffle_depth) * strength ** 1.5)
+        thalweg = 0.45 * half * bend
+        u = y - centre
+        above = u >= thalweg
+        s = np.where(above, (u - thalweg) / (half - thalweg), (u - thalweg) / (half + thalweg))  # [-1, 1] wet
+        outer = np.where(above, bend > 0, bend < 0)  # the side of the outer bank
+        q = np.where(outer, 1.5 + 1.5 * strength, 1.5 - 0.4 * strength)  # steep outside, gentle bar inside
+        wet = -depth * (1 - np.abs(s).clip(0, 1) ** q)
+        # Dry side: metres beyond the water line, rising over the bar (wide inside a bend) to the bank top.
+        beyond = (np.abs(s) - 1).clip(0, None) * np.where(above, half - thalweg, half + thalweg)
+        # exposed bar width: wide inside a bend, narrow under the cut bank, the same on both sides at a riffle
+        bar = np.where(outer, 0.25 * (1 - 0.6 * strength), 0.25 + strength) * r.bar_width
+        dry = r.bar_height * _smoothstep(beyond / (0.3 * bar)) \
+            + (r.bank_height - r.bar_height) * _smoothstep((beyond - bar) / r.bank_width)
+        return np.where(np.abs(s) < 1, wet, dry)
+
+    bend = np.sin(math.pi * gx / r.pool_spacing + phase)
+    centre = r.meander * bend  # the centreline swings out towards the outer bank of each bend
+    relief = heights(bend, centre, gy)
+    relief += np.where(relief > 0, land, 0.0)
+    profile = heights(np.zeros_like(coords), np.zeros_like(coords), coords)
+    return relief, profile
+
+
+def _wave_field(rng: np.random.Generator, gx: np.ndarray, gy: np.ndarray, wavelength: float) -> np.ndarray:
+    """A sum of six plane waves of random direction and phase, wavelengths 1-3x `wavelength`: std ~1.7."""
+    out = np.zeros_like(gx)
+    for _ in range(6):
+        theta, phase = rng.uniform(0, 2 * math.pi, 2)
+        wl = wavelength * rng.uniform(1.0, 3.0)
+        out += np.cos(2 * math.pi * (gx * math.cos(theta) + gy * math.sin(theta)) / wl + phase)
+    return out
 
 
 def _linear_to_srgb(c: np.ndarray) -> np.ndarray:
@@ -143,16 +220,14 @@ def mesh(bed: Bed) -> tuple[np.ndarray, np.ndarray]:
     return verts, tris
 
 
+def surface(bed: Bed) -> Surface:
+    """The exact mesh surface as a height function (the data contract's `Surface`)."""
+    return Surface(bed.x0, bed.cell, bed.mesh_heights)
+
+
 def height_at(bed: Bed, xy: np.ndarray) -> np.ndarray:
     """Exact height [N] of the triangulated mesh at horizontal points [N, 2] (inside the mesh)."""
-    h = bed.mesh_heights
-    fx, fy = (np.asarray(xy, float) - bed.x0).T / bed.cell
-    i = np.clip(np.floor(fx).astype(int), 0, h.shape[1] - 2)
-    j = np.clip(np.floor(fy).astype(int), 0, h.shape[0] - 2)
-    s, t = fx - i, fy - j
-    h00, h10, h01, h11 = h[j, i], h[j, i + 1], h[j + 1, i], h[j + 1, i + 1]
-    lower = s >= t  # triangle (00, 10, 11)
-    return np.where(lower, h00 + s * (h10 - h00) + t * (h11 - h10), h00 + t * (h01 - h00) + s * (h11 - h01))
+    return surface(bed).height_at(xy)
 
 
 def ground_truth_grid(bed: Bed, region: dict[str, float], step: float) -> np.ndarray:
@@ -162,6 +237,15 @@ def ground_truth_grid(bed: Bed, region: dict[str, float], step: float) -> np.nda
     gx, gy = np.meshgrid(xs, ys)
     xy = np.stack([gx.ravel(), gy.ravel()], -1)
     return np.concatenate([xy, height_at(bed, xy)[:, None]], -1)
+
+
+def waterline(bed: Bed, level: float) -> list[np.ndarray]:
+    """Polylines [K, 2] (metres) where the mesh surface crosses the water plane z = level."""
+    import contourpy
+
+    k = bed.mesh_heights.shape[0]
+    c = bed.x0 + np.arange(k) * bed.cell
+    return [line for line in contourpy.contour_generator(c, c, bed.mesh_heights).lines(level) if len(line) > 1]
 
 
 def write_ply(path, verts: np.ndarray, tris: np.ndarray) -> None:

@@ -22,12 +22,13 @@ import numpy as np
 
 from blender_scenes.protocol import PROTOCOL
 from datagen import flight
-from datagen.bed import Bed, ground_truth_grid, make_bed, mesh, write_ply
+from datagen.bed import Bed, ground_truth_grid, make_bed, mesh, surface, waterline, write_ply
 from datagen.spec import SceneSpec, validate
 from ragsplat_core.camera import Camera
 from ragsplat_core.dataset import layout
 from ragsplat_core.errors import OutputError, RagsplatError
 from ragsplat_core.outputs import atomic_path, versions, write_bytes, write_json
+from ragsplat_core.scoring import plane_scores, thresholds
 
 FAR = 2000.0  # half-size (m) of the floor and water planes: beyond every view's horizon-free field
 
@@ -80,13 +81,18 @@ def _geometry(spec: SceneSpec, bed: Bed) -> dict[str, np.ndarray]:
 
     verts, tris = mesh(bed)
     geo = {"bed_verts": verts, "bed_tris": tris, "bed_uv": uv(verts)}
-    # Floor: a flat frame at the bed's border height from one cell inside the border out to FAR, so no
-    # crack can open at the seam (the overlap is coplanar and carries the same texture).
+    # Floor from one cell inside the border out to FAR (the overlap is coplanar and carries the same texture,
+    # so no crack can open at the seam). Gravel bed: a flat frame at the border height. Reach: the border
+    # cross-section extruded along x, textured with the border column's colours, and flat land beyond.
     a, f, z = bed.x0 + bed.cell, FAR, bed.z0
     b = bed.x0 + bed.extent - bed.cell
-    fv = np.array([[a, a, z], [b, a, z], [b, b, z], [a, b, z], [-f, -f, z], [f, -f, z], [f, f, z], [-f, f, z]])
-    ft = np.array([[4, 5, 1], [4, 1, 0], [5, 6, 2], [5, 2, 1], [6, 7, 3], [6, 3, 2], [7, 4, 0], [7, 0, 3]])
-    geo.update(floor_verts=fv, floor_tris=ft, floor_uv=uv(fv))
+    if bed.profile is None:
+        fv = np.array([[a, a, z], [b, a, z], [b, b, z], [a, b, z], [-f, -f, z], [f, -f, z], [f, f, z], [-f, f, z]])
+        ft = np.array([[4, 5, 1], [4, 1, 0], [5, 6, 2], [5, 2, 1], [6, 7, 3], [6, 3, 2], [7, 4, 0], [7, 0, 3]])
+        fuv = uv(fv)
+    else:
+        fv, ft, fuv = _reach_floor(bed, a, b, f, uv)
+    geo.update(floor_verts=fv, floor_tris=ft, floor_uv=fuv)
     if spec.water is not None:
         lv = spec.water.level
         geo.update(water_verts=np.array([[-f, -f, lv], [f, -f, lv], [f, f, lv], [-f, f, lv]]),
@@ -94,10 +100,44 @@ def _geometry(spec: SceneSpec, bed: Bed) -> dict[str, np.ndarray]:
     return geo
 
 
+def _reach_floor(bed: Bed, a: float, b: float, far: float, uv):
+    """(vertices, triangles, uv) of a reach's floor: the border cross-section extruded from x = a to -far
+    and from x = b to +far, and land at the border height beyond y = a and y = b."""
+    ys = bed.x0 + np.arange(1, bed.mesh_heights.shape[0] - 1) * bed.cell  # mesh rows a .. b
+    zs = bed.profile[:: bed.stride][1:-1]
+    k = len(ys)
+    verts, tris, uvs = [], [], []
+
+    def strip(x_in: float, x_out: float) -> None:  # rows x_in and x_out, quads between neighbouring y
+        base = sum(len(v) for v in verts)
+        inner = np.column_stack([np.full(k, x_in), ys, zs])
+        verts.append(np.concatenate([inner, inner * [0, 1, 1] + [x_out, 0, 0]]))
+        uvs.append(np.concatenate([uv(inner)] * 2))  # colours of the border column, stretched along x
+        i = base + np.arange(k - 1)
+        order = (i, i + k, i + k + 1, i, i + k + 1, i + 1) if x_out > x_in else \
+            (i, i + 1, i + k + 1, i, i + k + 1, i + k)  # counter-clockwise from above
+        tris.append(np.stack(order, -1).reshape(-1, 3))
+
+    strip(a, -far)
+    strip(b, far)
+    land = bed.z0
+    base = sum(len(v) for v in verts)
+    quads = [[[-far, -far], [far, -far], [far, a], [-far, a]], [[-far, b], [far, b], [far, far], [-far, far]]]
+    for q, corners in enumerate(quads):
+        c = np.column_stack([np.array(corners, float), np.full(4, land)])
+        verts.append(c)
+        uvs.append(np.repeat(uv(np.array([[0.0, a if q == 0 else b]])), 4, axis=0))  # one land colour
+        o = base + 4 * q
+        tris.append(np.array([[o, o + 1, o + 2], [o, o + 2, o + 3]]))
+    return np.concatenate(verts), np.concatenate(tris), np.concatenate(uvs)
+
+
 def _write_bed_assets(spec: SceneSpec, out: Path) -> None:
     """Heightfield-derived files, each written once (atomically) and reused by later runs and shards."""
     files = [out / "scene" / "geometry.npz", out / "scene" / "albedo.png", out / layout.GT_MESH,
-             out / layout.GT_GRID]
+             out / layout.GT_SURFACE, out / layout.GT_GRID]
+    if spec.reach is not None:
+        files += [out / layout.GT_BANKS, out / layout.GT_WATERLINE, out / layout.GT_ELEVATION]
     if all(p.exists() for p in files):
         return
     bed = make_bed(spec)
@@ -111,7 +151,17 @@ def _write_bed_assets(spec: SceneSpec, out: Path) -> None:
     write_bytes(files[1], png.tobytes())
     with atomic_path(files[2]) as tmp:
         write_ply(tmp, geo["bed_verts"], geo["bed_tris"])
-    layout.write_npy(files[3], ground_truth_grid(bed, flight.eval_region(spec), layout.GT_GRID_STEP))
+    surface(bed).save(files[3])
+    grid = ground_truth_grid(bed, flight.eval_region(spec), layout.GT_GRID_STEP)
+    if spec.reach is None:
+        layout.write_npy(out / layout.GT_GRID, grid)
+        return
+    # A reach: the submerged bed is what bathymetry measures; the emerged ground is kept apart.
+    wet = grid[:, 2] < spec.level
+    layout.write_npy(out / layout.GT_GRID, grid[wet])
+    layout.write_npy(out / layout.GT_BANKS, grid[~wet])
+    layout.write_elevation(out / layout.GT_ELEVATION, grid[wet], layout.GT_GRID_STEP)
+    layout.write_waterline(out / layout.GT_WATERLINE, waterline(bed, spec.level), spec.level)
 
 
 def run_blender(job: dict, workdir: Path, progress: Callable[[dict], None] | None = None) -> RenderStats:
@@ -162,11 +212,27 @@ def _job(spec: SceneSpec, out: Path, cam: Camera, tasks: list[dict]) -> dict:
     }
 
 
-def scene_metadata(spec: SceneSpec, poses) -> dict:
+def max_depth(spec: SceneSpec) -> float:
+    """The depth that scale-free thresholds refer to: the reach's deepest pool, or the gravel bed's depth."""
+    return spec.reach.max_depth if spec.reach is not None else spec.bed.depth
+
+
+def null_models(spec: SceneSpec, gt: np.ndarray) -> dict:
+    """Scores of trivial answers against the ground-truth grid [N, 3]: a flat plane at its median height, and
+    at the wet region's mean depth. A benchmark on which these score well cannot tell bathymetries apart."""
+    depth = max_depth(spec)
+    return {"max_depth_m": depth, "thresholds_m": thresholds(depth),
+            "median_plane": plane_scores(gt, float(np.median(gt[:, 2])), depth),
+            "mean_depth_plane": plane_scores(gt, float(gt[:, 2].mean()), depth)}
+
+
+def scene_metadata(spec: SceneSpec, poses, gt: np.ndarray) -> dict:
     region = flight.eval_region(spec)
     corners = np.array([[region[a], region[b]] for a in ("xmin", "xmax") for b in ("ymin", "ymax")])
     return layout.scene_json(
         spec.to_dict(), region,
+        scene="bed" if spec.reach is None else "reach",
+        null_models=null_models(spec, gt),
         seed=spec.seed,
         versions=versions("bpy"),
         water=None if spec.water is None else {"level": spec.water.level, "n": spec.water.n},
@@ -192,7 +258,7 @@ def _merge(spec: SceneSpec, out: Path, poses) -> None:
               for p in poses]
     write_json(out / layout.TRANSFORMS, layout.transforms_json(poses[0].camera, frames, spec.water))
     layout.write_colmap(out / layout.COLMAP, poses, image)
-    write_json(out / layout.SCENE, scene_metadata(spec, poses))
+    write_json(out / layout.SCENE, scene_metadata(spec, poses, np.load(out / layout.GT_GRID)))
 
 
 def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),

@@ -64,10 +64,16 @@ def nadir_positions(spec: SceneSpec, between: bool = False) -> np.ndarray:
 
 
 def eval_region(spec: SceneSpec) -> dict[str, float]:
-    """The bed region evaluated for geometry: the nadir grid's cells (every point seen by most nadirs)."""
+    """The region evaluated for geometry. Gravel bed (the paper's setup): the nadir grid's cells, where
+    every point is seen by most nadirs. Reach: everything the nadir strips see of the water plane, the
+    union of their footprints at the water line (the narrowest, so every point of it is in view)."""
     rows, cols = spec.flight.grid
     s = spacing(spec)
-    return {"xmin": -cols * s / 2, "xmax": cols * s / 2, "ymin": -rows * s / 2, "ymax": rows * s / 2}
+    if spec.reach is None:
+        return {"xmin": -cols * s / 2, "xmax": cols * s / 2, "ymin": -rows * s / 2, "ymax": rows * s / 2}
+    half = spec.flight.altitude * math.tan(math.radians(spec.flight.fov_deg / 2))
+    xs, ys = (cols - 1) * s / 2 + half, (rows - 1) * s / 2 + half
+    return {"xmin": -xs, "xmax": xs, "ymin": -ys, "ymax": ys}
 
 
 def nadir_views_covering(spec: SceneSpec, xy) -> np.ndarray:

@@ -25,7 +25,9 @@ class BedSpec:
     size: float = 40.0  # side of the square heightfield (m), centred on the world origin
     cell: float = 0.025  # mesh vertex spacing (m); an integer multiple of texel
     texel: float = 0.0125  # albedo texture pixel (m); the heightfield is built at this resolution
-    depth: float = 10.0  # mean depth of the bed below the water level (m)
+    # Gravel bed: mean depth below the water level (m). Reach: the reference depth of the flight plan's
+    # overlap and aim and of the trainer's initial plane.
+    depth: float = 10.0
     undulation: float = 0.4  # amplitude (m) of the low-frequency relief
     wavelength: float = 8.0  # shortest wavelength (m) in that relief
     taper: float = 2.0  # border width (m) over which relief and stones fade into the flat floor
@@ -34,6 +36,25 @@ class BedSpec:
         StoneClass(0.15, 6.0, 0.55),
         StoneClass(0.07, 20.0, 0.6),
     )
+
+
+@dataclass(frozen=True)
+class ReachSpec:
+    """A river reach along x: a meandering channel with pools at the bends and riffles between them, the
+    thalweg pushed towards the outer bank, gravel point bars on the inner side and banks that rise above
+    the water. Boulders lie in the channel; the bed's gravel classes (`BedSpec.stones`) cover channel and
+    bars. Heights are relative to the water level."""
+
+    width: float = 7.0  # channel width at the water line (m)
+    max_depth: float = 3.0  # deepest pool below the water (m)
+    riffle_depth: float = 0.3  # thalweg depth at the riffles, as a fraction of max_depth
+    pool_spacing: float = 9.0  # distance between pools along the flow (m): half the meander wavelength
+    meander: float = 0.8  # lateral amplitude of the channel centreline (m)
+    bank_height: float = 0.8  # height of the banks above the water (m)
+    bank_width: float = 1.2  # horizontal run over which a bank rises (m)
+    bar_height: float = 0.25  # height of the gravel bars above the water (m)
+    bar_width: float = 2.0  # width of an exposed point bar at a bend (m)
+    boulders: StoneClass = StoneClass(0.4, 0.06, 0.55)  # in the channel only
 
 
 @dataclass(frozen=True)
@@ -80,6 +101,7 @@ class SceneSpec:
     preset: str
     seed: int = 0
     bed: BedSpec = field(default_factory=BedSpec)
+    reach: ReachSpec | None = None  # None: the paper's gravel bed, flat on average at bed.depth
     water: WaterSpec | None = field(default_factory=WaterSpec)
     flight: FlightSpec = field(default_factory=FlightSpec)
     light: LightSpec = field(default_factory=LightSpec)
@@ -104,23 +126,54 @@ class SceneSpec:
         flight = dict(d["flight"])
         flight["grid"] = tuple(flight["grid"])
         flight["tilts"] = tuple(flight["tilts"])
-        return cls(preset=d["preset"], seed=int(d["seed"]), bed=BedSpec(**bed),
+        reach = d.get("reach")
+        if reach is not None:
+            reach = ReachSpec(**{**reach, "boulders": StoneClass(**reach["boulders"])})
+        return cls(preset=d["preset"], seed=int(d["seed"]), bed=BedSpec(**bed), reach=reach,
                    water=None if d["water"] is None else WaterSpec(**d["water"]),
                    flight=FlightSpec(**flight), light=LightSpec(**d["light"]), render=RenderSpec(**d["render"]))
 
 
-# Presets. smoke: CI scale (seconds). small: the default of `make dataset`, about 10 min on 2 CPU cores.
-# paper: the paper's setup (800 x 800, 70 deg, about 90 training views, bed 10 m deep).
+# Presets. River reaches (`ReachSpec`): smoke (CI scale, seconds), small (the default of `make dataset`,
+# pools 3 m deep, 256 px, on 2 CPU cores) and paper-reach (pools 10 m deep, 800 px: a GPU). The paper's
+# gravel bed: paper (800 x 800, 70 deg, about 90 training views, bed 10 m deep), and smoke-bed / small-bed
+# at the smoke and small scales (the benchmark before the reach).
 PRESETS: dict[str, SceneSpec] = {
     "smoke": SceneSpec(
         preset="smoke",
-        bed=BedSpec(size=10.0, cell=0.05, texel=0.025, depth=2.0, undulation=0.1, wavelength=4.0, taper=0.5,
+        bed=BedSpec(size=12.0, cell=0.05, texel=0.025, depth=0.8, taper=0.5,
                     stones=(StoneClass(0.25, 2.0, 0.5), StoneClass(0.12, 8.0, 0.55))),
+        reach=ReachSpec(width=3.0, max_depth=2.0, pool_spacing=4.0, meander=0.4, bank_height=0.5,
+                        bank_width=0.6, bar_height=0.15, bar_width=0.9, boulders=StoneClass(0.3, 0.1, 0.55)),
         flight=FlightSpec(width=64, altitude=3.0, grid=(2, 2), azimuth_step=90.0, test_azimuth_step=180.0),
         render=RenderSpec(samples=16, device="CPU"),
     ),
     "small": SceneSpec(
         preset="small",
+        bed=BedSpec(size=20.0, cell=0.02, texel=0.01, depth=1.5, taper=1.0,
+                    stones=(StoneClass(0.20, 2.0, 0.5), StoneClass(0.10, 8.0, 0.55),
+                            StoneClass(0.05, 25.0, 0.6))),
+        reach=ReachSpec(),
+        flight=FlightSpec(width=256, altitude=4.0, grid=(3, 5), azimuth_step=10.0, test_azimuth_step=60.0),
+        render=RenderSpec(samples=24, device="CPU"),
+    ),
+    "paper-reach": SceneSpec(
+        preset="paper-reach",
+        bed=BedSpec(size=66.0, cell=0.04, texel=0.02, depth=5.0, taper=3.0,
+                    stones=(StoneClass(0.30, 1.5, 0.5), StoneClass(0.15, 6.0, 0.55), StoneClass(0.07, 20.0, 0.6))),
+        reach=ReachSpec(width=23.0, max_depth=10.0, pool_spacing=23.0, meander=2.7, bank_height=2.0,
+                        bank_width=4.0, bar_height=0.6, bar_width=6.5, boulders=StoneClass(1.0, 0.02, 0.55)),
+        flight=FlightSpec(altitude=12.0, grid=(3, 5)),
+    ),
+    "smoke-bed": SceneSpec(
+        preset="smoke-bed",
+        bed=BedSpec(size=10.0, cell=0.05, texel=0.025, depth=2.0, undulation=0.1, wavelength=4.0, taper=0.5,
+                    stones=(StoneClass(0.25, 2.0, 0.5), StoneClass(0.12, 8.0, 0.55))),
+        flight=FlightSpec(width=64, altitude=3.0, grid=(2, 2), azimuth_step=90.0, test_azimuth_step=180.0),
+        render=RenderSpec(samples=16, device="CPU"),
+    ),
+    "small-bed": SceneSpec(
+        preset="small-bed",
         bed=BedSpec(size=16.0, cell=0.02, texel=0.01, depth=3.0, undulation=0.15, wavelength=5.0, taper=1.0,
                     stones=(StoneClass(0.20, 2.0, 0.5), StoneClass(0.10, 8.0, 0.55),
                             StoneClass(0.05, 25.0, 0.6))),
@@ -147,8 +200,11 @@ def validate(spec: SceneSpec) -> None:
         raise SpecError(f"camera under water: flight altitude {f.altitude} m must be above the water level")
     if not (b.depth > 0 and math.isfinite(b.depth)):
         raise SpecError(f"bed depth {b.depth} m must be positive (the bed lies below the water level)")
-    if b.undulation + max((s.radius * s.height for s in b.stones), default=0.0) >= b.depth:
-        raise SpecError("bed relief reaches the water surface: reduce undulation/stones or increase depth")
+    if spec.reach is None:
+        if b.undulation + max((s.radius * s.height for s in b.stones), default=0.0) >= b.depth:
+            raise SpecError("bed relief reaches the water surface: reduce undulation/stones or increase depth")
+    else:
+        _validate_reach(spec)
     if not (0.0 < f.overlap < 1.0):
         raise SpecError(f"overlap must be in (0, 1), got {f.overlap} (zero overlap leaves nothing to match)")
     if not (0.0 < f.fov_deg < 180.0):
@@ -169,3 +225,17 @@ def validate(spec: SceneSpec) -> None:
         raise SpecError(f"bad render settings: samples {r.samples}, device {r.device!r}, threads {r.threads}")
     if not (r.filter_width > 0 and r.depth_filter > 0):
         raise SpecError("pixel filter widths must be positive")
+
+
+def _validate_reach(spec: SceneSpec) -> None:
+    r, b = spec.reach, spec.bed
+    if not all(v > 0 for v in (r.width, r.max_depth, r.pool_spacing, r.bank_height, r.bank_width, r.bar_width)):
+        raise SpecError("reach width, max_depth, pool_spacing, bank_height, bank_width and bar_width must be > 0")
+    if not (0 < r.riffle_depth <= 1 and 0 <= r.bar_height < r.bank_height and r.meander >= 0):
+        raise SpecError("reach needs 0 < riffle_depth <= 1, 0 <= bar_height < bank_height and meander >= 0")
+    reach = 0.5 * r.width * 1.15 + r.meander + 1.25 * r.bar_width + r.bank_width  # centre to bank top, worst
+    if reach >= b.size / 2 - b.taper:
+        raise SpecError(f"the reach ({reach:.2f} m from the centre to the bank top) does not fit in the "
+                        f"{b.size} m bed minus its {b.taper} m border: enlarge bed.size")
+    if not 0 < b.depth <= r.max_depth:
+        raise SpecError(f"bed.depth {b.depth} m (the flight plan's reference) must be in (0, max_depth]")

@@ -10,9 +10,11 @@ from collections.abc import Callable
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from eval import metrics
-from eval.geometry import ExtractConfig, extract_surface, geometry_metrics
+from eval.geometry import ExtractConfig, extract_surface
+from ragsplat_core.scoring import geometry_metrics
 
 
 def _mean(values) -> float | None:
@@ -52,12 +54,15 @@ def evaluate_geometry(gaussians: dict, gt: np.ndarray, region: dict, cfg: Extrac
     """Extraction + metrics; `gaussians` has means, scales (linear), quats (wxyz), opacities ([0, 1]).
 
     `gt` is the dataset's grid, already limited to `region` by the data contract (not cropped again: its
-    edge nodes would come and go with rounding).
+    edge nodes would come and go with rounding). The extracted grid shares the GT grid's nodes, and only
+    cells where the ground truth has a point are scored: on a reach, the submerged bed, not the banks.
     """
     origin = tuple(gt[:, :2].min(0))  # a node of the GT grid, so both grids share their nodes
     grid, stats = extract_surface(gaussians["means"], gaussians["scales"], gaussians["quats"],
                                   gaussians["opacities"], cfg, region, origin)
-    return {**geometry_metrics(grid, gt), "extraction": stats}
+    on_truth = np.isfinite(cKDTree(gt[:, :2]).query(grid[:, :2], distance_upper_bound=0.5 * cfg.cell)[0])
+    stats["grid_points_on_truth"] = int(on_truth.sum())
+    return {**geometry_metrics(grid[on_truth], gt), "extraction": stats}
 
 
 def model_gaussians(trainer) -> dict:

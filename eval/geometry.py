@@ -15,9 +15,9 @@ Extraction (the paper's Section 3, "Geometry Extraction"):
    share their nodes; otherwise a half-cell offset alone costs ~2.5 cm of Chamfer): one point per occupied
    cell at its node (the cell centre) with the median height of the cell's points.
 
-Metrics against the GT grid points: accuracy = mean distance prediction -> GT, completeness = GT ->
-prediction, Chamfer = their mean (metres, unsquared); precision / recall / F1 at each threshold with a
-strict `<` (a distance equal to the threshold does not count).
+Metrics against the GT grid points (`ragsplat_core.scoring.geometry_metrics`, shared with the dataset
+generator's null models): accuracy = mean distance prediction -> GT, completeness = GT -> prediction,
+Chamfer = their mean (metres, unsquared); precision / recall / F1 at each threshold with a strict `<`.
 """
 
 from __future__ import annotations
@@ -173,28 +173,3 @@ def extract_surface(means, scales, quats, opacities, cfg: ExtractConfig = Extrac
              "samples_after_filter": int(mask.sum()), "grid_points": len(grid),
              "config": cfg.to_dict(), "grid_origin": list(origin)}
     return grid, stats
-
-
-def geometry_metrics(pred: np.ndarray, gt: np.ndarray, thresholds=(0.10, 0.30)) -> dict:
-    """Chamfer and F1 of predicted points [P, 3] against GT points [G, 3] (metres; fractions, not %).
-
-    With no predicted points the distances are None and precision/recall/F1 are 0.
-    """
-    pred, gt = np.asarray(pred, np.float64).reshape(-1, 3), np.asarray(gt, np.float64).reshape(-1, 3)
-    if len(gt) == 0:
-        raise ValueError("geometry_metrics: the ground-truth point set is empty")
-    out = {"n_pred": len(pred), "n_gt": len(gt), "thresholds": [float(t) for t in thresholds]}
-    if len(pred) == 0:
-        out.update(accuracy=None, completeness=None, chamfer=None)
-        for t in thresholds:
-            out.update({f"precision@{t:g}": 0.0, f"recall@{t:g}": 0.0, f"f1@{t:g}": 0.0})
-        return out
-    d_pred = cKDTree(gt).query(pred)[0]  # [P] prediction -> GT
-    d_gt = cKDTree(pred).query(gt)[0]  # [G] GT -> prediction
-    acc, comp = float(d_pred.mean()), float(d_gt.mean())
-    out.update(accuracy=acc, completeness=comp, chamfer=0.5 * (acc + comp))
-    for t in thresholds:
-        p, r = float((d_pred < t).mean()), float((d_gt < t).mean())
-        out.update({f"precision@{t:g}": p, f"recall@{t:g}": r,
-                    f"f1@{t:g}": 0.0 if p + r == 0 else 2 * p * r / (p + r)})
-    return out

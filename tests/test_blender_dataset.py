@@ -34,7 +34,7 @@ def test_layout_and_transforms_contract(smoke):
     assert {f["split"] for f in frames} == {"train", "test"}
     assert {f["kind"] for f in frames} == {"nadir", "oblique20", "oblique40"}
     for f in frames:
-        for key in ("file_path", "dry_file_path", "depth_file_path"):
+        for key in ("file_path", "dry_file_path", "gt_depth_file_path"):
             assert (smoke / f[key]).is_file()
         assert f["file_path"].startswith("images/wet/")
         cam = Camera.from_c2w_gl(f["transform_matrix"], tf["w"], tf["h"],
@@ -45,10 +45,16 @@ def test_layout_and_transforms_contract(smoke):
     assert set(scene["eval_region"]) == {"xmin", "xmax", "ymin", "ymax"} and scene["seed"] == 0
     assert scene["radiance"]["refraction_color"] == pytest.approx(1 / 1.33**2)
     assert scene["versions"]["bpy"] == "5.0.1"
-    # The refraction colour 1/n^2 darkens the wet render against the dry one (sRGB: about n^(-2/2.2)).
-    wet = cv2.imread(str(smoke / frames[0]["file_path"])).astype(float).mean()
-    dry = cv2.imread(str(smoke / frames[0]["dry_file_path"])).astype(float).mean()
-    assert 0.65 < wet / dry < 0.85
+    # The refraction colour 1/n^2 darkens the wet render against the dry one (sRGB: about n^(-2/2.2)) where
+    # the view is all water (the pixels whose dry depth lies below the water).
+    cam = Camera.from_c2w_gl(frames[0]["transform_matrix"], tf["w"], tf["h"],
+                             intrinsics=(tf["fl_x"], tf["fl_y"], tf["cx"], tf["cy"]))
+    depth = read_depth(smoke / frames[0]["gt_depth_file_path"])
+    j, i = np.indices(depth.shape)
+    under = cam.unproject(np.stack([i.ravel() + 0.5, j.ravel() + 0.5], -1), depth.ravel())[:, 2] < -0.1
+    wet = cv2.imread(str(smoke / frames[0]["file_path"])).reshape(-1, 3)[under].astype(float).mean()
+    dry = cv2.imread(str(smoke / frames[0]["dry_file_path"])).reshape(-1, 3)[under].astype(float).mean()
+    assert under.mean() > 0.3 and 0.65 < wet / dry < 0.85
     grid = np.load(smoke / "gt" / "bed_grid.npy")
     r = scene["eval_region"]
     assert grid.dtype == np.float64 and grid[:, 0].min() >= r["xmin"] and grid[:, 0].max() <= r["xmax"]
@@ -56,7 +62,7 @@ def test_layout_and_transforms_contract(smoke):
 
 def test_colmap_model_matches_transforms(smoke):
     tf = json.loads((smoke / "transforms.json").read_text())
-    folder = smoke / "colmap" / "sparse" / "0"
+    folder = smoke / "colmap"
     cam_line = next(l for l in (folder / "cameras.txt").read_text().splitlines() if not l.startswith("#"))
     assert cam_line.split()[1:4] == ["PINHOLE", "64", "64"]
     rows = [l.split() for l in (folder / "images.txt").read_text().splitlines() if l and not l.startswith("#")]
@@ -70,6 +76,56 @@ def test_colmap_model_matches_transforms(smoke):
         np.testing.assert_allclose(R, w2c[:3, :3], atol=1e-9)
         np.testing.assert_allclose(list(map(float, row[5:8])), w2c[:3, 3], atol=1e-9)
         assert row[9] == frame["file_path"].removeprefix("images/")
+    for split in ("train", "test"):  # the split, as COLMAP image lists
+        names = (folder / f"{split}.txt").read_text().split()
+        assert names == [f["file_path"].removeprefix("images/") for f in tf["frames"] if f["split"] == split]
+
+
+def test_files_read_by_users_tools(smoke):
+    """OpenCV reads the depth EXR, nerfstudio finds its keys, rasterio reads the elevation raster."""
+    import os
+    import subprocess
+    import sys
+
+    tf = json.loads((smoke / "transforms.json").read_text())
+    f = tf["frames"][0]
+    # OpenCV reads EXR only when asked before import: in a child process
+    code = ("import os, sys; os.environ['OPENCV_IO_ENABLE_OPENEXR'] = '1'; import cv2, numpy as np; "
+            "d = cv2.imread(sys.argv[1], cv2.IMREAD_UNCHANGED); np.save(sys.argv[2], d)")
+    subprocess.run([sys.executable, "-c", code, str(smoke / f["gt_depth_file_path"]), str(smoke / "cv.npy")],
+                   check=True, env={**os.environ})
+    via_cv = np.load(smoke / "cv.npy")
+    (smoke / "cv.npy").unlink()
+    np.testing.assert_array_equal(via_cv, read_depth(smoke / f["gt_depth_file_path"]))
+    assert via_cv.max() > 0
+    # nerfstudio: poses as they are, the split by file lists, no key nerfstudio would misread
+    assert tf["applied_transform"] == np.eye(4)[:3].tolist() and tf["orientation_override"] == "none"
+    assert tf["train_filenames"] == [f["file_path"] for f in tf["frames"] if f["split"] == "train"]
+    assert tf["test_filenames"] == [f["file_path"] for f in tf["frames"] if f["split"] == "test"]
+    assert not any("depth_file_path" in f for f in tf["frames"]) and not (smoke / "colmap" / "sparse").exists()
+    # the elevation raster: local metric CRS, nodata outside the wet area, values = the wet grid
+    import rasterio
+
+    grid = np.load(smoke / "gt" / "bed_grid.npy")
+    with rasterio.open(smoke / "gt" / "bed_elevation.tif") as r:
+        band = r.read(1)
+        wkt = r.crs.to_wkt()
+        assert wkt.startswith("LOCAL_CS") and 'UNIT["metre",1' in wkt
+        assert r.res == (0.05, 0.05) and r.nodata == -9999.0
+        rows, cols = rasterio.transform.rowcol(r.transform, grid[:, 0], grid[:, 1])
+        np.testing.assert_allclose(band[rows, cols], grid[:, 2], atol=1e-6)
+        assert (band == r.nodata).sum() == band.size - len(grid)
+
+
+def test_reach_ground_truth(smoke):
+    scene = json.loads((smoke / "scene.json").read_text())
+    assert scene["scene"] == "reach"
+    nulls = scene["null_models"]
+    assert nulls["max_depth_m"] == 2.0 and nulls["median_plane"]["f1_3%"] < 0.4
+    wet, banks = np.load(smoke / "gt" / "bed_grid.npy"), np.load(smoke / "gt" / "bank_grid.npy")
+    assert (wet[:, 2] < 0).all() and (banks[:, 2] >= 0).all() and len(banks) > 0
+    line = json.loads((smoke / "gt" / "waterline.json").read_text())["geometry"]
+    assert line["type"] == "MultiLineString" and len(line["coordinates"]) >= 2
 
 
 def bed_height(mesh: trimesh.Trimesh, xy: np.ndarray) -> np.ndarray:
@@ -98,7 +154,7 @@ def test_dry_depth_unprojects_onto_the_bed_mesh(smoke):
     for f in tf["frames"]:
         cam = Camera.from_c2w_gl(f["transform_matrix"], tf["w"], tf["h"],
                                  intrinsics=(tf["fl_x"], tf["fl_y"], tf["cx"], tf["cy"]))
-        depth = read_depth(smoke / f["depth_file_path"]).astype(np.float64)
+        depth = read_depth(smoke / f["gt_depth_file_path"]).astype(np.float64)
         assert depth.shape == (tf["h"], tf["w"]) and np.all(depth > 0)
         j, i = np.nonzero(depth < NO_HIT)
         pts = cam.unproject(np.stack([i + 0.5, j + 0.5], -1), depth[j, i])

@@ -1,4 +1,5 @@
-"""Heightfield, albedo and exact ground truth: seeded, bathymetric, mesh == height_at == PLY."""
+"""The paper's gravel bed: heightfield, albedo and exact ground truth: seeded, bathymetric,
+mesh == height_at == PLY."""
 
 import numpy as np
 import pytest
@@ -11,18 +12,18 @@ from datagen.spec import preset
 
 @pytest.fixture(scope="module")
 def smoke_bed():
-    return make_bed(preset("smoke"))
+    return make_bed(preset("smoke-bed"))
 
 
 def test_same_seed_same_bed_other_seed_other_bed(smoke_bed):
-    again = make_bed(preset("smoke"))
+    again = make_bed(preset("smoke-bed"))
     assert np.array_equal(again.heights, smoke_bed.heights) and np.array_equal(again.albedo, smoke_bed.albedo)
-    other = make_bed(preset("smoke", seed=1))
+    other = make_bed(preset("smoke-bed", seed=1))
     assert not np.allclose(other.heights, smoke_bed.heights)
 
 
 def test_bed_is_bathymetric_with_stones_and_a_flat_border(smoke_bed):
-    spec = preset("smoke")
+    spec = preset("smoke-bed")
     h = smoke_bed.mesh_heights
     assert h.mean() == pytest.approx(spec.level - spec.bed.depth, abs=0.02)
     assert h.max() < spec.level - 1.0  # everything well under water
@@ -50,7 +51,7 @@ def test_height_at_is_the_triangulated_mesh(smoke_bed, tmp_path):
 
 
 def test_ground_truth_grid_covers_eval_region_at_5cm(smoke_bed):
-    spec = preset("smoke")
+    spec = preset("smoke-bed")
     region = flight.eval_region(spec)
     g = ground_truth_grid(smoke_bed, region, 0.05)
     assert g.dtype == np.float64 and g.shape[1] == 3

@@ -23,7 +23,7 @@ def trace_to_bed(cam, pixels, level, n, bed_z):
     return p + ((bed_z - p[:, 2]) / t[:, 2])[:, None] * t
 
 
-@pytest.mark.parametrize("name", ["smoke", "small", "paper"])
+@pytest.mark.parametrize("name", ["smoke", "small", "paper-reach", "small-bed", "paper"])
 def test_nadir_overlap_on_the_bed_through_water(name):
     spec = preset(name)
     validate(spec)
@@ -46,7 +46,7 @@ def test_nadir_overlap_on_the_bed_through_water(name):
     assert dry[1, 0] - dry[0, 0] > side_x * 1.05
 
 
-@pytest.mark.parametrize("name", ["smoke", "paper"])
+@pytest.mark.parametrize("name", ["smoke", "paper-reach", "paper"])
 def test_obliques_tilt_and_refracted_axis_hits_scene_centre(name):
     spec = preset(name)
     centre = np.array([0.0, 0.0, spec.level - spec.bed.depth])
@@ -64,7 +64,7 @@ def test_obliques_tilt_and_refracted_axis_hits_scene_centre(name):
 
 
 def test_dry_scene_aims_straight_at_the_centre():
-    spec = replace(preset("smoke"), water=None)
+    spec = replace(preset("smoke-bed"), water=None)
     for p in flight.plan(spec):
         if p.kind.startswith("oblique"):
             uv, _ = p.camera.project(np.array([[0.0, 0.0, -spec.bed.depth]]))
@@ -99,9 +99,10 @@ def test_eval_region_is_seen_by_many_nadirs():
     assert r["xmax"] < spec.bed.size / 2 - spec.bed.taper
 
 
-def test_gsd_matches_the_traced_pixel_size():
-    spec = preset("small")
-    cam = flight.plan(spec)[4].camera  # centre nadir of the 3 x 3 grid
+@pytest.mark.parametrize("name", ["small", "small-bed"])
+def test_gsd_matches_the_traced_pixel_size(name):
+    spec = preset(name)
+    cam = flight.plan(spec)[len(flight.nadir_positions(spec)) // 2].camera  # the centre nadir
     c = cam.cx
     hits = trace_to_bed(cam, np.array([[c - 0.5, c], [c + 0.5, c]]), spec.level, spec.n, -spec.bed.depth)
     assert hits[1, 0] - hits[0, 0] == pytest.approx(flight.gsd(spec), rel=1e-4)
@@ -112,10 +113,12 @@ def test_gsd_matches_the_traced_pixel_size():
     (lambda s: replace(s, flight=replace(s.flight, overlap=0.0)), "zero overlap"),
     (lambda s: replace(s, flight=replace(s.flight, tilts=(60.0,))), "below the horizon"),
     (lambda s: replace(s, bed=replace(s.bed, depth=0.2)), "reaches the water"),
+    (lambda s: replace(s, reach=preset("small").reach), "does not fit"),
+    (lambda s: replace(s, reach=replace(preset("smoke").reach, bank_height=0.1)), "bar_height < bank_height"),
 ])
 def test_bad_specs_are_one_line_errors(change, message):
     with pytest.raises(SpecError, match=message) as err:
-        validate(change(preset("smoke")))
+        validate(change(preset("smoke-bed")))
     assert "\n" not in str(err.value)
 
 
@@ -124,5 +127,7 @@ def test_unknown_preset_and_spec_round_trip():
         preset("huge")
     spec = preset("small", seed=7)
     assert SceneSpec.from_dict(spec.to_dict()) == spec
+    bed = preset("small-bed", seed=7)
+    assert SceneSpec.from_dict(bed.to_dict()) == bed
     dry = replace(spec, water=None)
     assert SceneSpec.from_dict(dry.to_dict()) == dry

@@ -5,13 +5,13 @@ import torch
 from eval.geometry import (
     ExtractConfig,
     extract_surface,
-    geometry_metrics,
     grid_median,
     largest_remainder,
     plane_filter,
     sample_gaussians,
 )
 from ragsplat_core.gaussians import quat_to_rotmat
+from ragsplat_core.scoring import geometry_metrics
 
 
 def plane_grid(nx, ny, step, z=0.0):

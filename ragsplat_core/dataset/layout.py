@@ -2,14 +2,20 @@
 
 DIR/
   transforms.json            nerfstudio-readable cameras + frames (`transforms_json`, `frame`)
-  scene.json                 the generator's spec, eval_region and figures (`scene_json`)
+  scene.json                 the generator's spec, eval_region, null-model scores and figures (`scene_json`)
   images/wet/NNNN.png        with-water render (8-bit sRGB): the training input (absent for a dry scene)
   images/dry/NNNN.png        the same pose without water
-  gt/depth/NNNN.exr          dry z-depth in metres along the optical axis: one float32 channel "Z",
-                             pixel centres exact (pixel filter 0.01 px); 1e10 where no surface was hit
+  gt/depth/NNNN.exr          dry z-depth in metres along the optical axis: one float32 channel "Y" (the
+                             name OpenCV reads as grey), pixel centres exact (pixel filter 0.01 px); 1e10
+                             where no surface was hit
   gt/bed.ply                 the exact bed mesh (double vertices, world metres)
-  gt/bed_grid.npy            float64 [N, 3] bed points on a 5 cm horizontal grid over eval_region
-  colmap/sparse/0/           COLMAP text model: cameras.txt (one PINHOLE), images.txt, empty points3D.txt
+  gt/bed_surface.npz         the same surface as a height grid (`Surface`): the exact height function
+  gt/bed_grid.npy            float64 [N, 3] submerged bed points on a 5 cm horizontal grid over eval_region
+  gt/bank_grid.npy           the same for the emerged ground (banks, bars) over eval_region (a reach)
+  gt/bed_elevation.tif       bed_grid as a GeoTIFF raster: local metric CRS, nodata outside the wet area
+  gt/waterline.json          GeoJSON MultiLineString where the bed meets the water plane (a reach)
+  colmap/                    COLMAP text model: cameras.txt (one PINHOLE), images.txt, empty points3D.txt,
+                             and the split as image lists train.txt and test.txt
   scene/                     generator inputs and state: spec.json, geometry.npz, albedo.png, render log
 
 Every writer of a dataset (the Blender generator in `datagen`, the small in-memory scenes of
@@ -23,17 +29,25 @@ from pathlib import Path
 
 import numpy as np
 
-from ragsplat_core.outputs import atomic_path, write_bytes
+from ragsplat_core.outputs import atomic_path, write_bytes, write_json
 
 TRANSFORMS = "transforms.json"
 SCENE = "scene.json"
 GT_MESH = "gt/bed.ply"
+GT_SURFACE = "gt/bed_surface.npz"
 GT_GRID = "gt/bed_grid.npy"
+GT_BANKS = "gt/bank_grid.npy"
+GT_ELEVATION = "gt/bed_elevation.tif"
+GT_WATERLINE = "gt/waterline.json"
 GT_GRID_STEP = 0.05  # metres between ground-truth grid points
-COLMAP = "colmap/sparse/0"
+# Not colmap/sparse/0: nerfstudio's loader finds a model there and stops at an interactive question.
+COLMAP = "colmap"
 PASSES = ("wet", "dry", "depth")
-DEPTH_CHANNEL = "Z"
+DEPTH_CHANNEL = "Y"  # a single channel named "Y" is what OpenCV reads back as a grey float image
 NO_HIT = 1e10  # Cycles' depth where a ray escapes; far beyond any scene distance
+# The dataset's own local frame, for rasters: metres, x east, y north (no geodetic datum).
+LOCAL_CRS = ('LOCAL_CS["ragsplat scene (local metres, z up)",LOCAL_DATUM["scene origin",0],UNIT["metre",1],'
+             'AXIS["X",EAST],AXIS["Y",NORTH]]')
 
 
 def relative_path(kind: str, name: str) -> str:
@@ -69,9 +83,10 @@ def read_depth(path) -> np.ndarray:
 
     with OpenEXR.File(str(path), separate_channels=True) as f:
         channels = f.channels()
-        if DEPTH_CHANNEL not in channels:
+        name = next((c for c in (DEPTH_CHANNEL, "Z") if c in channels), None)  # "Z": datasets before 0.2
+        if name is None:
             raise ValueError(f"{path}: no channel {DEPTH_CHANNEL!r} (has {sorted(channels)})")
-        return np.array(channels[DEPTH_CHANNEL].pixels, dtype=np.float32)
+        return np.array(channels[name].pixels, dtype=np.float32)
 
 
 def read_png(path: Path) -> np.ndarray:
@@ -109,14 +124,71 @@ def write_png(path: Path, image) -> None:
     write_bytes(path, png.tobytes())
 
 
+class Surface:
+    """The exact bed: heights on a square vertex grid, each cell split along the same diagonal into
+    (00, 10, 11) and (00, 11, 01), so the height between vertices is the triangulated mesh's (`gt/bed.ply`).
+
+    x0: world x (= y) of vertex 0; cell: vertex spacing (m); heights [K, K] world z, index [j (y), i (x)].
+    """
+
+    def __init__(self, x0: float, cell: float, heights: np.ndarray):
+        self.x0, self.cell, self.heights = float(x0), float(cell), np.asarray(heights, np.float64)
+
+    def height_at(self, xy: np.ndarray) -> np.ndarray:
+        """Exact height [N] at horizontal points [N, 2] (clamped to the mesh's edge cells outside it)."""
+        h = self.heights
+        fx, fy = (np.asarray(xy, float) - self.x0).T / self.cell
+        i = np.clip(np.floor(fx).astype(int), 0, h.shape[1] - 2)
+        j = np.clip(np.floor(fy).astype(int), 0, h.shape[0] - 2)
+        s, t = fx - i, fy - j
+        h00, h10, h01, h11 = h[j, i], h[j, i + 1], h[j + 1, i], h[j + 1, i + 1]
+        lower = s >= t  # triangle (00, 10, 11)
+        return np.where(lower, h00 + s * (h10 - h00) + t * (h11 - h10), h00 + t * (h01 - h00) + s * (h11 - h01))
+
+    def save(self, path: Path) -> None:
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+            np.savez(f, x0=self.x0, cell=self.cell, heights=self.heights)
+
+    @classmethod
+    def load(cls, path: Path) -> Surface:
+        with np.load(path) as d:
+            return cls(float(d["x0"]), float(d["cell"]), d["heights"])
+
+
+def write_elevation(path: Path, points: np.ndarray, step: float, nodata: float = -9999.0) -> None:
+    """Grid points [N, 3] on a regular `step` lattice -> single-band float32 GeoTIFF in `LOCAL_CRS`, north
+    up, pixel centres on the lattice nodes, `nodata` where the lattice has no point."""
+    import rasterio
+    from rasterio.transform import Affine
+
+    ij = np.round((points[:, :2] - points[:, :2].min(0)) / step).astype(np.int64)  # [N, 2] column, row from south
+    width, height = ij.max(0) + 1
+    band = np.full((height, width), nodata, np.float32)
+    band[height - 1 - ij[:, 1], ij[:, 0]] = points[:, 2]  # row 0 is the northern edge
+    west, north = points[:, 0].min() - step / 2, points[:, 1].max() + step / 2
+    with atomic_path(path) as tmp, rasterio.open(
+            tmp, "w", driver="GTiff", width=int(width), height=int(height), count=1, dtype="float32",
+            crs=LOCAL_CRS, transform=Affine(step, 0.0, west, 0.0, -step, north), nodata=nodata, compress="deflate") as r:
+        r.write(band, 1)
+        r.set_band_description(1, "bed elevation (m, z up, water plane at the scene's level)")
+
+
+def write_waterline(path: Path, lines: list[np.ndarray], level: float) -> None:
+    """Polylines [K, 2] where the bed crosses the water plane, as a GeoJSON MultiLineString (local metres)."""
+    write_json(path, {"type": "Feature", "properties": {"level": level, "crs": "local metres (see LOCAL_CRS)"},
+                      "geometry": {"type": "MultiLineString",
+                                   "coordinates": [np.round(line, 6).tolist() for line in lines]}})
+
+
 # ---------------------------------------------------------------- transforms.json and scene.json
 
 
 def frame(name: str, camera, split: str, kind: str, file_path: str, dry_file_path: str | None = None,
-          depth_file_path: str | None = None) -> dict:
+          gt_depth_file_path: str | None = None) -> dict:
     """One `frames` entry: both pose forms (nerfstudio `transform_matrix` and OpenCV `w2c`), the split
-    ("train" | "test"), the view kind ("nadir", "oblique20", ...) and the image paths."""
-    out = {"file_path": file_path, "dry_file_path": dry_file_path, "depth_file_path": depth_file_path,
+    ("train" | "test"), the view kind ("nadir", "oblique20", ...) and the image paths. The dry ground-truth
+    depth (metres) has a key of our own: nerfstudio reads `depth_file_path` as training depth in mm."""
+    out = {"file_path": file_path, "dry_file_path": dry_file_path, "gt_depth_file_path": gt_depth_file_path,
            "transform_matrix": camera.c2w_gl.tolist(), "w2c": camera.w2c.tolist(), "split": split,
            "name": name, "kind": kind}
     return {k: v for k, v in out.items() if v is not None}
@@ -124,11 +196,15 @@ def frame(name: str, camera, split: str, kind: str, file_path: str, dry_file_pat
 
 def transforms_json(camera, frames: list[dict], water) -> dict:
     """transforms.json: shared pinhole intrinsics of `camera` (no distortion), `water` (anything with
-    `level` and `n`, or None for a dry scene) and the frames."""
+    `level` and `n`, or None for a dry scene) and the frames. For nerfstudio: poses are used as they are
+    (identity `applied_transform`, no re-orientation) and the split is given by file lists."""
     return {
         "camera_model": "OPENCV",
         "fl_x": camera.fx, "fl_y": camera.fy, "cx": camera.cx, "cy": camera.cy, "w": camera.width,
         "h": camera.height, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
+        "applied_transform": np.eye(4)[:3].tolist(), "orientation_override": "none",
+        "train_filenames": [f["file_path"] for f in frames if f["split"] == "train"],
+        "test_filenames": [f["file_path"] for f in frames if f["split"] == "test"],
         "water": None if water is None else {"level": water.level, "n": water.n},
         "frames": frames,
     }
@@ -161,8 +237,9 @@ def _quaternion(R: np.ndarray) -> np.ndarray:
 
 
 def write_colmap(folder: Path, views, image_kind: str) -> None:
-    """COLMAP text model of `views` (objects with `name` and `camera`, all sharing intrinsics). Same pixel
-    convention as ours: the top-left pixel's centre is (0.5, 0.5). Image names are relative to DIR/images."""
+    """COLMAP text model of `views` (objects with `name`, `split` and `camera`, all sharing intrinsics), and
+    the split as image lists `train.txt` / `test.txt`. Same pixel convention as ours: the top-left pixel's
+    centre is (0.5, 0.5). Image names are relative to DIR/images."""
     cam = views[0].camera
     write_bytes(folder / "cameras.txt", (
         "# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
@@ -174,3 +251,6 @@ def write_colmap(folder: Path, views, image_kind: str) -> None:
         lines.append("")
     write_bytes(folder / "images.txt", ("\n".join(lines) + "\n").encode())
     write_bytes(folder / "points3D.txt", b"# 3D point list: empty (poses are known exactly)\n")
+    for split in ("train", "test"):
+        names = [f"{image_kind}/{v.name}.png" for v in views if v.split == split]
+        write_bytes(folder / f"{split}.txt", "".join(f"{n}\n" for n in names).encode())

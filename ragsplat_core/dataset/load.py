@@ -56,7 +56,7 @@ class View:
     dry_rgb: torch.Tensor | None  # [H, W, 3] uint8, the render without water, or None
     file_path: str
     dry_file_path: str | None
-    depth_file_path: str | None
+    gt_depth_file_path: str | None  # dry z-depth EXR (metres), ground truth
 
     @property
     def image(self) -> torch.Tensor:  # [H, W, 3] float32 in [0, 1]
@@ -238,7 +238,7 @@ def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: b
         dry_path = frame.get("dry_file_path")
         dry = read_image(root / dry_path, *size) if (load_dry and dry_path) else None
         views.append(View(name, split, str(frame.get("kind", "")), camera, rgb, dry, frame["file_path"],
-                          dry_path, frame.get("depth_file_path")))
+                          dry_path, frame.get("gt_depth_file_path")))
     if "train" in splits and not any(v.split == "train" for v in views):
         raise _fail(tpath, "no frame has split 'train'")
 
