@@ -239,6 +239,16 @@ def ground_truth_grid(bed: Bed, region: dict[str, float], step: float) -> np.nda
     return np.concatenate([xy, height_at(bed, xy)[:, None]], -1)
 
 
+def ground_truth(spec: SceneSpec, bed: Bed, region: dict[str, float], step: float):
+    """(bed grid [N, 3], bank grid [M, 3] or None) over `region`: for a reach the submerged bed, which is
+    what bathymetry measures, and the emerged ground apart; for the gravel bed the whole grid."""
+    grid = ground_truth_grid(bed, region, step)
+    if spec.reach is None:
+        return grid, None
+    wet = grid[:, 2] < spec.level
+    return grid[wet], grid[~wet]
+
+
 def waterline(bed: Bed, level: float) -> list[np.ndarray]:
     """Polylines [K, 2] (metres) where the mesh surface crosses the water plane z = level."""
     import contourpy

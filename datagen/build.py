@@ -22,7 +22,7 @@ import numpy as np
 
 from blender_scenes.protocol import PROTOCOL
 from datagen import flight
-from datagen.bed import Bed, ground_truth_grid, make_bed, mesh, surface, waterline, write_ply
+from datagen.bed import Bed, ground_truth, make_bed, mesh, surface, waterline, write_ply
 from datagen.spec import SceneSpec, validate
 from ragsplat_core.camera import Camera
 from ragsplat_core.dataset import layout
@@ -152,16 +152,12 @@ def _write_bed_assets(spec: SceneSpec, out: Path) -> None:
     with atomic_path(files[2]) as tmp:
         write_ply(tmp, geo["bed_verts"], geo["bed_tris"])
     surface(bed).save(files[3])
-    grid = ground_truth_grid(bed, flight.eval_region(spec), layout.GT_GRID_STEP)
-    if spec.reach is None:
-        layout.write_npy(out / layout.GT_GRID, grid)
-        return
-    # A reach: the submerged bed is what bathymetry measures; the emerged ground is kept apart.
-    wet = grid[:, 2] < spec.level
-    layout.write_npy(out / layout.GT_GRID, grid[wet])
-    layout.write_npy(out / layout.GT_BANKS, grid[~wet])
-    layout.write_elevation(out / layout.GT_ELEVATION, grid[wet], layout.GT_GRID_STEP)
-    layout.write_waterline(out / layout.GT_WATERLINE, waterline(bed, spec.level), spec.level)
+    grid, banks = ground_truth(spec, bed, flight.eval_region(spec), layout.GT_GRID_STEP)
+    layout.write_npy(out / layout.GT_GRID, grid)
+    if banks is not None:
+        layout.write_npy(out / layout.GT_BANKS, banks)
+        layout.write_elevation(out / layout.GT_ELEVATION, grid, layout.GT_GRID_STEP)
+        layout.write_waterline(out / layout.GT_WATERLINE, waterline(bed, spec.level), spec.level)
 
 
 def run_blender(job: dict, workdir: Path, progress: Callable[[dict], None] | None = None) -> RenderStats:

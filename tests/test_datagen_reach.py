@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from datagen import flight
-from datagen.bed import ground_truth_grid, make_bed, waterline
+from datagen.bed import ground_truth, make_bed, waterline
 from datagen.build import _geometry, null_models
 from datagen.spec import preset
 
@@ -18,8 +18,9 @@ def smoke():
 
 
 def wet_grid(spec, bed):
-    grid = ground_truth_grid(bed, flight.eval_region(spec), 0.05)
-    return grid, grid[grid[:, 2] < spec.level]
+    wet, banks = ground_truth(spec, bed, flight.eval_region(spec), 0.05)
+    assert (wet[:, 2] < spec.level).all() and (banks[:, 2] >= spec.level).all()
+    return np.concatenate([wet, banks]), wet
 
 
 def test_channel_banks_and_depth_range(smoke):

@@ -40,7 +40,7 @@ class BedInfo:
 class GroundTruth:
     """The exact bed for scoring geometry."""
 
-    grid: np.ndarray  # [N, 3] float64 bed points on a regular horizontal grid over `region`
+    grid: np.ndarray  # [N, 3] float64 submerged bed points on a regular horizontal grid over `region`
     region: dict[str, float]  # {"xmin", "xmax", "ymin", "ymax"}: the evaluated part of the bed
 
 
