@@ -83,7 +83,7 @@ def read_depth(path) -> np.ndarray:
 
     with OpenEXR.File(str(path), separate_channels=True) as f:
         channels = f.channels()
-        name = next((c for c in (DEPTH_CHANNEL, "Z") if c in channels), None)  # "Z": datasets before 0.2
+        name = next((c for c in (DEPTH_CHANNEL, "Z") if c in channels), None)  # "Z": older datasets
         if name is None:
             raise ValueError(f"{path}: no channel {DEPTH_CHANNEL!r} (has {sorted(channels)})")
         return np.array(channels[name].pixels, dtype=np.float32)
