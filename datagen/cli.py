@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import replace
-from pathlib import Path
+
+from ragsplat_core.cli.args import count, out_dir
 
 
 def shard(text: str) -> tuple[int, int]:
@@ -22,10 +23,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from datagen.spec import PRESETS
 
     parser.add_argument("--preset", default="small", help=f"scene size: {', '.join(PRESETS)} (default: small)")
-    parser.add_argument("--out", required=True, type=Path, help="dataset directory (created; reruns resume)")
+    parser.add_argument("--out", required=True, type=out_dir, help="dataset directory (created; reruns resume)")
     parser.add_argument("--shard", default=(0, 1), type=shard, metavar="i/N",
                         help="render only views k with k mod N == i (0 <= i < N); merge when all are done")
-    parser.add_argument("--seed", type=int, default=0, help="scene seed (default 0): same seed, same data")
+    parser.add_argument("--seed", type=count, default=0, help="scene seed (default 0): same seed, same data")
     parser.add_argument("--no-water", action="store_true", help="dry scene: render only the dry set")
     parser.add_argument("--no-radiance-scale", action="store_true",
                         help="water refraction colour 1 instead of 1/n^2 (no radiance drop at the interface)")

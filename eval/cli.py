@@ -5,19 +5,20 @@ from __future__ import annotations
 
 import argparse
 from functools import partial
-from pathlib import Path
+
+from ragsplat_core.cli.args import count, dataset_dir, out_dir
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from eval.ablation import PRESETS
     from ragsplat_core.train.config import VARIANTS
 
-    parser.add_argument("--data", required=True, type=Path, help="dataset directory (transforms.json, gt/)")
-    parser.add_argument("--out", required=True, type=Path, help="output directory (reused rows live here)")
+    parser.add_argument("--data", required=True, type=dataset_dir, help="dataset directory (transforms.json, gt/)")
+    parser.add_argument("--out", required=True, type=out_dir, help="output directory (reused rows live here)")
     parser.add_argument("--preset", default="small", choices=list(PRESETS), help="training/eval size")
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS), metavar="VARIANT",
                         help=f"subset of {', '.join(VARIANTS)} (default: all)")
-    parser.add_argument("--seed", type=int, default=0, help="training and extraction seed (recorded in every row)")
+    parser.add_argument("--seed", type=count, default=0, help="training and extraction seed (recorded in every row)")
     parser.add_argument("--vgg16", default=None,
                         help="torchvision's vgg16-397923af.pth for LPIPS (default: torch hub cache)")
     parser.add_argument("--device", default=None, help="torch device for training (default: the preset's)")

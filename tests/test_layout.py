@@ -66,3 +66,62 @@ def test_library_error_is_one_line_and_exit_2(tmp_path, capsys):
     assert main(["train", "--data", str(tmp_path / "missing"), "--out", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("ragsplat train: error: ") and "does not exist" in err[0]
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["bench", "refraction", "--cases", "0"], "--cases"),
+    (["bench", "refraction", "--repeats", "0"], "--repeats"),
+    (["bench", "raster", "--n", "-5"], "--n"),
+    (["bench", "raster", "--size", "0"], "--size"),
+    (["bench", "raster", "--repeats", "0"], "--repeats"),
+    (["bench", "train-step", "--counts", "0"], "--counts"),
+    (["bench", "train-step", "--steps", "0"], "--steps"),
+    (["stability", "--cases", "0"], "--cases"),
+    (["dataset", "--out", "d", "--seed", "-5"], "--seed"),
+    (["train", "--data", "d", "--out", "r", "--iterations", "0"], "--iterations"),
+    (["train", "--data", "d", "--out", "r", "--init-depth", "1e400"], "--init-depth"),
+    (["train", "--data", "d", "--out", "r", "--backend", "tpu"], "--backend"),
+    (["ablation", "--data", "d", "--out", "r", "--variants", "nope"], "--variants"),
+])
+def test_bad_arguments_stop_before_any_work(argv, option, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as done:
+        main(argv)
+    err = capsys.readouterr().err
+    assert done.value.code == 2 and option in err.splitlines()[-1]
+    assert list(tmp_path.iterdir()) == []  # nothing written
+
+
+def test_outputs_of_the_wrong_kind(tmp_path, capsys):
+    (tmp_path / "file").write_text("mine")
+    for argv in (["stability", "--out", str(tmp_path)], ["train", "--data", "d", "--out", str(tmp_path / "file")]):
+        with pytest.raises(SystemExit) as done:
+            main(argv)
+        assert done.value.code == 2 and "--out" in capsys.readouterr().err
+    assert (tmp_path / "file").read_text() == "mine"
+
+
+def test_interrupt_and_os_errors_are_one_line(tmp_path, monkeypatch, capsys):
+    import ragsplat_core.cli.stability as stability
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    def no_space(args):
+        raise OSError(28, "No space left on device", str(tmp_path / "report.json"))
+
+    for run, code, phrase in ((interrupted, 130, "interrupted"), (no_space, 2, "No space left on device")):
+        monkeypatch.setattr(stability, "run", run)
+        assert main(["stability", "--out", str(tmp_path / "report.json")]) == code
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and phrase in err[0] and err[0].startswith("ragsplat stability: ")
+    with pytest.raises(OSError):  # --debug: the traceback
+        main(["stability", "--out", str(tmp_path / "report.json"), "--debug"])
+
+
+def test_dataset_file_stands_for_its_directory(tmp_path, capsys):
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "transforms.json").write_text("{")
+    assert main(["train", "--data", str(data / "transforms.json"), "--out", str(tmp_path / "run")]) == 2
+    assert f"{data / 'transforms.json'}: not valid JSON" in capsys.readouterr().err

@@ -12,15 +12,16 @@ import platform
 import sys
 from pathlib import Path
 
+from ragsplat_core.cli.args import count, out_file, positive_float, positive_int
 from ragsplat_core.errors import ConfigError
 from ragsplat_core.outputs import write_json
 
 
 def _refraction_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--cases", type=int, default=200_000, help="cases per solver and dtype")
-    parser.add_argument("--repeats", type=int, default=5, help="timed repetitions per solver (median reported)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed of the cases")
-    parser.add_argument("--out", type=Path, default=Path("runs/bench/refraction.json"), help="JSON output path")
+    parser.add_argument("--cases", type=positive_int, default=200_000, help="cases per solver and dtype")
+    parser.add_argument("--repeats", type=positive_int, default=5, help="timed repetitions per solver (median reported)")
+    parser.add_argument("--seed", type=count, default=0, help="random seed of the cases")
+    parser.add_argument("--out", type=out_file, default=Path("runs/bench/refraction.json"), help="JSON output path")
 
 
 def _refraction(args: argparse.Namespace) -> int:
@@ -39,16 +40,16 @@ def _refraction(args: argparse.Namespace) -> int:
 
 
 def _raster_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--n", type=int, nargs="+", default=[10_000, 40_000], help="Gaussian counts")
-    parser.add_argument("--size", type=int, default=256, help="image width = height in pixels")
-    parser.add_argument("--repeats", type=int, default=7, help="timed iterations (median reported)")
+    parser.add_argument("--n", type=positive_int, nargs="+", default=[10_000, 40_000], help="Gaussian counts")
+    parser.add_argument("--size", type=positive_int, default=256, help="image width = height in pixels")
+    parser.add_argument("--repeats", type=positive_int, default=7, help="timed iterations (median reported)")
     parser.add_argument("--backends", nargs="+", default=None,
                         help="backends to run: cpu, torch, torch-cuda, gsplat (default: every available one)")
-    parser.add_argument("--footprint", type=float, nargs="+", default=[1.0],
+    parser.add_argument("--footprint", type=positive_float, nargs="+", default=[1.0],
                         help="in-plane Gaussian size factors (1 = sigma 0.6-1.2x the mean spacing)")
-    parser.add_argument("--threads", type=int, nargs="+", default=[0],
+    parser.add_argument("--threads", type=count, nargs="+", default=[0],
                         help="torch/numba threads per run (0 = one per core)")
-    parser.add_argument("--out", type=Path, default=Path("runs/bench/raster.json"), help="JSON output path")
+    parser.add_argument("--out", type=out_file, default=Path("runs/bench/raster.json"), help="JSON output path")
 
 
 def _raster(args: argparse.Namespace) -> int:
@@ -64,12 +65,12 @@ def _raster(args: argparse.Namespace) -> int:
 
 
 def _train_step_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--counts", type=int, nargs="+", default=[10_000, 40_000], help="Gaussian counts")
+    parser.add_argument("--counts", type=positive_int, nargs="+", default=[10_000, 40_000], help="Gaussian counts")
     parser.add_argument("--backends", nargs="+", help="backend:device pairs, e.g. cpu:cpu torch:cuda "
                         "(default: all available)")
-    parser.add_argument("--steps", type=int, default=10, help="timed iterations per variant")
-    parser.add_argument("--warmup", type=int, default=3, help="untimed iterations first (JIT, caches)")
-    parser.add_argument("--out", type=Path, default=Path("runs/bench/train_step.json"),
+    parser.add_argument("--steps", type=positive_int, default=10, help="timed iterations per variant")
+    parser.add_argument("--warmup", type=count, default=3, help="untimed iterations first (JIT, caches)")
+    parser.add_argument("--out", type=out_file, default=Path("runs/bench/train_step.json"),
                         help="JSON output path (every timing of every row)")
 
 

@@ -2,7 +2,9 @@
 
 A subcommand module defines `add_arguments(parser)` and `run(args) -> int`. Only the chosen module is
 imported, so `ragsplat --help` stays fast and no stage pulls in another stage's heavy dependencies. Every
-`RagsplatError` a command raises becomes one line on stderr and exit code 2.
+`RagsplatError` a command raises, and every failure of the file system (no space, no permission), becomes
+one line on stderr and exit code 2; an interrupt (Ctrl-C, SIGTERM) one line and exit code 130. `--debug`
+shows the traceback instead.
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import signal
 import sys
 
 # name -> (module, one-line help), in workflow order: make data, train, evaluate; then the diagnostics.
@@ -49,14 +52,33 @@ def main(argv: list[str] | None = None) -> int:
     module = importlib.import_module(COMMANDS[name][0])
     parser = argparse.ArgumentParser(prog=f"ragsplat {name}", description=COMMANDS[name][1])
     module.add_arguments(parser)
+    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     args = parser.parse_args(argv[1:])
     from ragsplat_core.errors import RagsplatError
 
+    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         return int(module.run(args) or 0)
-    except RagsplatError as err:
-        print(f"ragsplat {name}: error: {err}", file=sys.stderr)
-        return 2
+    except (RagsplatError, OSError, KeyboardInterrupt) as err:
+        if args.debug:
+            raise
+        print(f"ragsplat {name}: {_one_line(err)}", file=sys.stderr)
+        return 130 if isinstance(err, KeyboardInterrupt) else 2
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _terminate(signum, frame):  # SIGTERM ends a command like Ctrl-C does
+    raise KeyboardInterrupt
+
+
+def _one_line(err: BaseException) -> str:
+    if isinstance(err, KeyboardInterrupt):
+        return "interrupted; finished files are kept, rerun the same command to resume"
+    if isinstance(err, OSError):
+        where = f"{err.filename}: " if err.filename else ""
+        return f"error: {where}{err.strerror or err}"
+    return f"error: {err}"
 
 
 if __name__ == "__main__":

@@ -8,18 +8,19 @@ import sys
 import time
 from pathlib import Path
 
+from ragsplat_core.cli.args import count, out_file, positive_int
 from ragsplat_core.outputs import write_json
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ragsplat_core.bench.stability import StabilityConfig
 
-    parser.add_argument("--cases", type=int, default=StabilityConfig.cases_per_regime,
+    parser.add_argument("--cases", type=positive_int, default=StabilityConfig.cases_per_regime,
                         help="cases per regime and dtype (8 regimes)")
     parser.add_argument("--dtypes", nargs="+", default=list(StabilityConfig.dtypes), choices=["float64", "float32"],
                         help="floating-point types to sweep (default: both)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed of the cases")
-    parser.add_argument("--out", type=Path, default=Path("runs/stability.json"), help="JSON report path")
+    parser.add_argument("--seed", type=count, default=0, help="random seed of the cases")
+    parser.add_argument("--out", type=out_file, default=Path("runs/stability.json"), help="JSON report path")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
+from ragsplat_core.cli.args import count, dataset_dir, out_dir, positive_float, positive_int
 from ragsplat_core.errors import TrainingDiverged
 
 
@@ -18,14 +18,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ragsplat_core.rasterize import BACKENDS
     from ragsplat_core.train.config import PRESETS, VARIANTS
 
-    parser.add_argument("--data", required=True, type=Path, help="dataset directory (transforms.json, images/)")
+    parser.add_argument("--data", required=True, type=dataset_dir, help="dataset directory (transforms.json, images/)")
     parser.add_argument("--variant", default="full", choices=list(VARIANTS), help="refraction correction")
-    parser.add_argument("--out", required=True, type=Path,
+    parser.add_argument("--out", required=True, type=out_dir,
                         help="output directory (resumes if it holds a checkpoint)")
     parser.add_argument("--preset", default="small", choices=list(PRESETS), help="training preset")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (written into config.json)")
-    parser.add_argument("--iterations", type=int, help="override the preset's iteration count")
-    parser.add_argument("--init-depth", type=float, help="grid depth below the water level (m); "
+    parser.add_argument("--seed", type=count, default=0, help="random seed (written into config.json)")
+    parser.add_argument("--iterations", type=positive_int, help="override the preset's iteration count")
+    parser.add_argument("--init-depth", type=positive_float, help="grid depth below the water level (m); "
                         "default: scene.json spec.bed.depth")
     parser.add_argument("--backend", choices=list(BACKENDS), help="rasterizer backend (default: auto)")
     parser.add_argument("--device", help="torch device (default: CUDA when available, else CPU)")
