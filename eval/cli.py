@@ -26,9 +26,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from eval.ablation import TrainEval, run_ablation
-    from ragsplat_core.cli.progress import training_bar
+    from ragsplat_core.cli.progress import deferred_interrupts, training_bar
 
-    train_eval = TrainEval(args.data, args.device, training_bar=partial(training_bar, leave=False))
-    run_ablation(args.data, args.out, args.preset, args.variants, args.seed, train_eval, vgg16=args.vgg16,
-                 log=print)
+    with deferred_interrupts() as check:  # Ctrl-C: the trainer checkpoints its finished steps, then stops
+        train_eval = TrainEval(args.data, args.device, training_bar=partial(training_bar, leave=False, check=check))
+        run_ablation(args.data, args.out, args.preset, args.variants, args.seed, train_eval, vgg16=args.vgg16,
+                     log=print)
     return 0

@@ -102,7 +102,7 @@ def test_outputs_of_the_wrong_kind(tmp_path, capsys):
 
 
 def test_interrupt_and_os_errors_are_one_line(tmp_path, monkeypatch, capsys):
-    import ragsplat_core.cli.stability as stability
+    from ragsplat_core.cli import stability
 
     def interrupted(args):
         raise KeyboardInterrupt

@@ -207,7 +207,8 @@ def test_cli_train(wet, tmp_path, capsys):
     assert main(["train", "--data", str(tmp_path / "none"), "--out", str(out)]) == 2
     assert main(args[:-2] + ["--seed", "4"]) == 2  # the checkpoint was written with other settings
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 2 and "does not exist" in err[0] and "different settings" in err[1]
+    assert err[0] == f"resumed from step 3 of 3 ({out})"
+    assert len(err) == 3 and "does not exist" in err[1] and "different settings" in err[2]
 
 
 def test_refraction_aware_training_recovers_depth(tmp_path):
@@ -242,3 +243,37 @@ def test_refraction_aware_training_recovers_depth(tmp_path):
     assert start == pytest.approx((d - d / WATER.n) / 2, abs=0.02)  # above the bed to begin with
     assert err["3dgs"] > start + 0.01, err  # pulled up towards the apparent depth
     assert err["full"] < err["3dgs"] - 0.02, err
+
+
+def test_sigint_checkpoints_finished_steps_and_resume_says_so(evaluable_dataset, tmp_path):
+    """A real Ctrl-C to a training process: one line, exit 130, a checkpoint of whole steps; the rerun
+    resumes from it and says so."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "ragsplat_core.cli.main", "train", "--data", str(evaluable_dataset), "--out",
+           str(out), "--preset", "smoke", "--iterations", "100000", "--checkpoint-every", "0", "--no-progress"]
+
+    log = tmp_path / "stderr.txt"
+
+    def interrupt_after(condition):
+        with open(log, "w") as err:
+            proc = subprocess.Popen(cmd, stderr=err, stdout=subprocess.DEVNULL)
+            deadline = time.time() + 120
+            while not condition() and time.time() < deadline and proc.poll() is None:
+                time.sleep(0.2)
+            time.sleep(1.0)  # some steps
+            proc.send_signal(signal.SIGINT)
+            proc.wait(timeout=120)
+        return proc.returncode, log.read_text().strip().splitlines()
+
+    code, err = interrupt_after(lambda: (out / "config.json").exists())
+    assert code == 130 and len(err) == 1 and "interrupted" in err[0], err
+    step = torch.load(out / "ckpt.pt", weights_only=True)["step"]
+    assert 0 < step < 100000
+    code, err = interrupt_after(lambda: "resumed" in log.read_text())
+    assert code == 130 and err[0] == f"resumed from step {step} of 100000 ({out})", err
+    assert torch.load(out / "ckpt.pt", weights_only=True)["step"] > step

@@ -49,23 +49,34 @@ def main(argv: list[str] | None = None) -> int:
         top.print_help()
         return 0 if args.command is None and not argv else 2
     name = argv[0]
+    debug = "--debug" in argv[1:]
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        return _run(name, argv[1:])
+    except KeyboardInterrupt:  # also while a command's modules are still being imported
+        if debug:
+            raise
+        print(f"ragsplat {name}: {_one_line(KeyboardInterrupt())}", file=sys.stderr)
+        return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _run(name: str, argv: list[str]) -> int:
     module = importlib.import_module(COMMANDS[name][0])
     parser = argparse.ArgumentParser(prog=f"ragsplat {name}", description=COMMANDS[name][1])
     module.add_arguments(parser)
     parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
-    args = parser.parse_args(argv[1:])
+    args = parser.parse_args(argv)
     from ragsplat_core.errors import RagsplatError
 
-    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         return int(module.run(args) or 0)
-    except (RagsplatError, OSError, KeyboardInterrupt) as err:
+    except (RagsplatError, OSError) as err:
         if args.debug:
             raise
         print(f"ragsplat {name}: {_one_line(err)}", file=sys.stderr)
-        return 130 if isinstance(err, KeyboardInterrupt) else 2
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+        return 2
 
 
 def _terminate(signum, frame):  # SIGTERM ends a command like Ctrl-C does

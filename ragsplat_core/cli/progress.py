@@ -1,6 +1,9 @@
-"""The one progress-bar helper of the command layer (tqdm on stderr)."""
+"""The command layer's progress bars (tqdm on stderr) and its deferred interrupts."""
 
 from __future__ import annotations
+
+import contextlib
+import signal
 
 
 def bar(total: int, desc: str, unit: str = "it", initial: int = 0, disable: bool = False, leave: bool = True):
@@ -11,12 +14,16 @@ def bar(total: int, desc: str, unit: str = "it", initial: int = 0, disable: bool
                 dynamic_ncols=True)
 
 
-def training_bar(total: int, desc: str, initial: int = 0, disable: bool = False, leave: bool = True):
+def training_bar(total: int, desc: str, initial: int = 0, disable: bool = False, leave: bool = True,
+                 check=None):
     """(bar, on_step): `on_step(trainer)` advances the bar and shows loss, PSNR on the training view and
-    the Gaussian count; pass it to `Trainer.train(on_step=...)`."""
+    the Gaussian count; pass it to `Trainer.train(on_step=...)`. `check()` (from `deferred_interrupts`) is
+    called after every step."""
     b = bar(total, desc, "it", initial, disable, leave)
 
     def on_step(trainer) -> None:
+        if check is not None:
+            check()
         b.update(1)
         if trainer.step % 10 == 0 or trainer.step == total:
             last = trainer.last
@@ -25,3 +32,27 @@ def training_bar(total: int, desc: str, initial: int = 0, disable: bool = False,
 
     return b, on_step
 
+
+
+@contextlib.contextmanager
+def deferred_interrupts():
+    """Within the block a first Ctrl-C or SIGTERM only takes note; the yielded `check()` then raises
+    KeyboardInterrupt at a safe point (after a training step, so the trainer's checkpoint holds whole
+    steps). A second one interrupts at once."""
+    pending = []
+
+    def note(signum, frame):
+        if pending:
+            raise KeyboardInterrupt
+        pending.append(signum)
+
+    def check() -> None:
+        if pending:
+            raise KeyboardInterrupt
+
+    old = {s: signal.signal(s, note) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield check
+    finally:
+        for s, handler in old.items():
+            signal.signal(s, handler)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 from ragsplat_core.cli.args import count, dataset_dir, out_dir, positive_float, positive_int
 from ragsplat_core.errors import TrainingDiverged
@@ -27,29 +28,35 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iterations", type=positive_int, help="override the preset's iteration count")
     parser.add_argument("--init-depth", type=positive_float, help="grid depth below the water level (m); "
                         "default: scene.json spec.bed.depth")
+    parser.add_argument("--checkpoint-every", type=count, metavar="N",
+                        help="write a checkpoint every N steps (default: every 10 %% of the run; 0: only at the end)")
     parser.add_argument("--backend", choices=list(BACKENDS), help="rasterizer backend (default: auto)")
     parser.add_argument("--device", help="torch device (default: CUDA when available, else CPU)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
-    from ragsplat_core.cli.progress import training_bar
+    from ragsplat_core.cli.progress import deferred_interrupts, training_bar
     from ragsplat_core.dataset.load import load_dataset
     from ragsplat_core.train import Trainer, preset_config
 
     overrides = {"variant": args.variant, "seed": args.seed}
-    for key in ("iterations", "init_depth", "backend", "device"):
+    for key in ("iterations", "init_depth", "checkpoint_every", "backend", "device"):
         if getattr(args, key) is not None:
             overrides[key] = getattr(args, key)
     cfg = preset_config(args.preset, **overrides)
     ds = load_dataset(args.data, splits=("train",), load_dry=False)
     trainer = Trainer(cfg, ds, args.out)
-    bar, on_step = training_bar(cfg.iterations, f"train {cfg.variant}", trainer.step, args.no_progress)
-    try:
-        stats = trainer.train(on_step=on_step)
-    except TrainingDiverged as err:
-        raise TrainingDiverged(f"{err}; last checkpoint kept in {args.out}") from None
-    finally:
-        bar.close()
+    if trainer.step:
+        print(f"resumed from step {trainer.step} of {cfg.iterations} ({args.out})", file=sys.stderr)
+    with deferred_interrupts() as check:
+        bar, on_step = training_bar(cfg.iterations, f"train {cfg.variant}", trainer.step, args.no_progress,
+                                    check=check)
+        try:
+            stats = trainer.train(on_step=on_step)
+        except TrainingDiverged as err:
+            raise TrainingDiverged(f"{err}; last checkpoint kept in {args.out}") from None
+        finally:
+            bar.close()
     print(json.dumps(stats, indent=1))
     return 0

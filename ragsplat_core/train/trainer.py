@@ -218,26 +218,37 @@ class Trainer:
         """Train up to cfg.iterations (continuing from a resumed step); returns the final stats.
 
         `callbacks` run at each step in `eval_steps` and once at the end, outside the timed region.
-        `on_step(trainer)` runs after every step (progress display), also outside the timed region.
+        `on_step(trainer)` runs after every step (progress display), also outside the timed region; a
+        KeyboardInterrupt raised there (or arriving between steps) saves a checkpoint of the finished steps
+        before it propagates.
         """
         cfg = self.cfg
         marks = {int(s) for s in eval_steps if self.step < int(s) <= cfg.iterations}
         if self.out is not None:
             self.out.mkdir(parents=True, exist_ok=True)
             self._write_config()
-        while self.step < cfg.iterations:
-            t0 = time.perf_counter()
-            self.train_step()
-            if self.device.type == "cuda":
-                torch.cuda.synchronize(self.device)
-            self.elapsed += time.perf_counter() - t0
-            if on_step is not None:
-                on_step(self)
-            if self.step in marks and self.step < cfg.iterations:
-                for cb in callbacks:
-                    cb(self, self.step)
-            if self.out is not None and cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0:
+        every = cfg.checkpoint_interval
+        in_step = False
+        try:
+            while self.step < cfg.iterations:
+                t0 = time.perf_counter()
+                in_step = True
+                self.train_step()
+                in_step = False
+                if self.device.type == "cuda":
+                    torch.cuda.synchronize(self.device)
+                self.elapsed += time.perf_counter() - t0
+                if on_step is not None:
+                    on_step(self)
+                if self.step in marks and self.step < cfg.iterations:
+                    for cb in callbacks:
+                        cb(self, self.step)
+                if self.out is not None and every and self.step % every == 0:
+                    self.save_checkpoint()
+        except KeyboardInterrupt:
+            if self.out is not None and not in_step:  # a step cut in half would save a half-updated state
                 self.save_checkpoint()
+            raise
         if self.out is not None:
             self.save_checkpoint()
             save_ply(self.out / PLY, self.splats)
