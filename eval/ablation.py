@@ -11,7 +11,6 @@ what is missing. Then `eval.report` (re)writes `OUT/results.json`, `table1.md`, 
 
 from __future__ import annotations
 
-import hashlib
 import json
 import sys
 import time
@@ -49,15 +48,6 @@ PRESETS = {
 # ---------------------------------------------------------------- rows on disk (resume)
 
 
-def fingerprint(data: Path) -> str:
-    """Identifies the dataset a row was computed on (its transforms.json and scene.json)."""
-    h = hashlib.sha256()
-    for name in (layout.TRANSFORMS, layout.SCENE):
-        p = data / name
-        h.update(p.read_bytes() if p.is_file() else b"-")
-    return h.hexdigest()[:16]
-
-
 def row_path(out: Path, variant: str) -> Path:
     return out / variant / "row.json"
 
@@ -93,7 +83,8 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seed: 
         raise ConfigError(f"unknown variant {unknown[0]!r}; choose from {', '.join(VARIANTS)}")
     if preset not in PRESETS:
         raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
-    key = {"data": str(data.resolve()), "fingerprint": fingerprint(data), "preset": preset, "seed": seed}
+    key = {"data": str(data.resolve()), "fingerprint": layout.fingerprint(data), "preset": preset, "seed": seed}
+    layout.claim(out, "ablation", legacy=("results.json", "*/row.json", "*/ckpt.pt"))
     lpips_metric, lpips_reason = metrics.load_lpips(vgg16)
     if lpips_reason:
         log(f"LPIPS n/a: {lpips_reason}")

@@ -277,3 +277,25 @@ def test_sigint_checkpoints_finished_steps_and_resume_says_so(evaluable_dataset,
     code, err = interrupt_after(lambda: "resumed" in log.read_text())
     assert code == 130 and err[0] == f"resumed from step {step} of 100000 ({out})", err
     assert torch.load(out / "ckpt.pt", weights_only=True)["step"] > step
+
+
+def test_outputs_are_never_overwritten_or_mixed(wet, evaluable_dataset, tmp_path, capsys):
+    args = ["--preset", "smoke", "--iterations", "2", "--init-depth", "1.0", "--no-progress"]
+    foreign = tmp_path / "theirs"
+    foreign.mkdir()
+    (foreign / "config.json").write_text("someone else's")
+    assert main(["train", "--data", str(wet.root), "--out", str(foreign), *args]) == 2
+    assert [p.name for p in foreign.iterdir()] == ["config.json"] and (foreign / "config.json").read_text() == \
+        "someone else's"
+    run = tmp_path / "run"
+    assert main(["train", "--data", str(wet.root), "--out", str(run), *args]) == 0
+    before = (run / "config.json").read_text()
+    assert main(["train", "--data", str(evaluable_dataset), "--out", str(run), *args]) == 2  # another dataset
+    assert (run / "config.json").read_text() == before
+    (run / "ckpt.pt").write_bytes(b"not a checkpoint")
+    assert main(["train", "--data", str(wet.root), "--out", str(run), *args]) == 2
+    assert main(["ablation", "--data", str(evaluable_dataset), "--out", str(foreign), "--preset", "smoke"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 4 and all(line.startswith("ragsplat ") for line in err)
+    assert "not written by ragsplat" in err[0] and "another dataset" in err[1]
+    assert "not a readable checkpoint" in err[2] and "not written by ragsplat" in err[3]

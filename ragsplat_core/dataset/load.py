@@ -75,6 +75,7 @@ class Dataset:
     bed: BedInfo = field(default_factory=BedInfo)
     eval_region: dict[str, float] | None = None  # {"xmin", "xmax", "ymin", "ymax"} from scene.json
     ground_truth: GroundTruth | None = None  # loaded on request (`load_dataset(ground_truth=True)`)
+    fingerprint: str | None = None  # `layout.fingerprint` of the directory it was read from
 
     def split(self, name: str) -> list[View]:
         if name not in SPLITS:
@@ -258,7 +259,7 @@ def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: b
             if region["xmin"] >= region["xmax"] or region["ymin"] >= region["ymax"]:
                 raise _fail(spath, f"eval_region is empty: {region}")
     truth = _ground_truth(root, region) if ground_truth else None
-    return Dataset(root, water, views, bed, region, truth)
+    return Dataset(root, water, views, bed, region, truth, layout.fingerprint(root))
 
 
 def _positive(value) -> float | None:

@@ -17,6 +17,7 @@ checkpoint), `point_cloud.ply` (standard 3DGS PLY), `train_stats.json` (time, Ga
 from __future__ import annotations
 
 import math
+import pickle
 import time
 from collections.abc import Callable
 from dataclasses import asdict, fields
@@ -26,6 +27,7 @@ import numpy as np
 import torch
 
 from ragsplat_core.camera import Camera
+from ragsplat_core.dataset.layout import claim
 from ragsplat_core.dataset.load import Dataset
 from ragsplat_core.errors import ConfigError, DatasetError, OutputError, TrainingDiverged
 from ragsplat_core.gaussians import PARAM_NAMES, activated, colors_for_view, init_grid, init_points
@@ -72,6 +74,8 @@ class Trainer:
         self.elapsed = 0.0
         self.last = {}  # last step's loss / psnr
         self._order: list[int] = []
+        if self.out is not None:
+            claim(self.out, "train run", legacy=(CHECKPOINT,))
         if resume and self.out is not None and (self.out / CHECKPOINT).exists():
             self._load(self.out / CHECKPOINT)
         else:
@@ -266,7 +270,8 @@ class Trainer:
 
     # ---- persistence -------------------------------------------------------------------------------------
     def _write_config(self) -> None:
-        meta = {"config": self.cfg.to_dict(), "dataset": str(self.ds.root), "scene_scale": self.scene_scale,
+        meta = {"config": self.cfg.to_dict(), "dataset": str(self.ds.root),
+                "dataset_fingerprint": self.ds.fingerprint, "scene_scale": self.scene_scale,
                 "water": None if self.water is None else asdict(self.water), "refraction_applied": self.flags,
                 "device": str(self.device),
                 "num_train_views": len(self.views), "versions": versions("torch")}
@@ -274,7 +279,8 @@ class Trainer:
 
     def save_checkpoint(self, path: str | Path | None = None) -> Path:
         path = Path(path) if path is not None else self.out / CHECKPOINT
-        data = {"config": self.cfg.to_dict(), "step": self.step, "elapsed": self.elapsed,
+        data = {"config": self.cfg.to_dict(), "dataset_fingerprint": self.ds.fingerprint, "step": self.step,
+                "elapsed": self.elapsed,
                 "splats": {k: v.detach().cpu() for k, v in self.splats.items()},
                 "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
                 "strategy": {k: (v.cpu() if torch.is_tensor(v) else v) for k, v in self.strat_state.items()},
@@ -284,7 +290,15 @@ class Trainer:
         return path
 
     def _load(self, path: Path) -> None:
-        data = torch.load(path, map_location="cpu", weights_only=True)
+        try:
+            data = torch.load(path, map_location="cpu", weights_only=True)
+        except (RuntimeError, KeyError, EOFError, ValueError, pickle.UnpicklingError) as err:  # truncated, garbage
+            raise OutputError(f"{path}: not a readable checkpoint ({type(err).__name__}); move it away to "
+                              "start over") from None
+        theirs, ours = data.get("dataset_fingerprint"), self.ds.fingerprint
+        if theirs is not None and ours is not None and theirs != ours:
+            raise OutputError(f"{path}: checkpoint of another dataset (fingerprint {theirs}, {self.ds.root} is "
+                              f"{ours}); use another output directory")
         saved = TrainConfig.from_dict(data["config"])
         if saved != self.cfg:
             diff = [f.name for f in fields(TrainConfig) if getattr(saved, f.name) != getattr(self.cfg, f.name)]
