@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from ragsplat_core.errors import ConfigError
 from ragsplat_core.ssim import channels_first, psnr, ssim
 
 __all__ = ["LPIPS", "VGG16_FILE", "load_lpips", "psnr", "ssim", "vgg16_features_init"]
@@ -138,8 +139,11 @@ def load_vgg16_trunk(path: Path) -> dict[str, torch.Tensor]:
 
 
 def load_lpips(vgg16_path: str | Path | None = None) -> tuple[LPIPS | None, str]:
-    """(metric, "") or (None, one-line reason). `vgg16_path` defaults to torch's hub cache."""
+    """(metric, "") or (None, one-line reason). `vgg16_path` defaults to torch's hub cache; a path given
+    explicitly must exist (ConfigError)."""
     path = Path(vgg16_path) if vgg16_path else default_vgg16_path()
+    if vgg16_path and not path.is_file():
+        raise ConfigError(f"--vgg16 {path}: no such file (torchvision's {VGG16_FILE})")
     if not path.is_file():
         return None, f"VGG16 ImageNet weights not found at {path} (give --vgg16 PATH to {VGG16_FILE})"
     try:

@@ -16,7 +16,8 @@ W, H = 12, 8
 
 def _views(n=4, seed=0):
     g = torch.Generator().manual_seed(seed)
-    cams = [Camera.from_fov(W, H, 60.0, np.eye(3), [0.1 * i, 0.0, 5.0]) for i in range(n)]
+    down = np.diag([1.0, -1.0, -1.0])  # looking straight down from 5 m
+    cams = [Camera.from_fov(W, H, 60.0, down, -down @ [0.1 * i, 0.0, 5.0]) for i in range(n)]
     return [{"camera": c, "image": torch.rand(H, W, 3, generator=g), "dry": torch.rand(H, W, 3, generator=g),
              "split": "test" if i == n - 1 else "train", "kind": "nadir"} for i, c in enumerate(cams)]
 
@@ -94,6 +95,7 @@ def test_error_is_ragsplat_and_value_error():
     (lambda m: m["frames"][1].update(file_path="images/wet/nope.png"), "image file is missing"),
     (lambda m: m.update(w=13), "image is 12 x 8"),
     (lambda m: [f.update(split="test") for f in m["frames"]], "no frame has split 'train'"),
+    (lambda m: m.update(water={"level": 6.0, "n": 1.33}), r"frames\[0\] \(0000\): camera centre z = 5 is not above"),
 ])
 def test_bad_transforms_one_line(ds, edit, match):
     root, _ = ds

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from eval import ablation
+from eval import ablation, metrics
 from eval.ablation import run_ablation
 from eval.evaluate import evaluate_geometry, evaluate_views
 from eval.report import load_published, table1, table2, write_outputs
@@ -59,7 +59,8 @@ def make_data(root):
     return root
 
 
-def test_rows_are_reused_and_keyed(tmp_path):
+def test_rows_are_reused_and_keyed(tmp_path, monkeypatch):
+    monkeypatch.setattr(metrics, "default_vgg16_path", lambda: tmp_path / "absent.pth")
     data, out = make_data(tmp_path / "data"), tmp_path / "out"
     calls = []
 
@@ -67,7 +68,7 @@ def test_rows_are_reused_and_keyed(tmp_path):
         calls.append(variant)
         return fake_row(list(VARIANTS).index(variant))
 
-    quiet = {"vgg16": tmp_path / "none.pth", "log": lambda s: None}
+    quiet = {"log": lambda s: None}
     run_ablation(data, out, "smoke", ["3dgs", "full"], 0, train, **quiet)
     assert calls == ["3dgs", "full"]
     rows = run_ablation(data, out, "smoke", ["3dgs", "position", "full"], 0, train, **quiet)

@@ -5,18 +5,19 @@ from dataclasses import replace
 
 import pytest
 
-from eval import ablation
+from eval import ablation, metrics
 from ragsplat_core import train
 from ragsplat_core.cli.main import main
 
 
 def test_ablation_command(evaluable_dataset, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(metrics, "default_vgg16_path", lambda: tmp_path / "absent.pth")  # LPIPS n/a
     monkeypatch.setitem(train.PRESETS, "smoke", replace(train.PRESETS["smoke"], iterations=6, init_count=200,
                                                           backend="torch"))
     monkeypatch.setitem(ablation.PRESETS, "smoke", replace(ablation.PRESETS["smoke"], checkpoints=3))
     out = tmp_path / "runs"
     argv = ["ablation", "--data", str(evaluable_dataset), "--out", str(out), "--preset", "smoke", "--variants", "3dgs",
-            "full", "--vgg16", str(tmp_path / "absent.pth")]
+            "full"]
     assert main(argv) == 0
     printed = capsys.readouterr().out
     assert "| full |" in printed and "LPIPS n/a" in printed

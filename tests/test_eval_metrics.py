@@ -5,6 +5,7 @@ import torch
 
 from eval import metrics
 from eval.metrics import LPIPS, load_lin_weights, load_lpips, psnr, vgg16_features_init
+from ragsplat_core.errors import ConfigError
 
 
 def test_psnr_hand_value():
@@ -57,9 +58,12 @@ def test_fabricated_backbone_fails_checksum(tmp_path):
     assert "sha256" in reason and "397923af" in reason and "\n" not in reason
 
 
-def test_missing_backbone_gives_reason(tmp_path):
-    metric, reason = load_lpips(tmp_path / "nowhere.pth")
+def test_missing_backbone_gives_reason_and_a_wrong_path_is_an_error(tmp_path, monkeypatch):
+    monkeypatch.setattr(metrics, "default_vgg16_path", lambda: tmp_path / "cache" / metrics.VGG16_FILE)
+    metric, reason = load_lpips()  # not in the cache: LPIPS n/a, with the reason
     assert metric is None and "not found" in reason and "\n" not in reason
+    with pytest.raises(ConfigError, match="nowhere.pth: no such file"):  # a path the user gave must exist
+        load_lpips(tmp_path / "nowhere.pth")
 
 
 def test_wrong_trunk_shape_rejected():

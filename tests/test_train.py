@@ -295,7 +295,11 @@ def test_outputs_are_never_overwritten_or_mixed(wet, evaluable_dataset, tmp_path
     (run / "ckpt.pt").write_bytes(b"not a checkpoint")
     assert main(["train", "--data", str(wet.root), "--out", str(run), *args]) == 2
     assert main(["ablation", "--data", str(evaluable_dataset), "--out", str(foreign), "--preset", "smoke"]) == 2
+    assert main(["train", "--data", str(wet.root), "--out", str(tmp_path / "new"), "--device", "tpu9", *args]) == 2
+    assert main(["ablation", "--data", str(evaluable_dataset), "--out", str(tmp_path / "a"), "--vgg16",
+                 str(tmp_path / "nowhere.pth")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 4 and all(line.startswith("ragsplat ") for line in err)
+    assert len(err) == 6 and all(line.startswith("ragsplat ") for line in err)
     assert "not written by ragsplat" in err[0] and "another dataset" in err[1]
     assert "not a readable checkpoint" in err[2] and "not written by ragsplat" in err[3]
+    assert "unknown torch device 'tpu9'" in err[4] and "nowhere.pth: no such file" in err[5]

@@ -233,6 +233,9 @@ def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: b
         if "file_path" not in frame:
             raise _fail(tpath, f"{where} has no 'file_path'")
         camera = _camera(frame, intr, size, tpath, where)
+        if water is not None and not camera.camera_center[2] > water.level:
+            raise _fail(tpath, f"{where} ({name}): camera centre z = {camera.camera_center[2]:g} is not above the "
+                               f"water level {water.level:g}; refraction needs the camera in air")
         if split not in splits:
             continue
         rgb = read_image(root / frame["file_path"], *size)

@@ -51,8 +51,11 @@ class Trainer:
         self.cfg = cfg
         self.ds = dataset
         self.out = None if out_dir is None else Path(out_dir)
-        self.device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto"
-                                   else cfg.device)
+        try:
+            self.device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto"
+                                       else cfg.device)
+        except RuntimeError:
+            raise ConfigError(f"unknown torch device {cfg.device!r} (e.g. cpu, cuda, cuda:1)") from None
         if self.device.type == "cuda" and not torch.cuda.is_available():
             raise ConfigError(f"device {cfg.device!r} requested but CUDA is not available here")
         self.water = dataset.water
