@@ -255,6 +255,8 @@ def _merge(spec: SceneSpec, out: Path, poses) -> None:
     write_json(out / layout.TRANSFORMS, layout.transforms_json(poses[0].camera, frames, spec.water))
     layout.write_colmap(out / layout.COLMAP, poses, image)
     write_json(out / layout.SCENE, scene_metadata(spec, poses, np.load(out / layout.GT_GRID)))
+    files = [layout.relative_path(kind, p.name) for kind in kinds for p in poses]
+    write_json(out / layout.MANIFEST, {f: layout.file_digest(out / f) for f in files}, indent=0)
 
 
 def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
@@ -272,9 +274,17 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
     _write_bed_assets(spec, out)
     kinds = passes_for(spec)
     mine = [p for k, p in enumerate(poses) if k % count == index]
+    # Files present are checked before they are skipped (against the manifest once there is one, else by
+    # decoding them): a damaged one is rendered again.
+    manifest = json.loads((out / layout.MANIFEST).read_text()) if (out / layout.MANIFEST).is_file() else {}
+    damaged = [layout.relative_path(kind, p.name) for kind in kinds for p in mine
+               if layout.output_path(out, kind, p.name).exists()
+               and not layout.intact(layout.output_path(out, kind, p.name),
+                                     manifest.get(layout.relative_path(kind, p.name)))]
     tasks = [{"pass": kind, "name": p.name, "c2w_gl": p.camera.c2w_gl.tolist(),
               "out": str(layout.output_path(out, kind, p.name))}
-             for kind in kinds for p in mine if not layout.output_path(out, kind, p.name).exists()]
+             for kind in kinds for p in mine
+             if not layout.output_path(out, kind, p.name).exists() or layout.relative_path(kind, p.name) in damaged]
     stats = RenderStats()
     if tasks:
         if progress is not None:
@@ -283,7 +293,7 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
     complete = all(layout.output_path(out, k, p.name).exists() for k in kinds for p in poses)
     if complete:
         _merge(spec, out, poses)
-    summary = {"rendered": stats.images, "skipped": len(mine) * len(kinds) - len(tasks),
+    summary = {"rendered": stats.images, "skipped": len(mine) * len(kinds) - len(tasks), "damaged": damaged,
                "render_s": stats.render_s, "build_s": stats.build_s, "wall_s": time.perf_counter() - t0,
                "device": stats.device,
                "complete": complete, "views": len(poses), "gsd_m": flight.gsd(spec)}

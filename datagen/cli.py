@@ -61,6 +61,9 @@ def run(args: argparse.Namespace) -> int:
     finally:
         for b in bars:
             b.close()
+    if summary["damaged"]:
+        print(f"{len(summary['damaged'])} damaged files rendered again: {', '.join(summary['damaged'][:5])}"
+              + (" ..." if len(summary["damaged"]) > 5 else ""))
     if summary["rendered"]:
         per = summary["render_s"] / summary["rendered"]
         print(f"rendered {summary['rendered']} images on {summary['device']} in {summary['wall_s']:.1f} s: "

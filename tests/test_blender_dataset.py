@@ -188,6 +188,20 @@ def test_rerun_resumes_and_shards_merge(smoke, tmp_path):
     assert not list(copy.rglob("*.tmp")) and not list(copy.rglob(".*.render"))
 
 
+def test_rerun_renders_damaged_files_again(smoke, tmp_path, capsys):
+    copy = tmp_path / "copy"
+    shutil.copytree(smoke, copy)
+    png, exr = copy / "images" / "wet" / "0003.png", copy / "gt" / "depth" / "0004.exr"
+    png.write_bytes(png.read_bytes()[:100])  # truncated
+    exr.write_bytes(b"\0" * exr.stat().st_size)  # same size, garbage: only the manifest's hash can tell
+    assert main(["dataset", "--preset", "smoke", "--out", str(copy), "--quiet"]) == 0
+    assert "2 damaged files rendered again" in capsys.readouterr().out
+    for p in (png, exr):
+        assert p.read_bytes() == (smoke / p.relative_to(copy)).read_bytes()
+    manifest = json.loads((copy / "manifest.json").read_text())
+    assert len(manifest) == 3 * len(json.loads((copy / "transforms.json").read_text())["frames"])
+
+
 def test_refuses_foreign_or_mismatched_output(smoke, tmp_path, capsys):
     foreign = tmp_path / "foreign"
     foreign.mkdir()

@@ -16,6 +16,7 @@ DIR/
   gt/waterline.json          GeoJSON MultiLineString where the bed meets the water plane (a reach)
   colmap/                    COLMAP text model: cameras.txt (one PINHOLE), images.txt, empty points3D.txt,
                              and the split as image lists train.txt and test.txt
+  manifest.json              size and sha256 of every rendered image and depth file (`manifest`)
   scene/                     generator inputs and state: spec.json, geometry.npz, albedo.png, render log
 
 Every writer of a dataset (the Blender generator in `datagen`, the small in-memory scenes of
@@ -33,6 +34,7 @@ from ragsplat_core.outputs import atomic_path, write_bytes, write_json
 
 TRANSFORMS = "transforms.json"
 SCENE = "scene.json"
+MANIFEST = "manifest.json"
 GT_MESH = "gt/bed.ply"
 GT_SURFACE = "gt/bed_surface.npz"
 GT_GRID = "gt/bed_grid.npy"
@@ -178,6 +180,31 @@ def write_waterline(path: Path, lines: list[np.ndarray], level: float) -> None:
     write_json(path, {"type": "Feature", "properties": {"level": level, "crs": "local metres (see LOCAL_CRS)"},
                       "geometry": {"type": "MultiLineString",
                                    "coordinates": [np.round(line, 6).tolist() for line in lines]}})
+
+
+def file_digest(path: Path) -> list:
+    """[size in bytes, sha256 hex] of a file, the manifest's entry."""
+    import hashlib
+
+    data = Path(path).read_bytes()
+    return [len(data), hashlib.sha256(data).hexdigest()]
+
+
+def intact(path: Path, expected: list | None = None) -> bool:
+    """Whether a rendered file is whole: its manifest entry matches when there is one, else it decodes."""
+    path = Path(path)
+    if not path.is_file():
+        return False
+    if expected is not None:
+        return file_digest(path) == list(expected)
+    try:
+        if path.suffix == ".exr":
+            read_depth(path)
+        else:
+            read_png(path)
+    except Exception:  # noqa: BLE001 (any decoder failure means damaged; OpenEXR and OpenCV raise many kinds)
+        return False
+    return True
 
 
 # ---------------------------------------------------------------- transforms.json and scene.json
