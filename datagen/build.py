@@ -184,7 +184,9 @@ def run_blender(job: dict, workdir: Path, progress: Callable[[dict], None] | Non
         code = proc.wait()
     jobfile.unlink()
     if code != 0:
-        raise RagsplatError(f"Blender render process failed (exit {code}); see {workdir / 'blender.log'}")
+        why = f"killed by signal {-code}{' (out of memory?)' if code == -9 else ''}" if code < 0 else f"exit {code}"
+        raise RagsplatError(f"Blender render process failed ({why}); finished images are kept, rerun to resume; "
+                            f"see {workdir / 'blender.log'}")
     return stats
 
 

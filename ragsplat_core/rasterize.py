@@ -46,7 +46,7 @@ def rasterize(means, quats, scales, opacities, colors, camera: Camera, backgroun
     n = means.shape[0]
     _check(means, quats, scales, opacities, colors, covars, n)
     background = torch.as_tensor(background, dtype=colors.dtype, device=colors.device).reshape(3)
-    backend = _choose(backend, means)
+    backend = choose_backend(backend, means.device)
     if backend == "gsplat":
         return _rasterize_gsplat(means, quats, scales, opacities, colors, camera, background, covars)
     if covars is None:
@@ -75,16 +75,18 @@ def gsplat_available() -> bool:
     return importlib.util.find_spec("gsplat") is not None
 
 
-def _choose(backend: str, means: torch.Tensor) -> str:
+def choose_backend(backend: str, device: torch.device) -> str:
+    """The backend that `backend` ("auto" or a name) means for tensors on `device`; ConfigError if it
+    cannot run there."""
     if backend not in BACKENDS:
         raise ConfigError(f"unknown rasterizer backend {backend!r}; choose one of {', '.join(BACKENDS)}")
     if backend == "auto":
-        if means.is_cuda:
+        if device.type == "cuda":
             return "gsplat" if gsplat_available() else "torch"
-        return "cpu" if means.device.type == "cpu" else "torch"
-    if backend == "cpu" and means.device.type != "cpu":
-        raise ConfigError(f"backend 'cpu' needs CPU tensors, got {means.device}; use 'torch' or 'gsplat'")
-    if backend == "gsplat" and not (means.is_cuda and gsplat_available()):
+        return "cpu" if device.type == "cpu" else "torch"
+    if backend == "cpu" and device.type != "cpu":
+        raise ConfigError(f"backend 'cpu' needs CPU tensors, got {device}; use 'torch' or 'gsplat'")
+    if backend == "gsplat" and not (device.type == "cuda" and gsplat_available()):
         raise ConfigError("backend 'gsplat' needs the gsplat package and CUDA tensors")
     return backend
 

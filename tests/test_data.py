@@ -141,3 +141,20 @@ def test_read_png_grey_and_alpha(tmp_path):
     cv2.imwrite(str(tmp_path / "d.png"), np.zeros((2, 2, 3), np.uint16))
     with pytest.raises(ValueError, match="8-bit"):
         read_png(tmp_path / "d.png")
+
+
+def test_per_frame_intrinsics(ds):
+    """nerfstudio lets every frame carry its own intrinsics; a frame's own value wins over the file's."""
+    root, views = ds
+
+    def per_frame(meta):
+        for i, f in enumerate(meta["frames"]):
+            f.update({k: meta[k] for k in ("fl_x", "fl_y", "cx", "cy", "w", "h")}, fl_x=meta["fl_x"] + i)
+        for k in ("fl_x", "fl_y", "cx", "cy"):
+            meta.pop(k)
+        meta["frames"][0]["transform_matrix"] = views[0]["camera"].c2w_gl.tolist()
+        meta["frames"][0].pop("w2c")  # w2c carries no intrinsics: the pose must come from either form
+
+    _edit(root, per_frame)
+    d = load_dataset(root)
+    assert [v.camera.fx for v in d.views] == [views[0]["camera"].fx + i for i in range(len(views))]

@@ -296,10 +296,12 @@ def test_outputs_are_never_overwritten_or_mixed(wet, evaluable_dataset, tmp_path
     assert main(["train", "--data", str(wet.root), "--out", str(run), *args]) == 2
     assert main(["ablation", "--data", str(evaluable_dataset), "--out", str(foreign), "--preset", "smoke"]) == 2
     assert main(["train", "--data", str(wet.root), "--out", str(tmp_path / "new"), "--device", "tpu9", *args]) == 2
+    assert main(["train", "--data", str(wet.root), "--out", str(tmp_path / "g"), "--backend", "gsplat", *args]) == 2
     assert main(["ablation", "--data", str(evaluable_dataset), "--out", str(tmp_path / "a"), "--vgg16",
                  str(tmp_path / "nowhere.pth")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 6 and all(line.startswith("ragsplat ") for line in err)
+    assert len(err) == 7 and all(line.startswith("ragsplat ") for line in err)
     assert "not written by ragsplat" in err[0] and "another dataset" in err[1]
     assert "not a readable checkpoint" in err[2] and "not written by ragsplat" in err[3]
-    assert "unknown torch device 'tpu9'" in err[4] and "nowhere.pth: no such file" in err[5]
+    assert "unknown torch device 'tpu9'" in err[4] and "gsplat" in err[5] and "nowhere.pth: no such file" in err[6]
+    assert not (tmp_path / "g" / "config.json").exists()  # refused before any work

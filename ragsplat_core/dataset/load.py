@@ -163,6 +163,25 @@ def _water(meta: dict, path: Path) -> WaterSurface | None:
         raise _fail(path, str(err)) from None
 
 
+_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", *_DISTORTION_KEYS)
+
+
+def _intrinsics(meta: dict, frame: dict, path: Path, where: str) -> tuple[tuple, tuple[int, int]]:
+    """((fx, fy, cx, cy), (w, h)) of one frame: its own keys, else the file's (nerfstudio allows both)."""
+    src = {k: v for d in (meta, frame) for k, v in d.items() if k in _INTRINSIC_KEYS}
+    for key in _DISTORTION_KEYS:
+        if key in src and _number(src, key, path) != 0.0:
+            raise _fail(path, f"lens distortion '{key}' = {src[key]} is not supported ({where})")
+    missing = [k for k in ("fl_x", "fl_y", "cx", "cy", "w", "h") if k not in src]
+    if missing:
+        raise _fail(path, f"'{missing[0]}' must be a finite number, given for the file or for {where}; got none")
+    intr = tuple(_number(src, k, path) for k in ("fl_x", "fl_y", "cx", "cy"))
+    w, h = _number(src, "w", path), _number(src, "h", path)
+    if w != int(w) or h != int(h) or w < 1 or h < 1:
+        raise _fail(path, f"image size must be positive integers, got w={w}, h={h} ({where})")
+    return intr, (int(w), int(h))
+
+
 def _camera(frame: dict, intr: tuple, size: tuple[int, int], path: Path, where: str) -> Camera:
     """From `w2c` (OpenCV) when present, else `transform_matrix`; when both are there they must agree."""
     w, h = size
@@ -202,14 +221,6 @@ def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: b
     model = meta.get("camera_model", "OPENCV")
     if model not in ("OPENCV", "PINHOLE"):
         raise _fail(tpath, f"camera_model {model!r} is not supported (pinhole OPENCV only)")
-    for key in _DISTORTION_KEYS:
-        if key in meta and _number(meta, key, tpath) != 0.0:
-            raise _fail(tpath, f"lens distortion '{key}' = {meta[key]} is not supported")
-    intr = tuple(_number(meta, k, tpath) for k in ("fl_x", "fl_y", "cx", "cy"))
-    w, h = _number(meta, "w", tpath), _number(meta, "h", tpath)
-    if w != int(w) or h != int(h) or w < 1 or h < 1:
-        raise _fail(tpath, f"image size must be positive integers, got w={w}, h={h}")
-    size = (int(w), int(h))
     water = _water(meta, tpath)
     frames = meta.get("frames")
     if not isinstance(frames, list) or not frames:
@@ -232,6 +243,7 @@ def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: b
         names.add(name)
         if "file_path" not in frame:
             raise _fail(tpath, f"{where} has no 'file_path'")
+        intr, size = _intrinsics(meta, frame, tpath, where)
         camera = _camera(frame, intr, size, tpath, where)
         if water is not None and not camera.camera_center[2] > water.level:
             raise _fail(tpath, f"{where} ({name}): camera centre z = {camera.camera_center[2]:g} is not above the "

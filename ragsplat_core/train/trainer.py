@@ -33,7 +33,7 @@ from ragsplat_core.errors import ConfigError, DatasetError, OutputError, Trainin
 from ragsplat_core.gaussians import PARAM_NAMES, activated, colors_for_view, init_grid, init_points
 from ragsplat_core.outputs import atomic_path, versions, write_json
 from ragsplat_core.ply import save_ply
-from ragsplat_core.rasterize import rasterize
+from ragsplat_core.rasterize import choose_backend, rasterize
 from ragsplat_core.refraction import refract_gaussians
 from ragsplat_core.snell import footprint
 from ragsplat_core.ssim import psnr, ssim
@@ -58,6 +58,7 @@ class Trainer:
             raise ConfigError(f"unknown torch device {cfg.device!r} (e.g. cpu, cuda, cuda:1)") from None
         if self.device.type == "cuda" and not torch.cuda.is_available():
             raise ConfigError(f"device {cfg.device!r} requested but CUDA is not available here")
+        choose_backend(cfg.backend, self.device)  # an impossible backend is refused before any work
         self.water = dataset.water
         flags = VARIANTS[cfg.variant]
         # A dry scene (or n = 1) trains as plain 3DGS: the transform is skipped, not run as an identity.
