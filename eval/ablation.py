@@ -24,7 +24,7 @@ from eval.geometry import ExtractConfig
 from eval.report import jsonable, write_outputs
 from ragsplat_core.dataset import layout
 from ragsplat_core.errors import ConfigError, DatasetError, OutputError
-from ragsplat_core.outputs import versions, write_json
+from ragsplat_core.outputs import claim, versions, write_json
 from ragsplat_core.train.config import VARIANTS
 
 
@@ -84,7 +84,7 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seed: 
     if preset not in PRESETS:
         raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
     key = {"data": str(data.resolve()), "fingerprint": layout.fingerprint(data), "preset": preset, "seed": seed}
-    layout.claim(out, "ablation", legacy=("results.json", "*/row.json", "*/ckpt.pt"))
+    claim(out, "ablation", legacy=("results.json", "*/row.json", "*/ckpt.pt"))
     lpips_metric, lpips_reason = metrics.load_lpips(vgg16)
     if lpips_reason:
         log(f"LPIPS n/a: {lpips_reason}")

@@ -1,4 +1,5 @@
-"""What every file ragsplat writes shares: atomic writes and the provenance stamp.
+"""What every file ragsplat writes shares: atomic writes, the provenance stamp, and the marker that says
+an output directory is ragsplat's.
 
 Every result is written to a temporary sibling and renamed into place, so a killed run never leaves a
 half-written file that looks finished. numpy only (no torch): the dataset generator uses it too.
@@ -14,6 +15,8 @@ import subprocess
 from collections.abc import Iterator
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
+
+from ragsplat_core.errors import OutputError
 
 ROOT = Path(__file__).resolve().parent.parent  # the source tree (for the git commit)
 
@@ -73,3 +76,22 @@ def versions(*packages: str) -> dict:
              "ragsplat": _package("ragsplat"), "numpy": np.__version__, "git_commit": git_commit()}
     stamp.update({name: _package(name) for name in packages})
     return stamp
+
+
+def claim(out: Path, kind: str, legacy: tuple[str, ...] = ()) -> None:
+    """Make `out` a directory of ragsplat's `kind` ("train run", "ablation"), or check that it is one:
+    refuses a directory holding files that ragsplat did not write (nothing is overwritten). `legacy`: glob
+    patterns of files that mark an output written before the marker existed."""
+    out = Path(out)
+    marker = out / ".ragsplat"
+    if marker.is_file():
+        try:
+            found = json.loads(marker.read_text()).get("kind")
+        except (OSError, ValueError):
+            found = None
+        if found != kind:
+            raise OutputError(f"{out} holds a ragsplat {found or 'output'}, not a {kind}; choose another --out")
+        return
+    if out.is_dir() and any(out.iterdir()) and not any(any(out.glob(g)) for g in legacy):
+        raise OutputError(f"{out} is not empty and was not written by ragsplat; choose an empty or new --out")
+    write_json(marker, {"kind": kind})

@@ -26,6 +26,7 @@ Every writer of a dataset (the Blender generator in `datagen`, the small in-memo
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -184,8 +185,6 @@ def write_waterline(path: Path, lines: list[np.ndarray], level: float) -> None:
 
 def file_digest(path: Path) -> list:
     """[size in bytes, sha256 hex] of a file, the manifest's entry."""
-    import hashlib
-
     data = Path(path).read_bytes()
     return [len(data), hashlib.sha256(data).hexdigest()]
 
@@ -212,36 +211,11 @@ def intact(path: Path, expected: list | None = None) -> bool:
 
 def fingerprint(root: Path) -> str:
     """Identifies a dataset: a hash of its transforms.json and scene.json (cameras, split, spec, seed)."""
-    import hashlib
-
     h = hashlib.sha256()
     for name in (TRANSFORMS, SCENE):
         path = Path(root) / name
         h.update(path.read_bytes() if path.is_file() else b"-")
     return h.hexdigest()[:16]
-
-
-def claim(out: Path, kind: str, legacy: tuple[str, ...] = ()) -> None:
-    """Make `out` a directory of ragsplat's `kind` ("train run", "ablation"), or check that it is one:
-    refuses a directory holding files that ragsplat did not write (nothing is overwritten). `legacy`: glob
-    patterns of files that mark an output written before the marker existed."""
-    from ragsplat_core.errors import OutputError
-
-    out = Path(out)
-    marker = out / ".ragsplat"
-    if marker.is_file():
-        import json
-
-        try:
-            found = json.loads(marker.read_text()).get("kind")
-        except (OSError, ValueError):
-            found = None
-        if found != kind:
-            raise OutputError(f"{out} holds a ragsplat {found or 'output'}, not a {kind}; choose another --out")
-        return
-    if out.is_dir() and any(out.iterdir()) and not any(any(out.glob(g)) for g in legacy):
-        raise OutputError(f"{out} is not empty and was not written by ragsplat; choose an empty or new --out")
-    write_json(marker, {"kind": kind})
 
 
 def frame(name: str, camera, split: str, kind: str, file_path: str, dry_file_path: str | None = None,

@@ -27,11 +27,10 @@ import numpy as np
 import torch
 
 from ragsplat_core.camera import Camera
-from ragsplat_core.dataset.layout import claim
 from ragsplat_core.dataset.load import Dataset
 from ragsplat_core.errors import ConfigError, DatasetError, OutputError, TrainingDiverged
 from ragsplat_core.gaussians import PARAM_NAMES, activated, colors_for_view, init_grid, init_points
-from ragsplat_core.outputs import atomic_path, versions, write_json
+from ragsplat_core.outputs import atomic_path, claim, versions, write_json
 from ragsplat_core.ply import save_ply
 from ragsplat_core.rasterize import choose_backend, rasterize
 from ragsplat_core.refraction import refract_gaussians
