@@ -168,21 +168,27 @@ def run_blender(job: dict, workdir: Path, progress: Callable[[dict], None] | Non
     with open(workdir / "blender.log", "a") as log:
         proc = subprocess.Popen([sys.executable, "-m", "blender_scenes.render", str(jobfile)],
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
-        for line in proc.stdout:
-            if not line.startswith(PROTOCOL):
-                log.write(line)
-                continue
-            event = json.loads(line.removeprefix(PROTOCOL))
-            stats.events.append(event)
-            if event["event"] == "ready":
-                stats.device, stats.build_s = event["device"], event["build_s"]
-            else:
-                stats.images += 1
-                stats.render_s += event["render_s"]
-                if progress is not None:
-                    progress(event)
-        code = proc.wait()
-    jobfile.unlink()
+        try:
+            for line in proc.stdout:
+                if not line.startswith(PROTOCOL):
+                    log.write(line)
+                    continue
+                event = json.loads(line.removeprefix(PROTOCOL))
+                stats.events.append(event)
+                if event["event"] == "ready":
+                    stats.device, stats.build_s = event["device"], event["build_s"]
+                else:
+                    stats.images += 1
+                    stats.render_s += event["render_s"]
+                    if progress is not None:
+                        progress(event)
+            code = proc.wait()
+        finally:  # interrupted: stop the renderer too (its finished images are complete files) and tidy up
+            if proc.poll() is None:
+                proc.terminate()
+                proc.wait()
+            for stale in (jobfile, *workdir.parent.glob(f"**/.*.{proc.pid}.render")):  # this renderer's only
+                stale.unlink(missing_ok=True)
     if code != 0:
         why = f"killed by signal {-code}{' (out of memory?)' if code == -9 else ''}" if code < 0 else f"exit {code}"
         raise RagsplatError(f"Blender render process failed ({why}); finished images are kept, rerun to resume; "

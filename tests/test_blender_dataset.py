@@ -234,3 +234,26 @@ def test_radiance_scale_switch(tmp_path):
     dry = cv2.imread(str(out / "images" / "dry" / "0000.png")).astype(float).mean()
     assert 0.95 < wet / dry < 1.05
     assert json.loads((out / "scene" / "spec.json").read_text())["water"]["radiance_scale"] is False
+
+
+def test_sigint_keeps_only_whole_files_and_the_rerun_completes(smoke, tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "interrupted"
+    cmd = [sys.executable, "-m", "ragsplat_core.cli.main", "dataset", "--preset", "smoke", "--out", str(out),
+           "--quiet"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while len(list(out.glob("images/wet/*.png"))) < 3 and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGINT)
+    err = proc.communicate(timeout=120)[1].strip().splitlines()
+    assert proc.returncode == 130 and err == ["ragsplat dataset: interrupted; finished files are kept, rerun the "
+                                              "same command to resume"], err
+    assert not list(out.rglob("*.tmp")) and not list(out.rglob("*.render")) and not list(out.glob("scene/job.*"))
+    assert main(["dataset", "--preset", "smoke", "--out", str(out), "--quiet"]) == 0
+    for p in out.glob("images/*/*.png"):
+        assert p.read_bytes() == (smoke / p.relative_to(out)).read_bytes()

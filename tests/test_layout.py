@@ -125,3 +125,9 @@ def test_dataset_file_stands_for_its_directory(tmp_path, capsys):
     (data / "transforms.json").write_text("{")
     assert main(["train", "--data", str(data / "transforms.json"), "--out", str(tmp_path / "run")]) == 2
     assert f"{data / 'transforms.json'}: not valid JSON" in capsys.readouterr().err
+
+
+def test_unavailable_benchmark_backend_is_one_line(capsys):
+    assert main(["bench", "raster", "--backends", "gsplat-on-abacus"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "gsplat-on-abacus is not available here" in err[0]

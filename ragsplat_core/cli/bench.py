@@ -55,8 +55,11 @@ def _raster_arguments(parser: argparse.ArgumentParser) -> None:
 def _raster(args: argparse.Namespace) -> int:
     import os
 
-    from ragsplat_core.bench.raster import bench_rasterizer, format_table
+    from ragsplat_core.bench.raster import available_backends, bench_rasterizer, format_table
 
+    unknown = [b for b in args.backends or () if b not in available_backends()]
+    if unknown:
+        raise ConfigError(f"--backends {unknown[0]} is not available here; choose from {', '.join(available_backends())}")
     rows = bench_rasterizer(args.n, args.size, args.repeats, args.backends, args.footprint, args.threads)
     print(format_table(rows))
     write_json(args.out, {"rows": rows, "cpu_count": len(os.sched_getaffinity(0))})
