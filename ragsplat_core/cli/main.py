@@ -56,7 +56,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:  # also while a command's modules are still being imported
         if debug:
             raise
-        print(f"ragsplat {name}: {_one_line(KeyboardInterrupt())}", file=sys.stderr)
+        print(f"ragsplat {name}: interrupted; finished files are kept, rerun the same command to resume",
+              file=sys.stderr)
         return 130
     finally:
         signal.signal(signal.SIGTERM, previous)
@@ -83,9 +84,7 @@ def _terminate(signum, frame):  # SIGTERM ends a command like Ctrl-C does
     raise KeyboardInterrupt
 
 
-def _one_line(err: BaseException) -> str:
-    if isinstance(err, KeyboardInterrupt):
-        return "interrupted; finished files are kept, rerun the same command to resume"
+def _one_line(err: Exception) -> str:  # a RagsplatError or an OSError
     if isinstance(err, OSError):
         where = f"{err.filename}: " if err.filename else ""
         return f"error: {where}{err.strerror or err}"
