@@ -47,3 +47,36 @@ def test_ablation_command(evaluable_dataset, tmp_path, monkeypatch, capsys):
     again = json.loads(row.read_text())
     assert [c["iteration"] for c in again["curve"]] == steps
     assert again["train_time_s"] == pytest.approx(full["train_time_s"])
+
+
+def test_sigint_keeps_finished_rows_and_the_rerun_completes(evaluable_dataset, tmp_path):
+    """A real Ctrl-C to `ragsplat ablation` while the second variant trains: one line, exit 130; the finished
+    row and the interrupted variant's checkpoint are kept, and the same command then finishes the table."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import torch
+
+    out = tmp_path / "runs"
+    cmd = [sys.executable, "-m", "ragsplat_core.cli.main", "ablation", "--data", str(evaluable_dataset), "--out",
+           str(out), "--preset", "smoke", "--variants", "3dgs", "position"]
+    env = {**os.environ, "TORCH_HOME": str(tmp_path / "torch")}  # no LPIPS backbone there: LPIPS n/a
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+    deadline = time.time() + 300
+    while not (out / "3dgs" / "row.json").exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGINT)  # `position` is starting to train
+    err = [line for line in proc.communicate(timeout=300)[1].splitlines() if line.startswith("ragsplat")]
+    assert proc.returncode == 130, err
+    assert err == ["ragsplat ablation: interrupted; finished files are kept, rerun the same command to resume"]
+    assert not (out / "position" / "row.json").exists()
+    assert torch.load(out / "position" / "ckpt.pt", weights_only=True)["step"] >= 1
+    row = (out / "3dgs" / "row.json").read_bytes()
+    done = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env, timeout=300,
+                          check=False)
+    assert done.returncode == 0 and "[3dgs] reusing" in done.stdout
+    assert (out / "3dgs" / "row.json").read_bytes() == row
+    assert set(json.loads((out / "results.json").read_text())["variants"]) == {"3dgs", "position"}
