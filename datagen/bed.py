@@ -172,12 +172,13 @@ def _reach_relief(r, gx: np.ndarray, gy: np.ndarray, coords: np.ndarray, rng: np
         thalweg = 0.45 * half * bend
         u = y - centre
         above = u >= thalweg
-        s = np.where(above, (u - thalweg) / (half - thalweg), (u - thalweg) / (half + thalweg))  # [-1, 1] wet
+        side = np.where(above, half - thalweg, half + thalweg)  # thalweg to water line on this side (m)
+        s = (u - thalweg) / side  # [-1, 1] in the water
         outer = np.where(above, bend > 0, bend < 0)  # the side of the outer bank
         q = np.where(outer, 1.5 + 1.5 * strength, 1.5 - 0.4 * strength)  # steep outside, gentle bar inside
         wet = -depth * (1 - np.abs(s).clip(0, 1) ** q)
         # Dry side: metres beyond the water line, rising over the bar (wide inside a bend) to the bank top.
-        beyond = (np.abs(s) - 1).clip(0, None) * np.where(above, half - thalweg, half + thalweg)
+        beyond = (np.abs(s) - 1).clip(0, None) * side
         # exposed bar width: wide inside a bend, narrow under the cut bank, the same on both sides at a riffle
         bar = np.where(outer, 0.25 * (1 - 0.6 * strength), 0.25 + strength) * r.bar_width
         dry = r.bar_height * _smoothstep(beyond / (0.3 * bar)) \

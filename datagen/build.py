@@ -17,7 +17,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from blender_scenes.protocol import PROTOCOL
@@ -27,7 +26,7 @@ from datagen.spec import SceneSpec, validate
 from ragsplat_core.camera import Camera
 from ragsplat_core.dataset import layout
 from ragsplat_core.errors import OutputError, RagsplatError
-from ragsplat_core.outputs import atomic_path, versions, write_bytes, write_json
+from ragsplat_core.outputs import atomic_path, versions, write_json
 from ragsplat_core.scoring import plane_scores, thresholds
 
 FAR = 2000.0  # half-size (m) of the floor and water planes: beyond every view's horizon-free field
@@ -145,10 +144,7 @@ def _write_bed_assets(spec: SceneSpec, out: Path) -> None:
     with atomic_path(files[0]) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **geo)
     # Blender reads images bottom row first: flip so that texel row j (y index) is at v = (j + 0.5) / M.
-    ok, png = cv2.imencode(".png", np.ascontiguousarray(bed.albedo[::-1, :, ::-1]))  # cv2 wants BGR
-    if not ok:
-        raise RuntimeError("PNG encoding of the albedo texture failed")
-    write_bytes(files[1], png.tobytes())
+    layout.write_png(files[1], np.ascontiguousarray(bed.albedo[::-1]))
     with atomic_path(files[2]) as tmp:
         write_ply(tmp, geo["bed_verts"], geo["bed_tris"])
     surface(bed).save(files[3])

@@ -10,13 +10,12 @@ from pathlib import Path
 import numpy as np
 
 from ragsplat_core.dataset import layout
-from ragsplat_core.outputs import atomic_path, write_bytes
+from ragsplat_core.outputs import atomic_path
 
 
 def write_figures(data: Path, out: Path, view: str | None = None) -> list[Path]:
     """`OUT/<preset>_views.png` (view `view`, default the first 20-degree oblique: wet | dry) and
     `OUT/<preset>_ground_truth.png` (bed height relative to the water, waterline, evaluated region)."""
-    import cv2
     import matplotlib
 
     matplotlib.use("Agg")
@@ -29,10 +28,7 @@ def write_figures(data: Path, out: Path, view: str | None = None) -> list[Path]:
     frame = next(f for f in tf["frames"] if (f["name"] == view if view else f["kind"] == "oblique20"))
     pair = np.hstack([layout.read_png(data / frame["file_path"]), layout.read_png(data / frame["dry_file_path"])])
     views = out / f"{name}_views.png"
-    ok, png = cv2.imencode(".png", cv2.cvtColor(pair, cv2.COLOR_RGB2BGR))
-    if not ok:
-        raise OSError(f"{views}: could not encode PNG")
-    write_bytes(views, png.tobytes())
+    layout.write_png(views, pair)
 
     surface = layout.Surface.load(data / layout.GT_SURFACE)
     level = (tf["water"] or {"level": 0.0})["level"]

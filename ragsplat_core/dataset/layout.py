@@ -16,7 +16,7 @@ DIR/
   gt/waterline.json          GeoJSON MultiLineString where the bed meets the water plane (a reach)
   colmap/                    COLMAP text model: cameras.txt (one PINHOLE), images.txt, empty points3D.txt,
                              and the split as image lists train.txt and test.txt
-  manifest.json              size and sha256 of every rendered image and depth file (`manifest`)
+  manifest.json              size and sha256 of every rendered image and depth file (`file_digest`)
   scene/                     generator inputs and state: spec.json, geometry.npz, albedo.png, render log
 
 Every writer of a dataset (the Blender generator in `datagen`, the small in-memory scenes of
