@@ -8,6 +8,9 @@ PRESET ?= small
 # The training preset of a dataset preset: small-bed -> small, paper-reach -> paper.
 TRAIN_PRESET ?= $(firstword $(subst -, ,$(PRESET)))
 SEED ?= 0
+# Training seeds of the ablation (tables: mean +- std over them) and its variants (empty: all).
+SEEDS ?= 0 1 2
+VARIANTS ?=
 DATA ?= data/$(PRESET)
 RUNS ?= runs/$(PRESET)
 
@@ -33,7 +36,7 @@ dataset: install
 
 # The main job: dataset if missing, every variant trained and evaluated, tables beside the paper's.
 ablation: dataset
-	$(VENV)/bin/ragsplat ablation --preset $(TRAIN_PRESET) --data $(DATA) --out $(RUNS) --seed $(SEED)
+	$(VENV)/bin/ragsplat ablation --preset $(TRAIN_PRESET) --data $(DATA) --out $(RUNS) --seeds $(SEEDS) $(if $(VARIANTS),--variants $(VARIANTS))
 
 lint: install
 	$(VENV)/bin/ruff check .

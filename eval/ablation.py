@@ -1,12 +1,19 @@
-"""The ablation: train every variant, evaluate it, and regenerate the paper's Tables 1 and 2.
+"""The ablation: train every variant for every seed, evaluate it, score the reference answers, and
+regenerate the paper's Tables 1 and 2 (plus the surveyor's table) as mean +- standard deviation over seeds.
 
-Per variant (a row): train with evaluation points (PSNR in both conditions and F1@10cm against training
-wall-clock time), then evaluate on the held-out views (PSNR, SSIM, LPIPS; `refr` = rendered through the
-interface vs the with-water images, `dry` = true Gaussians without it vs the dry images) and the geometry
-(extraction + Chamfer / F1 against the dataset's ground-truth grid inside `eval_region`). Each finished
-row is written to `OUT/<variant>/row.json` at once, so a rerun (after a kill) reuses it and trains only
-what is missing. Then `eval.report` (re)writes `OUT/results.json`, `table1.md`, `table2.md` and
-`error_vs_time.png` from all rows. The `ragsplat ablation` command is `eval.cli`.
+Per variant and seed (a row, `OUT/<variant>/seed<S>/`): train with evaluation points (step 0 included;
+PSNR in both conditions and the geometry at every threshold against training time, with the table's
+extraction settings), then evaluate on the held-out views (PSNR, SSIM, LPIPS; `refr` = rendered through
+the interface vs the with-water images, `dry` = true Gaussians without it vs the dry images) and the bed
+(extraction, then `eval.evaluate.score_grid`). The reference rows (`eval.references`) are scored the same
+way. Every row writes `row.json`, the extracted bed (`bed.npy`, `bed.tif`) and its depth-error map
+(`depth_error.png`).
+
+A row is reused only when its key matches: the dataset's content fingerprint (images and ground truth),
+the resolved training and extraction configs, the harness preset and the source digest of ragsplat_core
+and eval. A killed row resumes from its checkpoint only under the same key (`key.json`, written before
+training starts); otherwise it starts over. Then `eval.report` (re)writes `OUT/results.json`, the tables
+and `error_vs_time.png` from the rows of this run's variants and seeds only. The command is `eval.cli`.
 """
 
 from __future__ import annotations
@@ -18,14 +25,17 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
+import numpy as np
+
 from eval import metrics
-from eval.evaluate import evaluate_geometry, evaluate_views, model_gaussians, model_renderer
+from eval.evaluate import evaluate_geometry, evaluate_views, model_gaussians, model_renderer, score_grid
 from eval.geometry import ExtractConfig
-from eval.report import jsonable, write_outputs
+from eval.references import REFERENCES, USES_GROUND_TRUTH, depth_times_n, oracle_plane
+from eval.report import depth_error_map, jsonable, write_outputs
 from ragsplat_core.dataset import layout
-from ragsplat_core.errors import ConfigError, DatasetError, OutputError
-from ragsplat_core.outputs import claim, versions, write_json
-from ragsplat_core.train.config import VARIANTS
+from ragsplat_core.errors import ConfigError, DatasetError
+from ragsplat_core.outputs import claim, source_digest, versions, write_json
+from ragsplat_core.train.config import TUNING, VARIANTS
 
 
 @dataclass(frozen=True)
@@ -33,115 +43,195 @@ class AblationPreset:
     """What the harness itself varies by preset (training sizes come from the trainer's preset)."""
 
     name: str
-    checkpoints: int  # evaluation points along training for the error-vs-time curves (end included)
-    samples_per_cell: int  # extraction samples per GT grid cell (n_samples = this x GT points)
-    curve_samples_per_cell: int  # the same for the cheaper F1 at the checkpoints
+    checkpoints: int  # evaluation intervals along training: points at step 0, k * iterations / this, the end
+    samples_per_cell: int  # extraction samples per GT grid cell (n_samples = this x GT points), table and curves
 
 
 PRESETS = {
-    "smoke": AblationPreset("smoke", checkpoints=2, samples_per_cell=16, curve_samples_per_cell=8),
-    "small": AblationPreset("small", checkpoints=5, samples_per_cell=16, curve_samples_per_cell=8),
-    "paper": AblationPreset("paper", checkpoints=8, samples_per_cell=16, curve_samples_per_cell=8),
+    "smoke": AblationPreset("smoke", checkpoints=8, samples_per_cell=4),
+    "small": AblationPreset("small", checkpoints=8, samples_per_cell=16),
+    "paper": AblationPreset("paper", checkpoints=8, samples_per_cell=16),
 }
+CODE = ("ragsplat_core", "eval")  # the sources whose digest is part of every row key
 
 
-# ---------------------------------------------------------------- rows on disk (resume)
+def extract_config(preset: str, n_gt: int, seed: int) -> ExtractConfig:
+    return replace(ExtractConfig(), n_samples=PRESETS[preset].samples_per_cell * n_gt, seed=seed)
 
 
-def row_path(out: Path, variant: str) -> Path:
-    return out / variant / "row.json"
+def eval_steps(iterations: int, checkpoints: int, reset_every: int = 0, reset_stop: int = 0) -> list[int]:
+    """Evenly spaced evaluation steps strictly between 0 and the end (the harness adds both).
+
+    A step within half a reset period after an opacity reset (every `reset_every` steps before
+    `reset_stop`) moves to the step before that reset: right after a reset every opacity sits below the
+    extraction's cull threshold, so the curve would show the reset, not the state of training.
+    """
+    steps = set()
+    for k in range(1, checkpoints):
+        step = round(k * iterations / checkpoints)
+        if reset_every:
+            last_reset = step // reset_every * reset_every
+            if 0 < last_reset < reset_stop and step - last_reset < reset_every / 2:
+                step = last_reset - 1
+        steps.add(step)
+    return sorted(steps - {0, iterations})
 
 
-def load_row(out: Path, variant: str, key: dict) -> dict | None:
-    """A finished row for `variant`, or None; a row made under another dataset/preset/seed is an error."""
-    path = row_path(out, variant)
+# ---------------------------------------------------------------- rows on disk
+
+
+def slug(name: str) -> str:
+    return name.replace(" ", "-")
+
+
+def row_dir(out: Path, name: str, seed: int | None) -> Path:
+    return out / slug(name) if seed is None else out / slug(name) / f"seed{seed}"
+
+
+def cached_row(folder: Path, key: dict, log: Callable[[str], None]) -> dict | None:
+    """The finished row in `folder` when it was made under `key`, else None (a stale one is reported)."""
+    path = folder / "row.json"
     if not path.is_file():
         return None
     try:
         row = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise OutputError(f"{path}: unreadable finished row ({err}); delete it to recompute") from None
-    if row.get("key") != key:
-        raise OutputError(f"{path} was made with {row.get('key')}, not {key}; use another --out or delete it")
+    except (OSError, json.JSONDecodeError):
+        log(f"{path}: unreadable; recomputing")
+        return None
+    old = row.get("key") or {}
+    if old != key:
+        changed = sorted(k for k in set(old) | set(key) if old.get(k) != key.get(k))
+        log(f"{path}: made with another {', '.join(changed)}; recomputing")
+        return None
     return row
 
 
-def save_row(out: Path, variant: str, row: dict) -> None:
-    # atomic: a kill never leaves a half-written row that looks finished
-    write_json(row_path(out, variant), jsonable(row), indent=1)
+def start_row(folder: Path, key: dict) -> None:
+    """Before training: a checkpoint left by a killed run resumes only under the same key."""
+    claim(folder, "train run", legacy=("ckpt.pt", "key.json"))  # the trainer's folder, marked before key.json
+    kpath = folder / "key.json"
+    if kpath.is_file():
+        try:
+            same = json.loads(kpath.read_text()) == jsonable(key)
+        except (OSError, json.JSONDecodeError):
+            same = False
+        if not same:
+            for name in ("ckpt.pt", "curve.json", "row.json"):
+                (folder / name).unlink(missing_ok=True)
+    write_json(kpath, jsonable(key), indent=1)
 
 
-def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seed: int,
-                 train_and_evaluate: Callable[..., dict], vgg16: str | None = None,
-                 log: Callable[[str], None] = lambda line: None) -> dict[str, dict]:
-    """Rows for `variants` (reused from `out` when finished there, else trained via `train_and_evaluate`),
-    then all outputs. `train_and_evaluate(variant=, data=, out=, preset=, seed=, lpips_metric=)` returns a row.
-    `log(line)` receives progress lines and, at the end, the tables.
+def save_row(folder: Path, row: dict, grid: np.ndarray, truth) -> dict:
+    """row.json (atomic: a kill never leaves a half-written row that looks finished) plus the extracted bed
+    as an array, a height GeoTIFF (nodata where nothing was reconstructed) and the depth-error map."""
+    folder.mkdir(parents=True, exist_ok=True)
+    np.save(folder / "bed.npy", grid)
+    outputs = {"bed": str(folder / "bed.npy")}
+    if len(grid):
+        layout.write_elevation(folder / "bed.tif", grid, layout.GT_GRID_STEP)
+        depth_error_map(grid, truth, folder / "depth_error.png", title=f"{row['name']} seed {row['seed']}")
+        outputs.update(geotiff=str(folder / "bed.tif"), depth_error=str(folder / "depth_error.png"))
+    row = {**row, "outputs": {**row.get("outputs", {}), **outputs}}
+    write_json(folder / "row.json", jsonable(row), indent=1)
+    return row
+
+
+# ---------------------------------------------------------------- the run
+
+
+def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds: list[int], runner,
+                 vgg16: str | None = None, download: bool = True,
+                 log: Callable[[str], None] = lambda line: None) -> dict[str, list[dict]]:
+    """Rows for `variants` x `seeds` and the reference rows, reused from `out` when their key matches, else
+    computed with `runner` (a `TrainEval`, or anything with its `truth`, `fingerprint`, `dataset_seed`,
+    `config`, `initial` and `train`); then all outputs. Returns {name: [row per seed]}.
+    `download`: fetch missing LPIPS weights (`metrics.load_lpips`). `log(line)` receives progress lines and,
+    at the end, the tables.
     """
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         raise ConfigError(f"unknown variant {unknown[0]!r}; choose from {', '.join(VARIANTS)}")
     if preset not in PRESETS:
         raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
-    key = {"data": str(data.resolve()), "fingerprint": layout.fingerprint(data), "preset": preset, "seed": seed}
-    claim(out, "ablation", legacy=("results.json", "*/row.json", "*/ckpt.pt"))
-    lpips_metric, lpips_reason = metrics.load_lpips(vgg16)
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise ConfigError(f"seeds must be distinct and at least one, got {seeds}")
+    claim(out, "ablation", legacy=("results.json", "*/row.json", "*/seed*/row.json", "*/ckpt.pt"))
+    truth = runner.truth
+    base = {"dataset": runner.fingerprint, "code": source_digest(*CODE), "harness": asdict(PRESETS[preset])}
+    lpips_metric, lpips_reason = metrics.load_lpips(vgg16, download=download, log=log)
     if lpips_reason:
         log(f"LPIPS n/a: {lpips_reason}")
-    rows = {}
-    for variant in variants:
-        row = load_row(out, variant, key)
-        if row is not None:
-            log(f"[{variant}] reusing the finished row in {row_path(out, variant)}")
-        else:
-            log(f"[{variant}] training ...")
-            t0 = time.perf_counter()
-            row = train_and_evaluate(variant=variant, data=data, out=out / variant, preset=preset, seed=seed,
-                                     lpips_metric=lpips_metric)
-            row = {**row, "key": key, "variant": variant, "lpips_reason": lpips_reason or None,
-                   "timings": {**row.get("timings", {}), "row_total_s": time.perf_counter() - t0}}
-            save_row(out, variant, row)
-        rows[variant] = row
-    # rows finished in earlier runs for variants not asked for this time stay in the tables
-    for variant in VARIANTS:
-        if variant not in rows and row_path(out, variant).is_file():
-            rows[variant] = load_row(out, variant, key)
-    header = {"data": key["data"], "dataset_fingerprint": key["fingerprint"], "preset": preset, "seed": seed,
-              "harness_preset": asdict(PRESETS[preset]), "versions": versions("torch", "scipy"),
-              "command": sys.argv,
-              "geometry_note": "CD in metres (mean of accuracy and completeness, unsquared); P/R/F1 in %, "
-                               "strict < threshold."}
+    rows: dict[str, list[dict]] = {}
+    for seed in seeds:
+        ecfg = extract_config(preset, len(truth.grid), seed)
+        for variant in variants:
+            cfg = runner.config(variant, preset, seed)
+            key = {**base, "train": cfg.to_dict(), "extract": ecfg.to_dict()}
+            folder = row_dir(out, variant, seed)
+            row = cached_row(folder, key, log)
+            if row is not None:
+                log(f"[{variant} seed {seed}] reusing the finished row in {folder}")
+            else:
+                log(f"[{variant} seed {seed}] training ...")
+                folder.mkdir(parents=True, exist_ok=True)
+                start_row(folder, key)
+                t0 = time.perf_counter()
+                row, grid = runner.train(cfg, folder, ecfg, PRESETS[preset].checkpoints, lpips_metric)
+                row = {**row, "name": variant, "seed": seed, "key": key, "lpips_reason": lpips_reason or None,
+                       "timings": {**row.get("timings", {}), "row_total_s": time.perf_counter() - t0}}
+                row = save_row(folder, row, grid, truth)
+            rows.setdefault(variant, []).append(row)
+        for name, row in reference_rows(out, runner, preset, seed, ecfg, base, rows, log).items():
+            rows.setdefault(name, []).append(row)
+    header = {"data": str(Path(data).resolve()), "dataset_fingerprint": runner.fingerprint,
+              "dataset_seed": runner.dataset_seed, "tuning": TUNING, "preset": preset, "seeds": list(seeds),
+              "harness_preset": asdict(PRESETS[preset]), "code_digest": base["code"],
+              "versions": versions("torch", "scipy"), "command": sys.argv,
+              "max_depth_m": truth.max_depth, "level": truth.level,
+              "lpips_network": getattr(lpips_metric, "network", None),
+              "references": {"names": list(REFERENCES), "use_ground_truth": list(USES_GROUND_TRUTH)}}
     log(write_outputs(out, rows, header, lpips_reason))
     return rows
 
 
-def extract_config(preset: str, n_gt: int, seed: int, curve: bool = False) -> ExtractConfig:
-    p = PRESETS[preset]
-    per_cell = p.curve_samples_per_cell if curve else p.samples_per_cell
-    return replace(ExtractConfig(), n_samples=per_cell * n_gt, seed=seed)
+def reference_rows(out: Path, runner, preset: str, seed: int, ecfg: ExtractConfig, base: dict,
+                   rows: dict[str, list[dict]], log) -> dict[str, dict]:
+    """The reference rows of one seed (the oracle plane, which has no seed, with the first)."""
+    truth, found = runner.truth, {}
+    cfg = runner.config("3dgs", preset, seed)  # the initialisation does not depend on the variant
+    init_key = {**base, "init": {k: v for k, v in cfg.to_dict().items() if k.startswith("init") or k in
+                                 ("seed", "sh_degree", "preset")}, "extract": ecfg.to_dict()}
+    todo = [("init", row_dir(out, "init", seed), init_key,
+             lambda: evaluate_geometry(runner.initial(cfg), truth, ecfg))]
+    if rows.get("3dgs") and rows["3dgs"][-1]["seed"] == seed:
+        src = rows["3dgs"][-1]
+        n = runner.refractive_index
+
+        def corrected():
+            grid = depth_times_n(np.load(row_dir(out, "3dgs", seed) / "bed.npy"), truth.level, n)
+            return score_grid(grid, truth), grid
+
+        todo.append(("3dgs x n", row_dir(out, "3dgs x n", seed), {**base, "from": src["key"], "n": n}, corrected))
+    if not rows.get("oracle plane"):
+        plane = oracle_plane(truth)
+        todo.append(("oracle plane", row_dir(out, "oracle plane", None), {**base, "reference": "oracle plane"},
+                     lambda: (score_grid(plane, truth), plane)))
+    for name, folder, key, compute in todo:
+        row = cached_row(folder, key, log)
+        if row is None:
+            geometry, grid = compute()
+            row = save_row(folder, {"name": name, "seed": None if name == "oracle plane" else seed, "key": key,
+                                    "geometry": geometry, "uses_ground_truth": name in USES_GROUND_TRUTH},
+                           grid, truth)
+        found[name] = row
+    return found
 
 
 # ---------------------------------------------------------------- the trainer integration
 
 
-def eval_steps(iterations: int, checkpoints: int, reset_every: int = 0, reset_stop: int = 0) -> list[int]:
-    """Evenly spaced evaluation steps before the end (the trainer adds the end itself).
-
-    A step that lands on an opacity reset (every `reset_every` steps before `reset_stop`) moves one step
-    earlier: right after a reset every opacity sits below the extraction's cull threshold, so the curve
-    would show the reset, not the state of training.
-    """
-    steps = set()
-    for k in range(1, checkpoints):
-        step = round(k * iterations / checkpoints)
-        if reset_every and step < reset_stop and step % reset_every == 0:
-            step -= 1
-        steps.add(step)
-    return sorted(steps - {0, iterations})
-
-
 class TrainEval:
-    """`train_and_evaluate` for `run_ablation` on a dataset directory, with `ragsplat_core.train`.
+    """The `runner` of `run_ablation` on a dataset directory, with `ragsplat_core.train`.
 
     The dataset (with its dry images) and the ground truth are loaded once for all variants.
     `training_bar(total, desc, initial) -> (bar, on_step)` shows training progress (None: nothing shown).
@@ -154,41 +244,58 @@ class TrainEval:
         if not self.ds.test:
             raise DatasetError(f"{data / layout.TRANSFORMS}: no frame has split 'test' "
                                "(held-out views are needed)")
-        self.gt = self.ds.ground_truth.grid
+        self.truth = self.ds.ground_truth
+        self.fingerprint = self.ds.fingerprint
+        self.refractive_index = self.ds.water.n if self.ds.water is not None else 1.0
+        scene = Path(data) / layout.SCENE
+        self.dataset_seed = json.loads(scene.read_text()).get("seed") if scene.is_file() else None
         self.device = device
         self.training_bar = training_bar
 
-    def __call__(self, variant: str, data: Path, out: Path, preset: str, seed: int, lpips_metric=None) -> dict:
-        from ragsplat_core.train import Trainer, preset_config
+    def config(self, variant: str, preset: str, seed: int):
+        from ragsplat_core.train import preset_config
 
         overrides = {"variant": variant, "seed": seed}
         if self.device is not None:
             overrides["device"] = self.device
-        cfg = preset_config(preset, **overrides)
-        out.mkdir(parents=True, exist_ok=True)
-        trainer = Trainer(cfg, self.ds, out)  # resumes from out/ckpt.pt after a kill
+        return preset_config(preset, **overrides)
+
+    def initial(self, cfg) -> dict:
+        """The activated Gaussians training would start from (nothing is written)."""
+        from ragsplat_core.train import Trainer
+
+        return model_gaussians(Trainer(cfg, self.ds, None))
+
+    def train(self, cfg, out: Path, ecfg: ExtractConfig, checkpoints: int, lpips_metric=None
+              ) -> tuple[dict, np.ndarray]:
+        """Train `cfg` in `out` (resuming its checkpoint), with the curve's evaluation points; returns the
+        row and the extracted bed grid."""
+        from ragsplat_core.train import Trainer
+
+        trainer = Trainer(cfg, self.ds, out)
         curve_file = out / "curve.json"
         curve = []
         if curve_file.is_file() and trainer.step > 0:  # points recorded before the kill, up to the checkpoint
             curve = [c for c in json.loads(curve_file.read_text()) if c["iteration"] <= trainer.step]
-        curve_cfg = extract_config(preset, len(self.gt), seed, curve=True)
         eval_time = [0.0]
 
         def checkpoint(tr, step: int) -> None:
             t0 = time.perf_counter()
             app = evaluate_views(model_renderer(tr), self.ds.test)
-            geo = evaluate_geometry(model_gaussians(tr), self.gt, self.ds.eval_region, curve_cfg)
+            geo, _ = evaluate_geometry(model_gaussians(tr), self.truth, ecfg)
             curve[:] = [c for c in curve if c["iteration"] != step]
-            curve.append({"iteration": step, "time_s": tr.elapsed, "num_gaussians": tr.num_gaussians,
-                          "psnr_refr": (app["refr"] or {}).get("psnr"), "psnr_dry": (app["dry"] or {}).get("psnr"),
-                          "f1@0.1": geo["f1@0.1"], "chamfer": geo["chamfer"]})
+            curve.append({"iteration": step, "time_s": tr.elapsed, "cpu_s": tr.cpu_elapsed,
+                          "num_gaussians": tr.num_gaussians, "psnr_refr": (app["refr"] or {}).get("psnr"),
+                          "psnr_dry": (app["dry"] or {}).get("psnr"), "f1": geo["f1"], "chamfer": geo["chamfer"]})
             write_json(curve_file, jsonable(curve), indent=1)
             eval_time[0] += time.perf_counter() - t0
 
         sched = cfg.schedule
-        steps = eval_steps(cfg.iterations, PRESETS[preset].checkpoints, sched.reset_every, sched.refine_stop_iter)
+        steps = eval_steps(cfg.iterations, checkpoints, sched.reset_every, sched.refine_stop_iter)
+        if trainer.step == 0:
+            checkpoint(trainer, 0)
         bar, on_step = (None, None) if self.training_bar is None else \
-            self.training_bar(cfg.iterations, variant, trainer.step)
+            self.training_bar(cfg.iterations, cfg.variant, trainer.step)
         try:
             stats = trainer.train(callbacks=[checkpoint], on_step=on_step, eval_steps=steps)
         finally:
@@ -199,12 +306,14 @@ class TrainEval:
             lpips_metric.to(trainer.device)
         appearance = evaluate_views(model_renderer(trainer), self.ds.test, lpips_metric)
         t1 = time.perf_counter()
-        geometry = evaluate_geometry(model_gaussians(trainer), self.gt, self.ds.eval_region,
-                                     extract_config(preset, len(self.gt), seed))
+        geometry, grid = evaluate_geometry(model_gaussians(trainer), self.truth, ecfg)
         t2 = time.perf_counter()
-        return {"config": cfg.to_dict(), "seed": seed, "train_stats": stats,
-                "num_gaussians": stats["num_gaussians"], "train_time_s": stats["train_seconds"],
-                "appearance": appearance, "geometry": geometry, "curve": sorted(curve, key=lambda c: c["iteration"]),
-                "timings": {"train_s": stats["train_seconds"], "checkpoint_eval_s": eval_time[0],
-                            "appearance_eval_s": t1 - t0, "geometry_eval_s": t2 - t1},
-                "outputs": {"dir": str(out), "ply": str(out / "point_cloud.ply")}}
+        row = {"config": cfg.to_dict(), "train_stats": stats, "num_gaussians": stats["num_gaussians"],
+               "time": {"wall_s": stats["train_seconds"], "cpu_s": stats["train_cpu_seconds"],
+                        "median_step_s": stats["median_step_seconds"]},
+               "appearance": appearance, "geometry": geometry, "curve": sorted(curve, key=lambda c: c["iteration"]),
+               "timings": {"checkpoint_eval_s": eval_time[0], "appearance_eval_s": t1 - t0,
+                           "geometry_eval_s": t2 - t1},
+               "outputs": {"dir": str(out), "ply": str(out / "point_cloud.ply")}}
+        return row, grid
+

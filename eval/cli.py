@@ -1,5 +1,6 @@
-"""`ragsplat ablation --data DIR --out DIR [--preset smoke|small|paper] [--variants ...] [--seed S]`:
-every variant trained and evaluated, Tables 1 and 2 printed beside the paper's (`eval.ablation`)."""
+"""`ragsplat ablation --data DIR --out DIR [--preset smoke|small|paper] [--variants ...] [--seeds S ...]`:
+every variant trained and evaluated per seed, the reference rows scored, Tables 1-3 printed (mean +- std
+over seeds) beside the paper's (`eval.ablation`)."""
 
 from __future__ import annotations
 
@@ -18,9 +19,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="small", choices=list(PRESETS), help="training/eval size")
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS), metavar="VARIANT",
                         help=f"subset of {', '.join(VARIANTS)} (default: all)")
-    parser.add_argument("--seed", type=count, default=0, help="training and extraction seed (recorded in every row)")
+    parser.add_argument("--seeds", type=count, nargs="+", default=[0], metavar="SEED",
+                        help="training (and extraction) seeds; tables show mean +- std over them (default: 0)")
     parser.add_argument("--vgg16", default=None,
-                        help="torchvision's vgg16-397923af.pth for LPIPS (default: torch hub cache)")
+                        help="torchvision's vgg16-397923af.pth for LPIPS (default: torch hub cache, downloaded "
+                             "there with its hash check when missing)")
+    parser.add_argument("--no-download", action="store_true",
+                        help="never download the LPIPS weights (offline: LPIPS prints n/a with the reason)")
     parser.add_argument("--device", default=None, help="torch device for training (default: the preset's)")
 
 
@@ -30,6 +35,6 @@ def run(args: argparse.Namespace) -> int:
 
     with deferred_interrupts() as check:  # Ctrl-C: the trainer checkpoints its finished steps, then stops
         train_eval = TrainEval(args.data, args.device, training_bar=partial(training_bar, leave=False, check=check))
-        run_ablation(args.data, args.out, args.preset, args.variants, args.seed, train_eval, vgg16=args.vgg16,
-                     log=print)
+        run_ablation(args.data, args.out, args.preset, args.variants, args.seeds, train_eval, vgg16=args.vgg16,
+                     download=not args.no_download, log=print)
     return 0

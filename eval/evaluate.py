@@ -1,7 +1,8 @@
 """Evaluate one trained model: appearance on held-out views and geometry against the ground-truth bed.
 
 `evaluate_views` takes a render function, so it serves any model (a Trainer, a loaded PLY);
-`evaluate_geometry` takes activated Gaussians. `model_gaussians` and `model_renderer` adapt a Trainer.
+`evaluate_geometry` takes activated Gaussians and `score_grid` any bed height grid (a reference answer
+too). `model_gaussians` and `model_renderer` adapt a Trainer.
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ from scipy.spatial import cKDTree
 
 from eval import metrics
 from eval.geometry import ExtractConfig, extract_surface
-from ragsplat_core.scoring import geometry_metrics
+from ragsplat_core.dataset.layout import GT_GRID_STEP
+from ragsplat_core.scoring import geometry_metrics, thresholds
 
 
 def _mean(values) -> float | None:
@@ -27,8 +29,9 @@ def evaluate_views(render: Callable, views, lpips_metric=None) -> dict:
 
     `render(view, interface: bool) -> [H, W, 3]` renders through the interface (True) or the true
     Gaussians without it (False). Renders are clamped to [0, 1] (as 3DGS evaluates them); the metrics run
-    on the render's device, where `lpips_metric` must already be (`LPIPS.to`). Returns
-    {"refr": {"psnr", "ssim", "lpips"}, "dry": {...} or None, "per_view": [...]}.
+    on the render's device, where `lpips_metric` must already be (`LPIPS.to`). `ssim` is the standard
+    SSIM (scikit-image's value), `ssim_3dgs` the training one. Returns
+    {"refr": {"psnr", "ssim", "ssim_3dgs", "lpips"}, "dry": {...} or None, "per_view": [...]}.
     """
     per_view = []
     for view in views:
@@ -40,29 +43,82 @@ def evaluate_views(render: Callable, views, lpips_metric=None) -> dict:
             with torch.no_grad():
                 img = render(view, cond == "refr").clamp(0, 1)
                 target = target.to(img.device, img.dtype)  # metrics run where the render is (LPIPS too)
-                entry[cond] = {"psnr": float(metrics.psnr(img, target)), "ssim": float(metrics.ssim(img, target)),
+                entry[cond] = {"psnr": float(metrics.psnr(img, target)),
+                               "ssim": float(metrics.ssim_standard(img, target)),
+                               "ssim_3dgs": float(metrics.ssim(img, target)),
                                "lpips": None if lpips_metric is None else float(lpips_metric(img, target))}
         per_view.append(entry)
     out = {"per_view": per_view}
     for cond in ("refr", "dry"):
         rows = [v[cond] for v in per_view if v[cond] is not None]
-        out[cond] = {k: _mean(r[k] for r in rows) for k in ("psnr", "ssim", "lpips")} if rows else None
+        out[cond] = {k: _mean(r[k] for r in rows) for k in ("psnr", "ssim", "ssim_3dgs", "lpips")} if rows else None
     return out
 
 
-def evaluate_geometry(gaussians: dict, gt: np.ndarray, region: dict, cfg: ExtractConfig) -> dict:
-    """Extraction + metrics; `gaussians` has means, scales (linear), quats (wxyz), opacities ([0, 1]).
+def score_grid(grid: np.ndarray, truth) -> dict:
+    """Scores of a predicted bed height grid [P, 3] (cells of `cfg.cell` at nodes of the GT grid, inside the
+    region) against `truth` (`ragsplat_core.dataset.load.GroundTruth`).
 
-    `gt` is the dataset's grid, already limited to `region` by the data contract (not cropped again: its
-    edge nodes would come and go with rounding). The extracted grid shares the GT grid's nodes, and only
-    cells where the ground truth has a point are scored: on a reach, the submerged bed, not the banks.
+    Point-set scores (Chamfer, P/R/F1 at the absolute 10 / 30 cm and the depth-scaled 1 % / 3 % of the
+    maximum depth) use the cells where the ground truth has a submerged point; `survey` scores every cell
+    against the exact bed height at its centre (`survey_figures`).
     """
-    origin = tuple(gt[:, :2].min(0))  # a node of the GT grid, so both grids share their nodes
+    named = thresholds(truth.max_depth)
+    gt = truth.grid
+    on_truth = np.isfinite(cKDTree(gt[:, :2]).query(grid[:, :2], distance_upper_bound=0.5 * GT_GRID_STEP)[0]) \
+        if len(grid) else np.zeros(0, bool)
+    m = geometry_metrics(grid[on_truth], gt, tuple(named.values()))
+    out = {k: m[k] for k in ("n_pred", "n_gt", "accuracy", "completeness", "chamfer")}
+    out["thresholds_m"] = named
+    for kind in ("precision", "recall", "f1"):
+        out[kind] = {name: m[f"{kind}@{t:g}"] for name, t in named.items()}
+    out["survey"] = survey_figures(grid, truth)
+    return out
+
+
+def survey_figures(grid: np.ndarray, truth) -> dict:
+    """What a surveyor asks of a bathymetry: dz = predicted - true bed height at each cell's centre (the exact
+    surface when the dataset has one, else the nearest ground-truth node), as vertical bias (mean dz), RMSE
+    and 95th percentile of |dz| (metres), over the wet cells, by depth band (thirds of the maximum depth) and
+    over the emerged banks; `coverage` = wet cells with a prediction / wet ground-truth cells."""
+    dz, depth = height_error(grid, truth)
+    D = truth.max_depth
+    bands = {"wet": depth > 0, "banks": depth <= 0}
+    edges = [0.0, D / 3, 2 * D / 3, np.inf]  # the last band takes anything deeper than D too
+    for name, lo, hi in zip(("shallow", "middle", "deep"), edges[:-1], edges[1:]):
+        bands[name] = (depth > lo) & (depth <= hi)
+    out = {"band_edges_m": [0.0, D / 3, 2 * D / 3, D],
+           "coverage": float(bands["wet"].sum() / len(truth.grid))}
+    for name, mask in bands.items():
+        e = dz[mask]
+        out[name] = {"n": int(mask.sum()), "bias": float(e.mean()) if len(e) else None,
+                     "rmse": float(np.sqrt((e**2).mean())) if len(e) else None,
+                     "p95": float(np.percentile(np.abs(e), 95)) if len(e) else None}
+    return out
+
+
+def height_error(grid: np.ndarray, truth) -> tuple[np.ndarray, np.ndarray]:
+    """(dz [P], true depth below the water level [P]) of each predicted cell at its centre."""
+    if truth.surface is not None:
+        z_true = truth.surface.height_at(grid[:, :2])
+    else:
+        nodes = truth.grid if truth.banks is None else np.concatenate([truth.grid, truth.banks])
+        z_true = nodes[cKDTree(nodes[:, :2]).query(grid[:, :2])[1], 2] if len(grid) else np.zeros(0)
+    return grid[:, 2] - z_true, truth.level - z_true
+
+
+def evaluate_geometry(gaussians: dict, truth, cfg: ExtractConfig) -> tuple[dict, np.ndarray]:
+    """Extraction + `score_grid`; `gaussians` has means, scales (linear), quats (wxyz), opacities ([0, 1]).
+    Returns (scores with the extraction's counts, the extracted grid [P, 3]).
+
+    The extracted grid shares the GT grid's nodes (a half-cell offset alone would cost ~2.5 cm of Chamfer);
+    the GT grid is already limited to the region by the data contract (not cropped again: its edge nodes
+    would come and go with rounding).
+    """
+    origin = tuple(truth.grid[:, :2].min(0))
     grid, stats = extract_surface(gaussians["means"], gaussians["scales"], gaussians["quats"],
-                                  gaussians["opacities"], cfg, region, origin)
-    on_truth = np.isfinite(cKDTree(gt[:, :2]).query(grid[:, :2], distance_upper_bound=0.5 * cfg.cell)[0])
-    stats["grid_points_on_truth"] = int(on_truth.sum())
-    return {**geometry_metrics(grid[on_truth], gt), "extraction": stats}
+                                  gaussians["opacities"], cfg, truth.region, origin)
+    return {**score_grid(grid, truth), "extraction": stats}, grid
 
 
 def model_gaussians(trainer) -> dict:

@@ -5,84 +5,147 @@ import numpy as np
 import pytest
 import torch
 
-from eval import ablation, metrics
+from eval import ablation, references
 from eval.ablation import run_ablation
-from eval.evaluate import evaluate_geometry, evaluate_views
-from eval.report import load_published, table1, table2, write_outputs
-from ragsplat_core.errors import ConfigError, OutputError
-from ragsplat_core.train.config import VARIANTS
+from eval.evaluate import evaluate_geometry, evaluate_views, score_grid
+from eval.report import load_published, table1, table2, table3, write_outputs
+from ragsplat_core.dataset.load import GroundTruth
+from ragsplat_core.errors import ConfigError
+from ragsplat_core.train.config import VARIANTS, preset_config
 
 
-def fake_row(i: int) -> dict:
-    """Per-variant numbers made up for the layout tests (distinct per variant so rows can be told apart)."""
-    app = {"psnr": 20.0 + i, "ssim": 0.5 + 0.01 * i, "lpips": None}
-    geo = {"chamfer": 0.1 * (i + 1), "precision@0.1": 0.5, "recall@0.1": 0.25, "f1@0.1": 1 / 3,
-           "precision@0.3": 1.0, "recall@0.3": 1.0, "f1@0.3": 1.0}
+def fake_row(i: int, seed: int = 0) -> dict:
+    """Per-variant numbers made up for the layout tests (distinct per variant and seed)."""
+    app = {"psnr": 20.0 + i + seed, "ssim": 0.5 + 0.01 * i, "lpips": None}
+    named = {"10cm": 0.5, "30cm": 1.0, "1%": 0.25 + 0.1 * seed, "3%": 0.75}
+    geo = {"chamfer": 0.1 * (i + 1), "precision": named, "recall": named, "f1": named,
+           "survey": {"coverage": 0.9, "wet": {"bias": -0.02, "rmse": 0.05, "p95": 0.1}}}
     curve = [{"iteration": k * 10, "time_s": 30.0 * k, "psnr_refr": 15 + k + i, "psnr_dry": 12 + k,
-              "f1@0.1": 0.1 * k} for k in range(1, 4)]
-    return {"appearance": {"refr": app, "dry": dict(app, psnr=float("nan")), "per_view": []},
-            "num_gaussians": 12345, "train_time_s": 90.0, "geometry": geo, "curve": curve}
+              "f1": {"1%": 0.1 * k, "3%": 0.2 * k}} for k in range(4)]
+    return {"name": list(VARIANTS)[i], "seed": seed,
+            "appearance": {"refr": app, "dry": dict(app, psnr=float("nan")), "per_view": []},
+            "num_gaussians": 12345, "time": {"wall_s": 90.0, "cpu_s": 150.0, "median_step_s": 0.06},
+            "geometry": geo, "curve": curve}
 
 
-def test_tables_put_paper_values_beside_ours():
+def test_tables_compare_with_the_paper_only_on_depth_scaled_columns():
     published = load_published()
-    rows = {v: fake_row(i) for i, v in enumerate(VARIANTS)}
-    t1 = table1(rows, published)
+    rows = {v: [fake_row(i, 0), fake_row(i, 1)] for i, v in enumerate(VARIANTS)}
+    rows["oracle plane"] = [{"name": "oracle plane", "seed": None, "uses_ground_truth": True,
+                             "geometry": fake_row(0)["geometry"]}]
     t2 = table2(rows, published)
-    full = next(line for line in t2.splitlines() if line.startswith("| full |"))
-    # CD 0.5 m vs the paper's 0.011; P 50 % vs 91.56; F1 as a percentage
-    assert full.startswith("| full | 0.500 | 0.011 | 50.00 | 91.56 | 25.00 | 96.58 | 33.33 | 94.00 |")
+    head = t2.splitlines()[2]
+    assert head.startswith("| Row | seeds | CD (m) | F1@10cm (%) | F1@30cm (%) | P@1% (%) | paper |")
+    assert head.count("paper") == 6  # P/R/F1 at 1 % and 3 % only
+    lines = [line for line in t2.splitlines() if line.startswith("| ")]
+    assert lines[1].startswith("| oracle plane (uses GT) | - |")  # reference rows first, marked
+    full = next(line for line in lines if line.startswith("| full |"))
+    # F1@1%: seeds 25 % and 35 % -> 30.0 ± 7.1, beside the paper's F1@10cm at 10 m (94.00)
+    assert "| 2 | 0.500 ± 0.000 | 50.0 ± 0.0 | 100.0 ± 0.0 | 30.0 ± 7.1 | 91.6 |" in full
+    assert "| 30.0 ± 7.1 | 94.0 |" in full
+    t1 = table1(rows, published)
     base = next(line for line in t1.splitlines() if line.startswith("| 3dgs |"))
-    # the paper leaves 3dgs refr empty; LPIPS missing on our side; 12345 Gaussians -> 12.3 K; 90 s -> 1.5 min
-    assert base.startswith("| 3dgs | 0.500 |  | 20.00 |  | n/a |  | 0.500 | 0.682 | n/a | 14.12 |")
-    assert base.endswith("| 12.3 | 40.0 | 1.5 | 6.8 |")
-    aniso = next(line for line in t1.splitlines() if line.startswith("| full+anisotropic |"))
-    assert "| 0.550 | - |" in aniso  # not in the paper
+    # the paper leaves 3dgs refr empty; 12345 Gaussians -> 12.3 K; 90 s -> 1.5 min wall, 2.5 min CPU
+    assert base.startswith("| 3dgs | 2 | 0.500 ± 0.000 |  | 20.50 ± 0.71 |  | n/a |")
+    assert base.endswith("| 12.3 ± 0.0 | 40.0 | 1.5 ± 0.0 | 6.8 | 2.5 ± 0.0 | 0.060 ± 0.000 |")
+    assert "oracle plane" not in t1  # no appearance
+    t3 = table3(rows)
+    assert "| full | 2 | 90.0 ± 0.0 | -2.0 ± 0.0 | 5.0 ± 0.0 | 10.0 ± 0.0 |" in t3
 
 
 def test_write_outputs_files(tmp_path):
-    rows = {v: fake_row(i) for i, v in enumerate(list(VARIANTS)[:3])}
-    text = write_outputs(tmp_path, rows, {"preset": "smoke", "seed": 3}, "weights missing")
+    rows = {v: [fake_row(i)] for i, v in enumerate(list(VARIANTS)[:3])}
+    text = write_outputs(tmp_path, rows, {"preset": "smoke", "seeds": [3], "max_depth_m": 3.0}, "weights missing")
     assert "LPIPS n/a: weights missing" in (tmp_path / "table1.md").read_text()
-    assert (tmp_path / "table2.md").read_text() in text
+    assert (tmp_path / "table2.md").read_text() in text and (tmp_path / "table3.md").read_text() in text
+    assert "1 % / 3 % of the maximum depth (3 m: 30 / 90 mm)" in text
     res = json.loads((tmp_path / "results.json").read_text(), parse_constant=lambda c: pytest.fail(c))
-    assert res["seed"] == 3 and list(res["variants"]) == list(list(VARIANTS)[:3])
-    assert res["variants"]["3dgs"]["appearance"]["dry"]["psnr"] is None  # NaN stored as null
+    assert res["seeds"] == [3] and list(res["rows"]) == list(list(VARIANTS)[:3])
+    assert res["rows"]["3dgs"][0]["appearance"]["dry"]["psnr"] is None  # NaN stored as null
+    assert res["summary"]["3dgs"]["F1@1% (%)"] == {"mean": 25.0, "std": None, "n": 1}
     assert res["lpips"] == {"available": False, "reason": "weights missing"}
     png = (tmp_path / "error_vs_time.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
 
 
-def make_data(root):
-    root.mkdir()
-    (root / "transforms.json").write_text('{"frames": []}')
-    return root
+class FakeRunner:
+    """`run_ablation`'s runner without training: made-up rows, a flat ground truth at -1 m."""
+
+    def __init__(self):
+        x, y = np.meshgrid(np.arange(5) * 0.05, np.arange(5) * 0.05, indexing="ij")
+        grid = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, -1.0)])
+        self.truth = GroundTruth(grid, {"xmin": 0, "xmax": 0.2, "ymin": 0, "ymax": 0.2}, 2.0, 0.0)
+        self.fingerprint, self.dataset_seed, self.refractive_index = "aaaa", 0, 1.33
+        self.calls = []
+
+    def config(self, variant, preset, seed):
+        return preset_config(preset, variant=variant, seed=seed)
+
+    def initial(self, cfg):
+        g = self.truth.grid
+        return {"means": torch.tensor(g), "scales": torch.full((len(g), 3), 0.03),
+                "quats": torch.tensor([[1.0, 0, 0, 0]]).expand(len(g), 4), "opacities": torch.full((len(g),), 0.9)}
+
+    def train(self, cfg, out, ecfg, checkpoints, lpips_metric=None):
+        self.calls.append((cfg.variant, cfg.seed))
+        apparent = self.truth.grid + [0, 0, 1.0 - 1.0 / 1.33]  # an uncorrected bed at depth / n
+        return fake_row(list(VARIANTS).index(cfg.variant), cfg.seed), apparent
 
 
-def test_rows_are_reused_and_keyed(tmp_path, monkeypatch):
-    monkeypatch.setattr(metrics, "default_vgg16_path", lambda: tmp_path / "absent.pth")
-    data, out = make_data(tmp_path / "data"), tmp_path / "out"
-    calls = []
-
-    def train(variant, data, out, preset, seed, lpips_metric):
-        calls.append(variant)
-        return fake_row(list(VARIANTS).index(variant))
-
-    quiet = {"log": lambda s: None}
-    run_ablation(data, out, "smoke", ["3dgs", "full"], 0, train, **quiet)
-    assert calls == ["3dgs", "full"]
-    rows = run_ablation(data, out, "smoke", ["3dgs", "position", "full"], 0, train, **quiet)
-    assert calls == ["3dgs", "full", "position"]  # only the missing row was trained
-    assert list(rows) == ["3dgs", "position", "full"]
+def test_rows_are_reused_only_under_their_key(tmp_path):
+    data, out, runner = tmp_path / "data", tmp_path / "out", FakeRunner()
+    data.mkdir()
+    quiet = {"log": lambda s: None, "download": False}
+    rows = run_ablation(data, out, "smoke", ["3dgs", "full"], [0, 1], runner, **quiet)
+    assert runner.calls == [("3dgs", 0), ("full", 0), ("3dgs", 1), ("full", 1)]
+    assert list(rows) == ["3dgs", "full", "init", "3dgs x n", "oracle plane"]
+    assert [r["seed"] for r in rows["full"]] == [0, 1] and len(rows["oracle plane"]) == 1
+    # the classical correction of an apparent flat bed (depth / n) is exact: every reference has a known answer
+    assert rows["3dgs x n"][0]["geometry"]["f1"]["1%"] == 1.0
+    assert rows["oracle plane"][0]["geometry"]["f1"]["1%"] == 1.0 and rows["oracle plane"][0]["uses_ground_truth"]
+    assert rows["init"][0]["geometry"]["survey"]["wet"]["bias"] == pytest.approx(0.0, abs=0.01)
+    for name in ("bed.npy", "bed.tif", "depth_error.png"):
+        assert (out / "3dgs-x-n" / "seed0" / name).stat().st_size > 0
+    # same key: reused; only the requested variants and seeds are tabulated
+    rows = run_ablation(data, out, "smoke", ["full"], [1], runner, **quiet)
+    assert len(runner.calls) == 4 and list(rows) == ["full", "init", "oracle plane"]
     res = json.loads((out / "results.json").read_text())
-    assert res["variants"]["full"]["key"]["seed"] == 0 and "row_total_s" in res["variants"]["full"]["timings"]
-    # a subset run still tabulates the other finished rows
-    run_ablation(data, out, "smoke", ["full"], 0, train, **quiet)
-    assert "| position |" in (out / "table1.md").read_text() and len(calls) == 3
-    with pytest.raises(OutputError, match="seed"):
-        run_ablation(data, out, "smoke", ["full"], 1, train, **quiet)
+    assert list(res["rows"]) == ["init", "oracle plane", "full"] and res["seeds"] == [1]
+    assert "| 3dgs |" not in (out / "table2.md").read_text()
+    # another dataset content (one image changed): recomputed, never reused
+    runner.fingerprint = "bbbb"
+    logged = []
+    run_ablation(data, out, "smoke", ["full"], [1], runner, log=logged.append, download=False)
+    assert runner.calls[-1] == ("full", 1) and any("another dataset" in line for line in logged)
     with pytest.raises(ConfigError, match="unknown variant"):
-        run_ablation(data, out, "smoke", ["nope"], 0, train, **quiet)
+        run_ablation(data, out, "smoke", ["nope"], [0], runner, **quiet)
+    with pytest.raises(ConfigError, match="seeds"):
+        run_ablation(data, out, "smoke", ["full"], [1, 1], runner, **quiet)
+
+
+def test_a_stale_checkpoint_is_not_resumed(tmp_path):
+    folder = tmp_path / "full" / "seed0"
+    folder.mkdir(parents=True)
+    ablation.start_row(folder, {"dataset": "aaaa"})
+    (folder / "ckpt.pt").write_bytes(b"trained on aaaa")
+    ablation.start_row(folder, {"dataset": "aaaa"})
+    assert (folder / "ckpt.pt").exists()  # same key: the killed run resumes
+    ablation.start_row(folder, {"dataset": "bbbb"})
+    assert not (folder / "ckpt.pt").exists()
+
+
+def test_survey_figures_of_a_known_offset():
+    x, y = np.meshgrid(np.arange(40) * 0.05, np.arange(10) * 0.05, indexing="ij")
+    z = -0.05 * x.ravel()  # a slope from 0 to 1.95 m deep
+    truth = GroundTruth(np.column_stack([x.ravel(), y.ravel(), z])[1 * 10:], {}, 1.95, 0.0,
+                        banks=np.column_stack([x.ravel(), y.ravel(), z])[:10])
+    pred = np.column_stack([x.ravel(), y.ravel(), z + 0.02])[::2]
+    s = score_grid(pred, truth)["survey"]
+    assert s["wet"]["bias"] == pytest.approx(0.02) and s["wet"]["rmse"] == pytest.approx(0.02)
+    assert s["wet"]["p95"] == pytest.approx(0.02) and s["coverage"] == pytest.approx(195 / 390)
+    assert s["banks"]["n"] == 5 and s["shallow"]["n"] + s["middle"]["n"] + s["deep"]["n"] == s["wet"]["n"]
+    assert references.depth_times_n(np.array([[0, 0, -1.0], [0, 0, 0.5]]), 0.0, 1.33).tolist() == \
+        [[0, 0, -1.33], [0, 0, 0.5]]
 
 
 def test_evaluate_views_conditions():
@@ -107,15 +170,15 @@ def test_evaluate_geometry_flat_bed():
          "quats": torch.tensor([[1.0, 0, 0, 0]]).expand(len(bed), 4), "opacities": torch.full((len(bed),), 0.9)}
     region = {"xmin": 0.3, "xmax": 1.2, "ymin": 0.3, "ymax": 1.2}
     gt = bed[(np.abs(bed[:, :2] - 0.75) < 0.451).all(1)]  # nodes 6 .. 24 on both axes
-    res = evaluate_geometry(g, gt, region, ablation.extract_config("smoke", 19 * 19, seed=0))
-    assert res["n_gt"] == 19 * 19 and res["f1@0.1"] == 1.0 and res["chamfer"] < 0.005
+    res, grid = evaluate_geometry(g, GroundTruth(gt, region, 2.0, 0.0), ablation.extract_config("small", 19 * 19, 0))
+    assert res["n_gt"] == 19 * 19 and res["f1"]["10cm"] == 1.0 and res["chamfer"] < 0.005 and len(grid) > 350
     assert res["extraction"]["config"]["n_samples"] == 16 * 19 * 19
 
 
 def test_eval_steps_avoid_opacity_resets():
-    assert ablation.eval_steps(1500, 5) == [300, 600, 900, 1200]
-    # resets every 150 steps until 750: 300 and 600 would see freshly reset opacities
-    assert ablation.eval_steps(1500, 5, reset_every=150, reset_stop=750) == [299, 599, 900, 1200]
+    assert ablation.eval_steps(1500, 8) == [188, 375, 562, 750, 938, 1125, 1312]
+    # resets every 150 steps before 750: 188 is 38 steps after the reset at 150 (opacities still recovering)
+    assert ablation.eval_steps(1500, 8, reset_every=150, reset_stop=750) == [149, 375, 562, 750, 938, 1125, 1312]
     assert ablation.eval_steps(10, 1) == []
 
 

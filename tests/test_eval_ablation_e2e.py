@@ -1,6 +1,7 @@
 """`ragsplat ablation` end to end on a tiny synthetic dataset with a shrunken smoke preset (seconds)."""
 
 import json
+import shutil
 from dataclasses import replace
 
 import pytest
@@ -15,28 +16,34 @@ def test_ablation_command(evaluable_dataset, tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(train.PRESETS, "smoke", replace(train.PRESETS["smoke"], iterations=6, init_count=200,
                                                           backend="torch"))
     monkeypatch.setitem(ablation.PRESETS, "smoke", replace(ablation.PRESETS["smoke"], checkpoints=3))
+    data = tmp_path / "data"
+    shutil.copytree(evaluable_dataset, data)
     out = tmp_path / "runs"
-    argv = ["ablation", "--data", str(evaluable_dataset), "--out", str(out), "--preset", "smoke", "--variants", "3dgs",
-            "full"]
+    argv = ["ablation", "--data", str(data), "--out", str(out), "--preset", "smoke", "--variants", "3dgs",
+            "full", "--seeds", "0", "1", "--no-download"]
     assert main(argv) == 0
     printed = capsys.readouterr().out
-    assert "| full |" in printed and "LPIPS n/a" in printed
+    assert "| full | 2 |" in printed and "| 3dgs x n | 2 |" in printed and "LPIPS n/a" in printed
+    assert "| oracle plane (uses GT) | - |" in printed and "F1@3% (%) | paper |" in printed
     res = json.loads((out / "results.json").read_text())
-    assert list(res["variants"]) == ["3dgs", "full"] and res["seed"] == 0
-    full = res["variants"]["full"]
+    assert list(res["rows"]) == ["init", "3dgs x n", "oracle plane", "3dgs", "full"] and res["seeds"] == [0, 1]
+    full = res["rows"]["full"][0]
     sched = train.PRESETS["smoke"].schedule
-    steps = ablation.eval_steps(6, 3, sched.reset_every, sched.refine_stop_iter) + [6]
-    assert len(steps) == 3 and [c["iteration"] for c in full["curve"]] == steps
+    steps = [0] + ablation.eval_steps(6, 3, sched.reset_every, sched.refine_stop_iter) + [6]
+    assert len(steps) == 4 and [c["iteration"] for c in full["curve"]] == steps
     times = [c["time_s"] for c in full["curve"]]
-    assert times == sorted(times) and times[-1] == pytest.approx(full["train_time_s"])
+    assert times[0] == 0 and times == sorted(times) and times[-1] == pytest.approx(full["time"]["wall_s"])
+    assert full["time"]["cpu_s"] > 0 and full["time"]["median_step_s"] > 0
     assert full["config"]["variant"] == "full" and full["config"]["refraction"]["position"] is True
     assert len(full["appearance"]["per_view"]) == 2 and full["appearance"]["dry"]["psnr"] > 0
-    assert full["geometry"]["n_gt"] == 21 * 21 and full["geometry"]["extraction"]["config"]["n_samples"] == 16 * 441
-    for name in ("table1.md", "table2.md", "error_vs_time.png"):
+    assert full["geometry"]["n_gt"] == 21 * 21 and full["geometry"]["extraction"]["config"]["n_samples"] == 4 * 441
+    assert set(full["geometry"]["f1"]) == {"10cm", "30cm", "1%", "3%"}
+    for name in ("table1.md", "table2.md", "table3.md", "error_vs_time.png", "oracle-plane/bed.tif",
+                 "oracle-plane/depth_error.png", "full/seed1/bed.npy", "init/seed0/row.json"):
         assert (out / name).stat().st_size > 0
 
-    # rerun: both rows reused, nothing trained
-    row = out / "full" / "row.json"
+    # rerun: every row reused, nothing trained
+    row = out / "full" / "seed0" / "row.json"
     before = row.read_text()
     assert main(argv) == 0
     assert "reusing" in capsys.readouterr().out and row.read_text() == before
@@ -46,7 +53,15 @@ def test_ablation_command(evaluable_dataset, tmp_path, monkeypatch, capsys):
     assert main(argv) == 0
     again = json.loads(row.read_text())
     assert [c["iteration"] for c in again["curve"]] == steps
-    assert again["train_time_s"] == pytest.approx(full["train_time_s"])
+    assert again["time"]["wall_s"] == pytest.approx(full["time"]["wall_s"])
+
+    # one image changed: no row of the old dataset is reused
+    image = data / json.loads((data / "transforms.json").read_text())["frames"][0]["file_path"]
+    image.write_bytes(image.read_bytes() + b"\0")
+    capsys.readouterr()
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "reusing" not in printed and "another dataset" in printed
 
 
 def test_sigint_keeps_finished_rows_and_the_rerun_completes(evaluable_dataset, tmp_path):
@@ -62,21 +77,21 @@ def test_sigint_keeps_finished_rows_and_the_rerun_completes(evaluable_dataset, t
 
     out = tmp_path / "runs"
     cmd = [sys.executable, "-m", "ragsplat_core.cli.main", "ablation", "--data", str(evaluable_dataset), "--out",
-           str(out), "--preset", "smoke", "--variants", "3dgs", "position"]
+           str(out), "--preset", "smoke", "--variants", "3dgs", "position", "--no-download"]
     env = {**os.environ, "TORCH_HOME": str(tmp_path / "torch")}  # no LPIPS backbone there: LPIPS n/a
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
     deadline = time.time() + 300
-    while not (out / "3dgs" / "row.json").exists() and time.time() < deadline and proc.poll() is None:
+    while not (out / "3dgs" / "seed0" / "row.json").exists() and time.time() < deadline and proc.poll() is None:
         time.sleep(0.02)
     proc.send_signal(signal.SIGINT)  # `position` is starting to train
     err = [line for line in proc.communicate(timeout=300)[1].splitlines() if line.startswith("ragsplat")]
     assert proc.returncode == 130, err
     assert err == ["ragsplat ablation: interrupted; finished files are kept, rerun the same command to resume"]
-    assert not (out / "position" / "row.json").exists()
-    assert torch.load(out / "position" / "ckpt.pt", weights_only=True)["step"] >= 1
-    row = (out / "3dgs" / "row.json").read_bytes()
+    assert not (out / "position" / "seed0" / "row.json").exists()
+    assert torch.load(out / "position" / "seed0" / "ckpt.pt", weights_only=True)["step"] >= 1
+    row = (out / "3dgs" / "seed0" / "row.json").read_bytes()
     done = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env, timeout=300,
                           check=False)
-    assert done.returncode == 0 and "[3dgs] reusing" in done.stdout
-    assert (out / "3dgs" / "row.json").read_bytes() == row
-    assert set(json.loads((out / "results.json").read_text())["variants"]) == {"3dgs", "position"}
+    assert done.returncode == 0 and "[3dgs seed 0] reusing" in done.stdout
+    assert (out / "3dgs" / "seed0" / "row.json").read_bytes() == row
+    assert set(json.loads((out / "results.json").read_text())["rows"]) >= {"3dgs", "position"}

@@ -42,6 +42,10 @@ class GroundTruth:
 
     grid: np.ndarray  # [N, 3] float64 submerged bed points on a regular horizontal grid over `region`
     region: dict[str, float]  # {"xmin", "xmax", "ymin", "ymax"}: the evaluated part of the bed
+    max_depth: float  # metres below the water level: what the scale-free thresholds (1 %, 3 %) refer to
+    level: float  # the water plane's height (0 for a dry scene)
+    banks: np.ndarray | None = None  # [M, 3] emerged ground on the same grid (a reach), or None
+    surface: layout.Surface | None = None  # the exact height function (gt/bed_surface.npz), when present
 
 
 @dataclass(eq=False)
@@ -273,7 +277,7 @@ def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: b
             region = {k: _number(region, k, spath, "eval_region.") for k in ("xmin", "xmax", "ymin", "ymax")}
             if region["xmin"] >= region["xmax"] or region["ymin"] >= region["ymax"]:
                 raise _fail(spath, f"eval_region is empty: {region}")
-    truth = _ground_truth(root, region) if ground_truth else None
+    truth = _ground_truth(root, region, water, scene if spath.exists() else {}) if ground_truth else None
     return Dataset(root, water, views, bed, region, truth, layout.fingerprint(root))
 
 
@@ -282,16 +286,31 @@ def _positive(value) -> float | None:
     return float(value) if ok else None
 
 
-def _ground_truth(root: Path, region: dict | None) -> GroundTruth:
+def _ground_truth(root: Path, region: dict | None, water, scene: dict) -> GroundTruth:
     if region is None:
         raise _fail(root / layout.SCENE, "no eval_region (the ground truth needs one)")
     path = root / layout.GT_GRID
     if not path.is_file():
         raise _fail(path, "ground-truth bed grid is missing")
+    grid = _grid(path)
+    level = water.level if water is not None else 0.0
+    nulls = scene.get("null_models")
+    depth = _positive(nulls.get("max_depth_m")) if isinstance(nulls, dict) else None
+    banks = _grid(root / layout.GT_BANKS) if (root / layout.GT_BANKS).is_file() else None
+    spath = root / layout.GT_SURFACE
+    try:
+        surface = layout.Surface.load(spath) if spath.is_file() else None
+    except (OSError, ValueError, KeyError) as err:
+        raise _fail(spath, f"not a readable bed surface ({err})") from None
+    return GroundTruth(grid, region, depth or float(level - grid[:, 2].min()), level, banks, surface)
+
+
+def _grid(path: Path) -> np.ndarray:
+    """A ground-truth point grid [N, 3] from a .npy file (DatasetError when it is not one)."""
     try:
         grid = np.load(path)
     except (OSError, ValueError) as err:
         raise _fail(path, f"not a readable .npy array ({err})") from None
     if grid.ndim != 2 or grid.shape[1] != 3 or len(grid) == 0 or not np.isfinite(grid).all():
         raise _fail(path, f"expected a non-empty finite float array [N, 3], got shape {grid.shape}")
-    return GroundTruth(grid, region)
+    return grid

@@ -100,11 +100,16 @@ class TrainConfig:
 
 
 # Presets: smoke (CI, seconds), small (the 2-core CPU default of `make ablation`), paper (30k, a GPU).
-# The short presets start the position rate 10x higher (1.6e-3): with the 30k schedule squeezed into 1500
-# steps the default rate lets a Gaussian travel at most about 0.3 m (sum of the per-step rates x extent),
-# less than the refraction shift it must be free to follow (0.74 m at 3 m depth). Measured on the small
-# dataset at 1500 steps, 1x vs 10x: full F1@10cm 0.66 -> 0.95, 3dgs 0.63 -> 0.57 (README).
+# The short presets start the position rate higher than 3DGS's 1.6e-4: with the 30k schedule squeezed into
+# 1500 steps the default rate lets a Gaussian travel at most about 0.3 m (sum of the per-step rates x
+# extent), less than the refraction shift it must be free to follow (0.74 m at 3 m depth). The value was
+# chosen on the development dataset in `TUNING`, never on the evaluation dataset (README, "Protocol").
 SHORT_LR_MEANS = 1.6e-3
+# Where the short presets' hyperparameters were chosen: the `small` reach rendered with this dataset seed
+# (the evaluation dataset is seed 0), by the sweep command recorded here. results.json records it.
+TUNING = {"dataset_preset": "small", "dataset_seed": 1, "training_seed": 0,
+          "chosen": {"lr_means": SHORT_LR_MEANS},
+          "command": "python -m eval.tune --data data/small-dev --out runs/tune"}
 PRESETS: dict[str, TrainConfig] = {
     "smoke": TrainConfig(preset="smoke", iterations=150, init_count=1_500, sh_degree=1,
                          lr_means=SHORT_LR_MEANS, densify=DensifyConfig(max_gaussians=4_000)),

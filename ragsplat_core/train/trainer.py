@@ -8,7 +8,9 @@ Programmatic use (what `ragsplat train` and the ablation harness do):
     image, alpha, depth = trainer.render(camera, interface=False)  # "without the interface": true Gaussians
 
 `trainer.elapsed` is the training wall-clock time in seconds, excluding the time spent inside callbacks
-and checkpoint writes, so error-against-time curves are not inflated by evaluation.
+and checkpoint writes, so error-against-time curves are not inflated by evaluation; `trainer.cpu_elapsed`
+is the CPU time of the process (all threads) over the same steps, and `trainer.step_seconds` the wall
+time of each step (a shared machine moves the wall clock; CPU time and the median step much less).
 
 Outputs in out_dir: `config.json` (resolved config, seed, versions, variant flags), `ckpt.pt` (latest
 checkpoint), `point_cloud.ply` (standard 3DGS PLY), `train_stats.json` (time, Gaussian count, last loss).
@@ -75,6 +77,8 @@ class Trainer:
         self.strategy = DefaultStrategy(self.schedule, self.gen)
         self.step = 0
         self.elapsed = 0.0
+        self.cpu_elapsed = 0.0
+        self.step_seconds: list[float] = []
         self.last = {}  # last step's loss / psnr
         self._order: list[int] = []
         if self.out is not None:
@@ -238,13 +242,16 @@ class Trainer:
         in_step = False
         try:
             while self.step < cfg.iterations:
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 in_step = True
                 self.train_step()
                 in_step = False
                 if self.device.type == "cuda":
                     torch.cuda.synchronize(self.device)
-                self.elapsed += time.perf_counter() - t0
+                dt = time.perf_counter() - t0
+                self.elapsed += dt
+                self.cpu_elapsed += time.process_time() - c0
+                self.step_seconds.append(dt)
                 if on_step is not None:
                     on_step(self)
                 if self.step in marks and self.step < cfg.iterations:
@@ -268,7 +275,9 @@ class Trainer:
 
     def stats(self) -> dict:
         return {"variant": self.cfg.variant, "seed": self.cfg.seed, "iterations": self.step,
-                "train_seconds": self.elapsed, "num_gaussians": self.num_gaussians,
+                "train_seconds": self.elapsed, "train_cpu_seconds": self.cpu_elapsed,
+                "median_step_seconds": float(np.median(self.step_seconds)) if self.step_seconds else None,
+                "num_gaussians": self.num_gaussians,
                 "refraction": self.flags, **{f"last_{k}": v for k, v in self.last.items() if k != "n"}}
 
     # ---- persistence -------------------------------------------------------------------------------------
@@ -283,7 +292,7 @@ class Trainer:
     def save_checkpoint(self, path: str | Path | None = None) -> Path:
         path = Path(path) if path is not None else self.out / CHECKPOINT
         data = {"config": self.cfg.to_dict(), "dataset_fingerprint": self.ds.fingerprint, "step": self.step,
-                "elapsed": self.elapsed,
+                "elapsed": self.elapsed, "cpu_elapsed": self.cpu_elapsed, "step_seconds": list(self.step_seconds),
                 "splats": {k: v.detach().cpu() for k, v in self.splats.items()},
                 "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
                 "strategy": {k: (v.cpu() if torch.is_tensor(v) else v) for k, v in self.strat_state.items()},
@@ -314,6 +323,8 @@ class Trainer:
             o.load_state_dict(data["optimizers"][k])
         self.strat_state = {k: (v.to(self.device) if torch.is_tensor(v) else v) for k, v in data["strategy"].items()}
         self.step, self.elapsed = int(data["step"]), float(data["elapsed"])
+        self.cpu_elapsed = float(data.get("cpu_elapsed", 0.0))
+        self.step_seconds = [float(t) for t in data.get("step_seconds", [])]
         self.gen.set_state(data["generator"])
         self._order = list(data["order"])
         self.last = dict(data["last"])

@@ -1,0 +1,66 @@
+"""Choose a training hyperparameter on a development dataset (never the evaluation one):
+`python -m eval.tune --data DEV_DIR --out DIR [--preset small] [--param lr_means] [--values ...]
+[--variants full] [--seed 0]` trains each variant at each value, scores the bed like the ablation and prints
+F1 at 1 % / 3 % of depth, wet RMSE and training time per value, and the value with the best mean F1 at 3 %
+over the variants. The choice is recorded by hand in `ragsplat_core.train.config.TUNING` (with the dataset
+seed), which every results.json repeats.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import fields, replace
+from pathlib import Path
+
+import numpy as np
+
+from eval.ablation import TrainEval, extract_config, save_row, start_row
+from ragsplat_core.outputs import claim, versions, write_json
+from ragsplat_core.train.config import TrainConfig
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m eval.tune", description=__doc__.split("\n")[0])
+    parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--preset", default="small")
+    parser.add_argument("--param", default="lr_means", choices=[f.name for f in fields(TrainConfig)
+                                                                 if f.type in ("float", "int")])
+    parser.add_argument("--values", type=float, nargs="+", default=[1.6e-4, 5e-4, 1.6e-3, 5e-3])
+    parser.add_argument("--variants", nargs="+", default=["full"])
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    runner = TrainEval(args.data)
+    claim(args.out, "tuning")
+    ecfg = extract_config(args.preset, len(runner.truth.grid), args.seed)
+    results = []
+    for value in args.values:
+        for variant in args.variants:
+            cfg = replace(runner.config(variant, args.preset, args.seed), **{args.param: value})
+            folder = args.out / f"{variant}-{args.param}-{value:g}"
+            folder.mkdir(parents=True, exist_ok=True)
+            done = folder / "row.json"
+            if done.is_file():
+                row = json.loads(done.read_text())
+            else:
+                start_row(folder, {"dataset": runner.fingerprint, "train": cfg.to_dict()})
+                row, grid = runner.train(cfg, folder, ecfg, checkpoints=1)
+                row = save_row(folder, {**row, "name": variant, "seed": args.seed}, grid, runner.truth)
+            g = row["geometry"]
+            results.append({"variant": variant, "value": value, "f1_1%": g["f1"]["1%"], "f1_3%": g["f1"]["3%"],
+                            "rmse_wet": g["survey"]["wet"]["rmse"], "train_s": row["time"]["wall_s"]})
+            print(f"{variant} {args.param}={value:g}: F1@1% {100 * g['f1']['1%']:.1f}  F1@3% "
+                  f"{100 * g['f1']['3%']:.1f}  wet RMSE {100 * g['survey']['wet']['rmse']:.1f} cm", flush=True)
+    score = {v: np.mean([r["f1_3%"] for r in results if r["value"] == v]) for v in args.values}
+    best = max(score, key=score.get)
+    write_json(args.out / "tune.json", {"data": str(args.data.resolve()), "dataset_seed": runner.dataset_seed,
+                                        "param": args.param, "results": results, "chosen": best,
+                                        "rule": "max mean F1@3% over the variants", "versions": versions("torch")})
+    print(f"chosen {args.param} = {best:g} (mean F1@3% {100 * score[best]:.1f} over {', '.join(args.variants)}) "
+          f"on dataset seed {runner.dataset_seed}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
