@@ -26,13 +26,9 @@ def test_reference_obeys_snell():
 def test_alternative_solvers_agree_on_typical_survey_cases():
     r, d, H, n = sample(REGIMES["typical survey"], 2000, torch.Generator().manual_seed(2))
     r_ref, d_ref = reference(r, d, H, n)
-    steep = r > 2 * H  # naive Newton on the quartic may land on another root there: that is its weakness
-    assert 0 < int(steep.sum()) < len(r)
+    assert int((r > 2 * H).sum()) > 0  # steep views included: the careful baselines must hold there too
     for fn, steps in [(bench.newton_s, 6), (bench.ferrari, None), (bench.bisection_alpha, 60),
                       (bench.newton_alpha, 6), (bench.halley_alpha, 3)]:
         r_app, d_app = fn(r, d, H, n, steps)
         err = torch.sqrt((r_app - r_ref) ** 2 + (d_app - d_ref) ** 2) / torch.sqrt(r * r + (H + d) ** 2)
-        if fn is bench.newton_s:
-            err = err[~steep]
-        # Ferrari picks the right root but its closed form cancels badly: the benchmark reports how much.
-        assert float(err.max()) < (1e-3 if fn is bench.ferrari else 1e-8), fn.__name__
+        assert float(err.max()) < 1e-8, fn.__name__
