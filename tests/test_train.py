@@ -305,3 +305,16 @@ def test_outputs_are_never_overwritten_or_mixed(wet, evaluable_dataset, tmp_path
     assert "not a readable checkpoint" in err[2] and "not written by ragsplat" in err[3]
     assert "unknown torch device 'tpu9'" in err[4] and "gsplat" in err[5] and "nowhere.pth: no such file" in err[6]
     assert not (tmp_path / "g" / "config.json").exists()  # refused before any work
+
+
+def test_more_iterations_extend_a_finished_run(wet, tmp_path, capsys):
+    run = tmp_path / "run"
+    args = ["train", "--data", str(wet.root), "--out", str(run), "--preset", "smoke", "--init-depth", "1.0",
+            "--no-progress"]
+    assert main([*args, "--iterations", "3"]) == 0
+    capsys.readouterr()
+    assert main([*args, "--iterations", "5"]) == 0
+    assert "resumed from step 3 of 5, extended from 3 iterations" in capsys.readouterr().err
+    assert torch.load(run / "ckpt.pt", weights_only=True)["step"] == 5
+    assert main([*args, "--iterations", "4"]) == 2  # shorter than what is done: refused, named
+    assert "different settings (iterations)" in capsys.readouterr().err

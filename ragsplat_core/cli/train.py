@@ -48,7 +48,9 @@ def run(args: argparse.Namespace) -> int:
     ds = load_dataset(args.data, splits=("train",), load_dry=False)
     trainer = Trainer(cfg, ds, args.out)
     if trainer.step:
-        print(f"resumed from step {trainer.step} of {cfg.iterations} ({args.out})", file=sys.stderr)
+        extended = "" if trainer.extended_from is None else \
+            f", extended from {trainer.extended_from} iterations (the schedule stretches to {cfg.iterations})"
+        print(f"resumed from step {trainer.step} of {cfg.iterations}{extended} ({args.out})", file=sys.stderr)
     with deferred_interrupts() as check:
         bar, on_step = training_bar(cfg.iterations, f"train {cfg.variant}", trainer.step, args.no_progress,
                                     check=check)

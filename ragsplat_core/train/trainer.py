@@ -81,6 +81,7 @@ class Trainer:
         self.step_seconds: list[float] = []
         self.last = {}  # last step's loss / psnr
         self._order: list[int] = []
+        self.extended_from: int | None = None  # a resumed run's old iteration count, when extended
         if self.out is not None:
             claim(self.out, "train run", legacy=(CHECKPOINT,))
         if resume and self.out is not None and (self.out / CHECKPOINT).exists():
@@ -312,8 +313,12 @@ class Trainer:
             raise OutputError(f"{path}: checkpoint of another dataset (fingerprint {theirs}, {self.ds.root} is "
                               f"{ours}); use another output directory")
         saved = TrainConfig.from_dict(data["config"])
-        if saved != self.cfg:
-            diff = [f.name for f in fields(TrainConfig) if getattr(saved, f.name) != getattr(self.cfg, f.name)]
+        diff = [f.name for f in fields(TrainConfig) if getattr(saved, f.name) != getattr(self.cfg, f.name)]
+        # More iterations extend a run (the schedule stretches to the new count from here on, so the result
+        # is not that of a fresh run of that length); anything else would mix two configurations.
+        if diff == ["iterations"] and self.cfg.iterations >= int(data["step"]):
+            self.extended_from = saved.iterations
+        elif diff:
             raise OutputError(f"{path}: checkpoint was written with different settings ({', '.join(diff)}); "
                               "use another output directory or the same settings")
         self.splats = torch.nn.ParameterDict(
