@@ -1,6 +1,7 @@
 import dataclasses
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -318,3 +319,17 @@ def test_more_iterations_extend_a_finished_run(wet, tmp_path, capsys):
     assert torch.load(run / "ckpt.pt", weights_only=True)["step"] == 5
     assert main([*args, "--iterations", "4"]) == 2  # shorter than what is done: refused, named
     assert "different settings (iterations)" in capsys.readouterr().err
+
+
+def test_a_checkpoint_is_refused_when_one_image_changed(wet, tmp_path, capsys):
+    data = tmp_path / "data"
+    shutil.copytree(wet.root, data)
+    run = tmp_path / "run"
+    args = ["train", "--data", str(data), "--out", str(run), "--preset", "smoke", "--init-depth", "1.0",
+            "--iterations", "2", "--no-progress"]
+    assert main(args) == 0
+    image = data / json.loads((data / "transforms.json").read_text())["frames"][0]["file_path"]
+    image.write_bytes(image.read_bytes() + b"\0")  # same cameras and spec, other content
+    capsys.readouterr()
+    assert main(args) == 2
+    assert "checkpoint of another dataset" in capsys.readouterr().err
