@@ -333,3 +333,12 @@ def test_a_checkpoint_is_refused_when_one_image_changed(wet, tmp_path, capsys):
     capsys.readouterr()
     assert main(args) == 2
     assert "checkpoint of another dataset" in capsys.readouterr().err
+
+
+def test_an_implausible_init_depth_is_refused_before_training(wet, tmp_path, capsys):
+    args = ["train", "--data", str(wet.root), "--out", str(tmp_path / "run"), "--preset", "smoke",
+            "--iterations", "2", "--no-progress"]
+    assert main([*args, "--init-depth", "1e6"]) == 2  # e.g. millimetres typed as metres
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "init depth 1e+06 m is more than 10x the cameras' height" in err[0]
+    assert not (tmp_path / "run" / "ckpt.pt").exists()

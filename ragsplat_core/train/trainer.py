@@ -42,6 +42,9 @@ from ragsplat_core.train.config import VARIANTS, TrainConfig
 from ragsplat_core.train.strategy import DefaultStrategy
 
 CHECKPOINT = "ckpt.pt"
+# No camera sees a bed deeper than this many times its height above the water through clear water (light,
+# not geometry, limits photogrammetric bathymetry to a few tens of metres).
+MAX_DEPTH_PER_HEIGHT = 10
 PLY = "point_cloud.ply"
 
 
@@ -112,6 +115,11 @@ class Trainer:
                               "give init_depth (--init-depth)")
         level = self.water.level if self.water is not None else 0.0
         z = level - depth
+        height = max(float(c[2]) for c in self.centers) - level
+        if depth > MAX_DEPTH_PER_HEIGHT * height:  # e.g. a depth given in mm: the grid would be kilometres wide
+            raise ConfigError(f"init depth {depth:g} m is more than {MAX_DEPTH_PER_HEIGHT}x the cameras' height "
+                              f"above the water ({height:.3g} m); give the bed depth in metres below the water "
+                              "level (--init-depth)")
         # Everything the training views see of the plane (images are filled with bed to their edges, and
         # an uncovered part would render as background), clipped to the bed when its size is known.
         try:
