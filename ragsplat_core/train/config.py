@@ -102,18 +102,20 @@ class TrainConfig:
 # Presets: smoke (CI, seconds), small (the 2-core CPU default of `make ablation`), paper (30k, a GPU).
 # The short presets start the position rate higher than 3DGS's 1.6e-4: with the 30k schedule squeezed into
 # 1500 steps the default rate lets a Gaussian travel at most about 0.3 m (sum of the per-step rates x
-# extent), less than the refraction shift it must be free to follow (0.74 m at 3 m depth). The value was
-# chosen on the development dataset in `TUNING`, never on the evaluation dataset (README, "Protocol").
-SHORT_LR_MEANS = 1.6e-3
-# Where the short presets' hyperparameters were chosen: the `small` reach rendered with this dataset seed
-# (the evaluation dataset is seed 0), by the sweep command recorded here. results.json records it.
-TUNING = {"dataset_preset": "small", "dataset_seed": 1, "training_seed": 0,
-          "chosen": {"lr_means": SHORT_LR_MEANS},
-          "command": "python -m eval.tune --data data/small-dev --out runs/tune"}
+# extent), less than the refraction shift it must be free to follow (0.74 m at 3 m depth).
+SHORT_LR_MEANS = 1.6e-3  # smoke (CI): a scale argument, not tuned
+# `small` was tuned on the development dataset in `TUNING`, never on the evaluation dataset (README,
+# "Protocol"): the `small` reach rendered with dataset seed 1 (evaluation: seed 0), full variant, training
+# seed 0, the value with the best F1 at 3 % of depth. results.json repeats this record.
+SMALL_LR_MEANS = 5e-3
+TUNING = {"preset": "small", "dataset_preset": "small", "dataset_seed": 1, "training_seed": 0,
+          "chosen": {"lr_means": SMALL_LR_MEANS}, "tried": {"lr_means": [5e-4, 1.6e-3, 5e-3]},
+          "rule": "max F1@3% of the full variant",
+          "command": "python -m eval.tune --data data/small-dev --out runs/tune --values 5e-4 1.6e-3 5e-3"}
 PRESETS: dict[str, TrainConfig] = {
     "smoke": TrainConfig(preset="smoke", iterations=150, init_count=1_500, sh_degree=1,
                          lr_means=SHORT_LR_MEANS, densify=DensifyConfig(max_gaussians=4_000)),
-    "small": TrainConfig(preset="small", iterations=1500, init_count=16_000, lr_means=SHORT_LR_MEANS,
+    "small": TrainConfig(preset="small", iterations=1500, init_count=16_000, lr_means=SMALL_LR_MEANS,
                          densify=DensifyConfig(max_gaussians=40_000)),
     "paper": TrainConfig(preset="paper", iterations=30_000, init_count=40_000),
 }
