@@ -257,3 +257,44 @@ def test_sigint_keeps_only_whole_files_and_the_rerun_completes(smoke, tmp_path):
     assert main(["dataset", "--preset", "smoke", "--out", str(out), "--quiet"]) == 0
     for p in out.glob("images/*/*.png"):
         assert p.read_bytes() == (smoke / p.relative_to(out)).read_bytes()
+
+
+def test_a_killed_renderer_and_a_full_disk_are_one_line_and_the_rerun_completes(smoke, tmp_path, monkeypatch,
+                                                                                 capsys):
+    import os
+    import subprocess
+    import sys
+
+    from datagen import build
+    from ragsplat_core import outputs
+
+    out = tmp_path / "data"
+    argv = ["dataset", "--preset", "smoke", "--out", str(out), "--quiet"]
+    real_popen = subprocess.Popen
+
+    def oom_killed(cmd, **kw):  # the Blender child dies as the kernel's OOM killer would kill it
+        return real_popen([sys.executable, "-c", "import os, signal; os.kill(os.getpid(), signal.SIGKILL)"], **kw)
+
+    monkeypatch.setattr(build.subprocess, "Popen", oom_killed)
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "killed by signal 9 (out of memory?)" in err[0] and "rerun to resume" in err[0], err
+    assert not list(out.rglob("*.tmp")) and not list(out.glob("scene/job.*"))
+    monkeypatch.undo()
+
+    real_replace = os.replace
+
+    def disk_full(src, dst):  # the disk fills when the metadata is written, after every image
+        if str(dst).endswith("transforms.json"):
+            raise OSError(28, "No space left on device", str(dst))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(outputs.os, "replace", disk_full)
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "transforms.json: No space left on device" in err[0], err
+    assert not list(out.rglob("*.tmp")) and not (out / "transforms.json").exists()
+    monkeypatch.undo()
+    assert main(argv) == 0  # the rerun skips the finished images and completes
+    for p in out.glob("images/*/*.png"):
+        assert p.read_bytes() == (smoke / p.relative_to(out)).read_bytes()
