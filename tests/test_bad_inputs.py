@@ -42,6 +42,15 @@ def full_disk(monkeypatch):
     monkeypatch.setattr(torch, "save", no_space)
 
 
+def read_only(monkeypatch):
+    from ragsplat_core import outputs
+
+    def denied(src, dst):
+        raise PermissionError(13, "Permission denied", str(dst))
+
+    monkeypatch.setattr(outputs.os, "replace", denied)
+
+
 TRAIN = ["train", "--data", "{data}", "--out", "{run}", "--preset", "smoke", "--iterations", "2",
          "--init-depth", "1.0", "--no-progress"]
 ABLATION = ["ablation", "--data", "{data}", "--out", "{run}", "--preset", "smoke", "--variants", "3dgs",
@@ -67,6 +76,8 @@ CASES = [
     ("unknown device", lambda t: None, TRAIN + ["--device", "tpu9"], "unknown torch device 'tpu9'", None),
     ("init depth in mm", lambda t: None, TRAIN + ["--init-depth", "1000"], "init depth 1000 m", None),
     ("disk full at the checkpoint", lambda t: None, TRAIN, "No space left on device", full_disk),
+    ("out not writable", lambda t: None, TRAIN, "Permission denied", read_only),
+    ("ablation out not writable", lambda t: None, ABLATION, "Permission denied", read_only),
     ("ablation without held-out views", lambda t: edit_json(
         t / "data" / "transforms.json", lambda m: [f.update(split="train") for f in m["frames"]]),
      ABLATION, "no frame has split 'test'", None),
