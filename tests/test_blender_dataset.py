@@ -295,6 +295,9 @@ def test_a_killed_renderer_and_a_full_disk_are_one_line_and_the_rerun_completes(
     assert len(err) == 1 and "transforms.json: No space left on device" in err[0], err
     assert not list(out.rglob("*.tmp")) and not (out / "transforms.json").exists()
     monkeypatch.undo()
+    # what a SIGKILL mid-write leaves (no handler runs): a rerun ignores such stale temporaries
+    (out / "images" / "wet" / ".0000.png.99999.tmp").write_bytes(b"half a PNG")
+    (out / ".transforms.json.99999.tmp").write_bytes(b"{")
     assert main(argv) == 0  # the rerun skips the finished images and completes
     for p in out.glob("images/*/*.png"):
         assert p.read_bytes() == (smoke / p.relative_to(out)).read_bytes()
