@@ -301,3 +301,18 @@ def test_a_killed_renderer_and_a_full_disk_are_one_line_and_the_rerun_completes(
     assert main(argv) == 0  # the rerun skips the finished images and completes
     for p in out.glob("images/*/*.png"):
         assert p.read_bytes() == (smoke / p.relative_to(out)).read_bytes()
+
+
+def test_a_rerun_that_renders_nothing_keeps_the_fingerprint(smoke, tmp_path, capsys):
+    from ragsplat_core.dataset.layout import fingerprint
+
+    out = tmp_path / "copy"
+    shutil.copytree(smoke, out)
+    scene = json.loads((out / "scene.json").read_text())
+    scene["versions"]["git_commit"] = "an older commit"  # rendered by another version of the code
+    (out / "scene.json").write_text(json.dumps(scene, indent=2) + "\n")
+    before = fingerprint(out)
+    assert main(["dataset", "--preset", "smoke", "--out", str(out), "--quiet"]) == 0
+    assert "nothing to render" in capsys.readouterr().out
+    assert fingerprint(out) == before  # the rows keyed on it stay valid
+    assert json.loads((out / "scene.json").read_text())["versions"]["git_commit"] == "an older commit"
