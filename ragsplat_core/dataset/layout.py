@@ -52,6 +52,7 @@ NO_HIT = 1e10  # Cycles' depth where a ray escapes; far beyond any scene distanc
 # The dataset's own local frame, for rasters: metres, x east, y north (no geodetic datum).
 LOCAL_CRS = ('LOCAL_CS["ragsplat scene (local metres, z up)",LOCAL_DATUM["scene origin",0],UNIT["metre",1],'
              'AXIS["X",EAST],AXIS["Y",NORTH]]')
+NODATA = -9999.0  # raster cells without a value
 
 
 def relative_path(kind: str, name: str) -> str:
@@ -175,31 +176,39 @@ class Surface:
             return cls(float(d["x0"]), float(d["cell"]), d["heights"])
 
 
-def write_elevation(path: Path, points: np.ndarray, step: float, nodata: float = -9999.0) -> None:
+def write_elevation(path: Path, points: np.ndarray, step: float, nodata: float = NODATA) -> None:
     """Grid points [N, 3] on a regular `step` lattice -> single-band float32 GeoTIFF of their heights
     (`write_raster`)."""
     write_raster(path, points[:, :2], [(points[:, 2], "bed elevation (m, z up, water plane at the scene's level)")],
                  step, nodata=nodata)
 
 
+def raster(xy: np.ndarray, values: np.ndarray, step: float) -> tuple[np.ndarray, tuple[float, float]]:
+    """Values [N] at horizontal points xy [N, 2] on a regular `step` lattice -> image [H, W] float64 (row 0
+    is the northern edge, NaN where the lattice has no point) and (west, north), its outer corner."""
+    ij = np.round((xy - xy.min(0)) / step).astype(np.int64)  # [N, 2] column, row from south
+    width, height = ij.max(0) + 1
+    image = np.full((height, width), np.nan)
+    image[height - 1 - ij[:, 1], ij[:, 0]] = values
+    return image, (xy[:, 0].min() - step / 2, xy[:, 1].max() + step / 2)
+
+
 def write_raster(path: Path, xy: np.ndarray, bands: list[tuple[np.ndarray, str]], step: float,
-                 crs: str = LOCAL_CRS, nodata: float = -9999.0) -> None:
+                 crs: str = LOCAL_CRS, nodata: float = NODATA) -> None:
     """Values at horizontal points xy [N, 2] (coordinates in `crs`) on a regular `step` lattice -> float32
     GeoTIFF with one band per (values [N], description), north up, pixel centres on the lattice nodes,
     `nodata` where the lattice has no point or the value is NaN."""
     import rasterio
     from rasterio.transform import Affine
 
-    ij = np.round((xy - xy.min(0)) / step).astype(np.int64)  # [N, 2] column, row from south
-    width, height = ij.max(0) + 1
-    west, north = xy[:, 0].min() - step / 2, xy[:, 1].max() + step / 2
+    images = [raster(xy, values, step) for values, _ in bands]
+    height, width = images[0][0].shape
+    west, north = images[0][1]
     with atomic_path(path) as tmp, rasterio.open(
-            tmp, "w", driver="GTiff", width=int(width), height=int(height), count=len(bands), dtype="float32",
+            tmp, "w", driver="GTiff", width=width, height=height, count=len(bands), dtype="float32",
             crs=crs, transform=Affine(step, 0.0, west, 0.0, -step, north), nodata=nodata, compress="deflate") as r:
-        for k, (values, description) in enumerate(bands, start=1):
-            band = np.full((height, width), nodata, np.float32)
-            band[height - 1 - ij[:, 1], ij[:, 0]] = np.where(np.isnan(values), nodata, values)  # row 0: north
-            r.write(band, k)
+        for k, ((image, _), (_, description)) in enumerate(zip(images, bands), start=1):
+            r.write(np.where(np.isnan(image), nodata, image).astype(np.float32), k)
             r.set_band_description(k, description)
 
 
