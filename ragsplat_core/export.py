@@ -170,8 +170,9 @@ def write_las(path: Path, bed: Bed) -> None:
     las = laspy.LasData(header)
     las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
     las.classification = np.where(np.isnan(bed.depth()), GROUND, BATHYMETRIC).astype(np.uint8)
-    with atomic_path(path) as tmp:
-        las.write(tmp, do_compress=Path(path).suffix.lower() == ".laz")  # tmp's own suffix is .tmp
+    # A stream, not the path: laspy picks compression by the name's suffix, and tmp's is .tmp
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        las.write(f, do_compress=Path(path).suffix.lower() == ".laz")
 
 
 def write_ply(path: Path, bed: Bed) -> None:

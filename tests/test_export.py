@@ -88,7 +88,8 @@ def test_export_writes_every_product(run, tmp_path, capsys):
     np.testing.assert_array_equal(values[:, 0], grid[:, 2].astype(np.float32))
     np.testing.assert_allclose(values[:, 1], -grid[:, 2], rtol=0, atol=1e-6)  # level 0
     las = laspy.read(out["laz"])
-    assert las.header.version == "1.4" and len(las.points) == len(grid)
+    assert las.header.version == "1.4" and las.header.point_format.id == 6 and len(las.points) == len(grid)
+    assert las.header.are_points_compressed
     np.testing.assert_allclose(np.column_stack([las.x, las.y, las.z]), grid, rtol=0, atol=0.0005)
     assert (las.classification == BATHYMETRIC).all()
     np.testing.assert_array_equal(read_ply(out["ply"]), grid)
@@ -131,6 +132,7 @@ def test_utm_offset_round_trip(tmp_path):
     np.testing.assert_allclose(values[wet, 1], -bed.grid[wet, 2], rtol=0, atol=1e-6)
     assert (values[~wet, 1] == NODATA).all()
     las = laspy.read(tmp_path / "bed.las")
+    assert not las.header.are_points_compressed
     np.testing.assert_allclose(np.column_stack([las.x, las.y, las.z]), absolute, rtol=0, atol=0.0005)
     np.testing.assert_array_equal(las.classification, np.where(wet, BATHYMETRIC, GROUND))
     assert las.header.global_encoding.wkt
