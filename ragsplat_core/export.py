@@ -57,13 +57,12 @@ class Georef:
 @dataclass(frozen=True)
 class Bed:
     """The extracted bed of one run: grid points [G, 3] in the local frame, one per covered cell (its centre,
-    the median height), the water level (None: a dry scene) and the extraction's counts."""
+    the median height), and the water level (None: a dry scene)."""
 
     grid: np.ndarray
     resolution: float
     level: float | None
     georef: Georef
-    stats: dict
 
     def absolute(self) -> np.ndarray:  # [G, 3] in the CRS
         return self.grid + np.asarray(self.georef.offset, dtype=np.float64)
@@ -78,7 +77,7 @@ class Bed:
 def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None = None, ply: Path | None = None,
                png: Path | None = None, data: Path | None = None, georef: Georef = Georef()) -> Bed:
     """Extract the bed of a finished run (`load_run`, `extract_bed`) and write the DEM and each other product
-    given a path. Returns the bed (local grid, level, counts)."""
+    given a path. Returns the bed."""
     gaussians, ds, seed = load_run(run, data)
     bed = extract_bed(gaussians, resolution, None if ds.water is None else ds.water.level, ds.eval_region,
                       georef, seed)
@@ -137,12 +136,12 @@ def extract_bed(gaussians: dict, resolution: float, level: float | None, region:
     # A node at absolute (k * resolution): local origin = the nearest such node minus the offset.
     origin = tuple(round(x0 / resolution) * resolution - x0 for x0 in georef.offset[:2])
     cfg = ExtractConfig(cell=resolution, n_samples=n, seed=seed)
-    grid, stats = extract_surface(gaussians["means"], gaussians["scales"], gaussians["quats"],
-                                  gaussians["opacities"], cfg, region, origin)
+    grid, _ = extract_surface(gaussians["means"], gaussians["scales"], gaussians["quats"],
+                              gaussians["opacities"], cfg, region, origin)
     if not len(grid):
         raise OutputError(f"no bed surface: no Gaussian is opaque enough (>= {cfg.min_opacity}) or the "
                           "noise filter removed every sample")
-    return Bed(grid, resolution, level, georef, stats)
+    return Bed(grid, resolution, level, georef)
 
 
 def write_dem(path: Path, bed: Bed) -> None:
