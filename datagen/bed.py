@@ -257,16 +257,3 @@ def waterline(bed: Bed, level: float) -> list[np.ndarray]:
     k = bed.mesh_heights.shape[0]
     c = bed.x0 + np.arange(k) * bed.cell
     return [line for line in contourpy.contour_generator(c, c, bed.mesh_heights).lines(level) if len(line) > 1]
-
-
-def write_ply(path, verts: np.ndarray, tris: np.ndarray) -> None:
-    """Binary little-endian PLY with double vertices (exact) and int32 triangles."""
-    header = (f"ply\nformat binary_little_endian 1.0\ncomment ragsplat riverbed (world metres, z up)\n"
-              f"element vertex {len(verts)}\nproperty double x\nproperty double y\nproperty double z\n"
-              f"element face {len(tris)}\nproperty list uchar int vertex_indices\nend_header\n")
-    face = np.empty(len(tris), dtype=[("n", "u1"), ("v", "<i4", (3,))])
-    face["n"], face["v"] = 3, tris
-    with open(path, "wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(np.ascontiguousarray(verts, dtype="<f8").tobytes())
-        f.write(face.tobytes())

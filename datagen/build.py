@@ -21,7 +21,7 @@ import numpy as np
 
 from blender_scenes.protocol import PROTOCOL
 from datagen import flight
-from datagen.bed import Bed, ground_truth, make_bed, mesh, surface, waterline, write_ply
+from datagen.bed import Bed, ground_truth, make_bed, mesh, surface, waterline
 from datagen.spec import SceneSpec, validate
 from ragsplat_core.camera import Camera
 from ragsplat_core.dataset import layout
@@ -145,8 +145,7 @@ def _write_bed_assets(spec: SceneSpec, out: Path) -> None:
         np.savez(fh, **geo)
     # Blender reads images bottom row first: flip so that texel row j (y index) is at v = (j + 0.5) / M.
     layout.write_png(files[1], np.ascontiguousarray(bed.albedo[::-1]))
-    with atomic_path(files[2]) as tmp:
-        write_ply(tmp, geo["bed_verts"], geo["bed_tris"])
+    layout.write_ply(files[2], geo["bed_verts"], geo["bed_tris"], "ragsplat riverbed (world metres, z up)")
     surface(bed).save(files[3])
     grid, banks = ground_truth(spec, bed, flight.eval_region(spec), layout.GT_GRID_STEP)
     layout.write_npy(out / layout.GT_GRID, grid)

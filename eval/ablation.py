@@ -29,12 +29,12 @@ import numpy as np
 
 from eval import metrics
 from eval.evaluate import evaluate_geometry, evaluate_views, model_gaussians, model_renderer, score_grid
-from eval.geometry import ExtractConfig
 from eval.references import REFERENCES, USES_GROUND_TRUTH, depth_times_n, oracle_plane
 from eval.report import depth_error_map, jsonable, write_outputs
 from ragsplat_core.dataset import layout
 from ragsplat_core.errors import ConfigError, DatasetError
 from ragsplat_core.outputs import claim, source_digest, versions, write_json
+from ragsplat_core.surface import ExtractConfig
 from ragsplat_core.train.config import TUNING, VARIANTS
 
 

@@ -14,9 +14,9 @@ import torch
 from scipy.spatial import cKDTree
 
 from eval import metrics
-from eval.geometry import ExtractConfig, extract_surface
 from ragsplat_core.dataset.layout import GT_GRID_STEP
 from ragsplat_core.scoring import geometry_metrics, thresholds
+from ragsplat_core.surface import ExtractConfig, extract_surface
 
 
 def _mean(values) -> float | None:

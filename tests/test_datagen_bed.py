@@ -6,8 +6,9 @@ import pytest
 import trimesh
 
 from datagen import flight
-from datagen.bed import ground_truth_grid, height_at, make_bed, mesh, write_ply
+from datagen.bed import ground_truth_grid, height_at, make_bed, mesh
 from datagen.spec import preset
+from ragsplat_core.dataset import layout
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +45,7 @@ def test_height_at_is_the_triangulated_mesh(smoke_bed, tmp_path):
     pts = np.einsum("nk,nkd->nd", w, verts[tris[pick]])
     np.testing.assert_allclose(height_at(smoke_bed, pts[:, :2]), pts[:, 2], atol=1e-12)
     # The PLY round-trips exactly through an independent reader.
-    write_ply(tmp_path / "bed.ply", verts, tris)
+    layout.write_ply(tmp_path / "bed.ply", verts, tris)
     m = trimesh.load(tmp_path / "bed.ply", process=False)
     assert np.array_equal(m.vertices, verts) and np.array_equal(m.faces, tris)
     assert np.all(m.face_normals[:, 2] > 0)  # counter-clockwise from above: normals up

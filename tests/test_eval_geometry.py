@@ -2,7 +2,9 @@ import numpy as np
 import pytest
 import torch
 
-from eval.geometry import (
+from ragsplat_core.gaussians import quat_to_rotmat
+from ragsplat_core.scoring import geometry_metrics
+from ragsplat_core.surface import (
     ExtractConfig,
     extract_surface,
     grid_median,
@@ -10,8 +12,6 @@ from eval.geometry import (
     plane_filter,
     sample_gaussians,
 )
-from ragsplat_core.gaussians import quat_to_rotmat
-from ragsplat_core.scoring import geometry_metrics
 
 
 def plane_grid(nx, ny, step, z=0.0):

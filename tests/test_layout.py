@@ -47,7 +47,7 @@ def test_data_contract_and_generator_import_without_torch():
 @pytest.mark.parametrize("pattern", [
     "def quat_to_rotmat(", "def covariance(", "def psnr(", "def versions(", "def temp_path(", "def atomic_path(",
     "def ground_offset(", "math.asin(", "def footprint(cameras", "VARIANTS: dict", "class DatasetError(",
-    "class SpecError(",
+    "class SpecError(", "def extract_surface(", "NODATA = ",
     '"@@ragsplat ', "def training_bar(", "os.replace(",
 ])
 def test_one_definition(pattern):
@@ -59,7 +59,7 @@ def test_version_and_command_order(capsys):
     with pytest.raises(SystemExit) as done:
         main(["--version"])
     assert done.value.code == 0 and capsys.readouterr().out.startswith("ragsplat ")
-    assert list(COMMANDS) == ["dataset", "train", "ablation", "stability", "bench"]
+    assert list(COMMANDS) == ["dataset", "train", "ablation", "export", "stability", "bench"]
 
 
 def test_library_error_is_one_line_and_exit_2(tmp_path, capsys):

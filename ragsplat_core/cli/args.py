@@ -49,6 +49,18 @@ def out_file(text: str) -> Path:
     return path
 
 
+def out_file_ending(*suffixes: str):
+    """An `out_file` type whose name must end in one of `suffixes` (the name picks the format)."""
+
+    def check(text: str) -> Path:
+        path = out_file(text)
+        if path.suffix.lower() not in suffixes:
+            raise argparse.ArgumentTypeError(f"{path} must end in {' or '.join(suffixes)}")
+        return path
+
+    return check
+
+
 def out_dir(text: str) -> Path:
     """A directory to create or reuse: not an existing file."""
     path = Path(text)

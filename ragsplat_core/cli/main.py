@@ -15,11 +15,12 @@ import os
 import signal
 import sys
 
-# name -> (module, one-line help), in workflow order: make data, train, evaluate; then the diagnostics.
+# name -> (module, one-line help), in workflow order: make data, train, evaluate, export; then the diagnostics.
 COMMANDS: dict[str, tuple[str, str]] = {
     "dataset": ("datagen.cli", "render the synthetic riverbed dataset (Blender Cycles, resumable, shardable)"),
     "train": ("ragsplat_core.cli.train", "train one RA-GS variant on a dataset directory (resumable)"),
     "ablation": ("eval.cli", "train every variant, evaluate, and print Tables 1 and 2 beside the paper's"),
+    "export": ("ragsplat_core.cli.export", "a trained run's bed as survey products: DEM GeoTIFF, LAS/LAZ, PLY, PNG"),
     "stability": ("ragsplat_core.cli.stability", "numerical stability report of the refraction transform"),
     "bench": ("ragsplat_core.cli.bench", "benchmarks: refraction solvers, rasterizer, training step"),
 }

@@ -52,6 +52,7 @@ NO_HIT = 1e10  # Cycles' depth where a ray escapes; far beyond any scene distanc
 # The dataset's own local frame, for rasters: metres, x east, y north (no geodetic datum).
 LOCAL_CRS = ('LOCAL_CS["ragsplat scene (local metres, z up)",LOCAL_DATUM["scene origin",0],UNIT["metre",1],'
              'AXIS["X",EAST],AXIS["Y",NORTH]]')
+NODATA = -9999.0  # raster cells without a value
 
 
 def relative_path(kind: str, name: str) -> str:
@@ -69,6 +70,22 @@ def output_path(root: Path, kind: str, name: str) -> Path:
 def write_npy(path: Path, array: np.ndarray) -> None:
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.save(f, array)
+
+
+def write_ply(path: Path, verts: np.ndarray, tris: np.ndarray | None = None, comment: str = "") -> None:
+    """Binary little-endian PLY of vertices [N, 3] as doubles (exact, also at UTM-sized coordinates) and,
+    when given, triangles [F, 3] as int32 vertex lists. (Trained Gaussians: `ragsplat_core.ply`.)"""
+    header = "ply\nformat binary_little_endian 1.0\n" + (f"comment {comment}\n" if comment else "")
+    header += f"element vertex {len(verts)}\nproperty double x\nproperty double y\nproperty double z\n"
+    if tris is not None:
+        header += f"element face {len(tris)}\nproperty list uchar int vertex_indices\n"
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write((header + "end_header\n").encode("ascii"))
+        f.write(np.ascontiguousarray(verts, dtype="<f8").tobytes())
+        if tris is not None:
+            face = np.empty(len(tris), dtype=[("n", "u1"), ("v", "<i4", (3,))])
+            face["n"], face["v"] = 3, tris
+            f.write(face.tobytes())
 
 
 def write_depth(path: Path, depth: np.ndarray) -> None:
@@ -159,22 +176,40 @@ class Surface:
             return cls(float(d["x0"]), float(d["cell"]), d["heights"])
 
 
-def write_elevation(path: Path, points: np.ndarray, step: float, nodata: float = -9999.0) -> None:
-    """Grid points [N, 3] on a regular `step` lattice -> single-band float32 GeoTIFF in `LOCAL_CRS`, north
-    up, pixel centres on the lattice nodes, `nodata` where the lattice has no point."""
+def write_elevation(path: Path, points: np.ndarray, step: float, nodata: float = NODATA) -> None:
+    """Grid points [N, 3] on a regular `step` lattice -> single-band float32 GeoTIFF of their heights
+    (`write_raster`)."""
+    write_raster(path, points[:, :2], [(points[:, 2], "bed elevation (m, z up, water plane at the scene's level)")],
+                 step, nodata=nodata)
+
+
+def raster(xy: np.ndarray, values: np.ndarray, step: float) -> tuple[np.ndarray, tuple[float, float]]:
+    """Values [N] at horizontal points xy [N, 2] on a regular `step` lattice -> image [H, W] float64 (row 0
+    is the northern edge, NaN where the lattice has no point) and (west, north), its outer corner."""
+    ij = np.round((xy - xy.min(0)) / step).astype(np.int64)  # [N, 2] column, row from south
+    width, height = ij.max(0) + 1
+    image = np.full((height, width), np.nan)
+    image[height - 1 - ij[:, 1], ij[:, 0]] = values
+    return image, (xy[:, 0].min() - step / 2, xy[:, 1].max() + step / 2)
+
+
+def write_raster(path: Path, xy: np.ndarray, bands: list[tuple[np.ndarray, str]], step: float,
+                 crs: str = LOCAL_CRS, nodata: float = NODATA) -> None:
+    """Values at horizontal points xy [N, 2] (coordinates in `crs`) on a regular `step` lattice -> float32
+    GeoTIFF with one band per (values [N], description), north up, pixel centres on the lattice nodes,
+    `nodata` where the lattice has no point or the value is NaN."""
     import rasterio
     from rasterio.transform import Affine
 
-    ij = np.round((points[:, :2] - points[:, :2].min(0)) / step).astype(np.int64)  # [N, 2] column, row from south
-    width, height = ij.max(0) + 1
-    band = np.full((height, width), nodata, np.float32)
-    band[height - 1 - ij[:, 1], ij[:, 0]] = points[:, 2]  # row 0 is the northern edge
-    west, north = points[:, 0].min() - step / 2, points[:, 1].max() + step / 2
+    images = [raster(xy, values, step) for values, _ in bands]
+    height, width = images[0][0].shape
+    west, north = images[0][1]
     with atomic_path(path) as tmp, rasterio.open(
-            tmp, "w", driver="GTiff", width=int(width), height=int(height), count=1, dtype="float32",
-            crs=LOCAL_CRS, transform=Affine(step, 0.0, west, 0.0, -step, north), nodata=nodata, compress="deflate") as r:
-        r.write(band, 1)
-        r.set_band_description(1, "bed elevation (m, z up, water plane at the scene's level)")
+            tmp, "w", driver="GTiff", width=width, height=height, count=len(bands), dtype="float32",
+            crs=crs, transform=Affine(step, 0.0, west, 0.0, -step, north), nodata=nodata, compress="deflate") as r:
+        for k, ((image, _), (_, description)) in enumerate(zip(images, bands), start=1):
+            r.write(np.where(np.isnan(image), nodata, image).astype(np.float32), k)
+            r.set_band_description(k, description)
 
 
 def write_waterline(path: Path, lines: list[np.ndarray], level: float) -> None:

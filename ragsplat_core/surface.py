@@ -1,4 +1,5 @@
-"""Geometry for Table 2: a bed height grid extracted from trained Gaussians, scored against the GT grid.
+"""The bed surface of trained Gaussians as a height grid: what the evaluation scores against the GT grid
+(Table 2) and what `ragsplat export` writes as a DEM.
 
 Extraction (the paper's Section 3, "Geometry Extraction"):
 1. cull Gaussians below an opacity threshold (and, when a region is given, those whose centre lies more
@@ -15,9 +16,7 @@ Extraction (the paper's Section 3, "Geometry Extraction"):
    share their nodes; otherwise a half-cell offset alone costs ~2.5 cm of Chamfer): one point per occupied
    cell at its node (the cell centre) with the median height of the cell's points.
 
-Metrics against the GT grid points (`ragsplat_core.scoring.geometry_metrics`, shared with the dataset
-generator's null models): accuracy = mean distance prediction -> GT, completeness = GT -> prediction,
-Chamfer = their mean (metres, unsquared); precision / recall / F1 at each threshold with a strict `<`.
+The evaluation scores the grid with `ragsplat_core.scoring.geometry_metrics` (`eval.evaluate`).
 """
 
 from __future__ import annotations

@@ -1,0 +1,214 @@
+"""Survey products from a finished training run (`ragsplat export`): the bed surface as a DEM GeoTIFF
+(elevation and water depth), the bed points as LAS/LAZ and PLY, and a depth map PNG over a hillshade.
+
+The bed is `surface.extract_surface` of the trained Gaussians on a grid of `resolution` metres, cropped to
+the dataset's evaluation region when it has one. Every product is in one coordinate frame: the run's local
+frame (metres, x east, y north, z up) plus a `Georef` offset, in the CRS the `Georef` names (default: the
+local frame, zero offset). Depth is level - bed height where the bed lies below the water level; emerged
+ground has no depth (nodata in the DEM, grey in the PNG; class 2 instead of 40 in the LAS).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ragsplat_core.dataset import layout
+from ragsplat_core.dataset.load import Dataset, load_dataset
+from ragsplat_core.errors import ConfigError, DatasetError, OutputError
+from ragsplat_core.gaussians import activated
+from ragsplat_core.outputs import atomic_path
+from ragsplat_core.ply import load_ply
+from ragsplat_core.surface import ExtractConfig, extract_surface
+from ragsplat_core.train.trainer import PLY
+
+BATHYMETRIC, GROUND = 40, 2  # ASPRS classes (LAS 1.4 R15): submerged bed ("bathymetric point"), emerged
+LAS_SCALE = 0.001  # metres per integer step of the LAS coordinates
+# Samples per m^2 of the area: 16 per 5 cm cell, the ablation's density (the noise filter needs 6 neighbours
+# within 10 cm, whatever the cell), and never fewer than 16 per cell at finer resolutions.
+SAMPLE_DENSITY, SAMPLES_PER_CELL = 16 / 0.05**2, 16
+MAX_SAMPLES = 20_000_000  # about 4 GB while sampling (200 bytes each): a finer resolution is a typo
+
+
+@dataclass(frozen=True)
+class Georef:
+    """Local run coordinates -> a CRS: absolute = local + offset (x0, y0, z0), in `crs` (EPSG:32633, WKT...)."""
+
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    crs: str = layout.LOCAL_CRS
+
+    def __post_init__(self):
+        self.wkt()  # an unusable CRS is refused before any work
+
+    def wkt(self) -> str:
+        from rasterio.crs import CRS
+        from rasterio.errors import CRSError
+
+        try:
+            return CRS.from_user_input(self.crs).to_wkt()
+        except CRSError as err:
+            raise ConfigError(f"CRS {self.crs!r} is not usable: {err}") from None
+
+
+@dataclass(frozen=True)
+class Bed:
+    """The extracted bed of one run: grid points [G, 3] in the local frame, one per covered cell (its centre,
+    the median height), and the water level (None: a dry scene)."""
+
+    grid: np.ndarray
+    resolution: float
+    level: float | None
+    georef: Georef
+
+    def absolute(self) -> np.ndarray:  # [G, 3] in the CRS
+        return self.grid + np.asarray(self.georef.offset, dtype=np.float64)
+
+    def depth(self) -> np.ndarray:  # [G] water depth, NaN on emerged ground and in a dry scene
+        if self.level is None:
+            return np.full(len(self.grid), np.nan)
+        d = self.level - self.grid[:, 2]
+        return np.where(d > 0, d, np.nan)
+
+
+def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None = None, ply: Path | None = None,
+               png: Path | None = None, data: Path | None = None, georef: Georef = Georef()) -> Bed:
+    """Extract the bed of a finished run (`load_run`, `extract_bed`) and write the DEM and each other product
+    given a path. Returns the bed."""
+    gaussians, ds, seed = load_run(run, data)
+    bed = extract_bed(gaussians, resolution, None if ds.water is None else ds.water.level, ds.eval_region,
+                      georef, seed)
+    write_dem(dem, bed)
+    for path, write in ((las, write_las), (ply, write_ply), (png, write_png)):
+        if path is not None:
+            write(path, bed)
+    return bed
+
+
+def load_run(run: Path, data: Path | None = None) -> tuple[dict, Dataset, int]:
+    """A finished run directory -> (activated Gaussians {means, scales, quats, opacities}, its `Dataset` read
+    without images, the run's seed, which also seeds the extraction). `data` replaces the dataset directory
+    config.json names (a moved dataset). Raises OutputError (not a finished run) or DatasetError (dataset
+    missing or changed)."""
+    run = Path(run)
+    for name in ("config.json", PLY):
+        if not (run / name).is_file():
+            raise OutputError(f"{run}: not a finished training run (no {name}; `ragsplat train` writes it)")
+    try:
+        meta = json.loads((run / "config.json").read_text())
+        dataset, seed = Path(meta["dataset"]), int(meta["config"]["seed"])
+    except (ValueError, KeyError, TypeError):
+        raise OutputError(f"{run / 'config.json'}: not a training run's config (no dataset or seed)") from None
+    root = dataset if data is None else Path(data)
+    if not root.is_dir():
+        raise DatasetError(f"{root}: the run's dataset directory does not exist (moved? give --data)")
+    ds = load_dataset(root, splits=())
+    if meta.get("dataset_fingerprint") not in (None, ds.fingerprint):
+        raise DatasetError(f"{root} is not the dataset {run} was trained on (fingerprint {ds.fingerprint}, "
+                           f"the run's {meta['dataset_fingerprint']})")
+    try:
+        splats = load_ply(run / PLY)
+    except ValueError as err:
+        raise OutputError(str(err)) from None
+    scales, quats, opacities = activated(splats)
+    return {"means": splats["means"], "scales": scales, "quats": quats, "opacities": opacities}, ds, seed
+
+
+def extract_bed(gaussians: dict, resolution: float, level: float | None, region: dict | None = None,
+                georef: Georef = Georef(), seed: int = 0) -> Bed:
+    """The bed of activated Gaussians (means [N, 3], scales [N, 3], quats [N, 4], opacities [N]) on a grid
+    of `resolution` metres whose nodes lie on multiples of it in the CRS (tiles of two runs line up),
+    inside `region` {xmin, xmax, ymin, ymax} when given. Raises ConfigError, OutputError (nothing found)."""
+    means = gaussians["means"].detach().cpu().numpy()  # [N, 3]
+    if region is None:
+        xy = means[gaussians["opacities"].detach().cpu().numpy() >= ExtractConfig.min_opacity, :2]
+        lo, hi = np.percentile(xy, [1, 99], axis=0) if len(xy) else (np.zeros(2), np.zeros(2))  # not floaters'
+    else:
+        lo, hi = np.array([region["xmin"], region["ymin"]]), np.array([region["xmax"], region["ymax"]])
+    area = max(float(np.prod(hi - lo)), resolution**2)
+    n = math.ceil(area * max(SAMPLE_DENSITY, SAMPLES_PER_CELL / resolution**2))
+    if n > MAX_SAMPLES:
+        raise ConfigError(f"resolution {resolution:g} m over {area:.4g} m^2 needs {n:.3g} samples (at most "
+                          f"{MAX_SAMPLES:.0e}); choose a coarser resolution")
+    # A node at absolute (k * resolution): local origin = the nearest such node minus the offset.
+    origin = tuple(round(x0 / resolution) * resolution - x0 for x0 in georef.offset[:2])
+    cfg = ExtractConfig(cell=resolution, n_samples=n, seed=seed)
+    grid, _ = extract_surface(gaussians["means"], gaussians["scales"], gaussians["quats"],
+                              gaussians["opacities"], cfg, region, origin)
+    if not len(grid):
+        raise OutputError(f"no bed surface: no Gaussian is opaque enough (>= {cfg.min_opacity}) or the "
+                          "noise filter removed every sample")
+    return Bed(grid, resolution, level, georef)
+
+
+def write_dem(path: Path, bed: Bed) -> None:
+    """GeoTIFF, two float32 bands: 1 = bed elevation (m, z up, + z0), 2 = water depth (m, nodata on
+    emerged ground); nodata (`layout.NODATA`) outside the covered cells."""
+    above = "" if bed.level is None else f"; water level {bed.level + bed.georef.offset[2]:g} m"
+    layout.write_raster(path, bed.absolute()[:, :2], [
+        (bed.absolute()[:, 2], f"bed elevation (m, z up{above})"),
+        (bed.depth(), "water depth (m, level - bed where the bed is submerged; nodata on emerged ground)"),
+    ], bed.resolution, crs=bed.georef.crs)
+
+
+def write_las(path: Path, bed: Bed) -> None:
+    """LAS 1.4 (point format 6), or LAZ when `path` ends in .laz: one point per covered cell, integer
+    coordinates of 1 mm, classes `BATHYMETRIC` (submerged) and `GROUND` (emerged), the CRS as a WKT record."""
+    import laspy
+    from laspy.vlrs.known import WktCoordinateSystemVlr
+
+    pts = bed.absolute()
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales = np.full(3, LAS_SCALE)
+    header.offsets = np.floor(pts.min(0))  # whole metres: small positive integers fit int32 up to 2000 km
+    header.vlrs.append(WktCoordinateSystemVlr(bed.georef.wkt()))
+    header.global_encoding.wkt = True
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
+    las.classification = np.where(np.isnan(bed.depth()), GROUND, BATHYMETRIC).astype(np.uint8)
+    # A stream, not the path: laspy picks compression by the name's suffix, and tmp's is .tmp
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        las.write(f, do_compress=Path(path).suffix.lower() == ".laz")
+
+
+def write_ply(path: Path, bed: Bed) -> None:
+    """The same points as a PLY of doubles x, y, z in the CRS."""
+    layout.write_ply(path, bed.absolute(), comment=f"ragsplat bed points (m, z up, CRS {bed.georef.crs})")
+
+
+def hillshade(z: np.ndarray, step: float, azimuth: float = 315.0, altitude: float = 45.0) -> np.ndarray:
+    """Heights [H, W] (row 0 north, NaN = none) -> illumination [H, W] in [0, 1] by a sun at `azimuth` degrees
+    clockwise from north and `altitude` above the horizon (NaN next to missing cells)."""
+    d_row, d_col = np.gradient(z, step)
+    normal = np.stack([-d_col, d_row, np.ones_like(z)])  # (-dz/dx, -dz/dy, 1); y grows northwards = -row
+    az, alt = np.radians(azimuth), np.radians(altitude)
+    sun = np.array([np.sin(az) * np.cos(alt), np.cos(az) * np.cos(alt), np.sin(alt)])
+    return np.clip(np.einsum("khw,k->hw", normal, sun) / np.linalg.norm(normal, axis=0), 0, 1)
+
+
+def write_png(path: Path, bed: Bed) -> None:
+    """Water depth in colour, with a colour bar, over a hillshade of the bed (emerged ground in grey)."""
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only, no display
+    import matplotlib.pyplot as plt
+
+    xy, step = bed.absolute()[:, :2], bed.resolution
+    height, (west, north) = layout.raster(xy, bed.absolute()[:, 2], step)
+    depth, _ = layout.raster(xy, bed.depth(), step)
+    extent = (west, west + height.shape[1] * step, north - height.shape[0] * step, north)
+    fig, ax = plt.subplots(figsize=(7, 5.5), constrained_layout=True)
+    ax.imshow(hillshade(height, step), cmap="gray", vmin=0, vmax=1, extent=extent)
+    wet = depth[np.isfinite(depth)]
+    im = ax.imshow(depth, cmap="viridis_r", alpha=0.65, extent=extent, vmin=0,
+                   vmax=float(wet.max()) if len(wet) else 1.0)
+    fig.colorbar(im, ax=ax, label="water depth (m); grey: emerged ground", shrink=0.85)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"water depth over a hillshade of the bed, {step:g} m cells")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+    plt.close(fig)

@@ -1,0 +1,179 @@
+"""`ragsplat export`: a trained run's bed as a DEM GeoTIFF, LAS/LAZ, PLY and PNG, read back with rasterio,
+laspy and numpy; a flat bed of known depth; UTM-sized coordinates; one-line errors."""
+
+import json
+import shutil
+
+import laspy
+import numpy as np
+import pytest
+import rasterio
+import torch
+from conftest import WATER, render_dataset
+from rasterio.crs import CRS
+
+from ragsplat_core.bench.synthetic import bed_scene, ring_cameras
+from ragsplat_core.cli.main import main
+from ragsplat_core.dataset.layout import LOCAL_CRS, NODATA
+from ragsplat_core.errors import ConfigError
+from ragsplat_core.export import (
+    BATHYMETRIC,
+    GROUND,
+    Georef,
+    extract_bed,
+    hillshade,
+    load_run,
+    write_dem,
+    write_las,
+    write_ply,
+)
+from ragsplat_core.ply import save_ply
+
+REGION = {"xmin": -0.8, "xmax": 0.8, "ymin": -0.8, "ymax": 0.8}
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A finished 2-iteration run on a bed 1 m under water."""
+    root = tmp_path_factory.mktemp("export")
+    cams = ring_cameras(5, 20, 1.5, 0.8, target=(0, 0, -1))
+    render_dataset(root / "data", bed_scene(300, 1.0, 1.0, seed=2), cams, WATER, 1, REGION)
+    assert main(["train", "--data", str(root / "data"), "--out", str(root / "run"), "--preset", "smoke",
+                 "--iterations", "2", "--init-depth", "1.0", "--no-progress"]) == 0
+    return root / "run"
+
+
+def plane_gaussians(z, half=1.0, step=0.05) -> dict:
+    """Flat discs (sigma 3 cm x 3 cm x 3 mm, opacity 0.8) on a `step` lattice over [-half, half]^2 at
+    heights z(x, y): activated parameters as `load_run` returns them."""
+    x, y = np.meshgrid(np.arange(-half, half + step / 2, step), np.arange(-half, half + step / 2, step))
+    means = np.column_stack([x.ravel(), y.ravel(), z(x.ravel(), y.ravel())])
+    n = len(means)
+    return {"means": torch.tensor(means, dtype=torch.float32), "scales": torch.tensor([[0.03, 0.03, 0.003]] * n),
+            "quats": torch.tensor([[1.0, 0, 0, 0]] * n), "opacities": torch.full((n,), 0.8)}
+
+
+def read_ply(path) -> np.ndarray:
+    data = path.read_bytes()
+    head, body = data.split(b"end_header\n", 1)
+    assert b"property double x\nproperty double y\nproperty double z\n" in head
+    return np.frombuffer(body, "<f8").reshape(-1, 3)
+
+
+def at_cells(tif, points: np.ndarray) -> np.ndarray:
+    """[N, 2] band values (both bands) at the pixels holding absolute points [N, 2]; checks each point is
+    its pixel's centre."""
+    rows, cols = rasterio.transform.rowcol(tif.transform, points[:, 0], points[:, 1])
+    centres = np.column_stack(rasterio.transform.xy(tif.transform, rows, cols))
+    np.testing.assert_allclose(centres, points, rtol=0, atol=1e-6)
+    return tif.read()[:, rows, cols].T
+
+
+def test_export_writes_every_product(run, tmp_path, capsys):
+    out = {k: tmp_path / f"bed.{k}" for k in ("tif", "laz", "ply", "png")}
+    assert main(["export", str(run), "--dem", str(out["tif"]), "--las", str(out["laz"]), "--ply", str(out["ply"]),
+                 "--png", str(out["png"])]) == 0
+    gaussians, ds, seed = load_run(run)
+    bed = extract_bed(gaussians, 0.05, ds.water.level, ds.eval_region, seed=seed)  # deterministic: the same
+    grid = bed.grid
+    assert len(grid) > 100 and (grid[:, 2] < 0).all()  # 2 steps from the grid at -1 m: all under water
+    stdout = capsys.readouterr().out
+    assert f"{len(grid)} cells of 0.05 m, {len(grid)} under water" in stdout and f"wrote {out['png']}" in stdout
+    with rasterio.open(out["tif"]) as tif:
+        assert tif.count == 2 and tif.dtypes == ("float32", "float32") and tif.nodata == NODATA
+        assert tif.crs.to_wkt().startswith(LOCAL_CRS[:LOCAL_CRS.index(",")])  # GeoTIFF keeps the local frame's name
+        assert tif.transform.a == 0.05 and tif.transform.e == -0.05 and tif.transform.b == tif.transform.d == 0
+        values = at_cells(tif, grid[:, :2])
+        assert (tif.read(1) != NODATA).sum() == len(grid)  # nothing else is covered
+    np.testing.assert_array_equal(values[:, 0], grid[:, 2].astype(np.float32))
+    np.testing.assert_allclose(values[:, 1], -grid[:, 2], rtol=0, atol=1e-6)  # level 0
+    las = laspy.read(out["laz"])
+    assert las.header.version == "1.4" and las.header.point_format.id == 6 and len(las.points) == len(grid)
+    assert las.header.are_points_compressed
+    np.testing.assert_allclose(np.column_stack([las.x, las.y, las.z]), grid, rtol=0, atol=0.0005)
+    assert (las.classification == BATHYMETRIC).all()
+    np.testing.assert_array_equal(read_ply(out["ply"]), grid)
+    assert out["png"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_flat_bed_at_known_depth(run, tmp_path):
+    flat = tmp_path / "run"
+    shutil.copytree(run, flat)
+    g = plane_gaussians(lambda x, y: np.full_like(x, -1.5))
+    save_ply(flat / "point_cloud.ply", {"means": g["means"], "sh0": torch.zeros(len(g["means"]), 1, 3),
+                                         "opacities": torch.logit(g["opacities"]), "scales": g["scales"].log(),
+                                         "quats": g["quats"]})
+    assert main(["export", str(flat), "--dem", str(tmp_path / "dem.tif"), "--resolution", "0.1"]) == 0
+    with rasterio.open(tmp_path / "dem.tif") as tif:
+        elevation, depth = tif.read()
+        # the region [-0.8, 0.8]^2 at 10 cm, nodes on multiples of 10 cm: 17 x 17 cells, all covered
+        assert elevation.shape == (17, 17) and tif.transform.c == pytest.approx(-0.85)
+    assert np.abs(depth - 1.5).max() < 0.005 and np.abs(elevation + 1.5).max() < 0.005
+
+
+def test_utm_offset_round_trip(tmp_path):
+    # A bed sloping up through the water plane (waterline at x = 0.5) in UTM zone 33N
+    x0, y0, z0 = 500_000.012, 5_000_000.037, 100.0
+    georef = Georef((x0, y0, z0), "EPSG:32633")
+    g = plane_gaussians(lambda x, y: 0.2 * x - 0.1)
+    bed = extract_bed(g, 0.05, 0.0, {"xmin": -0.7, "xmax": 0.7, "ymin": -0.7, "ymax": 0.7}, georef)
+    absolute = bed.grid + [x0, y0, z0]
+    wet = bed.grid[:, 2] < 0
+    assert 0.3 < wet.mean() < 0.9 and np.abs(bed.grid[:, 2] - (0.2 * bed.grid[:, 0] - 0.1)).max() < 0.01
+    write_dem(tmp_path / "dem.tif", bed)
+    write_las(tmp_path / "bed.las", bed)
+    write_ply(tmp_path / "bed.ply", bed)
+    with rasterio.open(tmp_path / "dem.tif") as tif:
+        assert tif.crs == CRS.from_epsg(32633)
+        nodes = (tif.transform.c + 0.025) / 0.05, (tif.transform.f - 0.025) / 0.05
+        np.testing.assert_allclose(nodes, np.round(nodes), rtol=0, atol=1e-6)  # on multiples of 5 cm
+        values = at_cells(tif, absolute[:, :2])  # the pixel centres are the absolute points to 1e-6 m
+    np.testing.assert_allclose(values[:, 0], absolute[:, 2], rtol=0, atol=1e-4)  # float32 at 100 m
+    np.testing.assert_allclose(values[wet, 1], -bed.grid[wet, 2], rtol=0, atol=1e-6)
+    assert (values[~wet, 1] == NODATA).all()
+    las = laspy.read(tmp_path / "bed.las")
+    assert not las.header.are_points_compressed
+    np.testing.assert_allclose(np.column_stack([las.x, las.y, las.z]), absolute, rtol=0, atol=0.0005)
+    np.testing.assert_array_equal(las.classification, np.where(wet, BATHYMETRIC, GROUND))
+    assert las.header.global_encoding.wkt
+    assert CRS.from_wkt(las.header.vlrs[0].string) == CRS.from_epsg(32633)
+    np.testing.assert_array_equal(read_ply(tmp_path / "bed.ply"), absolute)
+    with pytest.raises(ConfigError, match="CRS 'EPSG:0' is not usable"):
+        Georef(crs="EPSG:0")
+
+
+def test_hillshade_orientation():
+    y = np.arange(5.0)[::-1, None] * np.ones(5)  # row 0 is north: z = y rises northwards (faces south)
+    np.testing.assert_allclose(hillshade(y, 1.0, azimuth=180, altitude=45), 1.0)  # sun in the south, normal
+    np.testing.assert_allclose(hillshade(y, 1.0, azimuth=0, altitude=45), 0.0, atol=1e-12)
+    np.testing.assert_allclose(hillshade(np.zeros((3, 3)), 1.0), np.sin(np.radians(45)))
+    x = np.ones(5)[:, None] * np.arange(5.0)  # z = x rises eastwards: lit from the west
+    np.testing.assert_allclose(hillshade(x, 1.0, azimuth=270, altitude=45), 1.0)
+
+
+def test_not_a_run_or_no_dataset_is_one_line(run, tmp_path, capsys):
+    moved = tmp_path / "moved"
+    shutil.copytree(run, moved)
+    meta = json.loads((moved / "config.json").read_text())
+    meta["dataset"] = str(tmp_path / "gone")
+    (moved / "config.json").write_text(json.dumps(meta))
+    changed = tmp_path / "data"
+    shutil.copytree(json.loads((run / "config.json").read_text())["dataset"], changed)
+    with open(changed / "transforms.json", "a") as f:
+        f.write(" ")  # same cameras, other bytes
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    dem = tmp_path / "dem.tif"
+    cases = [([str(empty)], "not a finished training run (no config.json"),
+             ([str(tmp_path / "nowhere")], "not a finished training run"),
+             ([str(moved)], f"{tmp_path / 'gone'}: the run's dataset directory does not exist"),
+             ([str(run), "--data", str(changed)], f"{changed} is not the dataset {run} was trained on")]
+    for argv, phrase in cases:
+        assert main(["export", *argv, "--dem", str(dem)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("ragsplat export: error: ") and phrase in err[0], err
+    for argv, option in ((["--las", str(tmp_path / "bed.txt")], "--las"), (["--resolution", "0"], "--resolution")):
+        with pytest.raises(SystemExit) as done:
+            main(["export", str(run), "--dem", str(dem), *argv])
+        assert done.value.code == 2 and option in capsys.readouterr().err.splitlines()[-1]
+    assert not dem.exists()
