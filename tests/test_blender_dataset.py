@@ -243,8 +243,10 @@ def test_sigint_keeps_only_whole_files_and_the_rerun_completes(smoke, tmp_path):
     import time
 
     out = tmp_path / "interrupted"
-    cmd = [sys.executable, "-m", "ragsplat_core.cli.main", "dataset", "--preset", "smoke", "--out", str(out),
-           "--quiet"]
+    # A shell's background job ignores SIGINT and children inherit that: the command gets Python's default
+    start = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+             "sys.argv[0] = 'ragsplat'; runpy.run_module('ragsplat_core.cli.main', run_name='__main__')")
+    cmd = [sys.executable, "-c", start, "dataset", "--preset", "smoke", "--out", str(out), "--quiet"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120
     # the first finished image: most of the render is still ahead (a later signal can miss a fast render)
