@@ -156,6 +156,7 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
     if not seeds or len(set(seeds)) != len(seeds):
         raise ConfigError(f"seeds must be distinct and at least one, got {seeds}")
     claim(out, "ablation", legacy=("results.json", "*/row.json", "*/seed*/row.json", "*/ckpt.pt"))
+    stamp = versions("torch", "scipy")  # the code that runs now, not the checkout at the end of a long run
     truth = runner.truth
     base = {"dataset": runner.fingerprint, "code": source_digest(*CODE), "harness": asdict(PRESETS[preset])}
     lpips_metric, lpips_reason = metrics.load_lpips(vgg16, download=download, log=log)
@@ -186,7 +187,7 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
     header = {"data": str(Path(data).resolve()), "dataset_fingerprint": runner.fingerprint,
               "dataset_seed": runner.dataset_seed, "tuning": TUNING, "preset": preset, "seeds": list(seeds),
               "harness_preset": asdict(PRESETS[preset]), "code_digest": base["code"],
-              "versions": versions("torch", "scipy"), "command": sys.argv,
+              "versions": stamp, "command": sys.argv,
               "max_depth_m": truth.max_depth, "level": truth.level,
               "lpips_network": getattr(lpips_metric, "network", None),
               "references": {"names": list(REFERENCES), "use_ground_truth": list(USES_GROUND_TRUTH)}}
