@@ -75,7 +75,7 @@ CASES = [
     ("checkpoint garbage", garbage_checkpoint, TRAIN, "not a readable checkpoint", None),
     ("unknown device", lambda t: None, TRAIN + ["--device", "tpu9"], "unknown torch device 'tpu9'", None),
     ("init depth in mm", lambda t: None, TRAIN + ["--init-depth", "1000"], "init depth 1000 m", None),
-    ("disk full at the checkpoint", lambda t: None, TRAIN, "No space left on device", full_disk),
+    ("disk full at the checkpoint", lambda t: None, TRAIN, "run/ckpt.pt: No space left on device", full_disk),
     ("out not writable", lambda t: None, TRAIN, "Permission denied", read_only),
     ("ablation out not writable", lambda t: None, ABLATION, "Permission denied", read_only),
     ("ablation without held-out views", lambda t: edit_json(
