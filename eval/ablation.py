@@ -98,7 +98,7 @@ def cached_row(folder: Path, key: dict, log: Callable[[str], None]) -> dict | No
     except (OSError, json.JSONDecodeError):
         log(f"{path}: unreadable; recomputing")
         return None
-    old = row.get("key") or {}
+    old, key = row.get("key") or {}, jsonable(key)  # compared as JSON reads it back (tuples are lists there)
     if old != key:
         changed = sorted(k for k in set(old) | set(key) if old.get(k) != key.get(k))
         log(f"{path}: made with another {', '.join(changed)}; recomputing")
@@ -174,7 +174,6 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
                 log(f"[{variant} seed {seed}] reusing the finished row in {folder}")
             else:
                 log(f"[{variant} seed {seed}] training ...")
-                folder.mkdir(parents=True, exist_ok=True)
                 start_row(folder, key)
                 t0 = time.perf_counter()
                 row, grid = runner.train(cfg, folder, ecfg, PRESETS[preset].checkpoints, lpips_metric)

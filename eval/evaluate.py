@@ -102,7 +102,7 @@ def height_error(grid: np.ndarray, truth) -> tuple[np.ndarray, np.ndarray]:
     if truth.surface is not None:
         z_true = truth.surface.height_at(grid[:, :2])
     else:
-        nodes = truth.grid if truth.banks is None else np.concatenate([truth.grid, truth.banks])
+        nodes = truth.nodes
         z_true = nodes[cKDTree(nodes[:, :2]).query(grid[:, :2])[1], 2] if len(grid) else np.zeros(0)
     return grid[:, 2] - z_true, truth.level - z_true
 

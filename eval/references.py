@@ -28,5 +28,5 @@ def depth_times_n(grid: np.ndarray, level: float, n: float) -> np.ndarray:
 
 def oracle_plane(truth) -> np.ndarray:
     """[P, 3]: every ground-truth node (submerged bed and banks) at the median submerged height."""
-    nodes = truth.grid if truth.banks is None else np.concatenate([truth.grid, truth.banks])
+    nodes = truth.nodes
     return np.column_stack([nodes[:, :2], np.full(len(nodes), float(np.median(truth.grid[:, 2])))])

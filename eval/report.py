@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ragsplat_core.dataset.layout import GT_GRID_STEP
 from ragsplat_core.outputs import atomic_path, write_bytes, write_json
 from ragsplat_core.train.config import VARIANTS
 
@@ -218,8 +219,7 @@ def depth_error_map(grid: np.ndarray, truth, path: str | Path, title: str = "") 
     from eval.evaluate import height_error
 
     dz, _ = height_error(grid, truth)
-    step = float(np.min(np.diff(np.unique(np.round(truth.grid[:, 0], 9)))))
-    nodes = truth.grid if truth.banks is None else np.concatenate([truth.grid, truth.banks])
+    step, nodes = GT_GRID_STEP, truth.nodes
     lo = nodes[:, :2].min(0)
     shape = np.round((nodes[:, :2].max(0) - lo) / step).astype(int) + 1
     img = np.full(shape[::-1], np.nan)

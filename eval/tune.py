@@ -39,7 +39,6 @@ def main(argv: list[str] | None = None) -> int:
         for variant in args.variants:
             cfg = replace(runner.config(variant, args.preset, args.seed), **{args.param: value})
             folder = args.out / f"{variant}-{args.param}-{value:g}"
-            folder.mkdir(parents=True, exist_ok=True)
             done = folder / "row.json"
             if done.is_file():
                 row = json.loads(done.read_text())

@@ -47,6 +47,10 @@ class GroundTruth:
     banks: np.ndarray | None = None  # [M, 3] emerged ground on the same grid (a reach), or None
     surface: layout.Surface | None = None  # the exact height function (gt/bed_surface.npz), when present
 
+    @property
+    def nodes(self) -> np.ndarray:  # [N + M, 3] every ground-truth node: the submerged bed, then the banks
+        return self.grid if self.banks is None else np.concatenate([self.grid, self.banks])
+
 
 @dataclass(eq=False)
 class View:
