@@ -5,6 +5,7 @@ DIR/
   scene.json                 the generator's spec, eval_region, null-model scores and figures (`scene_json`)
   images/wet/NNNN.png        with-water render (8-bit sRGB): the training input (absent for a dry scene)
   images/dry/NNNN.png        the same pose without water
+  masks/NAME.png             optional (an imported survey): zero where a pixel is left out of the loss
   gt/depth/NNNN.exr          dry z-depth in metres along the optical axis: one float32 channel "Y" (the
                              name OpenCV reads as grey), pixel centres exact (pixel filter 0.01 px); 1e10
                              where no surface was hit
@@ -247,7 +248,7 @@ def intact(path: Path, expected: list | None = None) -> bool:
 
 def fingerprint(root: Path) -> str:
     """Identifies a dataset by its content: sha256 over transforms.json, scene.json, every file a frame
-    names (training, dry and depth images) and every ground-truth file, so changing any one of them gives
+    names (training, dry and depth images, masks) and every ground-truth file, so changing any one of them gives
     another fingerprint (the ablation's row key, the trainer's checkpoint check). Reads every byte once:
     about a second for the 200 MB small reach."""
     root = Path(root)
@@ -258,7 +259,8 @@ def fingerprint(root: Path) -> str:
         frames = []
     for f in frames if isinstance(frames, list) else []:
         if isinstance(f, dict):
-            names += [str(f[k]) for k in ("file_path", "dry_file_path", "gt_depth_file_path") if f.get(k)]
+            names += [str(f[k]) for k in ("file_path", "dry_file_path", "gt_depth_file_path", "mask_path")
+                  if f.get(k)]
     names += [GT_MESH, GT_SURFACE, GT_GRID, GT_BANKS, GT_ELEVATION, GT_WATERLINE]
     h = hashlib.sha256()
     for name in dict.fromkeys(names):  # in order, once each
@@ -275,11 +277,13 @@ def fingerprint(root: Path) -> str:
 
 
 def frame(name: str, camera, split: str, kind: str, file_path: str, dry_file_path: str | None = None,
-          gt_depth_file_path: str | None = None) -> dict:
+          gt_depth_file_path: str | None = None, mask_path: str | None = None) -> dict:
     """One `frames` entry: both pose forms (nerfstudio `transform_matrix` and OpenCV `w2c`), the split
     ("train" | "test"), the view kind ("nadir", "oblique20", ...) and the image paths. The dry ground-truth
-    depth (metres) has a key of our own: nerfstudio reads `depth_file_path` as training depth in mm."""
+    depth (metres) has a key of our own: nerfstudio reads `depth_file_path` as training depth in mm.
+    `mask_path` (nerfstudio's key): an image, zero where pixels are left out of the loss (glint, people)."""
     out = {"file_path": file_path, "dry_file_path": dry_file_path, "gt_depth_file_path": gt_depth_file_path,
+           "mask_path": mask_path,
            "transform_matrix": camera.c2w_gl.tolist(), "w2c": camera.w2c.tolist(), "split": split,
            "name": name, "kind": kind}
     return {k: v for k, v in out.items() if v is not None}

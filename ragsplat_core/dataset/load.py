@@ -65,6 +65,7 @@ class View:
     file_path: str
     dry_file_path: str | None
     gt_depth_file_path: str | None  # dry z-depth EXR (metres), ground truth
+    mask: torch.Tensor | None = None  # [H, W] bool, True where the pixel counts in the loss; None: every pixel
 
     @property
     def image(self) -> torch.Tensor:  # [H, W, 3] float32 in [0, 1]
@@ -124,6 +125,22 @@ def read_image(path: Path, width: int, height: int) -> torch.Tensor:
     if (img.shape[1], img.shape[0]) != (width, height):
         raise _fail(path, f"image is {img.shape[1]} x {img.shape[0]}, transforms.json says {width} x {height}")
     return torch.from_numpy(img)
+
+
+def read_mask(path: Path, width: int, height: int) -> torch.Tensor:
+    """[H, W] bool of a mask image (nerfstudio's `mask_path`): True where the pixel is non-zero (used)."""
+    if not path.is_file():
+        raise _fail(path, "mask file is missing")
+    try:
+        img = layout.read_png(path)
+    except ValueError as err:
+        raise DatasetError(str(err)) from None
+    if (img.shape[1], img.shape[0]) != (width, height):
+        raise _fail(path, f"mask is {img.shape[1]} x {img.shape[0]}, transforms.json says {width} x {height}")
+    used = torch.from_numpy(img.max(axis=2) > 0)
+    if not used.any():
+        raise _fail(path, "mask excludes every pixel")
+    return used
 
 
 def _read_json(path: Path) -> dict:
@@ -261,8 +278,9 @@ def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: b
         rgb = read_image(root / frame["file_path"], *size)
         dry_path = frame.get("dry_file_path")
         dry = read_image(root / dry_path, *size) if (load_dry and dry_path) else None
+        mask = read_mask(root / frame["mask_path"], *size) if frame.get("mask_path") else None
         views.append(View(name, split, str(frame.get("kind", "")), camera, rgb, dry, frame["file_path"],
-                          dry_path, frame.get("gt_depth_file_path")))
+                          dry_path, frame.get("gt_depth_file_path"), mask))
     if "train" in splits and not any(v.split == "train" for v in views):
         raise _fail(tpath, "no frame has split 'train'")
 
