@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ragsplat_core.dataset import layout
+from ragsplat_core.dataset.layout import Georef
 from ragsplat_core.dataset.load import Dataset, load_dataset
 from ragsplat_core.errors import ConfigError, DatasetError, OutputError
 from ragsplat_core.gaussians import activated
@@ -32,26 +33,6 @@ LAS_SCALE = 0.001  # metres per integer step of the LAS coordinates
 # within 10 cm, whatever the cell), and never fewer than 16 per cell at finer resolutions.
 SAMPLE_DENSITY, SAMPLES_PER_CELL = 16 / 0.05**2, 16
 MAX_SAMPLES = 20_000_000  # about 4 GB while sampling (200 bytes each): a finer resolution is a typo
-
-
-@dataclass(frozen=True)
-class Georef:
-    """Local run coordinates -> a CRS: absolute = local + offset (x0, y0, z0), in `crs` (EPSG:32633, WKT...)."""
-
-    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    crs: str = layout.LOCAL_CRS
-
-    def __post_init__(self):
-        self.wkt()  # an unusable CRS is refused before any work
-
-    def wkt(self) -> str:
-        from rasterio.crs import CRS
-        from rasterio.errors import CRSError
-
-        try:
-            return CRS.from_user_input(self.crs).to_wkt()
-        except CRSError as err:
-            raise ConfigError(f"CRS {self.crs!r} is not usable: {err}") from None
 
 
 @dataclass(frozen=True)
@@ -75,12 +56,12 @@ class Bed:
 
 
 def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None = None, ply: Path | None = None,
-               png: Path | None = None, data: Path | None = None, georef: Georef = Georef()) -> Bed:
+               png: Path | None = None, data: Path | None = None) -> Bed:
     """Extract the bed of a finished run (`load_run`, `extract_bed`) and write the DEM and each other product
-    given a path. Returns the bed."""
+    given a path, in the dataset's georeference (an imported survey's CRS and offset). Returns the bed."""
     gaussians, ds, seed = load_run(run, data)
     bed = extract_bed(gaussians, resolution, None if ds.water is None else ds.water.level, ds.eval_region,
-                      georef, seed)
+                      ds.georef, seed)
     write_dem(dem, bed)
     for path, write in ((las, write_las), (ply, write_ply), (png, write_png)):
         if path is not None:

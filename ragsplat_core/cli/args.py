@@ -34,6 +34,10 @@ def count(text: str) -> int:
     return value
 
 
+def finite_float(text: str) -> float:
+    return _number(float, text)
+
+
 def positive_float(text: str) -> float:
     value = _number(float, text)
     if value <= 0:

@@ -1,8 +1,11 @@
-"""`ragsplat train --data DIR --variant full --out DIR [--preset NAME] [--seed S] [--iterations N]`.
+"""`ragsplat train --data DIR --variant full --out DIR [--preset NAME] [--seed S] [--iterations N]`, or from a
+survey: `ragsplat train --colmap MODEL --images DIR --water-level Z [--n 1.33] [--masks DIR] [--crs EPSG:N]
+--out DIR`.
 
 Trains one variant on a dataset directory, with a progress bar (loss, PSNR on the training view, Gaussian
-count, time left); rerunning with the same --out resumes from the last checkpoint. Writes config.json,
-ckpt.pt, point_cloud.ply (3DGS PLY) and train_stats.json into --out.
+count, time left); rerunning with the same --out resumes from the last checkpoint. A COLMAP survey is first
+imported into --out/data (`dataset.colmap`: undistorted images, the water level, the georeference), once.
+Writes config.json, ckpt.pt, point_cloud.ply (3DGS PLY) and train_stats.json into --out.
 """
 
 from __future__ import annotations
@@ -11,7 +14,9 @@ import argparse
 import json
 import sys
 
-from ragsplat_core.cli.args import count, dataset_dir, out_dir, positive_float, positive_int
+from pathlib import Path
+
+from ragsplat_core.cli.args import count, dataset_dir, finite_float, out_dir, positive_float, positive_int
 from ragsplat_core.errors import TrainingDiverged
 
 
@@ -19,7 +24,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ragsplat_core.rasterize import BACKENDS
     from ragsplat_core.train.config import PRESETS, VARIANTS
 
-    parser.add_argument("--data", required=True, type=dataset_dir, help="dataset directory (transforms.json, images/)")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--data", type=dataset_dir, help="dataset directory (transforms.json, images/)")
+    source.add_argument("--colmap", type=Path, metavar="MODEL",
+                        help="a COLMAP model folder (cameras/images/points3D, .bin or .txt): your own survey")
+    survey = parser.add_argument_group("survey import (with --colmap)")
+    survey.add_argument("--images", type=Path, metavar="DIR", help="the folder the model's image names refer to")
+    survey.add_argument("--water-level", type=finite_float, metavar="Z",
+                        help="height of the calm water surface in the model's frame (metres, z up)")
+    survey.add_argument("--n", type=positive_float, default=1.33, help="refractive index of the water (1.33)")
+    survey.add_argument("--masks", type=Path, metavar="DIR",
+                        help="masks named <image name>.png, zero where pixels are left out (glint, people)")
+    survey.add_argument("--crs", metavar="CRS", help="the model's CRS for the products, e.g. EPSG:32633")
+    survey.add_argument("--max-size", type=positive_int, metavar="PX",
+                        help="downscale images so their longer side is at most PX pixels")
     parser.add_argument("--variant", default="full", choices=list(VARIANTS), help="refraction correction")
     parser.add_argument("--out", required=True, type=out_dir,
                         help="output directory (resumes if it holds a checkpoint)")
@@ -44,8 +62,9 @@ def run(args: argparse.Namespace) -> int:
     for key in ("iterations", "init_depth", "checkpoint_every", "backend", "device"):
         if getattr(args, key) is not None:
             overrides[key] = getattr(args, key)
+    data = args.data if args.colmap is None else _import(args, overrides)
     cfg = preset_config(args.preset, **overrides)
-    ds = load_dataset(args.data, splits=("train",), load_dry=False)
+    ds = load_dataset(data, splits=("train",), load_dry=False)
     trainer = Trainer(cfg, ds, args.out)
     if trainer.step:
         extended = "" if trainer.extended_from is None else \
@@ -62,3 +81,30 @@ def run(args: argparse.Namespace) -> int:
             bar.close()
     print(json.dumps(stats, indent=1))
     return 0
+
+
+def _import(args: argparse.Namespace, overrides: dict) -> Path:
+    """Import the survey into RUN/data (once) and start from the model's points (depths x n) unless an
+    --init-depth is given. Returns the dataset directory."""
+    from ragsplat_core.dataset import layout
+    from ragsplat_core.dataset.colmap import POINTS, import_colmap
+    from ragsplat_core.errors import ConfigError
+    from ragsplat_core.outputs import claim
+    from ragsplat_core.train.trainer import CHECKPOINT
+
+    missing = [flag for flag, value in (("--images", args.images), ("--water-level", args.water_level)) if value is None]
+    if missing:
+        raise ConfigError(f"--colmap needs {' and '.join(missing)}")
+    claim(args.out, "train run", legacy=(CHECKPOINT,))  # before the import writes into it
+    done = import_colmap(args.colmap, args.images, args.out / "data", args.water_level, args.n, args.masks,
+                         args.crs or layout.LOCAL_CRS, args.max_size)
+    offset = ", ".join(f"{x:g}" for x in done.georef.offset)
+    print(f"{'reusing the' if done.reused else 'imported'} survey in {done.root}: {done.images} images, "
+          f"{done.cameras} camera(s), {done.undistorted} resampled, {done.points} points; local origin at "
+          f"({offset}) of {args.crs or 'the model frame'}", file=sys.stderr)
+    if "init_depth" not in overrides:
+        if not done.points:
+            raise ConfigError(f"{args.colmap}: the model has no 3D points to start from; give --init-depth "
+                              "(the bed's typical depth below the water, metres)")
+        overrides.update(init="points", init_points=str(done.root / POINTS))
+    return done.root

@@ -29,10 +29,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from ragsplat_core.errors import ConfigError
 from ragsplat_core.outputs import atomic_path, write_bytes, write_json
 
 TRANSFORMS = "transforms.json"
@@ -54,6 +56,32 @@ NO_HIT = 1e10  # Cycles' depth where a ray escapes; far beyond any scene distanc
 LOCAL_CRS = ('LOCAL_CS["ragsplat scene (local metres, z up)",LOCAL_DATUM["scene origin",0],UNIT["metre",1],'
              'AXIS["X",EAST],AXIS["Y",NORTH]]')
 NODATA = -9999.0  # raster cells without a value
+
+
+@dataclass(frozen=True)
+class Georef:
+    """The dataset frame -> a CRS: absolute = local + offset (x0, y0, z0), in `crs` (EPSG:32633, WKT...).
+
+    transforms.json's "georef" (an imported survey; a rendered scene has none: zero offset, `LOCAL_CRS`).
+    Coordinates are stored shifted so float32 training keeps millimetres at UTM-sized values."""
+
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    crs: str = LOCAL_CRS
+
+    def __post_init__(self):
+        self.wkt()  # an unusable CRS is refused before any work
+
+    def wkt(self) -> str:
+        from rasterio.crs import CRS  # only here: Blender's process imports this module
+        from rasterio.errors import CRSError
+
+        try:
+            return CRS.from_user_input(self.crs).to_wkt()
+        except CRSError as err:
+            raise ConfigError(f"CRS {self.crs!r} is not usable: {err}") from None
+
+    def to_json(self) -> dict:
+        return {"offset": [float(x) for x in self.offset], "crs": self.crs}
 
 
 def relative_path(kind: str, name: str) -> str:
@@ -289,11 +317,12 @@ def frame(name: str, camera, split: str, kind: str, file_path: str, dry_file_pat
     return {k: v for k, v in out.items() if v is not None}
 
 
-def transforms_json(camera, frames: list[dict], water) -> dict:
-    """transforms.json: shared pinhole intrinsics of `camera` (no distortion), `water` (anything with
-    `level` and `n`, or None for a dry scene) and the frames. For nerfstudio: poses are used as they are
-    (identity `applied_transform`, no re-orientation) and the split is given by file lists."""
-    return {
+def transforms_json(camera, frames: list[dict], water, georef: Georef | None = None) -> dict:
+    """transforms.json: shared pinhole intrinsics of `camera` (no distortion; a frame may carry its own),
+    `water` (anything with `level` and `n`, or None for a dry scene), the frames and, for an imported survey,
+    its `georef`. For nerfstudio: poses are used as they are (identity `applied_transform`, no
+    re-orientation) and the split is given by file lists."""
+    out = {
         "camera_model": "OPENCV",
         "fl_x": camera.fx, "fl_y": camera.fy, "cx": camera.cx, "cy": camera.cy, "w": camera.width,
         "h": camera.height, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
@@ -303,6 +332,9 @@ def transforms_json(camera, frames: list[dict], water) -> dict:
         "water": None if water is None else {"level": water.level, "n": water.n},
         "frames": frames,
     }
+    if georef is not None:
+        out["georef"] = georef.to_json()
+    return out
 
 
 def scene_json(spec: dict, eval_region: dict | None, **figures) -> dict:

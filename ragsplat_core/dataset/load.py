@@ -20,7 +20,7 @@ import torch
 
 from ragsplat_core.camera import Camera
 from ragsplat_core.dataset import layout
-from ragsplat_core.errors import DatasetError
+from ragsplat_core.errors import ConfigError, DatasetError
 from ragsplat_core.refraction import WaterSurface
 
 SPLITS = ("train", "test")
@@ -85,6 +85,7 @@ class Dataset:
     eval_region: dict[str, float] | None = None  # {"xmin", "xmax", "ymin", "ymax"} from scene.json
     ground_truth: GroundTruth | None = None  # loaded on request (`load_dataset(ground_truth=True)`)
     fingerprint: str | None = None  # `layout.fingerprint` of the directory it was read from
+    georef: layout.Georef = field(default_factory=layout.Georef)  # the frame's CRS and offset (outputs)
 
     def split(self, name: str) -> list[View]:
         if name not in SPLITS:
@@ -300,7 +301,21 @@ def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: b
             if region["xmin"] >= region["xmax"] or region["ymin"] >= region["ymax"]:
                 raise _fail(spath, f"eval_region is empty: {region}")
     truth = _ground_truth(root, region, water, scene if spath.exists() else {}) if ground_truth else None
-    return Dataset(root, water, views, bed, region, truth, layout.fingerprint(root))
+    return Dataset(root, water, views, bed, region, truth, layout.fingerprint(root), _georef(meta, tpath))
+
+
+def _georef(meta: dict, path: Path) -> layout.Georef:
+    spec = meta.get("georef")
+    if spec is None:
+        return layout.Georef()
+    offset = spec.get("offset") if isinstance(spec, dict) else None
+    if not (isinstance(offset, list) and len(offset) == 3):
+        raise _fail(path, "'georef' must be an object {offset: [x0, y0, z0], crs}")
+    offset = tuple(_number(dict(enumerate(offset)), i, path, "georef.offset ") for i in range(3))
+    try:
+        return layout.Georef(offset, str(spec.get("crs", layout.LOCAL_CRS)))
+    except ConfigError as err:
+        raise _fail(path, str(err)) from None
 
 
 def _positive(value) -> float | None:

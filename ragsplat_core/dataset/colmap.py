@@ -1,0 +1,269 @@
+"""A user's survey in: a COLMAP model (text or binary), its images and the water level -> a dataset directory
+in the data contract (`layout`), which training reads like any other.
+
+What the import does, once per run directory:
+- reads the model with pycolmap (any number of cameras, each with its own intrinsics);
+- checks the frame: metric with z up is the user's job (COLMAP's `model_aligner` with GPS or ground control,
+  or shoreline points fitted to the water plane), but a frame whose cameras look up or sideways, or a camera
+  at or below the water level, is refused in one line;
+- shifts UTM-sized coordinates to a local origin (float32 keeps about 0.1 mm at 1 km, 3 cm at 500 km); the
+  offset and the CRS go into transforms.json's "georef" and back onto every product (`ragsplat export`);
+- undistorts each image once to a pinhole camera with the same focal length and principal point (the
+  rasterizer is a pinhole), optionally downscaled; pixels that fall outside the source image are masked out
+  of the loss, like the user's own masks (COLMAP's convention: DIR/<image name>.png, zero = ignore);
+- keeps the model's 3D points (local frame, colours in [0, 1]) for the initialisation, where the trainer
+  multiplies submerged depths by n (`gaussians.init_points`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ragsplat_core.camera import Camera
+from ragsplat_core.dataset import layout
+from ragsplat_core.errors import DatasetError
+from ragsplat_core.outputs import write_bytes, write_json
+
+IMPORT = "import.json"  # what was imported and how (the rerun check)
+POINTS = "points3D.npy"  # [P, 6] float64: x, y, z (local frame), r, g, b in [0, 1]
+LOCAL_LIMIT = 1_000.0  # metres: an axis whose cameras lie farther from 0 is shifted to a local origin
+MAX_OFF_NADIR = 60.0  # degrees: a survey's mean viewing direction is closer to straight down than this
+
+
+@dataclass(frozen=True)
+class Imported:
+    """What `import_colmap` wrote: the dataset directory and a summary for the command line."""
+
+    root: Path
+    images: int
+    cameras: int
+    points: int  # 3D points kept for the initialisation (0: the model has none)
+    undistorted: int  # images resampled (distortion or downscaling); the others were copied as they are
+    georef: layout.Georef
+    reused: bool  # True: the directory already held this import
+
+
+def _fail(what: str) -> DatasetError:
+    return DatasetError(what)
+
+
+def read_model(model: Path):
+    """pycolmap.Reconstruction of a COLMAP model directory (cameras/images/points3D, .bin or .txt)."""
+    import pycolmap
+
+    model = Path(model)
+    if not model.is_dir():
+        raise _fail(f"{model}: COLMAP model directory does not exist")
+    kinds = [k for k in (".bin", ".txt") if all((model / f"{n}{k}").is_file() for n in ("cameras", "images"))]
+    if not kinds:
+        nested = sorted(p.parent for p in model.glob("**/cameras.*"))
+        hint = f" (found one in {nested[0]})" if nested else ""
+        raise _fail(f"{model}: not a COLMAP model (no cameras.bin/.txt and images.bin/.txt){hint}")
+    rec = pycolmap.Reconstruction()
+    try:
+        (rec.read_binary if kinds[0] == ".bin" else rec.read_text)(str(model))
+    except (RuntimeError, ValueError) as err:  # pycolmap reports a broken file as a RuntimeError
+        raise _fail(f"{model}: not a readable COLMAP model ({str(err).splitlines()[0] if str(err) else err})") \
+            from None
+    if not rec.num_reg_images():
+        raise _fail(f"{model}: the model has no registered images")
+    return rec
+
+
+def _digest(paths: list[Path]) -> str:
+    h = hashlib.sha256()
+    for p in paths:
+        h.update(p.name.encode() + b"\0" + p.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _offset(centres: np.ndarray) -> tuple[float, float, float]:
+    """Per axis: the cameras' mean in whole metres where they lie beyond `LOCAL_LIMIT`, else 0."""
+    big = np.abs(centres).max(0) > LOCAL_LIMIT
+    return tuple(float(np.round(m)) if b else 0.0 for m, b in zip(centres.mean(0), big))
+
+
+def _check_frame(names: list[str], centres: np.ndarray, axes: np.ndarray, level: float, model: Path) -> None:
+    """One line for a frame that cannot be a z-up survey over water at `level` (centres, axes: [V, 3])."""
+    mean = axes.mean(0)
+    off_nadir = np.degrees(np.arccos(np.clip(-mean[2] / max(np.linalg.norm(mean), 1e-12), -1, 1)))
+    if mean[2] > 0 and off_nadir > 90 + MAX_OFF_NADIR / 2:
+        raise _fail(f"{model}: the cameras look up (mean viewing direction {off_nadir:.0f} deg from straight "
+                    "down): the model is upside down; align it so z points up (colmap model_aligner)")
+    if off_nadir > MAX_OFF_NADIR:
+        raise _fail(f"{model}: the cameras look {off_nadir:.0f} deg away from straight down on average: the "
+                    "model's z axis is not up; align it metric with z up (colmap model_aligner)")
+    low = int(np.argmin(centres[:, 2]))
+    if not centres[low, 2] > level:
+        raise _fail(f"{model}: camera {names[low]} is at z = {centres[low, 2]:.4g}, not above the water level "
+                    f"{level:g}; give the level in the model's frame (metric, z up)")
+
+
+def _mask_file(masks: Path, name: str) -> Path:
+    """COLMAP's convention DIR/<image name>.png, else DIR/<image stem>.png."""
+    for path in (masks / f"{name}.png", (masks / name).with_suffix(".png")):
+        if path.is_file():
+            return path
+    raise _fail(f"{masks}: no mask for image {name} (expected {masks / name}.png)")
+
+
+def _pinhole(cam, scale: float) -> tuple[int, int, float, float, float, float]:
+    """(w, h, fx, fy, cx, cy) of the undistorted camera: the model's focal length and principal point, the
+    image scaled by `scale` (pixel centres at i + 0.5 scale with the image)."""
+    fx, fy = cam.focal_length_x, cam.focal_length_y
+    w, h = round(cam.width * scale), round(cam.height * scale)
+    sx, sy = w / cam.width, h / cam.height
+    return w, h, fx * sx, fy * sy, cam.principal_point_x * sx, cam.principal_point_y * sy
+
+
+def _undistort_maps(cam) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.remap maps [H, W] float32 from the pinhole image (same size, focal length, principal point) to
+    the source image: OpenCV indexes pixel centres at i, COLMAP at i + 0.5."""
+    w, h = cam.width, cam.height
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    rays = np.stack([(u - cam.principal_point_x) / cam.focal_length_x,
+                     (v - cam.principal_point_y) / cam.focal_length_y, np.ones_like(u)], -1).reshape(-1, 3)
+    src = np.asarray(cam.img_from_cam(rays), dtype=np.float64).reshape(h, w, 2) - 0.5
+    return src[..., 0].astype(np.float32), src[..., 1].astype(np.float32)
+
+
+def _resample(image: np.ndarray, used: np.ndarray, maps, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Undistort (maps, or None) then downscale to `size` (area average). `used`: [H, W] bool of the source;
+    a target pixel stays used only if every source pixel under it was used and inside the image."""
+    import cv2
+
+    valid = used.astype(np.float32)
+    if maps is not None:
+        image = cv2.remap(image, *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        valid = cv2.remap(valid, *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    if size != (image.shape[1], image.shape[0]):
+        image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        valid = cv2.resize(valid, size, interpolation=cv2.INTER_AREA)
+    return image, valid > 1 - 1e-4
+
+
+def import_colmap(model: Path, images: Path, out: Path, level: float, n: float = 1.33, masks: Path | None = None,
+                  crs: str = layout.LOCAL_CRS, max_size: int | None = None) -> Imported:
+    """Write the dataset directory `out` from a COLMAP model, its image folder and the water level (the
+    model's frame, metres, z up). Splits from the model folder's train.txt / test.txt when present (image
+    names, one per line), else every image trains. A second call with the same inputs reuses `out`; other
+    inputs are refused. Raises DatasetError (model, images, frame), ConfigError (CRS)."""
+    import cv2
+
+    from ragsplat_core.refraction import WaterSurface
+
+    model, images, out = Path(model), Path(images), Path(out)
+    WaterSurface(level, n)  # ValueError on a bad level / index: refused before reading anything
+    sources = sorted(p for p in model.iterdir() if p.is_file()) if model.is_dir() else []
+    key = {"model": str(model.resolve()), "model_digest": _digest(sources), "images": str(images.resolve()),
+           "level": level, "n": n, "masks": None if masks is None else str(Path(masks).resolve()), "crs": crs,
+           "max_size": max_size}
+    if (out / IMPORT).is_file():
+        done = json.loads((out / IMPORT).read_text())
+        if done.get("key") != key:
+            changed = [k for k in key if done.get("key", {}).get(k) != key[k]]
+            raise _fail(f"{out} holds an import of other inputs ({', '.join(changed)} changed); use another --out")
+        return Imported(out, done["images"], done["cameras"], done["points"], done["undistorted"],
+                        layout.Georef(tuple(done["georef"]["offset"]), done["georef"]["crs"]), True)
+    rec = read_model(model)
+    if not images.is_dir():
+        raise _fail(f"{images}: image directory does not exist")
+    regs = sorted((rec.images[i] for i in rec.reg_image_ids()), key=lambda im: im.name)
+    names = [im.name for im in regs]
+    missing = [nm for nm in names if not (images / nm).is_file()]
+    if missing:
+        raise _fail(f"{images}: {len(missing)} of the model's {len(names)} images are missing, e.g. {missing[0]}")
+    centres = np.stack([im.projection_center() for im in regs])  # [V, 3]
+    axes = np.stack([im.viewing_direction() for im in regs])  # [V, 3] unit optical axes
+    _check_frame(names, centres, axes, level, model)
+    georef = layout.Georef(_offset(centres), crs)
+    shift = np.asarray(georef.offset)
+    splits = _splits(model, names)
+
+    frames, cams, maps, resampled = [], {}, {}, 0
+    for im in regs:
+        cam = rec.cameras[im.camera_id]
+        if not cam.is_perspective():
+            raise _fail(f"{model}: camera {im.camera_id} ({cam.model.name}) is not a perspective camera")
+        longest = max(cam.width, cam.height)
+        scale = min(1.0, max_size / longest) if max_size else 1.0
+        w, h, fx, fy, cx, cy = _pinhole(cam, scale)
+        pose = im.cam_from_world()
+        R = np.asarray(pose.rotation.matrix(), dtype=np.float64)
+        t = np.asarray(pose.translation, dtype=np.float64) + R @ shift  # x_cam = R (x_local + shift) + t
+        camera = Camera(w, h, fx, fy, cx, cy, R, t)
+        distorted = not cam.is_undistorted()
+        mask_src = None if masks is None else _mask_file(Path(masks), im.name)
+        rel = f"images/wet/{im.name}"
+        mask_rel = None
+        if not distorted and scale == 1.0 and mask_src is None:
+            dst = out / rel  # a pinhole image at its size is used as it is
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(images / im.name, dst)
+        else:
+            img = cv2.imread(str(images / im.name), cv2.IMREAD_COLOR)
+            if img is None or (img.shape[1], img.shape[0]) != (cam.width, cam.height):
+                raise _fail(f"{images / im.name}: " + ("not a readable image" if img is None else
+                            f"{img.shape[1]} x {img.shape[0]}, the model's camera is {cam.width} x {cam.height}"))
+            used = np.ones(img.shape[:2], bool)
+            if mask_src is not None:
+                m = cv2.imread(str(mask_src), cv2.IMREAD_GRAYSCALE)
+                if m is None or m.shape != used.shape:
+                    raise _fail(f"{mask_src}: " + ("not a readable image" if m is None else
+                                f"mask is {m.shape[1]} x {m.shape[0]}, the image {cam.width} x {cam.height}"))
+                used = m > 0
+            if distorted and im.camera_id not in maps:
+                maps[im.camera_id] = _undistort_maps(cam)
+            img, used = _resample(img, used, maps.get(im.camera_id) if distorted else None, (w, h))
+            rel = str(Path(rel).with_suffix(".png"))
+            _write(out / rel, img)
+            if not used.all():
+                mask_rel = f"masks/{im.name}.png"
+                _write(out / mask_rel, used.astype(np.uint8) * 255)
+            resampled += 1
+        cams[im.camera_id] = camera
+        entry = layout.frame(im.name, camera, splits[im.name], "survey", rel, mask_path=mask_rel)
+        frames.append({**entry, "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": w, "h": h})
+    first = next(iter(cams.values()))
+    local = WaterSurface(level - georef.offset[2], n)
+    write_json(out / layout.TRANSFORMS, layout.transforms_json(first, frames, local, georef), indent=1)
+
+    pts = _points(rec, shift)
+    if len(pts):
+        layout.write_npy(out / POINTS, pts)
+    summary = {"images": len(regs), "cameras": len(cams), "points": len(pts), "undistorted": resampled,
+               "georef": georef.to_json()}
+    write_json(out / IMPORT, {"key": key, **summary}, indent=1)  # last: marks the import complete
+    return Imported(out, len(regs), len(cams), len(pts), resampled, georef, False)
+
+
+def _write(path: Path, image: np.ndarray) -> None:
+    import cv2
+
+    ok, data = cv2.imencode(".png", image)
+    if not ok:
+        raise _fail(f"{path}: could not encode the image")
+    write_bytes(path, data.tobytes())
+
+
+def _splits(model: Path, names: list[str]) -> dict[str, str]:
+    """image name -> "train" | "test": the model folder's test.txt names the held-out images (our datasets
+    write train.txt / test.txt there), else every image trains."""
+    listed = model / "test.txt"
+    held = set(listed.read_text().split()) if listed.is_file() else set()
+    return {nm: "test" if nm in held else "train" for nm in names}
+
+
+def _points(rec, shift: np.ndarray) -> np.ndarray:  # [P, 6]: the model's 3D points, local frame, colour
+    if not rec.num_points3D():
+        return np.zeros((0, 6))
+    pts = [rec.points3D[i] for i in sorted(rec.point3D_ids())]  # by id: the model's own order
+    xyz = np.stack([p.xyz for p in pts]) - shift
+    rgb = np.stack([p.color for p in pts]).astype(np.float64) / 255.0
+    return np.concatenate([xyz, rgb], 1)
