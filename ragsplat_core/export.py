@@ -99,10 +99,11 @@ def load_run(run: Path, data: Path | None = None) -> tuple[dict, Dataset, int]:
 
 
 def extract_bed(gaussians: dict, resolution: float, level: float | None, region: dict | None = None,
-                georef: Georef = Georef(), seed: int = 0) -> Bed:
+                georef: Georef | None = None, seed: int = 0) -> Bed:
     """The bed of activated Gaussians (means [N, 3], scales [N, 3], quats [N, 4], opacities [N]) on a grid
     of `resolution` metres whose nodes lie on multiples of it in the CRS (tiles of two runs line up),
     inside `region` {xmin, xmax, ymin, ymax} when given. Raises ConfigError, OutputError (nothing found)."""
+    georef = georef or Georef()  # default: the local frame
     means = gaussians["means"].detach().cpu().numpy()  # [N, 3]
     if region is None:
         xy = means[gaussians["opacities"].detach().cpu().numpy() >= ExtractConfig.min_opacity, :2]

@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-
 from pathlib import Path
 
 from ragsplat_core.cli.args import count, dataset_dir, finite_float, out_dir, positive_float, positive_int
