@@ -8,7 +8,9 @@ import numpy as np
 import pycolmap
 import pytest
 import torch
+from conftest import WATER, render_dataset
 
+from ragsplat_core.bench.synthetic import bed_scene, ring_cameras
 from ragsplat_core.cli.main import main
 from ragsplat_core.dataset.colmap import IMPORT, POINTS, import_colmap
 from ragsplat_core.dataset.load import load_dataset
@@ -171,3 +173,47 @@ def test_colmap_needs_images_and_a_level(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and err == ["ragsplat train: error: --colmap needs --images and --water-level"]
     assert not (tmp_path / "run").exists()  # refused before anything is written
+
+
+def test_survey_to_dem_and_laz_in_the_survey_crs(tmp_path):
+    """The surveyor's path on a rendered bed 1 m under water, moved to UTM-sized coordinates and handed over
+    as a COLMAP model with its apparent points: import + train (2 steps: this checks the path, not the
+    depths), export; the products carry the CRS and absolute coordinates."""
+    import laspy
+    import rasterio
+
+    shift = np.array([512_345.0, 5_123_456.0, 100.0])  # local -> UTM (the water is at z = 100)
+    scene = bed_scene(300, half=1.0, depth=1.0, seed=2)
+    cams = ring_cameras(5, 20, 1.5, 0.8, target=(0, 0, -1))
+    render_dataset(tmp_path / "local", scene, cams, WATER, 0, {"xmin": -1, "xmax": 1, "ymin": -1, "ymax": 1})
+    rec = pycolmap.Reconstruction()
+    c = cams[0]
+    rec.add_camera_with_trivial_rig(pycolmap.Camera.create_from_model_name(1, "PINHOLE", c.fx, c.width, c.height))
+    rec.cameras[1].params = [c.fx, c.fy, c.cx, c.cy]
+    for i, view in enumerate(load_dataset(tmp_path / "local").views, start=1):
+        R, t = view.camera.R, view.camera.t
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=view.file_path, camera_id=1, image_id=i),
+                                         pycolmap.Rigid3d(pycolmap.Rotation3d(R), t - R @ shift))
+    apparent = scene["means"].double().numpy() * [1, 1, 1 / WATER.n]  # what MVS finds through the water
+    for p in apparent + shift:
+        rec.add_point3D(p, pycolmap.Track(), np.array([120, 110, 90], dtype=np.uint8))
+    (tmp_path / "model").mkdir()
+    rec.write_text(str(tmp_path / "model"))
+    run = tmp_path / "run"
+    assert main(["train", "--colmap", str(tmp_path / "model"), "--images", str(tmp_path / "local"), "--water-level",
+                 "100", "--crs", "EPSG:32633", "--out", str(run), "--preset", "smoke", "--iterations", "2",
+                 "--no-progress"]) == 0
+    config = json.loads((run / "config.json").read_text())["config"]
+    assert config["init"] == "points" and config["init_points"].endswith(POINTS)
+    assert main(["export", str(run), "--dem", str(tmp_path / "dem.tif"), "--las", str(tmp_path / "bed.laz"),
+                 "--resolution", "0.1"]) == 0
+    east, north = shift[:2]
+    with rasterio.open(tmp_path / "dem.tif") as tif:
+        assert tif.crs.to_epsg() == 32633
+        assert east - 1.5 < tif.bounds.left < tif.bounds.right < east + 1.5
+        assert north - 1.5 < tif.bounds.bottom < tif.bounds.top < north + 1.5
+        depth = tif.read(2, masked=True)
+    assert abs(float(np.ma.median(depth)) - 1.0) < 0.15  # the points' apparent depths x n: the true 1 m
+    las = laspy.read(tmp_path / "bed.laz")
+    assert rasterio.crs.CRS.from_wkt(las.header.vlrs[0].string).to_epsg() == 32633
+    assert abs(float(np.median(las.x)) - east) < 1 and abs(float(np.median(las.z)) - 99.0) < 0.15
