@@ -217,3 +217,31 @@ def test_survey_to_dem_and_laz_in_the_survey_crs(tmp_path):
     las = laspy.read(tmp_path / "bed.laz")
     assert rasterio.crs.CRS.from_wkt(las.header.vlrs[0].string).to_epsg() == 32633
     assert abs(float(np.median(las.x)) - east) < 1 and abs(float(np.median(las.z)) - 99.0) < 0.15
+
+
+def test_triangulation_with_known_poses_finds_a_plane(tmp_path):
+    """A textured plane at z = 1 (dry: the water is at 0) photographed by six nadir cameras at z = 5 (each
+    image an exact homography of one texture): the triangulated points lie on the plane."""
+    from ragsplat_core.dataset.colmap import triangulate
+
+    rng = np.random.default_rng(1)
+    texture = sum(cv2.resize(rng.uniform(0, 255, (k, k)).astype(np.float32), (512, 512)) / 3 for k in (16, 64, 256))
+    texture = cv2.GaussianBlur(texture, (0, 0), 1.0).astype(np.uint8)
+    s, z_plane = 4 / 512, 1.0  # the texture covers [-2, 2]^2 m
+    centres = [(x, y, 5.0) for x in (-0.6, 0, 0.6) for y in (-0.4, 0.4)]
+    write_model(tmp_path / "model", tmp_path / "img", centres, size=(160, 160))
+    rec = pycolmap.Reconstruction()
+    rec.read_text(str(tmp_path / "model"))
+    plane_from_texture = np.array([[s, 0, -2 + s / 2], [0, -s, 2 - s / 2], [0, 0, 1]])  # pixel centres at i
+    to_opencv = np.array([[1, 0, -0.5], [0, 1, -0.5], [0, 0, 1]])  # COLMAP's pixel centres are at i + 0.5
+    for im in rec.images.values():
+        pose = im.cam_from_world()
+        R, t = pose.rotation.matrix(), pose.translation
+        K = im.camera.calibration_matrix()
+        H = to_opencv @ K @ np.column_stack([R[:, 0], R[:, 1], R[:, 2] * z_plane + t]) @ plane_from_texture
+        grey = cv2.warpPerspective(texture, H, (160, 160), flags=cv2.INTER_LINEAR)
+        cv2.imwrite(str(tmp_path / "img" / im.name), np.repeat(grey[..., None], 3, 2), [cv2.IMWRITE_JPEG_QUALITY, 100])
+    import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", level=0.0)
+    pts = triangulate(tmp_path / "data", tmp_path / "work")
+    assert len(pts) > 50
+    assert np.median(np.abs(pts[:, 2] - z_plane)) < 0.005 and np.percentile(np.abs(pts[:, 2] - z_plane), 90) < 0.02

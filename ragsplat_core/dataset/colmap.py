@@ -12,7 +12,9 @@ What the import does, once per run directory:
   rasterizer is a pinhole), optionally downscaled; pixels that fall outside the source image are masked out
   of the loss, like the user's own masks (COLMAP's convention: DIR/<image name>.png, zero = ignore);
 - keeps the model's 3D points (local frame, colours in [0, 1]) for the initialisation, where the trainer
-  multiplies submerged depths by n (`gaussians.init_points`).
+  multiplies submerged depths by n (`gaussians.init_points`); `triangulate` makes them for a dataset that has
+  none (a model without points, or a rendered benchmark dataset): SIFT features, exhaustive matching and
+  triangulation with the known poses, all pycolmap on the CPU.
 """
 
 from __future__ import annotations
@@ -267,3 +269,55 @@ def _points(rec, shift: np.ndarray) -> np.ndarray:  # [P, 6]: the model's 3D poi
     xyz = np.stack([p.xyz for p in pts]) - shift
     rgb = np.stack([p.color for p in pts]).astype(np.float64) / 255.0
     return np.concatenate([xyz, rgb], 1)
+
+
+def triangulate(root: Path, work: Path) -> np.ndarray:
+    """[P, 6] points (x, y, z, r, g, b in [0, 1]) triangulated from the training images of the dataset
+    `root` with its known cameras: pycolmap SIFT, exhaustive matching, `triangulate_points` (poses and
+    intrinsics fixed). Points under water come out at their apparent depths, as in any photogrammetry through
+    the water. `work` holds the feature database (kept: a rerun reuses nothing, it is a scratch folder).
+    Raises DatasetError when nothing can be triangulated (no texture, no overlap)."""
+    import pycolmap
+
+    from ragsplat_core.dataset.load import load_dataset
+
+    views = load_dataset(root, splits=("train",), load_dry=False).train
+    work = Path(work)
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    db = work / "database.db"
+    with pycolmap.Database.open(db) as d:  # cameras and images first, with our ids and intrinsics
+        ids: dict[tuple, int] = {}
+        for v in views:
+            c = v.camera
+            key = (c.width, c.height, c.fx, c.fy, c.cx, c.cy)
+            if key not in ids:
+                cam = pycolmap.Camera.create_from_model_name(len(ids) + 1, "PINHOLE", c.fx, c.width, c.height)
+                cam.params = [c.fx, c.fy, c.cx, c.cy]
+                ids[key] = cam.camera_id
+                d.write_camera(cam, use_camera_id=True)
+    reader = pycolmap.ImageReaderOptions()
+    reader.existing_camera_id = 0  # placeholder, replaced per camera below
+    names = {v.file_path: v for v in views}
+    for key, cam_id in ids.items():
+        group = [f for f, v in names.items() if (v.camera.width, v.camera.height, v.camera.fx, v.camera.fy,
+                                                 v.camera.cx, v.camera.cy) == key]
+        reader.existing_camera_id = cam_id
+        pycolmap.extract_features(db, root, group, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                                  device=pycolmap.Device.cpu)
+    pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
+    with pycolmap.Database.open(db) as d:
+        cams, images = d.read_all_cameras(), d.read_all_images()
+    rec = pycolmap.Reconstruction()
+    for cam in cams:
+        rec.add_camera_with_trivial_rig(cam)
+    for im in images:
+        v = names[im.name]
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=im.name, camera_id=im.camera_id, image_id=im.image_id),
+                                         pycolmap.Rigid3d(pycolmap.Rotation3d(v.camera.R), v.camera.t))
+    (work / "model").mkdir()
+    rec = pycolmap.triangulate_points(rec, db, root, work / "model", refine_intrinsics=False)
+    pts = _points(rec, np.zeros(3))
+    if not len(pts):
+        raise _fail(f"{root}: no point could be triangulated from the training images (no texture or overlap?)")
+    return pts
