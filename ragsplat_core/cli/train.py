@@ -83,10 +83,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _import(args: argparse.Namespace, overrides: dict) -> Path:
-    """Import the survey into RUN/data (once) and start from the model's points (depths x n) unless an
-    --init-depth is given. Returns the dataset directory."""
+    """Import the survey into RUN/data (once) and, unless an --init-depth is given, start from the model's
+    points, or points triangulated from the images when it has none (depths x n). Returns the dataset
+    directory."""
     from ragsplat_core.dataset import layout
-    from ragsplat_core.dataset.colmap import POINTS, import_colmap
+    from ragsplat_core.dataset.colmap import POINTS, import_colmap, triangulate
     from ragsplat_core.errors import ConfigError
     from ragsplat_core.outputs import claim
     from ragsplat_core.train.trainer import CHECKPOINT
@@ -102,8 +103,10 @@ def _import(args: argparse.Namespace, overrides: dict) -> Path:
           f"{done.cameras} camera(s), {done.undistorted} resampled, {done.points} points; local origin at "
           f"({offset}) of {args.crs or 'the model frame'}", file=sys.stderr)
     if "init_depth" not in overrides:
-        if not done.points:
-            raise ConfigError(f"{args.colmap}: the model has no 3D points to start from; give --init-depth "
-                              "(the bed's typical depth below the water, metres)")
-        overrides.update(init="points", init_points=str(done.root / POINTS))
+        points = done.root / POINTS
+        if not points.is_file():
+            print(f"the model has no 3D points: triangulating them from the {done.images} images with their "
+                  "known poses (pycolmap, CPU; --init-depth starts from a plane instead)", file=sys.stderr)
+            layout.write_npy(points, triangulate(done.root, done.root / "triangulation"))
+        overrides.update(init="points", init_points=str(points))
     return done.root
