@@ -21,12 +21,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"subset of {', '.join(VARIANTS)} (default: all)")
     parser.add_argument("--seeds", type=count, nargs="+", default=[0], metavar="SEED",
                         help="training (and extraction) seeds; tables show mean +- std over them (default: 0)")
-    parser.add_argument("--vgg16", default=None,
+    lpips_arguments(parser)
+    parser.add_argument("--device", default=None, help="torch device for training (default: the preset's)")
+
+
+def lpips_arguments(parser: argparse.ArgumentParser) -> None:
+    """--vgg16 and --no-download: where LPIPS's weights come from (`eval.metrics.load_lpips`)."""
+    parser.add_argument("--vgg16", default=None, metavar="PATH",
                         help="torchvision's vgg16-397923af.pth for LPIPS (default: torch hub cache, downloaded "
                              "there with its hash check when missing)")
     parser.add_argument("--no-download", action="store_true",
                         help="never download the LPIPS weights (offline: LPIPS prints n/a with the reason)")
-    parser.add_argument("--device", default=None, help="torch device for training (default: the preset's)")
 
 
 def run(args: argparse.Namespace) -> int:

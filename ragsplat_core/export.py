@@ -1,5 +1,6 @@
-"""Survey products from a finished training run (`ragsplat export`): the bed surface as a DEM GeoTIFF
-(elevation and water depth), the bed points as LAS/LAZ and PLY, and a depth map PNG over a hillshade.
+"""Products of a finished training run: the bed surface as a DEM GeoTIFF (elevation and water depth), the bed
+points as LAS/LAZ and PLY and a depth map PNG over a hillshade (`ragsplat export`); and the run rendered at its
+dataset's camera poses, through the water, without it, or as z-depth (`Model`, `ragsplat render`).
 
 The bed is `surface.extract_surface` of the trained Gaussians on a grid of `resolution` metres, cropped to
 the dataset's evaluation region when it has one. Every product is in one coordinate frame: the run's local
@@ -16,15 +17,20 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
+from ragsplat_core.camera import Camera
 from ragsplat_core.dataset import layout
 from ragsplat_core.dataset.layout import Georef
-from ragsplat_core.dataset.load import Dataset, load_dataset
+from ragsplat_core.dataset.load import Dataset, View, load_dataset
 from ragsplat_core.errors import ConfigError, DatasetError, OutputError
-from ragsplat_core.gaussians import activated
-from ragsplat_core.outputs import atomic_path
+from ragsplat_core.gaussians import activated, colors_for_view
+from ragsplat_core.outputs import atomic_path, claim
 from ragsplat_core.ply import load_ply
+from ragsplat_core.rasterize import choose_backend, rasterize
+from ragsplat_core.refraction import WaterSurface, refract_gaussians
 from ragsplat_core.surface import ExtractConfig, extract_surface
+from ragsplat_core.train.config import TrainConfig
 from ragsplat_core.train.trainer import PLY
 
 BATHYMETRIC, GROUND = 40, 2  # ASPRS classes (LAS 1.4 R15): submerged bed ("bathymetric point"), emerged
@@ -74,7 +80,19 @@ def load_run(run: Path, data: Path | None = None) -> tuple[dict, Dataset, int]:
     without images, the run's seed, which also seeds the extraction). `data` replaces the dataset directory
     config.json names (a moved dataset). Raises OutputError (not a finished run) or DatasetError (dataset
     missing or changed)."""
-    run = Path(run)
+    _, ds, splats, seed = _read_run(Path(run), data, splits=())
+    return activated_dict(splats), ds, seed
+
+
+def activated_dict(splats: dict) -> dict:
+    """Raw parameters -> the activated Gaussians {means, scales, quats, opacities} the extraction takes."""
+    scales, quats, opacities = activated(splats)
+    return {"means": splats["means"], "scales": scales, "quats": quats, "opacities": opacities}
+
+
+def _read_run(run: Path, data: Path | None, **load) -> tuple[dict, Dataset, dict, int]:
+    """(config.json, the dataset as `load_dataset(root, **load)` reads it, the PLY's raw parameters, the seed)
+    of a finished run, checked as `load_run` says."""
     for name in ("config.json", PLY):
         if not (run / name).is_file():
             raise OutputError(f"{run}: not a finished training run (no {name}; `ragsplat train` writes it)")
@@ -86,7 +104,7 @@ def load_run(run: Path, data: Path | None = None) -> tuple[dict, Dataset, int]:
     root = dataset if data is None else Path(data)
     if not root.is_dir():
         raise DatasetError(f"{root}: the run's dataset directory does not exist (moved? give --data)")
-    ds = load_dataset(root, splits=())
+    ds = load_dataset(root, **load)
     if meta.get("dataset_fingerprint") not in (None, ds.fingerprint):
         raise DatasetError(f"{root} is not the dataset {run} was trained on (fingerprint {ds.fingerprint}, "
                            f"the run's {meta['dataset_fingerprint']})")
@@ -94,8 +112,142 @@ def load_run(run: Path, data: Path | None = None) -> tuple[dict, Dataset, int]:
         splats = load_ply(run / PLY)
     except ValueError as err:
         raise OutputError(str(err)) from None
-    scales, quats, opacities = activated(splats)
-    return {"means": splats["means"], "scales": scales, "quats": quats, "opacities": opacities}, ds, seed
+    return meta, ds, splats, seed
+
+
+# ---------------------------------------------------------------- rendering a finished run
+
+RENDER_KINDS = ("wet", "dry", "depth")  # through the water as trained; the true Gaussians; z-depth of "dry"
+
+
+@dataclass(eq=False)
+class Model:
+    """A finished run's Gaussians as the trainer held them, and what rendering them as training did takes."""
+
+    splats: dict[str, torch.Tensor]  # raw parameters (`gaussians.py` layout) on `device`
+    cfg: TrainConfig
+    flags: dict | None  # the `refract_gaussians` flags training applied (config.json); None: plain 3DGS
+    water: WaterSurface | None
+    device: torch.device
+    backend: str
+
+    @property
+    def sh_degree(self) -> int:
+        # the active degree at the run's last step; twin of `Trainer.active_sh_degree`
+        return min(self.cfg.sh_degree, self.cfg.iterations // self.cfg.sh_every)
+
+    def gaussians(self) -> dict:
+        return activated_dict(self.splats)
+
+    def render(self, camera: Camera, interface: bool = True):
+        """(image [H,W,3] in [0, 1], alpha [H,W,1], z-depth [H,W,1]) of `camera`, as `Trainer.render` gives
+        them: interface=True through the water as trained, False the true Gaussians (the bed drained)."""
+        s = self.splats
+        center = torch.tensor(camera.camera_center, dtype=torch.float32, device=self.device)
+        background = torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device)
+        with torch.no_grad():
+            # Twin of `Trainer._gaussians` (which needs a Trainer, i.e. every training image loaded); the
+            # tests render both and require the same pixels.
+            scales, quats, opac = activated(s)
+            colors = colors_for_view(s, center, self.sh_degree)
+            means, covars = s["means"], None
+            if interface and self.flags is not None:
+                a = refract_gaussians(means, scales, quats, opac, colors, center, self.water, **self.flags)
+                means, scales, quats, opac, colors, covars = a.means, a.scales, a.quats, a.opacities, a.colors, a.covars
+            img, alpha, depth, _ = rasterize(means, quats, scales, opac, colors, camera, background, covars=covars,
+                                             backend=self.backend)
+        return img.clamp(0, 1), alpha, depth
+
+
+def load_model(run: Path, data: Path | None = None, splits: tuple[str, ...] = ()) -> tuple[Model, Dataset]:
+    """A finished run ready to render, and its dataset with the views of `splits` (their wet images only).
+    It renders where it trained when this machine can (the same pixels as in training), else on the CPU.
+    Raises as `load_run`."""
+    run = Path(run)
+    meta, ds, splats, _ = _read_run(run, data, splits=splits, load_dry=False)
+    try:
+        cfg, flags, trained_on = TrainConfig.from_dict(meta["config"]), meta["refraction_applied"], meta["device"]
+    except (KeyError, TypeError):
+        raise OutputError(f"{run / 'config.json'}: not a training run's config (no refraction_applied or "
+                          "device)") from None
+    device = torch.device(trained_on)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        device = torch.device("cpu")
+    backend = cfg.backend
+    try:
+        choose_backend(backend, device)
+    except ConfigError:  # e.g. trained with gsplat, rendered here without it: the same semantics
+        backend = "auto"
+    splats = {k: v.to(device) for k, v in splats.items()}
+    return Model(splats, cfg, flags, run_water(meta, ds), device, backend), ds
+
+
+def run_water(meta: dict, ds: Dataset) -> WaterSurface | None:
+    """The water a run is rendered under, read in this one place: what training used as config.json
+    records it (the dataset's; None for a dry scene), else, for a config.json without the record, the
+    dataset's."""
+    if "water" not in meta:
+        return ds.water
+    return None if meta["water"] is None else WaterSurface(float(meta["water"]["level"]), float(meta["water"]["n"]))
+
+
+def select_views(ds: Dataset, name: str, split: str = "all") -> list[View]:
+    """The views of `split` ("train", "test", "all") named `name`, or all of them for "all". Raises
+    ConfigError for a name not among them (naming a few that are)."""
+    views = ds.views if split == "all" else ds.split(split)
+    if name == "all":
+        return views
+    found = [v for v in views if v.name == name]
+    if not found:
+        names = [v.name for v in views]
+        few = ", ".join(names[:3] + (["...", names[-1]] if len(names) > 4 else names[3:]))
+        where = "" if split == "all" else f" {split}"
+        raise ConfigError(f"no view {name!r} among the {len(names)}{where} views of {ds.root} ({few})")
+    return found
+
+
+def write_render(model: Model, view: View, kind: str, out: Path) -> list[Path]:
+    """Render `view` as `kind` (`RENDER_KINDS`) into `out`: NAME.png; for "depth" also NAME.exr, the z-depth
+    in metres (float32 channel "Y" as the dataset's gt/depth files, `layout.NO_HIT` where nothing was drawn),
+    the PNG then showing it in colour (near yellow, far purple, stretched from the view's nearest to its
+    farthest 1 % of opaque pixels; black: nothing drawn). Returns the paths written."""
+    if kind not in RENDER_KINDS:
+        raise ConfigError(f"unknown render kind {kind!r}; choose one of {', '.join(RENDER_KINDS)}")
+    img, alpha, depth = model.render(view.camera, interface=kind == "wet")
+    png = Path(out) / f"{view.name}.png"
+    if kind != "depth":
+        layout.write_png(png, img)
+        return [png]
+    alpha, depth = alpha[..., 0].cpu().numpy(), depth[..., 0].cpu().numpy()
+    hit = alpha > 0  # the rasterizer's depth is 0 where no Gaussian was composited
+    exr = png.with_suffix(".exr")
+    layout.write_depth(exr, np.where(hit, depth, layout.NO_HIT))
+    layout.write_png(png, depth_colours(depth, hit, alpha >= 0.5))
+    return [exr, png]
+
+
+def depth_colours(depth: np.ndarray, hit: np.ndarray, opaque: np.ndarray) -> np.ndarray:
+    """[H, W] z-depth -> [H, W, 3] colours in [0, 1] (viridis reversed: near is yellow), black where not `hit`;
+    the scale spans the 1st to 99th percentile of the `opaque` pixels (of the hit ones if none is)."""
+    import matplotlib
+
+    ref = depth[opaque] if opaque.any() else depth[hit]
+    lo, hi = np.percentile(ref, [1, 99]) if len(ref) else (0.0, 1.0)
+    t = np.clip((depth - lo) / max(hi - lo, 1e-9), 0, 1)
+    rgb = matplotlib.colormaps["viridis_r"](t)[..., :3]
+    return np.where(hit[..., None], rgb, 0.0)
+
+
+def render_views(model: Model, views: list[View], kind: str, out: Path, on_view=None) -> list[Path]:
+    """`write_render` of every view into `out` (a directory of ragsplat's renders: one holding other files
+    is refused); `on_view(view)` after each. Returns the paths written."""
+    claim(out, "renders")
+    written = []
+    for view in views:
+        written += write_render(model, view, kind, out)
+        if on_view is not None:
+            on_view(view)
+    return written
 
 
 def extract_bed(gaussians: dict, resolution: float, level: float | None, region: dict | None = None,

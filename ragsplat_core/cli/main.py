@@ -15,10 +15,13 @@ import os
 import signal
 import sys
 
-# name -> (module, one-line help), in workflow order: make data, train, evaluate, export; then the diagnostics.
+# name -> (module, one-line help), in workflow order: make data, train, look at and score a run, the
+# ablation, export; then the diagnostics.
 COMMANDS: dict[str, tuple[str, str]] = {
     "dataset": ("datagen.cli", "render the synthetic riverbed dataset (Blender Cycles, resumable, shardable)"),
     "train": ("ragsplat_core.cli.train", "train one RA-GS variant on a dataset directory (resumable)"),
+    "render": ("ragsplat_core.cli.render", "render a trained run at its dataset's views: wet, dry or z-depth"),
+    "eval": ("eval.cli_score", "score a trained run against the ground truth, beside the reference answers"),
     "ablation": ("eval.cli", "train every variant, evaluate, and print Tables 1 and 2 beside the paper's"),
     "export": ("ragsplat_core.cli.export", "a trained run's bed as survey products: DEM GeoTIFF, LAS/LAZ, PLY, PNG"),
     "stability": ("ragsplat_core.cli.stability", "numerical stability report of the refraction transform"),

@@ -1,0 +1,34 @@
+"""`ragsplat eval RUN [--data DIR] [--out FILE.json] [--vgg16 PATH] [--no-download]`: a finished training run
+scored against its dataset's ground truth with the ablation's measures, without retraining (`eval.score`);
+prints the bed's scores beside the reference answers and writes them all as JSON (default RUN/eval.json)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from eval.cli import lpips_arguments
+from ragsplat_core.cli.args import dataset_dir, out_file_ending
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("run", type=Path, metavar="RUN", help="a finished `ragsplat train` output directory")
+    parser.add_argument("--data", type=dataset_dir, metavar="DIR",
+                        help="the run's dataset directory, with its ground truth (default: the one RUN/config.json "
+                             "names)")
+    parser.add_argument("--out", type=out_file_ending(".json"), metavar="FILE.json",
+                        help="the scores as JSON (default: RUN/eval.json)")
+    lpips_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    from eval.report import jsonable
+    from eval.score import score_run, table
+    from ragsplat_core.outputs import write_json
+
+    result = score_run(args.run, args.data, args.vgg16, download=not args.no_download, log=print)
+    out = args.out if args.out is not None else args.run / "eval.json"
+    write_json(out, jsonable(result), indent=1)
+    print(table(result))
+    print(f"wrote {out}")
+    return 0

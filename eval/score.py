@@ -1,0 +1,88 @@
+"""Score a finished training run against its dataset's ground truth without retraining (`ragsplat eval`).
+
+Everything comes from the ablation's own code: the dataset and ground truth as `eval.ablation.TrainEval`
+loads them, the extraction settings of the run's preset (`extract_config`, seeded with the run's seed), the
+measures of `eval.evaluate` and the reference answers of `eval.references` (`init`: the run's own initial
+Gaussians; `oracle plane`). A run the ablation trained therefore scores exactly as its row.json.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import asdict, replace
+from pathlib import Path
+
+from eval import metrics
+from eval.ablation import CODE, PRESETS, TrainEval, extract_config
+from eval.evaluate import evaluate_geometry, evaluate_views, score_grid
+from eval.references import USES_GROUND_TRUTH, oracle_plane
+from eval.report import T2_COLUMNS, T3_COLUMNS, values
+from ragsplat_core.errors import ConfigError
+from ragsplat_core.export import load_model
+from ragsplat_core.outputs import source_digest, versions
+
+# The short table: the ablation's CD and F1 columns (Table 2) and the wet and banks bias and errors (Table 3)
+COLUMNS = [c for c in T2_COLUMNS if c[0].startswith(("CD", "F1"))] + \
+    [c for c in T3_COLUMNS if c[0] in ("bias (cm)", "RMSE (cm)", "p95 (cm)", "banks bias (cm)")]
+
+
+def score_run(run: Path, data: Path | None = None, vgg16: str | None = None, download: bool = True,
+              log: Callable[[str], None] = lambda line: None) -> dict:
+    """The run's appearance on the held-out views (`evaluate_views`: PSNR, SSIM, LPIPS when its weights are
+    found or, with `download`, fetched) and its bed's geometry (`evaluate_geometry`), with the reference
+    answers' geometry under "references". `data`: the run's dataset moved elsewhere. Raises OutputError (not
+    a finished run), DatasetError (dataset missing, changed, without ground truth or held-out views),
+    ConfigError (a preset the harness does not know)."""
+    model, ds = load_model(run, data)
+    cfg = model.cfg
+    if cfg.preset not in PRESETS:
+        raise ConfigError(f"{run}: preset {cfg.preset!r} has no evaluation settings; known: {', '.join(PRESETS)}")
+    runner = TrainEval(ds.root)
+    truth = runner.truth
+    ecfg = extract_config(cfg.preset, len(truth.grid), cfg.seed)
+    lpips_metric, lpips_reason = metrics.load_lpips(vgg16, download=download, log=log)
+    if lpips_reason:
+        log(f"LPIPS n/a: {lpips_reason}")
+    else:
+        lpips_metric.to(model.device)
+    appearance = evaluate_views(lambda view, interface: model.render(view.camera, interface)[0], runner.ds.test,
+                                lpips_metric)
+    geometry, _ = evaluate_geometry(model.gaussians(), truth, ecfg)
+    initial = runner.initial(replace(cfg, device=str(model.device), backend=model.backend))
+    water = None if model.water is None else {"level": float(model.water.level), "n": float(model.water.n)}
+    return {"run": str(run), "data": str(Path(ds.root).resolve()), "dataset_fingerprint": ds.fingerprint,
+            "dataset_seed": runner.dataset_seed, "variant": cfg.variant, "preset": cfg.preset, "seed": cfg.seed,
+            "harness_preset": asdict(PRESETS[cfg.preset]), "water": water, "max_depth_m": truth.max_depth,
+            "level": truth.level, "lpips": {"available": not lpips_reason, "reason": lpips_reason or None},
+            "lpips_network": getattr(lpips_metric, "network", None), "versions": versions("torch", "scipy"),
+            "code_digest": source_digest(*CODE), "num_gaussians": int(model.splats["means"].shape[0]),
+            "appearance": appearance, "geometry": geometry,
+            "references": {"init": evaluate_geometry(initial, truth, ecfg)[0],
+                           "oracle plane": score_grid(oracle_plane(truth), truth)},
+            "uses_ground_truth": list(USES_GROUND_TRUTH)}
+
+
+def table(result: dict) -> str:
+    """The run's geometry beside the reference answers' as a Markdown table, then its appearance."""
+    rows = [(f"{name} (uses GT)" if name in USES_GROUND_TRUTH else name, geometry)
+            for name, geometry in result["references"].items()]
+    rows.append((f"{result['variant']} (this run)", result["geometry"]))
+    head = ["Row"] + [c[0] for c in COLUMNS]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, geometry in rows:
+        cells = [name]
+        for _, _, keys, fmt, scale in COLUMNS:
+            found = values([{"geometry": geometry}], keys, scale)
+            cells.append(fmt.format(found[0]) if found else "n/a")
+        lines.append("| " + " | ".join(cells) + " |")
+    depth = result["max_depth_m"]
+    lines += ["", (f"- F1 at 10 / 30 cm and at 1 % / 3 % of the maximum depth ({depth:g} m); bias, RMSE and p95 "
+                   "of dz = predicted - true bed height over the wet cells, banks bias over the emerged ground.")]
+    app = result["appearance"]
+    for cond, what in (("refr", "through the water vs the with-water images"), ("dry", "without it vs the dry images")):
+        if app[cond] is not None:
+            a = app[cond]
+            lpips = "n/a" if a["lpips"] is None else f"{a['lpips']:.3f}"
+            lines.append(f"- {len(app['per_view'])} held-out views, {what}: PSNR {a['psnr']:.2f} dB, "
+                         f"SSIM {a['ssim']:.3f}, LPIPS {lpips}")
+    return "\n".join(lines)

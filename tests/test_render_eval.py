@@ -1,0 +1,179 @@
+"""`ragsplat render` and `ragsplat eval` on a finished run, without retraining: renders equal to the trainer's,
+files and sizes, z-depth as EXR; the scores equal to the ablation's row of the same run and to the library
+functions called directly; one-line errors."""
+
+import json
+import shutil
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+from conftest import WATER, render_dataset
+
+from eval import ablation, metrics
+from eval.evaluate import evaluate_geometry, score_grid
+from eval.references import oracle_plane
+from eval.report import jsonable
+from ragsplat_core import train
+from ragsplat_core.bench.synthetic import bed_scene, ring_cameras
+from ragsplat_core.cli.main import main
+from ragsplat_core.dataset import layout
+from ragsplat_core.dataset.load import load_dataset
+from ragsplat_core.export import load_model, load_run, write_render
+
+KEYS = {"run", "data", "dataset_fingerprint", "dataset_seed", "variant", "preset", "seed", "harness_preset", "water",
+        "max_depth_m", "level", "lpips", "lpips_network", "versions", "code_digest", "num_gaussians", "appearance",
+        "geometry", "references", "uses_ground_truth"}
+
+
+@pytest.fixture(scope="module")
+def ablated(evaluable_dataset, tmp_path_factory):
+    """`ragsplat ablation` of the full variant, seed 0, with a 6-iteration smoke preset: its row folder is a
+    finished run, and its row.json holds the scores `ragsplat eval` must reproduce."""
+    out = tmp_path_factory.mktemp("ablation")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(metrics, "default_vgg16_path", lambda: out / "absent.pth")  # LPIPS n/a
+        # opaque from the start and no opacity reset (the stretched schedule would reset at every step)
+        smoke = train.PRESETS["smoke"]
+        mp.setitem(train.PRESETS, "smoke", replace(smoke, iterations=6, init_count=200, init_opacity=0.9,
+                                                   densify=replace(smoke.densify, reset_every=30_000),
+                                                   backend="torch"))
+        assert main(["ablation", "--data", str(evaluable_dataset), "--out", str(out), "--preset", "smoke",
+                     "--variants", "full", "--seeds", "0", "--no-download"]) == 0
+    return out
+
+
+@pytest.fixture()
+def run(ablated):
+    return ablated / "full" / "seed0"
+
+
+def one_line_error(capsys, command: str, phrase: str) -> None:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"ragsplat {command}: error: ") and phrase in err[0], err
+
+
+def test_renders_are_the_trainers(run, evaluable_dataset):
+    model, ds = load_model(run, splits=("train", "test"))
+    cfg = train.TrainConfig.from_dict(json.loads((run / "config.json").read_text())["config"])
+    trainer = train.Trainer(cfg, load_dataset(evaluable_dataset), run)  # resumes the finished checkpoint
+    assert trainer.step == cfg.iterations and model.flags == trainer.flags and model.water == trainer.water
+    for view in ds.views[::3]:
+        for interface in (True, False):
+            for ours, theirs in zip(model.render(view.camera, interface), trainer.render(view.camera, interface)):
+                assert torch.equal(ours, theirs)
+
+
+def test_render_each_kind(run, tmp_path, capsys):
+    model, ds = load_model(run, splits=("test",))
+    view = ds.test[0]
+    paths = {}
+    for kind in ("wet", "dry", "depth"):
+        assert main(["render", str(run), "--view", view.name, f"--{kind}", "--out", str(tmp_path / kind)]) == 0
+        paths[kind] = tmp_path / kind / f"{view.name}.png"
+        assert str(tmp_path / kind) in capsys.readouterr().out
+    shape = (view.camera.height, view.camera.width, 3)
+    wet, dry, colours = (layout.read_png(paths[k]) for k in ("wet", "dry", "depth"))
+    assert wet.shape == dry.shape == colours.shape == shape
+    img, alpha, depth = model.render(view.camera, interface=False)
+    np.testing.assert_array_equal(dry, np.round(img.numpy() * 255))  # the PNG is the render
+    assert np.abs(wet.astype(int) - dry).mean() > 1  # under water, refraction moves and dims the bed
+    exr = layout.read_depth(tmp_path / "depth" / f"{view.name}.exr")
+    assert exr.shape == shape[:2] and exr.dtype == np.float32
+    opaque = alpha[..., 0].numpy() >= 0.5
+    assert opaque.sum() > 10
+    np.testing.assert_array_equal(exr[opaque], depth[..., 0].numpy()[opaque])
+    # cameras 2 m above the water, bed 1 m under it: z-depth between 2 and 5 m where the bed is opaque
+    assert np.isfinite(exr[opaque]).all() and 2 < exr[opaque].min() and exr[opaque].max() < 5
+    # the default place: RUN/renders/KIND
+    assert main(["render", str(run), "--view", view.name]) == 0
+    assert (layout.read_png(run / "renders" / "wet" / f"{view.name}.png") == wet).all()
+
+
+def test_depth_where_nothing_is_drawn(run, tmp_path):
+    model, ds = load_model(run, splits=("train",))
+    view = ds.train[0]  # the nadir view
+    half = replace(model, splats={k: v[model.splats["means"][:, 0] < 0] for k, v in model.splats.items()})
+    assert write_render(half, view, "depth", tmp_path) == [tmp_path / "0000.exr", tmp_path / "0000.png"]
+    _, alpha, depth = half.render(view.camera, interface=False)
+    empty, drawn = alpha[..., 0].numpy() == 0, alpha[..., 0].numpy() > 0
+    assert empty.sum() > 20 and drawn.sum() > 20
+    exr, colours = layout.read_depth(tmp_path / "0000.exr"), layout.read_png(tmp_path / "0000.png")
+    assert (exr[empty] == layout.NO_HIT).all() and (colours[empty] == 0).all()  # as the dataset's gt/depth
+    np.testing.assert_array_equal(exr[drawn], depth[..., 0].numpy()[drawn])
+    assert (colours[drawn].max(1) > 0).all()
+
+
+def test_render_all_views(run, tmp_path, capsys):
+    assert main(["render", str(run), "--view", "all", "--split", "test", "--dry", "--out", str(tmp_path / "t")]) == 0
+    assert capsys.readouterr().out.strip() == f"wrote 2 files for 2 views to {tmp_path / 't'}"
+    assert main(["render", str(run), "--view", "all", "--depth", "--out", str(tmp_path / "a")]) == 0
+    names = sorted(p.name for p in (tmp_path / "a").iterdir())
+    assert names == [".ragsplat"] + sorted(f"{i:04d}.{ext}" for i in range(7) for ext in ("exr", "png"))
+
+
+def test_eval_matches_the_ablation_and_the_library(run, ablated, evaluable_dataset, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(metrics, "default_vgg16_path", lambda: tmp_path / "absent.pth")
+    out = tmp_path / "scores.json"
+    assert main(["eval", str(run), "--out", str(out), "--no-download"]) == 0
+    printed = capsys.readouterr().out
+    for text in ("LPIPS n/a", "| init |", "| oracle plane (uses GT) |", "| full (this run) |", f"wrote {out}",
+                 "2 held-out views, without it vs the dry images: PSNR"):
+        assert text in printed
+    res = json.loads(out.read_text())
+    assert set(res) == KEYS and res["variant"] == "full" and res["seed"] == 0 and res["preset"] == "smoke"
+    assert res["water"] == {"level": 0.0, "n": 1.33} and res["lpips"]["available"] is False
+    row = json.loads((ablated / "full" / "seed0" / "row.json").read_text())
+    assert res["geometry"] == row["geometry"] and res["appearance"] == row["appearance"]
+    assert res["references"]["init"] == json.loads((ablated / "init" / "seed0" / "row.json").read_text())["geometry"]
+    assert res["references"]["oracle plane"] == \
+        json.loads((ablated / "oracle-plane" / "row.json").read_text())["geometry"]
+    # the library, called directly
+    gaussians, _, seed = load_run(run)
+    truth = load_dataset(evaluable_dataset, splits=(), ground_truth=True).ground_truth
+    geometry, _ = evaluate_geometry(gaussians, truth, ablation.extract_config("smoke", len(truth.grid), seed))
+    assert res["geometry"] == json.loads(json.dumps(jsonable(geometry)))
+    assert res["references"]["oracle plane"] == json.loads(json.dumps(jsonable(score_grid(oracle_plane(truth),
+                                                                                            truth))))
+    assert main(["eval", str(run), "--no-download"]) == 0  # the default place: RUN/eval.json
+    assert json.loads((run / "eval.json").read_text())["geometry"] == res["geometry"]
+
+
+def test_one_line_errors(run, tmp_path, capsys):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["render", str(run), "--view", "nope", "--out", str(tmp_path / "r")]) == 2
+    one_line_error(capsys, "render", "no view 'nope' among the 7 views of")
+    assert main(["render", str(run), "--view", "0000", "--split", "test", "--out", str(tmp_path / "r")]) == 2
+    one_line_error(capsys, "render", "no view '0000' among the 2 test views of")
+    for command in ("render", "eval"):
+        assert main([command, str(empty), "--view", "all"][:2 if command == "eval" else 4]) == 2
+        one_line_error(capsys, command, "not a finished training run (no config.json")
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "photo.png").write_bytes(b"mine")
+    assert main(["render", str(run), "--view", "0000", "--out", str(mine)]) == 2
+    one_line_error(capsys, "render", "is not empty and was not written by ragsplat")
+    assert not (tmp_path / "r").exists() and sorted(p.name for p in mine.iterdir()) == ["photo.png"]
+    for argv, option in ((["render", str(run), "--view", "0000", "--wet", "--dry"], "--dry"),
+                         (["eval", str(run), "--out", str(tmp_path / "scores.txt")], "--out")):
+        with pytest.raises(SystemExit) as done:
+            main(argv)
+        assert done.value.code == 2 and option in capsys.readouterr().err.splitlines()[-1]
+
+
+def test_eval_needs_ground_truth(tmp_path, capsys):
+    cams = ring_cameras(4, 16, 1.5, 0.8, target=(0, 0, -1))
+    render_dataset(tmp_path / "data", bed_scene(200, 1.0, 1.0, seed=2), cams, WATER, 1,
+                   {"xmin": -0.5, "xmax": 0.5, "ymin": -0.5, "ymax": 0.5})
+    assert main(["train", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "run"), "--preset", "smoke",
+                 "--iterations", "2", "--init-depth", "1.0", "--backend", "torch", "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main(["eval", str(tmp_path / "run"), "--no-download"]) == 2
+    one_line_error(capsys, "eval", f"{tmp_path / 'data' / layout.GT_GRID}: ground-truth bed grid is missing")
+    assert not (tmp_path / "run" / "eval.json").exists()
+    assert main(["render", str(tmp_path / "run"), "--view", "0000"]) == 0  # rendering needs no ground truth
+    shutil.rmtree(tmp_path / "data")
+    assert main(["render", str(tmp_path / "run"), "--view", "0000"]) == 2
+    one_line_error(capsys, "render", "the run's dataset directory does not exist (moved? give --data)")
