@@ -16,6 +16,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=dataset_dir, metavar="DIR",
                         help="the run's dataset directory, with its ground truth (default: the one RUN/config.json "
                              "names)")
+    parser.add_argument("--truth", type=dataset_dir, metavar="DIR",
+                        help="score against this dataset's ground truth and held-out views instead (same frame: e.g. "
+                             "the synthetic dataset whose COLMAP model a survey run imported)")
+    parser.add_argument("--dem", type=Path, metavar="FILE.tif",
+                        help="also score this DEM (`ragsplat export --dem`) and map its error (FILE_error.png)")
     parser.add_argument("--out", type=out_file_ending(".json"), metavar="FILE.json",
                         help="the scores as JSON (default: RUN/eval.json)")
     lpips_arguments(parser)
@@ -26,9 +31,12 @@ def run(args: argparse.Namespace) -> int:
     from eval.score import score_run, table
     from ragsplat_core.outputs import write_json
 
-    result = score_run(args.run, args.data, args.vgg16, download=not args.no_download, log=print)
+    result = score_run(args.run, args.data, args.vgg16, download=not args.no_download, log=print,
+                       truth=args.truth, dem=args.dem)
     out = args.out if args.out is not None else args.run / "eval.json"
     write_json(out, jsonable(result), indent=1)
     print(table(result))
+    if args.dem is not None:
+        print(f"wrote {result['dem']['error_map']}")
     print(f"wrote {out}")
     return 0

@@ -12,12 +12,14 @@ from collections.abc import Callable
 from dataclasses import asdict, replace
 from pathlib import Path
 
+import numpy as np
+
 from eval import metrics
 from eval.ablation import CODE, PRESETS, TrainEval, extract_config
 from eval.evaluate import evaluate_geometry, evaluate_views, score_grid
 from eval.references import USES_GROUND_TRUTH, oracle_plane
 from eval.report import T2_COLUMNS, T3_COLUMNS, values
-from ragsplat_core.errors import ConfigError
+from ragsplat_core.errors import ConfigError, DatasetError
 from ragsplat_core.export import load_model
 from ragsplat_core.outputs import source_digest, versions
 
@@ -27,17 +29,23 @@ COLUMNS = [c for c in T2_COLUMNS if c[0].startswith(("CD", "F1"))] + \
 
 
 def score_run(run: Path, data: Path | None = None, vgg16: str | None = None, download: bool = True,
-              log: Callable[[str], None] = lambda line: None) -> dict:
+              log: Callable[[str], None] = lambda line: None, truth: Path | None = None,
+              dem: Path | None = None) -> dict:
     """The run's appearance on the held-out views (`evaluate_views`: PSNR, SSIM, LPIPS when its weights are
     found or, with `download`, fetched) and its bed's geometry (`evaluate_geometry`), with the reference
-    answers' geometry under "references". `data`: the run's dataset moved elsewhere. Raises OutputError (not
-    a finished run), DatasetError (dataset missing, changed, without ground truth or held-out views),
-    ConfigError (a preset the harness does not know)."""
+    answers' geometry under "references". `data`: the run's dataset moved elsewhere. `truth`: score against
+    another dataset's ground truth and held-out views, in the same frame (a survey imported from a synthetic
+    dataset's COLMAP model). `dem`: also score that DEM GeoTIFF (`ragsplat export`) under "dem". Raises
+    OutputError (not a finished run), DatasetError (dataset missing, changed, without ground truth or
+    held-out views, in another frame), ConfigError (a preset the harness does not know)."""
     model, ds = load_model(run, data)
     cfg = model.cfg
     if cfg.preset not in PRESETS:
         raise ConfigError(f"{run}: preset {cfg.preset!r} has no evaluation settings; known: {', '.join(PRESETS)}")
-    runner = TrainEval(ds.root)
+    runner = TrainEval(ds.root if truth is None else truth)
+    if runner.ds.georef.offset != ds.georef.offset:
+        raise DatasetError(f"{runner.ds.root} is in another frame than {ds.root} (offsets {runner.ds.georef.offset}"
+                           f" and {ds.georef.offset})")
     truth = runner.truth
     ecfg = extract_config(cfg.preset, len(truth.grid), cfg.seed)
     lpips_metric, lpips_reason = metrics.load_lpips(vgg16, download=download, log=log)
@@ -59,7 +67,37 @@ def score_run(run: Path, data: Path | None = None, vgg16: str | None = None, dow
             "appearance": appearance, "geometry": geometry,
             "references": {"init": evaluate_geometry(initial, truth, ecfg)[0],
                            "oracle plane": score_grid(oracle_plane(truth), truth)},
-            "uses_ground_truth": list(USES_GROUND_TRUTH)}
+            "uses_ground_truth": list(USES_GROUND_TRUTH),
+            **({} if dem is None else {"dem": _score_dem(dem, ds.georef, truth)})}
+
+
+def _score_dem(path: Path, georef, truth) -> dict:
+    """The DEM's cells inside the evaluation region scored like an extracted bed, and its error map written
+    beside it (NAME_error.png)."""
+    from eval.report import depth_error_map
+
+    grid = dem_points(path, georef)
+    r, tol = truth.region, 1e-6  # the GeoTIFF's cell centres carry round-off; the region's edge nodes count
+    grid = grid[(grid[:, 0] >= r["xmin"] - tol) & (grid[:, 0] <= r["xmax"] + tol) & (grid[:, 1] >= r["ymin"] - tol)
+                & (grid[:, 1] <= r["ymax"] + tol)]
+    figure = depth_error_map(grid, truth, Path(path).with_name(Path(path).stem + "_error.png"),
+                             Path(path).name)
+    return {"file": str(path), "error_map": str(figure), **score_grid(grid, truth)}
+
+
+def dem_points(path: Path, georef) -> np.ndarray:
+    """[P, 3] the covered cells of a DEM GeoTIFF's band 1 (bed elevation) as cell-centre points in the
+    dataset's frame (`georef`'s offset taken off). Raises DatasetError for a file rasterio cannot read."""
+    import rasterio
+
+    try:
+        with rasterio.open(path) as tif:
+            z = tif.read(1, masked=True)
+            rows, cols = np.nonzero(~np.ma.getmaskarray(z))
+            xs, ys = rasterio.transform.xy(tif.transform, rows, cols)
+    except rasterio.errors.RasterioIOError as err:
+        raise DatasetError(f"{path}: not a readable GeoTIFF ({err})") from None
+    return np.column_stack([xs, ys, z.data[rows, cols]]).astype(np.float64) - np.asarray(georef.offset)
 
 
 def table(result: dict) -> str:
@@ -67,6 +105,8 @@ def table(result: dict) -> str:
     rows = [(f"{name} (uses GT)" if name in USES_GROUND_TRUTH else name, geometry)
             for name, geometry in result["references"].items()]
     rows.append((f"{result['variant']} (this run)", result["geometry"]))
+    if "dem" in result:
+        rows.append((f"its DEM ({Path(result['dem']['file']).name})", result["dem"]))
     head = ["Row"] + [c[0] for c in COLUMNS]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, geometry in rows:

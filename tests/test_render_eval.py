@@ -177,3 +177,19 @@ def test_eval_needs_ground_truth(tmp_path, capsys):
     shutil.rmtree(tmp_path / "data")
     assert main(["render", str(tmp_path / "run"), "--view", "0000"]) == 2
     one_line_error(capsys, "render", "the run's dataset directory does not exist (moved? give --data)")
+
+
+def test_eval_scores_a_dem_against_the_truth(run, evaluable_dataset, tmp_path, monkeypatch, capsys):
+    """The ground truth written as a DEM scores perfectly, and the same raised 15 cm has a 15 cm bias (the
+    DEM's cells are read back at their centres, in the dataset's frame); --truth names the dataset."""
+    monkeypatch.setattr(metrics, "default_vgg16_path", lambda: tmp_path / "absent.pth")
+    grid = load_dataset(evaluable_dataset, splits=(), ground_truth=True).ground_truth.grid
+    for name, dz in (("exact", 0.0), ("raised", 0.15)):
+        layout.write_raster(tmp_path / f"{name}.tif", grid[:, :2], [(grid[:, 2] + dz, "bed")], layout.GT_GRID_STEP)
+        assert main(["eval", str(run), "--truth", str(evaluable_dataset), "--dem", str(tmp_path / f"{name}.tif"),
+                     "--out", str(tmp_path / f"{name}.json"), "--no-download"]) == 0
+        dem = json.loads((tmp_path / f"{name}.json").read_text())["dem"]
+        assert dem["survey"]["wet"]["n"] == len(grid) and (tmp_path / f"{name}_error.png").is_file()
+        assert abs(dem["survey"]["wet"]["bias"] - dz) < 1e-6 and abs(dem["survey"]["wet"]["rmse"] - dz) < 1e-6
+        assert dem["f1"]["10cm"] == pytest.approx(1.0 if dz == 0 else 0.0, abs=0.02)
+    assert "its DEM (raised.tif)" in capsys.readouterr().out
