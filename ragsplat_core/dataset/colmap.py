@@ -285,6 +285,7 @@ def triangulate(root: Path, work: Path) -> np.ndarray:
     work = Path(work)
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
+    pycolmap.logging.minloglevel = int(pycolmap.logging.Level.ERROR.value)  # no progress chatter, errors only
     db = work / "database.db"
     with pycolmap.Database.open(db) as d:  # cameras and images first, with our ids and intrinsics
         ids: dict[tuple, int] = {}
