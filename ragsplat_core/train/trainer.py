@@ -130,7 +130,7 @@ class Trainer:
     def _water(self, grad: bool) -> WaterSurface | None:
         if self._water0 is None:
             return None
-        return replace(self._water0, **{k: p if grad else float(p) for k, p in self.water_params.items()})
+        return replace(self._water0, **{k: p if grad else float(p.detach()) for k, p in self.water_params.items()})
 
     def _init_splats(self) -> torch.nn.ParameterDict:
         cfg = self.cfg
@@ -288,10 +288,10 @@ class Trainer:
         with torch.no_grad():
             if "n" in self.water_params:  # the index of water relative to air: n < 1 is not a medium
                 self.water_params["n"].clamp_(min=1.0)
-        low = min(float(c[2]) for c in self.centers)
-        if "level" in self.water_params and not float(self.water_params["level"]) < low:
-            raise TrainingDiverged(f"iteration {step}: the water level rose to {float(self.water_params['level']):g} "
-                                   f"m, above the lowest camera ({low:g} m)")
+        level, low = self.water.level, min(float(c[2]) for c in self.centers)
+        if not level < low:
+            raise TrainingDiverged(f"iteration {step}: the water level rose to {level:g} m, above the lowest "
+                                   f"camera ({low:g} m)")
 
     def _nonfinite_report(self) -> str:
         for name in PARAM_NAMES:
