@@ -53,7 +53,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "--water-level gives the water)")
     parser.add_argument("--optimize-water", choices=["level", "level+n"],
                         help="calibrate the water level (and n) from the images, starting from the values "
-                        "above, once the first half of the run has settled the Gaussians")
+                        "above, once the first half of the run has settled the Gaussians (experimental: on the "
+                        "small reach it did not correct a level 10 cm off; see README)")
     parser.add_argument("--checkpoint-every", type=count, metavar="N",
                         help="write a checkpoint every N steps (default: every 10 %% of the run; 0: only at the end)")
     parser.add_argument("--backend", choices=list(BACKENDS), help="rasterizer backend (default: auto)")

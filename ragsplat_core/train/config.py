@@ -67,7 +67,8 @@ class TrainConfig:
     lr_water_n: float = 1e-4  # water's n spans 1.33-1.34 with temperature and salinity
     # Fraction of the run before the water moves: while densification runs (to half the run) the Gaussians
     # are cloned, split, pruned and their opacities reset every 10 %, and a level moved against that
-    # half-built bed would absorb its depth errors.
+    # half-built bed absorbs its depth errors (measured on the small reach with 0: a level 10 cm high rose
+    # to 20 cm while the bed was still the initial plane, and ended 16 cm high).
     water_warmup: float = 0.5
 
     def __post_init__(self):
