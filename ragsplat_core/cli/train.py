@@ -12,11 +12,29 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
 from ragsplat_core.cli.args import count, dataset_dir, finite_float, out_dir, positive_float, positive_int
 from ragsplat_core.errors import TrainingDiverged
+
+
+def _finite(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def _index(text: str) -> float:
+    value = _finite(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"a refractive index relative to air is >= 1, got {value:g}")
+    return value
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -45,6 +63,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iterations", type=positive_int, help="override the preset's iteration count")
     parser.add_argument("--init-depth", type=positive_float, help="grid depth below the water level (m); "
                         "default: scene.json spec.bed.depth")
+    parser.add_argument("--water-level", type=_finite, metavar="Z",
+                        help="water plane height (m, the model's frame); default: the dataset's")
+    parser.add_argument("--n", type=_index, dest="water_n", metavar="N",
+                        help="refractive index of the water (>= 1); default: the dataset's (1.33 when only "
+                        "--water-level gives the water)")
+    parser.add_argument("--optimize-water", choices=["level", "level+n"],
+                        help="calibrate the water level (and n) from the images, starting from the values "
+                        "above, once the first half of the run has settled the Gaussians (experimental: on the "
+                        "small reach it did not correct a level 10 cm off; see README)")
     parser.add_argument("--checkpoint-every", type=count, metavar="N",
                         help="write a checkpoint every N steps (default: every 10 %% of the run; 0: only at the end)")
     parser.add_argument("--backend", choices=list(BACKENDS), help="rasterizer backend (default: auto)")
@@ -58,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
     from ragsplat_core.train import Trainer, preset_config
 
     overrides = {"variant": args.variant, "seed": args.seed}
-    for key in ("iterations", "init_depth", "checkpoint_every", "backend", "device"):
+    for key in ("iterations", "init_depth", "water_level", "water_n", "optimize_water", "checkpoint_every",
+                "backend", "device"):
         if getattr(args, key) is not None:
             overrides[key] = getattr(args, key)
     data = args.data if args.colmap is None else _import(args, overrides)

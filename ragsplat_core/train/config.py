@@ -6,6 +6,7 @@ ablation harness, the tables and the command line all read `VARIANTS` from here.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field, fields, replace
 
 from ragsplat_core.errors import ConfigError
@@ -21,6 +22,9 @@ VARIANTS: dict[str, dict | None] = {
     "full+anisotropic": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
     "full+color": {"position": True, "scale": "isotropic", "opacity": True, "color": True},
 }
+
+# optimize_water -> the WaterSurface fields it calibrates
+WATER_PARAMS: dict[str, tuple[str, ...]] = {"none": (), "level": ("level",), "level+n": ("level", "n")}
 
 
 @dataclass(frozen=True)
@@ -51,6 +55,21 @@ class TrainConfig:
     backend: str = "auto"
     device: str = "auto"  # "auto": CUDA when available, else CPU
     checkpoint_every: int | None = None  # None: every 10 % of the run; 0: only at the end (and on interrupt)
+    # The water plane: the dataset's unless overridden (on a dataset without water, water_level adds one with
+    # water_n or 1.33). optimize_water calibrates it from the images: "level" or "level+n", each with its
+    # own Adam step size (Adam moves a parameter by about its lr per step).
+    water_level: float | None = None  # metres, the model's frame
+    water_n: float | None = None
+    optimize_water: str = "none"  # "none" | "level" | "level+n"
+    # Absolute metres, not x camera extent as the means: how far the level is off is set by how it was
+    # measured (a GNSS point on the waterline, a few cm to dm), not by how wide the survey is.
+    lr_water_level: float = 1e-3
+    lr_water_n: float = 1e-4  # water's n spans 1.33-1.34 with temperature and salinity
+    # Fraction of the run before the water moves: while densification runs (to half the run) the Gaussians
+    # are cloned, split, pruned and their opacities reset every 10 %, and a level moved against that
+    # half-built bed absorbs its depth errors (measured on the small reach with 0: a level 10 cm high rose
+    # to 20 cm while the bed was still the initial plane, and ended 16 cm high).
+    water_warmup: float = 0.5
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
@@ -67,11 +86,35 @@ class TrainConfig:
             raise ConfigError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
         if self.init_depth is not None and not self.init_depth > 0:
             raise ConfigError(f"init_depth is a depth below the water level and must be > 0, got {self.init_depth}")
+        if self.water_level is not None and not math.isfinite(self.water_level):
+            raise ConfigError(f"water_level must be finite, got {self.water_level}")
+        if self.water_n is not None and not (math.isfinite(self.water_n) and self.water_n >= 1):
+            raise ConfigError(f"water_n is a refractive index and must be finite and >= 1, got {self.water_n}")
+        if self.optimize_water not in WATER_PARAMS:
+            raise ConfigError(f"optimize_water must be one of {', '.join(WATER_PARAMS)}, got {self.optimize_water!r}")
+        if self.optimize_water != "none" and VARIANTS[self.variant] is None:
+            raise ConfigError(f"optimize_water={self.optimize_water!r} needs a variant that models the water; "
+                              f"{self.variant!r} never refracts")
+        for name in ("lr_water_level", "lr_water_n"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not 0 <= self.water_warmup < 1:
+            raise ConfigError(f"water_warmup is a fraction of the run in [0, 1), got {self.water_warmup}")
 
     @property
     def schedule(self) -> DensifyConfig:
         """The densification schedule stretched to this run's iteration count."""
         return self.densify.scaled(self.iterations)
+
+    @property
+    def water_params(self) -> tuple[str, ...]:
+        """The WaterSurface fields calibrated in this run."""
+        return WATER_PARAMS[self.optimize_water]
+
+    @property
+    def water_start(self) -> int:
+        """The last step with the water frozen (warm-up)."""
+        return round(self.water_warmup * self.iterations)
 
     @property
     def checkpoint_interval(self) -> int:
@@ -88,6 +131,7 @@ class TrainConfig:
         d["refraction"] = VARIANTS[self.variant]
         d["densify_scaled"] = asdict(self.schedule)
         d["sh_every_scaled"] = self.sh_every
+        d["water_start_scaled"] = self.water_start
         return d
 
     @classmethod

@@ -12,8 +12,13 @@ and checkpoint writes, so error-against-time curves are not inflated by evaluati
 is the CPU time of the process (all threads) over the same steps, and `trainer.step_seconds` the wall
 time of each step (a shared machine moves the wall clock; CPU time and the median step much less).
 
-Outputs in out_dir: `config.json` (resolved config, seed, versions, variant flags), `ckpt.pt` (latest
-checkpoint), `point_cloud.ply` (standard 3DGS PLY), `train_stats.json` (time, Gaussian count, last loss).
+Outputs in out_dir: `config.json` (resolved config, seed, versions, variant flags, the water at the start
+and, once finished, at the end), `ckpt.pt` (latest checkpoint), `point_cloud.ply` (standard 3DGS PLY),
+`train_stats.json` (time, Gaussian count, last loss, final water).
+
+The water is the dataset's unless the config overrides its level or n; `optimize_water` calibrates it (own
+Adam, frozen for the warm-up), and `trainer.water` is always the current one. A view with a mask trains on
+its used pixels only.
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ import math
 import pickle
 import time
 from collections.abc import Callable
-from dataclasses import asdict, fields
+from dataclasses import asdict, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -35,9 +40,9 @@ from ragsplat_core.gaussians import PARAM_NAMES, activated, colors_for_view, ini
 from ragsplat_core.outputs import atomic_path, claim, versions, write_json
 from ragsplat_core.ply import save_ply
 from ragsplat_core.rasterize import choose_backend, rasterize
-from ragsplat_core.refraction import refract_gaussians
+from ragsplat_core.refraction import WaterSurface, refract_gaussians
 from ragsplat_core.snell import footprint
-from ragsplat_core.ssim import psnr, ssim
+from ragsplat_core.ssim import psnr, ssim, ssim_map
 from ragsplat_core.train.config import VARIANTS, TrainConfig
 from ragsplat_core.train.strategy import DefaultStrategy
 
@@ -63,14 +68,23 @@ class Trainer:
         if self.device.type == "cuda" and not torch.cuda.is_available():
             raise ConfigError(f"device {cfg.device!r} requested but CUDA is not available here")
         choose_backend(cfg.backend, self.device)  # an impossible backend is refused before any work
-        self.water = dataset.water
-        flags = VARIANTS[cfg.variant]
-        # A dry scene (or n = 1) trains as plain 3DGS: the transform is skipped, not run as an identity.
-        self.flags = None if (flags is None or self.water is None or self.water.is_identity) else flags
         self.views = dataset.train
         if not self.views:
             raise DatasetError(f"{dataset.root}: the dataset has no training views")
+        self._water0 = self._start_water()
+        # The calibrated fields of the water (float64: Adam's late steps are far below a float32 ulp of a
+        # level given in survey heights); a resumed run overwrites their values.
+        self.water_params = {k: torch.nn.Parameter(torch.tensor(float(getattr(self._water0, k)),
+                                                                dtype=torch.float64, device=self.device))
+                             for k in cfg.water_params}
+        self.water_opt = self._make_water_optimizer()
+        flags = VARIANTS[cfg.variant]
+        # A dry scene (or n = 1 that is not calibrated) trains as plain 3DGS: the transform is skipped, not
+        # run as an identity.
+        self.flags = None if (flags is None or self._water0 is None or
+                              (self._water0.n == 1 and "n" not in self.water_params)) else flags
         self.targets = [v.image.to(self.device) for v in self.views]  # [H, W, 3] each
+        self.masks = [None if v.mask is None else v.mask.to(self.device) for v in self.views]  # [H, W] bool
         self.centers = [torch.tensor(v.camera.camera_center, dtype=torch.float32, device=self.device)
                         for v in self.views]
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
@@ -97,6 +111,32 @@ class Trainer:
         self.strategy.check_sanity(self.splats, self.optimizers)
 
     # ---- setup ------------------------------------------------------------------------------------
+    def _start_water(self) -> WaterSurface | None:
+        """The dataset's water with the config's overrides (None: train without water)."""
+        cfg, water = self.cfg, self.ds.water
+        if water is None and cfg.water_level is None:
+            if cfg.water_n is not None or cfg.water_params:
+                raise ConfigError(f"{self.ds.root}: the dataset has no water; give its level (water_level, "
+                                  f"--water-level) to {'calibrate' if cfg.water_params else 'set n'}")
+            return None
+        given = {"level": cfg.water_level, "n": cfg.water_n}
+        water = replace(water or WaterSurface(), **{k: v for k, v in given.items() if v is not None})
+        low = min(float(v.camera.camera_center[2]) for v in self.views)
+        if not low > water.level:
+            raise ConfigError(f"water level {water.level:g} m is not below every training camera (the lowest is "
+                              f"at {low:g} m): refraction needs the cameras in air")
+        return water
+
+    @property
+    def water(self) -> WaterSurface | None:
+        """The water as it stands now: the dataset's, overridden by the config, moved by calibration."""
+        return self._water(grad=False)
+
+    def _water(self, grad: bool) -> WaterSurface | None:
+        if self._water0 is None:
+            return None
+        return replace(self._water0, **{k: p if grad else float(p.detach()) for k, p in self.water_params.items()})
+
     def _init_splats(self) -> torch.nn.ParameterDict:
         cfg = self.cfg
         if cfg.init == "points":
@@ -145,6 +185,12 @@ class Trainer:
         return {k: torch.optim.Adam([{"params": [p], "lr": self._lr(k), "name": k}], eps=1e-15)
                 for k, p in self.splats.items()}
 
+    def _make_water_optimizer(self) -> torch.optim.Optimizer | None:
+        if not self.water_params:
+            return None
+        return torch.optim.Adam([{"params": [p], "lr": getattr(self.cfg, f"lr_water_{k}"), "name": k}
+                                 for k, p in self.water_params.items()], eps=1e-15)
+
     def means_lr(self, step: int) -> float:
         """3DGS's exponential (log-linear) decay of the position learning rate over the run."""
         c = self.cfg
@@ -160,14 +206,14 @@ class Trainer:
         return int(self.splats["means"].shape[0])
 
     # ---- rendering ----------------------------------------------------------------------------------
-    def _gaussians(self, center: torch.Tensor, interface: bool):
+    def _gaussians(self, center: torch.Tensor, interface: bool, water: WaterSurface | None):
         """(means, quats, scales, opacities, colors, covars) as the rasterizer takes them for one view."""
         s = self.splats
         scales, quats, opac = activated(s)
         colors = colors_for_view(s, center, self.active_sh_degree)
         means, covars = s["means"], None
         if interface and self.flags is not None:
-            a = refract_gaussians(means, scales, quats, opac, colors, center, self.water, **self.flags)
+            a = refract_gaussians(means, scales, quats, opac, colors, center, water, **self.flags)
             means, scales, quats, opac, colors, covars = a.means, a.scales, a.quats, a.opacities, a.colors, a.covars
         return means, quats, scales, opac, colors, covars
 
@@ -179,7 +225,7 @@ class Trainer:
         """
         center = torch.tensor(camera.camera_center, dtype=torch.float32, device=self.device)
         with torch.no_grad():
-            means, quats, scales, opac, colors, covars = self._gaussians(center, interface)
+            means, quats, scales, opac, colors, covars = self._gaussians(center, interface, self.water)
             img, alpha, depth, _ = rasterize(means, quats, scales, opac, colors, camera, self.background,
                                              covars=covars, backend=self.cfg.backend)
         return img.clamp(0, 1), alpha, depth
@@ -195,12 +241,21 @@ class Trainer:
         self.step += 1
         step = self.step
         i = self._next_view()
-        cam, gt = self.views[i].camera, self.targets[i]
-        means, quats, scales, opac, colors, covars = self._gaussians(self.centers[i], True)
+        cam, gt, mask = self.views[i].camera, self.targets[i], self.masks[i]
+        calibrate = self.water_opt is not None and step > self.cfg.water_start
+        means, quats, scales, opac, colors, covars = self._gaussians(self.centers[i], True, self._water(calibrate))
         img, _, _, info = rasterize(means, quats, scales, opac, colors, cam, self.background, covars=covars,
                                     backend=self.cfg.backend)
-        l1 = torch.abs(img - gt).mean()
-        loss = (1 - self.cfg.ssim_lambda) * l1 + self.cfg.ssim_lambda * (1 - ssim(img, gt))
+        lam = self.cfg.ssim_lambda
+        if mask is None:
+            l1 = torch.abs(img - gt).mean()
+            loss = (1 - lam) * l1 + lam * (1 - ssim(img, gt))
+        else:
+            # SSIM windows straddle the mask's edge: both images are zeroed outside it, so neither the
+            # unused target pixels nor the render there reach the loss, and the map is averaged where used.
+            l1 = torch.abs(img - gt)[mask].mean()
+            both = [torch.where(mask[..., None], x, 0.0) for x in (img, gt)]
+            loss = (1 - lam) * l1 + lam * (1 - ssim_map(*both)[0][:, mask].mean())
         if not torch.isfinite(loss):
             raise TrainingDiverged(f"iteration {step}: loss is {float(loss.detach())} (view {self.views[i].name}); "
                                    f"{self._nonfinite_report()}")
@@ -209,7 +264,7 @@ class Trainer:
         loss.backward()
         # one reduction per tensor: a sum is finite only if every element is (gradients and parameters are
         # far too small to overflow float32 when added up)
-        for name, p in self.splats.items():
+        for name, p in (*self.splats.items(), *self._water_named()):
             if p.grad is not None and not torch.isfinite(p.grad.sum()):
                 cause = self._nonfinite_report()  # a bad parameter poisons the others' gradients: name it
                 raise TrainingDiverged(f"iteration {step}: " + (f"{cause} before the optimizer step" if cause else
@@ -219,18 +274,38 @@ class Trainer:
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
+        if calibrate:
+            self._water_step(step)
         bad = self._nonfinite_report()
         if bad:
             raise TrainingDiverged(f"iteration {step}: {bad} after the optimizer step")
         self.strategy.step_post_backward(self.splats, self.optimizers, self.strat_state, step, info)
-        self.last = {"loss": float(loss.detach()), "psnr": float(psnr(img.detach(), gt)), "n": self.num_gaussians}
+        shown = (img.detach(), gt) if mask is None else (img.detach()[mask], gt[mask])
+        self.last = {"loss": float(loss.detach()), "psnr": float(psnr(*shown)), "n": self.num_gaussians}
         return self.last
+
+    def _water_named(self):  # (name, parameter) of the calibrated water fields, named as in messages
+        return [(f"water {k}", p) for k, p in self.water_params.items()]
+
+    def _water_step(self, step: int) -> None:
+        self.water_opt.step()
+        self.water_opt.zero_grad(set_to_none=True)
+        with torch.no_grad():
+            if "n" in self.water_params:  # the index of water relative to air: n < 1 is not a medium
+                self.water_params["n"].clamp_(min=1.0)
+        level, low = self.water.level, min(float(c[2]) for c in self.centers)
+        if not level < low:
+            raise TrainingDiverged(f"iteration {step}: the water level rose to {level:g} m, above the lowest "
+                                   f"camera ({low:g} m)")
 
     def _nonfinite_report(self) -> str:
         for name in PARAM_NAMES:
             if name in self.splats and not torch.isfinite(self.splats[name].detach().sum()):
                 count = int((~torch.isfinite(self.splats[name])).sum())
                 return f"non-finite values in parameter '{name}' ({count} of {self.splats[name].numel()})"
+        for name, p in self._water_named():
+            if not torch.isfinite(p.detach()):
+                return f"non-finite value of parameter '{name}'"
         return ""
 
     def train(self, callbacks: list[Callable[[Trainer, int], None]] = (), eval_steps=(),
@@ -275,6 +350,7 @@ class Trainer:
         if self.out is not None:
             self.save_checkpoint()
             save_ply(self.out / PLY, self.splats)
+            self._write_config()  # now with the final water
         stats = self.stats()
         if self.out is not None:
             write_json(self.out / "train_stats.json", stats, indent=1)
@@ -286,14 +362,19 @@ class Trainer:
         return {"variant": self.cfg.variant, "seed": self.cfg.seed, "iterations": self.step,
                 "train_seconds": self.elapsed, "train_cpu_seconds": self.cpu_elapsed,
                 "median_step_seconds": float(np.median(self.step_seconds)) if self.step_seconds else None,
-                "num_gaussians": self.num_gaussians,
-                "refraction": self.flags, **{f"last_{k}": v for k, v in self.last.items() if k != "n"}}
+                "num_gaussians": self.num_gaussians, "refraction": self.flags, "water": self._water_dict(),
+                **{f"last_{k}": v for k, v in self.last.items() if k != "n"}}
+
+    def _water_dict(self) -> dict | None:  # the water as it stands now, as JSON
+        return None if self._water0 is None else asdict(self.water)
 
     # ---- persistence -------------------------------------------------------------------------------------
     def _write_config(self) -> None:
         meta = {"config": self.cfg.to_dict(), "dataset": str(self.ds.root),
                 "dataset_fingerprint": self.ds.fingerprint, "scene_scale": self.scene_scale,
-                "water": None if self.water is None else asdict(self.water), "refraction_applied": self.flags,
+                "water": None if self._water0 is None else asdict(self._water0),
+                "water_final": self._water_dict() if self.step >= self.cfg.iterations else None,
+                "refraction_applied": self.flags,
                 "device": str(self.device),
                 "num_train_views": len(self.views), "versions": versions("torch")}
         write_json(self.out / "config.json", meta, indent=1)
@@ -305,7 +386,9 @@ class Trainer:
                 "splats": {k: v.detach().cpu() for k, v in self.splats.items()},
                 "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
                 "strategy": {k: (v.cpu() if torch.is_tensor(v) else v) for k, v in self.strat_state.items()},
-                "generator": self.gen.get_state(), "order": list(self._order), "last": self.last}
+                "generator": self.gen.get_state(), "order": list(self._order), "last": self.last,
+                "water": {k: p.detach().cpu() for k, p in self.water_params.items()},
+                "water_optimizer": None if self.water_opt is None else self.water_opt.state_dict()}
         with atomic_path(path) as tmp:  # a kill never leaves a half-written checkpoint
             torch.save(data, tmp)
         return path
@@ -334,6 +417,11 @@ class Trainer:
         self.optimizers = self._make_optimizers()
         for k, o in self.optimizers.items():
             o.load_state_dict(data["optimizers"][k])
+        with torch.no_grad():
+            for k, p in self.water_params.items():  # the same config: the same calibrated fields
+                p.copy_(data["water"][k])
+        if self.water_opt is not None:
+            self.water_opt.load_state_dict(data["water_optimizer"])
         self.strat_state = {k: (v.to(self.device) if torch.is_tensor(v) else v) for k, v in data["strategy"].items()}
         self.step, self.elapsed = int(data["step"]), float(data["elapsed"])
         self.cpu_elapsed = float(data.get("cpu_elapsed", 0.0))
