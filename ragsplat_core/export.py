@@ -24,14 +24,14 @@ from ragsplat_core.dataset import layout
 from ragsplat_core.dataset.layout import Georef
 from ragsplat_core.dataset.load import Dataset, View, load_dataset
 from ragsplat_core.errors import ConfigError, DatasetError, OutputError
-from ragsplat_core.gaussians import activated, colors_for_view
+from ragsplat_core.gaussians import activated
 from ragsplat_core.outputs import atomic_path, claim
 from ragsplat_core.ply import load_ply
 from ragsplat_core.rasterize import choose_backend, rasterize
-from ragsplat_core.refraction import WaterSurface, refract_gaussians
+from ragsplat_core.refraction import WaterSurface
 from ragsplat_core.surface import ExtractConfig, extract_surface
 from ragsplat_core.train.config import TrainConfig
-from ragsplat_core.train.trainer import PLY
+from ragsplat_core.train.trainer import PLY, view_gaussians
 
 BATHYMETRIC, GROUND = 40, 2  # ASPRS classes (LAS 1.4 R15): submerged bed ("bathymetric point"), emerged
 LAS_SCALE = 0.001  # metres per integer step of the LAS coordinates
@@ -64,9 +64,11 @@ class Bed:
 def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None = None, ply: Path | None = None,
                png: Path | None = None, data: Path | None = None) -> Bed:
     """Extract the bed of a finished run (`load_run`, `extract_bed`) and write the DEM and each other product
-    given a path, in the dataset's georeference (an imported survey's CRS and offset). Returns the bed."""
-    gaussians, ds, seed = load_run(run, data)
-    bed = extract_bed(gaussians, resolution, None if ds.water is None else ds.water.level, ds.eval_region,
+    given a path, in the dataset's georeference (an imported survey's CRS and offset), depths below the
+    water the run ended with (`run_water`). Returns the bed."""
+    meta, ds, splats, seed = _read_run(Path(run), data, splits=())
+    water = run_water(meta, ds)
+    bed = extract_bed(activated_dict(splats), resolution, None if water is None else water.level, ds.eval_region,
                       ds.georef, seed)
     write_dem(dem, bed)
     for path, write in ((las, write_las), (ply, write_ply), (png, write_png)):
@@ -131,29 +133,18 @@ class Model:
     device: torch.device
     backend: str
 
-    @property
-    def sh_degree(self) -> int:
-        # the active degree at the run's last step; twin of `Trainer.active_sh_degree`
-        return min(self.cfg.sh_degree, self.cfg.iterations // self.cfg.sh_every)
-
     def gaussians(self) -> dict:
         return activated_dict(self.splats)
 
     def render(self, camera: Camera, interface: bool = True):
         """(image [H,W,3] in [0, 1], alpha [H,W,1], z-depth [H,W,1]) of `camera`, as `Trainer.render` gives
         them: interface=True through the water as trained, False the true Gaussians (the bed drained)."""
-        s = self.splats
         center = torch.tensor(camera.camera_center, dtype=torch.float32, device=self.device)
         background = torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device)
         with torch.no_grad():
-            # Twin of `Trainer._gaussians` (which needs a Trainer, i.e. every training image loaded); the
-            # tests render both and require the same pixels.
-            scales, quats, opac = activated(s)
-            colors = colors_for_view(s, center, self.sh_degree)
-            means, covars = s["means"], None
-            if interface and self.flags is not None:
-                a = refract_gaussians(means, scales, quats, opac, colors, center, self.water, **self.flags)
-                means, scales, quats, opac, colors, covars = a.means, a.scales, a.quats, a.opacities, a.colors, a.covars
+            means, quats, scales, opac, colors, covars = view_gaussians(
+                self.splats, center, self.cfg.active_sh_degree(self.cfg.iterations), self.water,
+                self.flags if interface else None)
             img, alpha, depth, _ = rasterize(means, quats, scales, opac, colors, camera, background, covars=covars,
                                              backend=self.backend)
         return img.clamp(0, 1), alpha, depth
@@ -183,12 +174,14 @@ def load_model(run: Path, data: Path | None = None, splits: tuple[str, ...] = ()
 
 
 def run_water(meta: dict, ds: Dataset) -> WaterSurface | None:
-    """The water a run is rendered under, read in this one place: what training used as config.json
-    records it (the dataset's; None for a dry scene), else, for a config.json without the record, the
-    dataset's."""
-    if "water" not in meta:
-        return ds.water
-    return None if meta["water"] is None else WaterSurface(float(meta["water"]["level"]), float(meta["water"]["n"]))
+    """The water a run is rendered and exported under, read in this one place: where training left it as
+    config.json records it (`water_final`: calibrated or overridden; None for a dry scene), else the water it
+    started from, else, for a config.json without the record, the dataset's."""
+    for key in ("water_final", "water"):
+        if meta.get(key) is not None or (key == "water" and key in meta):
+            w = meta[key]
+            return None if w is None else WaterSurface(float(w["level"]), float(w["n"]))
+    return ds.water
 
 
 def select_views(ds: Dataset, name: str, split: str = "all") -> list[View]:

@@ -102,6 +102,18 @@ def test_points_init(wet, tmp_path):
     assert torch.allclose(tr.splats["means"][:, 2].detach(), torch.tensor(pts[:, 2] * 1.33, dtype=torch.float32))
 
 
+def test_points_init_keeps_a_seeded_subset_of_a_large_cloud(wet, tmp_path):
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(-0.5, 0.5, (50, 2)), rng.uniform(-0.6, -0.4, 50), rng.uniform(0, 1, (50, 3))])
+    np.save(tmp_path / "pc.npy", pts)
+    runs = [Trainer(_cfg(init="points", init_points=str(tmp_path / "pc.npy"), init_count=20, seed=s), wet)
+            for s in (0, 0, 1)]
+    means = [tr.splats["means"].detach() for tr in runs]
+    assert means[0].shape == (20, 3) and torch.equal(means[0], means[1]) and not torch.equal(means[0], means[2])
+    known = {tuple(np.round(p, 5)) for p in pts[:, :2]}
+    assert all(tuple(np.round(m, 5)) in known for m in means[0][:, :2].double().numpy())  # points of the cloud
+
+
 def test_dry_scene_never_calls_refraction(tmp_path, monkeypatch):
     def boom(*a, **k):
         raise AssertionError("refract_gaussians called for a scene without water")

@@ -38,6 +38,13 @@ def finite_float(text: str) -> float:
     return _number(float, text)
 
 
+def refractive_index(text: str) -> float:
+    value = _number(float, text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"a refractive index relative to air is >= 1, got {value:g}")
+    return value
+
+
 def positive_float(text: str) -> float:
     value = _number(float, text)
     if value <= 0:

@@ -12,29 +12,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
-from ragsplat_core.cli.args import count, dataset_dir, finite_float, out_dir, positive_float, positive_int
+from ragsplat_core.cli.args import (
+    count,
+    dataset_dir,
+    finite_float,
+    out_dir,
+    positive_float,
+    positive_int,
+    refractive_index,
+)
 from ragsplat_core.errors import TrainingDiverged
-
-
-def _finite(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
-    return value
-
-
-def _index(text: str) -> float:
-    value = _finite(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"a refractive index relative to air is >= 1, got {value:g}")
-    return value
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -47,9 +37,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a COLMAP model folder (cameras/images/points3D, .bin or .txt): your own survey")
     survey = parser.add_argument_group("survey import (with --colmap)")
     survey.add_argument("--images", type=Path, metavar="DIR", help="the folder the model's image names refer to")
-    survey.add_argument("--water-level", type=finite_float, metavar="Z",
-                        help="height of the calm water surface in the model's frame (metres, z up)")
-    survey.add_argument("--n", type=positive_float, default=1.33, help="refractive index of the water (1.33)")
     survey.add_argument("--masks", type=Path, metavar="DIR",
                         help="masks named <image name>.png, zero where pixels are left out (glint, people)")
     survey.add_argument("--crs", metavar="CRS", help="the model's CRS for the products, e.g. EPSG:32633")
@@ -63,11 +50,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iterations", type=positive_int, help="override the preset's iteration count")
     parser.add_argument("--init-depth", type=positive_float, help="grid depth below the water level (m); "
                         "default: scene.json spec.bed.depth")
-    parser.add_argument("--water-level", type=_finite, metavar="Z",
-                        help="water plane height (m, the model's frame); default: the dataset's")
-    parser.add_argument("--n", type=_index, dest="water_n", metavar="N",
-                        help="refractive index of the water (>= 1); default: the dataset's (1.33 when only "
-                        "--water-level gives the water)")
+    parser.add_argument("--water-level", type=finite_float, metavar="Z",
+                        help="height of the calm water surface (m, the model's frame, z up): required with "
+                        "--colmap; with --data it replaces the dataset's")
+    parser.add_argument("--n", type=refractive_index, dest="water_n", metavar="N",
+                        help="refractive index of the water (>= 1); default: the dataset's, else 1.33")
     parser.add_argument("--optimize-water", choices=["level", "level+n"],
                         help="calibrate the water level (and n) from the images, starting from the values "
                         "above, once the first half of the run has settled the Gaussians (experimental: on the "
@@ -124,7 +111,9 @@ def _import(args: argparse.Namespace, overrides: dict) -> Path:
     if missing:
         raise ConfigError(f"--colmap needs {' and '.join(missing)}")
     claim(args.out, "train run", legacy=(CHECKPOINT,))  # before the import writes into it
-    done = import_colmap(args.colmap, args.images, args.out / "data", args.water_level, args.n, args.masks,
+    # the imported dataset carries the water: not an override of it
+    level, n = overrides.pop("water_level"), overrides.pop("water_n", 1.33)
+    done = import_colmap(args.colmap, args.images, args.out / "data", level, n, args.masks,
                          args.crs or layout.LOCAL_CRS, args.max_size)
     offset = ", ".join(f"{x:g}" for x in done.georef.offset)
     print(f"{'reusing the' if done.reused else 'imported'} survey in {done.root}: {done.images} images, "

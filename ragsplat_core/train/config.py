@@ -36,7 +36,8 @@ class TrainConfig:
     # initialisation: "grid" (the paper: a horizontal grid at the bed depth) or "points" (a point cloud file)
     init: str = "grid"
     init_depth: float | None = None  # grid depth below the water level (m); None: scene.json spec.bed.depth
-    init_count: int = 10_000  # grid Gaussians (approximately: a square grid over the views' footprint)
+    # grid Gaussians (approximately: a square grid over the views' footprint), or at most this many points
+    init_count: int = 10_000
     init_points: str | None = None  # .npy [N, 3] or [N, 6] (xyz, rgb in [0, 1]) for init="points"
     init_opacity: float = 0.1
     sh_degree: int = 3
@@ -124,6 +125,10 @@ class TrainConfig:
     @property
     def sh_every(self) -> int:
         return max(1, round(self.sh_degree_every * self.iterations / PAPER_ITERATIONS))
+
+    def active_sh_degree(self, step: int) -> int:
+        """The SH degree in use after `step` steps (raised by one every `sh_every`)."""
+        return min(self.sh_degree, step // self.sh_every)
 
     def to_dict(self) -> dict:
         d = asdict(self)

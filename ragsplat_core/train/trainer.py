@@ -53,6 +53,19 @@ MAX_DEPTH_PER_HEIGHT = 10
 PLY = "point_cloud.ply"
 
 
+def view_gaussians(splats, center: torch.Tensor, sh_degree: int, water: WaterSurface | None, flags: dict | None):
+    """(means, quats, scales, opacities, colors, covars) as the rasterizer takes them for the camera at
+    `center` [3]: the true Gaussians (`flags` None) or the apparent ones through `water` (RA-GS, `flags` of
+    `refract_gaussians`). The trainer and a finished run's renders (`export.Model`) share it."""
+    scales, quats, opac = activated(splats)
+    colors = colors_for_view(splats, center, sh_degree)
+    means, covars = splats["means"], None
+    if flags is not None:
+        a = refract_gaussians(means, scales, quats, opac, colors, center, water, **flags)
+        means, scales, quats, opac, colors, covars = a.means, a.scales, a.quats, a.opacities, a.colors, a.covars
+    return means, quats, scales, opac, colors, covars
+
+
 class Trainer:
     """Holds the Gaussians, their optimisers and the densification state for one run (one variant)."""
 
@@ -145,6 +158,8 @@ class Trainer:
             arr = np.load(cfg.init_points)
             if arr.ndim != 2 or arr.shape[1] not in (3, 6):
                 raise ConfigError(f"{cfg.init_points}: expected an array [N, 3] or [N, 6], got {arr.shape}")
+            if len(arr) > cfg.init_count:  # a survey's model can hold millions: a seeded random subset
+                arr = arr[np.sort(np.random.default_rng(cfg.seed).choice(len(arr), cfg.init_count, replace=False))]
             pts = torch.from_numpy(arr[:, :3]).float()
             rgb = torch.from_numpy(arr[:, 3:]).float() if arr.shape[1] == 6 else torch.full_like(pts, 0.5)
             return init_points(pts, rgb, self.water, cfg.sh_degree, cfg.init_opacity)
@@ -199,7 +214,7 @@ class Trainer:
 
     @property
     def active_sh_degree(self) -> int:
-        return min(self.cfg.sh_degree, self.step // self.cfg.sh_every)
+        return self.cfg.active_sh_degree(self.step)
 
     @property
     def num_gaussians(self) -> int:
@@ -207,15 +222,7 @@ class Trainer:
 
     # ---- rendering ----------------------------------------------------------------------------------
     def _gaussians(self, center: torch.Tensor, interface: bool, water: WaterSurface | None):
-        """(means, quats, scales, opacities, colors, covars) as the rasterizer takes them for one view."""
-        s = self.splats
-        scales, quats, opac = activated(s)
-        colors = colors_for_view(s, center, self.active_sh_degree)
-        means, covars = s["means"], None
-        if interface and self.flags is not None:
-            a = refract_gaussians(means, scales, quats, opac, colors, center, water, **self.flags)
-            means, scales, quats, opac, colors, covars = a.means, a.scales, a.quats, a.opacities, a.colors, a.covars
-        return means, quats, scales, opac, colors, covars
+        return view_gaussians(self.splats, center, self.active_sh_degree, water, self.flags if interface else None)
 
     def render(self, camera: Camera, interface: bool = True):
         """(image [H,W,3], alpha [H,W,1], depth [H,W,1]) of `camera`, no gradients.
@@ -370,7 +377,7 @@ class Trainer:
 
     # ---- persistence -------------------------------------------------------------------------------------
     def _write_config(self) -> None:
-        meta = {"config": self.cfg.to_dict(), "dataset": str(self.ds.root),
+        meta = {"config": self.cfg.to_dict(), "dataset": str(Path(self.ds.root).resolve()),
                 "dataset_fingerprint": self.ds.fingerprint, "scene_scale": self.scene_scale,
                 "water": None if self._water0 is None else asdict(self._water0),
                 "water_final": self._water_dict() if self.step >= self.cfg.iterations else None,
