@@ -52,6 +52,18 @@ def waterline_weight(d):
     return t * t * t * (t * (6 * t - 15) + 10)
 
 
+def _fade(w, n):  # [M] the factor on opacity and radiance: 1 at the level, 1 / n^2 below the band
+    return torch.lerp(torch.ones_like(w), 1 / torch.as_tensor(n, dtype=w.dtype, device=w.device) ** 2, w)
+
+
+def opacity_factor(means, water: WaterSurface):
+    """[N] rendered / true opacity of Gaussians centred at means [N, 3] under `water` (RA-GS's 1 / n^2,
+    blended at the water line as in `refract_gaussians`; 1 above the level). Pruning and opacity resets
+    apply their thresholds to what is rendered through it."""
+    level = torch.as_tensor(water.level, dtype=means.dtype, device=means.device)
+    return _fade(waterline_weight(level - means[:, 2]), water.n)
+
+
 def srgb_to_linear(c):
     """The sRGB transfer function, inverted (IEC 61966-2-1); safe for values outside [0, 1] (SH colours)."""
     return torch.where(c <= 0.04045, c / 12.92, ((c.clamp(min=0.04045) + 0.055) / 1.055) ** 2.4)
@@ -299,8 +311,7 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
             eye = torch.eye(3, dtype=means.dtype, device=means.device).expand(len(w), 3, 3)
             J = torch.lerp(eye, _jacobian(loc, der), w[:, None, None])
             covars = put(covars, J @ take(covars) @ J.transpose(1, 2))
-    n2 = torch.as_tensor(water.n, dtype=means.dtype, device=means.device) ** 2
-    fade = torch.lerp(torch.ones_like(w), 1 / n2, w)  # [M]: 1 / n^2 below the band, 1 at the level
+    fade = _fade(w, water.n)  # [M]
     if opacity:
         opacities = put(opacities, take(opacities) * fade)
     if color:  # the interface scales radiance, so the factor applies in linear light
