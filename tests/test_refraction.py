@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -117,7 +118,58 @@ def test_above_water_untouched():
     assert torch.equal(out.opacities[:2], torch.full((2,), 0.8, dtype=f64))
     assert float(out.opacities[2]) == pytest.approx(0.8 / 1.33**2)
     assert torch.equal(out.colors[:2], torch.ones(2, 3, dtype=f64))
-    torch.testing.assert_close(out.colors[2], torch.full((3,), 1.33 ** (-2 / 2.2), dtype=f64))
+    white = 1.055 * (1 / 1.33**2) ** (1 / 2.4) - 0.055  # sRGB of white's radiance / n^2
+    torch.testing.assert_close(out.colors[2], torch.full((3,), white, dtype=f64))
+
+
+def test_colour_factor_applies_in_linear_light():
+    # sRGB 0.03 lies on the transfer's linear segment: radiance / n^2 is sRGB 0.03 / n^2, not 0.03 n^(-2/2.2)
+    # (which is 36 % brighter); mid-grey goes through the power segment.
+    c = torch.tensor([[0.03, 0.5, 1.0]], dtype=f64)
+    deep = torch.tensor([[0.0, 0.0, -1.0]], dtype=f64)
+    out = refract_gaussians(deep, torch.ones(1, 3, dtype=f64), torch.tensor([[1.0, 0, 0, 0]], dtype=f64),
+                            torch.ones(1, dtype=f64), c, CAM, WaterSurface(0.5, 1.33), color=True)
+    lin = np.where(c.numpy() <= 0.04045, c.numpy() / 12.92, ((c.numpy() + 0.055) / 1.055) ** 2.4) / 1.33**2
+    expected = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)
+    np.testing.assert_allclose(out.colors.numpy(), expected, rtol=1e-12)
+    assert abs(float(out.colors[0, 0]) - 0.03 / 1.33**2) < 1e-12
+
+
+@pytest.mark.parametrize("scale", ["isotropic", "anisotropic"])
+def test_waterline_is_continuous_in_values_and_gradients(scale):
+    """Gaussians moved through the water line: every apparent quantity and its gradient w.r.t. the height
+    change smoothly (no jump at the level, none at the blend band's lower edge, finite everywhere)."""
+    from ragsplat_core.refraction import WATERLINE_BAND
+
+    level = WATER.level
+    eps = 1e-10
+    heights = torch.tensor([level + 0.02, level + eps, level, level - eps, level - WATERLINE_BAND / 2,
+                            level - WATERLINE_BAND + eps, level - WATERLINE_BAND - eps, level - 0.5], dtype=f64)
+
+    def apparent(z):  # [N] -> (sum of apparent opacity, scale (or covariance) and colour terms per Gaussian)
+        p = torch.stack([torch.full_like(z, 3.0), torch.full_like(z, 1.0), z], 1)
+        q = torch.tensor([[0.9, 0.1, 0.3, 0.2]], dtype=f64).expand(len(z), 4)
+        out = refract_gaussians(p, torch.full_like(p, 0.05), q, torch.full_like(z, 0.8),
+                                torch.full_like(p, 0.5), CAM, WATER, scale=scale, color=True)
+        spread = out.covars.diagonal(dim1=1, dim2=2).sum(-1) if scale == "anisotropic" else out.scales.sum(-1)
+        return out.opacities, spread, out.colors.sum(-1)
+
+    z = heights.clone().requires_grad_(True)
+    for value in apparent(z):
+        (grad,) = torch.autograd.grad(value.sum(), z, retain_graph=True)
+        v, g = value.detach(), grad
+        assert torch.isfinite(v).all() and torch.isfinite(g).all()
+        assert abs(float(v[1] - v[3])) < 1e-9 and abs(float(g[1] - g[3])) < 1e-4  # across the level
+        assert abs(float(v[5] - v[6])) < 1e-9 and abs(float(g[5] - g[6])) < 1e-4  # across the band's edge
+        assert float(v[2] - v[0]) == 0 or abs(float(v[2] - v[0])) < 1e-12  # at the level = above it
+        assert abs(float(v[4] - v[3])) > 0.02 * abs(float(v[3]))  # the band does change them: the test can fail
+
+
+def test_waterline_band_is_thin_and_exact_below_it():
+    from ragsplat_core.refraction import WATERLINE_BAND, waterline_weight
+
+    d = torch.tensor([-1.0, 0.0, WATERLINE_BAND / 2, WATERLINE_BAND, 1.0], dtype=f64)
+    assert waterline_weight(d).tolist() == [0.0, 0.0, 0.5, 1.0, 1.0]
 
 
 def test_camera_not_above_water_raises():

@@ -180,3 +180,37 @@ def test_split_is_reproducible_under_a_generator():
         split(params, opts, {}, torch.ones(16, dtype=torch.bool), generator=torch.Generator().manual_seed(9))
         outs.append(params["means"].detach().clone())
     assert torch.equal(outs[0], outs[1])
+
+
+def test_pruning_and_resets_test_the_rendered_opacity():
+    """The dead zone: under water a Gaussian renders at alpha / n^2; at true opacity 0.006 that is 0.0034,
+    below the rasterizer's 1/255, so it gets no gradient. With the water's opacity factor the strategy prunes
+    it (and a dry Gaussian of the same opacity stays); a reset leaves every Gaussian rendering at
+    2 x prune_opa, submerged or not."""
+    from ragsplat_core.refraction import WaterSurface, opacity_factor
+
+    water = WaterSurface(level=0.0, n=1.33)
+    params, opts = _setup()  # a 4 x 4 grid at z = -1: submerged
+    with torch.no_grad():
+        params["means"][8:, 2] = 0.5  # the second half dry
+        params["opacities"][[0, 8]] = math.log(0.006 / (1 - 0.006))
+    assert 0.006 / 1.33**2 < 1 / 255 < 0.006
+    cfg = DensifyConfig(refine_start_iter=0, refine_every=1, reset_every=1000, grow_grad2d=1e9)
+    grads = torch.zeros(16, 2, dtype=torch.float64)
+    for factor, pruned in ((None, 0), (lambda m: opacity_factor(m, water), 1)):
+        p, o = {k: torch.nn.Parameter(v.detach().clone()) for k, v in params.items()}, None
+        p = torch.nn.ParameterDict(p)
+        o = {k: torch.optim.Adam([{"params": [v], "lr": 1e-3, "name": k}], eps=1e-15) for k, v in p.items()}
+        strat = DefaultStrategy(cfg, opacity_factor=factor)
+        out = strat.step_post_backward(p, o, strat.initialize_state(), 1, _info(16, grads))
+        assert out["pruned"] == pruned  # with the factor: the submerged one only (the dry one renders 0.006)
+    reset = DensifyConfig(refine_start_iter=100, reset_every=2, prune_opa=0.005)
+    strat = DefaultStrategy(reset, opacity_factor=lambda m: opacity_factor(m, water))
+
+    def rendered():
+        return torch.sigmoid(params["opacities"].detach()) * opacity_factor(params["means"].detach(), water)
+
+    expected = rendered().clamp_max(0.01)  # a reset only lowers: the two faint ones stay as they were
+    strat.step_post_backward(params, opts, strat.initialize_state(), 2, _info(16, grads))
+    torch.testing.assert_close(rendered(), expected)
+    assert int((expected == 0.01).sum()) == 14

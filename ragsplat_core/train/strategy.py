@@ -129,9 +129,10 @@ def remove(params, optimizers, state: dict, mask: torch.Tensor) -> int:
 
 
 @torch.no_grad()
-def reset_opacity(params, optimizers, value: float) -> None:
-    """Clamp opacities to at most `value` and zero their Adam moments (the other parameters are untouched)."""
-    cap = math.log(value / (1 - value))
+def reset_opacity(params, optimizers, value) -> None:
+    """Clamp opacities to at most `value` (a number, or one per Gaussian [N] in (0, 1)) and zero their Adam
+    moments (the other parameters are untouched)."""
+    cap = math.log(value / (1 - value)) if isinstance(value, float) else torch.log(value / (1 - value))
     _update(params, optimizers,
             lambda name, p: p.clamp_max(cap) if name == "opacities" else p,
             lambda name, _, v: torch.zeros_like(v) if name == "opacities" else v)
@@ -140,9 +141,14 @@ def reset_opacity(params, optimizers, value: float) -> None:
 class DefaultStrategy:
     """3DGS adaptive density control driven by the accumulated 2-D mean gradient."""
 
-    def __init__(self, cfg: DensifyConfig = DensifyConfig(), generator: torch.Generator | None = None):
+    def __init__(self, cfg: DensifyConfig = DensifyConfig(), generator: torch.Generator | None = None,
+                 opacity_factor: Callable | None = None):
         self.cfg = cfg
         self.generator = generator  # CPU generator for the split samples (reproducible runs)
+        # means [N, 3] -> [N] rendered / true opacity (RA-GS: 1 / n^2 under water). Pruning and resets test
+        # what is rendered: a Gaussian the rasterizer skips (below 1/255) gets no gradient, so a threshold on
+        # the true opacity would leave it frozen, neither trained nor pruned. None: they are the same.
+        self.opacity_factor = opacity_factor
 
     def initialize_state(self, scene_scale: float = 1.0) -> dict:
         return {"grad2d": None, "count": None, "scene_scale": float(scene_scale)}
@@ -176,7 +182,10 @@ class DefaultStrategy:
             state["grad2d"].zero_()
             state["count"].zero_()
         if step % cfg.reset_every == 0 and step > 0:
-            reset_opacity(params, optimizers, 2.0 * cfg.prune_opa)
+            value = 2.0 * cfg.prune_opa
+            if self.opacity_factor is not None:  # rendered at most `value`
+                value = (value / self.opacity_factor(params["means"])).clamp_max(0.5)
+            reset_opacity(params, optimizers, value)
             out["reset"] = 1
         return out
 
@@ -216,7 +225,10 @@ class DefaultStrategy:
 
     def _prune(self, params, optimizers, state: dict, step: int) -> int:
         cfg = self.cfg
-        prune = torch.sigmoid(params["opacities"]) < cfg.prune_opa
+        rendered = torch.sigmoid(params["opacities"])
+        if self.opacity_factor is not None:
+            rendered = rendered * self.opacity_factor(params["means"])
+        prune = rendered < cfg.prune_opa
         if step > cfg.reset_every:
             prune |= torch.exp(params["scales"]).max(-1).values > cfg.prune_scale3d * state["scene_scale"]
         if bool(prune.all()):  # never delete the whole scene: keep the most opaque Gaussian
