@@ -354,3 +354,15 @@ def test_an_implausible_init_depth_is_refused_before_training(wet, tmp_path, cap
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "init depth 1e+06 m is more than 10x the cameras' height" in err[0]
     assert not (tmp_path / "run" / "ckpt.pt").exists()
+
+
+def test_pruning_sees_the_rendered_opacity_of_variants_that_fade_it(wet):
+    """The trainer hands the strategy the water's opacity factor exactly when the variant renders submerged
+    Gaussians fainter (the dead-zone fix, tested in test_strategy)."""
+    for variant, fades in (("3dgs", False), ("position", False), ("full", True), ("position+opacity", True)):
+        tr = Trainer(_cfg(variant=variant), wet)
+        factor = tr.strategy.opacity_factor
+        assert (factor is not None) == fades, variant
+        if fades:
+            deep = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]])
+            torch.testing.assert_close(factor(deep), torch.tensor([1 / 1.33**2, 1.0]))

@@ -40,7 +40,7 @@ from ragsplat_core.gaussians import PARAM_NAMES, activated, colors_for_view, ini
 from ragsplat_core.outputs import atomic_path, claim, versions, write_json
 from ragsplat_core.ply import save_ply
 from ragsplat_core.rasterize import choose_backend, rasterize
-from ragsplat_core.refraction import WaterSurface, refract_gaussians
+from ragsplat_core.refraction import WaterSurface, opacity_factor, refract_gaussians
 from ragsplat_core.snell import footprint
 from ragsplat_core.ssim import psnr, ssim, ssim_map
 from ragsplat_core.train.config import VARIANTS, TrainConfig
@@ -104,7 +104,10 @@ class Trainer:
         self.scene_scale = dataset.camera_extent()
         self.schedule = cfg.schedule
         self.gen = torch.Generator().manual_seed(cfg.seed)  # view order and split samples
-        self.strategy = DefaultStrategy(self.schedule, self.gen)
+        # pruning and resets test the opacity as rendered (through the water for a variant that fades it)
+        fades = self.flags is not None and self.flags["opacity"]
+        self.strategy = DefaultStrategy(self.schedule, self.gen,
+                                        (lambda means: opacity_factor(means, self.water)) if fades else None)
         self.step = 0
         self.elapsed = 0.0
         self.cpu_elapsed = 0.0
