@@ -11,6 +11,8 @@ SEED ?= 0
 # Training seeds of the ablation (tables: mean +- std over them) and its variants (empty: all).
 SEEDS ?= 0 1 2
 VARIANTS ?=
+# How every variant starts: grid (the paper's plane at the bed depth) or triangulated (from the images)
+INIT ?= grid
 DATA ?= data/$(PRESET)
 RUNS ?= runs/$(PRESET)
 
@@ -36,7 +38,7 @@ dataset: install
 
 # The main job: dataset if missing, every variant trained and evaluated, tables beside the paper's.
 ablation: dataset
-	$(VENV)/bin/ragsplat ablation --preset $(TRAIN_PRESET) --data $(DATA) --out $(RUNS) --seeds $(SEEDS) $(if $(VARIANTS),--variants $(VARIANTS))
+	$(VENV)/bin/ragsplat ablation --preset $(TRAIN_PRESET) --data $(DATA) --out $(RUNS) --seeds $(SEEDS) --init $(INIT) $(if $(VARIANTS),--variants $(VARIANTS))
 
 lint: install
 	$(VENV)/bin/ruff check .

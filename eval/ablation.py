@@ -185,6 +185,7 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
             rows.setdefault(name, []).append(row)
     header = {"data": str(Path(data).resolve()), "dataset_fingerprint": runner.fingerprint,
               "dataset_seed": runner.dataset_seed, "tuning": TUNING, "preset": preset, "seeds": list(seeds),
+              "init": getattr(runner, "init", "grid"),
               "harness_preset": asdict(PRESETS[preset]), "code_digest": base["code"],
               "versions": stamp, "command": sys.argv,
               "max_depth_m": truth.max_depth, "level": truth.level,
@@ -237,7 +238,8 @@ class TrainEval:
     `training_bar(total, desc, initial) -> (bar, on_step)` shows training progress (None: nothing shown).
     """
 
-    def __init__(self, data: Path, device: str | None = None, training_bar: Callable | None = None):
+    def __init__(self, data: Path, device: str | None = None, training_bar: Callable | None = None,
+                 init: str = "grid"):
         from ragsplat_core.dataset.load import load_dataset
 
         self.ds = load_dataset(data, ground_truth=True)
@@ -251,11 +253,12 @@ class TrainEval:
         self.dataset_seed = json.loads(scene.read_text()).get("seed") if scene.is_file() else None
         self.device = device
         self.training_bar = training_bar
+        self.init = init  # TrainConfig.init of every row
 
     def config(self, variant: str, preset: str, seed: int):
         from ragsplat_core.train import preset_config
 
-        overrides = {"variant": variant, "seed": seed}
+        overrides = {"variant": variant, "seed": seed, "init": self.init}
         if self.device is not None:
             overrides["device"] = self.device
         return preset_config(preset, **overrides)

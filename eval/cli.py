@@ -21,6 +21,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"subset of {', '.join(VARIANTS)} (default: all)")
     parser.add_argument("--seeds", type=count, nargs="+", default=[0], metavar="SEED",
                         help="training (and extraction) seeds; tables show mean +- std over them (default: 0)")
+    parser.add_argument("--init", choices=["grid", "triangulated"], default="grid",
+                        help="how every variant starts: the paper's plane at the bed depth (grid), or points "
+                             "triangulated from the training images with their known poses (no answer given)")
     lpips_arguments(parser)
     parser.add_argument("--device", default=None, help="torch device for training (default: the preset's)")
 
@@ -39,7 +42,8 @@ def run(args: argparse.Namespace) -> int:
     from ragsplat_core.cli.progress import deferred_interrupts, training_bar
 
     with deferred_interrupts() as check:  # Ctrl-C: the trainer checkpoints its finished steps, then stops
-        train_eval = TrainEval(args.data, args.device, training_bar=partial(training_bar, leave=False, check=check))
+        train_eval = TrainEval(args.data, args.device, training_bar=partial(training_bar, leave=False, check=check),
+                               init=args.init)
         run_ablation(args.data, args.out, args.preset, args.variants, args.seeds, train_eval, vgg16=args.vgg16,
                      download=not args.no_download, log=print)
     return 0

@@ -366,3 +366,23 @@ def test_pruning_sees_the_rendered_opacity_of_variants_that_fade_it(wet):
         if fades:
             deep = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]])
             torch.testing.assert_close(factor(deep), torch.tensor([1 / 1.33**2, 1.0]))
+
+
+def test_triangulated_init_is_computed_once_per_dataset_content(tmp_path, monkeypatch):
+    """init="triangulated" starts from `colmap.triangulate` of the training images (submerged depths x n),
+    cached in the dataset with its fingerprint: a second run reuses it, changed content recomputes it."""
+    from ragsplat_core.dataset import colmap
+
+    calls = []
+
+    def fake(root, work):
+        calls.append(root)
+        return np.array([[0.0, 0.0, -0.5, 1, 0, 0], [0.2, 0.0, -0.6, 0, 1, 0], [0.0, 0.3, 0.1, 0, 0, 1]])
+
+    monkeypatch.setattr(colmap, "triangulate", fake)
+    ds = load_dataset(_tiny(tmp_path / "data"))
+    m = [Trainer(_cfg(init="triangulated"), ds).splats["means"][:, 2].detach() for _ in range(2)]
+    assert len(calls) == 1 and torch.equal(m[0], m[1])
+    torch.testing.assert_close(m[0], torch.tensor([-0.5 * 1.33, -0.6 * 1.33, 0.1]))  # above the water: as is
+    Trainer(_cfg(init="triangulated"), dataclasses.replace(ds, fingerprint="other"))
+    assert len(calls) == 2

@@ -29,7 +29,7 @@ from ragsplat_core.errors import TrainingDiverged
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ragsplat_core.rasterize import BACKENDS
-    from ragsplat_core.train.config import PRESETS, VARIANTS
+    from ragsplat_core.train.config import INITS, PRESETS, VARIANTS
 
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--data", type=dataset_dir, help="dataset directory (transforms.json, images/)")
@@ -48,6 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="small", choices=list(PRESETS), help="training preset")
     parser.add_argument("--seed", type=count, default=0, help="random seed (written into config.json)")
     parser.add_argument("--iterations", type=positive_int, help="override the preset's iteration count")
+    parser.add_argument("--init", choices=list(INITS), help="initialisation (default: the preset's, grid; with "
+                        "--colmap: the model's points, else triangulated)")
     parser.add_argument("--init-depth", type=positive_float, help="grid depth below the water level (m); "
                         "default: scene.json spec.bed.depth")
     parser.add_argument("--water-level", type=finite_float, metavar="Z",
@@ -72,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     from ragsplat_core.train import Trainer, preset_config
 
     overrides = {"variant": args.variant, "seed": args.seed}
-    for key in ("iterations", "init_depth", "water_level", "water_n", "optimize_water", "checkpoint_every",
+    for key in ("iterations", "init", "init_depth", "water_level", "water_n", "optimize_water", "checkpoint_every",
                 "backend", "device"):
         if getattr(args, key) is not None:
             overrides[key] = getattr(args, key)
@@ -102,7 +104,7 @@ def _import(args: argparse.Namespace, overrides: dict) -> Path:
     points, or points triangulated from the images when it has none (depths x n). Returns the dataset
     directory."""
     from ragsplat_core.dataset import layout
-    from ragsplat_core.dataset.colmap import POINTS, import_colmap, triangulate
+    from ragsplat_core.dataset.colmap import POINTS, import_colmap
     from ragsplat_core.errors import ConfigError
     from ragsplat_core.outputs import claim
     from ragsplat_core.train.trainer import CHECKPOINT
@@ -119,11 +121,11 @@ def _import(args: argparse.Namespace, overrides: dict) -> Path:
     print(f"{'reusing the' if done.reused else 'imported'} survey in {done.root}: {done.images} images, "
           f"{done.cameras} camera(s), {done.undistorted} resampled, {done.points} points; local origin at "
           f"({offset}) of {args.crs or 'the model frame'}", file=sys.stderr)
-    if "init_depth" not in overrides:
-        points = done.root / POINTS
-        if not points.is_file():
+    if "init_depth" not in overrides and "init" not in overrides:
+        if done.points:
+            overrides.update(init="points", init_points=str(done.root / POINTS))
+        else:
             print(f"the model has no 3D points: triangulating them from the {done.images} images with their "
                   "known poses (pycolmap, CPU; --init-depth starts from a plane instead)", file=sys.stderr)
-            layout.write_npy(points, triangulate(done.root, done.root / "triangulation"))
-        overrides.update(init="points", init_points=str(points))
+            overrides.update(init="triangulated")
     return done.root

@@ -322,3 +322,20 @@ def triangulate(root: Path, work: Path) -> np.ndarray:
     if not len(pts):
         raise _fail(f"{root}: no point could be triangulated from the training images (no texture or overlap?)")
     return pts
+
+
+TRIANGULATED = "colmap/triangulated.npy"  # a dataset's cached `triangulate` result, with a .json of its key
+
+
+def triangulated_points(root: Path, fingerprint: str) -> Path:
+    """The dataset's triangulated points as a .npy file [P, 6] (`triangulate`), computed once per dataset
+    content (`fingerprint`) and cached inside it: a derived product, like COLMAP's own database, that every
+    run on the dataset shares (features and matches are deterministic on the CPU)."""
+    path, work = Path(root) / TRIANGULATED, Path(root) / "colmap" / "triangulation"
+    stamp = path.with_suffix(".json")
+    if path.is_file() and stamp.is_file() and json.loads(stamp.read_text()).get("fingerprint") == fingerprint:
+        return path
+    pts = triangulate(root, work)
+    layout.write_npy(path, pts)
+    write_json(stamp, {"fingerprint": fingerprint, "points": len(pts)})
+    return path

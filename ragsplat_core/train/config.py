@@ -27,13 +27,17 @@ VARIANTS: dict[str, dict | None] = {
 WATER_PARAMS: dict[str, tuple[str, ...]] = {"none": (), "level": ("level",), "level+n": ("level", "n")}
 
 
+INITS = ("grid", "points", "triangulated")
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     variant: str = "full"
     preset: str = "small"
     seed: int = 0
     iterations: int = 1500
-    # initialisation: "grid" (the paper: a horizontal grid at the bed depth) or "points" (a point cloud file)
+    # initialisation: "grid" (the paper: a horizontal grid at the bed depth), "points" (a point cloud file) or
+    # "triangulated" (points triangulated from the training images with their known poses, pycolmap)
     init: str = "grid"
     init_depth: float | None = None  # grid depth below the water level (m); None: scene.json spec.bed.depth
     # grid Gaussians (approximately: a square grid over the views' footprint), or at most this many points
@@ -77,8 +81,8 @@ class TrainConfig:
             raise ConfigError(f"unknown variant {self.variant!r}; choose one of {', '.join(VARIANTS)}")
         if self.iterations < 1:
             raise ConfigError(f"iterations must be >= 1, got {self.iterations}")
-        if self.init not in ("grid", "points"):
-            raise ConfigError(f"init must be 'grid' or 'points', got {self.init!r}")
+        if self.init not in INITS:
+            raise ConfigError(f"init must be one of {', '.join(INITS)}, got {self.init!r}")
         if self.init == "points" and not self.init_points:
             raise ConfigError("init='points' needs init_points (a .npy point cloud)")
         if not 0 <= self.sh_degree <= 3:

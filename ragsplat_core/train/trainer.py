@@ -155,12 +155,18 @@ class Trainer:
 
     def _init_splats(self) -> torch.nn.ParameterDict:
         cfg = self.cfg
-        if cfg.init == "points":
-            if not Path(cfg.init_points).is_file():
-                raise ConfigError(f"{cfg.init_points}: point cloud file is missing")
-            arr = np.load(cfg.init_points)
+        if cfg.init in ("points", "triangulated"):
+            if cfg.init == "triangulated":
+                from ragsplat_core.dataset.colmap import triangulated_points
+
+                source = triangulated_points(self.ds.root, self.ds.fingerprint)
+            else:
+                source = Path(cfg.init_points)
+            if not source.is_file():
+                raise ConfigError(f"{source}: point cloud file is missing")
+            arr = np.load(source)
             if arr.ndim != 2 or arr.shape[1] not in (3, 6):
-                raise ConfigError(f"{cfg.init_points}: expected an array [N, 3] or [N, 6], got {arr.shape}")
+                raise ConfigError(f"{source}: expected an array [N, 3] or [N, 6], got {arr.shape}")
             if len(arr) > cfg.init_count:  # a survey's model can hold millions: a seeded random subset
                 arr = arr[np.sort(np.random.default_rng(cfg.seed).choice(len(arr), cfg.init_count, replace=False))]
             pts = torch.from_numpy(arr[:, :3]).float()
