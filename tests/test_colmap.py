@@ -104,6 +104,18 @@ def test_distorted_images_are_undistorted_to_the_pinhole_and_the_border_masked(t
     assert np.abs(raw - expected)[used].mean() > 5 * err.mean()
 
 
+def test_each_camera_keeps_its_own_intrinsics(tmp_path):
+    wide = pycolmap.Camera.create_from_model_name(1, "PINHOLE", 80.0, 96, 72)
+    tele = pycolmap.Camera.create_from_model_name(2, "SIMPLE_RADIAL", 150.0, 120, 90)
+    tele.params = [150.0, 61.0, 44.0, 0.0]  # no distortion: copied as it is
+    write_model(tmp_path / "model", tmp_path / "img", CENTRES, cams=[wide, tele])
+    done = import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", 0.0)
+    assert (done.cameras, done.undistorted) == (2, 0)
+    got = {v.name: (v.camera.fx, v.camera.cx, v.camera.cy, v.camera.width) for v in load_dataset(tmp_path / "data").views}
+    assert got == {"img01.jpg": (80.0, 48.0, 36.0, 96), "sub/img02.png": (150.0, 61.0, 44.0, 120),
+                   "img03.jpg": (80.0, 48.0, 36.0, 96)}
+
+
 def test_downscale_and_user_masks(tmp_path):
     write_model(tmp_path / "model", tmp_path / "img", CENTRES[:1], size=(96, 72))
     masks = tmp_path / "masks"
