@@ -255,5 +255,6 @@ def test_triangulation_with_known_poses_finds_a_plane(tmp_path):
         cv2.imwrite(str(tmp_path / "img" / im.name), np.repeat(grey[..., None], 3, 2), [cv2.IMWRITE_JPEG_QUALITY, 100])
     import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", level=0.0)
     pts = triangulate(tmp_path / "data", tmp_path / "work")
+    assert np.array_equal(pts, triangulate(tmp_path / "data", tmp_path / "work2"))  # reproducible
     assert len(pts) > 50
     assert np.median(np.abs(pts[:, 2] - z_plane)) < 0.005 and np.percentile(np.abs(pts[:, 2] - z_plane), 90) < 0.02
