@@ -84,7 +84,7 @@ class TrainConfig:
         if self.init not in INITS:
             raise ConfigError(f"init must be one of {', '.join(INITS)}, got {self.init!r}")
         if self.init == "points" and not self.init_points:
-            raise ConfigError("init='points' needs init_points (a .npy point cloud)")
+            raise ConfigError("init='points' needs init_points (--init-points: a .npy point cloud)")
         if not 0 <= self.sh_degree <= 3:
             raise ConfigError(f"sh_degree must be 0..3, got {self.sh_degree}")
         if self.checkpoint_every is not None and self.checkpoint_every < 0:
