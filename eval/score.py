@@ -22,6 +22,7 @@ from eval.report import T2_COLUMNS, T3_COLUMNS, values
 from ragsplat_core.errors import ConfigError, DatasetError
 from ragsplat_core.export import load_model
 from ragsplat_core.outputs import source_digest, versions
+from ragsplat_core.surface import in_region
 
 # The short table: the ablation's CD and F1 columns (Table 2) and the wet and banks bias and errors (Table 3)
 COLUMNS = [c for c in T2_COLUMNS if c[0].startswith(("CD", "F1"))] + \
@@ -77,9 +78,7 @@ def _score_dem(path: Path, georef, truth) -> dict:
     from eval.report import depth_error_map
 
     grid = dem_points(path, georef)
-    r, tol = truth.region, 1e-6  # the GeoTIFF's cell centres carry round-off; the region's edge nodes count
-    grid = grid[(grid[:, 0] >= r["xmin"] - tol) & (grid[:, 0] <= r["xmax"] + tol) & (grid[:, 1] >= r["ymin"] - tol)
-                & (grid[:, 1] <= r["ymax"] + tol)]
+    grid = grid[in_region(grid, truth.region, tol=1e-6)]  # the GeoTIFF's cell centres carry round-off
     figure = depth_error_map(grid, truth, Path(path).with_name(Path(path).stem + "_error.png"),
                              Path(path).name)
     return {"file": str(path), "error_map": str(figure), **score_grid(grid, truth)}

@@ -51,30 +51,26 @@ class Imported:
     reused: bool  # True: the directory already held this import
 
 
-def _fail(what: str) -> DatasetError:
-    return DatasetError(what)
-
-
 def read_model(model: Path):
     """pycolmap.Reconstruction of a COLMAP model directory (cameras/images/points3D, .bin or .txt)."""
     import pycolmap
 
     model = Path(model)
     if not model.is_dir():
-        raise _fail(f"{model}: COLMAP model directory does not exist")
+        raise DatasetError(f"{model}: COLMAP model directory does not exist")
     kinds = [k for k in (".bin", ".txt") if all((model / f"{n}{k}").is_file() for n in ("cameras", "images"))]
     if not kinds:
         nested = sorted(p.parent for p in model.glob("**/cameras.*"))
         hint = f" (found one in {nested[0]})" if nested else ""
-        raise _fail(f"{model}: not a COLMAP model (no cameras.bin/.txt and images.bin/.txt){hint}")
+        raise DatasetError(f"{model}: not a COLMAP model (no cameras.bin/.txt and images.bin/.txt){hint}")
     rec = pycolmap.Reconstruction()
     try:
         (rec.read_binary if kinds[0] == ".bin" else rec.read_text)(str(model))
     except (RuntimeError, ValueError) as err:  # pycolmap reports a broken file as a RuntimeError
-        raise _fail(f"{model}: not a readable COLMAP model ({str(err).splitlines()[0] if str(err) else err})") \
+        raise DatasetError(f"{model}: not a readable COLMAP model ({str(err).splitlines()[0] if str(err) else err})") \
             from None
     if not rec.num_reg_images():
-        raise _fail(f"{model}: the model has no registered images")
+        raise DatasetError(f"{model}: the model has no registered images")
     return rec
 
 
@@ -96,14 +92,14 @@ def _check_frame(names: list[str], centres: np.ndarray, axes: np.ndarray, level:
     mean = axes.mean(0)
     off_nadir = np.degrees(np.arccos(np.clip(-mean[2] / max(np.linalg.norm(mean), 1e-12), -1, 1)))
     if mean[2] > 0 and off_nadir > 90 + MAX_OFF_NADIR / 2:
-        raise _fail(f"{model}: the cameras look up (mean viewing direction {off_nadir:.0f} deg from straight "
+        raise DatasetError(f"{model}: the cameras look up (mean viewing direction {off_nadir:.0f} deg from straight "
                     "down): the model is upside down; align it so z points up (colmap model_aligner)")
     if off_nadir > MAX_OFF_NADIR:
-        raise _fail(f"{model}: the cameras look {off_nadir:.0f} deg away from straight down on average: the "
+        raise DatasetError(f"{model}: the cameras look {off_nadir:.0f} deg away from straight down on average: the "
                     "model's z axis is not up; align it metric with z up (colmap model_aligner)")
     low = int(np.argmin(centres[:, 2]))
     if not centres[low, 2] > level:
-        raise _fail(f"{model}: camera {names[low]} is at z = {centres[low, 2]:.4g}, not above the water level "
+        raise DatasetError(f"{model}: camera {names[low]} is at z = {centres[low, 2]:.4g}, not above the water level "
                     f"{level:g}; give the level in the model's frame (metric, z up)")
 
 
@@ -112,7 +108,7 @@ def _mask_file(masks: Path, name: str) -> Path:
     for path in (masks / f"{name}.png", (masks / name).with_suffix(".png")):
         if path.is_file():
             return path
-    raise _fail(f"{masks}: no mask for image {name} (expected {masks / name}.png)")
+    raise DatasetError(f"{masks}: no mask for image {name} (expected {masks / name}.png)")
 
 
 def _pinhole(cam, scale: float) -> tuple[int, int, float, float, float, float]:
@@ -170,17 +166,17 @@ def import_colmap(model: Path, images: Path, out: Path, level: float, n: float =
         done = json.loads((out / IMPORT).read_text())
         if done.get("key") != key:
             changed = [k for k in key if done.get("key", {}).get(k) != key[k]]
-            raise _fail(f"{out} holds an import of other inputs ({', '.join(changed)} changed); use another --out")
+            raise DatasetError(f"{out} holds an import of other inputs ({', '.join(changed)} changed); use another --out")
         return Imported(out, done["images"], done["cameras"], done["points"], done["undistorted"],
                         layout.Georef(tuple(done["georef"]["offset"]), done["georef"]["crs"]), True)
     rec = read_model(model)
     if not images.is_dir():
-        raise _fail(f"{images}: image directory does not exist")
+        raise DatasetError(f"{images}: image directory does not exist")
     regs = sorted((rec.images[i] for i in rec.reg_image_ids()), key=lambda im: im.name)
     names = [im.name for im in regs]
     missing = [nm for nm in names if not (images / nm).is_file()]
     if missing:
-        raise _fail(f"{images}: {len(missing)} of the model's {len(names)} images are missing, e.g. {missing[0]}")
+        raise DatasetError(f"{images}: {len(missing)} of the model's {len(names)} images are missing, e.g. {missing[0]}")
     centres = np.stack([im.projection_center() for im in regs])  # [V, 3]
     axes = np.stack([im.viewing_direction() for im in regs])  # [V, 3] unit optical axes
     _check_frame(names, centres, axes, level, model)
@@ -188,11 +184,11 @@ def import_colmap(model: Path, images: Path, out: Path, level: float, n: float =
     shift = np.asarray(georef.offset)
     splits = _splits(model, names)
 
-    frames, cams, maps, resampled = [], {}, {}, 0
+    frames, first, maps, resampled = [], None, {}, 0
     for im in regs:
         cam = rec.cameras[im.camera_id]
         if not cam.is_perspective():
-            raise _fail(f"{model}: camera {im.camera_id} ({cam.model.name}) is not a perspective camera")
+            raise DatasetError(f"{model}: camera {im.camera_id} ({cam.model.name}) is not a perspective camera")
         longest = max(cam.width, cam.height)
         scale = min(1.0, max_size / longest) if max_size else 1.0
         w, h, fx, fy, cx, cy = _pinhole(cam, scale)
@@ -211,13 +207,13 @@ def import_colmap(model: Path, images: Path, out: Path, level: float, n: float =
         else:
             img = cv2.imread(str(images / im.name), cv2.IMREAD_COLOR)
             if img is None or (img.shape[1], img.shape[0]) != (cam.width, cam.height):
-                raise _fail(f"{images / im.name}: " + ("not a readable image" if img is None else
+                raise DatasetError(f"{images / im.name}: " + ("not a readable image" if img is None else
                             f"{img.shape[1]} x {img.shape[0]}, the model's camera is {cam.width} x {cam.height}"))
             used = np.ones(img.shape[:2], bool)
             if mask_src is not None:
                 m = cv2.imread(str(mask_src), cv2.IMREAD_GRAYSCALE)
                 if m is None or m.shape != used.shape:
-                    raise _fail(f"{mask_src}: " + ("not a readable image" if m is None else
+                    raise DatasetError(f"{mask_src}: " + ("not a readable image" if m is None else
                                 f"mask is {m.shape[1]} x {m.shape[0]}, the image {cam.width} x {cam.height}"))
                 used = m > 0
             if distorted and im.camera_id not in maps:
@@ -229,20 +225,20 @@ def import_colmap(model: Path, images: Path, out: Path, level: float, n: float =
                 mask_rel = f"masks/{im.name}.png"
                 _write(out / mask_rel, used.astype(np.uint8) * 255)
             resampled += 1
-        cams[im.camera_id] = camera
+        first = first or camera
         entry = layout.frame(im.name, camera, splits[im.name], "survey", rel, mask_path=mask_rel)
         frames.append({**entry, "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": w, "h": h})
-    first = next(iter(cams.values()))
     local = WaterSurface(level - georef.offset[2], n)
     write_json(out / layout.TRANSFORMS, layout.transforms_json(first, frames, local, georef), indent=1)
 
     pts = _points(rec, shift)
     if len(pts):
         layout.write_npy(out / POINTS, pts)
-    summary = {"images": len(regs), "cameras": len(cams), "points": len(pts), "undistorted": resampled,
+    cameras = len({im.camera_id for im in regs})
+    summary = {"images": len(regs), "cameras": cameras, "points": len(pts), "undistorted": resampled,
                "georef": georef.to_json()}
     write_json(out / IMPORT, {"key": key, **summary}, indent=1)  # last: marks the import complete
-    return Imported(out, len(regs), len(cams), len(pts), resampled, georef, False)
+    return Imported(out, len(regs), cameras, len(pts), resampled, georef, False)
 
 
 def _write(path: Path, image: np.ndarray) -> None:
@@ -250,7 +246,7 @@ def _write(path: Path, image: np.ndarray) -> None:
 
     ok, data = cv2.imencode(".png", image)
     if not ok:
-        raise _fail(f"{path}: could not encode the image")
+        raise DatasetError(f"{path}: could not encode the image")
     write_bytes(path, data.tobytes())
 
 
@@ -294,7 +290,8 @@ def triangulate(root: Path, work: Path) -> np.ndarray:
     pipeline = pycolmap.IncrementalPipelineOptions()
     pipeline.num_threads, pipeline.random_seed = 1, 0
     db = work / "database.db"
-    with pycolmap.Database.open(db) as d:  # cameras and images first, with our ids and intrinsics
+    groups: dict[int, list[str]] = {}  # camera id -> the images it took
+    with pycolmap.Database.open(db) as d:  # cameras first, with our ids and intrinsics
         ids: dict[tuple, int] = {}
         for v in views:
             c = v.camera
@@ -304,12 +301,9 @@ def triangulate(root: Path, work: Path) -> np.ndarray:
                 cam.params = [c.fx, c.fy, c.cx, c.cy]
                 ids[key] = cam.camera_id
                 d.write_camera(cam, use_camera_id=True)
+            groups.setdefault(ids[key], []).append(v.file_path)
     reader = pycolmap.ImageReaderOptions()
-    reader.existing_camera_id = 0  # placeholder, replaced per camera below
-    names = {v.file_path: v for v in views}
-    for key, cam_id in ids.items():
-        group = [f for f, v in names.items() if (v.camera.width, v.camera.height, v.camera.fx, v.camera.fy,
-                                                 v.camera.cx, v.camera.cy) == key]
+    for cam_id, group in groups.items():
         reader.existing_camera_id = cam_id
         pycolmap.extract_features(db, root, group, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
                                   extraction_options=extraction, device=pycolmap.Device.cpu)
@@ -319,6 +313,7 @@ def triangulate(root: Path, work: Path) -> np.ndarray:
     rec = pycolmap.Reconstruction()
     for cam in cams:
         rec.add_camera_with_trivial_rig(cam)
+    names = {v.file_path: v for v in views}
     for im in images:
         v = names[im.name]
         rec.add_image_with_trivial_frame(pycolmap.Image(name=im.name, camera_id=im.camera_id, image_id=im.image_id),
@@ -327,7 +322,7 @@ def triangulate(root: Path, work: Path) -> np.ndarray:
     rec = pycolmap.triangulate_points(rec, db, root, work / "model", options=pipeline, refine_intrinsics=False)
     pts = _points(rec, np.zeros(3))
     if not len(pts):
-        raise _fail(f"{root}: no point could be triangulated from the training images (no texture or overlap?)")
+        raise DatasetError(f"{root}: no point could be triangulated from the training images (no texture or overlap?)")
     return pts
 
 

@@ -115,30 +115,27 @@ def _fail(path: Path, what: str) -> DatasetError:
     return DatasetError(f"{path}: {what}")
 
 
-def read_image(path: Path, width: int, height: int) -> torch.Tensor:
-    """[H, W, 3] uint8 tensor of an 8-bit PNG whose size must be width x height."""
+def _read_sized(path: Path, width: int, height: int, what: str) -> np.ndarray:
+    """[H, W, 3] uint8 of an 8-bit image `what` ("image", "mask") whose size must be width x height."""
     if not path.is_file():
-        raise _fail(path, "image file is missing")
+        raise _fail(path, f"{what} file is missing")
     try:
         img = layout.read_png(path)
     except ValueError as err:
         raise DatasetError(str(err)) from None
     if (img.shape[1], img.shape[0]) != (width, height):
-        raise _fail(path, f"image is {img.shape[1]} x {img.shape[0]}, transforms.json says {width} x {height}")
-    return torch.from_numpy(img)
+        raise _fail(path, f"{what} is {img.shape[1]} x {img.shape[0]}, transforms.json says {width} x {height}")
+    return img
+
+
+def read_image(path: Path, width: int, height: int) -> torch.Tensor:
+    """[H, W, 3] uint8 tensor of an 8-bit PNG whose size must be width x height."""
+    return torch.from_numpy(_read_sized(path, width, height, "image"))
 
 
 def read_mask(path: Path, width: int, height: int) -> torch.Tensor:
     """[H, W] bool of a mask image (nerfstudio's `mask_path`): True where the pixel is non-zero (used)."""
-    if not path.is_file():
-        raise _fail(path, "mask file is missing")
-    try:
-        img = layout.read_png(path)
-    except ValueError as err:
-        raise DatasetError(str(err)) from None
-    if (img.shape[1], img.shape[0]) != (width, height):
-        raise _fail(path, f"mask is {img.shape[1]} x {img.shape[0]}, transforms.json says {width} x {height}")
-    used = torch.from_numpy(img.max(axis=2) > 0)
+    used = torch.from_numpy(_read_sized(path, width, height, "mask").max(axis=2) > 0)
     if not used.any():
         raise _fail(path, "mask excludes every pixel")
     return used
