@@ -267,6 +267,9 @@ class ApparentGaussians(NamedTuple):
     opacities: torch.Tensor  # [N]
     colors: torch.Tensor  # [N, ...]
     covars: torch.Tensor | None  # [N, 3, 3] for scale="anisotropic", else None
+    # [N, 3, 3] d apparent / d true (identity above the level, blended in the waterline band) for
+    # scale="anisotropic", else None: it maps a surfel's tangent vectors exactly to first order (t' = J t)
+    jacobians: torch.Tensor | None
 
 
 def refract_gaussians(means, scales, quats, opacities, colors, camera_center, water: WaterSurface,
@@ -277,16 +280,20 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
     means [N, 3], scales [N, 3] (linear), quats [N, 4] (wxyz), opacities [N] in [0, 1], colors [N, ...]
     (sRGB-encoded, the training target's space), camera_center [3]. Only Gaussians whose centre is below
     the level change. `scale`: "none"; "isotropic" (the paper: s' = S s, S = (|J e_x| |J e_y| |J e_z|)^(1/3));
-    "determinant" (S = |det J|^(1/3)); "anisotropic" (covars = J Sigma J^T, scales left as given).
+    "determinant" (S = |det J|^(1/3)); "anisotropic" (covars = J Sigma J^T and `jacobians` J, scales left
+    as given).
     Opacity: alpha' = alpha / n^2. Colour: radiance / n^2 in linear light, re-encoded to sRGB. Within
     `WATERLINE_BAND` of the level each factor (S, J, 1 / n^2) blends from 1 (`waterline_weight`).
     """
     if scale not in SCALE_MODES:
         raise ValueError(f"scale must be one of {SCALE_MODES}, got {scale!r}")
     _check_camera(camera_center, water)
-    covars = covariance(quats, scales) if scale == "anisotropic" else None
+    covars = jacobians = None
+    if scale == "anisotropic":
+        covars = covariance(quats, scales)
+        jacobians = torch.eye(3, dtype=means.dtype, device=means.device).expand(len(means), 3, 3)
     if water.is_identity or not (position or opacity or color or scale != "none"):
-        return ApparentGaussians(means, scales, quats, opacities, colors, covars)
+        return ApparentGaussians(means, scales, quats, opacities, colors, covars, jacobians)
     wet = _submerged(means, water)
     all_wet = bool(wet.all())
 
@@ -311,10 +318,11 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
             eye = torch.eye(3, dtype=means.dtype, device=means.device).expand(len(w), 3, 3)
             J = torch.lerp(eye, _jacobian(loc, der), w[:, None, None])
             covars = put(covars, J @ take(covars) @ J.transpose(1, 2))
+            jacobians = put(jacobians, J)
     fade = _fade(w, water.n)  # [M]
     if opacity:
         opacities = put(opacities, take(opacities) * fade)
     if color:  # the interface scales radiance, so the factor applies in linear light
         c = take(colors)
         colors = put(colors, linear_to_srgb(srgb_to_linear(c) * fade.reshape(-1, *[1] * (c.dim() - 1))))
-    return ApparentGaussians(means, scales, quats, opacities, colors, covars)
+    return ApparentGaussians(means, scales, quats, opacities, colors, covars, jacobians)
