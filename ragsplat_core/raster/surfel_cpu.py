@@ -43,27 +43,34 @@ _NG = 2 + 7 + 1 + 1 + _NC
 
 
 @njit(cache=True, inline="always")
-def _row_span(mx, dy, ray, r2, i0, i1):
-    """Pixels i in [i0, i1] of a row (dy = row centre - my) whose centres can reach rho <= r2: the row's
-    span inside the disk's image, Q = q0^2 + q1^2 - r2 q2^2 <= 0 (quadratic in dx), joined with its span
-    inside the filter's disk 2 (dx^2 + dy^2) <= r2. Padded; the per-pixel test decides."""
-    a0, b0, a1, b1 = np.float64(ray[0]), np.float64(ray[1]), np.float64(ray[2]), np.float64(ray[3])
-    a2, b2, c2 = np.float64(ray[4]), np.float64(ray[5]), np.float64(ray[6])
+def _span_coeffs(a0, b0, a1, b1, a2, b2, c2, r2):
+    """Coefficients (float64) of the disk's image Q = q0^2 + q1^2 - r2 q2^2 = al dx^2 + 2 be dx + ga with
+    be = be1 dy + be0 and ga = ga2 dy^2 + ga1 dy + ga0; `full`: not an ellipse in float64 (near-degenerate
+    surfel), take whole box rows."""
+    a0, b0, a1, b1 = np.float64(a0), np.float64(b0), np.float64(a1), np.float64(b1)
+    a2, b2, c2 = np.float64(a2), np.float64(b2), np.float64(c2)
+    al = a0 * a0 + a1 * a1 - r2 * a2 * a2
+    return (al, a0 * b0 + a1 * b1 - r2 * a2 * b2, -r2 * a2 * c2, b0 * b0 + b1 * b1 - r2 * b2 * b2,
+            -2.0 * r2 * b2 * c2, -r2 * c2 * c2, al <= 0 and c2 != 0)
+
+
+@njit(cache=True, inline="always")
+def _row_span(mx, dy, al, be1, be0, ga2, ga1, ga0, full, r2, i0, i1):
+    """Pixels i in [i0, i1] of a row (dy = row centre - my, float64) whose centres can reach rho <= r2: the
+    row's span inside the disk's image (Q <= 0, a quadratic in dx) joined with its span inside the
+    filter's disk 2 (dx^2 + dy^2) <= r2. Padded; the per-pixel test decides."""
+    if full:
+        return i0, i1
     lo, hi = np.inf, -np.inf
     f = r2 / 2 - dy * dy
     if f >= 0:
         lo, hi = -np.sqrt(f), np.sqrt(f)
-    alpha = a0 * a0 + a1 * a1 - r2 * a2 * a2
-    if alpha > 0:
-        e = b2 * dy + c2
-        beta = dy * (a0 * b0 + a1 * b1) - r2 * a2 * e
-        gamma = dy * dy * (b0 * b0 + b1 * b1) - r2 * e * e
-        disc = beta * beta - alpha * gamma
+    if al > 0:
+        be = be1 * dy + be0
+        disc = be * be - al * (ga2 * dy * dy + ga1 * dy + ga0)
         if disc >= 0:
             root = np.sqrt(disc)
-            lo, hi = min(lo, (-beta - root) / alpha), max(hi, (-beta + root) / alpha)
-    elif c2 != 0:  # not an ellipse in float64 (near-degenerate surfel): the whole box row
-        return i0, i1
+            lo, hi = min(lo, (-be - root) / al), max(hi, (-be + root) / al)
     if lo > hi:
         return 1, 0
     centre = np.float64(mx) - 0.5  # i + 0.5 = mx + dx  <=>  i = mx + dx - 0.5
@@ -72,21 +79,17 @@ def _row_span(mx, dy, ray, r2, i0, i1):
 
 
 @njit(cache=True, inline="always")
-def _sample(dx, dy, ray, zc):
-    """(rho, on_plane, z, inverse q2, s, t) of one pixel and surfel (see `surfel_project.py`)."""
-    q0 = ray[0] * dx + ray[1] * dy
-    q1 = ray[2] * dx + ray[3] * dy
-    q2 = ray[4] * dx + ray[5] * dy + ray[6]
-    rho = _TWO * (dx * dx + dy * dy)
+def _sample(q0, q1, q2, rho2, zc, c2):
+    """(rho, on_plane, z, 1 / q2, s, t) of one pixel and surfel (see `surfel_project.py`)."""
     if q2 == 0:
-        return rho, False, zc, _ZERO, _ZERO, _ZERO
+        return rho2, False, zc, _ZERO, _ZERO, _ZERO
     inv = _ONE / q2
     s = q0 * inv
     t = q1 * inv
     rho3 = s * s + t * t
-    if rho3 <= rho:
-        return rho3, True, zc * ray[6] * inv, inv, s, t
-    return rho, False, zc, inv, s, t
+    if rho3 <= rho2:
+        return rho3, True, zc * c2 * inv, inv, s, t
+    return rho2, False, zc, inv, s, t
 
 
 @njit(cache=True, parallel=True)
@@ -107,18 +110,24 @@ def _forward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height, 
         for k in range(offsets[t], offsets[t + 1]):
             g = gauss[k]
             mx, my, o, zc = mean2d[g, 0], mean2d[g, 1], opac[g], zcs[g]
-            ray = rays[g]
+            a0, b0, a1, b1, a2, b2, c2 = rays[g, 0], rays[g, 1], rays[g, 2], rays[g, 3], rays[g, 4], rays[g, 5], rays[g, 6]
+            f0, f1, f2, f3, f4, f5 = feat[g, 0], feat[g, 1], feat[g, 2], feat[g, 3], feat[g, 4], feat[g, 5]
             r2 = 2.0 * (np.log(np.float64(o)) + _LOG255)
+            al, be1, be0, ga2, ga1, ga0, full = _span_coeffs(a0, b0, a1, b1, a2, b2, c2, r2)
             i0, i1 = max(box[g, 0], x0), min(box[g, 1], x1 - 1)
             for j in range(max(box[g, 2], y0), min(box[g, 3], y1 - 1) + 1):
                 dy = (_F(j) + _HALF) - my
-                lo, hi = _row_span(mx, np.float64(j) + 0.5 - np.float64(my), ray, r2, i0, i1)
+                lo, hi = _row_span(mx, np.float64(j) + 0.5 - np.float64(my), al, be1, be0, ga2, ga1, ga0, full,
+                                   r2, i0, i1)
+                q0y, q1y, q2y, dy2 = b0 * dy, b1 * dy, b2 * dy + c2, dy * dy
                 for i in range(lo, hi + 1):
                     p = (j - y0) * tw + i - x0
                     if done[p]:
                         continue
                     dx = (_F(i) + _HALF) - mx
-                    rho, _, z, _, _, _ = _sample(dx, dy, ray, zc)
+                    q0, q1, q2 = a0 * dx + q0y, a1 * dx + q1y, a2 * dx + q2y
+                    rho2 = _TWO * (dx * dx + dy2)
+                    rho, _, z, _, _, _ = _sample(q0, q1, q2, rho2, zc, c2)
                     a = min(_AMAX, o * np.exp(-_HALF * rho))
                     if a < _AMIN:
                         continue
@@ -129,8 +138,12 @@ def _forward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height, 
                         n_done += 1
                         continue
                     w = a * tb
-                    for c in range(_NC):
-                        acc[p, c] += w * feat[g, c]
+                    acc[p, 0] += w * f0
+                    acc[p, 1] += w * f1
+                    acc[p, 2] += w * f2
+                    acc[p, 3] += w * f3
+                    acc[p, 4] += w * f4
+                    acc[p, 5] += w * f5
                     dist[p] += _TWO * w * (z * (_ONE - tb) - acc[p, _NC])
                     acc[p, _NC] += w * z
                     if tb > _HALF and t_next <= _HALF:
@@ -171,8 +184,6 @@ def _backward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height,
         gtf = np.empty(npx, np.float32)  # dL/dT_final * T_final
         gd = np.empty(npx, np.float32)
         gm = np.empty(npx, np.float32)
-        gf = np.empty(_NC, np.float32)
-        gr = np.empty(7, np.float32)
         k_max = -1
         for j in range(y0, y1):
             for i in range(x0, x1):
@@ -192,21 +203,27 @@ def _backward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height,
         for k in range(k_max, offsets[t] - 1, -1):
             g = gauss[k]
             mx, my, o, zc = mean2d[g, 0], mean2d[g, 1], opac[g], zcs[g]
-            ray = rays[g]
+            a0, b0, a1, b1, a2, b2, c2 = rays[g, 0], rays[g, 1], rays[g, 2], rays[g, 3], rays[g, 4], rays[g, 5], rays[g, 6]
+            f0, f1, f2, f3, f4, f5 = feat[g, 0], feat[g, 1], feat[g, 2], feat[g, 3], feat[g, 4], feat[g, 5]
             r2 = 2.0 * (np.log(np.float64(o)) + _LOG255)
+            al, be1, be0, ga2, ga1, ga0, full = _span_coeffs(a0, b0, a1, b1, a2, b2, c2, r2)
             gmx = gmy = gzc = go = _ZERO
-            gf[:] = 0
-            gr[:] = 0
+            gf0 = gf1 = gf2 = gf3 = gf4 = gf5 = _ZERO
+            ga0_ = gb0 = ga1_ = gb1 = ga2_ = gb2 = gc2 = _ZERO
             i0, i1 = max(box[g, 0], x0), min(box[g, 1], x1 - 1)
             for j in range(max(box[g, 2], y0), min(box[g, 3], y1 - 1) + 1):
                 dy = (_F(j) + _HALF) - my
-                lo, hi = _row_span(mx, np.float64(j) + 0.5 - np.float64(my), ray, r2, i0, i1)
+                lo, hi = _row_span(mx, np.float64(j) + 0.5 - np.float64(my), al, be1, be0, ga2, ga1, ga0, full,
+                                   r2, i0, i1)
+                q0y, q1y, q2y, dy2 = b0 * dy, b1 * dy, b2 * dy + c2, dy * dy
                 for i in range(lo, hi + 1):
                     p = (j - y0) * tw + i - x0
                     if k > k_last[p]:
                         continue
                     dx = (_F(i) + _HALF) - mx
-                    rho, on_plane, z, inv2, s, tt = _sample(dx, dy, ray, zc)
+                    q0, q1, q2 = a0 * dx + q0y, a1 * dx + q1y, a2 * dx + q2y
+                    rho2 = _TWO * (dx * dx + dy2)
+                    rho, on_plane, z, inv2, s, tt = _sample(q0, q1, q2, rho2, zc, c2)
                     vis = np.exp(-_HALF * rho)
                     a = min(_AMAX, o * vis)
                     if a < _AMIN:
@@ -216,15 +233,26 @@ def _backward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height,
                     trans[p] = tb
                     w = a * tb
                     # dL/da_i = sum_f g_f (f_i T_i - behind_f / (1 - a_i)) - g_T T_final / (1 - a_i) + distortion
-                    g_a = -gtf[p] * inv
-                    for c in range(_NC):
-                        gpc = gpix[p, c]
-                        gf[c] += w * gpc
-                        g_a += gpc * (feat[g, c] * tb - behind[p, c] * inv)
-                        behind[p, c] += w * feat[g, c]
-                    g_a += gpix[p, _NC] * (z * tb - behind[p, _NC] * inv)
+                    gp0, gp1, gp2, gp3, gp4, gp5, gpz = (gpix[p, 0], gpix[p, 1], gpix[p, 2], gpix[p, 3], gpix[p, 4],
+                                                         gpix[p, 5], gpix[p, _NC])
+                    gf0 += w * gp0
+                    gf1 += w * gp1
+                    gf2 += w * gp2
+                    gf3 += w * gp3
+                    gf4 += w * gp4
+                    gf5 += w * gp5
+                    g_a = (tb * (gp0 * f0 + gp1 * f1 + gp2 * f2 + gp3 * f3 + gp4 * f4 + gp5 * f5 + gpz * z)
+                           - inv * (gtf[p] + gp0 * behind[p, 0] + gp1 * behind[p, 1] + gp2 * behind[p, 2]
+                                    + gp3 * behind[p, 3] + gp4 * behind[p, 4] + gp5 * behind[p, 5]
+                                    + gpz * behind[p, _NC]))
+                    behind[p, 0] += w * f0
+                    behind[p, 1] += w * f1
+                    behind[p, 2] += w * f2
+                    behind[p, 3] += w * f3
+                    behind[p, 4] += w * f4
+                    behind[p, 5] += w * f5
                     behind[p, _NC] += w * z
-                    g_z = gpix[p, _NC] * w
+                    g_z = gpz * w
                     if gd[p] != 0:
                         a_before = _ONE - tb
                         z_before = z_upto[p] - w * z
@@ -247,28 +275,25 @@ def _backward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height,
                             gmx -= _TWO * _TWO * dx * g_rho
                             gmy -= _TWO * _TWO * dy * g_rho
                     if on_plane:  # z = zc C2 / q2
-                        gzc += g_z * ray[6] * inv2
-                        gr[6] += g_z * zc * inv2
+                        gzc += g_z * c2 * inv2
+                        gc2 += g_z * zc * inv2
                         gq2 -= g_z * z * inv2
                     else:
                         gzc += g_z
-                    gr[0] += gq0 * dx
-                    gr[1] += gq0 * dy
-                    gr[2] += gq1 * dx
-                    gr[3] += gq1 * dy
-                    gr[4] += gq2 * dx
-                    gr[5] += gq2 * dy
-                    gr[6] += gq2
-                    gmx -= gq0 * ray[0] + gq1 * ray[2] + gq2 * ray[4]
-                    gmy -= gq0 * ray[1] + gq1 * ray[3] + gq2 * ray[5]
-            out[k, 0] = gmx
-            out[k, 1] = gmy
-            for c in range(7):
-                out[k, 2 + c] = gr[c]
-            out[k, 9] = gzc
-            out[k, 10] = go
-            for c in range(_NC):
-                out[k, 11 + c] = gf[c]
+                    ga0_ += gq0 * dx
+                    gb0 += gq0 * dy
+                    ga1_ += gq1 * dx
+                    gb1 += gq1 * dy
+                    ga2_ += gq2 * dx
+                    gb2 += gq2 * dy
+                    gc2 += gq2
+                    gmx -= gq0 * a0 + gq1 * a1 + gq2 * a2
+                    gmy -= gq0 * b0 + gq1 * b1 + gq2 * b2
+            row = out[k]
+            row[0], row[1] = gmx, gmy
+            row[2], row[3], row[4], row[5], row[6], row[7], row[8] = ga0_, gb0, ga1_, gb1, ga2_, gb2, gc2
+            row[9], row[10] = gzc, go
+            row[11], row[12], row[13], row[14], row[15], row[16] = gf0, gf1, gf2, gf3, gf4, gf5
 
 
 class _Composite(torch.autograd.Function):

@@ -98,19 +98,22 @@ def _screen_box(a, b, p, u, v, opacities, front, camera: Camera):
     a, b, p, u, v = (x.double() for x in (a, b, p, u, v))
     W, H = camera.width, camera.height
     r2 = 2 * torch.log(torch.clamp(opacities.double(), min=ALPHA_MIN) * 255.0)  # [N]
-    rho = torch.sqrt(r2)[:, None]
-    K = torch.tensor(camera.K, dtype=torch.float64, device=a.device)
-    # Columns of T = K [rho a, rho b, p]: screen homogeneous coordinates of the disk's frame.
-    ta, tb, tp = (rho * a) @ K.T, (rho * b) @ K.T, p @ K.T  # [N, 3] each
-    sign = torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64, device=a.device)
-    cols = torch.stack([ta, tb, tp], -1)  # [N, 3 (screen), 3 (frame)]
-    dual = (cols * sign) @ cols.transpose(1, 2)  # [N, 3, 3]: T diag(1, 1, -1) T^T, the dual conic
-    c22 = dual[:, 2, 2]  # rho^2 (a_z^2 + b_z^2) - z^2 < 0: the disk lies in front of the camera plane
-    bounded = c22 < 0
-    c22 = torch.where(bounded, c22, -torch.ones_like(c22))
-    xc, yc = dual[:, 0, 2] / c22, dual[:, 1, 2] / c22  # ellipse centre
-    ex = torch.sqrt(torch.clamp(dual[:, 0, 2] ** 2 - dual[:, 0, 0] * c22, min=0)) / -c22  # half-widths
-    ey = torch.sqrt(torch.clamp(dual[:, 1, 2] ** 2 - dual[:, 1, 1] * c22, min=0)) / -c22
+
+    def screen(w):  # K w: screen homogeneous coordinates (x, y, w) of camera-frame vectors [N, 3]
+        return camera.fx * w[:, 0] + camera.cx * w[:, 2], camera.fy * w[:, 1] + camera.cy * w[:, 2], w[:, 2]
+
+    (ax, ay, az), (bx, by, bz), (px, py, pz) = screen(a), screen(b), screen(p)
+    # Dual conic of the disk of radius sqrt(r2): T diag(1, 1, -1) T^T with T = K [sqrt(r2) a, sqrt(r2) b, p].
+    d00 = r2 * (ax * ax + bx * bx) - px * px
+    d11 = r2 * (ay * ay + by * by) - py * py
+    d02 = r2 * (ax * az + bx * bz) - px * pz
+    d12 = r2 * (ay * az + by * bz) - py * pz
+    d22 = r2 * (az * az + bz * bz) - pz * pz
+    bounded = d22 < 0  # the disk lies in front of the camera plane: its image is an ellipse
+    d22 = torch.where(bounded, d22, -torch.ones_like(d22))
+    xc, yc = d02 / d22, d12 / d22  # ellipse centre
+    ex = torch.sqrt(torch.clamp(d02 * d02 - d00 * d22, min=0)) / -d22  # half-widths
+    ey = torch.sqrt(torch.clamp(d12 * d12 - d11 * d22, min=0)) / -d22
     rf = torch.sqrt(r2 / 2)  # the low-pass filter's disk
     lo_u = torch.minimum(xc - ex, u - rf) - BOX_PAD
     hi_u = torch.maximum(xc + ex, u + rf) + BOX_PAD
