@@ -1,8 +1,9 @@
 """`ragsplat bench TARGET`: benchmarks that print figures and write JSON (never timed assertions).
 
 Targets: `refraction` (Snell solvers: error against run time; the cost of refract_gaussians), `raster`
-(rasterizer forward+backward time and peak memory per backend), `train-step` (median time per training
-iteration, refraction overhead full / 3dgs). The measuring code lives in `ragsplat_core.bench`.
+(rasterizer forward+backward time and peak memory per backend), `surfel` (the surfel rasterizer's
+forward+backward time next to the 3DGS one's), `train-step` (median time per training iteration,
+refraction overhead full / 3dgs). The measuring code lives in `ragsplat_core.bench`.
 """
 
 from __future__ import annotations
@@ -67,6 +68,28 @@ def _raster(args: argparse.Namespace) -> int:
     return 0
 
 
+def _surfel_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--n", type=positive_int, nargs="+", default=[40_000], help="surfel (Gaussian) counts")
+    parser.add_argument("--size", type=positive_int, default=256, help="image width = height in pixels")
+    parser.add_argument("--repeats", type=positive_int, default=7, help="timed iterations (median reported)")
+    parser.add_argument("--backend", choices=["cpu", "torch"], default="cpu", help="backend of both rasterizers")
+    parser.add_argument("--threads", type=count, nargs="+", default=[0],
+                        help="torch/numba threads per run (0 = one per core)")
+    parser.add_argument("--out", type=out_file, default=Path("runs/bench/surfel.json"), help="JSON output path")
+
+
+def _surfel(args: argparse.Namespace) -> int:
+    import os
+
+    from ragsplat_core.bench.surfel import bench_surfels, format_table
+
+    rows = bench_surfels(args.n, args.size, args.repeats, args.backend, args.threads)
+    print(format_table(rows))
+    write_json(args.out, {"rows": rows, "cpu_count": len(os.sched_getaffinity(0))})
+    print(f"wrote {args.out}", file=sys.stderr)
+    return 0
+
+
 def _train_step_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--counts", type=positive_int, nargs="+", default=[10_000, 40_000], help="Gaussian counts")
     parser.add_argument("--backends", nargs="+", help="backend:device pairs, e.g. cpu:cpu torch:cuda "
@@ -105,6 +128,8 @@ TARGETS = {
     "refraction": ("Snell solvers: error against run time; refract_gaussians cost", _refraction_arguments,
                    _refraction),
     "raster": ("rasterizer: forward+backward time and peak RSS per backend", _raster_arguments, _raster),
+    "surfel": ("surfel (2DGS) rasterizer: forward+backward time next to 3DGS's, same process and scene",
+               _surfel_arguments, _surfel),
     "train-step": ("median time per training iteration; refraction overhead full/3dgs", _train_step_arguments,
                    _train_step),
 }
