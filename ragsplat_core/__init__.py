@@ -7,6 +7,7 @@ and `ragsplat_core.snell` stay importable without torch, for the dataset generat
     WaterSurface      the plane z = level with refractive index n
     refract_gaussians true -> apparent Gaussians for one camera
     rasterize         differentiable Gaussian rasterizer (torch / numba CPU / gsplat backends)
+    rasterize_surfels differentiable 2D Gaussian surfel (2DGS) rasterizer, same backends
     load_dataset      a dataset directory -> Dataset (cameras, images, bed info, ground truth)
     Trainer           one RA-GS training run (with TrainConfig and preset_config)
     RagsplatError     base of the errors raised for bad inputs (see `errors`)
@@ -17,6 +18,7 @@ _API = {
     "WaterSurface": "ragsplat_core.refraction",
     "refract_gaussians": "ragsplat_core.refraction",
     "rasterize": "ragsplat_core.rasterize",
+    "rasterize_surfels": "ragsplat_core.rasterize_surfels",
     "load_dataset": "ragsplat_core.dataset.load",
     "Dataset": "ragsplat_core.dataset.load",
     "Trainer": "ragsplat_core.train.trainer",

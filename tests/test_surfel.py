@@ -434,3 +434,11 @@ def test_gsplat_matches_torch():
     for name, tol in (("image", 2e-2), ("alpha", 2e-2), ("normals", 2e-2), ("depth", 2e-2),
                       ("median_depth", 2e-2)):
         assert_close_scaled(got[name].cpu(), ref[name], tol, name)
+
+
+def test_benchmark_rows():
+    from ragsplat_core.bench.surfel import format_table, time_pair
+
+    row = time_pair("cpu", 300, 64, repeats=1, warmup=0)
+    assert row["surfel-image_median_s"] > 0 and row["surfel-all_ratio"] > 0 and row["3dgs_median_s"] > 0
+    assert "surfel+all" in format_table([row])
