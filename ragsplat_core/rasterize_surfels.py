@@ -68,7 +68,8 @@ def rasterize_surfels(means, quats, scales, opacities, colors, camera: Camera, b
     image = sums[..., :3] + trans[..., None] * background  # [H, W, 3]
     alpha = 1 - trans  # [H, W]
     hit = alpha > 0  # exactly 0 where no surfel was composited (each one adds at least 1/255)
-    depth = torch.where(hit, sums[..., 6] / torch.where(hit, alpha, torch.ones_like(alpha)), torch.zeros_like(alpha))
+    depth = torch.where(hit, sums[..., 6] / torch.where(hit, alpha, torch.ones_like(alpha)),
+                        torch.zeros_like(alpha))
     meta = {"normals": sums[..., 3:6], "median_depth": median[..., None], "distortion": distortion[..., None],
             "means2d": means2d, "radii": proj.radii, "depths": proj.depths, "visible": proj.visible,
             "tiles_touched": bins.tiles_touched, "backend": backend, "width": camera.width,

@@ -27,7 +27,7 @@ def nadir(width=40, height=30, fov=60.0, height_m=2.0):
 
 
 def render(params, cam, bg, backend, tangents=None):
-    """rasterize_surfels -> ({output name: tensor}, meta); params = [means, quats, scales, opacities, colors]."""
+    """rasterize_surfels -> ({output name: tensor}, meta); params: means, quats, scales, opacities, colors."""
     image, alpha, depth, meta = rasterize_surfels(*params, cam, bg, tangents=tangents, backend=backend)
     outs = {"image": image, "alpha": alpha, "depth": depth}
     outs.update({k: meta[k] for k in OUTPUTS[3:]})
@@ -85,8 +85,8 @@ def grads_per_output(backend, cam, params, tangents, dtype):
     grads = {}
     for name, ch in zip(OUTPUTS, CHANNELS):
         w = torch.rand(cam.height, cam.width, ch, generator=g, dtype=torch.float64).to(dtype)
-        grads[name] = torch.autograd.grad((outs[name] * w).sum(), inputs + [meta["means2d"]], retain_graph=True,
-                                          allow_unused=True)
+        grads[name] = torch.autograd.grad((outs[name] * w).sum(), inputs + [meta["means2d"]],
+                                          retain_graph=True, allow_unused=True)
     return {k: v.detach() for k, v in outs.items()}, grads, meta
 
 
@@ -162,12 +162,13 @@ def literal_2dgs(means, tangents, opacities, colors, cam, bg):
     order = [k for k in np.argsort(pc[:, 2], kind="stable") if pc[k, 2] >= 0.01 and o[k] >= 1 / 255]
     alpha, depth = np.zeros((len(order), len(pix))), np.zeros((len(order), len(pix)))
     for row, k in enumerate(order):
-        A = np.stack([np.broadcast_to(ab[k, :, 0], rays.shape), np.broadcast_to(ab[k, :, 1], rays.shape), -rays],
-                     -1)  # [P, 3, 3]: p + u a + v b = z r
+        a, b = (np.broadcast_to(ab[k, :, i], rays.shape) for i in (0, 1))
+        A = np.stack([a, b, -rays], -1)  # [P, 3, 3]: p + u a + v b = z r
         u, v, z = np.linalg.solve(A, np.broadcast_to(-pc[k], rays.shape)[..., None])[..., 0].T
         rho3, rho2 = u * u + v * v, 2 * np.sum((pix - uv_c[k]) ** 2, 1)
         rho = np.minimum(rho3, rho2)
-        alpha[row] = np.where(o[k] * np.exp(-rho / 2) >= 1 / 255, np.minimum(0.99, o[k] * np.exp(-rho / 2)), 0)
+        g = o[k] * np.exp(-rho / 2)
+        alpha[row] = np.where(g >= 1 / 255, np.minimum(0.99, g), 0)
         depth[row] = np.where(rho3 <= rho2, z, pc[k, 2])
     out = {name: np.zeros((len(pix), ch)) for name, ch in zip(OUTPUTS, CHANNELS)}
     for q in range(len(pix)):
@@ -236,9 +237,11 @@ def test_surfel_facing_the_camera_renders_its_gaussian_footprint(backend):
     outs, meta = render(t, cam, torch.tensor(bg), backend)
     tol = 1e-9 if backend == "torch" else 1e-5
     np.testing.assert_allclose(outs["alpha"][..., 0].numpy(), a, atol=tol)
-    np.testing.assert_allclose(outs["image"].numpy(), a[..., None] * color + (1 - a[..., None]) * bg, atol=tol)
+    want = a[..., None] * color + (1 - a[..., None]) * bg
+    np.testing.assert_allclose(outs["image"].numpy(), want, atol=tol)
     np.testing.assert_allclose(outs["depth"][..., 0].numpy(), np.where(a > 0, 2.0, 0.0), atol=tol * 10)
-    np.testing.assert_allclose(outs["median_depth"][..., 0].numpy(), np.where(a >= 0.5, 2.0, 0.0), atol=tol * 10)
+    np.testing.assert_allclose(outs["median_depth"][..., 0].numpy(), np.where(a >= 0.5, 2.0, 0.0),
+                               atol=tol * 10)
     np.testing.assert_allclose(outs["normals"].numpy(), a[..., None] * [0.0, 0.0, 1.0], atol=tol)  # faces up
     np.testing.assert_allclose(outs["distortion"].numpy(), 0.0, atol=tol)
     np.testing.assert_allclose(meta["means2d"].detach().numpy()[0], centre, atol=1e-9)
@@ -284,7 +287,8 @@ def test_tilted_plane_of_surfels_renders_the_plane_depth(backend):
     n = len(means)
     tangents = np.broadcast_to(np.stack([0.25 * e1, 0.2 * e2], -1), (n, 3, 2))
     t = [torch.tensor(np.ascontiguousarray(v), dtype=torch.float64) for v in (means, tangents)]
-    params = [t[0], None, None, torch.full((n,), 0.9, dtype=torch.float64), torch.rand(n, 3, dtype=torch.float64)]
+    params = [t[0], None, None, torch.full((n,), 0.9, dtype=torch.float64),
+              torch.rand(n, 3, dtype=torch.float64)]
     outs, _ = render(params, cam, [0.0, 0.0, 0.0], backend, tangents=t[1])
     jj, ii = np.mgrid[0:cam.height, 0:cam.width]
     rays = np.stack([(ii + 0.5 - cam.cx) / cam.fx, (jj + 0.5 - cam.cy) / cam.fy, np.ones(ii.shape)], -1)
@@ -312,7 +316,8 @@ def test_two_layers_median_expected_depth_and_distortion(backend, o_front, o_bac
     means = torch.tensor([[0.0, 0.0, 0.5], [0.0, 0.0, 0.2]], dtype=torch.float64)
     quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2, dtype=torch.float64)
     scales = torch.full((2, 2), 0.3, dtype=torch.float64)
-    params = [means, quats, scales, torch.tensor([o_front, o_back], dtype=torch.float64), torch.eye(3)[:2].double()]
+    opacities = torch.tensor([o_front, o_back], dtype=torch.float64)
+    params = [means, quats, scales, opacities, torch.eye(3, dtype=torch.float64)[:2]]
     outs, _ = render(params, cam, [0.0, 0.0, 0.0], backend)
     z1, z2 = 1.5, 1.8
     w1, w2 = o_front, (1 - o_front) * o_back
@@ -365,8 +370,8 @@ def test_culling(backend):
     cam = nadir(height_m=2.0)
     means = torch.tensor([[0.0, 0.0, 1.995], [0.0, 0.0, 1.9], [0.0, 0.0, 0.0], [0.05, 0.0, 0.0]],
                          dtype=torch.float64)
-    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0], [math.cos(0.6), math.sin(0.6), 0.0, 0.0], [1.0, 0.0, 0.0, 0.0],
-                          [1.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0], [math.cos(0.6), math.sin(0.6), 0.0, 0.0],
+                          [1.0, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
     scales = torch.tensor([[0.05, 0.05], [0.05, 0.2], [0.05, 0.05], [0.05, 0.05]], dtype=torch.float64)
     opacities = torch.tensor([0.9, 0.9, 0.003, 0.9], dtype=torch.float64)
     outs, meta = render([means, quats, scales, opacities, torch.rand(4, 3, dtype=torch.float64)], cam,

@@ -42,7 +42,8 @@ def time_pair(backend: str, n: int, size: int, repeats: int, warmup: int = 2, se
     means, quats, scales, opacities, colors = params
     scales2 = scales.detach()[:, :2].clone().requires_grad_(True)
     g = torch.Generator().manual_seed(seed + 1)
-    w_img, w_depth, w_normal, w_median, w_dist = (torch.rand(size, size, k, generator=g) for k in (3, 1, 3, 1, 1))
+    w_img, w_depth, w_normal, w_median, w_dist = (torch.rand(size, size, k, generator=g)
+                                                  for k in (3, 1, 3, 1, 1))
 
     def gauss():
         image = rasterize(means, quats, scales, opacities, colors, cam, bg, backend=backend)[0]
@@ -53,8 +54,8 @@ def time_pair(backend: str, n: int, size: int, repeats: int, warmup: int = 2, se
                                                   backend=backend)
         total = (image * w_img).sum()
         if loss == "all":
-            total = total + sum((meta[k] * w).sum() for k, w in (("normals", w_normal), ("median_depth", w_median),
-                                                                  ("distortion", w_dist))) + (depth * w_depth).sum()
+            total = total + (depth * w_depth).sum() + (meta["normals"] * w_normal).sum()
+            total = total + (meta["median_depth"] * w_median).sum() + (meta["distortion"] * w_dist).sum()
         return total
 
     runs = {"3dgs": gauss, **{f"surfel-{loss}": (lambda loss=loss: surfel(loss)) for loss in _LOSSES}}
@@ -108,7 +109,8 @@ def format_table(rows: list[dict]) -> str:
             f"{'surfel+all s':>13} {'ratio':>6} {'load':>5}")
     lines = [head, "-" * len(head)]
     for r in rows:
-        lines.append(f"{r['backend']:<8} {r['threads']:>3} {r['n']:>7} {r['size']:>5} {r['3dgs_median_s']:>8.3f} "
-                     f"{r['surfel-image_median_s']:>9.3f} {r['surfel-image_ratio']:>6.2f} "
-                     f"{r['surfel-all_median_s']:>13.3f} {r['surfel-all_ratio']:>6.2f} {r['load_avg_1min']:>5.1f}")
+        lines.append(f"{r['backend']:<8} {r['threads']:>3} {r['n']:>7} {r['size']:>5} "
+                     f"{r['3dgs_median_s']:>8.3f} {r['surfel-image_median_s']:>9.3f} "
+                     f"{r['surfel-image_ratio']:>6.2f} {r['surfel-all_median_s']:>13.3f} "
+                     f"{r['surfel-all_ratio']:>6.2f} {r['load_avg_1min']:>5.1f}")
     return "\n".join(lines)

@@ -110,15 +110,16 @@ def _forward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height, 
         for k in range(offsets[t], offsets[t + 1]):
             g = gauss[k]
             mx, my, o, zc = mean2d[g, 0], mean2d[g, 1], opac[g], zcs[g]
-            a0, b0, a1, b1, a2, b2, c2 = rays[g, 0], rays[g, 1], rays[g, 2], rays[g, 3], rays[g, 4], rays[g, 5], rays[g, 6]
+            a0, b0, a1, b1 = rays[g, 0], rays[g, 1], rays[g, 2], rays[g, 3]
+            a2, b2, c2 = rays[g, 4], rays[g, 5], rays[g, 6]
             f0, f1, f2, f3, f4, f5 = feat[g, 0], feat[g, 1], feat[g, 2], feat[g, 3], feat[g, 4], feat[g, 5]
             r2 = 2.0 * (np.log(np.float64(o)) + _LOG255)
             al, be1, be0, ga2, ga1, ga0, full = _span_coeffs(a0, b0, a1, b1, a2, b2, c2, r2)
             i0, i1 = max(box[g, 0], x0), min(box[g, 1], x1 - 1)
             for j in range(max(box[g, 2], y0), min(box[g, 3], y1 - 1) + 1):
                 dy = (_F(j) + _HALF) - my
-                lo, hi = _row_span(mx, np.float64(j) + 0.5 - np.float64(my), al, be1, be0, ga2, ga1, ga0, full,
-                                   r2, i0, i1)
+                dy64 = np.float64(j) + 0.5 - np.float64(my)
+                lo, hi = _row_span(mx, dy64, al, be1, be0, ga2, ga1, ga0, full, r2, i0, i1)
                 q0y, q1y, q2y, dy2 = b0 * dy, b1 * dy, b2 * dy + c2, dy * dy
                 for i in range(lo, hi + 1):
                     p = (j - y0) * tw + i - x0
@@ -203,7 +204,8 @@ def _backward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height,
         for k in range(k_max, offsets[t] - 1, -1):
             g = gauss[k]
             mx, my, o, zc = mean2d[g, 0], mean2d[g, 1], opac[g], zcs[g]
-            a0, b0, a1, b1, a2, b2, c2 = rays[g, 0], rays[g, 1], rays[g, 2], rays[g, 3], rays[g, 4], rays[g, 5], rays[g, 6]
+            a0, b0, a1, b1 = rays[g, 0], rays[g, 1], rays[g, 2], rays[g, 3]
+            a2, b2, c2 = rays[g, 4], rays[g, 5], rays[g, 6]
             f0, f1, f2, f3, f4, f5 = feat[g, 0], feat[g, 1], feat[g, 2], feat[g, 3], feat[g, 4], feat[g, 5]
             r2 = 2.0 * (np.log(np.float64(o)) + _LOG255)
             al, be1, be0, ga2, ga1, ga0, full = _span_coeffs(a0, b0, a1, b1, a2, b2, c2, r2)
@@ -213,8 +215,8 @@ def _backward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height,
             i0, i1 = max(box[g, 0], x0), min(box[g, 1], x1 - 1)
             for j in range(max(box[g, 2], y0), min(box[g, 3], y1 - 1) + 1):
                 dy = (_F(j) + _HALF) - my
-                lo, hi = _row_span(mx, np.float64(j) + 0.5 - np.float64(my), al, be1, be0, ga2, ga1, ga0, full,
-                                   r2, i0, i1)
+                dy64 = np.float64(j) + 0.5 - np.float64(my)
+                lo, hi = _row_span(mx, dy64, al, be1, be0, ga2, ga1, ga0, full, r2, i0, i1)
                 q0y, q1y, q2y, dy2 = b0 * dy, b1 * dy, b2 * dy + c2, dy * dy
                 for i in range(lo, hi + 1):
                     p = (j - y0) * tw + i - x0
@@ -232,9 +234,10 @@ def _backward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height,
                     tb = trans[p] * inv
                     trans[p] = tb
                     w = a * tb
-                    # dL/da_i = sum_f g_f (f_i T_i - behind_f / (1 - a_i)) - g_T T_final / (1 - a_i) + distortion
-                    gp0, gp1, gp2, gp3, gp4, gp5, gpz = (gpix[p, 0], gpix[p, 1], gpix[p, 2], gpix[p, 3], gpix[p, 4],
-                                                         gpix[p, 5], gpix[p, _NC])
+                    # dL/da_i = sum_f g_f (f_i T_i - behind_f / (1 - a_i)) - g_T T_final / (1 - a_i)
+                    #           + the distortion's term below
+                    gp0, gp1, gp2, gp3 = gpix[p, 0], gpix[p, 1], gpix[p, 2], gpix[p, 3]
+                    gp4, gp5, gpz = gpix[p, 4], gpix[p, 5], gpix[p, _NC]
                     gf0 += w * gp0
                     gf1 += w * gp1
                     gf2 += w * gp2

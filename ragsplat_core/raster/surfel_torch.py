@@ -102,5 +102,5 @@ def _composite_tiles(tiles, k, proj, opacities, feats, bins, px, py):
     with torch.no_grad():
         crossing = (before > 0.5) & (trans <= 0.5)
     median = torch.where(crossing, z, torch.zeros_like(z)).sum(-1)
-    return torch.cat([acc, wz.sum(-1, keepdim=True), trans[..., -1:], distortion[..., None], median[..., None]],
-                     -1)
+    return torch.cat([acc, wz.sum(-1, keepdim=True), trans[..., -1:], distortion[..., None],
+                      median[..., None]], -1)
