@@ -90,7 +90,7 @@ def project_surfels(means: torch.Tensor, tangents: torch.Tensor, opacities: torc
     with torch.no_grad():
         box, visible, radii = _screen_box(a.detach(), b.detach(), p.detach(), u.detach(), v.detach(),
                                           opacities.detach(), front, camera)
-    return SurfelsProjected(means2d, rays, z, normals, box, visible, radii)
+    return SurfelsProjected(means2d, rays, pc[:, 2], normals, box, visible, radii)
 
 
 def _screen_box(a, b, p, u, v, opacities, front, camera: Camera):
