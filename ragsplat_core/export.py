@@ -27,11 +27,11 @@ from ragsplat_core.errors import ConfigError, DatasetError, OutputError
 from ragsplat_core.gaussians import activated
 from ragsplat_core.outputs import atomic_path, claim
 from ragsplat_core.ply import load_ply
-from ragsplat_core.rasterize import choose_backend, rasterize
+from ragsplat_core.rasterize import choose_backend
 from ragsplat_core.refraction import WaterSurface
 from ragsplat_core.surface import ExtractConfig, extract_surface
 from ragsplat_core.train.config import TrainConfig
-from ragsplat_core.train.trainer import PLY, view_gaussians
+from ragsplat_core.train.trainer import PLY, render_splats
 
 BATHYMETRIC, GROUND = 40, 2  # ASPRS classes (LAS 1.4 R15): submerged bed ("bathymetric point"), emerged
 LAS_SCALE = 0.001  # metres per integer step of the LAS coordinates
@@ -142,11 +142,9 @@ class Model:
         center = torch.tensor(camera.camera_center, dtype=torch.float32, device=self.device)
         background = torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device)
         with torch.no_grad():
-            means, quats, scales, opac, colors, covars = view_gaussians(
-                self.splats, center, self.cfg.active_sh_degree(self.cfg.iterations), self.water,
-                self.flags if interface else None)
-            img, alpha, depth, _ = rasterize(means, quats, scales, opac, colors, camera, background, covars=covars,
-                                             backend=self.backend)
+            img, alpha, depth, _ = render_splats(
+                self.splats, camera, center, self.cfg.active_sh_degree(self.cfg.iterations), self.water,
+                self.flags if interface else None, self.cfg.surfels, background, self.backend)
         return img.clamp(0, 1), alpha, depth
 
 

@@ -77,6 +77,22 @@ def rasterize_surfels(means, quats, scales, opacities, colors, camera: Camera, b
     return image, alpha[..., None], depth[..., None], meta
 
 
+def depth_normals(depth: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """World unit normals [H, W, 3] of a z-depth map [H, W] (2DGS's normal from depth): the cross product of
+    the central differences of the unprojected pixels, turned towards the camera; zero on the border and
+    where a difference spans a pixel without depth."""
+    H, W = depth.shape
+    v, u = torch.meshgrid(torch.arange(H, dtype=depth.dtype, device=depth.device) + 0.5,
+                          torch.arange(W, dtype=depth.dtype, device=depth.device) + 0.5, indexing="ij")
+    p = camera.unproject(torch.stack([u, v], -1), depth)  # [H, W, 3]
+    n = torch.cross(p[1:-1, 2:] - p[1:-1, :-2], p[2:, 1:-1] - p[:-2, 1:-1], dim=-1)  # [H-2, W-2, 3]
+    n = torch.nn.functional.normalize(n, dim=-1)
+    view = p[1:-1, 1:-1] - torch.as_tensor(camera.camera_center, dtype=depth.dtype, device=depth.device)
+    n = torch.where(((n * view).sum(-1, keepdim=True) > 0), -n, n)
+    ok = (depth[1:-1, 2:] > 0) & (depth[1:-1, :-2] > 0) & (depth[2:, 1:-1] > 0) & (depth[:-2, 1:-1] > 0)
+    return torch.nn.functional.pad(n * ok[..., None], (0, 0, 1, 1, 1, 1))
+
+
 def choose_surfel_backend(backend: str, device: torch.device, tangents: bool) -> str:
     """As `rasterize.choose_backend`; gsplat cannot take tangents (it builds surfels from quats and
     scales), so "auto" falls back to torch for them and an explicit "gsplat" is a ConfigError."""

@@ -13,7 +13,7 @@ from ragsplat_core.errors import ConfigError
 from ragsplat_core.gaussians import quat_to_rotmat
 from ragsplat_core.raster.surfel_project import surfel_tangents
 from ragsplat_core.rasterize import gsplat_available
-from ragsplat_core.rasterize_surfels import choose_surfel_backend, rasterize_surfels
+from ragsplat_core.rasterize_surfels import choose_surfel_backend, depth_normals, rasterize_surfels
 from ragsplat_core.refraction import WaterSurface, apparent_jacobian, apparent_points
 
 NADIR_R = np.diag([1.0, -1.0, -1.0])  # looks down world -z; camera x = world x, camera y = world -y
@@ -447,3 +447,21 @@ def test_benchmark_rows():
     row = time_pair("cpu", 300, 64, repeats=1, warmup=0)
     assert row["surfel-image_median_s"] > 0 and row["surfel-all_ratio"] > 0 and row["3dgs_median_s"] > 0
     assert "surfel+all" in format_table([row])
+
+
+def test_depth_normals_of_a_tilted_plane():
+    """The normal from depth of a plane z = 0.3 x - 2 seen obliquely is the plane's unit normal, turned
+    towards the camera, away from the border."""
+    cam = Camera.look_at([0.5, -1.0, 1.5], [0.0, 0.0, -2.0], 24, 20, 60.0)
+    v, u = torch.meshgrid(torch.arange(20, dtype=torch.float64) + 0.5, torch.arange(24, dtype=torch.float64) + 0.5,
+                          indexing="ij")
+    # ray-plane intersection per pixel: world ray C + t d, with d from the unprojection at z-depth 1
+    C = torch.as_tensor(cam.camera_center)
+    d = cam.unproject(torch.stack([u, v], -1), torch.ones_like(u)) - C  # [H, W, 3], camera z-depth 1
+    t = (-2.0 - C[2] + 0.3 * C[0]) / (d[..., 2] - 0.3 * d[..., 0])
+    normals = depth_normals(t, cam)  # z-depth = t since d has unit camera z
+    want = torch.tensor([-0.3, 0.0, 1.0], dtype=torch.float64) / math.hypot(0.3, 1.0)
+    torch.testing.assert_close(normals[1:-1, 1:-1], want.expand(18, 22, 3))
+    assert bool((normals[0] == 0).all() and (normals[:, -1] == 0).all())
+    t[5, 5] = 0  # a pixel without depth: its neighbours' differences are undefined
+    assert bool((depth_normals(t, cam)[[4, 6, 5, 5], [5, 5, 4, 6]] == 0).all())

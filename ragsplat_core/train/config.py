@@ -21,7 +21,12 @@ VARIANTS: dict[str, dict | None] = {
     "full": {"position": True, "scale": "isotropic", "opacity": True, "color": False},
     "full+anisotropic": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
     "full+color": {"position": True, "scale": "isotropic", "opacity": True, "color": True},
+    # Surfels (2DGS): flat Gaussians with a well-defined normal and depth. RA-GS maps a surfel's two tangent
+    # vectors by the refraction Jacobian (t' = J t, the exact first-order map), hence scale="anisotropic".
+    "2dgs": None,
+    "2dgs+full": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
 }
+SURFELS = frozenset({"2dgs", "2dgs+full"})  # variants rendered as surfels (`rasterize_surfels`)
 
 # optimize_water -> the WaterSurface fields it calibrates
 WATER_PARAMS: dict[str, tuple[str, ...]] = {"none": (), "level": ("level",), "level+n": ("level", "n")}
@@ -55,6 +60,13 @@ class TrainConfig:
     lr_sh0: float = 2.5e-3
     lr_shN: float = 2.5e-3 / 20
     ssim_lambda: float = 0.2
+    # Surfel variants only, 2DGS's two geometry terms: depth distortion (sum w_i w_j |z_i - z_j| per pixel, in
+    # metres here; 2DGS weighs an NDC-mapped depth) and normal consistency (1 - rendered normal . normal of
+    # the rendered depth map), each switched on after a fraction of the run (2DGS: 3k and 7k of 30k).
+    lambda_distortion: float = 0.1
+    lambda_normal: float = 0.05
+    distortion_from: float = 0.1
+    normal_from: float = 0.23
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     densify: DensifyConfig = field(default_factory=DensifyConfig)  # at 30k iterations; scaled to `iterations`
     backend: str = "auto"
@@ -105,6 +117,10 @@ class TrainConfig:
                 raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
         if not 0 <= self.water_warmup < 1:
             raise ConfigError(f"water_warmup is a fraction of the run in [0, 1), got {self.water_warmup}")
+
+    @property
+    def surfels(self) -> bool:
+        return self.variant in SURFELS
 
     @property
     def schedule(self) -> DensifyConfig:

@@ -39,8 +39,10 @@ from ragsplat_core.errors import ConfigError, DatasetError, OutputError, Trainin
 from ragsplat_core.gaussians import PARAM_NAMES, activated, colors_for_view, init_grid, init_points
 from ragsplat_core.outputs import atomic_path, claim, versions, write_json
 from ragsplat_core.ply import save_ply
+from ragsplat_core.raster.surfel_project import surfel_tangents
 from ragsplat_core.rasterize import choose_backend, rasterize
-from ragsplat_core.refraction import WaterSurface, opacity_factor, refract_gaussians
+from ragsplat_core.rasterize_surfels import depth_normals, rasterize_surfels
+from ragsplat_core.refraction import ApparentGaussians, WaterSurface, opacity_factor, refract_gaussians
 from ragsplat_core.snell import footprint
 from ragsplat_core.ssim import psnr, ssim, ssim_map
 from ragsplat_core.train.config import VARIANTS, TrainConfig
@@ -51,19 +53,38 @@ CHECKPOINT = "ckpt.pt"
 # not geometry, limits photogrammetric bathymetry to a few tens of metres).
 MAX_DEPTH_PER_HEIGHT = 10
 PLY = "point_cloud.ply"
+# Kept as the third scale of a surfel so that code written for three axes (a split's offsets, the volume
+# sampling of `surface.py`) treats it as the flat disk it renders as.
+SURFEL_THICKNESS = 1e-5  # metres
 
 
-def view_gaussians(splats, center: torch.Tensor, sh_degree: int, water: WaterSurface | None, flags: dict | None):
-    """(means, quats, scales, opacities, colors, covars) as the rasterizer takes them for the camera at
-    `center` [3]: the true Gaussians (`flags` None) or the apparent ones through `water` (RA-GS, `flags` of
-    `refract_gaussians`). The trainer and a finished run's renders (`export.Model`) share it."""
+def view_gaussians(splats, center: torch.Tensor, sh_degree: int, water: WaterSurface | None,
+                   flags: dict | None) -> ApparentGaussians:
+    """The Gaussians as the rasterizer takes them for the camera at `center` [3]: the true ones (`flags`
+    None) or the apparent ones through `water` (RA-GS, `flags` of `refract_gaussians`)."""
     scales, quats, opac = activated(splats)
     colors = colors_for_view(splats, center, sh_degree)
-    means, covars = splats["means"], None
-    if flags is not None:
-        a = refract_gaussians(means, scales, quats, opac, colors, center, water, **flags)
-        means, scales, quats, opac, colors, covars = a.means, a.scales, a.quats, a.opacities, a.colors, a.covars
-    return means, quats, scales, opac, colors, covars
+    if flags is None:
+        return ApparentGaussians(splats["means"], scales, quats, opac, colors, None, None)
+    return refract_gaussians(splats["means"], scales, quats, opac, colors, center, water, **flags)
+
+
+def render_splats(splats, camera: Camera, center: torch.Tensor, sh_degree: int, water: WaterSurface | None,
+                  flags: dict | None, surfels: bool, background: torch.Tensor, backend: str):
+    """(image [H,W,3], alpha [H,W,1], depth [H,W,1], meta) of `camera` (centre `center` [3]) as training
+    renders it: Gaussians (`rasterize`) or surfels (`rasterize_surfels`, whose first two scales span the
+    disk; through the water their tangents are mapped by the refraction Jacobian). The trainer and a
+    finished run's renders (`export.Model`) share it."""
+    g = view_gaussians(splats, center, sh_degree, water, flags)
+    if not surfels:
+        return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, camera, background, covars=g.covars,
+                         backend=backend)
+    if g.jacobians is None:
+        return rasterize_surfels(g.means, g.quats, g.scales[:, :2], g.opacities, g.colors, camera, background,
+                                 backend=backend)
+    tangents = g.jacobians @ surfel_tangents(g.quats, g.scales[:, :2])  # [N, 3, 2]: t' = J t
+    return rasterize_surfels(g.means, None, None, g.opacities, g.colors, camera, background, tangents=tangents,
+                             backend=backend)
 
 
 class Trainer:
@@ -122,6 +143,9 @@ class Trainer:
         else:
             torch.manual_seed(cfg.seed)
             self.splats = self._init_splats().to(self.device)
+            if cfg.surfels:  # the third axis is the normal: a surfel has no thickness (it gets no gradient)
+                with torch.no_grad():
+                    self.splats["scales"][:, 2] = math.log(SURFEL_THICKNESS)
             self.optimizers = self._make_optimizers()
             self.strat_state = self.strategy.initialize_state(self.scene_scale)
         self.strategy.check_sanity(self.splats, self.optimizers)
@@ -230,8 +254,9 @@ class Trainer:
         return int(self.splats["means"].shape[0])
 
     # ---- rendering ----------------------------------------------------------------------------------
-    def _gaussians(self, center: torch.Tensor, interface: bool, water: WaterSurface | None):
-        return view_gaussians(self.splats, center, self.active_sh_degree, water, self.flags if interface else None)
+    def _render(self, camera: Camera, center: torch.Tensor, interface: bool, water: WaterSurface | None):
+        return render_splats(self.splats, camera, center, self.active_sh_degree, water,
+                             self.flags if interface else None, self.cfg.surfels, self.background, self.cfg.backend)
 
     def render(self, camera: Camera, interface: bool = True):
         """(image [H,W,3], alpha [H,W,1], depth [H,W,1]) of `camera`, no gradients.
@@ -241,9 +266,7 @@ class Trainer:
         """
         center = torch.tensor(camera.camera_center, dtype=torch.float32, device=self.device)
         with torch.no_grad():
-            means, quats, scales, opac, colors, covars = self._gaussians(center, interface, self.water)
-            img, alpha, depth, _ = rasterize(means, quats, scales, opac, colors, camera, self.background,
-                                             covars=covars, backend=self.cfg.backend)
+            img, alpha, depth, _ = self._render(camera, center, interface, self.water)
         return img.clamp(0, 1), alpha, depth
 
     # ---- training -------------------------------------------------------------------------------------
@@ -259,9 +282,7 @@ class Trainer:
         i = self._next_view()
         cam, gt, mask = self.views[i].camera, self.targets[i], self.masks[i]
         calibrate = self.water_opt is not None and step > self.cfg.water_start
-        means, quats, scales, opac, colors, covars = self._gaussians(self.centers[i], True, self._water(calibrate))
-        img, _, _, info = rasterize(means, quats, scales, opac, colors, cam, self.background, covars=covars,
-                                    backend=self.cfg.backend)
+        img, _, depth, info = self._render(cam, self.centers[i], True, self._water(calibrate))
         lam = self.cfg.ssim_lambda
         if mask is None:
             l1 = torch.abs(img - gt).mean()
@@ -272,6 +293,8 @@ class Trainer:
             l1 = torch.abs(img - gt)[mask].mean()
             both = [torch.where(mask[..., None], x, 0.0) for x in (img, gt)]
             loss = (1 - lam) * l1 + lam * (1 - ssim_map(*both)[0][:, mask].mean())
+        if self.cfg.surfels:
+            loss = loss + self._surfel_loss(cam, depth, info, mask, step)
         if not torch.isfinite(loss):
             raise TrainingDiverged(f"iteration {step}: loss is {float(loss.detach())} (view {self.views[i].name}); "
                                    f"{self._nonfinite_report()}")
@@ -299,6 +322,20 @@ class Trainer:
         shown = (img.detach(), gt) if mask is None else (img.detach()[mask], gt[mask])
         self.last = {"loss": float(loss.detach()), "psnr": float(psnr(*shown)), "n": self.num_gaussians}
         return self.last
+
+    def _surfel_loss(self, cam: Camera, depth, info: dict, mask, step: int):
+        """2DGS's geometry terms over the used pixels: depth distortion, and normal consistency between the
+        rendered normals and those of the rendered depth map (both in the space the camera sees: apparent
+        under water, where the apparent bed is a surface too)."""
+        c = self.cfg
+        loss = depth.new_zeros(())
+        used = (lambda x: x.reshape(-1)) if mask is None else (lambda x: x[mask])
+        if step > c.distortion_from * c.iterations:
+            loss = loss + c.lambda_distortion * used(info["distortion"][..., 0]).mean()
+        if step > c.normal_from * c.iterations:
+            from_depth = depth_normals(depth[..., 0], cam)  # [H, W, 3] unit, zero where undefined
+            loss = loss + c.lambda_normal * used(1 - (info["normals"] * from_depth).sum(-1)).mean()
+        return loss
 
     def _water_named(self):  # (name, parameter) of the calibrated water fields, named as in messages
         return [(f"water {k}", p) for k, p in self.water_params.items()]
