@@ -11,8 +11,11 @@ would take its transmittance below 1e-4. Outputs:
 - meta: `means2d` [N, 2] pixels (its `.grad` holds the screen-space gradient after backward when the
   inputs require grad: densification statistics), `radii` [N] int32 (0 = not rendered), `depths` [N]
   camera z, `conics` [N, 3], `visible` [N] bool, `tiles_touched` [N] int32, `backend` (name used),
-  `width`, `height` (pixels). With gsplat, `means2d` is a detached tensor whose `.grad` is filled by a
-  hook during backward (call no `retain_grad` on it).
+  `width`, `height` (pixels), `median_depth` [H, W, 1]: the camera z of the Gaussian at which the pixel's
+  transmittance first falls to <= 0.5, 0 where it never does (2DGS / gsplat's median depth; forward only,
+  no gradient; None with gsplat, whose 3DGS rasterizer has no median: render with "torch" on CUDA for it).
+  With gsplat, `means2d` is a detached tensor whose `.grad` is filled by a hook during backward (call no
+  `retain_grad` on it).
 
 Backends: "torch" (plain PyTorch, autograd, any device: the reference), "cpu" (numba kernels with a
 hand-written backward, float32 compositing, CPU tensors only), "gsplat" (gsplat's CUDA `rasterization`,
@@ -60,14 +63,14 @@ def rasterize(means, quats, scales, opacities, colors, camera: Camera, backgroun
         from ragsplat_core.raster.torch_backend import composite
     else:
         from ragsplat_core.raster.cpu_backend import composite
-    color_sum, trans, z_sum = composite(proj, opacities, colors, bins, camera.width, camera.height)
+    color_sum, trans, z_sum, median = composite(proj, opacities, colors, bins, camera.width, camera.height)
     image = color_sum + trans[..., None] * background  # [H, W, 3]
     alpha = 1 - trans  # [H, W]
     hit = alpha > 0  # exactly 0 where no Gaussian was composited (each one adds at least 1/255)
     depth = torch.where(hit, z_sum / torch.where(hit, alpha, torch.ones_like(alpha)), torch.zeros_like(alpha))
     meta = {"means2d": means2d, "radii": proj.radii, "depths": proj.depths, "conics": proj.conics,
             "visible": proj.visible, "tiles_touched": bins.tiles_touched, "backend": backend,
-            "width": camera.width, "height": camera.height}
+            "width": camera.width, "height": camera.height, "median_depth": median[..., None]}
     return image, alpha[..., None], depth[..., None], meta
 
 
@@ -125,7 +128,7 @@ def _rasterize_gsplat(means, quats, scales, opacities, colors, camera, backgroun
         radii = radii.max(-1).values
     meta = {"means2d": means2d, "radii": radii.to(torch.int32), "depths": info["depths"][0],
             "conics": info["conics"][0], "visible": radii > 0, "tiles_touched": info["tiles_per_gauss"][0],
-            "backend": "gsplat", "width": camera.width, "height": camera.height}
+            "backend": "gsplat", "width": camera.width, "height": camera.height, "median_depth": None}
     return renders[0, ..., :3], alphas[0], renders[0, ..., 3:4], meta
 
 
