@@ -149,6 +149,28 @@ class Model:
                                              backend=self.backend)
         return img.clamp(0, 1), alpha, depth
 
+    def median_depth(self, camera: Camera) -> torch.Tensor:  # [H, W], see `median_depth`
+        return median_depth(self.splats, camera, self.backend)
+
+
+def median_depth(splats: dict[str, torch.Tensor], camera: Camera, backend: str) -> torch.Tensor:
+    """[H, W] median z-depth of the true Gaussians (raw parameters) seen by `camera` without the water
+    interface, 0 where the pixel's transmittance stays above 0.5 (`rasterize`'s meta["median_depth"]).
+
+    The true Gaussians along straight rays: their depth is the true geometry, which the bed fusion wants.
+    Rendered through the interface the depth would be that of the apparent Gaussians (about d / n deep at
+    nadir), and the z of a refracted ray is not a distance to the true bed anyway. For `3dgs`, whose
+    Gaussians are fitted without an interface, this is its apparent bed."""
+    center = torch.tensor(camera.camera_center, dtype=torch.float32, device=splats["means"].device)
+    with torch.no_grad():
+        # colours do not move the depth: SH degree 0 is the cheapest evaluation
+        means, quats, scales, opac, colors, covars = view_gaussians(splats, center, 0, None, None)
+        if choose_backend(backend, means.device) == "gsplat":
+            backend = "torch"  # gsplat's 3DGS rasterizer has no median depth; the reference runs on CUDA too
+        _, _, _, meta = rasterize(means, quats, scales, opac, colors, camera, torch.zeros(3, device=means.device),
+                                  covars=covars, backend=backend)
+    return meta["median_depth"][..., 0]
+
 
 def load_model(run: Path, data: Path | None = None, splits: tuple[str, ...] = ()) -> tuple[Model, Dataset]:
     """A finished run ready to render, and its dataset with the views of `splits` (their wet images only).
