@@ -5,8 +5,9 @@ pipeline fuses depth the same way, with a voxel of about 3x the ground sample di
 about 3 voxels).
 
 1. `integrate`: a voxel grid over the region (plus a voxel of margin) and a z range; every voxel centre is
-   projected into every view, the view's depth at that pixel (nearest pixel, centres at i + 0.5) gives the
-   projective signed distance sdf = depth - voxel z-depth (positive between the camera and the surface),
+   projected into every view, the view's depth there (`_sample`: inverse depth interpolated between the four
+   nearest pixel centres, at i + 0.5, or the pixel's own across a depth edge) gives the projective signed
+   distance sdf = depth - voxel z-depth (positive between the camera and the surface),
    truncated to sdf / trunc in [-1, 1]; voxels more than `trunc` behind the surface, outside the image or
    under a pixel without depth (0) are left alone; each observation weighs 1 in a running average.
 2. `height_grid`: at each node origin + (i, j) * cell inside the region, the TSDF column interpolated
@@ -120,7 +121,7 @@ def integrate(depths: Sequence, cameras: Sequence[Camera], region: dict, zlim: t
     ymax} grown by one voxel (so nodes at its edge have voxel columns on both sides) and z in `zlim`."""
     if not (voxel > 0 and trunc > 0 and zlim[1] >= zlim[0]):
         raise ValueError(f"integrate needs voxel > 0, trunc > 0 and zlim low <= high, got {voxel}, {trunc}, {zlim}")
-    maps = _check(depths, cameras)
+    maps = [torch.nn.functional.pad(d, (1, 1, 1, 1)) for d in _check(depths, cameras)]  # [H + 2, W + 2]
     origin = np.array([region["xmin"] - voxel, region["ymin"] - voxel, zlim[0]])
     span = np.array([region["xmax"] - region["xmin"] + 2 * voxel, region["ymax"] - region["ymin"] + 2 * voxel,
                      zlim[1] - zlim[0]])
@@ -141,12 +142,9 @@ def integrate(depths: Sequence, cameras: Sequence[Camera], region: dict, zlim: t
             z = pc[:, 2]
             front = z > NEAR
             zs = torch.where(front, z, torch.ones_like(z))
-            i = torch.floor(cam.fx * pc[:, 0] / zs + cam.cx).long()  # pixel i spans [i, i + 1)
-            j = torch.floor(cam.fy * pc[:, 1] / zs + cam.cy).long()
-            ok = front & (i >= 0) & (i < cam.width) & (j >= 0) & (j < cam.height)
-            got = d[j.clamp(0, cam.height - 1), i.clamp(0, cam.width - 1)]  # [C]
+            got = _sample(d, cam.fx * pc[:, 0] / zs + cam.cx, cam.fy * pc[:, 1] / zs + cam.cy, trunc)  # [C]
             sdf = got - z
-            ok &= (got > 0) & (sdf >= -trunc)
+            ok = front & (got > 0) & (sdf >= -trunc)
             if not ok.any():
                 continue
             obs = torch.clamp(sdf / trunc, max=1.0)
@@ -154,6 +152,25 @@ def integrate(depths: Sequence, cameras: Sequence[Camera], region: dict, zlim: t
             val.copy_(torch.where(ok, (val * w + obs) / w_new.clamp(min=1.0), val))
             w.copy_(w_new)
     return Tsdf(values.reshape(shape).numpy(), weights.reshape(shape).numpy(), origin, float(voxel), float(trunc))
+
+
+def _sample(pad: torch.Tensor, u: torch.Tensor, v: torch.Tensor, trunc: float) -> torch.Tensor:
+    """Depth [C] at continuous pixel positions u, v [C] of a depth map zero-padded by one pixel ([H + 2,
+    W + 2]): the inverse depth interpolated bilinearly between the four nearest pixel centres where all four
+    have depth within `trunc` of each other (exact on a plane, whose 1 / z is affine in the pixel
+    coordinates; a nearest-pixel read is off by up to half a pixel's depth change), else the depth of the
+    pixel itself (across a depth edge); 0 outside the image or where that pixel has none."""
+    H, W = pad.shape[0] - 2, pad.shape[1] - 2
+    near = pad[torch.floor(v).clamp(-1, H).long() + 1, torch.floor(u).clamp(-1, W).long() + 1]  # pixel i: [i, i + 1)
+    x, y = u - 0.5, v - 0.5  # pixel centres on the integers
+    i0, j0 = torch.floor(x).clamp(-1, W - 1), torch.floor(y).clamp(-1, H - 1)
+    ax, ay = (x - i0).clamp(0, 1), (y - j0).clamp(0, 1)
+    i0, j0 = i0.long() + 1, j0.long() + 1
+    c = torch.stack([pad[j0, i0], pad[j0, i0 + 1], pad[j0 + 1, i0], pad[j0 + 1, i0 + 1]])  # [4, C]
+    wgt = torch.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay])
+    smooth = (c > 0).all(0) & (c.amax(0) - c.amin(0) < trunc)
+    inv = (wgt / torch.where(c > 0, c, torch.ones_like(c))).sum(0)
+    return torch.where(smooth, 1 / inv.clamp(min=1e-12), near)
 
 
 def grid_nodes(region: dict, cell: float, origin: tuple[float, float]) -> np.ndarray:
