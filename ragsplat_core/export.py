@@ -165,10 +165,8 @@ def median_depth(splats: dict[str, torch.Tensor], camera: Camera, backend: str) 
     with torch.no_grad():
         # colours do not move the depth: SH degree 0 is the cheapest evaluation
         means, quats, scales, opac, colors, covars = view_gaussians(splats, center, 0, None, None)
-        if choose_backend(backend, means.device) == "gsplat":
-            backend = "torch"  # gsplat's 3DGS rasterizer has no median depth; the reference runs on CUDA too
         _, _, _, meta = rasterize(means, quats, scales, opac, colors, camera, torch.zeros(3, device=means.device),
-                                  covars=covars, backend=backend)
+                                  covars=covars, backend=backend, median=True)
     return meta["median_depth"][..., 0]
 
 

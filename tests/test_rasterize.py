@@ -74,7 +74,7 @@ def test_matches_the_literal_3dgs_loop(backend):
     params = scene(60, seed=1, size=(0.01, 0.15))
     bg = [0.2, 0.5, 0.9]
     want = literal_3dgs(*params, cam, bg)
-    image, alpha, depth, meta = rasterize(*params, cam, bg, backend=backend)
+    image, alpha, depth, meta = rasterize(*params, cam, bg, backend=backend, median=True)
     tol = 1e-9 if backend == "torch" else 2e-5  # cpu composites in float32
     np.testing.assert_allclose(image.numpy(), want[0], atol=tol)
     np.testing.assert_allclose(alpha[..., 0].numpy(), want[1], atol=tol)
@@ -95,10 +95,24 @@ def test_median_depth_of_two_layers(backend, o1, o2, layer):
     scales = torch.tensor([[1e3, 1e3, 1e-3]] * 2, dtype=torch.float64)
     opac = torch.tensor([o1, o2], dtype=torch.float64)
     _, _, depth, meta = rasterize(means, quats, scales, opac, torch.rand(2, 3, dtype=torch.float64), cam,
-                                  [0.0, 0.0, 0.0], backend=backend)
+                                  [0.0, 0.0, 0.0], backend=backend, median=True)
     want = {0: 0.0, 1: 1.2, 2: 1.7}[layer]
     np.testing.assert_allclose(meta["median_depth"].numpy(), want, atol=1e-5)
     assert float((depth - meta["median_depth"]).abs().min()) > 0.05  # the expected depth is another thing
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_median_depth_is_opt_in_and_changes_nothing_else(backend):
+    cam, params = nadir(40, 30), scene(60, seed=1, size=(0.01, 0.15))
+    params = [p.requires_grad_(True) for p in params]
+    plain = rasterize(*params, cam, [0.2, 0.5, 0.9], backend=backend)
+    both = rasterize(*params, cam, [0.2, 0.5, 0.9], backend=backend, median=True)
+    assert plain[3]["median_depth"] is None and not both[3]["median_depth"].requires_grad
+    for a, b in zip(plain[:3], both[:3]):
+        assert torch.equal(a, b)
+    grads = [torch.autograd.grad(out[0].sum() + out[2].sum(), params) for out in (plain, both)]
+    for a, b in zip(*grads):
+        assert torch.equal(a, b)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

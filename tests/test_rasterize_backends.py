@@ -35,10 +35,10 @@ def render_and_grads(backend, params, cam, weights, covars=False):
     means, quats, scales, opacities, colors, bg = params
     if covars:
         cov = covariance(quats, scales).detach().requires_grad_(True)
-        out = rasterize(means, None, None, opacities, colors, cam, bg, covars=cov, backend=backend)
+        out = rasterize(means, None, None, opacities, colors, cam, bg, covars=cov, backend=backend, median=True)
         params = [means, cov, opacities, colors, bg]
     else:
-        out = rasterize(means, quats, scales, opacities, colors, cam, bg, backend=backend)
+        out = rasterize(means, quats, scales, opacities, colors, cam, bg, backend=backend, median=True)
     image, alpha, depth, meta = out
     loss = sum((o * w).sum() for o, w in zip((image, alpha, depth), weights))
     loss.backward()
