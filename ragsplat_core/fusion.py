@@ -125,7 +125,8 @@ def integrate(depths: Sequence, cameras: Sequence[Camera], region: dict, zlim: t
     origin = np.array([region["xmin"] - voxel, region["ymin"] - voxel, zlim[0]])
     span = np.array([region["xmax"] - region["xmin"] + 2 * voxel, region["ymax"] - region["ymin"] + 2 * voxel,
                      zlim[1] - zlim[0]])
-    shape = tuple(math.ceil(s / voxel - 1e-9) + 1 for s in span)  # [X, Y, Z] voxel centres cover the span
+    # [X, Y, Z]: voxel centres cover the span, with two layers at least (a crossing lies between two)
+    shape = tuple(max(2, math.ceil(s / voxel - 1e-9) + 1) for s in span)
     n = shape[0] * shape[1] * shape[2]
     values, weights = torch.zeros(n), torch.zeros(n)
     # per camera: R, t relative to the volume's origin (float32 keeps millimetres at tens of metres from it)

@@ -167,3 +167,5 @@ def test_bad_inputs():
     grid, stats = fuse([np.zeros((16, 16))], cams[:1], REGION, CELL, ORIGIN)
     assert len(grid) == 0 and stats["z_range_m"] is None
     assert z_range([np.zeros((16, 16))], cams[:1], REGION) is None
+    flat = integrate([np.ones((16, 16))], cams[:1], REGION, (-1.0, -1.0), 0.1, 0.3)  # a zero z span: two layers
+    assert flat.values.shape[2] == 2 and len(height_grid(flat, grid_nodes(REGION, CELL, ORIGIN))) == 0
