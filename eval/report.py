@@ -5,9 +5,10 @@ paper's published ones, the error-against-time plot, per-row depth-error maps, a
 Rows come as {name: [row per seed]} (see `eval/ablation.py`); a trained row has "appearance", "time",
 "num_gaussians", "geometry" (the volume extraction), "geometry_fused" (the fused one) and "curve", a
 reference row only "geometry" (and its "extraction" label). Tables 2 and 3 print a row once per extraction
-it has, labelled in their "bed" column. Geometry fractions print as percentages, like the paper. The paper's geometry is compared only on the depth-scaled thresholds: its
-10 / 30 cm are 1 % / 3 % of its 10 m depth; our absolute 10 / 30 cm columns stand alone. Our missing values
-print as `n/a`; a cell the paper leaves empty stays empty; a row the paper does not have prints `-`.
+it has, labelled in their "bed" column. Geometry fractions print as percentages, like the paper. The
+paper's geometry is compared only on the depth-scaled thresholds: its 10 / 30 cm are 1 % / 3 % of its 10 m
+depth; our absolute 10 / 30 cm columns stand alone. Our missing values print as `n/a`; a cell the paper
+leaves empty stays empty; a row the paper does not have prints `-`.
 """
 
 from __future__ import annotations

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from ragsplat_core.camera import Camera
+from ragsplat_core.errors import ConfigError
 from ragsplat_core.surface import in_region
 
 NEAR = 1e-6  # voxels at or behind a camera's plane are not observed by it
@@ -51,11 +52,12 @@ class FuseConfig:
     def __post_init__(self):
         for name in ("voxel_gsd", "trunc_voxels"):
             if not getattr(self, name) > 0:
-                raise ValueError(f"FuseConfig.{name} must be > 0, got {getattr(self, name)}")
+                raise ConfigError(f"FuseConfig.{name} must be > 0, got {getattr(self, name)}")
         if self.voxel is not None and not self.voxel > 0:
-            raise ValueError(f"FuseConfig.voxel must be > 0 or None, got {self.voxel}")
+            raise ConfigError(f"FuseConfig.voxel must be > 0 or None, got {self.voxel}")
         if not (0 <= self.z_quantile < 0.5 and self.z_pad_voxels >= 0):
-            raise ValueError("FuseConfig.z_quantile must be in [0, 0.5) and z_pad_voxels >= 0")
+            raise ConfigError(f"FuseConfig.z_quantile must be in [0, 0.5) and z_pad_voxels >= 0, got "
+                              f"{self.z_quantile} and {self.z_pad_voxels}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -232,20 +234,19 @@ def height_mesh(grid: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fuse(depths: Sequence, cameras: Sequence[Camera], region: dict, cell: float, origin: tuple[float, float],
-         cfg: FuseConfig = FuseConfig(), zlim: tuple[float, float] | None = None) -> tuple[np.ndarray, dict]:
+         cfg: FuseConfig = FuseConfig()) -> tuple[np.ndarray, dict]:
     """Depth maps (z-depth [H, W] per camera, 0 = no depth) -> the height grid [G, 3] on the nodes
     origin + (i, j) * cell inside `region` (`grid_nodes`, `height_grid`) and what was chosen: the ground
-    sample distance, voxel, truncation and z range (default: `z_range` of the depth maps, widened by
+    sample distance, voxel, truncation and z range (`z_range` of the depth maps, widened by
     `cfg.z_pad_voxels`). An empty grid when no depth lands in the region."""
     gsd = ground_sample(depths, cameras)
     voxel = cfg.voxel if cfg.voxel is not None else cfg.voxel_gsd * gsd
     stats = {"config": cfg.to_dict(), "gsd_m": gsd, "voxel_m": voxel, "trunc_m": cfg.trunc_voxels * voxel,
              "views": len(cameras)}
-    if zlim is None:
-        found = z_range(depths, cameras, region, cfg.z_quantile)
-        if found is None or not voxel > 0:
-            return np.zeros((0, 3)), {**stats, "z_range_m": None, "voxels": 0, "grid_points": 0}
-        zlim = (found[0] - cfg.z_pad_voxels * voxel, found[1] + cfg.z_pad_voxels * voxel)
+    found = z_range(depths, cameras, region, cfg.z_quantile) if voxel > 0 else None
+    if found is None:
+        return np.zeros((0, 3)), {**stats, "z_range_m": None, "voxels": 0, "grid_points": 0}
+    zlim = (found[0] - cfg.z_pad_voxels * voxel, found[1] + cfg.z_pad_voxels * voxel)
     tsdf = integrate(depths, cameras, region, zlim, voxel, cfg.trunc_voxels * voxel)
     grid = height_grid(tsdf, grid_nodes(region, cell, origin))
     return grid, {**stats, "z_range_m": list(zlim), "voxels": int(tsdf.values.size),

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from ragsplat_core.camera import Camera
+from ragsplat_core.errors import ConfigError
 from ragsplat_core.fusion import (
     FuseConfig,
     Tsdf,
@@ -162,7 +163,7 @@ def test_bad_inputs():
         fuse([np.ones((16, 16))], cams, REGION, CELL, ORIGIN)
     with pytest.raises(ValueError, match="shape"):
         ground_sample([np.ones((8, 16))], cams[:1])
-    with pytest.raises(ValueError, match="trunc_voxels"):
+    with pytest.raises(ConfigError, match="trunc_voxels"):
         FuseConfig(trunc_voxels=0)
     grid, stats = fuse([np.zeros((16, 16))], cams[:1], REGION, CELL, ORIGIN)
     assert len(grid) == 0 and stats["z_range_m"] is None
