@@ -160,7 +160,9 @@ def median_depth(splats: dict[str, torch.Tensor], camera: Camera, backend: str) 
     The true Gaussians along straight rays: their depth is the true geometry, which the bed fusion wants.
     Rendered through the interface the depth would be that of the apparent Gaussians (about d / n deep at
     nadir), and the z of a refracted ray is not a distance to the true bed anyway. For `3dgs`, whose
-    Gaussians are fitted without an interface, this is its apparent bed."""
+    Gaussians are fitted without an interface, this is its apparent bed. The opacities are the true ones
+    too: a variant that fades submerged opacity by 1 / n^2 (`full`) composited fainter Gaussians in training,
+    so this median surface can lie above the one its training renders reach (seen on the development reach)."""
     center = torch.tensor(camera.camera_center, dtype=torch.float32, device=splats["means"].device)
     with torch.no_grad():
         # colours do not move the depth: SH degree 0 is the cheapest evaluation
