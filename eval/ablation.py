@@ -4,10 +4,13 @@ regenerate the paper's Tables 1 and 2 (plus the surveyor's table) as mean +- sta
 Per variant and seed (a row, `OUT/<variant>/seed<S>/`): train with evaluation points (step 0 included;
 PSNR in both conditions and the geometry at every threshold against training time, with the table's
 extraction settings), then evaluate on the held-out views (PSNR, SSIM, LPIPS; `refr` = rendered through
-the interface vs the with-water images, `dry` = true Gaussians without it vs the dry images) and the bed
-(extraction, then `eval.evaluate.score_grid`). The reference rows (`eval.references`) are scored the same
-way. Every row writes `row.json`, the extracted bed (`bed.npy`, `bed.tif`) and its depth-error map
-(`depth_error.png`).
+the interface vs the with-water images, `dry` = true Gaussians without it vs the dry images) and the bed,
+extracted twice and each scored by `eval.evaluate.score_grid`: "volume" (`geometry`: volume sampling of the
+Gaussians, `ragsplat_core.surface`) and "fused" (`geometry_fused`: TSDF fusion of the true Gaussians' median
+depth maps of the training views, `ragsplat_core.fusion`). The reference rows (`eval.references`) are height
+grids scored the same way (no fused variant). Every row writes `row.json`, the extracted bed (`bed.npy`,
+`bed.tif`) and its depth-error map (`depth_error.png`); a trained row also the fused bed (`bed_fused.npy`,
+`bed_fused.tif`, `bed_fused.ply`: the height grid as a triangle mesh, `depth_error_fused.png`).
 
 A row is reused only when its key matches: the dataset's content fingerprint (images and ground truth),
 the resolved training and extraction configs, the harness preset and the source digest of ragsplat_core
@@ -22,17 +25,26 @@ import json
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from eval import metrics
-from eval.evaluate import evaluate_geometry, evaluate_views, model_gaussians, model_renderer, score_grid
-from eval.references import REFERENCES, USES_GROUND_TRUTH, depth_times_n, oracle_plane
+from eval.evaluate import (
+    evaluate_fused,
+    evaluate_geometry,
+    evaluate_views,
+    model_depth,
+    model_gaussians,
+    model_renderer,
+    score_grid,
+)
+from eval.references import EXTRACTION, REFERENCES, USES_GROUND_TRUTH, depth_times_n, oracle_plane
 from eval.report import depth_error_map, jsonable, write_outputs
 from ragsplat_core.dataset import layout
 from ragsplat_core.errors import ConfigError, DatasetError
+from ragsplat_core.fusion import FuseConfig, height_mesh
 from ragsplat_core.outputs import claim, source_digest, versions, write_json
 from ragsplat_core.surface import ExtractConfig
 from ragsplat_core.train.config import TUNING, VARIANTS
@@ -45,6 +57,7 @@ class AblationPreset:
     name: str
     checkpoints: int  # evaluation intervals along training: points at step 0, k * iterations / this, the end
     samples_per_cell: int  # extraction samples per GT grid cell (n_samples = this x GT points), table and curves
+    fuse: FuseConfig = field(default_factory=FuseConfig)  # the fused extraction, table and curves
 
 
 PRESETS = {
@@ -121,16 +134,27 @@ def start_row(folder: Path, key: dict) -> None:
     write_json(kpath, jsonable(key), indent=1)
 
 
-def save_row(folder: Path, row: dict, grid: np.ndarray, truth) -> dict:
+def save_row(folder: Path, row: dict, grid: np.ndarray, truth, fused: np.ndarray | None = None) -> dict:
     """row.json (atomic: a kill never leaves a half-written row that looks finished) plus the extracted bed
-    as an array, a height GeoTIFF (nodata where nothing was reconstructed) and the depth-error map."""
+    as an array, a height GeoTIFF (nodata where nothing was reconstructed) and the depth-error map; the same
+    for the fused bed when given (`*_fused`), with its triangle mesh as a PLY."""
     folder.mkdir(parents=True, exist_ok=True)
-    np.save(folder / "bed.npy", grid)
-    outputs = {"bed": str(folder / "bed.npy")}
-    if len(grid):
-        layout.write_elevation(folder / "bed.tif", grid, layout.GT_GRID_STEP)
-        depth_error_map(grid, truth, folder / "depth_error.png", title=f"{row['name']} seed {row['seed']}")
-        outputs.update(geotiff=str(folder / "bed.tif"), depth_error=str(folder / "depth_error.png"))
+    outputs = {}
+    for suffix, bed in (("", grid), ("_fused", fused)):
+        if bed is None:
+            continue
+        np.save(folder / f"bed{suffix}.npy", bed)
+        outputs[f"bed{suffix}"] = str(folder / f"bed{suffix}.npy")
+        if len(bed):
+            layout.write_elevation(folder / f"bed{suffix}.tif", bed, layout.GT_GRID_STEP)
+            title = f"{row['name']} seed {row['seed']}" + (", fused" if suffix else "")
+            depth_error_map(bed, truth, folder / f"depth_error{suffix}.png", title=title)
+            outputs.update({f"geotiff{suffix}": str(folder / f"bed{suffix}.tif"),
+                            f"depth_error{suffix}": str(folder / f"depth_error{suffix}.png")})
+        if suffix and len(bed):
+            layout.write_ply(folder / "bed_fused.ply", *height_mesh(bed, layout.GT_GRID_STEP),
+                             comment="ragsplat fused bed: height grid as triangles (m, z up)")
+            outputs["mesh_fused"] = str(folder / "bed_fused.ply")
     row = {**row, "outputs": {**row.get("outputs", {}), **outputs}}
     write_json(folder / "row.json", jsonable(row), indent=1)
     return row
@@ -176,10 +200,11 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
                 log(f"[{variant} seed {seed}] training ...")
                 start_row(folder, key)
                 t0 = time.perf_counter()
-                row, grid = runner.train(cfg, folder, ecfg, PRESETS[preset].checkpoints, lpips_metric)
+                row, grid, fused = runner.train(cfg, folder, ecfg, PRESETS[preset].fuse, PRESETS[preset].checkpoints,
+                                                lpips_metric)
                 row = {**row, "name": variant, "seed": seed, "key": key, "lpips_reason": lpips_reason or None,
                        "timings": {**row.get("timings", {}), "row_total_s": time.perf_counter() - t0}}
-                row = save_row(folder, row, grid, truth)
+                row = save_row(folder, row, grid, truth, fused)
             rows.setdefault(variant, []).append(row)
         for name, row in reference_rows(out, runner, preset, seed, ecfg, base, rows, log).items():
             rows.setdefault(name, []).append(row)
@@ -222,8 +247,8 @@ def reference_rows(out: Path, runner, preset: str, seed: int, ecfg: ExtractConfi
         if row is None:
             geometry, grid = compute()
             row = save_row(folder, {"name": name, "seed": None if name == "oracle plane" else seed, "key": key,
-                                    "geometry": geometry, "uses_ground_truth": name in USES_GROUND_TRUTH},
-                           grid, truth)
+                                    "geometry": geometry, "uses_ground_truth": name in USES_GROUND_TRUTH,
+                                    "extraction": EXTRACTION[name]}, grid, truth)
         found[name] = row
     return found
 
@@ -269,10 +294,10 @@ class TrainEval:
 
         return model_gaussians(Trainer(cfg, self.ds, None))
 
-    def train(self, cfg, out: Path, ecfg: ExtractConfig, checkpoints: int, lpips_metric=None
-              ) -> tuple[dict, np.ndarray]:
+    def train(self, cfg, out: Path, ecfg: ExtractConfig, fcfg: FuseConfig, checkpoints: int, lpips_metric=None
+              ) -> tuple[dict, np.ndarray, np.ndarray]:
         """Train `cfg` in `out` (resuming its checkpoint), with the curve's evaluation points; returns the
-        row and the extracted bed grid."""
+        row and the two extracted bed grids (volume, fused)."""
         from ragsplat_core.train import Trainer
 
         trainer = Trainer(cfg, self.ds, out)
@@ -286,10 +311,12 @@ class TrainEval:
             t0 = time.perf_counter()
             app = evaluate_views(model_renderer(tr), self.ds.test)
             geo, _ = evaluate_geometry(model_gaussians(tr), self.truth, ecfg)
+            fused, _ = evaluate_fused(model_depth(tr), self.ds.train, self.truth, fcfg, ecfg.cell)
             curve[:] = [c for c in curve if c["iteration"] != step]
             curve.append({"iteration": step, "time_s": tr.elapsed, "cpu_s": tr.cpu_elapsed,
                           "num_gaussians": tr.num_gaussians, "psnr_refr": (app["refr"] or {}).get("psnr"),
-                          "psnr_dry": (app["dry"] or {}).get("psnr"), "f1": geo["f1"], "chamfer": geo["chamfer"]})
+                          "psnr_dry": (app["dry"] or {}).get("psnr"), "f1": geo["f1"], "chamfer": geo["chamfer"],
+                          "f1_fused": fused["f1"], "chamfer_fused": fused["chamfer"]})
             write_json(curve_file, jsonable(curve), indent=1)
             eval_time[0] += time.perf_counter() - t0
 
@@ -311,12 +338,15 @@ class TrainEval:
         t1 = time.perf_counter()
         geometry, grid = evaluate_geometry(model_gaussians(trainer), self.truth, ecfg)
         t2 = time.perf_counter()
+        fused_geometry, fused = evaluate_fused(model_depth(trainer), self.ds.train, self.truth, fcfg, ecfg.cell)
+        t3 = time.perf_counter()
         row = {"config": cfg.to_dict(), "train_stats": stats, "num_gaussians": stats["num_gaussians"],
                "time": {"wall_s": stats["train_seconds"], "cpu_s": stats["train_cpu_seconds"],
                         "median_step_s": stats["median_step_seconds"]},
-               "appearance": appearance, "geometry": geometry, "curve": sorted(curve, key=lambda c: c["iteration"]),
+               "appearance": appearance, "geometry": geometry, "geometry_fused": fused_geometry,
+               "curve": sorted(curve, key=lambda c: c["iteration"]),
                "timings": {"checkpoint_eval_s": eval_time[0], "appearance_eval_s": t1 - t0,
-                           "geometry_eval_s": t2 - t1},
+                           "geometry_eval_s": t2 - t1, "fused_eval_s": t3 - t2},
                "outputs": {"dir": str(out), "ply": str(out / "point_cloud.ply")}}
-        return row, grid
+        return row, grid, fused
 

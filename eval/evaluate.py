@@ -1,8 +1,10 @@
 """Evaluate one trained model: appearance on held-out views and geometry against the ground-truth bed.
 
 `evaluate_views` takes a render function, so it serves any model (a Trainer, a loaded PLY);
-`evaluate_geometry` takes activated Gaussians and `score_grid` any bed height grid (a reference answer
-too). `model_gaussians` and `model_renderer` adapt a Trainer.
+`evaluate_geometry` takes activated Gaussians (the volume extraction, `ragsplat_core.surface`),
+`evaluate_fused` a depth render function (TSDF fusion of depth maps, `ragsplat_core.fusion`), and
+`score_grid` any bed height grid (a reference answer too). `model_gaussians`, `model_renderer` and
+`model_depth` adapt a Trainer.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from scipy.spatial import cKDTree
 
 from eval import metrics
 from ragsplat_core.dataset.layout import GT_GRID_STEP
+from ragsplat_core.fusion import FuseConfig, fuse
 from ragsplat_core.scoring import geometry_metrics, thresholds
 from ragsplat_core.surface import ExtractConfig, extract_surface
 
@@ -121,6 +124,17 @@ def evaluate_geometry(gaussians: dict, truth, cfg: ExtractConfig) -> tuple[dict,
     return {**score_grid(grid, truth), "extraction": stats}, grid
 
 
+def evaluate_fused(render_depth: Callable, views, truth, cfg: FuseConfig, cell: float) -> tuple[dict, np.ndarray]:
+    """The bed from rendered depth + `score_grid`: `render_depth(camera) -> [H, W]` z-depth (0 = none) at
+    every view's camera (the training views), fused (`ragsplat_core.fusion.fuse`) on the GT grid's nodes
+    (`cell` apart) inside the region. Returns (scores with the fusion's choices under "fusion", the grid
+    [P, 3])."""
+    cameras = [v.camera for v in views]
+    depths = [render_depth(cam) for cam in cameras]
+    grid, stats = fuse(depths, cameras, truth.region, cell, tuple(truth.grid[:, :2].min(0)), cfg)
+    return {**score_grid(grid, truth), "fusion": stats}, grid
+
+
 def model_gaussians(trainer) -> dict:
     """The trainer's true Gaussians, activated: means, scales (linear), quats (unit wxyz), opacities."""
     from ragsplat_core.gaussians import activated
@@ -133,3 +147,10 @@ def model_gaussians(trainer) -> dict:
 def model_renderer(trainer) -> Callable:
     """`render(view, interface)` for `evaluate_views`: the trainer's render of the view's camera."""
     return lambda view, interface: trainer.render(view.camera, interface=interface)[0]
+
+
+def model_depth(trainer) -> Callable:
+    """`render_depth(camera)` for `evaluate_fused`: the median depth of the trainer's true Gaussians."""
+    from ragsplat_core.export import median_depth
+
+    return lambda camera: median_depth(trainer.splats, camera, trainer.cfg.backend)

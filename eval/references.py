@@ -15,6 +15,9 @@ import numpy as np
 
 REFERENCES = ("init", "3dgs x n", "oracle plane")
 USES_GROUND_TRUTH = ("oracle plane",)
+# Where each reference's height grid comes from, as the tables label it (no fused variant: 3dgs x n
+# corrects the 3dgs row's volume bed, init is the untrained start).
+EXTRACTION = {"init": "volume", "3dgs x n": "volume", "oracle plane": "-"}
 
 
 def depth_times_n(grid: np.ndarray, level: float, n: float) -> np.ndarray:

@@ -3,14 +3,17 @@ surveyor's figures) as Markdown, our values as mean +- standard deviation over t
 paper's published ones, the error-against-time plot, per-row depth-error maps, and results.json.
 
 Rows come as {name: [row per seed]} (see `eval/ablation.py`); a trained row has "appearance", "time",
-"num_gaussians", "geometry" and "curve", a reference row only "geometry". Geometry fractions print as
-percentages, like the paper. The paper's geometry is compared only on the depth-scaled thresholds: its
-10 / 30 cm are 1 % / 3 % of its 10 m depth; our absolute 10 / 30 cm columns stand alone. Our missing values
-print as `n/a`; a cell the paper leaves empty stays empty; a row the paper does not have prints `-`.
+"num_gaussians", "geometry" (the volume extraction), "geometry_fused" (the fused one) and "curve", a
+reference row only "geometry" (and its "extraction" label). Tables 2 and 3 print a row once per extraction
+it has, labelled in their "bed" column. Geometry fractions print as percentages, like the paper. The
+paper's geometry is compared only on the depth-scaled thresholds: its 10 / 30 cm are 1 % / 3 % of its 10 m
+depth; our absolute 10 / 30 cm columns stand alone. Our missing values print as `n/a`; a cell the paper
+leaves empty stays empty; a row the paper does not have prints `-`.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from pathlib import Path
@@ -112,16 +115,28 @@ def _label(name: str, rows: list[dict]) -> str:
     return f"{name} (uses GT)" if rows and rows[0].get("uses_ground_truth") else name
 
 
-def _table(rows: dict[str, list[dict]], published: dict, table: str | None, columns, names) -> str:
-    head = ["Row", "seeds"]
+def extractions(rows: list[dict]) -> list[tuple[str, list[dict]]]:
+    """(label, the seeds' rows with that extraction's scores under "geometry") per bed extraction a row has:
+    its own ("volume" unless the row says otherwise), then "fused" when it has fused scores."""
+    out = [(rows[0].get("extraction", "volume") if rows else "volume", rows)]
+    if any("geometry_fused" in r for r in rows):
+        out.append(("fused", [{**r, "geometry": r.get("geometry_fused")} for r in rows]))
+    return out
+
+
+def _table(rows: dict[str, list[dict]], published: dict, table: str | None, columns, names,
+           by_extraction: bool = False) -> str:
+    head = ["Row", "seeds"] + (["bed"] if by_extraction else [])
     for name, pcol, _, _, _ in columns:
         head += [name] + (["paper"] if pcol and table else [])
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for name in names:
-        seeds = [r.get("seed") for r in rows[name]]
-        cells = [_label(name, rows[name]), "-" if seeds == [None] else str(len(seeds))]
+    entries = [(name, label, found) for name in names
+               for label, found in (extractions(rows[name]) if by_extraction else [(None, rows[name])])]
+    for name, label, found in entries:
+        seeds = [r.get("seed") for r in found]
+        cells = [_label(name, found), "-" if seeds == [None] else str(len(seeds))] + ([label] if label else [])
         for _, pcol, keys, fmt, scale in columns:
-            cells.append(_cell(values(rows[name], keys, scale), fmt))
+            cells.append(_cell(values(found, keys, scale), fmt))
             if pcol and table:
                 cells.append(_paper(published, table, PAPER_NAMES.get(name, name), pcol, fmt))
         lines.append("| " + " | ".join(cells) + " |")
@@ -144,30 +159,32 @@ def table2(rows: dict[str, list[dict]], published: dict, notes: list[str] = ()) 
     """Geometry against the ground-truth bed grid: reference rows first, then the variants."""
     text = ("### Table 2: geometry vs the ground-truth bed (ours, mean ± std over seeds | paper at "
             "1 % / 3 % of depth = its 10 / 30 cm)\n\n")
-    return text + _table(rows, published, "table2_geometry", T2_COLUMNS, ordered(rows)) + _notes(notes)
+    return text + _table(rows, published, "table2_geometry", T2_COLUMNS, ordered(rows), True) + _notes(notes)
 
 
 def table3(rows: dict[str, list[dict]], notes: list[str] = ()) -> str:
     """The surveyor's figures: dz = predicted - true bed height at each reconstructed cell's centre."""
     text = "### Table 3: vertical error of the bed, the surveyor's figures (cm, mean ± std over seeds)\n\n"
-    return text + _table(rows, {}, None, T3_COLUMNS, ordered(rows)) + _notes(notes)
+    return text + _table(rows, {}, None, T3_COLUMNS, ordered(rows), True) + _notes(notes)
 
 
 PANELS = (("psnr_refr", "PSNR refr (dB)"), ("psnr_dry", "PSNR dry (dB)"), ("1%", "F1 @ 1 % of depth (%)"),
           ("3%", "F1 @ 3 % of depth (%)"))
 
 
-def _curve_value(point: dict, key: str):
-    return point.get("f1", {}).get(key) if key in ("1%", "3%") else point.get(key)
+def _curve_value(point: dict, key: str, f1: str = "f1"):
+    return (point.get(f1) or {}).get(key) if key in ("1%", "3%") else point.get(key)
 
 
 def error_vs_time(curves: dict[str, list[list[dict]]], path: str | Path, title: str = "",
                   lines: dict[str, dict] | None = None) -> Path:
     """PSNR (both conditions) and F1 at 1 % and 3 % of depth against training wall-clock time, one curve per
-    variant (mean over seeds at each evaluation step, bars = standard deviation), as a four-panel PNG.
+    variant (mean over seeds at each evaluation step, bars = standard deviation), as a four-panel PNG; the
+    F1 of the fused bed, where the points have it, as a dotted curve of the same colour.
     `curves[variant]` is one list per seed of the points the ablation records ({"iteration", "time_s",
-    "psnr_refr", "psnr_dry", "f1": {...}}); `time_s` is training time only (evaluation pauses the clock).
-    `lines[name]` = {"1%": f1, "3%": f1} draws a reference row as a dashed horizontal line."""
+    "psnr_refr", "psnr_dry", "f1": {...}, "f1_fused": {...}}); `time_s` is training time only (evaluation
+    pauses the clock). `lines[name]` = {"1%": f1, "3%": f1} draws a reference row as a dashed horizontal
+    line."""
     import matplotlib
 
     matplotlib.use("Agg")  # files only, no display
@@ -178,19 +195,21 @@ def error_vs_time(curves: dict[str, list[list[dict]]], path: str | Path, title: 
     legend = {}
     for ax, (key, label) in zip(axes, PANELS):
         scale = 100 if key in ("1%", "3%") else 1
-        for variant, seeds in curves.items():
+        for (variant, seeds), (f1, suffix, style) in itertools.product(
+                curves.items(), (("f1", "", "-"), ("f1_fused", " (fused)", ":"))):
             steps = sorted({p["iteration"] for curve in seeds for p in curve})
             x, y, e = [], [], []
             for step in steps:
                 pts = [p for curve in seeds for p in curve if p["iteration"] == step]
-                vals = [scale * _curve_value(p, key) for p in pts if _curve_value(p, key) is not None]
+                vals = [scale * v for v in (_curve_value(p, key, f1) for p in pts) if v is not None]
                 if vals:
                     x.append(np.mean([p["time_s"] for p in pts]) / 60)
                     y.append(np.mean(vals))
                     e.append(np.std(vals, ddof=1) if len(vals) > 1 else 0.0)
-            if x:
-                legend[variant] = ax.errorbar(x, y, yerr=e, marker="o", ms=3, capsize=2, color=colors[variant],
-                                              label=variant)[0]
+            if x and (f1 == "f1" or key in ("1%", "3%")):  # the PSNR panels have no fused curve
+                legend[variant + suffix] = ax.errorbar(x, y, yerr=e, marker="o" if f1 == "f1" else "s", ms=3,
+                                                       capsize=2, ls=style, color=colors[variant],
+                                                       label=variant + suffix)[0]
         for name, ref in (lines or {}).items():
             if key in ref and ref[key] is not None:
                 legend[name] = ax.axhline(scale * ref[key], ls="--", lw=1, color=colors[name], label=name)
@@ -275,13 +294,26 @@ def geometry_notes(header: dict) -> list[str]:
             "seed)."),
            ("Reference rows: init = the initial Gaussians, untrained; 3dgs x n = the 3dgs bed with submerged "
             "depths multiplied by n (the classical correction); oracle plane = a flat plane at the ground "
-            "truth's median height (it reads the ground truth).")]
+            "truth's median height (it reads the ground truth)."),
+           bed_note(header)]
     if tuning:
         warn = " THIS IS THE DEVELOPMENT DATASET: these numbers are not an evaluation." \
             if header.get("dataset_seed") == tuning.get("dataset_seed") else ""
         out.append(f"Hyperparameters were chosen on dataset seed {tuning.get('dataset_seed')} (development); "
                    f"this dataset has seed {header.get('dataset_seed')}.{warn}")
     return out
+
+
+def bed_note(header: dict) -> str:
+    """What the "bed" column of Tables 2 and 3 means, with the fusion's settings when the header has them."""
+    fuse = (header.get("harness_preset") or {}).get("fuse") or {}
+    voxel = (f"{fuse['voxel']:g} m" if fuse.get("voxel") else f"{fuse['voxel_gsd']:g} x the views' ground sample "
+             "distance") if fuse else "a few ground sample distances"
+    trunc = f"{fuse['trunc_voxels']:g} voxels" if fuse else "a few voxels"
+    return ("Bed: volume = volume sampling of the Gaussians, noise filter, median height per cell; fused = the "
+            "true Gaussians' median depth maps of the training views (no water interface: straight rays) fused "
+            f"in a TSDF (voxel {voxel}, truncation {trunc}), the topmost surface crossing per cell; for 3dgs "
+            "both are its apparent bed. The reference rows have one bed each.")
 
 
 def survey_notes(header: dict) -> list[str]:
@@ -308,8 +340,11 @@ def write_outputs(out: Path, rows: dict[str, list[dict]], header: dict, lpips_re
     summaries = {name: {col: summary(values(rows[name], keys, scale))
                         for col, _, keys, _, scale in T1_COLUMNS + T2_COLUMNS + T3_COLUMNS}
                  for name in ordered(rows)}
+    fused = {name: {col: summary(values(found, keys, scale)) for col, _, keys, _, scale in T2_COLUMNS + T3_COLUMNS}
+             for name in ordered(rows) for label, found in extractions(rows[name]) if label == "fused"}
     results = {**header, "lpips": {"available": not lpips_reason, "reason": lpips_reason or None},
-               "published": published, "summary": summaries, "rows": {n: rows[n] for n in ordered(rows)}}
+               "published": published, "summary": summaries, "summary_fused": fused,
+               "rows": {n: rows[n] for n in ordered(rows)}}
     write_json(out / "results.json", jsonable(results), indent=1)
     return t1 + "\n" + t2 + "\n" + t3
 

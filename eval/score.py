@@ -1,8 +1,9 @@
 """Score a finished training run against its dataset's ground truth without retraining (`ragsplat eval`).
 
 Everything comes from the ablation's own code: the dataset and ground truth as `eval.ablation.TrainEval`
-loads them, the extraction settings of the run's preset (`extract_config`, seeded with the run's seed), the
-measures of `eval.evaluate` and the reference answers of `eval.references` (`init`: the run's own initial
+loads them, the extraction settings of the run's preset (`extract_config`, seeded with the run's seed, and
+the preset's fusion settings), the measures of `eval.evaluate` (the bed extracted both ways: volume
+sampling and fused depth) and the reference answers of `eval.references` (`init`: the run's own initial
 Gaussians; `oracle plane`). A run the ablation trained therefore scores exactly as its row.json.
 """
 
@@ -16,7 +17,7 @@ import numpy as np
 
 from eval import metrics
 from eval.ablation import CODE, PRESETS, TrainEval, extract_config
-from eval.evaluate import evaluate_geometry, evaluate_views, score_grid
+from eval.evaluate import evaluate_fused, evaluate_geometry, evaluate_views, score_grid
 from eval.references import USES_GROUND_TRUTH, oracle_plane
 from eval.report import T2_COLUMNS, T3_COLUMNS, values
 from ragsplat_core.errors import ConfigError, DatasetError
@@ -33,13 +34,13 @@ def score_run(run: Path, data: Path | None = None, vgg16: str | None = None, dow
               log: Callable[[str], None] = lambda line: None, truth: Path | None = None,
               dem: Path | None = None) -> dict:
     """The run's appearance on the held-out views (`evaluate_views`: PSNR, SSIM, LPIPS when its weights are
-    found or, with `download`, fetched) and its bed's geometry (`evaluate_geometry`), with the reference
-    answers' geometry under "references". `data`: the run's dataset moved elsewhere. `truth`: score against
+    found or, with `download`, fetched) and its bed's geometry (`evaluate_geometry`; `evaluate_fused` of its
+    training views under "geometry_fused"), with the reference answers' geometry under "references". `data`: the run's dataset moved elsewhere. `truth`: score against
     another dataset's ground truth and held-out views, in the same frame (a survey imported from a synthetic
     dataset's COLMAP model). `dem`: also score that DEM GeoTIFF (`ragsplat export`) under "dem". Raises
     OutputError (not a finished run), DatasetError (dataset missing, changed, without ground truth or
     held-out views, in another frame), ConfigError (a preset the harness does not know)."""
-    model, ds = load_model(run, data)
+    model, ds = load_model(run, data, splits=("train",))  # the training cameras: the views fusion reads
     cfg = model.cfg
     if cfg.preset not in PRESETS:
         raise ConfigError(f"{run}: preset {cfg.preset!r} has no evaluation settings; known: {', '.join(PRESETS)}")
@@ -57,6 +58,7 @@ def score_run(run: Path, data: Path | None = None, vgg16: str | None = None, dow
     appearance = evaluate_views(lambda view, interface: model.render(view.camera, interface)[0], runner.ds.test,
                                 lpips_metric)
     geometry, _ = evaluate_geometry(model.gaussians(), truth, ecfg)
+    fused, _ = evaluate_fused(model.median_depth, ds.train, truth, PRESETS[cfg.preset].fuse, ecfg.cell)
     initial = runner.initial(replace(cfg, device=str(model.device), backend=model.backend))
     water = None if model.water is None else {"level": float(model.water.level), "n": float(model.water.n)}
     return {"run": str(run), "data": str(Path(ds.root).resolve()), "dataset_fingerprint": ds.fingerprint,
@@ -65,7 +67,7 @@ def score_run(run: Path, data: Path | None = None, vgg16: str | None = None, dow
             "level": truth.level, "lpips": {"available": not lpips_reason, "reason": lpips_reason or None},
             "lpips_network": getattr(lpips_metric, "network", None), "versions": versions("torch", "scipy"),
             "code_digest": source_digest(*CODE), "num_gaussians": int(model.splats["means"].shape[0]),
-            "appearance": appearance, "geometry": geometry,
+            "appearance": appearance, "geometry": geometry, "geometry_fused": fused,
             "references": {"init": evaluate_geometry(initial, truth, ecfg)[0],
                            "oracle plane": score_grid(oracle_plane(truth), truth)},
             "uses_ground_truth": list(USES_GROUND_TRUTH),
@@ -103,7 +105,8 @@ def table(result: dict) -> str:
     """The run's geometry beside the reference answers' as a Markdown table, then its appearance."""
     rows = [(f"{name} (uses GT)" if name in USES_GROUND_TRUTH else name, geometry)
             for name, geometry in result["references"].items()]
-    rows.append((f"{result['variant']} (this run)", result["geometry"]))
+    rows += [(f"{result['variant']} (this run), volume", result["geometry"]),
+             (f"{result['variant']} (this run), fused", result["geometry_fused"])]
     if "dem" in result:
         rows.append((f"its DEM ({Path(result['dem']['file']).name})", result["dem"]))
     head = ["Row"] + [c[0] for c in COLUMNS]
@@ -116,7 +119,9 @@ def table(result: dict) -> str:
         lines.append("| " + " | ".join(cells) + " |")
     depth = result["max_depth_m"]
     lines += ["", (f"- F1 at 10 / 30 cm and at 1 % / 3 % of the maximum depth ({depth:g} m); bias, RMSE and p95 "
-                   "of dz = predicted - true bed height over the wet cells, banks bias over the emerged ground.")]
+                   "of dz = predicted - true bed height over the wet cells, banks bias over the emerged ground."),
+              ("- volume: volume sampling of the Gaussians; fused: TSDF fusion of the true Gaussians' median "
+               "depth maps of the training views.")]
     app = result["appearance"]
     for cond, what in (("refr", "through the water vs the with-water images"), ("dry", "without it vs the dry images")):
         if app[cond] is not None:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eval.ablation import TrainEval, extract_config, save_row, start_row
+from eval.ablation import PRESETS, TrainEval, extract_config, save_row, start_row
 from ragsplat_core.outputs import claim, versions, write_json
 from ragsplat_core.train.config import TrainConfig
 
@@ -44,8 +44,8 @@ def main(argv: list[str] | None = None) -> int:
                 row = json.loads(done.read_text())
             else:
                 start_row(folder, {"dataset": runner.fingerprint, "train": cfg.to_dict()})
-                row, grid = runner.train(cfg, folder, ecfg, checkpoints=1)
-                row = save_row(folder, {**row, "name": variant, "seed": args.seed}, grid, runner.truth)
+                row, grid, fused = runner.train(cfg, folder, ecfg, PRESETS[args.preset].fuse, checkpoints=1)
+                row = save_row(folder, {**row, "name": variant, "seed": args.seed}, grid, runner.truth, fused)
             g = row["geometry"]
             results.append({"variant": variant, "value": value, "f1_1%": g["f1"]["1%"], "f1_3%": g["f1"]["3%"],
                             "rmse_wet": g["survey"]["wet"]["rmse"], "train_s": row["time"]["wall_s"]})

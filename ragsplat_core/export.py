@@ -147,6 +147,28 @@ class Model:
                 self.flags if interface else None, self.cfg.surfels, background, self.backend)
         return img.clamp(0, 1), alpha, depth
 
+    def median_depth(self, camera: Camera) -> torch.Tensor:  # [H, W], see `median_depth`
+        return median_depth(self.splats, camera, self.backend)
+
+
+def median_depth(splats: dict[str, torch.Tensor], camera: Camera, backend: str) -> torch.Tensor:
+    """[H, W] median z-depth of the true Gaussians (raw parameters) seen by `camera` without the water
+    interface, 0 where the pixel's transmittance stays above 0.5 (`rasterize`'s meta["median_depth"]).
+
+    The true Gaussians along straight rays: their depth is the true geometry, which the bed fusion wants.
+    Rendered through the interface the depth would be that of the apparent Gaussians (about d / n deep at
+    nadir), and the z of a refracted ray is not a distance to the true bed anyway. For `3dgs`, whose
+    Gaussians are fitted without an interface, this is its apparent bed. The opacities are the true ones
+    too: a variant that fades submerged opacity by 1 / n^2 (`full`) composited fainter Gaussians in training,
+    so this median surface can lie above the one its training renders reach (seen on the development reach)."""
+    center = torch.tensor(camera.camera_center, dtype=torch.float32, device=splats["means"].device)
+    with torch.no_grad():
+        # colours do not move the depth: SH degree 0 is the cheapest evaluation
+        means, quats, scales, opac, colors, covars = view_gaussians(splats, center, 0, None, None)
+        _, _, _, meta = rasterize(means, quats, scales, opac, colors, camera, torch.zeros(3, device=means.device),
+                                  covars=covars, backend=backend, median=True)
+    return meta["median_depth"][..., 0]
+
 
 def load_model(run: Path, data: Path | None = None, splits: tuple[str, ...] = ()) -> tuple[Model, Dataset]:
     """A finished run ready to render, and its dataset with the views of `splits` (their wet images only).

@@ -1,6 +1,7 @@
 """Differentiable Gaussian rasterizer: one call, several backends with the same semantics.
 
-`rasterize(means, quats, scales, opacities, colors, camera, background, covars=None, backend="auto")`
+`rasterize(means, quats, scales, opacities, colors, camera, background, covars=None, backend="auto",
+median=False)`
 renders Gaussians (3DGS / gsplat "classic" semantics, see `raster/project.py` for the projection):
 EWA projection with a 0.3 px dilation, Gaussians with camera z < 0.01 culled, front-to-back compositing in
 depth order, alpha = min(0.99, o exp(power)), alpha < 1/255 skipped, a pixel stops before the Gaussian that
@@ -11,8 +12,13 @@ would take its transmittance below 1e-4. Outputs:
 - meta: `means2d` [N, 2] pixels (its `.grad` holds the screen-space gradient after backward when the
   inputs require grad: densification statistics), `radii` [N] int32 (0 = not rendered), `depths` [N]
   camera z, `conics` [N, 3], `visible` [N] bool, `tiles_touched` [N] int32, `backend` (name used),
-  `width`, `height` (pixels). With gsplat, `means2d` is a detached tensor whose `.grad` is filled by a
-  hook during backward (call no `retain_grad` on it).
+  `width`, `height` (pixels), `median_depth` [H, W, 1] with `median=True` (else None): the camera z of the
+  Gaussian at which the pixel's transmittance first falls to <= 0.5, 0 where it never does (2DGS's median
+  depth; forward only, no gradient; opt-in because training does not need it and it costs the cpu kernel
+  about 6 % of its forward). gsplat's 3DGS rasterizer has none: with gsplat it comes from a separate no-grad
+  pass of the torch backend on the same device (alpha clamped at 0.99 there, 0.999 in gsplat).
+  With gsplat, `means2d` is a detached tensor whose `.grad` is filled by a hook during backward (call no
+  `retain_grad` on it).
 
 Backends: "torch" (plain PyTorch, autograd, any device: the reference), "cpu" (numba kernels with a
 hand-written backward, float32 compositing, CPU tensors only), "gsplat" (gsplat's CUDA `rasterization`,
@@ -36,7 +42,7 @@ BACKENDS = ("auto", "torch", "cpu", "gsplat")
 
 
 def rasterize(means, quats, scales, opacities, colors, camera: Camera, background, covars=None,
-              backend: str = "auto"):
+              backend: str = "auto", median: bool = False):
     """Renders Gaussians; returns (image [H, W, 3], alpha [H, W, 1], depth [H, W, 1], meta dict).
 
     means [N, 3] world; quats [N, 4] (w, x, y, z), normalised here; scales [N, 3] linear; opacities [N] in
@@ -48,7 +54,12 @@ def rasterize(means, quats, scales, opacities, colors, camera: Camera, backgroun
     background = torch.as_tensor(background, dtype=colors.dtype, device=colors.device).reshape(3)
     backend = choose_backend(backend, means.device)
     if backend == "gsplat":
-        return _rasterize_gsplat(means, quats, scales, opacities, colors, camera, background, covars)
+        out = _rasterize_gsplat(means, quats, scales, opacities, colors, camera, background, covars)
+        if median:  # a forward pass of the reference on the same device: gsplat has no median depth
+            with torch.no_grad():
+                out[3]["median_depth"] = rasterize(means, quats, scales, opacities, colors, camera, background,
+                                                   covars, backend="torch", median=True)[3]["median_depth"]
+        return out
     if covars is None:
         covars = covariance(quats, scales)  # [N, 3, 3]
     proj = project(means, covars, opacities, camera)
@@ -60,14 +71,14 @@ def rasterize(means, quats, scales, opacities, colors, camera: Camera, backgroun
         from ragsplat_core.raster.torch_backend import composite
     else:
         from ragsplat_core.raster.cpu_backend import composite
-    color_sum, trans, z_sum = composite(proj, opacities, colors, bins, camera.width, camera.height)
+    color_sum, trans, z_sum, med = composite(proj, opacities, colors, bins, camera.width, camera.height, median)
     image = color_sum + trans[..., None] * background  # [H, W, 3]
     alpha = 1 - trans  # [H, W]
     hit = alpha > 0  # exactly 0 where no Gaussian was composited (each one adds at least 1/255)
     depth = torch.where(hit, z_sum / torch.where(hit, alpha, torch.ones_like(alpha)), torch.zeros_like(alpha))
     meta = {"means2d": means2d, "radii": proj.radii, "depths": proj.depths, "conics": proj.conics,
             "visible": proj.visible, "tiles_touched": bins.tiles_touched, "backend": backend,
-            "width": camera.width, "height": camera.height}
+            "width": camera.width, "height": camera.height, "median_depth": None if med is None else med[..., None]}
     return image, alpha[..., None], depth[..., None], meta
 
 
@@ -125,7 +136,7 @@ def _rasterize_gsplat(means, quats, scales, opacities, colors, camera, backgroun
         radii = radii.max(-1).values
     meta = {"means2d": means2d, "radii": radii.to(torch.int32), "depths": info["depths"][0],
             "conics": info["conics"][0], "visible": radii > 0, "tiles_touched": info["tiles_per_gauss"][0],
-            "backend": "gsplat", "width": camera.width, "height": camera.height}
+            "backend": "gsplat", "width": camera.width, "height": camera.height, "median_depth": None}
     return renders[0, ..., :3], alphas[0], renders[0, ..., 3:4], meta
 
 

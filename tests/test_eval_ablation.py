@@ -7,10 +7,11 @@ import torch
 
 from eval import ablation, references
 from eval.ablation import run_ablation
-from eval.evaluate import evaluate_geometry, evaluate_views, score_grid
+from eval.evaluate import evaluate_fused, evaluate_geometry, evaluate_views, score_grid
 from eval.report import load_published, table1, table2, table3, write_outputs
 from ragsplat_core.dataset.load import GroundTruth
 from ragsplat_core.errors import ConfigError
+from ragsplat_core.fusion import FuseConfig
 from ragsplat_core.train.config import VARIANTS, preset_config
 
 
@@ -20,12 +21,15 @@ def fake_row(i: int, seed: int = 0) -> dict:
     named = {"10cm": 0.5, "30cm": 1.0, "1%": 0.25 + 0.1 * seed, "3%": 0.75}
     geo = {"chamfer": 0.1 * (i + 1), "precision": named, "recall": named, "f1": named,
            "survey": {"coverage": 0.9, "wet": {"bias": -0.02, "rmse": 0.05, "p95": 0.1}}}
+    fused = {**geo, "chamfer": 0.05 * (i + 1), "f1": {**named, "3%": 0.875},
+             "survey": {"coverage": 0.8, "wet": {"bias": 0.01, "rmse": 0.04, "p95": 0.08}}}
     curve = [{"iteration": k * 10, "time_s": 30.0 * k, "psnr_refr": 15 + k + i, "psnr_dry": 12 + k,
-              "f1": {"1%": 0.1 * k, "3%": 0.2 * k}} for k in range(4)]
+              "f1": {"1%": 0.1 * k, "3%": 0.2 * k}, "f1_fused": {"1%": 0.15 * k, "3%": 0.25 * k}}
+             for k in range(4)]
     return {"name": list(VARIANTS)[i], "seed": seed,
             "appearance": {"refr": app, "dry": dict(app, psnr=float("nan")), "per_view": []},
             "num_gaussians": 12345, "time": {"wall_s": 90.0, "cpu_s": 150.0, "median_step_s": 0.06},
-            "geometry": geo, "curve": curve}
+            "geometry": geo, "geometry_fused": fused, "curve": curve}
 
 
 def test_tables_compare_with_the_paper_only_on_depth_scaled_columns():
@@ -33,16 +37,21 @@ def test_tables_compare_with_the_paper_only_on_depth_scaled_columns():
     rows = {v: [fake_row(i, 0), fake_row(i, 1)] for i, v in enumerate(VARIANTS)}
     rows["oracle plane"] = [{"name": "oracle plane", "seed": None, "uses_ground_truth": True,
                              "geometry": fake_row(0)["geometry"]}]
+    rows["oracle plane"][0]["extraction"] = "-"
     t2 = table2(rows, published)
     head = t2.splitlines()[2]
-    assert head.startswith("| Row | seeds | CD (m) | F1@10cm (%) | F1@30cm (%) | P@1% (%) | paper |")
+    assert head.startswith("| Row | seeds | bed | CD (m) | F1@10cm (%) | F1@30cm (%) | P@1% (%) | paper |")
     assert head.count("paper") == 6  # P/R/F1 at 1 % and 3 % only
     lines = [line for line in t2.splitlines() if line.startswith("| ")]
-    assert lines[1].startswith("| oracle plane (uses GT) | - |")  # reference rows first, marked
-    full = next(line for line in lines if line.startswith("| full |"))
+    assert lines[1].startswith("| oracle plane (uses GT) | - | - |")  # reference rows first, marked, one bed
+    assert not any(line.startswith("| oracle plane (uses GT) | - | fused |") for line in lines)
+    full = next(line for line in lines if line.startswith("| full | 2 | volume |"))
     # F1@1%: seeds 25 % and 35 % -> 30.0 ± 7.1, beside the paper's F1@10cm at 10 m (94.00)
-    assert "| 2 | 0.500 ± 0.000 | 50.0 ± 0.0 | 100.0 ± 0.0 | 30.0 ± 7.1 | 91.6 |" in full
+    assert "| 2 | volume | 0.500 ± 0.000 | 50.0 ± 0.0 | 100.0 ± 0.0 | 30.0 ± 7.1 | 91.6 |" in full
     assert "| 30.0 ± 7.1 | 94.0 |" in full
+    # the fused bed of the same row follows it, with the same paper values beside it
+    fused = lines[lines.index(full) + 1]
+    assert fused.startswith("| full | 2 | fused | 0.250 ± 0.000 |") and fused.endswith("| 87.5 ± 0.0 | 99.1 |")
     t1 = table1(rows, published)
     base = next(line for line in t1.splitlines() if line.startswith("| 3dgs |"))
     # the paper leaves 3dgs refr empty; 12345 Gaussians -> 12.3 K; 90 s -> 1.5 min wall, 2.5 min CPU
@@ -50,7 +59,8 @@ def test_tables_compare_with_the_paper_only_on_depth_scaled_columns():
     assert base.endswith("| 12.3 ± 0.0 | 40.0 | 1.5 ± 0.0 | 6.8 | 2.5 ± 0.0 | 0.060 ± 0.000 |")
     assert "oracle plane" not in t1  # no appearance
     t3 = table3(rows)
-    assert "| full | 2 | 90.0 ± 0.0 | -2.0 ± 0.0 | 5.0 ± 0.0 | 10.0 ± 0.0 |" in t3
+    assert "| full | 2 | volume | 90.0 ± 0.0 | -2.0 ± 0.0 | 5.0 ± 0.0 | 10.0 ± 0.0 |" in t3
+    assert "| full | 2 | fused | 80.0 ± 0.0 | +1.0 ± 0.0 | 4.0 ± 0.0 | 8.0 ± 0.0 |" in t3
 
 
 def test_write_outputs_files(tmp_path):
@@ -63,6 +73,8 @@ def test_write_outputs_files(tmp_path):
     assert res["seeds"] == [3] and list(res["rows"]) == list(list(VARIANTS)[:3])
     assert res["rows"]["3dgs"][0]["appearance"]["dry"]["psnr"] is None  # NaN stored as null
     assert res["summary"]["3dgs"]["F1@1% (%)"] == {"mean": 25.0, "std": None, "n": 1}
+    assert res["summary_fused"]["3dgs"]["F1@3% (%)"] == {"mean": 87.5, "std": None, "n": 1}
+    assert res["summary_fused"]["3dgs"]["RMSE (cm)"]["mean"] == pytest.approx(4.0)
     assert res["lpips"] == {"available": False, "reason": "weights missing"}
     png = (tmp_path / "error_vs_time.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
@@ -86,10 +98,10 @@ class FakeRunner:
         return {"means": torch.tensor(g), "scales": torch.full((len(g), 3), 0.03),
                 "quats": torch.tensor([[1.0, 0, 0, 0]]).expand(len(g), 4), "opacities": torch.full((len(g),), 0.9)}
 
-    def train(self, cfg, out, ecfg, checkpoints, lpips_metric=None):
+    def train(self, cfg, out, ecfg, fcfg, checkpoints, lpips_metric=None):
         self.calls.append((cfg.variant, cfg.seed))
         apparent = self.truth.grid + [0, 0, 1.0 - 1.0 / 1.33]  # an uncorrected bed at depth / n
-        return fake_row(list(VARIANTS).index(cfg.variant), cfg.seed), apparent
+        return fake_row(list(VARIANTS).index(cfg.variant), cfg.seed), apparent, self.truth.grid + [0, 0, 0.01]
 
 
 def test_rows_are_reused_only_under_their_key(tmp_path):
@@ -106,6 +118,14 @@ def test_rows_are_reused_only_under_their_key(tmp_path):
     assert rows["init"][0]["geometry"]["survey"]["wet"]["bias"] == pytest.approx(0.0, abs=0.01)
     for name in ("bed.npy", "bed.tif", "depth_error.png"):
         assert (out / "3dgs-x-n" / "seed0" / name).stat().st_size > 0
+    assert not (out / "3dgs-x-n" / "seed0" / "bed_fused.npy").exists()
+    assert [r["extraction"] for n in ("init", "3dgs x n", "oracle plane") for r in rows[n]] == \
+        ["volume", "volume", "volume", "volume", "-"]
+    # a trained row keeps both beds; the fused one also as a mesh: 4 x 4 squares of the 5 x 5 grid, 2 each
+    assert np.load(out / "full" / "seed0" / "bed_fused.npy")[:, 2] == pytest.approx(-0.99)
+    ply = (out / "full" / "seed0" / "bed_fused.ply").read_bytes()
+    assert b"element vertex 25\n" in ply and b"element face 32\n" in ply
+    assert rows["full"][0]["outputs"]["depth_error_fused"].endswith("depth_error_fused.png")
     # same key: reused; only the requested variants and seeds are tabulated
     rows = run_ablation(data, out, "smoke", ["full"], [1], runner, **quiet)
     assert len(runner.calls) == 4 and list(rows) == ["full", "init", "oracle plane"]
@@ -173,6 +193,22 @@ def test_evaluate_geometry_flat_bed():
     res, grid = evaluate_geometry(g, GroundTruth(gt, region, 2.0, 0.0), ablation.extract_config("small", 19 * 19, 0))
     assert res["n_gt"] == 19 * 19 and res["f1"]["10cm"] == 1.0 and res["chamfer"] < 0.005 and len(grid) > 350
     assert res["extraction"]["config"]["n_samples"] == 16 * 19 * 19
+
+
+def test_evaluate_fused_flat_bed():
+    # exact depth maps of the plane z = -1 from five cameras: every node of the region at -1, to 1 mm
+    from test_fusion import cameras, depth_map
+
+    cams = cameras(64)
+    maps = {id(c): torch.tensor(depth_map(c, lambda xy: np.full(len(xy), -1.0))) for c in cams}
+    x, y = np.meshgrid(np.arange(-10, 11) * 0.05, np.arange(-8, 9) * 0.05, indexing="ij")
+    gt = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, -1.0)])
+    truth = GroundTruth(gt, {"xmin": -0.5, "xmax": 0.5, "ymin": -0.4, "ymax": 0.4}, 1.0, 0.0)
+    views = [SimpleNamespace(camera=c) for c in cams]
+    res, grid = evaluate_fused(lambda cam: maps[id(cam)], views, truth, FuseConfig(), 0.05)
+    assert len(grid) == len(gt) and np.abs(grid[:, 2] + 1.0).max() < 1e-3
+    assert res["f1"]["1%"] == 1.0 and res["n_gt"] == len(gt) and res["survey"]["wet"]["rmse"] < 1e-3
+    assert res["fusion"]["views"] == 5 and res["fusion"]["voxel_m"] == pytest.approx(3 * res["fusion"]["gsd_m"])
 
 
 def test_eval_steps_avoid_opacity_resets():

@@ -13,8 +13,11 @@ from ragsplat_core.cli.main import main
 
 def test_ablation_command(evaluable_dataset, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(metrics, "default_vgg16_path", lambda: tmp_path / "absent.pth")  # LPIPS n/a
-    monkeypatch.setitem(train.PRESETS, "smoke", replace(train.PRESETS["smoke"], iterations=6, init_count=200,
-                                                          backend="torch"))
+    # opaque from the start and no opacity reset, so the median depth (T <= 0.5) has a surface to fuse
+    smoke = train.PRESETS["smoke"]
+    monkeypatch.setitem(train.PRESETS, "smoke", replace(smoke, iterations=6, init_count=200, init_opacity=0.9,
+                                                        densify=replace(smoke.densify, reset_every=30_000),
+                                                        backend="torch"))
     monkeypatch.setitem(ablation.PRESETS, "smoke", replace(ablation.PRESETS["smoke"], checkpoints=3))
     data = tmp_path / "data"
     shutil.copytree(evaluable_dataset, data)
@@ -23,8 +26,8 @@ def test_ablation_command(evaluable_dataset, tmp_path, monkeypatch, capsys):
             "full", "--seeds", "0", "1", "--no-download"]
     assert main(argv) == 0
     printed = capsys.readouterr().out
-    assert "| full | 2 |" in printed and "| 3dgs x n | 2 |" in printed and "LPIPS n/a" in printed
-    assert "| oracle plane (uses GT) | - |" in printed and "F1@3% (%) | paper |" in printed
+    assert "| full | 2 | volume |" in printed and "| 3dgs x n | 2 | volume |" in printed and "LPIPS n/a" in printed
+    assert "| oracle plane (uses GT) | - | - |" in printed and "F1@3% (%) | paper |" in printed
     res = json.loads((out / "results.json").read_text())
     assert list(res["rows"]) == ["init", "3dgs x n", "oracle plane", "3dgs", "full"] and res["seeds"] == [0, 1]
     full = res["rows"]["full"][0]
@@ -38,8 +41,18 @@ def test_ablation_command(evaluable_dataset, tmp_path, monkeypatch, capsys):
     assert len(full["appearance"]["per_view"]) == 2 and full["appearance"]["dry"]["psnr"] > 0
     assert full["geometry"]["n_gt"] == 21 * 21 and full["geometry"]["extraction"]["config"]["n_samples"] == 4 * 441
     assert set(full["geometry"]["f1"]) == {"10cm", "30cm", "1%", "3%"}
+    # the fused bed beside it, scored the same way, at every curve point too
+    fused = full["geometry_fused"]
+    assert set(fused["f1"]) == {"10cm", "30cm", "1%", "3%"} and fused["n_gt"] == 21 * 21
+    assert fused["fusion"]["views"] == 5 and fused["fusion"]["grid_points"] > 0
+    assert fused["fusion"]["config"] == res["harness_preset"]["fuse"]
+    assert all(set(c["f1_fused"]) == {"10cm", "30cm", "1%", "3%"} for c in full["curve"])
+    assert "| full | 2 | fused |" in printed and "| 3dgs | 2 | volume |" in printed
+    assert set(res["summary_fused"]) == {"3dgs", "full"}
     for name in ("table1.md", "table2.md", "table3.md", "error_vs_time.png", "oracle-plane/bed.tif",
-                 "oracle-plane/depth_error.png", "full/seed1/bed.npy", "init/seed0/row.json"):
+                 "oracle-plane/depth_error.png", "full/seed1/bed.npy", "init/seed0/row.json",
+                 "full/seed0/bed_fused.npy", "full/seed0/bed_fused.tif", "full/seed0/bed_fused.ply",
+                 "full/seed0/depth_error_fused.png"):
         assert (out / name).stat().st_size > 0
 
     # rerun: every row reused, nothing trained

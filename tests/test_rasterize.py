@@ -30,7 +30,8 @@ def scene(n, seed, dtype=torch.float64, spread=(0.8, 0.6), size=(0.02, 0.08)):
 
 
 def literal_3dgs(means, quats, scales, opacities, colors, cam, bg):
-    """The per-pixel loop of 3DGS's forward kernel over all Gaussians (no tiles, no boxes), in float64."""
+    """The per-pixel loop of 3DGS's forward kernel over all Gaussians (no tiles, no boxes), in float64, with
+    2DGS's median depth (the z of the Gaussian that takes T from above 0.5 to at most 0.5; 0 if none)."""
     from ragsplat_core.raster.project import project
 
     proj = project(means, covariance(quats, scales), opacities, cam)
@@ -41,6 +42,7 @@ def literal_3dgs(means, quats, scales, opacities, colors, cam, bg):
     img = np.zeros((cam.height, cam.width, 3))
     alpha = np.zeros((cam.height, cam.width))
     depth = np.zeros((cam.height, cam.width))
+    median = np.zeros((cam.height, cam.width))
     for j in range(cam.height):
         for i in range(cam.width):
             T, acc, dz = 1.0, np.zeros(3), 0.0
@@ -56,11 +58,13 @@ def literal_3dgs(means, quats, scales, opacities, colors, cam, bg):
                     break
                 acc += c[k] * a * T
                 dz += z[k] * a * T
+                if T > 0.5 >= T * (1 - a):
+                    median[j, i] = z[k]
                 T *= 1 - a
             img[j, i] = acc + T * np.asarray(bg)
             alpha[j, i] = 1 - T
             depth[j, i] = dz / (1 - T) if T < 1 else 0.0
-    return img, alpha, depth
+    return img, alpha, depth, median
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -70,12 +74,45 @@ def test_matches_the_literal_3dgs_loop(backend):
     params = scene(60, seed=1, size=(0.01, 0.15))
     bg = [0.2, 0.5, 0.9]
     want = literal_3dgs(*params, cam, bg)
-    image, alpha, depth, _ = rasterize(*params, cam, bg, backend=backend)
+    image, alpha, depth, meta = rasterize(*params, cam, bg, backend=backend, median=True)
     tol = 1e-9 if backend == "torch" else 2e-5  # cpu composites in float32
     np.testing.assert_allclose(image.numpy(), want[0], atol=tol)
     np.testing.assert_allclose(alpha[..., 0].numpy(), want[1], atol=tol)
     np.testing.assert_allclose(depth[..., 0].numpy(), want[2], atol=tol * 100)
+    np.testing.assert_allclose(meta["median_depth"][..., 0].numpy(), want[3], atol=tol * 100)
     assert (alpha > 0.5).any() and (alpha < 0.5).any()
+    assert len(np.unique(want[3])) > 10  # many Gaussians are some pixel's median, and 0 where T > 0.5
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize(("o1", "o2", "layer"), [(0.6, 0.3, 1), (0.3, 0.6, 2), (0.2, 0.2, 0)])
+def test_median_depth_of_two_layers(backend, o1, o2, layer):
+    # Two sheets much wider than the view at 1.2 m and 1.7 m from a nadir camera: alpha = o at every pixel.
+    # T falls to <= 0.5 at the first sheet (1 - 0.6), at the second (0.7 x 0.4), or never (0.8 x 0.8).
+    cam = nadir(32, 32, height_m=2.0)
+    means = torch.tensor([[0.0, 0.0, 0.8], [0.0, 0.0, 0.3]], dtype=torch.float64)
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2, dtype=torch.float64)
+    scales = torch.tensor([[1e3, 1e3, 1e-3]] * 2, dtype=torch.float64)
+    opac = torch.tensor([o1, o2], dtype=torch.float64)
+    _, _, depth, meta = rasterize(means, quats, scales, opac, torch.rand(2, 3, dtype=torch.float64), cam,
+                                  [0.0, 0.0, 0.0], backend=backend, median=True)
+    want = {0: 0.0, 1: 1.2, 2: 1.7}[layer]
+    np.testing.assert_allclose(meta["median_depth"].numpy(), want, atol=1e-5)
+    assert float((depth - meta["median_depth"]).abs().min()) > 0.05  # the expected depth is another thing
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_median_depth_is_opt_in_and_changes_nothing_else(backend):
+    cam, params = nadir(40, 30), scene(60, seed=1, size=(0.01, 0.15))
+    params = [p.requires_grad_(True) for p in params]
+    plain = rasterize(*params, cam, [0.2, 0.5, 0.9], backend=backend)
+    both = rasterize(*params, cam, [0.2, 0.5, 0.9], backend=backend, median=True)
+    assert plain[3]["median_depth"] is None and not both[3]["median_depth"].requires_grad
+    for a, b in zip(plain[:3], both[:3]):
+        assert torch.equal(a, b)
+    grads = [torch.autograd.grad(out[0].sum() + out[2].sum(), params) for out in (plain, both)]
+    for a, b in zip(*grads):
+        assert torch.equal(a, b)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

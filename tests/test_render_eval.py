@@ -24,7 +24,7 @@ from ragsplat_core.export import load_model, load_run, write_render
 
 KEYS = {"run", "data", "dataset_fingerprint", "dataset_seed", "variant", "preset", "seed", "harness_preset", "water",
         "max_depth_m", "level", "lpips", "lpips_network", "versions", "code_digest", "num_gaussians", "appearance",
-        "geometry", "references", "uses_ground_truth"}
+        "geometry", "geometry_fused", "references", "uses_ground_truth"}
 
 
 @pytest.fixture(scope="module")
@@ -118,7 +118,8 @@ def test_eval_matches_the_ablation_and_the_library(run, ablated, evaluable_datas
     out = tmp_path / "scores.json"
     assert main(["eval", str(run), "--out", str(out), "--no-download"]) == 0
     printed = capsys.readouterr().out
-    for text in ("LPIPS n/a", "| init |", "| oracle plane (uses GT) |", "| full (this run) |", f"wrote {out}",
+    for text in ("LPIPS n/a", "| init |", "| oracle plane (uses GT) |", "| full (this run), volume |",
+                 "| full (this run), fused |", f"wrote {out}",
                  "2 held-out views, without it vs the dry images: PSNR"):
         assert text in printed
     res = json.loads(out.read_text())
@@ -126,6 +127,7 @@ def test_eval_matches_the_ablation_and_the_library(run, ablated, evaluable_datas
     assert res["water"] == {"level": 0.0, "n": 1.33} and res["lpips"]["available"] is False
     row = json.loads((ablated / "full" / "seed0" / "row.json").read_text())
     assert res["geometry"] == row["geometry"] and res["appearance"] == row["appearance"]
+    assert res["geometry_fused"] == row["geometry_fused"] and res["geometry_fused"]["fusion"]["views"] == 5
     assert res["references"]["init"] == json.loads((ablated / "init" / "seed0" / "row.json").read_text())["geometry"]
     assert res["references"]["oracle plane"] == \
         json.loads((ablated / "oracle-plane" / "row.json").read_text())["geometry"]

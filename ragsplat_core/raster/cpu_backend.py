@@ -6,7 +6,10 @@ one only touches the pixels of the tile inside its alpha >= 1/255 ellipse (row b
 solved from the conic, within the opacity-aware box of `project.py`), so a Gaussian of a few pixels costs
 a few pixels, not the tile's 256. A tile stops once every pixel in it is saturated (transmittance would
 drop below 1e-4). Forward and backward evaluate alpha with the same float32 code, so they skip the same
-(pixel, Gaussian) pairs.
+(pixel, Gaussian) pairs. On request the forward also records the median depth: the camera z of the Gaussian
+that takes the pixel's transmittance from above 0.5 to at most 0.5 (no gradient). The request is a
+loop-invariant flag, so a forward without it runs as fast as before (measured: 1 % slower, within noise;
+always on, the branch-free select costs about 6 % of the forward).
 
 Backward (as 3DGS): per pixel, walk its composited Gaussians back to front from the last one, restoring the
 transmittance by division by (1 - alpha) and keeping running sums of what lies behind. Each (tile,
@@ -25,6 +28,7 @@ from ragsplat_core.raster.project import ALPHA_MAX, ALPHA_MIN, BOX_PAD, T_MIN, T
 
 _F = np.float32
 _HALF = _F(0.5)
+_Z = 3  # the camera z among the composited features
 _ONE = _F(1.0)
 _AMIN = _F(ALPHA_MIN)
 _AMAX = _F(ALPHA_MAX)
@@ -60,7 +64,7 @@ def _tile_box(t, tiles_x, width, height):
 
 @njit(cache=True, parallel=True)
 def _forward(mean2d, conic, opac, feat, box, gauss, offsets, width, height, tiles_x,
-             out_feat, out_t, out_last):
+             out_feat, out_t, out_last, out_median, want_median):
     for t in prange(offsets.shape[0] - 1):
         x0, y0, x1, y1 = _tile_box(t, tiles_x, width, height)
         tw = x1 - x0
@@ -68,6 +72,7 @@ def _forward(mean2d, conic, opac, feat, box, gauss, offsets, width, height, tile
         trans = np.ones(npx, np.float32)
         acc = np.zeros((npx, _NF), np.float32)
         last = np.full(npx, -1, np.int64)
+        median = np.zeros(npx, np.float32)
         done = np.zeros(npx, np.bool_)
         n_done = 0
         for k in range(offsets[t], offsets[t + 1]):
@@ -98,6 +103,8 @@ def _forward(mean2d, conic, opac, feat, box, gauss, offsets, width, height, tile
                     w = a * trans[p]
                     for c in range(_NF):
                         acc[p, c] += w * feat[g, c]
+                    if want_median:  # a select, not a branch: cheaper in this loop (measured)
+                        median[p] = feat[g, _Z] if (t_next <= _HALF) & (trans[p] > _HALF) else median[p]
                     trans[p] = t_next
                     last[p] = k
             if n_done == npx:
@@ -107,6 +114,7 @@ def _forward(mean2d, conic, opac, feat, box, gauss, offsets, width, height, tile
                 p = (j - y0) * tw + i - x0
                 out_t[j, i] = trans[p]
                 out_last[j, i] = last[p]
+                out_median[j, i] = median[p]
                 for c in range(_NF):
                     out_feat[j, i, c] = acc[p, c]
 
@@ -192,23 +200,26 @@ def _np32(x: torch.Tensor) -> np.ndarray:
 
 class _Composite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, feats, box, gauss, offsets, width, height, tiles_x):
+    def forward(ctx, means2d, conics, opacities, feats, box, gauss, offsets, width, height, tiles_x, want_median):
         args = (_np32(means2d), _np32(conics), _np32(opacities), _np32(feats),
                 np.ascontiguousarray(box.numpy()), np.ascontiguousarray(gauss.numpy()),
                 np.ascontiguousarray(offsets.numpy()), width, height, tiles_x)
         out_feat = np.empty((height, width, _NF), np.float32)
         out_t = np.empty((height, width), np.float32)
         out_last = np.empty((height, width), np.int64)
+        out_median = np.empty((height, width), np.float32)
         with _chunks():
-            _forward(*args, out_feat, out_t, out_last)
+            _forward(*args, out_feat, out_t, out_last, out_median, want_median)
         ctx.args, ctx.final_t, ctx.last = args, out_t, out_last
         ctx.dtypes = [x.dtype for x in (means2d, conics, opacities, feats)]
         ctx.n = len(opacities)
         dtype = feats.dtype
-        return torch.from_numpy(out_feat).to(dtype), torch.from_numpy(out_t).to(dtype)
+        median = torch.from_numpy(out_median).to(dtype)
+        ctx.mark_non_differentiable(median)
+        return torch.from_numpy(out_feat).to(dtype), torch.from_numpy(out_t).to(dtype), median
 
     @staticmethod
-    def backward(ctx, g_feat, g_t):
+    def backward(ctx, g_feat, g_t, _g_median):
         height, width = ctx.final_t.shape
         g_feat = _np32(g_feat) if g_feat is not None else np.zeros((height, width, _NF), np.float32)
         g_t = _np32(g_t) if g_t is not None else np.zeros((height, width), np.float32)
@@ -220,7 +231,7 @@ class _Composite(torch.autograd.Function):
         grads.index_add_(0, torch.from_numpy(gauss), torch.from_numpy(slots))
         m2, con, op, ft = ctx.dtypes
         return (grads[:, 0:2].to(m2), grads[:, 2:5].to(con), grads[:, 5].to(op), grads[:, 6:].to(ft),
-                None, None, None, None, None, None)
+                None, None, None, None, None, None, None)
 
 
 class _chunks:
@@ -234,9 +245,10 @@ class _chunks:
 
 
 def composite(proj: Projected, opacities: torch.Tensor, colors: torch.Tensor, bins: Bins, width: int,
-              height: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(colour sum [H, W, 3] without background, final transmittance [H, W], weighted z sum [H, W])."""
+              height: int, median: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """(colour sum [H, W, 3] without background, final transmittance [H, W], weighted z sum [H, W], median
+    z-depth [H, W] without gradient, 0 where the transmittance stays above 0.5; None unless `median`)."""
     feats = torch.cat([colors, proj.depths[:, None].to(colors.dtype)], -1)  # [N, 4]
-    out, trans = _Composite.apply(proj.means2d, proj.conics, opacities, feats, proj.box, bins.gauss,
-                                  bins.offsets, width, height, bins.tiles_x)
-    return out[..., :3], trans, out[..., 3]
+    out, trans, med = _Composite.apply(proj.means2d, proj.conics, opacities, feats, proj.box, bins.gauss,
+                                       bins.offsets, width, height, bins.tiles_x, median)
+    return out[..., :3], trans, out[..., 3], med if median else None

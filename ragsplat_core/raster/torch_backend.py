@@ -6,7 +6,8 @@ with the image size times the depth complexity. Per pixel, front to back, as in 
 alpha_i = min(0.99, o_i exp(power_i)), skipped when below 1/255; the pixel stops before the first Gaussian
 that would take its transmittance below 1e-4. Written without a sequential loop: with every alpha in the
 list, the inclusive running product of (1 - alpha) stays >= 1e-4 exactly for the Gaussians that 3DGS
-composites, because it is non-increasing.
+composites, because it is non-increasing. On request, the median depth (the camera z of the Gaussian after
+which the pixel's transmittance is first <= 0.5) is read off the same running product, without gradient.
 """
 
 from __future__ import annotations
@@ -21,14 +22,16 @@ CHUNK_ELEMENTS = 1 << 20
 
 
 def composite(proj: Projected, opacities: torch.Tensor, colors: torch.Tensor, bins: Bins, width: int,
-              height: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(colour sum [H, W, 3] without background, final transmittance [H, W], weighted z sum [H, W])."""
+              height: int, median: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """(colour sum [H, W, 3] without background, final transmittance [H, W], weighted z sum [H, W], median
+    z-depth [H, W] without gradient, 0 where the transmittance stays above 0.5; None unless `median`)."""
     device = colors.device
     if len(bins.gauss) == 0:  # nothing on screen; the empty sum keeps the outputs in the graph
         zero = colors[:0].sum() + proj.means2d[:0].sum()
         return (torch.zeros(height, width, 3, dtype=colors.dtype, device=device) + zero,
                 torch.ones(height, width, dtype=colors.dtype, device=device) + zero,
-                torch.zeros(height, width, dtype=colors.dtype, device=device) + zero)
+                torch.zeros(height, width, dtype=colors.dtype, device=device) + zero,
+                torch.zeros(height, width, dtype=colors.dtype, device=device) if median else None)
     n_tiles = bins.tiles_x * bins.tiles_y
     counts = bins.offsets[1:] - bins.offsets[:-1]  # [n_tiles]
     pix = torch.arange(TILE * TILE, device=device)
@@ -44,21 +47,22 @@ def composite(proj: Projected, opacities: torch.Tensor, colors: torch.Tensor, bi
         while stop < n_tiles and (stop + 1 - start) * TILE * TILE * max(cnt[stop], 1) <= CHUNK_ELEMENTS:
             stop += 1
         tiles = by_len[start:stop]  # [t]
-        args = (tiles, max(cnt[stop - 1], 1), proj, opacities, feats, bins, px, py)
+        args = (tiles, max(cnt[stop - 1], 1), proj, opacities, feats, bins, px, py, median)
         # Recomputed in backward instead of kept: memory stays one chunk's worth of [t, 256, k] tensors.
         out_rows.append(checkpoint(_composite_tiles, *args, use_reentrant=False, preserve_rng_state=False)
                         if torch.is_grad_enabled() else _composite_tiles(*args))
         out_tiles.append(tiles)
         start = stop
-    res = torch.cat(out_rows)  # [n_tiles, 256, 5] in chunk order
+    res = torch.cat(out_rows)  # [n_tiles, 256, 5 or 6] in chunk order
     res = res[torch.argsort(torch.cat(out_tiles))]  # tile order
-    res = res.reshape(bins.tiles_y, bins.tiles_x, TILE, TILE, 5).permute(0, 2, 1, 3, 4)
-    res = res.reshape(bins.tiles_y * TILE, bins.tiles_x * TILE, 5)[:height, :width]
-    return res[..., :3], res[..., 4], res[..., 3]
+    res = res.reshape(bins.tiles_y, bins.tiles_x, TILE, TILE, -1).permute(0, 2, 1, 3, 4)
+    res = res.reshape(bins.tiles_y * TILE, bins.tiles_x * TILE, -1)[:height, :width]
+    return res[..., :3], res[..., 4], res[..., 3], res[..., 5].detach() if median else None
 
 
-def _composite_tiles(tiles, k, proj, opacities, feats, bins, px, py):
-    """Composites tiles [t] with lists padded to k. Returns [t, 256, 5]: colour (3), z sum, transmittance."""
+def _composite_tiles(tiles, k, proj, opacities, feats, bins, px, py, median):
+    """Composites tiles [t] with lists padded to k. Returns [t, 256, 5]: colour (3), z sum, transmittance;
+    [t, 256, 6] with the median z (no gradient) when `median`."""
     slot = torch.arange(k, device=tiles.device)
     first = bins.offsets[tiles]  # [t]
     valid = slot[None, :] < (bins.offsets[tiles + 1] - first)[:, None]  # [t, k]
@@ -83,4 +87,11 @@ def _composite_tiles(tiles, k, proj, opacities, feats, bins, px, py):
     before = torch.cat([torch.ones_like(trans[..., :1]), trans[..., :-1]], -1)
     weights = alpha * before  # [t, 256, k]
     acc = weights @ feats[idx]  # [t, 256, 4]
-    return torch.cat([acc, trans[..., -1:]], -1)
+    if not median:
+        return torch.cat([acc, trans[..., -1:]], -1)
+    with torch.no_grad():
+        # trans is non-increasing along the list: the count of slots above 0.5 is the first one at or below
+        first = (trans > 0.5).sum(-1)  # [t, 256]; k where the pixel never gets there
+        z = torch.gather(proj.depths.detach()[idx], 1, first.clamp(max=k - 1))  # [t, 256]
+        median = torch.where(first < k, z, torch.zeros_like(z))
+    return torch.cat([acc, trans[..., -1:], median[..., None]], -1)
