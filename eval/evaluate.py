@@ -151,6 +151,4 @@ def model_renderer(trainer) -> Callable:
 
 def model_depth(trainer) -> Callable:
     """`render_depth(camera)` for `evaluate_fused`: the median depth of the trainer's true Gaussians."""
-    from ragsplat_core.export import median_depth
-
-    return lambda camera: median_depth(trainer.splats, camera, trainer.cfg.backend)
+    return trainer.median_depth

@@ -13,7 +13,6 @@ leaves empty stays empty; a row the paper does not have prints `-`.
 
 from __future__ import annotations
 
-import itertools
 import json
 import math
 from pathlib import Path
@@ -172,17 +171,17 @@ PANELS = (("psnr_refr", "PSNR refr (dB)"), ("psnr_dry", "PSNR dry (dB)"), ("1%",
           ("3%", "F1 @ 3 % of depth (%)"))
 
 
-def _curve_value(point: dict, key: str, f1: str = "f1"):
-    return (point.get(f1) or {}).get(key) if key in ("1%", "3%") else point.get(key)
+def _curve_value(point: dict, key: str):
+    return (point.get("f1") or {}).get(key) if key in ("1%", "3%") else point.get(key)
 
 
 def error_vs_time(curves: dict[str, list[list[dict]]], path: str | Path, title: str = "",
                   lines: dict[str, dict] | None = None) -> Path:
     """PSNR (both conditions) and F1 at 1 % and 3 % of depth against training wall-clock time, one curve per
-    variant (mean over seeds at each evaluation step, bars = standard deviation), as a four-panel PNG; the
-    F1 of the fused bed, where the points have it, as a dotted curve of the same colour.
+    variant (mean over seeds at each evaluation step, bars = standard deviation), as a four-panel PNG (the
+    volume extraction: the fused bed is scored at the end only).
     `curves[variant]` is one list per seed of the points the ablation records ({"iteration", "time_s",
-    "psnr_refr", "psnr_dry", "f1": {...}, "f1_fused": {...}}); `time_s` is training time only (evaluation
+    "psnr_refr", "psnr_dry", "f1": {...}}); `time_s` is training time only (evaluation
     pauses the clock). `lines[name]` = {"1%": f1, "3%": f1} draws a reference row as a dashed horizontal
     line."""
     import matplotlib
@@ -195,21 +194,19 @@ def error_vs_time(curves: dict[str, list[list[dict]]], path: str | Path, title: 
     legend = {}
     for ax, (key, label) in zip(axes, PANELS):
         scale = 100 if key in ("1%", "3%") else 1
-        for (variant, seeds), (f1, suffix, style) in itertools.product(
-                curves.items(), (("f1", "", "-"), ("f1_fused", " (fused)", ":"))):
+        for variant, seeds in curves.items():
             steps = sorted({p["iteration"] for curve in seeds for p in curve})
             x, y, e = [], [], []
             for step in steps:
                 pts = [p for curve in seeds for p in curve if p["iteration"] == step]
-                vals = [scale * v for v in (_curve_value(p, key, f1) for p in pts) if v is not None]
+                vals = [scale * v for v in (_curve_value(p, key) for p in pts) if v is not None]
                 if vals:
                     x.append(np.mean([p["time_s"] for p in pts]) / 60)
                     y.append(np.mean(vals))
                     e.append(np.std(vals, ddof=1) if len(vals) > 1 else 0.0)
-            if x and (f1 == "f1" or key in ("1%", "3%")):  # the PSNR panels have no fused curve
-                legend[variant + suffix] = ax.errorbar(x, y, yerr=e, marker="o" if f1 == "f1" else "s", ms=3,
-                                                       capsize=2, ls=style, color=colors[variant],
-                                                       label=variant + suffix)[0]
+            if x:
+                legend[variant] = ax.errorbar(x, y, yerr=e, marker="o", ms=3, capsize=2, color=colors[variant],
+                                              label=variant)[0]
         for name, ref in (lines or {}).items():
             if key in ref and ref[key] is not None:
                 legend[name] = ax.axhline(scale * ref[key], ls="--", lw=1, color=colors[name], label=name)

@@ -31,7 +31,7 @@ from ragsplat_core.rasterize import choose_backend
 from ragsplat_core.refraction import WaterSurface
 from ragsplat_core.surface import ExtractConfig, extract_surface
 from ragsplat_core.train.config import TrainConfig
-from ragsplat_core.train.trainer import PLY, render_splats
+from ragsplat_core.train.trainer import PLY, median_depth, render_splats
 
 BATHYMETRIC, GROUND = 40, 2  # ASPRS classes (LAS 1.4 R15): submerged bed ("bathymetric point"), emerged
 LAS_SCALE = 0.001  # metres per integer step of the LAS coordinates
@@ -62,14 +62,15 @@ class Bed:
 
 
 def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None = None, ply: Path | None = None,
-               png: Path | None = None, data: Path | None = None) -> Bed:
+               png: Path | None = None, data: Path | None = None,
+               min_opacity: float = ExtractConfig.min_opacity) -> Bed:
     """Extract the bed of a finished run (`load_run`, `extract_bed`) and write the DEM and each other product
     given a path, in the dataset's georeference (an imported survey's CRS and offset), depths below the
     water the run ended with (`run_water`). Returns the bed."""
     meta, ds, splats, seed = _read_run(Path(run), data, splits=())
     water = run_water(meta, ds)
     bed = extract_bed(activated_dict(splats), resolution, None if water is None else water.level, ds.eval_region,
-                      ds.georef, seed)
+                      ds.georef, seed, min_opacity)
     write_dem(dem, bed)
     for path, write in ((las, write_las), (ply, write_ply), (png, write_png)):
         if path is not None:
@@ -147,27 +148,9 @@ class Model:
                 self.flags if interface else None, self.cfg.surfels, background, self.backend)
         return img.clamp(0, 1), alpha, depth
 
-    def median_depth(self, camera: Camera) -> torch.Tensor:  # [H, W], see `median_depth`
-        return median_depth(self.splats, camera, self.backend)
-
-
-def median_depth(splats: dict[str, torch.Tensor], camera: Camera, backend: str) -> torch.Tensor:
-    """[H, W] median z-depth of the true Gaussians (raw parameters) seen by `camera` without the water
-    interface, 0 where the pixel's transmittance stays above 0.5 (`rasterize`'s meta["median_depth"]).
-
-    The true Gaussians along straight rays: their depth is the true geometry, which the bed fusion wants.
-    Rendered through the interface the depth would be that of the apparent Gaussians (about d / n deep at
-    nadir), and the z of a refracted ray is not a distance to the true bed anyway. For `3dgs`, whose
-    Gaussians are fitted without an interface, this is its apparent bed. The opacities are the true ones
-    too: a variant that fades submerged opacity by 1 / n^2 (`full`) composited fainter Gaussians in training,
-    so this median surface can lie above the one its training renders reach (seen on the development reach)."""
-    center = torch.tensor(camera.camera_center, dtype=torch.float32, device=splats["means"].device)
-    with torch.no_grad():
-        # colours do not move the depth: SH degree 0 is the cheapest evaluation
-        means, quats, scales, opac, colors, covars = view_gaussians(splats, center, 0, None, None)
-        _, _, _, meta = rasterize(means, quats, scales, opac, colors, camera, torch.zeros(3, device=means.device),
-                                  covars=covars, backend=backend, median=True)
-    return meta["median_depth"][..., 0]
+    def median_depth(self, camera: Camera) -> torch.Tensor:  # [H, W], see `trainer.median_depth`
+        fades = self.flags is not None and self.flags["opacity"]
+        return median_depth(self.splats, camera, self.cfg.surfels, self.water if fades else None, self.backend)
 
 
 def load_model(run: Path, data: Path | None = None, splits: tuple[str, ...] = ()) -> tuple[Model, Dataset]:
@@ -264,14 +247,15 @@ def render_views(model: Model, views: list[View], kind: str, out: Path, on_view=
 
 
 def extract_bed(gaussians: dict, resolution: float, level: float | None, region: dict | None = None,
-                georef: Georef | None = None, seed: int = 0) -> Bed:
+                georef: Georef | None = None, seed: int = 0, min_opacity: float = ExtractConfig.min_opacity) -> Bed:
     """The bed of activated Gaussians (means [N, 3], scales [N, 3], quats [N, 4], opacities [N]) on a grid
     of `resolution` metres whose nodes lie on multiples of it in the CRS (tiles of two runs line up),
-    inside `region` {xmin, xmax, ymin, ymax} when given. Raises ConfigError, OutputError (nothing found)."""
+    inside `region` {xmin, xmax, ymin, ymax} when given, from the Gaussians at least `min_opacity` opaque.
+    Raises ConfigError, OutputError (nothing found)."""
     georef = georef or Georef()  # default: the local frame
     means = gaussians["means"].detach().cpu().numpy()  # [N, 3]
     if region is None:
-        xy = means[gaussians["opacities"].detach().cpu().numpy() >= ExtractConfig.min_opacity, :2]
+        xy = means[gaussians["opacities"].detach().cpu().numpy() >= min_opacity, :2]
         lo, hi = np.percentile(xy, [1, 99], axis=0) if len(xy) else (np.zeros(2), np.zeros(2))  # not floaters'
     else:
         lo, hi = np.array([region["xmin"], region["ymin"]]), np.array([region["xmax"], region["ymax"]])
@@ -282,7 +266,7 @@ def extract_bed(gaussians: dict, resolution: float, level: float | None, region:
                           f"{MAX_SAMPLES:.0e}); choose a coarser resolution")
     # A node at absolute (k * resolution): local origin = the nearest such node minus the offset.
     origin = tuple(round(x0 / resolution) * resolution - x0 for x0 in georef.offset[:2])
-    cfg = ExtractConfig(cell=resolution, n_samples=n, seed=seed)
+    cfg = ExtractConfig(min_opacity=min_opacity, cell=resolution, n_samples=n, seed=seed)
     grid, _ = extract_surface(gaussians["means"], gaussians["scales"], gaussians["quats"],
                               gaussians["opacities"], cfg, region, origin)
     if not len(grid):

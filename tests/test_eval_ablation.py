@@ -24,7 +24,7 @@ def fake_row(i: int, seed: int = 0) -> dict:
     fused = {**geo, "chamfer": 0.05 * (i + 1), "f1": {**named, "3%": 0.875},
              "survey": {"coverage": 0.8, "wet": {"bias": 0.01, "rmse": 0.04, "p95": 0.08}}}
     curve = [{"iteration": k * 10, "time_s": 30.0 * k, "psnr_refr": 15 + k + i, "psnr_dry": 12 + k,
-              "f1": {"1%": 0.1 * k, "3%": 0.2 * k}, "f1_fused": {"1%": 0.15 * k, "3%": 0.25 * k}}
+              "f1": {"1%": 0.1 * k, "3%": 0.2 * k}}
              for k in range(4)]
     return {"name": list(VARIANTS)[i], "seed": seed,
             "appearance": {"refr": app, "dry": dict(app, psnr=float("nan")), "per_view": []},

@@ -72,19 +72,42 @@ def view_gaussians(splats, center: torch.Tensor, sh_degree: int, water: WaterSur
 def render_splats(splats, camera: Camera, center: torch.Tensor, sh_degree: int, water: WaterSurface | None,
                   flags: dict | None, surfels: bool, background: torch.Tensor, backend: str):
     """(image [H,W,3], alpha [H,W,1], depth [H,W,1], meta) of `camera` (centre `center` [3]) as training
-    renders it: Gaussians (`rasterize`) or surfels (`rasterize_surfels`, whose first two scales span the
-    disk; through the water their tangents are mapped by the refraction Jacobian). The trainer and a
-    finished run's renders (`export.Model`) share it."""
-    g = view_gaussians(splats, center, sh_degree, water, flags)
+    renders it (`view_gaussians`, then `rasterize_view`). The trainer and a finished run's renders
+    (`export.Model`) share it."""
+    return rasterize_view(view_gaussians(splats, center, sh_degree, water, flags), camera, surfels, background,
+                          backend)
+
+
+def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, background: torch.Tensor, backend: str,
+                   median: bool = False):
+    """`rasterize` the Gaussians `g`, or `rasterize_surfels` them as surfels (the first two scales span the
+    disk; with `g.jacobians` the tangents are mapped through the water, t' = J t). `median`: also
+    meta["median_depth"] (surfels always have it)."""
     if not surfels:
         return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, camera, background, covars=g.covars,
-                         backend=backend)
+                         backend=backend, median=median)
     if g.jacobians is None:
         return rasterize_surfels(g.means, g.quats, g.scales[:, :2], g.opacities, g.colors, camera, background,
                                  backend=backend)
     tangents = g.jacobians @ surfel_tangents(g.quats, g.scales[:, :2])  # [N, 3, 2]: t' = J t
     return rasterize_surfels(g.means, None, None, g.opacities, g.colors, camera, background, tangents=tangents,
                              backend=backend)
+
+
+def median_depth(splats, camera: Camera, surfels: bool, fade: WaterSurface | None, backend: str) -> torch.Tensor:
+    """[H, W] median z-depth of the TRUE Gaussians (or surfels) seen by `camera` along straight rays, 0 where
+    the transmittance stays above 0.5: the bed that depth fusion wants (rendered through the interface the
+    depth would be the apparent bed's, and the z of a refracted ray is no distance to the true one). With
+    `fade` (a variant that fades submerged opacity, e.g. `full`) each one is drawn with the opacity its
+    training renders had, alpha / n^2: drawn at the full parameter the median surface sits too high
+    (measured on the development reach: F1 at 3 % of depth 33 vs 68). For `3dgs` this is its apparent bed."""
+    center = torch.tensor(camera.camera_center, dtype=torch.float32, device=splats["means"].device)
+    with torch.no_grad():
+        g = view_gaussians(splats, center, 0, None, None)  # colours do not move the depth: degree 0
+        if fade is not None:
+            g = g._replace(opacities=g.opacities * opacity_factor(g.means, fade))
+        meta = rasterize_view(g, camera, surfels, torch.zeros(3, device=g.means.device), backend, median=True)[3]
+    return meta["median_depth"][..., 0]
 
 
 class Trainer:
@@ -322,6 +345,10 @@ class Trainer:
         shown = (img.detach(), gt) if mask is None else (img.detach()[mask], gt[mask])
         self.last = {"loss": float(loss.detach()), "psnr": float(psnr(*shown)), "n": self.num_gaussians}
         return self.last
+
+    def median_depth(self, camera: Camera) -> torch.Tensor:  # [H, W], see `median_depth`
+        fades = self.flags is not None and self.flags["opacity"]
+        return median_depth(self.splats, camera, self.cfg.surfels, self.water if fades else None, self.cfg.backend)
 
     def _surfel_loss(self, cam: Camera, depth, info: dict, mask, step: int):
         """2DGS's geometry terms over the used pixels: depth distortion, and normal consistency between the
