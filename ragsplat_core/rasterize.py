@@ -108,10 +108,15 @@ def _check(means, quats, scales, opacities, colors, covars, n):
         shapes.update(quats=(quats, (n, 4)), scales=(scales, (n, 3)))
     else:
         shapes.update(covars=(covars, (n, 3, 3)))
+    check_shapes("rasterize", shapes)
+
+
+def check_shapes(caller: str, shapes: dict) -> None:
+    """ValueError naming the first of `shapes` ({name: (value, shape)}) that is not a tensor of its shape."""
     for name, (value, shape) in shapes.items():
         if not torch.is_tensor(value) or tuple(value.shape) != shape:
             got = tuple(value.shape) if torch.is_tensor(value) else type(value).__name__
-            raise ValueError(f"rasterize: {name} must be a tensor of shape {list(shape)}, got {got}")
+            raise ValueError(f"{caller}: {name} must be a tensor of shape {list(shape)}, got {got}")
 
 
 def _rasterize_gsplat(means, quats, scales, opacities, colors, camera, background, covars):

@@ -38,7 +38,7 @@ from ragsplat_core.camera import Camera
 from ragsplat_core.errors import ConfigError
 from ragsplat_core.raster.project import NEAR, TILE, bin_tiles
 from ragsplat_core.raster.surfel_project import project_surfels, surfel_tangents
-from ragsplat_core.rasterize import choose_backend
+from ragsplat_core.rasterize import check_shapes, choose_backend
 
 
 def rasterize_surfels(means, quats, scales, opacities, colors, camera: Camera, background, tangents=None,
@@ -110,10 +110,7 @@ def _check(means, quats, scales, opacities, colors, tangents, n):
         shapes.update(quats=(quats, (n, 4)), scales=(scales, (n, 2)))
     else:
         shapes.update(tangents=(tangents, (n, 3, 2)))
-    for name, (value, shape) in shapes.items():
-        if not torch.is_tensor(value) or tuple(value.shape) != shape:
-            got = tuple(value.shape) if torch.is_tensor(value) else type(value).__name__
-            raise ValueError(f"rasterize_surfels: {name} must be a tensor of shape {list(shape)}, got {got}")
+    check_shapes("rasterize_surfels", shapes)
 
 
 def _rasterize_gsplat(means, quats, scales, opacities, colors, camera, background):

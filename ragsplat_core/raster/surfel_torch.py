@@ -15,11 +15,10 @@ plus
 from __future__ import annotations
 
 import torch
-from torch.utils.checkpoint import checkpoint
 
 from ragsplat_core.raster.project import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE, Bins
 from ragsplat_core.raster.surfel_project import SurfelsProjected
-from ragsplat_core.raster.torch_backend import CHUNK_ELEMENTS
+from ragsplat_core.raster.torch_backend import over_tiles
 
 _NOUT = 10  # per pixel: colour (3), normal (3), z sum, transmittance, distortion, median depth
 
@@ -34,33 +33,11 @@ def composite(proj: SurfelsProjected, opacities: torch.Tensor, colors: torch.Ten
         zero = feats[:0].sum() + proj.means2d[:0].sum() + proj.rays[:0].sum() + proj.depths[:0].sum()
         empty = torch.zeros(height, width, dtype=colors.dtype, device=device) + zero
         return empty[..., None].expand(height, width, 7), empty + 1, empty, empty
-    n_tiles = bins.tiles_x * bins.tiles_y
-    counts = bins.offsets[1:] - bins.offsets[:-1]  # [n_tiles]
-    pix = torch.arange(TILE * TILE, device=device)
-    py, px = pix // TILE, pix % TILE  # [256] pixel offsets inside a tile
-    by_len = torch.sort(counts, stable=True).indices
-    cnt = counts[by_len].tolist()
-    out_rows, out_tiles = [], []
-    start = 0
-    while start < n_tiles:
-        # Grow the chunk while its padded size stays in budget (tiles are sorted by list length).
-        stop = start + 1
-        while stop < n_tiles and (stop + 1 - start) * TILE * TILE * max(cnt[stop], 1) <= CHUNK_ELEMENTS:
-            stop += 1
-        tiles = by_len[start:stop]  # [t]
-        args = (tiles, max(cnt[stop - 1], 1), proj, opacities, feats, bins, px, py)
-        out_rows.append(checkpoint(_composite_tiles, *args, use_reentrant=False, preserve_rng_state=False)
-                        if torch.is_grad_enabled() else _composite_tiles(*args))
-        out_tiles.append(tiles)
-        start = stop
-    res = torch.cat(out_rows)  # [n_tiles, 256, 10] in chunk order
-    res = res[torch.argsort(torch.cat(out_tiles))]  # tile order
-    res = res.reshape(bins.tiles_y, bins.tiles_x, TILE, TILE, _NOUT).permute(0, 2, 1, 3, 4)
-    res = res.reshape(bins.tiles_y * TILE, bins.tiles_x * TILE, _NOUT)[:height, :width]
+    res = over_tiles(_composite_tiles, bins, width, height, proj, opacities, feats, bins)  # [H, W, 10]
     return res[..., :7], res[..., 7], res[..., 8], res[..., 9]
 
 
-def _composite_tiles(tiles, k, proj, opacities, feats, bins, px, py):
+def _composite_tiles(tiles, k, px, py, proj, opacities, feats, bins):
     """Composites tiles [t] with lists padded to k. Returns [t, 256, 10] (see `_NOUT`)."""
     slot = torch.arange(k, device=tiles.device)
     first = bins.offsets[tiles]  # [t]

@@ -21,6 +21,36 @@ from ragsplat_core.raster.project import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE, Bins
 CHUNK_ELEMENTS = 1 << 20
 
 
+def over_tiles(fn, bins: Bins, width: int, height: int, *args) -> torch.Tensor:
+    """[H, W, C] image of `fn(tiles [t], k, px [256], py [256], *args) -> [t, 256, C]`, which composites the
+    tiles `tiles` with their Gaussian lists padded to k (px, py: pixel offsets inside a tile), run over
+    chunks of tiles grouped by list length and checkpointed when gradients are on."""
+    n_tiles = bins.tiles_x * bins.tiles_y
+    counts = bins.offsets[1:] - bins.offsets[:-1]  # [n_tiles]
+    pix = torch.arange(TILE * TILE, device=bins.offsets.device)
+    py, px = pix // TILE, pix % TILE  # [256] pixel offsets inside a tile
+    by_len = torch.sort(counts, stable=True).indices
+    cnt = counts[by_len].tolist()
+    out_rows, out_tiles = [], []
+    start = 0
+    while start < n_tiles:
+        # Grow the chunk while its padded size stays in budget (tiles are sorted by list length).
+        stop = start + 1
+        while stop < n_tiles and (stop + 1 - start) * TILE * TILE * max(cnt[stop], 1) <= CHUNK_ELEMENTS:
+            stop += 1
+        tiles = by_len[start:stop]  # [t]
+        chunk = (tiles, max(cnt[stop - 1], 1), px, py, *args)
+        # Recomputed in backward instead of kept: memory stays one chunk's worth of [t, 256, k] tensors.
+        out_rows.append(checkpoint(fn, *chunk, use_reentrant=False, preserve_rng_state=False)
+                        if torch.is_grad_enabled() else fn(*chunk))
+        out_tiles.append(tiles)
+        start = stop
+    res = torch.cat(out_rows)  # [n_tiles, 256, C] in chunk order
+    res = res[torch.argsort(torch.cat(out_tiles))]  # tile order
+    res = res.reshape(bins.tiles_y, bins.tiles_x, TILE, TILE, -1).permute(0, 2, 1, 3, 4)
+    return res.reshape(bins.tiles_y * TILE, bins.tiles_x * TILE, -1)[:height, :width]
+
+
 def composite(proj: Projected, opacities: torch.Tensor, colors: torch.Tensor, bins: Bins, width: int,
               height: int, median: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """(colour sum [H, W, 3] without background, final transmittance [H, W], weighted z sum [H, W], median
@@ -32,35 +62,12 @@ def composite(proj: Projected, opacities: torch.Tensor, colors: torch.Tensor, bi
                 torch.ones(height, width, dtype=colors.dtype, device=device) + zero,
                 torch.zeros(height, width, dtype=colors.dtype, device=device) + zero,
                 torch.zeros(height, width, dtype=colors.dtype, device=device) if median else None)
-    n_tiles = bins.tiles_x * bins.tiles_y
-    counts = bins.offsets[1:] - bins.offsets[:-1]  # [n_tiles]
-    pix = torch.arange(TILE * TILE, device=device)
-    py, px = pix // TILE, pix % TILE  # [256] pixel offsets inside a tile
-    by_len = torch.sort(counts, stable=True).indices
     feats = torch.cat([colors, proj.depths[:, None]], -1)  # [N, 4]: what gets composited
-    cnt = counts[by_len].tolist()
-    out_rows, out_tiles = [], []
-    start = 0
-    while start < n_tiles:
-        # Grow the chunk while its padded size stays in budget (tiles are sorted by list length).
-        stop = start + 1
-        while stop < n_tiles and (stop + 1 - start) * TILE * TILE * max(cnt[stop], 1) <= CHUNK_ELEMENTS:
-            stop += 1
-        tiles = by_len[start:stop]  # [t]
-        args = (tiles, max(cnt[stop - 1], 1), proj, opacities, feats, bins, px, py, median)
-        # Recomputed in backward instead of kept: memory stays one chunk's worth of [t, 256, k] tensors.
-        out_rows.append(checkpoint(_composite_tiles, *args, use_reentrant=False, preserve_rng_state=False)
-                        if torch.is_grad_enabled() else _composite_tiles(*args))
-        out_tiles.append(tiles)
-        start = stop
-    res = torch.cat(out_rows)  # [n_tiles, 256, 5 or 6] in chunk order
-    res = res[torch.argsort(torch.cat(out_tiles))]  # tile order
-    res = res.reshape(bins.tiles_y, bins.tiles_x, TILE, TILE, -1).permute(0, 2, 1, 3, 4)
-    res = res.reshape(bins.tiles_y * TILE, bins.tiles_x * TILE, -1)[:height, :width]
+    res = over_tiles(_composite_tiles, bins, width, height, proj, opacities, feats, bins, median)  # [H, W, 5|6]
     return res[..., :3], res[..., 4], res[..., 3], res[..., 5].detach() if median else None
 
 
-def _composite_tiles(tiles, k, proj, opacities, feats, bins, px, py, median):
+def _composite_tiles(tiles, k, px, py, proj, opacities, feats, bins, median):
     """Composites tiles [t] with lists padded to k. Returns [t, 256, 5]: colour (3), z sum, transmittance;
     [t, 256, 6] with the median z (no gradient) when `median`."""
     slot = torch.arange(k, device=tiles.device)
