@@ -11,7 +11,8 @@ SEED ?= 0
 # Training seeds of the ablation (tables: mean +- std over them) and its variants (empty: all).
 SEEDS ?= 0 1 2
 VARIANTS ?=
-# How every variant starts: grid (the paper's plane at the bed depth) or triangulated (from the images)
+# How every variant starts: grid (the paper's plane at the bed depth), triangulated (from the images, depths
+# x n) or refracted (the same tracks intersected through the water)
 INIT ?= grid
 DATA ?= data/$(PRESET)
 RUNS ?= runs/$(PRESET)

@@ -21,9 +21,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"subset of {', '.join(VARIANTS)} (default: all)")
     parser.add_argument("--seeds", type=count, nargs="+", default=[0], metavar="SEED",
                         help="training (and extraction) seeds; tables show mean +- std over them (default: 0)")
-    parser.add_argument("--init", choices=["grid", "triangulated"], default="grid",
+    parser.add_argument("--init", choices=["grid", "triangulated", "refracted"], default="grid",
                         help="how every variant starts: the paper's plane at the bed depth (grid), or points "
-                             "triangulated from the training images with their known poses (no answer given)")
+                             "triangulated from the training images with their known poses (no answer given): "
+                             "straight rays, depths x n (triangulated), or rays bent at the water (refracted)")
     lpips_arguments(parser)
     parser.add_argument("--device", default=None, help="torch device for training (default: the preset's)")
 

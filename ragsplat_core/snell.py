@@ -44,3 +44,38 @@ def footprint(cameras, water, z: float) -> tuple[float, float, float, float]:
     if not xs:
         raise ValueError(f"no camera sees the plane z = {z}")
     return float(min(xs)), float(max(xs)), float(min(ys)), float(max(ys))
+
+
+def water_rays(camera, pixels: np.ndarray, water) -> tuple[np.ndarray, np.ndarray]:
+    """The light paths under the water of `pixels` [M, 2] (continuous, centres at i + 0.5) of `camera`:
+    (points [M, 3] where the rays cross the plane z = water.level, unit directions [M, 3] inside the water,
+    bent by Snell's law). A camera ray that never reaches the plane gets NaN."""
+    centre = camera.camera_center
+    d = camera.unproject(np.asarray(pixels, float), np.ones(len(pixels))) - centre  # [M, 3], camera z = 1
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(d[:, 2] < 0, (water.level - centre[2]) / d[:, 2], np.nan)
+    origin = centre + t[:, None] * d
+    # Snell in vector form for the upward normal (0, 0, 1): the tangential part shrinks by 1 / n
+    cos_i = -d[:, 2]
+    eta = 1.0 / water.n
+    cos_t = np.sqrt(1.0 - eta * eta * (1.0 - cos_i * cos_i))
+    bent = eta * d + (eta * cos_i - cos_t)[:, None] * np.array([0.0, 0.0, 1.0])
+    return origin, bent / np.linalg.norm(bent, axis=1, keepdims=True)
+
+
+def closest_points(origins: np.ndarray, dirs: np.ndarray, group: np.ndarray, count: int,
+                   min_angle: float = math.radians(1.0)) -> np.ndarray:
+    """[count, 3] least-squares intersection of the lines (origins [M, 3], unit dirs [M, 3]) of each group
+    (group [M] in 0..count-1): the point that minimises the sum of squared distances to its lines. A group
+    whose lines span less than `min_angle` (or fewer than two lines) is ill-posed: NaN."""
+    P = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]  # [M, 3, 3] projectors across each line
+    A, b = np.zeros((count, 3, 3)), np.zeros((count, 3))
+    np.add.at(A, group, P)
+    np.add.at(b, group, np.einsum("mij,mj->mi", P, origins))
+    lines = np.bincount(group, minlength=count)
+    # The smallest eigenvalue of sum(I - d d^T) / m is about sin^2 of the spread of the directions.
+    ok = (lines >= 2) & (np.linalg.eigvalsh(A)[:, 0] >= np.maximum(lines, 1) * math.sin(min_angle) ** 2 / 2)
+    out = np.full((count, 3), np.nan)
+    out[ok] = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
+    return out

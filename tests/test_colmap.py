@@ -254,7 +254,14 @@ def test_triangulation_with_known_poses_finds_a_plane(tmp_path):
         grey = cv2.warpPerspective(texture, H, (160, 160), flags=cv2.INTER_LINEAR)
         cv2.imwrite(str(tmp_path / "img" / im.name), np.repeat(grey[..., None], 3, 2), [cv2.IMWRITE_JPEG_QUALITY, 100])
     import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", level=0.0)
-    pts = triangulate(tmp_path / "data", tmp_path / "work")
-    assert np.array_equal(pts, triangulate(tmp_path / "data", tmp_path / "work2"))  # reproducible
+    pts, obs, names = triangulate(tmp_path / "data", tmp_path / "work")
+    again = triangulate(tmp_path / "data", tmp_path / "work2")
+    assert np.array_equal(pts, again[0]) and np.array_equal(obs, again[1]) and names == again[2]  # reproducible
     assert len(pts) > 50
+    # every observation is its point's pixel (COLMAP's pixel centres at i + 0.5, as ours)
+    cams = {v.file_path: v.camera for v in load_dataset(tmp_path / "data", splits=("train",)).train}
+    for k, name in enumerate(names):
+        rows = obs[:, 1] == k
+        px, _ = cams[name].project(pts[obs[rows, 0].astype(int), :3])
+        assert np.median(np.abs(px - obs[rows, 2:])) < 0.5
     assert np.median(np.abs(pts[:, 2] - z_plane)) < 0.005 and np.percentile(np.abs(pts[:, 2] - z_plane), 90) < 0.02

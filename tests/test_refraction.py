@@ -311,3 +311,30 @@ def test_float32_close_to_float64():
     q32 = apparent_points(p.float(), CAM.float(), WATER)
     dist = torch.linalg.norm(p - CAM, dim=1)
     assert float((torch.linalg.norm(q32.double() - q64, dim=1) / dist).max()) < 2e-6
+
+
+def test_water_rays_bend_by_snell_and_meet_at_the_true_point():
+    """`snell.water_rays`: straight down is not bent, an oblique ray leaves at asin(sin / n); the rays of one
+    true point's pixels in several views (through the exact forward transform) meet at it; n = 1 is the
+    pinhole."""
+    from ragsplat_core.camera import Camera
+    from ragsplat_core.snell import closest_points, water_rays
+
+    cams = [Camera.look_at([x, y, 4.5], [0.0, 0.0, -1.0], 64, 48, 60.0) for x, y in ((0, 0), (2, 0.5), (-1.5, 2))]
+    origin, d = water_rays(cams[0], np.array([[32.0, 24.0]]), WATER)  # the principal point: straight down
+    np.testing.assert_allclose(d, [[0, 0, -1]], atol=1e-12)
+    np.testing.assert_allclose(origin[0, 2], WATER.level)
+    _, d = water_rays(cams[1], np.array([[10.0, 30.0]]), WATER)
+    air = cams[1].unproject(np.array([[10.0, 30.0]]), np.ones(1)) - cams[1].camera_center
+    sin_air = np.linalg.norm(air[0, :2]) / np.linalg.norm(air[0])
+    assert np.linalg.norm(d[0, :2]) == pytest.approx(sin_air / WATER.n, rel=1e-12)
+    true = np.array([[0.3, -0.2, -1.0], [-0.4, 0.5, -2.5]])
+    for water in (WATER, WaterSurface(level=0.5, n=1.0)):
+        rays = []
+        for cam in cams:
+            seen = apparent_points(torch.from_numpy(true), torch.from_numpy(cam.camera_center), water).numpy()
+            rays.append(water_rays(cam, cam.project(seen)[0], water))
+        origins, dirs = (np.concatenate(r) for r in zip(*rays))
+        np.testing.assert_allclose(closest_points(origins, dirs, np.tile([0, 1], 3), 2), true, atol=1e-9)
+    # one view, or views along the same line, do not fix a point
+    assert np.isnan(closest_points(origins[:1], dirs[:1], np.array([0]), 1)).all()

@@ -413,7 +413,8 @@ def test_triangulated_init_is_computed_once_per_dataset_content(tmp_path, monkey
 
     def fake(root, work):
         calls.append(root)
-        return np.array([[0.0, 0.0, -0.5, 1, 0, 0], [0.2, 0.0, -0.6, 0, 1, 0], [0.0, 0.3, 0.1, 0, 0, 1]])
+        return np.array([[0.0, 0.0, -0.5, 1, 0, 0], [0.2, 0.0, -0.6, 0, 1, 0], [0.0, 0.3, 0.1, 0, 0, 1]]), \
+            np.zeros((0, 4)), []
 
     monkeypatch.setattr(colmap, "triangulate", fake)
     ds = load_dataset(_tiny(tmp_path / "data"))
@@ -422,3 +423,27 @@ def test_triangulated_init_is_computed_once_per_dataset_content(tmp_path, monkey
     torch.testing.assert_close(m[0], torch.tensor([-0.5 * 1.33, -0.6 * 1.33, 0.1]))  # above the water: as is
     Trainer(_cfg(init="triangulated"), dataclasses.replace(ds, fingerprint="other"))
     assert len(calls) == 2
+
+
+def test_refracted_init_intersects_the_tracks_through_the_water(tmp_path, monkeypatch):
+    """init="refracted": the cached tracks' pixels, bent at the water, meet at the true points (the pixels
+    here are exact: each true point seen through the water by every training camera); a point above the
+    level keeps its straight-ray position."""
+    from ragsplat_core.dataset import colmap
+    from ragsplat_core.refraction import apparent_points
+
+    ds = load_dataset(_tiny(tmp_path / "data"))
+    true = np.array([[0.1, -0.2, -0.7], [-0.3, 0.25, -1.2], [0.2, 0.1, -0.05]])
+    names = sorted(v.file_path for v in ds.train)
+    obs = []
+    for k, name in enumerate(names):
+        cam = next(v.camera for v in ds.train if v.file_path == name)
+        seen = apparent_points(torch.from_numpy(true), torch.from_numpy(cam.camera_center), WATER).numpy()
+        px, _ = cam.project(seen)
+        obs += [(i, k, *px[i]) for i in range(len(true))]
+    straight = np.concatenate([true * [1, 1, 1 / WATER.n], np.full((3, 3), 0.5)], 1)  # apparent: z / n
+    dry = np.array([[0.0, 0.0, 0.1, 0.5, 0.5, 0.5]])
+    monkeypatch.setattr(colmap, "triangulate",
+                        lambda root, work: (np.concatenate([straight, dry]), np.array(obs), names))
+    means = Trainer(_cfg(init="refracted"), ds).splats["means"].detach().double().numpy()
+    np.testing.assert_allclose(means, np.concatenate([true, dry[:, :3]]), atol=1e-5)

@@ -32,7 +32,7 @@ SURFELS = frozenset({"2dgs", "2dgs+full"})  # variants rendered as surfels (`ras
 WATER_PARAMS: dict[str, tuple[str, ...]] = {"none": (), "level": ("level",), "level+n": ("level", "n")}
 
 
-INITS = ("grid", "points", "triangulated")
+INITS = ("grid", "points", "triangulated", "refracted")
 
 
 @dataclass(frozen=True)
@@ -42,7 +42,8 @@ class TrainConfig:
     seed: int = 0
     iterations: int = 1500
     # initialisation: "grid" (the paper: a horizontal grid at the bed depth), "points" (a point cloud file) or
-    # "triangulated" (points triangulated from the training images with their known poses, pycolmap)
+    # "triangulated" (points triangulated from the training images with their known poses, pycolmap, depths
+    # below the water x n) or "refracted" (the same tracks intersected along rays bent at the water)
     init: str = "grid"
     init_depth: float | None = None  # grid depth below the water level (m); None: scene.json spec.bed.depth
     # grid Gaussians (approximately: a square grid over the views' footprint), or at most this many points

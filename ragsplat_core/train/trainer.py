@@ -202,23 +202,29 @@ class Trainer:
 
     def _init_splats(self) -> torch.nn.ParameterDict:
         cfg = self.cfg
-        if cfg.init in ("points", "triangulated"):
-            if cfg.init == "triangulated":
-                from ragsplat_core.dataset.colmap import triangulated_points
+        if cfg.init in ("points", "triangulated", "refracted"):
+            from ragsplat_core.dataset.colmap import refracted_points, triangulated_points
 
-                source = triangulated_points(self.ds.root, self.ds.fingerprint)
+            if cfg.init == "refracted":
+                if self.water is None:
+                    raise ConfigError("init='refracted' intersects rays through the water: the dataset has none")
+                arr = refracted_points(self.ds.root, self.ds.fingerprint, {v.file_path: v.camera for v in self.views},
+                                       self.water)
             else:
-                source = Path(cfg.init_points)
-            if not source.is_file():
-                raise ConfigError(f"{source}: point cloud file is missing")
-            arr = np.load(source)
-            if arr.ndim != 2 or arr.shape[1] not in (3, 6):
-                raise ConfigError(f"{source}: expected an array [N, 3] or [N, 6], got {arr.shape}")
+                source = triangulated_points(self.ds.root, self.ds.fingerprint) if cfg.init == "triangulated" \
+                    else Path(cfg.init_points)
+                if not source.is_file():
+                    raise ConfigError(f"{source}: point cloud file is missing")
+                arr = np.load(source)
+                if arr.ndim != 2 or arr.shape[1] not in (3, 6):
+                    raise ConfigError(f"{source}: expected an array [N, 3] or [N, 6], got {arr.shape}")
             if len(arr) > cfg.init_count:  # a survey's model can hold millions: a seeded random subset
                 arr = arr[np.sort(np.random.default_rng(cfg.seed).choice(len(arr), cfg.init_count, replace=False))]
             pts = torch.from_numpy(arr[:, :3]).float()
             rgb = torch.from_numpy(arr[:, 3:]).float() if arr.shape[1] == 6 else torch.full_like(pts, 0.5)
-            return init_points(pts, rgb, self.water, cfg.sh_degree, cfg.init_opacity)
+            # straight-ray points sit at apparent depths (x n, the field's correction); refracted ones are true
+            return init_points(pts, rgb, None if cfg.init == "refracted" else self.water, cfg.sh_degree,
+                               cfg.init_opacity)
         bed = self.ds.bed
         depth = cfg.init_depth if cfg.init_depth is not None else bed.depth
         if depth is None:
