@@ -359,9 +359,9 @@ def refracted_points(root: Path, fingerprint: str, cameras: dict, water) -> np.n
     above the level is on dry ground and kept as it is (refraction only lifts submerged points); a
     submerged track whose rays span less than 1 degree is dropped. `cameras`: image name -> Camera.
 
-    Why: the field's depth x n is exact only at nadir; the straight-ray points of oblique views through 2-3 m
-    of water come out far too high (measured on the development reach: median +0.85 m where the bed is 2-4 m
-    deep, against +0.18 m under 1 m), and training does not pull a bed that far down."""
+    Why: the field's depth x n is exact only at nadir; with oblique views through 2-3 m of water the points
+    x n come out too high (development reach: median +33 cm where the bed is 2-4 m deep, +4 cm under 1 m;
+    these: under 1 cm), and training does not pull a bed that far down."""
     from ragsplat_core.snell import closest_points, water_rays
 
     path = triangulated_points(root, fingerprint)
