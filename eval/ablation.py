@@ -40,7 +40,14 @@ from eval.evaluate import (
     model_renderer,
     score_grid,
 )
-from eval.references import EXTRACTION, REFERENCES, USES_GROUND_TRUTH, depth_times_n, oracle_plane
+from eval.references import (
+    EXTRACTION,
+    REFERENCES,
+    USES_GROUND_TRUTH,
+    depth_times_n,
+    oracle_plane,
+    start_extraction,
+)
 from eval.report import depth_error_map, jsonable, write_outputs
 from ragsplat_core.dataset import layout
 from ragsplat_core.errors import ConfigError, DatasetError
@@ -229,7 +236,7 @@ def reference_rows(out: Path, runner, preset: str, seed: int, ecfg: ExtractConfi
     init_key = {**base, "init": {k: v for k, v in cfg.to_dict().items() if k.startswith("init") or k in
                                  ("seed", "sh_degree", "preset")}, "extract": ecfg.to_dict()}
     todo = [("init", row_dir(out, "init", seed), init_key,
-             lambda: evaluate_geometry(runner.initial(cfg), truth, ecfg))]
+             lambda: evaluate_geometry(runner.initial(cfg), truth, start_extraction(ecfg)))]
     if rows.get("3dgs") and rows["3dgs"][-1]["seed"] == seed:
         src = rows["3dgs"][-1]
         n = runner.refractive_index

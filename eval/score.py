@@ -18,7 +18,7 @@ import numpy as np
 from eval import metrics
 from eval.ablation import CODE, PRESETS, TrainEval, extract_config
 from eval.evaluate import evaluate_fused, evaluate_geometry, evaluate_views, score_grid
-from eval.references import USES_GROUND_TRUTH, oracle_plane
+from eval.references import USES_GROUND_TRUTH, oracle_plane, start_extraction
 from eval.report import T2_COLUMNS, T3_COLUMNS, values
 from ragsplat_core.errors import ConfigError, DatasetError
 from ragsplat_core.export import load_model
@@ -68,7 +68,7 @@ def score_run(run: Path, data: Path | None = None, vgg16: str | None = None, dow
             "lpips_network": getattr(lpips_metric, "network", None), "versions": versions("torch", "scipy"),
             "code_digest": source_digest(*CODE), "num_gaussians": int(model.splats["means"].shape[0]),
             "appearance": appearance, "geometry": geometry, "geometry_fused": fused,
-            "references": {"init": evaluate_geometry(initial, truth, ecfg)[0],
+            "references": {"init": evaluate_geometry(initial, truth, start_extraction(ecfg))[0],
                            "oracle plane": score_grid(oracle_plane(truth), truth)},
             "uses_ground_truth": list(USES_GROUND_TRUTH),
             **({} if dem is None else {"dem": _score_dem(dem, ds.georef, truth)})}

@@ -31,6 +31,9 @@ def test_ablation_command(evaluable_dataset, tmp_path, monkeypatch, capsys):
     res = json.loads((out / "results.json").read_text())
     assert list(res["rows"]) == ["init", "3dgs x n", "oracle plane", "3dgs", "full"] and res["seeds"] == [0, 1]
     full = res["rows"]["full"][0]
+    # the start (every Gaussian at opacity 0.1) is scored as it stands, not culled away by the table's 0.7
+    assert all(r["geometry"]["n_pred"] > 0 and r["geometry"]["extraction"]["gaussians_sampled"] > 0
+               for r in res["rows"]["init"])
     sched = train.PRESETS["smoke"].schedule
     steps = [0] + ablation.eval_steps(6, 3, sched.reset_every, sched.refine_stop_iter) + [6]
     assert len(steps) == 4 and [c["iteration"] for c in full["curve"]] == steps
