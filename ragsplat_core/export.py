@@ -31,7 +31,7 @@ from ragsplat_core.rasterize import choose_backend
 from ragsplat_core.refraction import WaterSurface
 from ragsplat_core.surface import ExtractConfig, extract_surface
 from ragsplat_core.train.config import TrainConfig
-from ragsplat_core.train.trainer import PLY, median_depth, render_splats
+from ragsplat_core.train.trainer import PLY, fades_opacity, median_depth, render_splats
 
 BATHYMETRIC, GROUND = 40, 2  # ASPRS classes (LAS 1.4 R15): submerged bed ("bathymetric point"), emerged
 LAS_SCALE = 0.001  # metres per integer step of the LAS coordinates
@@ -149,8 +149,8 @@ class Model:
         return img.clamp(0, 1), alpha, depth
 
     def median_depth(self, camera: Camera) -> torch.Tensor:  # [H, W], see `trainer.median_depth`
-        fades = self.flags is not None and self.flags["opacity"]
-        return median_depth(self.splats, camera, self.cfg.surfels, self.water if fades else None, self.backend)
+        return median_depth(self.splats, camera, self.cfg.surfels, self.water if fades_opacity(self.flags) else None,
+                            self.backend)
 
 
 def load_model(run: Path, data: Path | None = None, splits: tuple[str, ...] = ()) -> tuple[Model, Dataset]:

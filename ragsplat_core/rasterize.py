@@ -72,14 +72,21 @@ def rasterize(means, quats, scales, opacities, colors, camera: Camera, backgroun
     else:
         from ragsplat_core.raster.cpu_backend import composite
     color_sum, trans, z_sum, med = composite(proj, opacities, colors, bins, camera.width, camera.height, median)
-    image = color_sum + trans[..., None] * background  # [H, W, 3]
-    alpha = 1 - trans  # [H, W]
-    hit = alpha > 0  # exactly 0 where no Gaussian was composited (each one adds at least 1/255)
-    depth = torch.where(hit, z_sum / torch.where(hit, alpha, torch.ones_like(alpha)), torch.zeros_like(alpha))
+    image, alpha, depth = resolve(color_sum, trans, z_sum, background)
     meta = {"means2d": means2d, "radii": proj.radii, "depths": proj.depths, "conics": proj.conics,
             "visible": proj.visible, "tiles_touched": bins.tiles_touched, "backend": backend,
             "width": camera.width, "height": camera.height, "median_depth": None if med is None else med[..., None]}
     return image, alpha[..., None], depth[..., None], meta
+
+
+def resolve(color_sum, trans, z_sum, background):
+    """Per-pixel sums of the compositing (colour [H, W, 3] without background, final transmittance [H, W],
+    weighted camera z [H, W]) -> (image [H, W, 3], alpha [H, W], expected z-depth [H, W], 0 where empty)."""
+    image = color_sum + trans[..., None] * background
+    alpha = 1 - trans
+    hit = alpha > 0  # exactly 0 where nothing was composited (each splat adds at least 1/255)
+    depth = torch.where(hit, z_sum / torch.where(hit, alpha, torch.ones_like(alpha)), torch.zeros_like(alpha))
+    return image, alpha, depth
 
 
 def gsplat_available() -> bool:

@@ -38,7 +38,7 @@ from ragsplat_core.camera import Camera
 from ragsplat_core.errors import ConfigError
 from ragsplat_core.raster.project import NEAR, TILE, bin_tiles
 from ragsplat_core.raster.surfel_project import project_surfels, surfel_tangents
-from ragsplat_core.rasterize import check_shapes, choose_backend
+from ragsplat_core.rasterize import check_shapes, choose_backend, resolve
 
 
 def rasterize_surfels(means, quats, scales, opacities, colors, camera: Camera, background, tangents=None,
@@ -65,11 +65,7 @@ def rasterize_surfels(means, quats, scales, opacities, colors, camera: Camera, b
     else:
         from ragsplat_core.raster.surfel_cpu import composite
     sums, trans, distortion, median = composite(proj, opacities, colors, bins, camera.width, camera.height)
-    image = sums[..., :3] + trans[..., None] * background  # [H, W, 3]
-    alpha = 1 - trans  # [H, W]
-    hit = alpha > 0  # exactly 0 where no surfel was composited (each one adds at least 1/255)
-    depth = torch.where(hit, sums[..., 6] / torch.where(hit, alpha, torch.ones_like(alpha)),
-                        torch.zeros_like(alpha))
+    image, alpha, depth = resolve(sums[..., :3], trans, sums[..., 6], background)
     meta = {"normals": sums[..., 3:6], "median_depth": median[..., None], "distortion": distortion[..., None],
             "means2d": means2d, "radii": proj.radii, "depths": proj.depths, "visible": proj.visible,
             "tiles_touched": bins.tiles_touched, "backend": backend, "width": camera.width,

@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import torch
 
-from ragsplat_core.raster.project import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE, Bins
+from ragsplat_core.raster.project import ALPHA_MAX, ALPHA_MIN, TILE, Bins
 from ragsplat_core.raster.surfel_project import SurfelsProjected
-from ragsplat_core.raster.torch_backend import over_tiles
+from ragsplat_core.raster.torch_backend import front_to_back, over_tiles
 
 _NOUT = 10  # per pixel: colour (3), normal (3), z sum, transmittance, distortion, median depth
 
@@ -65,13 +65,7 @@ def _composite_tiles(tiles, k, px, py, proj, opacities, feats, bins):
     z = torch.where(on_plane, zc * ray[..., 6] / q2, zc)  # [t, 256, k] the sample's camera z
     alpha = torch.clamp(opacities[idx][:, None, :] * torch.exp(-0.5 * rho), max=ALPHA_MAX)
     use = valid[:, None, :] & (alpha >= ALPHA_MIN)
-    alpha = torch.where(use, alpha, torch.zeros_like(alpha))
-    with torch.no_grad():
-        keep = torch.cumprod(1 - alpha, -1) >= T_MIN
-    alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
-    trans = torch.cumprod(1 - alpha, -1)  # [t, 256, k] inclusive
-    before = torch.cat([torch.ones_like(trans[..., :1]), trans[..., :-1]], -1)
-    weights = alpha * before  # [t, 256, k]
+    trans, before, weights = front_to_back(torch.where(use, alpha, torch.zeros_like(alpha)))
     acc = weights @ feats[idx]  # [t, 256, 6]
     wz = weights * z
     z_before = torch.cumsum(wz, -1) - wz  # sum_{j<i} w_j z_j

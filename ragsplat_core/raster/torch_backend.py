@@ -51,6 +51,18 @@ def over_tiles(fn, bins: Bins, width: int, height: int, *args) -> torch.Tensor:
     return res.reshape(bins.tiles_y * TILE, bins.tiles_x * TILE, -1)[:height, :width]
 
 
+def front_to_back(alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Alphas [..., k] in compositing order (0 = skipped) -> (transmittance after each [..., k], before each
+    [..., k], weights alpha_i T_i [..., k]), with the alphas from the one that would take the transmittance
+    below 1e-4 on dropped (the running product is non-increasing, so no sequential loop is needed)."""
+    with torch.no_grad():
+        keep = torch.cumprod(1 - alpha, -1) >= T_MIN
+    alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
+    trans = torch.cumprod(1 - alpha, -1)  # inclusive
+    before = torch.cat([torch.ones_like(trans[..., :1]), trans[..., :-1]], -1)
+    return trans, before, alpha * before
+
+
 def composite(proj: Projected, opacities: torch.Tensor, colors: torch.Tensor, bins: Bins, width: int,
               height: int, median: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """(colour sum [H, W, 3] without background, final transmittance [H, W], weighted z sum [H, W], median
@@ -86,13 +98,7 @@ def _composite_tiles(tiles, k, px, py, proj, opacities, feats, bins, median):
     power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
     alpha = torch.clamp(opacities[idx][:, None, :] * torch.exp(power), max=ALPHA_MAX)
     use = valid[:, None, :] & (power <= 0) & (alpha >= ALPHA_MIN)
-    alpha = torch.where(use, alpha, torch.zeros_like(alpha))
-    with torch.no_grad():
-        keep = torch.cumprod(1 - alpha, -1) >= T_MIN
-    alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
-    trans = torch.cumprod(1 - alpha, -1)  # [t, 256, k] inclusive
-    before = torch.cat([torch.ones_like(trans[..., :1]), trans[..., :-1]], -1)
-    weights = alpha * before  # [t, 256, k]
+    trans, _, weights = front_to_back(torch.where(use, alpha, torch.zeros_like(alpha)))
     acc = weights @ feats[idx]  # [t, 256, 4]
     if not median:
         return torch.cat([acc, trans[..., -1:]], -1)

@@ -86,12 +86,16 @@ def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, backgrou
     if not surfels:
         return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, camera, background, covars=g.covars,
                          backend=backend, median=median)
-    if g.jacobians is None:
-        return rasterize_surfels(g.means, g.quats, g.scales[:, :2], g.opacities, g.colors, camera, background,
-                                 backend=backend)
-    tangents = g.jacobians @ surfel_tangents(g.quats, g.scales[:, :2])  # [N, 3, 2]: t' = J t
-    return rasterize_surfels(g.means, None, None, g.opacities, g.colors, camera, background, tangents=tangents,
-                             backend=backend)
+    # [N, 3, 2] t' = J t through the water; without it quats and scales (gsplat on CUDA takes only those)
+    tangents = None if g.jacobians is None else g.jacobians @ surfel_tangents(g.quats, g.scales[:, :2])
+    return rasterize_surfels(g.means, g.quats, g.scales[:, :2], g.opacities, g.colors, camera, background,
+                             tangents=tangents, backend=backend)
+
+
+def fades_opacity(flags: dict | None) -> bool:
+    """Whether a variant's renders fade submerged opacity (alpha / n^2): then pruning, resets and the median
+    depth of the true Gaussians use the opacity as rendered."""
+    return flags is not None and flags["opacity"]
 
 
 def median_depth(splats, camera: Camera, surfels: bool, fade: WaterSurface | None, backend: str) -> torch.Tensor:
@@ -149,9 +153,8 @@ class Trainer:
         self.schedule = cfg.schedule
         self.gen = torch.Generator().manual_seed(cfg.seed)  # view order and split samples
         # pruning and resets test the opacity as rendered (through the water for a variant that fades it)
-        fades = self.flags is not None and self.flags["opacity"]
-        self.strategy = DefaultStrategy(self.schedule, self.gen,
-                                        (lambda means: opacity_factor(means, self.water)) if fades else None)
+        self.strategy = DefaultStrategy(self.schedule, self.gen, (lambda means: opacity_factor(means, self.water))
+                                        if fades_opacity(self.flags) else None)
         self.step = 0
         self.elapsed = 0.0
         self.cpu_elapsed = 0.0
@@ -353,8 +356,8 @@ class Trainer:
         return self.last
 
     def median_depth(self, camera: Camera) -> torch.Tensor:  # [H, W], see `median_depth`
-        fades = self.flags is not None and self.flags["opacity"]
-        return median_depth(self.splats, camera, self.cfg.surfels, self.water if fades else None, self.cfg.backend)
+        return median_depth(self.splats, camera, self.cfg.surfels, self.water if fades_opacity(self.flags) else None,
+                            self.cfg.backend)
 
     def _surfel_loss(self, cam: Camera, depth, info: dict, mask, step: int):
         """2DGS's geometry terms over the used pixels: depth distortion, and normal consistency between the
