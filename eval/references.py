@@ -12,6 +12,7 @@ beat before its numbers mean anything.
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -26,10 +27,11 @@ EXTRACTION = {"init": "volume", "3dgs x n": "volume", "oracle plane": "-"}
 
 
 def start_extraction(cfg: ExtractConfig) -> ExtractConfig:
-    """The extraction of the `init` row: the table's, with no opacity cull. Every start has the same opacity
-    (`init_opacity`, 0.1), a training choice rather than a confidence, so the table's cull (0.7) would
-    remove all of it and score the start 0 by construction."""
-    return replace(cfg, min_opacity=0.0)
+    """The extraction of the `init` row: the table's, with no opacity or size cull. Every start has the same
+    opacity (`init_opacity`, 0.1) and scales set by the spacing of its points, training choices rather than
+    fitted values, so the table's culls (0.7, 2 cells) would remove most or all of it and score the start
+    near 0 by construction."""
+    return replace(cfg, min_opacity=0.0, max_scale_cells=math.inf)
 
 
 def depth_times_n(grid: np.ndarray, level: float, n: float) -> np.ndarray:

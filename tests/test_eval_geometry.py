@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -72,7 +74,7 @@ def test_sampling_counts_truncation_and_culling():
     scales = np.array([[0.1, 0.1, 0.1], [0.2, 0.1, 0.1], [1.0, 1.0, 1.0]])
     quats = np.array([[1, 0, 0, 0], [0.9, 0.1, 0.3, 0.2], [1, 0, 0, 0.0]])
     opac = np.array([0.9, 0.9, 0.01])  # the huge third one is culled by opacity
-    cfg = ExtractConfig(n_samples=3001, sigma_cut=2.0, min_opacity=0.1)
+    cfg = ExtractConfig(n_samples=3001, sigma_cut=2.0, min_opacity=0.1, max_scale_cells=math.inf)
     pts, keep = sample_gaussians(torch.tensor(means), torch.tensor(scales), torch.tensor(quats),
                                  torch.tensor(opac), cfg)
     assert keep.tolist() == [True, True, False] and len(pts) == 3001
@@ -126,3 +128,24 @@ def test_extraction_recovers_a_flat_bed():
     m = geometry_metrics(grid, gt)
     assert m["chamfer"] < 0.005 and m["f1@0.1"] == 1.0
     assert np.abs(grid[:, 2] + 1).max() < 0.01  # no cell took a floater's height
+
+
+def test_wide_gaussians_are_not_sampled():
+    # small thin discs tiling the plane z = -1 and one opaque disc (sigma 0.5 m = 10 cells) 30 cm above them,
+    # tilted by 10 degrees: by volume it takes most samples and wins the median of many cells it covers;
+    # with the cull the grid is the bed again
+    step = 0.05
+    bed = plane_grid(40, 40, step, z=-1.0)
+    n = len(bed)
+    means = np.vstack([bed, [[1.0, 1.0, -0.7]]])
+    scales = np.vstack([np.tile([0.03, 0.03, 0.0003], (n, 1)), [[0.5, 0.5, 0.003]]])
+    tilt = math.radians(10)
+    quats = np.vstack([np.tile([1.0, 0, 0, 0], (n, 1)), [[math.cos(tilt / 2), math.sin(tilt / 2), 0, 0]]])
+    opac = np.full(n + 1, 0.9)
+    region = {"xmin": 0.2, "xmax": 1.7, "ymin": 0.2, "ymax": 1.7}
+    wide = ExtractConfig(n_samples=40_000, max_scale_cells=math.inf)
+    grid, stats = extract_surface(means, scales, quats, opac, wide, region)
+    assert stats["gaussians_sampled"] == n + 1 and (grid[:, 2] > -0.9).sum() > 50
+    cfg = ExtractConfig(n_samples=40_000, max_scale_cells=2.0)  # sigma <= 10 cm
+    grid, stats = extract_surface(means, scales, quats, opac, cfg, region)
+    assert stats["gaussians_sampled"] == n and np.abs(grid[:, 2] + 1).max() < 0.01

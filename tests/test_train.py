@@ -21,6 +21,7 @@ from ragsplat_core.refraction import WaterSurface
 from ragsplat_core.snell import footprint
 from ragsplat_core.train import VARIANTS, TrainConfig, Trainer, preset_config
 from ragsplat_core.train import trainer as train_mod
+from ragsplat_core.train.strategy import PAPER_ITERATIONS, DensifyConfig
 
 REGION = {"xmin": -0.8, "xmax": 0.8, "ymin": -0.8, "ymax": 0.8}
 
@@ -156,6 +157,17 @@ def test_render_without_interface_is_the_true_scene(wet, variant):
     assert (wet_img - img).abs().max() > 1e-3
     if variant == "full+color":  # through the water the albedo is darkened by n^(-2/2.2) on top of opacity
         assert float(wet_img.mean()) < float(img.mean())
+
+
+def test_surfels_keep_no_thickness_through_splits(wet):
+    # grow_scale3d 0: every Gaussian with a gradient counts as large and is split at the refinement (step 10)
+    densify = DensifyConfig(refine_start_iter=0, refine_stop_iter=PAPER_ITERATIONS, reset_every=PAPER_ITERATIONS,
+                            grow_grad2d=0.0, grow_scale3d=0.0)
+    tr = Trainer(_cfg(variant="2dgs+full", densify=densify), wet)
+    n0 = tr.num_gaussians
+    tr.train()
+    assert tr.num_gaussians > n0  # splits happened (a split divides all three scales by 1.6)
+    assert torch.allclose(tr.splats["scales"][:, 2].exp(), torch.tensor(train_mod.SURFEL_THICKNESS))
 
 
 def test_surfel_variants_render_surfels_and_map_their_tangents(wet):

@@ -1,4 +1,4 @@
-"""`ragsplat export RUN --dem FILE.tif [--resolution 0.05] [--min-opacity A] [--las FILE.las|.laz] [--ply FILE] [--png FILE]`.
+"""`ragsplat export RUN --dem FILE.tif [--resolution 0.05] [--min-opacity A] [--max-scale-cells K] [--las FILE.las|.laz] [--ply FILE] [--png FILE]`.
 
 Turns a finished training run into survey products (`ragsplat_core.export`): the DEM GeoTIFF (bed elevation
 and water depth), and on request the bed points as LAS/LAZ and PLY and a depth map PNG.
@@ -21,6 +21,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-opacity", type=positive_float, default=None, metavar="A",
                         help="only Gaussians at least this opaque make the bed (default: the evaluation's, "
                              "chosen on the development reach; lower it for a short or sparse run)")
+    parser.add_argument("--max-scale-cells", type=positive_float, default=None, metavar="K",
+                        help="only Gaussians whose largest standard deviation is at most K DEM cells make the bed "
+                             "(default: the evaluation's, chosen on the development reach; 1e9: no limit)")
     parser.add_argument("--las", type=out_file_ending(".las", ".laz"), metavar="FILE.las|.laz",
                         help="bed points as LAS, or LAZ (compressed)")
     parser.add_argument("--ply", type=out_file_ending(".ply"), metavar="FILE.ply",
@@ -37,7 +40,8 @@ def run(args: argparse.Namespace) -> int:
     from ragsplat_core.export import export_run
 
     bed = export_run(args.run, args.dem, args.resolution, args.las, args.ply, args.png, args.data,
-                     **({} if args.min_opacity is None else {"min_opacity": args.min_opacity}))
+                     **{k: v for k, v in (("min_opacity", args.min_opacity), ("max_scale_cells", args.max_scale_cells))
+                        if v is not None})
     depth = bed.depth()[np.isfinite(bed.depth())]
     deepest = f", deepest {depth.max():.3g} m" if len(depth) else ""
     print(f"{len(bed.grid)} cells of {bed.resolution:g} m, {len(depth)} under water{deepest}")

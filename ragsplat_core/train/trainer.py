@@ -169,9 +169,7 @@ class Trainer:
         else:
             torch.manual_seed(cfg.seed)
             self.splats = self._init_splats().to(self.device)
-            if cfg.surfels:  # the third axis is the normal: a surfel has no thickness (it gets no gradient)
-                with torch.no_grad():
-                    self.splats["scales"][:, 2] = math.log(SURFEL_THICKNESS)
+            self._flatten_surfels()
             self.optimizers = self._make_optimizers()
             self.strat_state = self.strategy.initialize_state(self.scene_scale)
         self.strategy.check_sanity(self.splats, self.optimizers)
@@ -351,9 +349,17 @@ class Trainer:
         if bad:
             raise TrainingDiverged(f"iteration {step}: {bad} after the optimizer step")
         self.strategy.step_post_backward(self.splats, self.optimizers, self.strat_state, step, info)
+        self._flatten_surfels()  # a split divides all three scales
         shown = (img.detach(), gt) if mask is None else (img.detach()[mask], gt[mask])
         self.last = {"loss": float(loss.detach()), "psnr": float(psnr(*shown)), "n": self.num_gaussians}
         return self.last
+
+    def _flatten_surfels(self) -> None:
+        """The third axis of a surfel is its normal: no thickness, no gradient. Kept at `SURFEL_THICKNESS`
+        so that the extraction, which samples in proportion to volume, weighs every surfel by its area."""
+        if self.cfg.surfels:
+            with torch.no_grad():
+                self.splats["scales"][:, 2] = math.log(SURFEL_THICKNESS)
 
     def median_depth(self, camera: Camera) -> torch.Tensor:  # [H, W], see `median_depth`
         return median_depth(self.splats, camera, self.cfg.surfels, self.water if fades_opacity(self.flags) else None,
