@@ -1,4 +1,5 @@
-"""`ragsplat eval RUN [--data DIR] [--out FILE.json] [--vgg16 PATH] [--no-download]`: a finished training run
+"""`ragsplat eval RUN [--data DIR] [--out FILE.json] [--min-opacity A] [--max-scale-cells K] [--vgg16 PATH]
+[--no-download]`: a finished training run
 scored against its dataset's ground truth with the ablation's measures, without retraining (`eval.score`);
 prints the bed's scores beside the reference answers and writes them all as JSON (default RUN/eval.json)."""
 
@@ -8,7 +9,7 @@ import argparse
 from pathlib import Path
 
 from eval.cli import lpips_arguments
-from ragsplat_core.cli.args import dataset_dir, out_file_ending
+from ragsplat_core.cli.args import dataset_dir, out_file_ending, positive_float
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -23,6 +24,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also score this DEM (`ragsplat export --dem`) and map its error (FILE_error.png)")
     parser.add_argument("--out", type=out_file_ending(".json"), metavar="FILE.json",
                         help="the scores as JSON (default: RUN/eval.json)")
+    parser.add_argument("--min-opacity", type=positive_float, metavar="A",
+                        help="the volume bed's opacity cull (default: the ablation's)")
+    parser.add_argument("--max-scale-cells", type=positive_float, metavar="K",
+                        help="the volume bed's size cull, in cells (default: the ablation's; 1e9: none)")
     lpips_arguments(parser)
 
 
@@ -32,7 +37,9 @@ def run(args: argparse.Namespace) -> int:
     from ragsplat_core.outputs import write_json
 
     result = score_run(args.run, args.data, args.vgg16, download=not args.no_download, log=print,
-                       truth=args.truth, dem=args.dem)
+                       truth=args.truth, dem=args.dem,
+                       extract={k: v for k, v in (("min_opacity", args.min_opacity),
+                                                  ("max_scale_cells", args.max_scale_cells)) if v is not None})
     out = args.out if args.out is not None else args.run / "eval.json"
     write_json(out, jsonable(result), indent=1)
     print(table(result))

@@ -140,6 +140,13 @@ def test_eval_matches_the_ablation_and_the_library(run, ablated, evaluable_datas
                                                                                             truth))))
     assert main(["eval", str(run), "--no-download"]) == 0  # the default place: RUN/eval.json
     assert json.loads((run / "eval.json").read_text())["geometry"] == res["geometry"]
+    # the volume bed's culls changed: recorded with its scores, and the same as the library's
+    assert main(["eval", str(run), "--no-download", "--min-opacity", "0.05", "--max-scale-cells", "1e9"]) == 0
+    loose = json.loads((run / "eval.json").read_text())["geometry"]
+    cfg = replace(ablation.extract_config("smoke", len(truth.grid), seed), min_opacity=0.05, max_scale_cells=1e9)
+    assert loose["extraction"]["config"] == {**res["geometry"]["extraction"]["config"], "min_opacity": 0.05,
+                                             "max_scale_cells": 1e9}
+    assert loose == json.loads(json.dumps(jsonable(evaluate_geometry(gaussians, truth, cfg)[0])))
 
 
 def test_one_line_errors(run, tmp_path, capsys):
