@@ -9,7 +9,7 @@ import argparse
 from pathlib import Path
 
 from eval.cli import lpips_arguments
-from ragsplat_core.cli.args import dataset_dir, out_file_ending, positive_float
+from ragsplat_core.cli.args import cull_arguments, cull_overrides, dataset_dir, out_file_ending
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -24,10 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also score this DEM (`ragsplat export --dem`) and map its error (FILE_error.png)")
     parser.add_argument("--out", type=out_file_ending(".json"), metavar="FILE.json",
                         help="the scores as JSON (default: RUN/eval.json)")
-    parser.add_argument("--min-opacity", type=positive_float, metavar="A",
-                        help="the volume bed's opacity cull (default: the ablation's)")
-    parser.add_argument("--max-scale-cells", type=positive_float, metavar="K",
-                        help="the volume bed's size cull, in cells (default: the ablation's; 1e9: none)")
+    cull_arguments(parser)  # of the volume bed
     lpips_arguments(parser)
 
 
@@ -37,9 +34,7 @@ def run(args: argparse.Namespace) -> int:
     from ragsplat_core.outputs import write_json
 
     result = score_run(args.run, args.data, args.vgg16, download=not args.no_download, log=print,
-                       truth=args.truth, dem=args.dem,
-                       extract={k: v for k, v in (("min_opacity", args.min_opacity),
-                                                  ("max_scale_cells", args.max_scale_cells)) if v is not None})
+                       truth=args.truth, dem=args.dem, extract=cull_overrides(args))
     out = args.out if args.out is not None else args.run / "eval.json"
     write_json(out, jsonable(result), indent=1)
     print(table(result))

@@ -84,3 +84,23 @@ def dataset_dir(text: str) -> Path:
     """A dataset directory; its transforms.json given instead stands for the directory."""
     path = Path(text)
     return path.parent if path.name == "transforms.json" and path.is_file() else path
+
+
+CULLS = ("min_opacity", "max_scale_cells")  # the bed extraction's culls a command may change
+
+
+def cull_arguments(parser: argparse.ArgumentParser) -> None:
+    """--min-opacity and --max-scale-cells: the volume bed's culls (`ExtractConfig`); read them back with
+    `cull_overrides`."""
+    parser.add_argument("--min-opacity", type=positive_float, metavar="A",
+                        help="only Gaussians at least this opaque make the bed (default: the evaluation's, chosen on "
+                             "the development reach; lower it for a short or sparse run)")
+    parser.add_argument("--max-scale-cells", type=positive_float, metavar="K",
+                        help="only Gaussians whose largest standard deviation is at most K grid cells make the bed "
+                             "(default: the evaluation's, chosen on the development reach; 1e9: no limit)")
+
+
+def cull_overrides(args: argparse.Namespace) -> dict:
+    """The culls given on the command line, as `ExtractConfig` fields."""
+    return {name: getattr(args, name) for name in CULLS if getattr(args, name) is not None}
+

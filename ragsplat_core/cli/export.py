@@ -9,7 +9,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ragsplat_core.cli.args import dataset_dir, out_file_ending, positive_float
+from ragsplat_core.cli.args import (
+    cull_arguments,
+    cull_overrides,
+    dataset_dir,
+    out_file_ending,
+    positive_float,
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -18,12 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="GeoTIFF to write: band 1 bed elevation, band 2 water depth (m)")
     parser.add_argument("--resolution", type=positive_float, default=0.05, metavar="M",
                         help="DEM cell size in metres (default: 0.05)")
-    parser.add_argument("--min-opacity", type=positive_float, default=None, metavar="A",
-                        help="only Gaussians at least this opaque make the bed (default: the evaluation's, "
-                             "chosen on the development reach; lower it for a short or sparse run)")
-    parser.add_argument("--max-scale-cells", type=positive_float, default=None, metavar="K",
-                        help="only Gaussians whose largest standard deviation is at most K DEM cells make the bed "
-                             "(default: the evaluation's, chosen on the development reach; 1e9: no limit)")
+    cull_arguments(parser)
     parser.add_argument("--las", type=out_file_ending(".las", ".laz"), metavar="FILE.las|.laz",
                         help="bed points as LAS, or LAZ (compressed)")
     parser.add_argument("--ply", type=out_file_ending(".ply"), metavar="FILE.ply",
@@ -40,8 +41,7 @@ def run(args: argparse.Namespace) -> int:
     from ragsplat_core.export import export_run
 
     bed = export_run(args.run, args.dem, args.resolution, args.las, args.ply, args.png, args.data,
-                     **{k: v for k, v in (("min_opacity", args.min_opacity), ("max_scale_cells", args.max_scale_cells))
-                        if v is not None})
+                     **cull_overrides(args))
     depth = bed.depth()[np.isfinite(bed.depth())]
     deepest = f", deepest {depth.max():.3g} m" if len(depth) else ""
     print(f"{len(bed.grid)} cells of {bed.resolution:g} m, {len(depth)} under water{deepest}")
