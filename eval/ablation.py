@@ -75,8 +75,9 @@ PRESETS = {
 CODE = ("ragsplat_core", "eval")  # the sources whose digest is part of every row key
 
 
-def extract_config(preset: str, n_gt: int, seed: int) -> ExtractConfig:
-    return replace(ExtractConfig(), n_samples=PRESETS[preset].samples_per_cell * n_gt, seed=seed)
+def extract_config(preset: str, n_gt: int, seed: int, gsd: float | None) -> ExtractConfig:
+    """The table's extraction for a GT grid of `n_gt` nodes and views of `gsd` m per pixel (`Dataset.gsd`)."""
+    return replace(ExtractConfig(), n_samples=PRESETS[preset].samples_per_cell * n_gt, seed=seed, gsd=gsd)
 
 
 def eval_steps(iterations: int, checkpoints: int, reset_every: int = 0, reset_stop: int = 0) -> list[int]:
@@ -106,6 +107,11 @@ def slug(name: str) -> str:
 
 def row_dir(out: Path, name: str, seed: int | None) -> Path:
     return out / slug(name) if seed is None else out / slug(name) / f"seed{seed}"
+
+
+def claim_out(out: Path) -> None:
+    """Make `out` an ablation's directory, or check that it is one (`claim`)."""
+    claim(out, "ablation", legacy=("results.json", "*/row.json", "*/seed*/row.json", "*/ckpt.pt"))
 
 
 def cached_row(folder: Path, key: dict, log: Callable[[str], None]) -> dict | None:
@@ -172,12 +178,14 @@ def save_row(folder: Path, row: dict, grid: np.ndarray, truth, fused: np.ndarray
 
 def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds: list[int], runner,
                  vgg16: str | None = None, download: bool = True,
-                 log: Callable[[str], None] = lambda line: None) -> dict[str, list[dict]]:
+                 log: Callable[[str], None] = lambda line: None, part: tuple[int, int] = (0, 1)
+                 ) -> dict[str, list[dict]]:
     """Rows for `variants` x `seeds` and the reference rows, reused from `out` when their key matches, else
-    computed with `runner` (a `TrainEval`, or anything with its `truth`, `fingerprint`, `dataset_seed`,
+    computed with `runner` (a `TrainEval`, or anything with its `truth`, `fingerprint`, `dataset_seed`, `gsd`,
     `config`, `initial` and `train`); then all outputs. Returns {name: [row per seed]}.
     `download`: fetch missing LPIPS weights (`metrics.load_lpips`). `log(line)` receives progress lines and,
-    at the end, the tables.
+    at the end, the tables. `part` (k, m): only the trained rows k, k + m, k + 2m, ... (in seed-major order),
+    nothing else: m processes share the rows, then a run without `part` reuses them and writes the rest.
     """
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
@@ -186,7 +194,9 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
         raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
     if not seeds or len(set(seeds)) != len(seeds):
         raise ConfigError(f"seeds must be distinct and at least one, got {seeds}")
-    claim(out, "ablation", legacy=("results.json", "*/row.json", "*/seed*/row.json", "*/ckpt.pt"))
+    if not 0 <= part[0] < part[1]:
+        raise ConfigError(f"part {part[0]} of {part[1]} does not exist")
+    claim_out(out)
     stamp = versions("torch", "scipy")  # the code that runs now, not the checkout at the end of a long run
     truth = runner.truth
     base = {"dataset": runner.fingerprint, "code": source_digest(*CODE), "harness": asdict(PRESETS[preset])}
@@ -194,9 +204,13 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
     if lpips_reason:
         log(f"LPIPS n/a: {lpips_reason}")
     rows: dict[str, list[dict]] = {}
+    index = -1
     for seed in seeds:
-        ecfg = extract_config(preset, len(truth.grid), seed)
+        ecfg = extract_config(preset, len(truth.grid), seed, runner.gsd)
         for variant in variants:
+            index += 1
+            if index % part[1] != part[0]:
+                continue
             cfg = runner.config(variant, preset, seed)
             key = {**base, "train": cfg.to_dict(), "extract": ecfg.to_dict()}
             folder = row_dir(out, variant, seed)
@@ -213,8 +227,12 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
                        "timings": {**row.get("timings", {}), "row_total_s": time.perf_counter() - t0}}
                 row = save_row(folder, row, grid, truth, fused)
             rows.setdefault(variant, []).append(row)
+        if part[1] > 1:
+            continue
         for name, row in reference_rows(out, runner, preset, seed, ecfg, base, rows, log).items():
             rows.setdefault(name, []).append(row)
+    if part[1] > 1:
+        return rows
     header = {"data": str(Path(data).resolve()), "dataset_fingerprint": runner.fingerprint,
               "dataset_seed": runner.dataset_seed, "tuning": TUNING, "extract_tuning": EXTRACT_TUNING,
               "preset": preset, "seeds": list(seeds),
@@ -282,6 +300,7 @@ class TrainEval:
         self.truth = self.ds.ground_truth
         self.fingerprint = self.ds.fingerprint
         self.refractive_index = self.ds.water.n if self.ds.water is not None else 1.0
+        self.gsd = self.ds.gsd
         scene = Path(data) / layout.SCENE
         self.dataset_seed = json.loads(scene.read_text()).get("seed") if scene.is_file() else None
         self.device = device

@@ -29,9 +29,9 @@ EXTRACTION = {"init": "volume", "3dgs x n": "volume", "oracle plane": "-"}
 def start_extraction(cfg: ExtractConfig) -> ExtractConfig:
     """The extraction of the `init` row: the table's, with no opacity or size cull. Every start has the same
     opacity (`init_opacity`, 0.1) and scales set by the spacing of its points, training choices rather than
-    fitted values, so the table's culls (0.7, 2 cells) would remove most or all of it and score the start
-    near 0 by construction."""
-    return replace(cfg, min_opacity=0.0, max_scale_cells=math.inf)
+    fitted values, so the table's culls would remove most or all of it and score the start near 0 by
+    construction."""
+    return replace(cfg, min_opacity=0.0, max_scale_gsd=math.inf)
 
 
 def depth_times_n(grid: np.ndarray, level: float, n: float) -> np.ndarray:

@@ -38,7 +38,7 @@ def score_run(run: Path, data: Path | None = None, vgg16: str | None = None, dow
     training views under "geometry_fused"), with the reference answers' geometry under "references". `data`: the run's dataset moved elsewhere. `truth`: score against
     another dataset's ground truth and held-out views, in the same frame (a survey imported from a synthetic
     dataset's COLMAP model). `dem`: also score that DEM GeoTIFF (`ragsplat export`) under "dem". `extract`:
-    ExtractConfig fields to change for the volume bed (e.g. {"max_scale_cells": math.inf}). Raises
+    ExtractConfig fields to change for the volume bed (e.g. {"max_scale_gsd": math.inf}). Raises
     OutputError (not a finished run), DatasetError (dataset missing, changed, without ground truth or
     held-out views, in another frame), ConfigError (a preset the harness does not know)."""
     model, ds = load_model(run, data, splits=("train",))  # the training cameras: the views fusion reads
@@ -50,7 +50,7 @@ def score_run(run: Path, data: Path | None = None, vgg16: str | None = None, dow
         raise DatasetError(f"{runner.ds.root} is in another frame than {ds.root} (offsets {runner.ds.georef.offset}"
                            f" and {ds.georef.offset})")
     truth = runner.truth
-    ecfg = replace(extract_config(cfg.preset, len(truth.grid), cfg.seed), **(extract or {}))
+    ecfg = replace(extract_config(cfg.preset, len(truth.grid), cfg.seed, ds.gsd), **(extract or {}))
     lpips_metric, lpips_reason = metrics.load_lpips(vgg16, download=download, log=log)
     if lpips_reason:
         log(f"LPIPS n/a: {lpips_reason}")

@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     runner = TrainEval(args.data)
     claim(args.out, "tuning")
-    ecfg = extract_config(args.preset, len(runner.truth.grid), args.seed)
+    ecfg = extract_config(args.preset, len(runner.truth.grid), args.seed, runner.gsd)
     results = []
     for value in args.values:
         for variant in args.variants:

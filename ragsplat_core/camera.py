@@ -188,6 +188,18 @@ class Camera:
                    float(d["cy"]), np.asarray(d["R"], float), np.asarray(d["t"], float))
 
 
+def ground_sample_distance(cameras, level: float) -> float | None:
+    """Metres per pixel at the plane z = `level` (the water surface): per camera, the z-depth where its
+    optical axis meets the plane over fx; the median over the cameras that look down onto it from above
+    (None when none does). Refraction is left out: the bed below looks farther, by at most d / n."""
+    per_view = []
+    for cam in cameras:
+        height, down = cam.camera_center[2] - level, -cam.R[2, 2]  # R[2] = the optical axis in the world
+        if height > 0 and down > 0:
+            per_view.append(height / down / cam.fx)
+    return float(np.median(per_view)) if per_view else None
+
+
 def _torch_stack(tensors, dim):
     import torch
 

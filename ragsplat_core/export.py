@@ -63,14 +63,14 @@ class Bed:
 
 def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None = None, ply: Path | None = None,
                png: Path | None = None, data: Path | None = None, min_opacity: float = ExtractConfig.min_opacity,
-               max_scale_cells: float = ExtractConfig.max_scale_cells) -> Bed:
+               max_scale_gsd: float = ExtractConfig.max_scale_gsd) -> Bed:
     """Extract the bed of a finished run (`load_run`, `extract_bed`) and write the DEM and each other product
     given a path, in the dataset's georeference (an imported survey's CRS and offset), depths below the
     water the run ended with (`run_water`). Returns the bed."""
     meta, ds, splats, seed = _read_run(Path(run), data, splits=())
     water = run_water(meta, ds)
     bed = extract_bed(activated_dict(splats), resolution, None if water is None else water.level, ds.eval_region,
-                      ds.georef, seed, min_opacity, max_scale_cells)
+                      ds.georef, seed, min_opacity, max_scale_gsd, ds.gsd)
     write_dem(dem, bed)
     for path, write in ((las, write_las), (ply, write_ply), (png, write_png)):
         if path is not None:
@@ -248,11 +248,11 @@ def render_views(model: Model, views: list[View], kind: str, out: Path, on_view=
 
 def extract_bed(gaussians: dict, resolution: float, level: float | None, region: dict | None = None,
                 georef: Georef | None = None, seed: int = 0, min_opacity: float = ExtractConfig.min_opacity,
-                max_scale_cells: float = ExtractConfig.max_scale_cells) -> Bed:
+                max_scale_gsd: float = ExtractConfig.max_scale_gsd, gsd: float | None = None) -> Bed:
     """The bed of activated Gaussians (means [N, 3], scales [N, 3], quats [N, 4], opacities [N]) on a grid
     of `resolution` metres whose nodes lie on multiples of it in the CRS (tiles of two runs line up),
     inside `region` {xmin, xmax, ymin, ymax} when given, from the Gaussians at least `min_opacity` opaque and
-    no wider than `max_scale_cells` cells (largest standard deviation).
+    no wider than `max_scale_gsd` ground sample distances `gsd` (largest standard deviation; `Dataset.gsd`).
     Raises ConfigError, OutputError (nothing found)."""
     georef = georef or Georef()  # default: the local frame
     means = gaussians["means"].detach().cpu().numpy()  # [N, 3]
@@ -268,13 +268,14 @@ def extract_bed(gaussians: dict, resolution: float, level: float | None, region:
                           f"{MAX_SAMPLES:.0e}); choose a coarser resolution")
     # A node at absolute (k * resolution): local origin = the nearest such node minus the offset.
     origin = tuple(round(x0 / resolution) * resolution - x0 for x0 in georef.offset[:2])
-    cfg = ExtractConfig(min_opacity=min_opacity, max_scale_cells=max_scale_cells, cell=resolution, n_samples=n,
-                        seed=seed)
+    cfg = ExtractConfig(min_opacity=min_opacity, max_scale_gsd=max_scale_gsd, gsd=gsd, cell=resolution,
+                        n_samples=n, seed=seed)
     grid, _ = extract_surface(gaussians["means"], gaussians["scales"], gaussians["quats"],
                               gaussians["opacities"], cfg, region, origin)
     if not len(grid):
         raise OutputError(f"no bed surface: no Gaussian is opaque enough (>= {cfg.min_opacity}) and small enough "
-                          f"(<= {cfg.max_scale_cells:g} cells), or the noise filter removed every sample")
+                          f"(<= {cfg.max_scale_gsd:g} ground sample distances), or the noise filter removed every "
+                          "sample")
     return Bed(grid, resolution, level, georef)
 
 

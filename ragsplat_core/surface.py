@@ -3,7 +3,7 @@
 
 Extraction (the paper's Section 3, "Geometry Extraction"):
 1. cull Gaussians below an opacity threshold, those whose largest standard deviation exceeds
-   `max_scale_cells` grid cells (and, when a region is given, those whose centre lies more than
+   `max_scale_gsd` ground sample distances of the views (`gsd`, `Dataset.gsd`) (and, when a region is given, those whose centre lies more than
    `region_margin` outside it: samples spent far away say nothing about the bed);
 2. draw `n_samples` points, split between Gaussians in proportion to their volume (product of the three
    standard deviations) with largest-remainder rounding, so the total is exact; each point is a draw of the
@@ -22,12 +22,14 @@ The evaluation scores the grid with `ragsplat_core.scoring.geometry_metrics` (`e
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from ragsplat_core.errors import ConfigError
 from ragsplat_core.gaussians import quat_to_rotmat
 
 # Both culls were chosen on the development reach (dataset seed 1; evaluation: seed 0), 1 500 iterations.
@@ -35,9 +37,10 @@ from ragsplat_core.gaussians import quat_to_rotmat
 # large Gaussians that float above and below the bed, and the volume weighting lets them decide many cells.
 # Then both together (`full` seed 0, `2dgs+full` seeds 0 and 1, all from the refracted start): the few wide
 # Gaussians that stay opaque (metre-wide discs mostly hidden behind the bed in the renders, floaters in the air
-# seen by a few views) still decided whole patches of the grid.
+# seen by a few views) still decided whole patches of the grid. The size is in ground sample distances of the
+# views (2.33 cm on the reach), so that it means the same on a coarser preset or survey.
 EXTRACT_TUNING = {"dataset_preset": "small", "dataset_seed": 1,
-                  "chosen": {"min_opacity": 0.7, "max_scale_cells": 2.0},
+                  "chosen": {"min_opacity": 0.7, "max_scale_gsd": 6.0},
                   "rule": "max F1@3% among settings that keep >= 85 % of the wet cells (a DEM with holes is not "
                           "a survey); with several models, of their mean F1@3%, and >= 85 % for each",
                   "min_opacity": {"variant": "full", "init": "triangulated", "training_seeds": [0],
@@ -46,24 +49,25 @@ EXTRACT_TUNING = {"dataset_preset": "small", "dataset_seed": 1,
                                             "0.9": [84.4, 63.7]},
                                   "columns": ["F1 at 3 % of depth (%)", "wet cells with a height (%)"]},
                   "both": {"models": ["full seed 0", "2dgs+full seed 0", "2dgs+full seed 1"], "init": "refracted",
-                           "tried": {  # min_opacity -> max_scale_cells -> [mean F1@3% (%), least wet cover (%)]
-                               "0.5": {"none": [86.4, 95.8], "20": [87.4, 95.8], "10": [87.8, 95.8],
-                                       "6": [90.5, 95.0], "4": [93.5, 95.1], "2": [95.6, 89.6]},
-                               "0.6": {"none": [91.2, 92.5], "20": [91.4, 92.5], "10": [91.9, 93.0],
-                                       "6": [92.8, 93.1], "4": [95.1, 93.5], "2": [95.9, 89.0]},
-                               "0.7": {"none": [93.3, 89.9], "20": [93.4, 89.9], "10": [93.6, 89.9],
-                                       "6": [94.3, 90.3], "4": [95.8, 90.6], "2": [96.1, 87.0]},
-                               "0.8": {"none": [93.8, 81.2], "20": [93.8, 81.2], "10": [93.9, 83.1],
-                                       "6": [94.7, 83.9], "4": [95.6, 84.0], "2": [95.9, 80.5]}},
+                           "gsd_m": 0.0233,
+                           "tried": {  # min_opacity -> max_scale_gsd -> [mean F1@3% (%), least wet cover (%)]
+                               "0.6": {"2": [88.2, 61.6], "3": [94.2, 81.1], "4": [95.7, 87.7], "5": [95.9, 90.9],
+                                       "6": [96.0, 91.9], "8": [95.4, 93.5], "none": [91.2, 92.5]},
+                               "0.7": {"2": [87.9, 58.2], "3": [94.2, 79.0], "4": [95.8, 85.8], "5": [96.1, 88.9],
+                                       "6": [96.2, 89.5], "8": [96.0, 90.8], "none": [93.3, 89.9]},
+                               "0.8": {"2": [87.3, 52.6], "3": [93.8, 72.4], "4": [95.5, 79.1], "5": [96.0, 82.4],
+                                       "6": [96.0, 83.2], "8": [95.8, 83.8], "none": [93.8, 81.2]}},
                            "columns": ["mean F1 at 3 % of depth (%)", "least wet cells with a height (%)"]}}
 
 
 @dataclass(frozen=True)
 class ExtractConfig:
     min_opacity: float = 0.7  # `EXTRACT_TUNING` (the paper: 0.1)
-    # largest standard deviation, in cells: a Gaussian wider than a few cells cannot place one cell's height,
-    # yet volume weighting gives it the most samples. `EXTRACT_TUNING` (the paper: no limit)
-    max_scale_cells: float = 2.0
+    # largest standard deviation, in ground sample distances: a Gaussian many pixels wide is not what the
+    # views resolve and cannot place one cell's height, yet volume weighting gives it the most samples.
+    # `EXTRACT_TUNING` (the paper: no limit). In pixels, not cells: the DEM's cell is the user's choice.
+    max_scale_gsd: float = 6.0
+    gsd: float | None = None  # metres per pixel (`Dataset.gsd`); needed when max_scale_gsd is finite
     n_samples: int = 200_000
     sigma_cut: float = 2.0
     region_margin: float = 0.5  # metres around the evaluation region whose Gaussians are sampled
@@ -116,10 +120,21 @@ def truncated_normal(n: int, cut: float, rng: np.random.Generator) -> np.ndarray
     return out
 
 
+def max_scale(cfg: ExtractConfig) -> float:
+    """The size cull in metres (inf: none). Raises ConfigError when it needs a ground sample distance and
+    has none (a dry scene: no water surface to measure it at)."""
+    if math.isinf(cfg.max_scale_gsd):
+        return math.inf
+    if cfg.gsd is None or not cfg.gsd > 0:
+        raise ConfigError(f"the size cull ({cfg.max_scale_gsd:g} ground sample distances) needs the views' ground "
+                          f"sample distance, got {cfg.gsd}; pass it, or lift the cull (max_scale_gsd = inf)")
+    return cfg.max_scale_gsd * cfg.gsd
+
+
 def sample_gaussians(means, scales, quats, opacities, cfg: ExtractConfig, region: dict | None = None):
     """Steps 1-2: points [M, 3] (M = cfg.n_samples unless nothing survives culling) and the kept mask [N]."""
     means, scales, quats, opac = _np(means), _np(scales), _np(quats), _np(opacities).reshape(-1)
-    keep = (opac >= cfg.min_opacity) & (scales.max(1) <= cfg.max_scale_cells * cfg.cell)
+    keep = (opac >= cfg.min_opacity) & (scales.max(1) <= max_scale(cfg))
     if region is not None:
         keep &= in_region(means, region, tol=cfg.region_margin)
     idx = np.flatnonzero(keep)

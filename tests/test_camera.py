@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from ragsplat_core.camera import Camera
+from ragsplat_core.camera import Camera, ground_sample_distance
 
 NADIR_R = np.diag([1.0, -1.0, -1.0])  # camera x = world x, camera y = world -y, looks down world -z
 
@@ -53,6 +53,19 @@ def test_tilted_camera_projection_matches_hand_computation():
     np.testing.assert_allclose(depth, [dist * math.cos(tilt)], atol=1e-9)
     # Tilting towards +y: the camera's viewing direction has a +y and a -z component.
     np.testing.assert_allclose(cam.R[2], [0.0, math.sin(tilt), -math.cos(tilt)], atol=1e-12)
+
+
+def test_ground_sample_distance_at_the_water():
+    # nadir at 10 m over a plane at z = -2 (90 degrees over 64 px: fx = 32): 12 m / 32 px
+    assert ground_sample_distance([nadir(10.0)], -2.0) == pytest.approx(12.0 / 32)
+    # tilted 40 degrees: the axis meets the plane 12 / cos 40 m away, which is also that point's z-depth
+    tilted = Camera.look_at([0.0, 0.0, 10.0], [0.0, 12 * math.tan(math.radians(40)), -2.0], 64, 64, 90.0)
+    assert ground_sample_distance([tilted], -2.0) == pytest.approx(12.0 / math.cos(math.radians(40)) / 32)
+    # the median over the views; a camera below the plane or looking up does not count
+    up = Camera.look_at([0.0, 0.0, 10.0], [0.0, 0.0, 20.0], 64, 64, 90.0, up=(0.0, 1.0, 0.0))
+    views = [nadir(10.0), nadir(14.0), nadir(18.0), up, nadir(-5.0)]
+    assert ground_sample_distance(views, -2.0) == pytest.approx(16.0 / 32)
+    assert ground_sample_distance([up], -2.0) is None
 
 
 def test_c2w_round_trip_and_blender_axes():

@@ -218,7 +218,7 @@ def test_survey_to_dem_and_laz_in_the_survey_crs(tmp_path):
     config = json.loads((run / "config.json").read_text())["config"]
     assert config["init"] == "points" and config["init_points"].endswith(POINTS)
     assert main(["export", str(run), "--dem", str(tmp_path / "dem.tif"), "--las", str(tmp_path / "bed.laz"),
-                 "--resolution", "0.1", "--min-opacity", "0.05", "--max-scale-cells", "1e9"]) == 0  # 2 steps
+                 "--resolution", "0.1", "--min-opacity", "0.05", "--max-scale-gsd", "inf"]) == 0  # 2 steps
     east, north = shift[:2]
     with rasterio.open(tmp_path / "dem.tif") as tif:
         assert tif.crs.to_epsg() == 32633

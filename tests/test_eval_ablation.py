@@ -87,7 +87,7 @@ class FakeRunner:
         x, y = np.meshgrid(np.arange(5) * 0.05, np.arange(5) * 0.05, indexing="ij")
         grid = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, -1.0)])
         self.truth = GroundTruth(grid, {"xmin": 0, "xmax": 0.2, "ymin": 0, "ymax": 0.2}, 2.0, 0.0)
-        self.fingerprint, self.dataset_seed, self.refractive_index = "aaaa", 0, 1.33
+        self.fingerprint, self.dataset_seed, self.refractive_index, self.gsd = "aaaa", 0, 1.33, 0.01
         self.calls = []
 
     def config(self, variant, preset, seed):
@@ -102,6 +102,23 @@ class FakeRunner:
         self.calls.append((cfg.variant, cfg.seed))
         apparent = self.truth.grid + [0, 0, 1.0 - 1.0 / 1.33]  # an uncorrected bed at depth / n
         return fake_row(list(VARIANTS).index(cfg.variant), cfg.seed), apparent, self.truth.grid + [0, 0, 0.01]
+
+
+def test_parts_share_the_rows_and_the_last_run_reuses_them(tmp_path):
+    # what `ragsplat ablation --jobs 2` does: two parts train every other row and write nothing else
+    data, out, runner = tmp_path / "data", tmp_path / "out", FakeRunner()
+    data.mkdir()
+    quiet = {"log": lambda s: None, "download": False}
+    first = run_ablation(data, out, "smoke", ["3dgs", "full"], [0, 1], runner, part=(0, 2), **quiet)
+    assert runner.calls == [("3dgs", 0), ("3dgs", 1)] and list(first) == ["3dgs"]
+    assert not (out / "results.json").exists() and not (out / "init").exists()
+    run_ablation(data, out, "smoke", ["3dgs", "full"], [0, 1], runner, part=(1, 2), **quiet)
+    assert runner.calls[2:] == [("full", 0), ("full", 1)]
+    rows = run_ablation(data, out, "smoke", ["3dgs", "full"], [0, 1], runner, **quiet)
+    assert len(runner.calls) == 4 and list(rows) == ["3dgs", "full", "init", "3dgs x n", "oracle plane"]
+    assert (out / "results.json").is_file()
+    with pytest.raises(ConfigError, match="part 2 of 2"):
+        run_ablation(data, out, "smoke", ["3dgs"], [0], runner, part=(2, 2), **quiet)
 
 
 def test_rows_are_reused_only_under_their_key(tmp_path):
@@ -190,7 +207,7 @@ def test_evaluate_geometry_flat_bed():
          "quats": torch.tensor([[1.0, 0, 0, 0]]).expand(len(bed), 4), "opacities": torch.full((len(bed),), 0.9)}
     region = {"xmin": 0.3, "xmax": 1.2, "ymin": 0.3, "ymax": 1.2}
     gt = bed[(np.abs(bed[:, :2] - 0.75) < 0.451).all(1)]  # nodes 6 .. 24 on both axes
-    res, grid = evaluate_geometry(g, GroundTruth(gt, region, 2.0, 0.0), ablation.extract_config("small", 19 * 19, 0))
+    res, grid = evaluate_geometry(g, GroundTruth(gt, region, 2.0, 0.0), ablation.extract_config("small", 19 * 19, 0, 0.01))
     assert res["n_gt"] == 19 * 19 and res["f1"]["10cm"] == 1.0 and res["chamfer"] < 0.005 and len(grid) > 350
     assert res["extraction"]["config"]["n_samples"] == 16 * 19 * 19
 

@@ -110,3 +110,38 @@ def test_sigint_keeps_finished_rows_and_the_rerun_completes(evaluable_dataset, t
     assert done.returncode == 0 and "[3dgs seed 0] reusing" in done.stdout
     assert (out / "3dgs" / "seed0" / "row.json").read_bytes() == row
     assert set(json.loads((out / "results.json").read_text())["rows"]) >= {"3dgs", "position"}
+
+
+def test_jobs_train_every_row_once_and_the_tables_reuse_them(evaluable_dataset, tmp_path, monkeypatch, capsys):
+    # the child processes run in-process here (the shrunken presets are monkeypatched in this one)
+    import eval.cli
+
+    smoke = train.PRESETS["smoke"]
+    monkeypatch.setitem(train.PRESETS, "smoke", replace(smoke, iterations=4, init_count=100, backend="torch"))
+    monkeypatch.setitem(ablation.PRESETS, "smoke", replace(ablation.PRESETS["smoke"], checkpoints=2))
+    monkeypatch.setattr(metrics, "default_vgg16_path", lambda: tmp_path / "absent.pth")
+    children = []
+
+    class Child:
+        def __init__(self, cmd, env, log):
+            assert cmd[1:3] == ["-m", "ragsplat_core.cli.main"] and env["OMP_NUM_THREADS"] == env["NUMBA_NUM_THREADS"]
+            children.append(cmd[3:])
+            self.rc = main(cmd[3:])
+
+        def wait(self):
+            return self.rc
+
+    monkeypatch.setattr(eval.cli, "spawn", Child)
+    out = tmp_path / "runs"
+    argv = ["ablation", "--data", str(evaluable_dataset), "--out", str(out), "--preset", "smoke", "--variants",
+            "3dgs", "full", "--seeds", "0", "1", "--init", "grid", "--no-download"]
+    assert main([*argv, "--jobs", "2"]) == 0
+    assert [c[-2:] for c in children] == [["--part", "0/2"], ["--part", "1/2"]] and children[0][:-2] == argv
+    printed = capsys.readouterr().out
+    assert printed.count("training ...") == 4 and printed.count("reusing the finished row") == 4
+    assert list(json.loads((out / "results.json").read_text())["rows"]) == ["init", "3dgs x n", "oracle plane",
+                                                                           "3dgs", "full"]
+    # a failed process fails the command, with the log to read
+    monkeypatch.setattr(Child, "wait", lambda self: 1)
+    assert main([*argv, "--jobs", "2"]) == 2
+    assert "2 of 2 processes failed; see" in capsys.readouterr().err

@@ -1,9 +1,11 @@
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
 
+from ragsplat_core.errors import ConfigError
 from ragsplat_core.gaussians import quat_to_rotmat
 from ragsplat_core.scoring import geometry_metrics
 from ragsplat_core.surface import (
@@ -74,7 +76,7 @@ def test_sampling_counts_truncation_and_culling():
     scales = np.array([[0.1, 0.1, 0.1], [0.2, 0.1, 0.1], [1.0, 1.0, 1.0]])
     quats = np.array([[1, 0, 0, 0], [0.9, 0.1, 0.3, 0.2], [1, 0, 0, 0.0]])
     opac = np.array([0.9, 0.9, 0.01])  # the huge third one is culled by opacity
-    cfg = ExtractConfig(n_samples=3001, sigma_cut=2.0, min_opacity=0.1, max_scale_cells=math.inf)
+    cfg = ExtractConfig(n_samples=3001, sigma_cut=2.0, min_opacity=0.1, max_scale_gsd=math.inf)
     pts, keep = sample_gaussians(torch.tensor(means), torch.tensor(scales), torch.tensor(quats),
                                  torch.tensor(opac), cfg)
     assert keep.tolist() == [True, True, False] and len(pts) == 3001
@@ -120,7 +122,7 @@ def test_extraction_recovers_a_flat_bed():
     quats = np.tile([1.0, 0, 0, 0], (n + 6, 1))
     opac = np.append(np.full(n + 5, 0.8), 0.05)
     region = {"xmin": 0.2, "xmax": 1.7, "ymin": 0.2, "ymax": 1.7}
-    cfg = ExtractConfig(n_samples=40_000)
+    cfg = ExtractConfig(n_samples=40_000, gsd=0.025)  # the default size cull: sigma <= 6 x 2.5 cm
     grid, stats = extract_surface(means, scales, quats, opac, cfg, region)
     assert stats["samples"] == 40_000 and stats["gaussians_sampled"] == n + 5
     assert stats["config"]["n_samples"] == 40_000
@@ -143,9 +145,11 @@ def test_wide_gaussians_are_not_sampled():
     quats = np.vstack([np.tile([1.0, 0, 0, 0], (n, 1)), [[math.cos(tilt / 2), math.sin(tilt / 2), 0, 0]]])
     opac = np.full(n + 1, 0.9)
     region = {"xmin": 0.2, "xmax": 1.7, "ymin": 0.2, "ymax": 1.7}
-    wide = ExtractConfig(n_samples=40_000, max_scale_cells=math.inf)
+    wide = ExtractConfig(n_samples=40_000, max_scale_gsd=math.inf)
     grid, stats = extract_surface(means, scales, quats, opac, wide, region)
     assert stats["gaussians_sampled"] == n + 1 and (grid[:, 2] > -0.9).sum() > 50
-    cfg = ExtractConfig(n_samples=40_000, max_scale_cells=2.0)  # sigma <= 10 cm
+    cfg = ExtractConfig(n_samples=40_000, max_scale_gsd=4.0, gsd=0.025)  # sigma <= 10 cm
     grid, stats = extract_surface(means, scales, quats, opac, cfg, region)
     assert stats["gaussians_sampled"] == n and np.abs(grid[:, 2] + 1).max() < 0.01
+    with pytest.raises(ConfigError, match="ground sample distance"):  # a size cull with nothing to scale it
+        extract_surface(means, scales, quats, opac, replace(cfg, gsd=None), region)

@@ -2,6 +2,7 @@
 laspy and numpy; a flat bed of known depth; UTM-sized coordinates; one-line errors."""
 
 import json
+import math
 import shutil
 
 import laspy
@@ -73,10 +74,10 @@ def test_export_writes_every_product(run, tmp_path, capsys):
     out = {k: tmp_path / f"bed.{k}" for k in ("tif", "laz", "ply", "png")}
     # 2 steps from opacity 0.1 and the start's wide Gaussians: limits they pass (the defaults are for trained runs)
     assert main(["export", str(run), "--dem", str(out["tif"]), "--las", str(out["laz"]), "--ply", str(out["ply"]),
-                 "--png", str(out["png"]), "--min-opacity", "0.05", "--max-scale-cells", "1e9"]) == 0
+                 "--png", str(out["png"]), "--min-opacity", "0.05", "--max-scale-gsd", "inf"]) == 0
     gaussians, ds, seed = load_run(run)
     bed = extract_bed(gaussians, 0.05, ds.water.level, ds.eval_region, seed=seed, min_opacity=0.05,
-                      max_scale_cells=1e9)  # the same
+                      max_scale_gsd=math.inf)  # the same
     grid = bed.grid
     assert len(grid) > 100 and (grid[:, 2] < 0).all()  # 2 steps from the grid at -1 m: all under water
     stdout = capsys.readouterr().out
@@ -118,7 +119,7 @@ def test_utm_offset_round_trip(tmp_path):
     x0, y0, z0 = 500_000.012, 5_000_000.037, 100.0
     georef = Georef((x0, y0, z0), "EPSG:32633")
     g = plane_gaussians(lambda x, y: 0.2 * x - 0.1)
-    bed = extract_bed(g, 0.05, 0.0, {"xmin": -0.7, "xmax": 0.7, "ymin": -0.7, "ymax": 0.7}, georef)
+    bed = extract_bed(g, 0.05, 0.0, {"xmin": -0.7, "xmax": 0.7, "ymin": -0.7, "ymax": 0.7}, georef, gsd=0.01)
     absolute = bed.grid + [x0, y0, z0]
     wet = bed.grid[:, 2] < 0
     assert 0.3 < wet.mean() < 0.9 and np.abs(bed.grid[:, 2] - (0.2 * bed.grid[:, 0] - 0.1)).max() < 0.01

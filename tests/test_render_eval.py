@@ -3,6 +3,7 @@ files and sizes, z-depth as EXR; the scores equal to the ablation's row of the s
 functions called directly; one-line errors."""
 
 import json
+import math
 import shutil
 from dataclasses import replace
 
@@ -133,19 +134,21 @@ def test_eval_matches_the_ablation_and_the_library(run, ablated, evaluable_datas
         json.loads((ablated / "oracle-plane" / "row.json").read_text())["geometry"]
     # the library, called directly
     gaussians, _, seed = load_run(run)
-    truth = load_dataset(evaluable_dataset, splits=(), ground_truth=True).ground_truth
-    geometry, _ = evaluate_geometry(gaussians, truth, ablation.extract_config("smoke", len(truth.grid), seed))
+    ds = load_dataset(evaluable_dataset, splits=(), ground_truth=True)
+    truth, ds_gsd = ds.ground_truth, ds.gsd
+    geometry, _ = evaluate_geometry(gaussians, truth, ablation.extract_config("smoke", len(truth.grid), seed, ds_gsd))
     assert res["geometry"] == json.loads(json.dumps(jsonable(geometry)))
     assert res["references"]["oracle plane"] == json.loads(json.dumps(jsonable(score_grid(oracle_plane(truth),
                                                                                             truth))))
     assert main(["eval", str(run), "--no-download"]) == 0  # the default place: RUN/eval.json
     assert json.loads((run / "eval.json").read_text())["geometry"] == res["geometry"]
     # the volume bed's culls changed: recorded with its scores, and the same as the library's
-    assert main(["eval", str(run), "--no-download", "--min-opacity", "0.05", "--max-scale-cells", "1e9"]) == 0
+    assert main(["eval", str(run), "--no-download", "--min-opacity", "0.05", "--max-scale-gsd", "inf"]) == 0
     loose = json.loads((run / "eval.json").read_text())["geometry"]
-    cfg = replace(ablation.extract_config("smoke", len(truth.grid), seed), min_opacity=0.05, max_scale_cells=1e9)
+    cfg = replace(ablation.extract_config("smoke", len(truth.grid), seed, ds_gsd), min_opacity=0.05,
+                  max_scale_gsd=math.inf)
     assert loose["extraction"]["config"] == {**res["geometry"]["extraction"]["config"], "min_opacity": 0.05,
-                                             "max_scale_cells": 1e9}
+                                             "max_scale_gsd": None}  # JSON has no inf
     assert loose == json.loads(json.dumps(jsonable(evaluate_geometry(gaussians, truth, cfg)[0])))
 
 

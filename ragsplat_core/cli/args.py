@@ -52,6 +52,13 @@ def positive_float(text: str) -> float:
     return value
 
 
+def limit(text: str) -> float:
+    """A positive number or inf (no limit)."""
+    if text.strip().lower() in ("inf", "infinity"):
+        return math.inf
+    return positive_float(text)
+
+
 def out_file(text: str) -> Path:
     """A file to write: not an existing directory."""
     path = Path(text)
@@ -86,18 +93,19 @@ def dataset_dir(text: str) -> Path:
     return path.parent if path.name == "transforms.json" and path.is_file() else path
 
 
-CULLS = ("min_opacity", "max_scale_cells")  # the bed extraction's culls a command may change
+CULLS = ("min_opacity", "max_scale_gsd")  # the bed extraction's culls a command may change
 
 
 def cull_arguments(parser: argparse.ArgumentParser) -> None:
-    """--min-opacity and --max-scale-cells: the volume bed's culls (`ExtractConfig`); read them back with
+    """--min-opacity and --max-scale-gsd: the volume bed's culls (`ExtractConfig`); read them back with
     `cull_overrides`."""
     parser.add_argument("--min-opacity", type=positive_float, metavar="A",
                         help="only Gaussians at least this opaque make the bed (default: the evaluation's, chosen on "
                              "the development reach; lower it for a short or sparse run)")
-    parser.add_argument("--max-scale-cells", type=positive_float, metavar="K",
-                        help="only Gaussians whose largest standard deviation is at most K grid cells make the bed "
-                             "(default: the evaluation's, chosen on the development reach; 1e9: no limit)")
+    parser.add_argument("--max-scale-gsd", type=limit, metavar="K",
+                        help="only Gaussians whose largest standard deviation is at most K ground sample distances "
+                             "of the views (at the water surface) make the bed (default: the evaluation's, chosen on "
+                             "the development reach; inf: no limit, needed for a dry scene)")
 
 
 def cull_overrides(args: argparse.Namespace) -> dict:

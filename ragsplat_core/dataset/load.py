@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ragsplat_core.camera import Camera
+from ragsplat_core.camera import Camera, ground_sample_distance
 from ragsplat_core.dataset import layout
 from ragsplat_core.errors import ConfigError, DatasetError
 from ragsplat_core.refraction import WaterSurface
@@ -86,6 +86,9 @@ class Dataset:
     ground_truth: GroundTruth | None = None  # loaded on request (`load_dataset(ground_truth=True)`)
     fingerprint: str | None = None  # `layout.fingerprint` of the directory it was read from
     georef: layout.Georef = field(default_factory=layout.Georef)  # the frame's CRS and offset (outputs)
+    # metres per pixel at the water surface, of every training frame's camera (loaded or not):
+    # `camera.ground_sample_distance`; None for a dry scene
+    gsd: float | None = None
 
     def split(self, name: str) -> list[View]:
         if name not in SPLITS:
@@ -252,7 +255,7 @@ def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: b
         if s not in SPLITS:
             raise ValueError(f"unknown split {s!r}, expected one of {SPLITS}")
 
-    views, names = [], set()
+    views, names, train_cameras = [], set(), []
     for i, frame in enumerate(frames):
         where = f"frames[{i}]"
         if not isinstance(frame, dict):
@@ -271,6 +274,8 @@ def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: b
         if water is not None and not camera.camera_center[2] > water.level:
             raise _fail(tpath, f"{where} ({name}): camera centre z = {camera.camera_center[2]:g} is not above the "
                                f"water level {water.level:g}; refraction needs the camera in air")
+        if split == "train":
+            train_cameras.append(camera)
         if split not in splits:
             continue
         rgb = read_image(root / frame["file_path"], *size)
@@ -298,7 +303,8 @@ def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: b
             if region["xmin"] >= region["xmax"] or region["ymin"] >= region["ymax"]:
                 raise _fail(spath, f"eval_region is empty: {region}")
     truth = _ground_truth(root, region, water, scene if spath.exists() else {}) if ground_truth else None
-    return Dataset(root, water, views, bed, region, truth, layout.fingerprint(root), _georef(meta, tpath))
+    gsd = None if water is None else ground_sample_distance(train_cameras, water.level)
+    return Dataset(root, water, views, bed, region, truth, layout.fingerprint(root), _georef(meta, tpath), gsd)
 
 
 def _georef(meta: dict, path: Path) -> layout.Georef:
