@@ -11,9 +11,10 @@ SEED ?= 0
 # Training seeds of the ablation (tables: mean +- std over them) and its variants (empty: all).
 SEEDS ?= 0 1 2
 VARIANTS ?=
-# How every variant starts: grid (the paper's plane at the bed depth), triangulated (from the images, depths
-# x n) or refracted (the same tracks intersected through the water)
-INIT ?= grid
+# How every variant starts: refracted (tracks triangulated from the images, rays bent at the water: nothing
+# about the bed given), triangulated (straight rays, depths x n) or grid (the paper's plane at the bed depth,
+# which a reach with pools and banks has no single value of)
+INIT ?= refracted
 # Rows trained at once, each process with cores / JOBS threads (2 single-threaded on 2 cores: 1.7x the steps)
 JOBS ?= 2
 DATA ?= data/$(PRESET)
