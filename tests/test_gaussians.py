@@ -103,3 +103,41 @@ def test_init_points_scales_underwater_depth():
     assert torch.allclose(torch.exp(s["scales"][0]), d0.expand(3))
     with pytest.raises(ValueError, match="non-finite"):
         init_points(pts * float("nan"), rgb, None)
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 2e-5)])
+@pytest.mark.parametrize("degree", [1, 2, 3])
+def test_sh_kernel_matches_its_twin(degree, dtype, tol):
+    # the numba view colours against the PyTorch ones: values, and the gradients to sh0, shN and the means;
+    # some colours clamped at 0 (no gradient there), every direction, and more coefficients than used
+    gen = torch.Generator().manual_seed(degree)
+    n = 500
+    splats = {"means": torch.randn(n, 3, generator=gen, dtype=torch.float64) * 3,
+              "sh0": torch.randn(n, 1, 3, generator=gen, dtype=torch.float64),
+              "shN": torch.randn(n, 15, 3, generator=gen, dtype=torch.float64) * 0.5}
+    center = torch.tensor([0.3, -0.2, 4.0], dtype=torch.float64)
+    out, grads = {}, {}
+    for fast in (False, True):
+        leaves = {k: v.to(dtype).requires_grad_() for k, v in splats.items()}
+        colors = colors_for_view(leaves, center.to(dtype), degree, fast=fast)
+        weights = torch.randn(n, 3, generator=torch.Generator().manual_seed(7), dtype=torch.float64).to(dtype)
+        (colors * weights).sum().backward()
+        out[fast], grads[fast] = colors.detach(), {k: v.grad for k, v in leaves.items()}
+    assert 0.05 < float((out[False] == 0).double().mean()) < 0.5  # the clamp is exercised
+    torch.testing.assert_close(out[True], out[False], rtol=tol, atol=tol)
+    for k in ("sh0", "shN", "means"):
+        torch.testing.assert_close(grads[True][k], grads[False][k], rtol=tol, atol=tol)
+    unused = grads[True]["shN"][:, (degree + 1) ** 2 - 1:]
+    assert unused.numel() == 0 or float(unused.abs().max()) == 0.0  # no gradient to the unused degrees
+
+
+def test_sh_kernel_gradient_matches_finite_differences():
+    # the means' gradient (through the view direction) from first principles, in float64
+    from ragsplat_core.raster.sh_cpu import view_colors
+
+    gen = torch.Generator().manual_seed(3)
+    means = torch.randn(20, 3, generator=gen, dtype=torch.float64).requires_grad_()
+    sh0 = torch.randn(20, 1, 3, generator=gen, dtype=torch.float64).requires_grad_()
+    shN = (torch.randn(20, 15, 3, generator=gen, dtype=torch.float64) * 0.3).requires_grad_()
+    center = torch.tensor([0.0, 0.0, 5.0], dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda m, a, b: view_colors(a, b, m, center, 3), (means, sh0, shN))
