@@ -61,7 +61,7 @@ def rasterize(means, quats, scales, opacities, colors, camera: Camera, backgroun
                                                    covars, backend="torch", median=True)[3]["median_depth"]
         return out
     if covars is None:
-        covars = covariance(quats, scales)  # [N, 3, 3]
+        covars = covariance(quats, scales, fast=backend == "cpu")  # [N, 3, 3]
     proj = project(means, covars, opacities, camera)
     means2d = proj.means2d
     if means2d.requires_grad:

@@ -6,6 +6,7 @@ import torch
 from ragsplat_core.gaussians import (
     activated,
     colors_for_view,
+    covariance,
     eval_sh,
     init_grid,
     init_points,
@@ -141,3 +142,35 @@ def test_sh_kernel_gradient_matches_finite_differences():
     shN = (torch.randn(20, 15, 3, generator=gen, dtype=torch.float64) * 0.3).requires_grad_()
     center = torch.tensor([0.0, 0.0, 5.0], dtype=torch.float64)
     assert torch.autograd.gradcheck(lambda m, a, b: view_colors(a, b, m, center, 3), (means, sh0, shN))
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_shape_kernels_match_their_twins(dtype, tol):
+    # numba covariance R S S^T R^T and surfel tangents R[:, :2] diag(s) against the PyTorch ones: values and
+    # the gradients to the (unnormalised) quaternions and the scales
+    from ragsplat_core.raster.surfel_project import surfel_tangents
+
+    gen = torch.Generator().manual_seed(5)
+    quats = (torch.randn(400, 4, generator=gen, dtype=torch.float64) * 2).to(dtype)
+    scales = (torch.rand(400, 3, generator=gen, dtype=torch.float64) + 0.05).to(dtype)
+    for twin, cols in ((covariance, 3), (surfel_tangents, 2)):
+        weights = torch.randn(400, 3, cols, generator=gen, dtype=torch.float64).to(dtype)
+        res = []
+        for fast in (False, True):
+            q, s = quats.clone().requires_grad_(), scales[:, :cols].clone().requires_grad_()
+            out = twin(q, s, fast=fast)
+            (out * weights).sum().backward()
+            res.append((out.detach(), q.grad, s.grad))
+        for got, want in zip(res[1], res[0]):
+            torch.testing.assert_close(got, want, rtol=tol, atol=tol)
+
+
+def test_shape_kernels_gradients_match_finite_differences():
+    from ragsplat_core.raster.rotation_cpu import covariance as cov_fast
+    from ragsplat_core.raster.rotation_cpu import tangents
+
+    gen = torch.Generator().manual_seed(6)
+    quats = torch.randn(12, 4, generator=gen, dtype=torch.float64).requires_grad_()
+    scales = (torch.rand(12, 3, generator=gen, dtype=torch.float64) + 0.1).requires_grad_()
+    assert torch.autograd.gradcheck(cov_fast, (quats, scales))
+    assert torch.autograd.gradcheck(tangents, (quats, scales[:, :2].detach().clone().requires_grad_()))

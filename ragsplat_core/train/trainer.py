@@ -89,7 +89,8 @@ def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, backgrou
         return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, camera, background, covars=g.covars,
                          backend=backend, median=median)
     # [N, 3, 2] t' = J t through the water; without it quats and scales (gsplat on CUDA takes only those)
-    tangents = None if g.jacobians is None else g.jacobians @ surfel_tangents(g.quats, g.scales[:, :2])
+    fast = g.jacobians is not None and choose_backend(backend, g.means.device) == "cpu"
+    tangents = None if g.jacobians is None else g.jacobians @ surfel_tangents(g.quats, g.scales[:, :2], fast)
     return rasterize_surfels(g.means, g.quats, g.scales[:, :2], g.opacities, g.colors, camera, background,
                              tangents=tangents, backend=backend)
 
