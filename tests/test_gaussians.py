@@ -119,7 +119,7 @@ def test_sh_kernel_matches_its_twin(degree, dtype, tol):
     center = torch.tensor([0.3, -0.2, 4.0], dtype=torch.float64)
     out, grads = {}, {}
     for fast in (False, True):
-        leaves = {k: v.to(dtype).requires_grad_() for k, v in splats.items()}
+        leaves = {k: v.to(dtype).clone().requires_grad_() for k, v in splats.items()}  # own grads
         colors = colors_for_view(leaves, center.to(dtype), degree, fast=fast)
         weights = torch.randn(n, 3, generator=torch.Generator().manual_seed(7), dtype=torch.float64).to(dtype)
         (colors * weights).sum().backward()
