@@ -43,9 +43,9 @@ def covariance(quats: torch.Tensor, scales: torch.Tensor, fast: bool = False) ->
     """World covariance R S S R^T [N, 3, 3] from quaternions [N, 4] and linear scales [N, 3]. `fast` (CPU
     tensors): the same in one numba kernel (`raster.rotation_cpu`); this function is its twin."""
     if fast:
-        from ragsplat_core.raster.rotation_cpu import covariance as fused
+        from ragsplat_core.raster.rotation_cpu import covariance_cpu
 
-        return fused(quats, scales)
+        return covariance_cpu(quats, scales)
     M = quat_to_rotmat(quats) * scales[:, None, :]  # R diag(s)
     return M @ M.transpose(1, 2)
 

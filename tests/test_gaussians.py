@@ -166,8 +166,8 @@ def test_shape_kernels_match_their_twins(dtype, tol):
 
 
 def test_shape_kernels_gradients_match_finite_differences():
-    from ragsplat_core.raster.rotation_cpu import covariance as cov_fast
-    from ragsplat_core.raster.rotation_cpu import tangents
+    from ragsplat_core.raster.rotation_cpu import covariance_cpu as cov_fast
+    from ragsplat_core.raster.rotation_cpu import tangents_cpu as tangents
 
     gen = torch.Generator().manual_seed(6)
     quats = torch.randn(12, 4, generator=gen, dtype=torch.float64).requires_grad_()

@@ -114,11 +114,11 @@ class _Shape(torch.autograd.Function):
         return g_quats, g_scales, None
 
 
-def covariance(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+def covariance_cpu(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
     """[N, 3, 3] world covariances of CPU quaternions [N, 4] and linear scales [N, 3] (`gaussians.covariance`)."""
     return _Shape.apply(quats, scales, 3)
 
 
-def tangents(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+def tangents_cpu(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
     """[N, 3, 2] scaled tangents of CPU quaternions [N, 4] and linear scales [N, 2] (`surfel_tangents`)."""
     return _Shape.apply(quats, scales, 2)

@@ -57,9 +57,9 @@ def surfel_tangents(quats: torch.Tensor, scales: torch.Tensor, fast: bool = Fals
     linear scales [N, 2]: the first two columns of the rotation (2DGS; the third is the normal). `fast` (CPU
     tensors): the same in one numba kernel (`raster.rotation_cpu`); this function is its twin."""
     if fast:
-        from ragsplat_core.raster.rotation_cpu import tangents
+        from ragsplat_core.raster.rotation_cpu import tangents_cpu
 
-        return tangents(quats, scales)
+        return tangents_cpu(quats, scales)
     return quat_to_rotmat(quats)[:, :, :2] * scales[:, None, :]
 
 
