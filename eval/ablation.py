@@ -178,14 +178,16 @@ def save_row(folder: Path, row: dict, grid: np.ndarray, truth, fused: np.ndarray
 
 def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds: list[int], runner,
                  vgg16: str | None = None, download: bool = True,
-                 log: Callable[[str], None] = lambda line: None, part: tuple[int, int] = (0, 1)
-                 ) -> dict[str, list[dict]]:
+                 log: Callable[[str], None] = lambda line: None, part: tuple[int, int] = (0, 1),
+                 code: str | None = None) -> dict[str, list[dict]]:
     """Rows for `variants` x `seeds` and the reference rows, reused from `out` when their key matches, else
     computed with `runner` (a `TrainEval`, or anything with its `truth`, `fingerprint`, `dataset_seed`, `gsd`,
     `config`, `initial` and `train`); then all outputs. Returns {name: [row per seed]}.
     `download`: fetch missing LPIPS weights (`metrics.load_lpips`). `log(line)` receives progress lines and,
     at the end, the tables. `part` (k, m): only the trained rows k, k + m, k + 2m, ... (in seed-major order),
     nothing else: m processes share the rows, then a run without `part` reuses them and writes the rest.
+    `code`: the source digest the command started with; ConfigError if the sources are no longer those (an
+    edit during a long run would otherwise key its rows to two versions of the code).
     """
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
@@ -199,7 +201,11 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
     claim_out(out)
     stamp = versions("torch", "scipy")  # the code that runs now, not the checkout at the end of a long run
     truth = runner.truth
-    base = {"dataset": runner.fingerprint, "code": source_digest(*CODE), "harness": asdict(PRESETS[preset])}
+    live = source_digest(*CODE)
+    if code is not None and code != live:
+        raise ConfigError(f"the sources under {' and '.join(CODE)} changed since this command started "
+                          f"(digest {code}, now {live}); rerun it")
+    base = {"dataset": runner.fingerprint, "code": live, "harness": asdict(PRESETS[preset])}
     lpips_metric, lpips_reason = metrics.load_lpips(vgg16, download=download, log=log)
     if lpips_reason:
         log(f"LPIPS n/a: {lpips_reason}")

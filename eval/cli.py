@@ -41,6 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--jobs", type=positive_int, default=1, metavar="N",
                         help="train the rows in N processes at once, each with cores / N threads (default: 1)")
     parser.add_argument("--part", type=_part, default=(0, 1), help=argparse.SUPPRESS)  # one of --jobs' processes
+    parser.add_argument("--code", default=None, help=argparse.SUPPRESS)  # the digest --jobs started with
 
 
 def _part(text: str) -> tuple[int, int]:
@@ -61,7 +62,8 @@ def spawn(cmd: list[str], env: dict, log: Path) -> subprocess.Popen:
 
 
 def run_jobs(args: argparse.Namespace) -> None:
-    """The rows in `args.jobs` child processes (`--part k/N`), each logging to OUT/part-k-of-N.log."""
+    """The rows in `args.jobs` child processes (`--part k/N`), each logging to OUT/part-k-of-N.log, all
+    keyed to the sources as they were when the command started (`--code`)."""
     from eval.ablation import claim_out
 
     threads = str(max(1, (os.cpu_count() or 1) // args.jobs))
@@ -69,7 +71,8 @@ def run_jobs(args: argparse.Namespace) -> None:
     base = [sys.executable, "-m", "ragsplat_core.cli.main", "ablation", "--data", str(args.data), "--out",
             str(args.out), "--preset", args.preset, "--variants", *args.variants, "--seeds",
             *map(str, args.seeds), "--init", args.init, *(["--vgg16", args.vgg16] if args.vgg16 else []),
-            *(["--no-download"] if args.no_download else []), *(["--device", args.device] if args.device else [])]
+            *(["--no-download"] if args.no_download else []), *(["--device", args.device] if args.device else []),
+            "--code", args.code]
     claim_out(args.out)  # before the logs are written into it
     logs = [Path(args.out) / f"part-{k}-of-{args.jobs}.log" for k in range(args.jobs)]
     print(f"training in {args.jobs} processes of {threads} thread(s); logs: {', '.join(map(str, logs))}",
@@ -90,14 +93,17 @@ def lpips_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from eval.ablation import TrainEval, run_ablation
+    from eval.ablation import CODE, TrainEval, run_ablation
     from ragsplat_core.cli.progress import deferred_interrupts, training_bar
+    from ragsplat_core.outputs import source_digest
 
+    if args.code is None:
+        args.code = source_digest(*CODE)
     if args.jobs > 1:
         run_jobs(args)  # then every trained row is on disk and is reused below
     with deferred_interrupts() as check:  # Ctrl-C: the trainer checkpoints its finished steps, then stops
         train_eval = TrainEval(args.data, args.device, training_bar=partial(training_bar, leave=False, check=check),
                                init=args.init)
         run_ablation(args.data, args.out, args.preset, args.variants, args.seeds, train_eval, vgg16=args.vgg16,
-                     download=not args.no_download, log=print, part=args.part)
+                     download=not args.no_download, log=print, part=args.part, code=args.code)
     return 0

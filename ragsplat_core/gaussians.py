@@ -39,8 +39,13 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     ], -1).reshape(-1, 3, 3)
 
 
-def covariance(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
-    """World covariance R S S R^T [N, 3, 3] from quaternions [N, 4] and linear scales [N, 3]."""
+def covariance(quats: torch.Tensor, scales: torch.Tensor, fast: bool = False) -> torch.Tensor:
+    """World covariance R S S R^T [N, 3, 3] from quaternions [N, 4] and linear scales [N, 3]. `fast` (CPU
+    tensors): the same in one numba kernel (`raster.rotation_cpu`); this function is its twin."""
+    if fast:
+        from ragsplat_core.raster.rotation_cpu import covariance_cpu
+
+        return covariance_cpu(quats, scales)
     M = quat_to_rotmat(quats) * scales[:, None, :]  # R diag(s)
     return M @ M.transpose(1, 2)
 
@@ -86,8 +91,10 @@ def eval_sh(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tens
     return torch.einsum("nk,nkc->nc", sh_basis(degree, dirs), coeffs[:, :num_sh_bases(degree)])
 
 
-def colors_for_view(splats: torch.nn.ParameterDict, camera_center: torch.Tensor, degree: int) -> torch.Tensor:
+def colors_for_view(splats: torch.nn.ParameterDict, camera_center: torch.Tensor, degree: int,
+                    fast: bool = False) -> torch.Tensor:
     """RGB [N, 3] seen from `camera_center` [3], using SH up to `degree` (the active degree), clamped >= 0.
+    `fast` (CPU tensors): the same in one numba kernel (`raster.sh_cpu`); this function is its twin.
 
     The direction is from the camera to the TRUE mean, evaluated before the refraction transform (the
     refraction contract takes per-view RGB). Under water the ray that actually leaves the Gaussian is the
@@ -96,6 +103,10 @@ def colors_for_view(splats: torch.nn.ParameterDict, camera_center: torch.Tensor,
     """
     if degree == 0 or "shN" not in splats:
         return (SH_C0 * splats["sh0"][:, 0] + 0.5).clamp_min(0.0)
+    if fast:
+        from ragsplat_core.raster.sh_cpu import view_colors
+
+        return view_colors(splats["sh0"], splats["shN"], splats["means"], camera_center, degree)
     coeffs = torch.cat([splats["sh0"], splats["shN"]], 1)  # [N, K, 3]
     dirs = torch.nn.functional.normalize(splats["means"] - camera_center, dim=-1)  # [N, 3]
     return (eval_sh(degree, coeffs, dirs) + 0.5).clamp_min(0.0)

@@ -61,8 +61,13 @@ def rasterize(means, quats, scales, opacities, colors, camera: Camera, backgroun
                                                    covars, backend="torch", median=True)[3]["median_depth"]
         return out
     if covars is None:
-        covars = covariance(quats, scales)  # [N, 3, 3]
-    proj = project(means, covars, opacities, camera)
+        covars = covariance(quats, scales, fast=backend == "cpu")  # [N, 3, 3]
+    if backend == "cpu":
+        from ragsplat_core.raster.project_cpu import project as project_fast
+
+        proj = project_fast(means, covars, opacities, camera)
+    else:
+        proj = project(means, covars, opacities, camera)
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()

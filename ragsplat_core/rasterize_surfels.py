@@ -54,7 +54,7 @@ def rasterize_surfels(means, quats, scales, opacities, colors, camera: Camera, b
     if backend == "gsplat":
         return _rasterize_gsplat(means, quats, scales, opacities, colors, camera, background)
     if tangents is None:
-        tangents = surfel_tangents(quats, scales)  # [N, 3, 2]
+        tangents = surfel_tangents(quats, scales, fast=backend == "cpu")  # [N, 3, 2]
     proj = project_surfels(means, tangents, opacities, camera)
     means2d = proj.means2d
     if means2d.requires_grad:

@@ -119,6 +119,9 @@ def test_parts_share_the_rows_and_the_last_run_reuses_them(tmp_path):
     assert (out / "results.json").is_file()
     with pytest.raises(ConfigError, match="part 2 of 2"):
         run_ablation(data, out, "smoke", ["3dgs"], [0], runner, part=(2, 2), **quiet)
+    # the sources edited while the parts ran: refused, not keyed to two versions of the code
+    with pytest.raises(ConfigError, match="changed since this command started"):
+        run_ablation(data, out, "smoke", ["3dgs"], [0], runner, code="0123456789abcdef", **quiet)
 
 
 def test_rows_are_reused_only_under_their_key(tmp_path):

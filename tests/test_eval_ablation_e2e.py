@@ -9,6 +9,7 @@ import pytest
 from eval import ablation, metrics
 from ragsplat_core import train
 from ragsplat_core.cli.main import main
+from ragsplat_core.outputs import source_digest
 
 
 def test_ablation_command(evaluable_dataset, tmp_path, monkeypatch, capsys):
@@ -136,7 +137,8 @@ def test_jobs_train_every_row_once_and_the_tables_reuse_them(evaluable_dataset, 
     argv = ["ablation", "--data", str(evaluable_dataset), "--out", str(out), "--preset", "smoke", "--variants",
             "3dgs", "full", "--seeds", "0", "1", "--init", "grid", "--no-download"]
     assert main([*argv, "--jobs", "2"]) == 0
-    assert [c[-2:] for c in children] == [["--part", "0/2"], ["--part", "1/2"]] and children[0][:-2] == argv
+    assert [c[-2:] for c in children] == [["--part", "0/2"], ["--part", "1/2"]] and children[0][:-4] == argv
+    assert children[0][-4:-2] == ["--code", source_digest(*ablation.CODE)]  # keyed to the code at the start
     printed = capsys.readouterr().out
     assert printed.count("training ...") == 4 and printed.count("reusing the finished row") == 4
     assert list(json.loads((out / "results.json").read_text())["rows"]) == ["init", "3dgs x n", "oracle plane",

@@ -6,6 +6,7 @@ import torch
 from ragsplat_core.gaussians import (
     activated,
     colors_for_view,
+    covariance,
     eval_sh,
     init_grid,
     init_points,
@@ -103,3 +104,73 @@ def test_init_points_scales_underwater_depth():
     assert torch.allclose(torch.exp(s["scales"][0]), d0.expand(3))
     with pytest.raises(ValueError, match="non-finite"):
         init_points(pts * float("nan"), rgb, None)
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 2e-5)])
+@pytest.mark.parametrize("degree", [1, 2, 3])
+def test_sh_kernel_matches_its_twin(degree, dtype, tol):
+    # the numba view colours against the PyTorch ones: values, and the gradients to sh0, shN and the means;
+    # some colours clamped at 0 (no gradient there), every direction, and more coefficients than used
+    gen = torch.Generator().manual_seed(degree)
+    n = 500
+    splats = {"means": torch.randn(n, 3, generator=gen, dtype=torch.float64) * 3,
+              "sh0": torch.randn(n, 1, 3, generator=gen, dtype=torch.float64),
+              "shN": torch.randn(n, 15, 3, generator=gen, dtype=torch.float64) * 0.5}
+    center = torch.tensor([0.3, -0.2, 4.0], dtype=torch.float64)
+    out, grads = {}, {}
+    for fast in (False, True):
+        leaves = {k: v.to(dtype).clone().requires_grad_() for k, v in splats.items()}  # own grads
+        colors = colors_for_view(leaves, center.to(dtype), degree, fast=fast)
+        weights = torch.randn(n, 3, generator=torch.Generator().manual_seed(7), dtype=torch.float64).to(dtype)
+        (colors * weights).sum().backward()
+        out[fast], grads[fast] = colors.detach(), {k: v.grad for k, v in leaves.items()}
+    assert 0.05 < float((out[False] == 0).double().mean()) < 0.5  # the clamp is exercised
+    torch.testing.assert_close(out[True], out[False], rtol=tol, atol=tol)
+    for k in ("sh0", "shN", "means"):
+        torch.testing.assert_close(grads[True][k], grads[False][k], rtol=tol, atol=tol)
+    unused = grads[True]["shN"][:, (degree + 1) ** 2 - 1:]
+    assert unused.numel() == 0 or float(unused.abs().max()) == 0.0  # no gradient to the unused degrees
+
+
+def test_sh_kernel_gradient_matches_finite_differences():
+    # the means' gradient (through the view direction) from first principles, in float64
+    from ragsplat_core.raster.sh_cpu import view_colors
+
+    gen = torch.Generator().manual_seed(3)
+    means = torch.randn(20, 3, generator=gen, dtype=torch.float64).requires_grad_()
+    sh0 = torch.randn(20, 1, 3, generator=gen, dtype=torch.float64).requires_grad_()
+    shN = (torch.randn(20, 15, 3, generator=gen, dtype=torch.float64) * 0.3).requires_grad_()
+    center = torch.tensor([0.0, 0.0, 5.0], dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda m, a, b: view_colors(a, b, m, center, 3), (means, sh0, shN))
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_shape_kernels_match_their_twins(dtype, tol):
+    # numba covariance R S S^T R^T and surfel tangents R[:, :2] diag(s) against the PyTorch ones: values and
+    # the gradients to the (unnormalised) quaternions and the scales
+    from ragsplat_core.raster.surfel_project import surfel_tangents
+
+    gen = torch.Generator().manual_seed(5)
+    quats = (torch.randn(400, 4, generator=gen, dtype=torch.float64) * 2).to(dtype)
+    scales = (torch.rand(400, 3, generator=gen, dtype=torch.float64) + 0.05).to(dtype)
+    for twin, cols in ((covariance, 3), (surfel_tangents, 2)):
+        weights = torch.randn(400, 3, cols, generator=gen, dtype=torch.float64).to(dtype)
+        res = []
+        for fast in (False, True):
+            q, s = quats.clone().requires_grad_(), scales[:, :cols].clone().requires_grad_()
+            out = twin(q, s, fast=fast)
+            (out * weights).sum().backward()
+            res.append((out.detach(), q.grad, s.grad))
+        for got, want in zip(res[1], res[0]):
+            torch.testing.assert_close(got, want, rtol=tol, atol=tol)
+
+
+def test_shape_kernels_gradients_match_finite_differences():
+    from ragsplat_core.raster.rotation_cpu import covariance_cpu as cov_fast
+    from ragsplat_core.raster.rotation_cpu import tangents_cpu as tangents
+
+    gen = torch.Generator().manual_seed(6)
+    quats = torch.randn(12, 4, generator=gen, dtype=torch.float64).requires_grad_()
+    scales = (torch.rand(12, 3, generator=gen, dtype=torch.float64) + 0.1).requires_grad_()
+    assert torch.autograd.gradcheck(cov_fast, (quats, scales))
+    assert torch.autograd.gradcheck(tangents, (quats, scales[:, :2].detach().clone().requires_grad_()))

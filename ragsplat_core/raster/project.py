@@ -70,24 +70,32 @@ def project(means: torch.Tensor, covars: torch.Tensor, opacities: torch.Tensor, 
     ok = front & (det > 0) & (opacities >= ALPHA_MIN)
     det = torch.where(ok, det, torch.ones_like(det))
     conics = torch.stack([c / det, -b / det, a / det], -1)  # [N, 3]
-
     with torch.no_grad():
-        r2 = 2 * torch.log(torch.clamp(opacities.detach(), min=ALPHA_MIN) * 255.0)
-        ex = torch.sqrt(r2 * torch.clamp(a.detach(), min=0)) + BOX_PAD
-        ey = torch.sqrt(r2 * torch.clamp(c.detach(), min=0)) + BOX_PAD
-        ud, vd = u.detach(), v.detach()
-        # Pixel i is in the box when its centre i + 0.5 lies in [u - ex, u + ex].
-        i0 = torch.ceil(ud - ex - 0.5).clamp(-1, W)
-        i1 = torch.floor(ud + ex - 0.5).clamp(-1, W)
-        j0 = torch.ceil(vd - ey - 0.5).clamp(-1, H)
-        j1 = torch.floor(vd + ey - 0.5).clamp(-1, H)
-        ok = ok & torch.isfinite(ex + ey + ud + vd)
-        visible = ok & (i1 >= 0) & (i0 <= W - 1) & (j1 >= 0) & (j0 <= H - 1) & (i0 <= i1) & (j0 <= j1)
-        box = torch.stack([i0.clamp(0, W - 1), i1.clamp(0, W - 1), j0.clamp(0, H - 1), j1.clamp(0, H - 1)],
-                          -1)
-        box = torch.where(visible[:, None], box, torch.zeros_like(box)).to(torch.int64)
-        radii = torch.where(visible, torch.ceil(torch.maximum(ex, ey)), torch.zeros_like(ex)).to(torch.int32)
+        box, visible, radii = screen_box(means2d, a, c, ok, opacities, camera)
     return Projected(means2d, conics, pc[:, 2], box, visible, radii)
+
+
+@torch.no_grad()
+def screen_box(means2d, a, c, ok, opacities, camera: Camera):
+    """(box [N, 4], visible [N], radii [N]) of `Projected` from the screen positions [N, 2], the dilated 2D
+    variances a, c [N] and whether each Gaussian can be drawn at all `ok` [N] (in front, det > 0, opaque
+    enough). Shared by `project` and its CPU kernel."""
+    W, H = camera.width, camera.height
+    r2 = 2 * torch.log(torch.clamp(opacities.detach(), min=ALPHA_MIN) * 255.0)
+    ex = torch.sqrt(r2 * torch.clamp(a.detach(), min=0)) + BOX_PAD
+    ey = torch.sqrt(r2 * torch.clamp(c.detach(), min=0)) + BOX_PAD
+    ud, vd = means2d[:, 0].detach(), means2d[:, 1].detach()
+    # Pixel i is in the box when its centre i + 0.5 lies in [u - ex, u + ex].
+    i0 = torch.ceil(ud - ex - 0.5).clamp(-1, W)
+    i1 = torch.floor(ud + ex - 0.5).clamp(-1, W)
+    j0 = torch.ceil(vd - ey - 0.5).clamp(-1, H)
+    j1 = torch.floor(vd + ey - 0.5).clamp(-1, H)
+    ok = ok & torch.isfinite(ex + ey + ud + vd)
+    visible = ok & (i1 >= 0) & (i0 <= W - 1) & (j1 >= 0) & (j0 <= H - 1) & (i0 <= i1) & (j0 <= j1)
+    box = torch.stack([i0.clamp(0, W - 1), i1.clamp(0, W - 1), j0.clamp(0, H - 1), j1.clamp(0, H - 1)], -1)
+    box = torch.where(visible[:, None], box, torch.zeros_like(box)).to(torch.int64)
+    radii = torch.where(visible, torch.ceil(torch.maximum(ex, ey)), torch.zeros_like(ex)).to(torch.int32)
+    return box, visible, radii
 
 
 class Bins(NamedTuple):

@@ -52,9 +52,14 @@ class SurfelsProjected(NamedTuple):
     radii: torch.Tensor  # [N] int32 max distance (pixels) from means2d to the box edge, 0 = not visible
 
 
-def surfel_tangents(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+def surfel_tangents(quats: torch.Tensor, scales: torch.Tensor, fast: bool = False) -> torch.Tensor:
     """Scaled world tangents [N, 3, 2] (columns s_u t_u, s_v t_v) from quaternions [N, 4] (w, x, y, z) and
-    linear scales [N, 2]: the first two columns of the rotation (2DGS; the third is the normal)."""
+    linear scales [N, 2]: the first two columns of the rotation (2DGS; the third is the normal). `fast` (CPU
+    tensors): the same in one numba kernel (`raster.rotation_cpu`); this function is its twin."""
+    if fast:
+        from ragsplat_core.raster.rotation_cpu import tangents_cpu
+
+        return tangents_cpu(quats, scales)
     return quat_to_rotmat(quats)[:, :, :2] * scales[:, None, :]
 
 
