@@ -70,8 +70,7 @@ def project(means: torch.Tensor, covars: torch.Tensor, opacities: torch.Tensor, 
     ok = front & (det > 0) & (opacities >= ALPHA_MIN)
     det = torch.where(ok, det, torch.ones_like(det))
     conics = torch.stack([c / det, -b / det, a / det], -1)  # [N, 3]
-    with torch.no_grad():
-        box, visible, radii = screen_box(means2d, a, c, ok, opacities, camera)
+    box, visible, radii = screen_box(means2d, a, c, ok, opacities, camera)  # no gradient (decorated)
     return Projected(means2d, conics, pc[:, 2], box, visible, radii)
 
 

@@ -31,33 +31,44 @@ def _jacobian(x, y, z, fx, fy, lim, JW, R):
     return tx, ty, inside_x, inside_y
 
 
+@njit(cache=True, inline="always")
+def _view(means, covars, opacities, n, R, t, fx, fy, lim, JW):
+    """What forward and backward both need of Gaussian n: camera coordinates x, y, z0 (and z, the camera z
+    with culled ones at a harmless 1), whether it is in front, the clamped Jacobian (JW and
+    `_jacobian`'s returns), the dilated 2D covariance entries a, b, c, their determinant and whether it is
+    drawn at all (in front, det > 0, opaque enough): one code for both, so they take the same decisions."""
+    x = R[0, 0] * means[n, 0] + R[0, 1] * means[n, 1] + R[0, 2] * means[n, 2] + t[0]
+    y = R[1, 0] * means[n, 0] + R[1, 1] * means[n, 1] + R[1, 2] * means[n, 2] + t[1]
+    z0 = R[2, 0] * means[n, 0] + R[2, 1] * means[n, 1] + R[2, 2] * means[n, 2] + t[2]
+    front = z0 >= NEAR
+    z = z0 if front else 1.0
+    tx, ty, inside_x, inside_y = _jacobian(x, y, z, fx, fy, lim, JW, R)
+    c00 = c01 = c11 = 0.0  # cov2d = JW S JW^T, entries (0, 0), (0, 1), (1, 1)
+    for i in range(3):
+        for j in range(3):
+            s = covars[n, i, j]
+            c00 += JW[0, i] * s * JW[0, j]
+            c01 += JW[0, i] * s * JW[1, j]
+            c11 += JW[1, i] * s * JW[1, j]
+    a, b, c = c00 + EPS2D, c01, c11 + EPS2D
+    det = a * c - b * b
+    drawn = front and det > 0 and opacities[n] >= ALPHA_MIN
+    return x, y, z0, z, front, tx, ty, inside_x, inside_y, a, b, c, det, drawn
+
+
 @njit(cache=True, parallel=True)
 def _forward(means, covars, opacities, R, t, fx, fy, cx, cy, lim, means2d, conics, depths, ac, ok):
     n_all = means.shape[0]
     for chunk in prange((n_all + _CHUNK - 1) // _CHUNK):
         JW = np.empty((2, 3), dtype=means.dtype)
         for n in range(chunk * _CHUNK, min(n_all, (chunk + 1) * _CHUNK)):
-            x = R[0, 0] * means[n, 0] + R[0, 1] * means[n, 1] + R[0, 2] * means[n, 2] + t[0]
-            y = R[1, 0] * means[n, 0] + R[1, 1] * means[n, 1] + R[1, 2] * means[n, 2] + t[1]
-            z0 = R[2, 0] * means[n, 0] + R[2, 1] * means[n, 1] + R[2, 2] * means[n, 2] + t[2]
+            x, y, z0, z, _, _, _, _, _, a, b, c, det, drawn = _view(means, covars, opacities, n, R, t, fx, fy,
+                                                                    lim, JW)
             depths[n] = z0
-            front = z0 >= NEAR
-            z = z0 if front else 1.0  # culled ones get a harmless z
             means2d[n, 0] = fx * x / z + cx
             means2d[n, 1] = fy * y / z + cy
-            _jacobian(x, y, z, fx, fy, lim, JW, R)
-            # cov2d = JW S JW^T, entries (0, 0), (0, 1), (1, 1)
-            c00 = c01 = c11 = 0.0
-            for i in range(3):
-                for j in range(3):
-                    s = covars[n, i, j]
-                    c00 += JW[0, i] * s * JW[0, j]
-                    c01 += JW[0, i] * s * JW[1, j]
-                    c11 += JW[1, i] * s * JW[1, j]
-            a, b, c = c00 + EPS2D, c01, c11 + EPS2D
-            det = a * c - b * b
-            ok[n] = front and det > 0 and opacities[n] >= ALPHA_MIN
-            if not ok[n]:
+            ok[n] = drawn
+            if not drawn:
                 det = 1.0
             conics[n, 0], conics[n, 1], conics[n, 2] = c / det, -b / det, a / det
             ac[n, 0], ac[n, 1] = a, c
@@ -71,23 +82,10 @@ def _backward(means, covars, opacities, R, t, fx, fy, lim, g_means2d, g_conics, 
         G = np.empty((2, 2), dtype=means.dtype)
         gJW = np.empty((2, 3), dtype=means.dtype)
         for n in range(chunk * _CHUNK, min(n_all, (chunk + 1) * _CHUNK)):
-            x = R[0, 0] * means[n, 0] + R[0, 1] * means[n, 1] + R[0, 2] * means[n, 2] + t[0]
-            y = R[1, 0] * means[n, 0] + R[1, 1] * means[n, 1] + R[1, 2] * means[n, 2] + t[1]
-            z0 = R[2, 0] * means[n, 0] + R[2, 1] * means[n, 1] + R[2, 2] * means[n, 2] + t[2]
-            front = z0 >= NEAR
-            z = z0 if front else 1.0
-            tx, ty, inside_x, inside_y = _jacobian(x, y, z, fx, fy, lim, JW, R)
-            c00 = c01 = c11 = 0.0
-            for i in range(3):
-                for j in range(3):
-                    s = covars[n, i, j]
-                    c00 += JW[0, i] * s * JW[0, j]
-                    c01 += JW[0, i] * s * JW[1, j]
-                    c11 += JW[1, i] * s * JW[1, j]
-            a, b, c = c00 + EPS2D, c01, c11 + EPS2D
-            det = a * c - b * b
+            x, y, _, z, front, tx, ty, inside_x, inside_y, a, b, c, det, drawn = _view(
+                means, covars, opacities, n, R, t, fx, fy, lim, JW)
             gA, gB, gC = g_conics[n, 0], g_conics[n, 1], g_conics[n, 2]
-            if front and det > 0 and opacities[n] >= ALPHA_MIN:
+            if drawn:
                 inv = 1.0 / det
                 g_det = -inv * inv * (gA * c - gB * b + gC * a)
                 ga, gb, gc = gC * inv + g_det * c, -gB * inv - 2 * b * g_det, gA * inv + g_det * a
