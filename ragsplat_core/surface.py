@@ -3,8 +3,9 @@
 
 Extraction (the paper's Section 3, "Geometry Extraction"):
 1. cull Gaussians below an opacity threshold, those whose largest standard deviation exceeds
-   `max_scale_gsd` ground sample distances of the views (`gsd`, `Dataset.gsd`) (and, when a region is given, those whose centre lies more than
-   `region_margin` outside it: samples spent far away say nothing about the bed);
+   `max_scale_gsd` ground sample distances of the views (`gsd`, `Dataset.gsd`), and, when a region is
+   given, those whose centre lies more than `region_margin` outside it (samples spent far away say nothing
+   about the bed);
 2. draw `n_samples` points, split between Gaussians in proportion to their volume (product of the three
    standard deviations) with largest-remainder rounding, so the total is exact; each point is a draw of the
    Gaussian truncated to Mahalanobis radius `sigma_cut` (2 sigma);
