@@ -342,7 +342,7 @@ class TrainEval:
 
         def checkpoint(tr, step: int) -> None:
             t0 = time.perf_counter()
-            app = evaluate_views(model_renderer(tr), self.ds.test)
+            app = evaluate_views(model_renderer(tr), self.ds.test, psnr_only=True)
             geo, _ = evaluate_geometry(model_gaussians(tr), self.truth, ecfg)
             curve[:] = [c for c in curve if c["iteration"] != step]
             curve.append({"iteration": step, "time_s": tr.elapsed, "cpu_s": tr.cpu_elapsed,

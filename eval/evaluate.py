@@ -27,7 +27,7 @@ def _mean(values) -> float | None:
     return float(np.mean(values)) if values else None
 
 
-def evaluate_views(render: Callable, views, lpips_metric=None) -> dict:
+def evaluate_views(render: Callable, views, lpips_metric=None, psnr_only: bool = False) -> dict:
     """Appearance on `views` (objects with `.name`, `.kind`, `.image`, `.dry` as in `ragsplat_core.dataset`).
 
     `render(view, interface: bool) -> [H, W, 3]` renders through the interface (True) or the true
@@ -35,6 +35,8 @@ def evaluate_views(render: Callable, views, lpips_metric=None) -> dict:
     on the render's device, where `lpips_metric` must already be (`LPIPS.to`). `ssim` is the standard
     SSIM (scikit-image's value), `ssim_3dgs` the training one. Returns
     {"refr": {"psnr", "ssim", "ssim_3dgs", "lpips"}, "dry": {...} or None, "per_view": [...]}.
+    `psnr_only`: the other metrics are None (the training curve's points need PSNR alone; the SSIMs cost
+    more than the renders).
     """
     per_view = []
     for view in views:
@@ -46,10 +48,12 @@ def evaluate_views(render: Callable, views, lpips_metric=None) -> dict:
             with torch.no_grad():
                 img = render(view, cond == "refr").clamp(0, 1)
                 target = target.to(img.device, img.dtype)  # metrics run where the render is (LPIPS too)
-                entry[cond] = {"psnr": float(metrics.psnr(img, target)),
-                               "ssim": float(metrics.ssim_standard(img, target)),
-                               "ssim_3dgs": float(metrics.ssim(img, target)),
-                               "lpips": None if lpips_metric is None else float(lpips_metric(img, target))}
+                entry[cond] = {"psnr": float(metrics.psnr(img, target)), "ssim": None, "ssim_3dgs": None,
+                               "lpips": None}
+                if not psnr_only:
+                    entry[cond].update(ssim=float(metrics.ssim_standard(img, target)),
+                                       ssim_3dgs=float(metrics.ssim(img, target)),
+                                       lpips=None if lpips_metric is None else float(lpips_metric(img, target)))
         per_view.append(entry)
     out = {"per_view": per_view}
     for cond in ("refr", "dry"):

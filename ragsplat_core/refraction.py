@@ -274,14 +274,14 @@ class ApparentGaussians(NamedTuple):
 
 def refract_gaussians(means, scales, quats, opacities, colors, camera_center, water: WaterSurface,
                       position: bool = True, scale: str = "isotropic", opacity: bool = True,
-                      color: bool = False, steps: int | None = None) -> ApparentGaussians:
+                      color: bool = False, steps: int | None = None, covariances: bool = True) -> ApparentGaussians:
     """Map true Gaussians to the apparent ones one camera sees through the water (RA-GS, per view).
 
     means [N, 3], scales [N, 3] (linear), quats [N, 4] (wxyz), opacities [N] in [0, 1], colors [N, ...]
     (sRGB-encoded, the training target's space), camera_center [3]. Only Gaussians whose centre is below
     the level change. `scale`: "none"; "isotropic" (the paper: s' = S s, S = (|J e_x| |J e_y| |J e_z|)^(1/3));
     "determinant" (S = |det J|^(1/3)); "anisotropic" (covars = J Sigma J^T and `jacobians` J, scales left
-    as given).
+    as given; `covariances=False`: the Jacobians alone, which is all a surfel's tangents need).
     Opacity: alpha' = alpha / n^2. Colour: radiance / n^2 in linear light, re-encoded to sRGB. Within
     `WATERLINE_BAND` of the level each factor (S, J, 1 / n^2) blends from 1 (`waterline_weight`).
     """
@@ -290,18 +290,19 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
     _check_camera(camera_center, water)
     covars = jacobians = None
     if scale == "anisotropic":
-        covars = covariance(quats, scales)
+        covars = covariance(quats, scales) if covariances else None
         jacobians = torch.eye(3, dtype=means.dtype, device=means.device).expand(len(means), 3, 3)
     if water.is_identity or not (position or opacity or color or scale != "none"):
         return ApparentGaussians(means, scales, quats, opacities, colors, covars, jacobians)
     wet = _submerged(means, water)
     all_wet = bool(wet.all())
+    rows = None if all_wet else wet.nonzero().squeeze(1)  # found once: a boolean index searches every time
 
     def put(full, part):  # writes the submerged rows; skips the scatter when every Gaussian is submerged
-        return part if all_wet else full.index_put((wet,), part)
+        return part if all_wet else full.index_copy(0, rows, part)
 
     def take(full):
-        return full if all_wet else full[wet]
+        return full if all_wet else full.index_select(0, rows)
 
     level = torch.as_tensor(water.level, dtype=means.dtype, device=means.device)
     w = waterline_weight(level - take(means)[:, 2])  # [M]
@@ -317,7 +318,8 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
         elif scale == "anisotropic":
             eye = torch.eye(3, dtype=means.dtype, device=means.device).expand(len(w), 3, 3)
             J = torch.lerp(eye, _jacobian(loc, der), w[:, None, None])
-            covars = put(covars, J @ take(covars) @ J.transpose(1, 2))
+            if covars is not None:
+                covars = put(covars, J @ take(covars) @ J.transpose(1, 2))
             jacobians = put(jacobians, J)
     fade = _fade(w, water.n)  # [M]
     if opacity:

@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
+from numba import njit, prange
 from scipy.spatial import cKDTree
 
 from ragsplat_core.errors import ConfigError
@@ -147,10 +148,13 @@ def sample_gaussians(means, scales, quats, opacities, cfg: ExtractConfig, region
     return means[owner] + np.einsum("mij,mj->mi", rot, z), keep
 
 
-def plane_filter(points: np.ndarray, cfg: ExtractConfig, chunk: int = 20_000) -> np.ndarray:
-    """Step 3: bool mask [M] of the points the local-plane noise filter keeps."""
+def plane_filter(points: np.ndarray, cfg: ExtractConfig, chunk: int = 20_000, fast: bool = True) -> np.ndarray:
+    """Step 3: bool mask [M] of the points the local-plane noise filter keeps.
+
+    `fast`: each point's plane test in one numba kernel (`_plane_keep`); otherwise in numpy, its twin."""
     if len(points) == 0:
         return np.zeros(0, dtype=bool)
+    points = np.ascontiguousarray(points, dtype=np.float64)
     tree = cKDTree(points)
     k = min(cfg.filter_max_neighbours + 1, len(points))  # +1: the query point finds itself first
     keep = np.zeros(len(points), dtype=bool)
@@ -158,20 +162,62 @@ def plane_filter(points: np.ndarray, cfg: ExtractConfig, chunk: int = 20_000) ->
         p = points[s: s + chunk]  # [C, 3]
         dist, nb = tree.query(p, k=k, distance_upper_bound=cfg.filter_radius)
         dist, nb = dist.reshape(len(p), k)[:, 1:], nb.reshape(len(p), k)[:, 1:]  # drop the point itself
-        valid = np.isfinite(dist)  # [C, K]
-        cnt = valid.sum(1)
-        q = points[np.where(valid, nb, 0)]  # [C, K, 3]
-        w = valid[..., None].astype(np.float64)
-        centre = (q * w).sum(1) / np.maximum(cnt, 1)[:, None]  # [C, 3]
-        d = (q - centre[:, None]) * w
-        cov = np.einsum("cki,ckj->cij", d, d)
-        normal = np.linalg.eigh(cov)[1][:, :, 0]  # [C, 3] smallest-eigenvalue direction
-        nd = np.einsum("cki,ci->ck", d, normal)  # neighbours' signed plane distances (0 where invalid)
-        std = np.sqrt((nd**2).sum(1) / np.maximum(cnt, 1))
-        own = np.abs(np.einsum("ci,ci->c", p - centre, normal))
-        tol = np.maximum(cfg.filter_k * std, cfg.filter_min_tol)
-        keep[s: s + chunk] = (cnt >= cfg.filter_min_neighbours) & (own <= tol)
+        valid = np.isfinite(dist)  # [C, K]; a missing neighbour has index len(points)
+        test = _plane_keep if fast else _plane_keep_numpy
+        keep[s: s + chunk] = test(points, p, np.ascontiguousarray(nb), valid, cfg.filter_min_neighbours,
+                                  cfg.filter_k, cfg.filter_min_tol)
     return keep
+
+
+def _plane_keep_numpy(points, p, nb, valid, min_neighbours: int, k: float, min_tol: float) -> np.ndarray:
+    """[C] bool: the plane test of points p [C, 3] against their neighbours points[nb] [C, K] (where valid)."""
+    cnt = valid.sum(1)
+    q = points[np.where(valid, nb, 0)]  # [C, K, 3]
+    w = valid[..., None].astype(np.float64)
+    centre = (q * w).sum(1) / np.maximum(cnt, 1)[:, None]  # [C, 3]
+    d = (q - centre[:, None]) * w
+    cov = np.einsum("cki,ckj->cij", d, d)
+    normal = np.linalg.eigh(cov)[1][:, :, 0]  # [C, 3] smallest-eigenvalue direction
+    nd = np.einsum("cki,ci->ck", d, normal)  # neighbours' signed plane distances (0 where invalid)
+    std = np.sqrt((nd**2).sum(1) / np.maximum(cnt, 1))
+    own = np.abs(np.einsum("ci,ci->c", p - centre, normal))
+    tol = np.maximum(k * std, min_tol)
+    return (cnt >= min_neighbours) & (own <= tol)
+
+
+@njit(cache=True, parallel=True)
+def _plane_keep(points, p, nb, valid, min_neighbours, k, min_tol):  # the same as `_plane_keep_numpy`
+    out = np.zeros(len(p), dtype=np.bool_)
+    for c in prange(len(p)):
+        cnt = 0
+        centre = np.zeros(3)
+        for j in range(nb.shape[1]):
+            if valid[c, j]:
+                cnt += 1
+                centre += points[nb[c, j]]
+        if cnt < min_neighbours:
+            continue
+        centre /= cnt
+        cov = np.zeros((3, 3))
+        for j in range(nb.shape[1]):
+            if valid[c, j]:
+                d = points[nb[c, j]] - centre
+                for a in range(3):
+                    for b in range(3):
+                        cov[a, b] += d[a] * d[b]
+        normal = np.linalg.eigh(cov)[1][:, 0]  # smallest-eigenvalue direction
+        ss = 0.0
+        for j in range(nb.shape[1]):
+            if valid[c, j]:
+                nd = 0.0
+                for a in range(3):
+                    nd += (points[nb[c, j], a] - centre[a]) * normal[a]
+                ss += nd * nd
+        own = 0.0
+        for a in range(3):
+            own += (p[c, a] - centre[a]) * normal[a]
+        out[c] = abs(own) <= max(k * np.sqrt(ss / cnt), min_tol)
+    return out
 
 
 def grid_median(points: np.ndarray, cell: float, origin: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:

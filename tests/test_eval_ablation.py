@@ -201,6 +201,9 @@ def test_evaluate_views_conditions():
     assert res["refr"]["psnr"] == pytest.approx(20.0, abs=1e-4)
     assert res["dry"]["ssim"] == pytest.approx(1.0) and res["dry"]["lpips"] is None
     assert res["per_view"][1]["dry"] is None and res["per_view"][1]["kind"] == "oblique20"
+    quick = evaluate_views(render, views, psnr_only=True)  # the training curve's points: PSNR alone
+    assert quick["refr"]["psnr"] == res["refr"]["psnr"] and quick["dry"]["psnr"] == res["dry"]["psnr"]
+    assert quick["refr"]["ssim"] is None and quick["per_view"][0]["dry"]["ssim_3dgs"] is None
 
 
 def test_evaluate_geometry_flat_bed():

@@ -294,6 +294,8 @@ def test_scale_modes_off_nadir_match_jacobian():
     torch.testing.assert_close(det.scales, scales * torch.linalg.det(J).abs()[:, None] ** (1 / 3))
     torch.testing.assert_close(ani.covars, J @ covariance(quats, scales) @ J.transpose(1, 2))
     torch.testing.assert_close(ani.jacobians, J)  # the surfels' tangent map
+    bare = refract_gaussians(*args, scale="anisotropic", covariances=False)  # what surfels ask for
+    assert bare.covars is None and torch.equal(bare.jacobians, ani.jacobians) and torch.equal(bare.means, ani.means)
     assert iso.jacobians is None and det.jacobians is None
     # The paper's observation: the determinant shrinks more than the geometric mean of axis stretches.
     assert bool((det.scales <= iso.scales + 1e-12).all())

@@ -138,7 +138,10 @@ def test_variant_3dgs_skips_refraction(wet, monkeypatch):
     Trainer(_cfg(variant="3dgs", iterations=2), wet).train()
     assert calls == []
     Trainer(_cfg(variant="position+opacity", iterations=2), wet).train()
-    assert calls == [VARIANTS["position+opacity"]] * 2
+    assert calls == [{**VARIANTS["position+opacity"], "covariances": True}] * 2
+    calls.clear()  # surfels take the refracted tangents, never apparent covariances
+    Trainer(_cfg(variant="2dgs+full", iterations=1), wet).train()
+    assert calls == [{**VARIANTS["2dgs+full"], "covariances": False}]
 
 
 @pytest.mark.parametrize("variant", ["full", "full+color", "full+anisotropic"])

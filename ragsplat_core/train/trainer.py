@@ -59,16 +59,18 @@ SURFEL_THICKNESS = 1e-5  # metres
 
 
 def view_gaussians(splats, center: torch.Tensor, sh_degree: int, water: WaterSurface | None,
-                   flags: dict | None, backend: str = "torch") -> ApparentGaussians:
+                   flags: dict | None, backend: str = "torch", surfels: bool = False) -> ApparentGaussians:
     """The Gaussians as the rasterizer takes them for the camera at `center` [3]: the true ones (`flags`
     None) or the apparent ones through `water` (RA-GS, `flags` of `refract_gaussians`). With the `cpu`
-    backend (what "auto" means on CPU) the view colours come from its SH kernel."""
+    backend (what "auto" means on CPU) the view colours come from its SH kernel. `surfels`: no apparent
+    covariances (a surfel renders from its mapped tangents, `jacobians`)."""
     scales, quats, opac = activated(splats)
     fast = choose_backend(backend, splats["means"].device) == "cpu"
     colors = colors_for_view(splats, center, sh_degree, fast)
     if flags is None:
         return ApparentGaussians(splats["means"], scales, quats, opac, colors, None, None)
-    return refract_gaussians(splats["means"], scales, quats, opac, colors, center, water, **flags)
+    return refract_gaussians(splats["means"], scales, quats, opac, colors, center, water, **flags,
+                             covariances=not surfels)
 
 
 def render_splats(splats, camera: Camera, center: torch.Tensor, sh_degree: int, water: WaterSurface | None,
@@ -76,7 +78,7 @@ def render_splats(splats, camera: Camera, center: torch.Tensor, sh_degree: int, 
     """(image [H,W,3], alpha [H,W,1], depth [H,W,1], meta) of `camera` (centre `center` [3]) as training
     renders it (`view_gaussians`, then `rasterize_view`). The trainer and a finished run's renders
     (`export.Model`) share it."""
-    return rasterize_view(view_gaussians(splats, center, sh_degree, water, flags, backend), camera, surfels,
+    return rasterize_view(view_gaussians(splats, center, sh_degree, water, flags, backend, surfels), camera, surfels,
                           background, backend)
 
 
