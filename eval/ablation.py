@@ -22,6 +22,7 @@ and `error_vs_time.png` from the rows of this run's variants and seeds only. The
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -54,7 +55,7 @@ from ragsplat_core.errors import ConfigError, DatasetError
 from ragsplat_core.fusion import FuseConfig, height_mesh
 from ragsplat_core.outputs import claim, source_digest, versions, write_json
 from ragsplat_core.surface import EXTRACT_TUNING, ExtractConfig
-from ragsplat_core.train.config import TUNING, VARIANTS
+from ragsplat_core.train.config import SURFELS, TUNING, VARIANTS
 
 
 @dataclass(frozen=True)
@@ -112,6 +113,17 @@ def row_dir(out: Path, name: str, seed: int | None) -> Path:
 def claim_out(out: Path) -> None:
     """Make `out` an ablation's directory, or check that it is one (`claim`)."""
     claim(out, "ablation", legacy=("results.json", "*/row.json", "*/seed*/row.json", "*/ckpt.pt"))
+
+
+def take(queue: Path, name: str) -> bool:
+    """Whether this process is the first to take the job `name` from `queue` (a marker file, created
+    atomically: exactly one of the processes sharing the folder gets True)."""
+    queue.mkdir(parents=True, exist_ok=True)
+    try:
+        os.close(os.open(queue / name, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+    except FileExistsError:
+        return False
+    return True
 
 
 def cached_row(folder: Path, key: dict, log: Callable[[str], None]) -> dict | None:
@@ -179,13 +191,15 @@ def save_row(folder: Path, row: dict, grid: np.ndarray, truth, fused: np.ndarray
 def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds: list[int], runner,
                  vgg16: str | None = None, download: bool = True,
                  log: Callable[[str], None] = lambda line: None, part: tuple[int, int] = (0, 1),
-                 code: str | None = None) -> dict[str, list[dict]]:
+                 code: str | None = None, queue: Path | None = None) -> dict[str, list[dict]]:
     """Rows for `variants` x `seeds` and the reference rows, reused from `out` when their key matches, else
     computed with `runner` (a `TrainEval`, or anything with its `truth`, `fingerprint`, `dataset_seed`, `gsd`,
     `config`, `initial` and `train`); then all outputs. Returns {name: [row per seed]}.
     `download`: fetch missing LPIPS weights (`metrics.load_lpips`). `log(line)` receives progress lines and,
     at the end, the tables. `part` (k, m): only the trained rows k, k + m, k + 2m, ... (in seed-major order),
     nothing else: m processes share the rows, then a run without `part` reuses them and writes the rest.
+    `queue`: a folder the m processes share; then each takes the next row no process has taken (`take`),
+    surfel rows first, instead of every m-th one, so that none idles while another has two long rows left.
     `code`: the source digest the command started with; ConfigError if the sources are no longer those (an
     edit during a long run would otherwise key its rows to two versions of the code).
     """
@@ -210,35 +224,41 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
     if lpips_reason:
         log(f"LPIPS n/a: {lpips_reason}")
     rows: dict[str, list[dict]] = {}
-    index = -1
+
+    def trained_row(seed: int, variant: str, ecfg: ExtractConfig) -> dict:
+        cfg = runner.config(variant, preset, seed)
+        key = {**base, "train": cfg.to_dict(), "extract": ecfg.to_dict()}
+        folder = row_dir(out, variant, seed)
+        row = cached_row(folder, key, log)
+        if row is not None:
+            log(f"[{variant} seed {seed}] reusing the finished row in {folder}")
+            return row
+        log(f"[{variant} seed {seed}] training ...")
+        start_row(folder, key)
+        t0 = time.perf_counter()
+        row, grid, fused = runner.train(cfg, folder, ecfg, PRESETS[preset].fuse, PRESETS[preset].checkpoints,
+                                        lpips_metric)
+        row = {**row, "name": variant, "seed": seed, "key": key, "lpips_reason": lpips_reason or None,
+               "timings": {**row.get("timings", {}), "row_total_s": time.perf_counter() - t0}}
+        return save_row(folder, row, grid, truth, fused)
+
+    if part[1] > 1:  # one of several processes: trained rows only
+        jobs = [(seed, variant) for seed in seeds for variant in variants]
+        if queue is None:
+            mine = jobs[part[0]::part[1]]
+        else:  # whichever process is free takes the next row, surfel rows (the longest) first
+            mine = sorted(jobs, key=lambda job: job[1] not in SURFELS)
+        for seed, variant in mine:
+            if queue is None or take(queue, f"{slug(variant)}-seed{seed}"):
+                ecfg = extract_config(preset, len(truth.grid), seed, runner.gsd)
+                rows.setdefault(variant, []).append(trained_row(seed, variant, ecfg))
+        return rows
     for seed in seeds:
         ecfg = extract_config(preset, len(truth.grid), seed, runner.gsd)
         for variant in variants:
-            index += 1
-            if index % part[1] != part[0]:
-                continue
-            cfg = runner.config(variant, preset, seed)
-            key = {**base, "train": cfg.to_dict(), "extract": ecfg.to_dict()}
-            folder = row_dir(out, variant, seed)
-            row = cached_row(folder, key, log)
-            if row is not None:
-                log(f"[{variant} seed {seed}] reusing the finished row in {folder}")
-            else:
-                log(f"[{variant} seed {seed}] training ...")
-                start_row(folder, key)
-                t0 = time.perf_counter()
-                row, grid, fused = runner.train(cfg, folder, ecfg, PRESETS[preset].fuse, PRESETS[preset].checkpoints,
-                                                lpips_metric)
-                row = {**row, "name": variant, "seed": seed, "key": key, "lpips_reason": lpips_reason or None,
-                       "timings": {**row.get("timings", {}), "row_total_s": time.perf_counter() - t0}}
-                row = save_row(folder, row, grid, truth, fused)
-            rows.setdefault(variant, []).append(row)
-        if part[1] > 1:
-            continue
+            rows.setdefault(variant, []).append(trained_row(seed, variant, ecfg))
         for name, row in reference_rows(out, runner, preset, seed, ecfg, base, rows, log).items():
             rows.setdefault(name, []).append(row)
-    if part[1] > 1:
-        return rows
     header = {"data": str(Path(data).resolve()), "dataset_fingerprint": runner.fingerprint,
               "dataset_seed": runner.dataset_seed, "tuning": TUNING, "extract_tuning": EXTRACT_TUNING,
               "preset": preset, "seeds": list(seeds),

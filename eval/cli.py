@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import subprocess
 import sys
+import time
 from functools import partial
 from pathlib import Path
 
@@ -42,6 +44,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="train the rows in N processes at once, each with cores / N threads (default: 1)")
     parser.add_argument("--part", type=_part, default=(0, 1), help=argparse.SUPPRESS)  # one of --jobs' processes
     parser.add_argument("--code", default=None, help=argparse.SUPPRESS)  # the digest --jobs started with
+    parser.add_argument("--queue", type=Path, default=None, help=argparse.SUPPRESS)  # the rows --jobs' processes take
 
 
 def _part(text: str) -> tuple[int, int]:
@@ -63,7 +66,8 @@ def spawn(cmd: list[str], env: dict, log: Path) -> subprocess.Popen:
 
 def run_jobs(args: argparse.Namespace) -> None:
     """The rows in `args.jobs` child processes (`--part k/N`), each logging to OUT/part-k-of-N.log, all
-    keyed to the sources as they were when the command started (`--code`)."""
+    keyed to the sources as they were when the command started (`--code`), each taking the next row that
+    none has taken from a queue folder of this command's own (`--queue`, removed at the end)."""
     from eval.ablation import claim_out
 
     threads = str(max(1, (os.cpu_count() or 1) // args.jobs))
@@ -74,11 +78,15 @@ def run_jobs(args: argparse.Namespace) -> None:
             *(["--no-download"] if args.no_download else []), *(["--device", args.device] if args.device else []),
             "--code", args.code]
     claim_out(args.out)  # before the logs are written into it
+    # this command's own folder: markers a killed run left in another one do not hold back this one's rows
+    queue = Path(args.out) / f".queue-{os.getpid()}-{time.time_ns()}"
+    base += ["--queue", str(queue)]
     logs = [Path(args.out) / f"part-{k}-of-{args.jobs}.log" for k in range(args.jobs)]
     print(f"training in {args.jobs} processes of {threads} thread(s); logs: {', '.join(map(str, logs))}",
           flush=True)
     procs = [spawn([*base, "--part", f"{k}/{args.jobs}"], env, log) for k, log in enumerate(logs)]
     failed = [str(log) for proc, log in zip(procs, logs) if proc.wait() != 0]
+    shutil.rmtree(queue, ignore_errors=True)
     if failed:
         raise JobFailed(f"{len(failed)} of {args.jobs} processes failed; see {', '.join(failed)}")
 
@@ -105,5 +113,5 @@ def run(args: argparse.Namespace) -> int:
         train_eval = TrainEval(args.data, args.device, training_bar=partial(training_bar, leave=False, check=check),
                                init=args.init)
         run_ablation(args.data, args.out, args.preset, args.variants, args.seeds, train_eval, vgg16=args.vgg16,
-                     download=not args.no_download, log=print, part=args.part, code=args.code)
+                     download=not args.no_download, log=print, part=args.part, code=args.code, queue=args.queue)
     return 0

@@ -1,5 +1,6 @@
 """Choose a training hyperparameter on a development dataset (never the evaluation one):
-`python -m eval.tune --data DEV_DIR --out DIR [--preset small] [--param lr_means] [--values ...]
+`python -m eval.tune --data DEV_DIR --out DIR [--preset small] [--param lr_means | densify.max_gaussians | ...]
+[--values ...]
 [--variants full] [--seed 0]` trains each variant at each value, scores the bed like the ablation and prints
 F1 at 1 % / 3 % of depth, wet RMSE and training time per value, and the value with the best mean F1 at 3 %
 over the variants. The choice is recorded by hand in `ragsplat_core.train.config.TUNING` (with the dataset
@@ -17,7 +18,19 @@ import numpy as np
 
 from eval.ablation import PRESETS, TrainEval, extract_config, save_row, start_row
 from ragsplat_core.outputs import claim, versions, write_json
-from ragsplat_core.train.config import TrainConfig
+from ragsplat_core.train.config import DensifyConfig, TrainConfig
+
+NUMBERS = ("float", "int")
+PARAMS = [f.name for f in fields(TrainConfig) if f.type in NUMBERS] + \
+    [f"densify.{f.name}" for f in fields(DensifyConfig) if f.type in NUMBERS]
+
+
+def with_value(cfg: TrainConfig, param: str, value: float) -> TrainConfig:
+    """`cfg` with `param` (a TrainConfig field, or densify.FIELD) set to `value` (cast to the field's type)."""
+    owner, name = (cfg.densify, param.split(".", 1)[1]) if param.startswith("densify.") else (cfg, param)
+    value = int(value) if {f.name: f.type for f in fields(owner)}[name] == "int" else value
+    return replace(cfg, densify=replace(cfg.densify, **{name: value})) if owner is not cfg else \
+        replace(cfg, **{name: value})
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -25,8 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--preset", default="small")
-    parser.add_argument("--param", default="lr_means", choices=[f.name for f in fields(TrainConfig)
-                                                                 if f.type in ("float", "int")])
+    parser.add_argument("--param", default="lr_means", choices=PARAMS)
     parser.add_argument("--values", type=float, nargs="+", default=[1.6e-4, 5e-4, 1.6e-3, 5e-3])
     parser.add_argument("--variants", nargs="+", default=["full"])
     parser.add_argument("--seed", type=int, default=0)
@@ -37,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     for value in args.values:
         for variant in args.variants:
-            cfg = replace(runner.config(variant, args.preset, args.seed), **{args.param: value})
+            cfg = with_value(runner.config(variant, args.preset, args.seed), args.param, value)
             folder = args.out / f"{variant}-{args.param}-{value:g}"
             done = folder / "row.json"
             if done.is_file():

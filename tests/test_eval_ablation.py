@@ -124,6 +124,23 @@ def test_parts_share_the_rows_and_the_last_run_reuses_them(tmp_path):
         run_ablation(data, out, "smoke", ["3dgs"], [0], runner, code="0123456789abcdef", **quiet)
 
 
+def test_parts_with_a_queue_take_each_row_once_longest_first(tmp_path):
+    # `--jobs`: the processes share a queue folder; whoever is free takes the next row, surfel rows first
+    data, out, runner = tmp_path / "data", tmp_path / "out", FakeRunner()
+    data.mkdir()
+    quiet = {"log": lambda s: None, "download": False}
+    queue = out / ".queue-test"
+    run_ablation(data, out, "smoke", ["3dgs", "2dgs+full"], [0, 1], runner, part=(1, 2), queue=queue, **quiet)
+    assert runner.calls == [("2dgs+full", 0), ("2dgs+full", 1), ("3dgs", 0), ("3dgs", 1)]
+    run_ablation(data, out, "smoke", ["3dgs", "2dgs+full"], [0, 1], runner, part=(0, 2), queue=queue, **quiet)
+    assert len(runner.calls) == 4  # every row was taken already
+    assert sorted(p.name for p in queue.iterdir()) == ["2dgs+full-seed0", "2dgs+full-seed1", "3dgs-seed0",
+                                                      "3dgs-seed1"]
+    assert ablation.take(queue, "x") and not ablation.take(queue, "x")
+    rows = run_ablation(data, out, "smoke", ["3dgs", "2dgs+full"], [0, 1], runner, **quiet)
+    assert len(runner.calls) == 4 and [r["seed"] for r in rows["2dgs+full"]] == [0, 1]
+
+
 def test_rows_are_reused_only_under_their_key(tmp_path):
     data, out, runner = tmp_path / "data", tmp_path / "out", FakeRunner()
     data.mkdir()
@@ -245,3 +262,17 @@ def test_published_rows_are_the_papers_variants():
     published = load_published()
     assert set(published["table1_appearance"]["rows"]) == set(list(VARIANTS)[:5])
     assert set(published["table2_geometry"]["rows"]) == set(list(VARIANTS)[:5])
+
+
+def test_tune_sets_nested_and_top_level_parameters():
+    from eval.tune import PARAMS, with_value
+    from ragsplat_core.train import preset_config
+
+    cfg = preset_config("small")
+    capped = with_value(cfg, "densify.max_gaussians", 20000.0)
+    assert capped.densify.max_gaussians == 20000 and isinstance(capped.densify.max_gaussians, int)
+    assert capped.densify.prune_opa == cfg.densify.prune_opa and capped.iterations == cfg.iterations
+    assert with_value(cfg, "lr_means", 1e-3).lr_means == 1e-3
+    longer = with_value(cfg, "iterations", 3000.0)
+    assert longer.iterations == 3000 and isinstance(longer.iterations, int)
+    assert {"lr_means", "iterations", "densify.max_gaussians", "densify.grow_grad2d"} <= set(PARAMS)
