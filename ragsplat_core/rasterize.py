@@ -71,7 +71,7 @@ def rasterize(means, quats, scales, opacities, colors, camera: Camera, backgroun
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
-    bins = bin_tiles(proj, camera.width, camera.height)
+    bins = bin_tiles(proj, camera.width, camera.height, fast=backend == "cpu")
     if backend == "torch":
         from ragsplat_core.raster.torch_backend import composite
     else:

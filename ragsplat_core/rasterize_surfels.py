@@ -59,7 +59,7 @@ def rasterize_surfels(means, quats, scales, opacities, colors, camera: Camera, b
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
-    bins = bin_tiles(proj, camera.width, camera.height)
+    bins = bin_tiles(proj, camera.width, camera.height, fast=backend == "cpu")
     if backend == "torch":
         from ragsplat_core.raster.surfel_torch import composite
     else:

@@ -126,3 +126,19 @@ def test_means2d_gradient_matches_between_backends():
     _, ref, _ = render_and_grads("torch", params, cam, weights)
     _, got, _ = render_and_grads("cpu", params, cam, weights)
     np.testing.assert_allclose(got[-1].numpy(), ref[-1].numpy(), atol=2e-4 * float(ref[-1].abs().max()))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_tile_bins_kernel_matches_its_twin(dtype):
+    # the crowded scene (partial edge tiles, Gaussians several tiles wide, some off screen) with tied depths
+    from ragsplat_core.raster.project import bin_tiles, project
+
+    cam, (means, quats, scales, opacities, _, _), _ = crowded_scene(dtype)
+    means = torch.cat([means, means[:50], means[:5] + 40])  # 50 exact depth ties; 5 far off screen
+    cov = covariance(torch.cat([quats, quats[:50], quats[:5]]), torch.cat([scales, scales[:50], scales[:5]]))
+    proj = project(means, cov, torch.cat([opacities, opacities[:50], opacities[:5]]), cam)
+    proj = proj._replace(depths=proj.depths.detach())
+    want, got = bin_tiles(proj, cam.width, cam.height), bin_tiles(proj, cam.width, cam.height, fast=True)
+    assert torch.equal(got.gauss, want.gauss) and torch.equal(got.offsets, want.offsets)
+    assert torch.equal(got.tiles_touched, want.tiles_touched) and (got.tiles_x, got.tiles_y) == (5, 4)
+    assert not proj.visible.all() and len(want.gauss) > len(means)  # both cases occur

@@ -194,6 +194,42 @@ def _backward(mean2d, conic, opac, feat, box, gauss, offsets, width, height, til
                 out[k, 6 + c] = gf[c]
 
 
+@njit(cache=True)
+def _bins(box, visible, order, tiles_x, tiles_y, tile):
+    """Counting sort of the (tile, Gaussian) pairs: per tile, the Gaussians in `order` (front to back)."""
+    n = box.shape[0]
+    count = np.zeros(n, np.int32)
+    offsets = np.zeros(tiles_x * tiles_y + 1, np.int64)  # the boxes are clipped to the image
+    for g in range(n):
+        if visible[g]:
+            tx0, tx1, ty0, ty1 = box[g, 0] // tile, box[g, 1] // tile, box[g, 2] // tile, box[g, 3] // tile
+            count[g] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+            for ty in range(ty0, ty1 + 1):
+                for tx in range(tx0, tx1 + 1):
+                    offsets[ty * tiles_x + tx + 1] += 1
+    offsets = np.cumsum(offsets)
+    cursor = offsets[:-1].copy()
+    gauss = np.empty(offsets[-1], np.int64)
+    for g in order:
+        if visible[g]:
+            for ty in range(box[g, 2] // tile, box[g, 3] // tile + 1):
+                for tx in range(box[g, 0] // tile, box[g, 1] // tile + 1):
+                    t = ty * tiles_x + tx
+                    gauss[cursor[t]] = g
+                    cursor[t] += 1
+    return gauss, offsets, count
+
+
+def bin_tiles_cpu(proj: Projected, width: int, height: int, tile: int = TILE) -> Bins:
+    """`project.bin_tiles` (its twin) in O(N log N + pairs): the Gaussians sorted by depth once, then dealt
+    to their tiles in that order, instead of a sort of every (tile, Gaussian) pair."""
+    tiles_x, tiles_y = -(-width // tile), -(-height // tile)
+    order = np.argsort(proj.depths.detach().numpy(), kind="stable")  # ties by index, as torch's stable sort
+    gauss, offsets, count = _bins(np.ascontiguousarray(proj.box.numpy()), proj.visible.numpy(), order, tiles_x,
+                                  tiles_y, tile)
+    return Bins(torch.from_numpy(gauss), torch.from_numpy(offsets), torch.from_numpy(count), tiles_x, tiles_y)
+
+
 def _np32(x: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().to(torch.float32).numpy())
 

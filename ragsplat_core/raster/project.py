@@ -105,8 +105,14 @@ class Bins(NamedTuple):
     tiles_y: int
 
 
-def bin_tiles(proj: Projected, width: int, height: int, tile: int = TILE) -> Bins:
-    """Lists, per tile of `tile` x `tile` pixels, the visible Gaussians overlapping it, front to back."""
+def bin_tiles(proj: Projected, width: int, height: int, tile: int = TILE, fast: bool = False) -> Bins:
+    """Lists, per tile of `tile` x `tile` pixels, the visible Gaussians overlapping it, front to back.
+    `fast` (CPU tensors): the same lists from a counting sort in a numba kernel (`cpu_backend.bin_tiles_cpu`);
+    this function is its twin."""
+    if fast:
+        from ragsplat_core.raster.cpu_backend import bin_tiles_cpu
+
+        return bin_tiles_cpu(proj, width, height, tile)
     device = proj.box.device
     tiles_x, tiles_y = -(-width // tile), -(-height // tile)
     box = proj.box
