@@ -2,8 +2,9 @@
 PYTHON_SYS ?= python3.11
 VENV := .venv
 PY := $(VENV)/bin/python
-# Spinning OpenMP waits make torch/numba 10-80x slower when jobs share the 2 cores (measured).
-export OMP_WAIT_POLICY ?= PASSIVE
+# OpenMP threads spin briefly before sleeping: long spins slow jobs that share the cores, none slows every
+# small tensor op (measured; see ragsplat_core/cli/main.py).
+export GOMP_SPINCOUNT ?= 2000
 PRESET ?= small
 # The training preset of a dataset preset: small-bed -> small, paper-reach -> paper.
 TRAIN_PRESET ?= $(firstword $(subst -, ,$(PRESET)))

@@ -5,8 +5,8 @@ above a gently rippled bed (tilted 20 degrees), flattened along the bed normal, 
 (in-plane sigma 0.6-1.2x the mean spacing, times `footprint`), mostly opaque. Each configuration runs in
 its own process so its peak RSS is its own. Rows also give the process CPU time (all threads) and the
 1-minute load average: on a shared machine wall time depends on what else runs. With more runnable
-threads than cores, OpenMP's default spin-waiting makes torch ops tens of times slower; run with
-OMP_WAIT_POLICY=PASSIVE (recorded per row) or one thread there.
+threads than cores, OpenMP's default spin-waiting makes torch ops tens of times slower; the CLI's short
+spin (GOMP_SPINCOUNT=2000) or OMP_WAIT_POLICY=PASSIVE (both recorded per row) or one thread avoid it.
 `bench_rasterizer(...)` returns the rows; `format_table(rows)` formats them.
 """
 
@@ -102,7 +102,8 @@ def time_one(backend: str, n: int, size: int, repeats: int, warmup: int = 2, see
            "cpu_median_s": statistics.median(cpu), "visible": int(meta["visible"].sum()),
            "mean_tiles_per_gaussian": float(meta["tiles_touched"].float().mean()),
            "rss_before_mb": rss_before, "peak_rss_mb": _rss_mb(), "threads": torch.get_num_threads(),
-           "load_avg_1min": os.getloadavg()[0], "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "")}
+           "load_avg_1min": os.getloadavg()[0], "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", ""),
+           "gomp_spincount": os.environ.get("GOMP_SPINCOUNT", "")}
     if device == "cuda":  # RSS says little about GPU memory
         row["peak_cuda_mb"] = torch.cuda.max_memory_allocated() / 2**20
     return row

@@ -75,7 +75,8 @@ def time_pair(backend: str, n: int, size: int, repeats: int, warmup: int = 2, se
                 fwd[name].append(t1 - t0)
     row = {"backend": backend, "n": n, "size": size, "footprint": footprint, "repeats": repeats,
            "threads": torch.get_num_threads(), "load_avg_1min": os.getloadavg()[0],
-           "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "")}
+           "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", ""),
+           "gomp_spincount": os.environ.get("GOMP_SPINCOUNT", "")}
     for name in runs:
         row[f"{name}_median_s"] = statistics.median(times[name])
         row[f"{name}_forward_median_s"] = statistics.median(fwd[name])
