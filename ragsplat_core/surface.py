@@ -199,7 +199,7 @@ def _plane_keep(points, p, nb, valid, min_neighbours, k, min_tol):  # the same a
                 centre += points[nb[c, j]]
         if cnt < min_neighbours:
             continue
-        centre /= cnt
+        centre /= max(cnt, 1)  # as the twin: an isolated point kept by min_neighbours = 0 is tested at 0
         cov = np.zeros((3, 3))
         for j in range(nb.shape[1]):
             if valid[c, j]:
@@ -218,7 +218,7 @@ def _plane_keep(points, p, nb, valid, min_neighbours, k, min_tol):  # the same a
         own = 0.0
         for a in range(3):
             own += (p[c, a] - centre[a]) * normal[a]
-        out[c] = abs(own) <= max(k * np.sqrt(ss / cnt), min_tol)
+        out[c] = abs(own) <= max(k * np.sqrt(ss / max(cnt, 1)), min_tol)
     return out
 
 

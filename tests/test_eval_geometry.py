@@ -107,11 +107,13 @@ def test_plane_filter_kernel_matches_numpy_twin():
     bed = np.column_stack([xy, 0.1 * np.sin(3 * xy[:, 0]) * np.cos(2 * xy[:, 1]) + 0.004 * rng.standard_normal(6000)])
     sparse = np.column_stack([5 + rng.random((40, 2)) * 0.3, 0.02 * rng.standard_normal(40)])
     floaters = np.column_stack([rng.random((60, 2)) * 3, rng.uniform(0.02, 0.2, 60)])
-    pts = rng.permutation(np.vstack([bed, sparse, floaters, [[9.0, 9.0, 0.0]]]))
+    pts = rng.permutation(np.vstack([bed, sparse, floaters, [[9.0, 9.0, 0.0], [0.0, -9.0, 0.0]]]))
     cfg = ExtractConfig(filter_radius=0.1, filter_k=2.0)
     fast, twin = plane_filter(pts, cfg, chunk=2500), plane_filter(pts, cfg, chunk=2500, fast=False)
     np.testing.assert_array_equal(fast, twin)
     assert 0.5 < fast.mean() < 1  # both outcomes occur
+    lax = ExtractConfig(filter_radius=0.1, filter_k=2.0, filter_min_neighbours=0)  # isolated points tested too
+    np.testing.assert_array_equal(plane_filter(pts, lax, chunk=2500), plane_filter(pts, lax, chunk=2500, fast=False))
 
 
 def test_grid_median_ignores_one_floater():
