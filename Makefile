@@ -3,8 +3,11 @@ PYTHON_SYS ?= python3.11
 VENV := .venv
 PY := $(VENV)/bin/python
 # OpenMP threads spin briefly before sleeping: long spins slow jobs that share the cores, none slows every
-# small tensor op (measured; see ragsplat_core/cli/main.py).
+# small tensor op (measured; see ragsplat_core/cli/main.py). Only without the user's own OMP_WAIT_POLICY:
+# libgomp lets GOMP_SPINCOUNT override it (measured), and the user's setting must win.
+ifndef OMP_WAIT_POLICY
 export GOMP_SPINCOUNT ?= 2000
+endif
 PRESET ?= small
 # The training preset of a dataset preset: small-bed -> small, paper-reach -> paper.
 TRAIN_PRESET ?= $(firstword $(subst -, ,$(PRESET)))
