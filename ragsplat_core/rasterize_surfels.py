@@ -113,7 +113,9 @@ def _rasterize_gsplat(means, quats, scales, opacities, colors, camera, backgroun
     """gsplat's fused CUDA 2DGS rasterizer (unpacked). Differs from the other backends (gsplat 1.5): alpha
     clamp 0.999; the filter is centred on the centre of the disk's image conic (not the projected centre);
     depth, median depth and distortion use each surfel's centre z (not the per-pixel intersection z);
-    `means2d` is that conic centre and its `.grad` gsplat's densification gradient (`gradient_2dgs`)."""
+    `means2d` is that conic centre and its `.grad` gsplat's densification gradient (`gradient_2dgs`).
+    Colours go in per camera, [1, N, 3]: gsplat 1.5.3's 2DGS path does not broadcast [N, 3] colours to the
+    camera axis before appending depth (seen on an H100)."""
     from gsplat import rasterization_2dgs
 
     dtype, device = means.dtype, means.device
@@ -121,7 +123,7 @@ def _rasterize_gsplat(means, quats, scales, opacities, colors, camera, backgroun
     K = torch.tensor(camera.K, dtype=torch.float32, device=device)[None]  # [1, 3, 3]
     scales3 = torch.cat([scales, torch.ones_like(scales[:, :1])], -1)  # [N, 3]; the third is not used
     renders, alphas, normals, _, distortion, median, info = rasterization_2dgs(
-        means.float(), quats.float(), scales3.float(), opacities.float(), colors.float(), viewmat, K,
+        means.float(), quats.float(), scales3.float(), opacities.float(), colors.float()[None], viewmat, K,
         camera.width, camera.height, near_plane=NEAR, packed=False, tile_size=TILE,
         backgrounds=background.float()[None], render_mode="RGB+ED", distloss=True)
     alpha = alphas[0].to(dtype)  # [H, W, 1]

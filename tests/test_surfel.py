@@ -436,6 +436,11 @@ def test_gsplat_matches_torch():
     ref, _ = render([p.double() for p in params], cam, [0.1, 0.2, 0.3], "torch")
     got, meta = render([p.cuda() for p in params], cam, [0.1, 0.2, 0.3], "gsplat")
     assert meta["backend"] == "gsplat"
+    # Depth is a weighted mean (sum w z / alpha): where one rasterizer's footprint ends a pixel earlier it
+    # jumps from z to 0 (on an H100: alpha 0.018 against 0, depth 2.06 m against 0). Compare the accumulated
+    # depth sum w z, which goes to 0 with alpha like the other outputs.
+    for out in (ref, got):
+        out["depth"] = out["depth"] * out["alpha"]
     for name, tol in (("image", 2e-2), ("alpha", 2e-2), ("normals", 2e-2), ("depth", 2e-2),
                       ("median_depth", 2e-2)):
         assert_close_scaled(got[name].cpu(), ref[name], tol, name)
