@@ -25,12 +25,12 @@ PARAMS = [f.name for f in fields(TrainConfig) if f.type in NUMBERS] + \
     [f"densify.{f.name}" for f in fields(DensifyConfig) if f.type in NUMBERS]
 
 
-def with_value(cfg: TrainConfig, param: str, value: float) -> TrainConfig:
-    """`cfg` with `param` (a TrainConfig field, or densify.FIELD) set to `value` (cast to the field's type)."""
-    owner, name = (cfg.densify, param.split(".", 1)[1]) if param.startswith("densify.") else (cfg, param)
-    value = int(value) if {f.name: f.type for f in fields(owner)}[name] == "int" else value
-    return replace(cfg, densify=replace(cfg.densify, **{name: value})) if owner is not cfg else \
-        replace(cfg, **{name: value})
+def with_value(cfg: TrainConfig | DensifyConfig, param: str, value: float) -> TrainConfig | DensifyConfig:
+    """`cfg` with `param` (a field, or densify.FIELD) set to `value` (cast to the field's type)."""
+    if param.startswith("densify."):
+        return replace(cfg, densify=with_value(cfg.densify, param.split(".", 1)[1], value))
+    kind = {f.name: f.type for f in fields(cfg)}[param]
+    return replace(cfg, **{param: int(value) if kind == "int" else value})
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -25,6 +25,7 @@ import time
 import numpy as np
 import torch
 
+from ragsplat_core.bench import openmp_wait
 from ragsplat_core.camera import Camera
 
 
@@ -102,8 +103,7 @@ def time_one(backend: str, n: int, size: int, repeats: int, warmup: int = 2, see
            "cpu_median_s": statistics.median(cpu), "visible": int(meta["visible"].sum()),
            "mean_tiles_per_gaussian": float(meta["tiles_touched"].float().mean()),
            "rss_before_mb": rss_before, "peak_rss_mb": _rss_mb(), "threads": torch.get_num_threads(),
-           "load_avg_1min": os.getloadavg()[0], "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", ""),
-           "gomp_spincount": os.environ.get("GOMP_SPINCOUNT", "")}
+           "load_avg_1min": os.getloadavg()[0], **openmp_wait()}
     if device == "cuda":  # RSS says little about GPU memory
         row["peak_cuda_mb"] = torch.cuda.max_memory_allocated() / 2**20
     return row

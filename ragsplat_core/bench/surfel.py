@@ -20,6 +20,7 @@ import time
 
 import torch
 
+from ragsplat_core.bench import openmp_wait
 from ragsplat_core.bench.raster import make_scene
 
 _LOSSES = ("image", "all")
@@ -74,9 +75,7 @@ def time_pair(backend: str, n: int, size: int, repeats: int, warmup: int = 2, se
                 times[name].append(t2 - t0)
                 fwd[name].append(t1 - t0)
     row = {"backend": backend, "n": n, "size": size, "footprint": footprint, "repeats": repeats,
-           "threads": torch.get_num_threads(), "load_avg_1min": os.getloadavg()[0],
-           "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", ""),
-           "gomp_spincount": os.environ.get("GOMP_SPINCOUNT", "")}
+           "threads": torch.get_num_threads(), "load_avg_1min": os.getloadavg()[0], **openmp_wait()}
     for name in runs:
         row[f"{name}_median_s"] = statistics.median(times[name])
         row[f"{name}_forward_median_s"] = statistics.median(fwd[name])

@@ -103,6 +103,7 @@ def _train_step_arguments(parser: argparse.ArgumentParser) -> None:
 def _train_step(args: argparse.Namespace) -> int:
     import torch
 
+    from ragsplat_core.bench import openmp_wait
     from ragsplat_core.bench.train_step import SIZE, backends_available, bench_train_step
 
     pairs = None
@@ -118,7 +119,8 @@ def _train_step(args: argparse.Namespace) -> int:
     print(f"{'backend':>6} {'dev':>4} {'N':>6} {'3dgs (s)':>10} {'full (s)':>10} {'full/3dgs':>9} "
           f"{'refr (s)':>10} {'refr/3dgs':>9}")
     rows = bench_train_step(args.counts, pairs, args.steps, args.warmup)
-    write_json(args.out, {"rows": rows, "torch": torch.__version__}, indent=1)
+    write_json(args.out, {"rows": rows, "torch": torch.__version__, "threads": torch.get_num_threads(),
+                          **openmp_wait()}, indent=1)
     print(f"wrote {args.out}", file=sys.stderr)
     return 0
 
