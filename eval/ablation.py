@@ -190,16 +190,15 @@ def save_row(folder: Path, row: dict, grid: np.ndarray, truth, fused: np.ndarray
 
 def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds: list[int], runner,
                  vgg16: str | None = None, download: bool = True,
-                 log: Callable[[str], None] = lambda line: None, part: tuple[int, int] = (0, 1),
-                 code: str | None = None, queue: Path | None = None) -> dict[str, list[dict]]:
+                 log: Callable[[str], None] = lambda line: None, code: str | None = None,
+                 queue: Path | None = None) -> dict[str, list[dict]]:
     """Rows for `variants` x `seeds` and the reference rows, reused from `out` when their key matches, else
     computed with `runner` (a `TrainEval`, or anything with its `truth`, `fingerprint`, `dataset_seed`, `gsd`,
     `config`, `initial` and `train`); then all outputs. Returns {name: [row per seed]}.
     `download`: fetch missing LPIPS weights (`metrics.load_lpips`). `log(line)` receives progress lines and,
-    at the end, the tables. `part` (k, m): only the trained rows k, k + m, k + 2m, ... (in seed-major order),
-    nothing else: m processes share the rows, then a run without `part` reuses them and writes the rest.
-    `queue`: a folder the m processes share; then each takes the next row no process has taken (`take`),
-    surfel rows first, instead of every m-th one, so that none idles while another has two long rows left.
+    at the end, the tables. `queue`: a folder that several processes share; then this one trains only the rows
+    no process has taken yet (`take`), surfel rows first so that none idles while another has two long rows
+    left, and writes nothing else; a run without `queue` then reuses those rows and writes the rest.
     `code`: the source digest the command started with; ConfigError if the sources are no longer those (an
     edit during a long run would otherwise key its rows to two versions of the code).
     """
@@ -210,8 +209,6 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
         raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
     if not seeds or len(set(seeds)) != len(seeds):
         raise ConfigError(f"seeds must be distinct and at least one, got {seeds}")
-    if not 0 <= part[0] < part[1]:
-        raise ConfigError(f"part {part[0]} of {part[1]} does not exist")
     claim_out(out)
     stamp = versions("torch", "scipy")  # the code that runs now, not the checkout at the end of a long run
     truth = runner.truth
@@ -242,14 +239,10 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
                "timings": {**row.get("timings", {}), "row_total_s": time.perf_counter() - t0}}
         return save_row(folder, row, grid, truth, fused)
 
-    if part[1] > 1:  # one of several processes: trained rows only
+    if queue is not None:  # one of several processes: whichever is free takes the next row, trained rows only
         jobs = [(seed, variant) for seed in seeds for variant in variants]
-        if queue is None:
-            mine = jobs[part[0]::part[1]]
-        else:  # whichever process is free takes the next row, surfel rows (the longest) first
-            mine = sorted(jobs, key=lambda job: job[1] not in SURFELS)
-        for seed, variant in mine:
-            if queue is None or take(queue, f"{slug(variant)}-seed{seed}"):
+        for seed, variant in sorted(jobs, key=lambda job: job[1] not in SURFELS):  # the longest first
+            if take(queue, f"{slug(variant)}-seed{seed}"):
                 ecfg = extract_config(preset, len(truth.grid), seed, runner.gsd)
                 rows.setdefault(variant, []).append(trained_row(seed, variant, ecfg))
         return rows

@@ -42,17 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default=None, help="torch device for training (default: the preset's)")
     parser.add_argument("--jobs", type=positive_int, default=1, metavar="N",
                         help="train the rows in N processes at once, each with cores / N threads (default: 1)")
-    parser.add_argument("--part", type=_part, default=(0, 1), help=argparse.SUPPRESS)  # one of --jobs' processes
     parser.add_argument("--code", default=None, help=argparse.SUPPRESS)  # the digest --jobs started with
     parser.add_argument("--queue", type=Path, default=None, help=argparse.SUPPRESS)  # the rows --jobs' processes take
-
-
-def _part(text: str) -> tuple[int, int]:
-    try:
-        k, m = (int(x) for x in text.split("/"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected K/M, got {text!r}") from None
-    return k, m
 
 
 class JobFailed(RagsplatError):
@@ -65,7 +56,7 @@ def spawn(cmd: list[str], env: dict, log: Path) -> subprocess.Popen:
 
 
 def run_jobs(args: argparse.Namespace) -> None:
-    """The rows in `args.jobs` child processes (`--part k/N`), each logging to OUT/part-k-of-N.log, all
+    """The rows in `args.jobs` child processes, each logging to OUT/part-k-of-N.log, all
     keyed to the sources as they were when the command started (`--code`), each taking the next row that
     none has taken from a queue folder of this command's own (`--queue`, removed at the end)."""
     from eval.ablation import claim_out
@@ -84,7 +75,7 @@ def run_jobs(args: argparse.Namespace) -> None:
     logs = [Path(args.out) / f"part-{k}-of-{args.jobs}.log" for k in range(args.jobs)]
     print(f"training in {args.jobs} processes of {threads} thread(s); logs: {', '.join(map(str, logs))}",
           flush=True)
-    procs = [spawn([*base, "--part", f"{k}/{args.jobs}"], env, log) for k, log in enumerate(logs)]
+    procs = [spawn(base, env, log) for log in logs]
     failed = [str(log) for proc, log in zip(procs, logs) if proc.wait() != 0]
     shutil.rmtree(queue, ignore_errors=True)
     if failed:
@@ -113,5 +104,5 @@ def run(args: argparse.Namespace) -> int:
         train_eval = TrainEval(args.data, args.device, training_bar=partial(training_bar, leave=False, check=check),
                                init=args.init)
         run_ablation(args.data, args.out, args.preset, args.variants, args.seeds, train_eval, vgg16=args.vgg16,
-                     download=not args.no_download, log=print, part=args.part, code=args.code, queue=args.queue)
+                     download=not args.no_download, log=print, code=args.code, queue=args.queue)
     return 0

@@ -104,41 +104,29 @@ class FakeRunner:
         return fake_row(list(VARIANTS).index(cfg.variant), cfg.seed), apparent, self.truth.grid + [0, 0, 0.01]
 
 
-def test_parts_share_the_rows_and_the_last_run_reuses_them(tmp_path):
-    # what `ragsplat ablation --jobs 2` does: two parts train every other row and write nothing else
-    data, out, runner = tmp_path / "data", tmp_path / "out", FakeRunner()
-    data.mkdir()
-    quiet = {"log": lambda s: None, "download": False}
-    first = run_ablation(data, out, "smoke", ["3dgs", "full"], [0, 1], runner, part=(0, 2), **quiet)
-    assert runner.calls == [("3dgs", 0), ("3dgs", 1)] and list(first) == ["3dgs"]
-    assert not (out / "results.json").exists() and not (out / "init").exists()
-    run_ablation(data, out, "smoke", ["3dgs", "full"], [0, 1], runner, part=(1, 2), **quiet)
-    assert runner.calls[2:] == [("full", 0), ("full", 1)]
-    rows = run_ablation(data, out, "smoke", ["3dgs", "full"], [0, 1], runner, **quiet)
-    assert len(runner.calls) == 4 and list(rows) == ["3dgs", "full", "init", "3dgs x n", "oracle plane"]
-    assert (out / "results.json").is_file()
-    with pytest.raises(ConfigError, match="part 2 of 2"):
-        run_ablation(data, out, "smoke", ["3dgs"], [0], runner, part=(2, 2), **quiet)
-    # the sources edited while the parts ran: refused, not keyed to two versions of the code
-    with pytest.raises(ConfigError, match="changed since this command started"):
-        run_ablation(data, out, "smoke", ["3dgs"], [0], runner, code="0123456789abcdef", **quiet)
-
-
-def test_parts_with_a_queue_take_each_row_once_longest_first(tmp_path):
-    # `--jobs`: the processes share a queue folder; whoever is free takes the next row, surfel rows first
+def test_processes_share_a_queue_take_each_row_once_longest_first(tmp_path):
+    # what `ragsplat ablation --jobs 2` does: the processes share a queue folder; whoever is free takes the next
+    # row, surfel rows first, and writes nothing else; the last run reuses every row and writes the tables
     data, out, runner = tmp_path / "data", tmp_path / "out", FakeRunner()
     data.mkdir()
     quiet = {"log": lambda s: None, "download": False}
     queue = out / ".queue-test"
-    run_ablation(data, out, "smoke", ["3dgs", "2dgs+full"], [0, 1], runner, part=(1, 2), queue=queue, **quiet)
+    first = run_ablation(data, out, "smoke", ["3dgs", "2dgs+full"], [0, 1], runner, queue=queue, **quiet)
     assert runner.calls == [("2dgs+full", 0), ("2dgs+full", 1), ("3dgs", 0), ("3dgs", 1)]
-    run_ablation(data, out, "smoke", ["3dgs", "2dgs+full"], [0, 1], runner, part=(0, 2), queue=queue, **quiet)
+    assert list(first) == ["2dgs+full", "3dgs"]
+    assert not (out / "results.json").exists() and not (out / "init").exists()
+    run_ablation(data, out, "smoke", ["3dgs", "2dgs+full"], [0, 1], runner, queue=queue, **quiet)
     assert len(runner.calls) == 4  # every row was taken already
     assert sorted(p.name for p in queue.iterdir()) == ["2dgs+full-seed0", "2dgs+full-seed1", "3dgs-seed0",
                                                       "3dgs-seed1"]
     assert ablation.take(queue, "x") and not ablation.take(queue, "x")
     rows = run_ablation(data, out, "smoke", ["3dgs", "2dgs+full"], [0, 1], runner, **quiet)
     assert len(runner.calls) == 4 and [r["seed"] for r in rows["2dgs+full"]] == [0, 1]
+    assert list(rows) == ["3dgs", "2dgs+full", "init", "3dgs x n", "oracle plane"]
+    assert (out / "results.json").is_file()
+    # the sources edited while the processes ran: refused, not keyed to two versions of the code
+    with pytest.raises(ConfigError, match="changed since this command started"):
+        run_ablation(data, out, "smoke", ["3dgs"], [0], runner, code="0123456789abcdef", **quiet)
 
 
 def test_rows_are_reused_only_under_their_key(tmp_path):
