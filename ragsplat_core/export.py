@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -62,15 +62,15 @@ class Bed:
 
 
 def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None = None, ply: Path | None = None,
-               png: Path | None = None, data: Path | None = None, min_opacity: float = ExtractConfig.min_opacity,
-               max_scale_gsd: float = ExtractConfig.max_scale_gsd) -> Bed:
-    """Extract the bed of a finished run (`load_run`, `extract_bed`) and write the DEM and each other product
-    given a path, in the dataset's georeference (an imported survey's CRS and offset), depths below the
-    water the run ended with (`run_water`). Returns the bed."""
+               png: Path | None = None, data: Path | None = None, **extract) -> Bed:
+    """Extract the bed of a finished run (`load_run`, `extract_bed`, `extract`: its `ExtractConfig` fields to
+    change) and write the DEM and each other product given a path, in the dataset's georeference (an
+    imported survey's CRS and offset), depths below the water the run ended with (`run_water`). Returns the
+    bed."""
     meta, ds, splats, seed = _read_run(Path(run), data, splits=())
     water = run_water(meta, ds)
     bed = extract_bed(activated_dict(splats), resolution, None if water is None else water.level, ds.eval_region,
-                      ds.georef, seed, min_opacity, max_scale_gsd, ds.gsd)
+                      ds.georef, seed, ds.gsd, **extract)
     write_dem(dem, bed)
     for path, write in ((las, write_las), (ply, write_ply), (png, write_png)):
         if path is not None:
@@ -247,17 +247,17 @@ def render_views(model: Model, views: list[View], kind: str, out: Path, on_view=
 
 
 def extract_bed(gaussians: dict, resolution: float, level: float | None, region: dict | None = None,
-                georef: Georef | None = None, seed: int = 0, min_opacity: float = ExtractConfig.min_opacity,
-                max_scale_gsd: float = ExtractConfig.max_scale_gsd, gsd: float | None = None) -> Bed:
+                georef: Georef | None = None, seed: int = 0, gsd: float | None = None, **extract) -> Bed:
     """The bed of activated Gaussians (means [N, 3], scales [N, 3], quats [N, 4], opacities [N]) on a grid
     of `resolution` metres whose nodes lie on multiples of it in the CRS (tiles of two runs line up),
-    inside `region` {xmin, xmax, ymin, ymax} when given, from the Gaussians at least `min_opacity` opaque and
-    no wider than `max_scale_gsd` ground sample distances `gsd` (largest standard deviation; `Dataset.gsd`).
-    Raises ConfigError, OutputError (nothing found)."""
+    inside `region` {xmin, xmax, ymin, ymax} when given, by `surface.extract_surface` with the evaluation's
+    settings (`ExtractConfig`) except the fields in `extract` (e.g. min_opacity, max_scale_gsd in ground
+    sample distances `gsd`, `Dataset.gsd`). Raises ConfigError, OutputError (nothing found)."""
     georef = georef or Georef()  # default: the local frame
+    cfg = replace(ExtractConfig(), gsd=gsd, cell=resolution, seed=seed, **extract)
     means = gaussians["means"].detach().cpu().numpy()  # [N, 3]
     if region is None:
-        xy = means[gaussians["opacities"].detach().cpu().numpy() >= min_opacity, :2]
+        xy = means[gaussians["opacities"].detach().cpu().numpy() >= cfg.min_opacity, :2]
         lo, hi = np.percentile(xy, [1, 99], axis=0) if len(xy) else (np.zeros(2), np.zeros(2))  # not floaters'
     else:
         lo, hi = np.array([region["xmin"], region["ymin"]]), np.array([region["xmax"], region["ymax"]])
@@ -268,8 +268,7 @@ def extract_bed(gaussians: dict, resolution: float, level: float | None, region:
                           f"{MAX_SAMPLES:.0e}); choose a coarser resolution")
     # A node at absolute (k * resolution): local origin = the nearest such node minus the offset.
     origin = tuple(round(x0 / resolution) * resolution - x0 for x0 in georef.offset[:2])
-    cfg = ExtractConfig(min_opacity=min_opacity, max_scale_gsd=max_scale_gsd, gsd=gsd, cell=resolution,
-                        n_samples=n, seed=seed)
+    cfg = replace(cfg, n_samples=n)
     grid, _ = extract_surface(gaussians["means"], gaussians["scales"], gaussians["quats"],
                               gaussians["opacities"], cfg, region, origin)
     if not len(grid):

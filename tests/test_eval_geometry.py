@@ -10,6 +10,7 @@ from ragsplat_core.gaussians import quat_to_rotmat
 from ragsplat_core.scoring import geometry_metrics
 from ragsplat_core.surface import (
     ExtractConfig,
+    despike,
     extract_surface,
     grid_median,
     largest_remainder,
@@ -125,6 +126,34 @@ def test_grid_median_ignores_one_floater():
     np.testing.assert_allclose(g, [[0.0, 0.0, 0.0], [0.0, 0.05, 0.1], [0.05, 0.0, 10.0], [0.1, 0.0, -1.0]])
 
 
+def undulating_bed(step=0.05):  # 1 m of relief over a 3 m wavelength, as the rough bed
+    x, y = np.meshgrid(np.arange(-3, 3, step), np.arange(-2, 2, step), indexing="ij")
+    return np.column_stack([x.ravel(), y.ravel(), 0.5 * np.cos(2 * np.pi * x.ravel() / 3) - 1.5])
+
+
+def test_despike_drops_a_floater_patch_and_keeps_the_relief():
+    bed = undulating_bed()
+    assert despike(bed, 0.05, 1.0, 0.3).all()  # the default: every cell of the relief stays
+    patch = (np.abs(bed[:, 0] - 1.0) < 0.2) & (np.abs(bed[:, 1] + 0.5) < 0.2)  # 64 cells, 0.4 m wide
+    for dz in (2.0, -0.6):  # floaters above, a hole below
+        spiked = bed + np.where(patch, dz, 0.0)[:, None] * [0, 0, 1]
+        keep = despike(spiked, 0.05, 1.0, 0.3)
+        np.testing.assert_array_equal(keep, ~patch)
+    # too tight a tolerance takes the crests and troughs of real relief: a test that can fail
+    assert not despike(bed, 0.05, 1.0, 0.05).all()
+    assert despike(spiked, 0.05, 1.0, np.inf).all()  # off
+
+
+def test_despike_needs_enough_neighbours():
+    lone = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.0, 0.05, 5.0]])  # 2 neighbours each: no verdict
+    assert despike(lone, 0.05, 1.0, 0.3).all()
+    assert not despike(lone, 0.05, 1.0, 0.3, min_neighbours=2).all()
+    # a coarse DEM: 1 m cells have 4 neighbours within 1 m, fewer than the default 8
+    coarse = plane_grid(5, 5, 1.0)
+    coarse[12, 2] = 3.0
+    assert despike(coarse, 1.0, 1.0, 0.3).all() and not despike(coarse, 1.0, 1.0, 0.3, min_neighbours=4)[12]
+
+
 def test_extraction_recovers_a_flat_bed():
     # flat discs tiling the plane z = -1, small opaque floaters half a metre above it (their samples are
     # outvoted by the bed in every cell's median) and one huge faint blob that culling must remove
@@ -140,12 +169,30 @@ def test_extraction_recovers_a_flat_bed():
     region = {"xmin": 0.2, "xmax": 1.7, "ymin": 0.2, "ymax": 1.7}
     cfg = ExtractConfig(n_samples=40_000, gsd=0.025)  # the default size cull: sigma <= 6 x 2.5 cm
     grid, stats = extract_surface(means, scales, quats, opac, cfg, region)
-    assert stats["samples"] == 40_000 and stats["gaussians_sampled"] == n + 5
+    assert stats["samples"] == 40_000 and stats["gaussians_sampled"] == n + 5 and stats["grid_spikes"] == 0
     assert stats["config"]["n_samples"] == 40_000
     gt = plane_grid(31, 31, step, z=-1.0) + [0.2, 0.2, 0]
     m = geometry_metrics(grid, gt)
     assert m["chamfer"] < 0.005 and m["f1@0.1"] == 1.0
     assert np.abs(grid[:, 2] + 1).max() < 0.01  # no cell took a floater's height
+
+
+def test_extraction_despikes_a_floater_patch():
+    # the bed z = -1 with a 0.3 m square gap, and there a patch of small opaque discs 1.5 m higher: each of its
+    # cells has only floater samples, so the point filter and the medians keep them; despiking drops them
+    step = 0.05
+    bed = plane_grid(40, 40, step, z=-1.0)
+    gap = (np.abs(bed[:, 0] - 1.0) < 0.15) & (np.abs(bed[:, 1] - 1.0) < 0.15)
+    means = np.vstack([bed[~gap], bed[gap] + [0, 0, 1.5]])
+    n = len(means)
+    scales, quats, opac = np.tile([0.03, 0.03, 0.003], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1)), np.full(n, 0.9)
+    region = {"xmin": 0.2, "xmax": 1.7, "ymin": 0.2, "ymax": 1.7}
+    cfg = ExtractConfig(n_samples=40_000, gsd=0.025)
+    kept, _ = extract_surface(means, scales, quats, opac, replace(cfg, despike_tol=math.inf), region)
+    assert (kept[:, 2] > 0).sum() >= 20  # the patch is in the grid without despiking
+    grid, stats = extract_surface(means, scales, quats, opac, cfg, region)
+    assert stats["grid_spikes"] >= 20 and np.abs(grid[:, 2] + 1).max() < 0.01
+    assert len(grid) == len(kept) - stats["grid_spikes"]
 
 
 def test_wide_gaussians_are_not_sampled():

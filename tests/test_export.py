@@ -74,10 +74,11 @@ def test_export_writes_every_product(run, tmp_path, capsys):
     out = {k: tmp_path / f"bed.{k}" for k in ("tif", "laz", "ply", "png")}
     # 2 steps from opacity 0.1 and the start's wide Gaussians: limits they pass (the defaults are for trained runs)
     assert main(["export", str(run), "--dem", str(out["tif"]), "--las", str(out["laz"]), "--ply", str(out["ply"]),
-                 "--png", str(out["png"]), "--min-opacity", "0.05", "--max-scale-gsd", "inf"]) == 0
+                 "--png", str(out["png"]), "--min-opacity", "0.05", "--max-scale-gsd", "inf", "--despike-radius",
+                 "0.5", "--despike-tol", "0.02"]) == 0
     gaussians, ds, seed = load_run(run)
     bed = extract_bed(gaussians, 0.05, ds.water.level, ds.eval_region, seed=seed, min_opacity=0.05,
-                      max_scale_gsd=math.inf)  # the same
+                      max_scale_gsd=math.inf, despike_radius=0.5, despike_tol=0.02)  # the same
     grid = bed.grid
     assert len(grid) > 100 and (grid[:, 2] < 0).all()  # 2 steps from the grid at -1 m: all under water
     stdout = capsys.readouterr().out

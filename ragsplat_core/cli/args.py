@@ -93,12 +93,12 @@ def dataset_dir(text: str) -> Path:
     return path.parent if path.name == "transforms.json" and path.is_file() else path
 
 
-CULLS = ("min_opacity", "max_scale_gsd")  # the bed extraction's culls a command may change
+CULLS = ("min_opacity", "max_scale_gsd", "despike_radius", "despike_tol")  # what a command may change of the bed
 
 
 def cull_arguments(parser: argparse.ArgumentParser) -> None:
-    """--min-opacity and --max-scale-gsd: the volume bed's culls (`ExtractConfig`); read them back with
-    `cull_overrides`."""
+    """--min-opacity, --max-scale-gsd, --despike-radius and --despike-tol: the volume bed's culls
+    (`ExtractConfig`); read them back with `cull_overrides`."""
     parser.add_argument("--min-opacity", type=positive_float, metavar="A",
                         help="only Gaussians at least this opaque make the bed (default: the evaluation's, chosen on "
                              "the development reach; lower it for a short or sparse run)")
@@ -106,6 +106,12 @@ def cull_arguments(parser: argparse.ArgumentParser) -> None:
                         help="only Gaussians whose largest standard deviation is at most K ground sample distances "
                              "of the views (at the water surface) make the bed (default: the evaluation's, chosen on "
                              "the development reach; inf: no limit, needed for a dry scene)")
+    parser.add_argument("--despike-radius", type=positive_float, metavar="M",
+                        help="a DEM cell is compared with the median of the cells within M metres (default: the "
+                             "evaluation's, chosen on the development reach)")
+    parser.add_argument("--despike-tol", type=limit, metavar="M",
+                        help="and dropped when more than M metres from it (default: the evaluation's; inf: keep "
+                             "every cell)")
 
 
 def cull_overrides(args: argparse.Namespace) -> dict:
