@@ -270,30 +270,35 @@ def grid_median(points: np.ndarray, cell: float, origin: tuple[float, float] = (
 
 
 def despike(grid: np.ndarray, cell: float, radius: float, tol: float, min_neighbours: int = 8,
-            chunk: int = 4096) -> np.ndarray:
+            block: int = 128, chunk: int = 4096) -> np.ndarray:
     """Step 5: bool mask [G] of the cells of a height grid [G, 3] (nodes `cell` apart) to keep: a cell is
     dropped when its height differs by more than `tol` metres from the median height of the other occupied
     cells within `radius` metres (a disc), provided there are at least `min_neighbours` of them. A patch of
     floaters smaller than about half the disc cannot hold its own median; relief that varies smoothly keeps
-    its cells near it."""
+    its cells near it. Memory is bounded by `block` x `block` cells at a time (one far floater must not
+    make a dense array of everything between it and the bed), `chunk` cells' discs at a time."""
     if len(grid) == 0 or not np.isfinite(tol):
         return np.ones(len(grid), dtype=bool)
     ij = np.rint((grid[:, :2] - grid[:, :2].min(0)) / cell).astype(np.int64)  # [G, 2] node indices
     r = math.floor(radius / cell + 1e-9)  # 1.0 / 0.05 must give 20 cells, not 19
-    dense = np.full(tuple(ij.max(0) + 1 + 2 * r), np.nan)  # [X + 2r, Y + 2r], NaN = no height
-    dense[ij[:, 0] + r, ij[:, 1] + r] = grid[:, 2]
     di, dj = np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1), indexing="ij")
     disc = (di**2 + dj**2 <= r * r) & ((di != 0) | (dj != 0))  # the cell itself is not its own neighbour
     di, dj = di[disc], dj[disc]  # [K]
     keep = np.ones(len(grid), dtype=bool)
-    for s in range(0, len(grid), chunk):
-        c = ij[s: s + chunk] + r  # [C, 2]
-        window = dense[c[:, :1] + di, c[:, 1:] + dj]  # [C, K]
-        count = np.isfinite(window).sum(1)
-        enough = count >= max(min_neighbours, 1)
-        med = np.full(len(c), np.nan)
-        med[enough] = np.nanmedian(window[enough], axis=1)
-        keep[s: s + chunk] = ~enough | (np.abs(grid[s: s + chunk, 2] - med) <= tol)
+    tiles, tile_of = np.unique(ij // block, axis=0, return_inverse=True)
+    for t, corner in enumerate(tiles * block - r):  # each tile with the cells within r of it
+        near = np.flatnonzero(((ij >= corner) & (ij < corner + block + 2 * r)).all(1))
+        dense = np.full((block + 2 * r, block + 2 * r), np.nan)  # NaN = no height
+        dense[ij[near, 0] - corner[0], ij[near, 1] - corner[1]] = grid[near, 2]
+        mine = np.flatnonzero(tile_of.reshape(-1) == t)
+        for s in range(0, len(mine), chunk):
+            cells = mine[s: s + chunk]
+            c = ij[cells] - corner  # [C, 2]
+            window = dense[c[:, :1] + di, c[:, 1:] + dj]  # [C, K]
+            enough = np.isfinite(window).sum(1) >= max(min_neighbours, 1)
+            med = np.full(len(cells), np.nan)
+            med[enough] = np.nanmedian(window[enough], axis=1)
+            keep[cells] = ~enough | (np.abs(grid[cells, 2] - med) <= tol)
     return keep
 
 

@@ -144,6 +144,18 @@ def test_despike_drops_a_floater_patch_and_keeps_the_relief():
     assert despike(spiked, 0.05, 1.0, np.inf).all()  # off
 
 
+def test_despike_tiles_give_the_same_cells():
+    # tiles of 16 cells (the disc is 20 cells wide) against one tile holding the whole bed; a far floater alone
+    # in its tile, 5 km away, has no neighbours and is kept (the point filter's job), and costs no memory
+    bed = undulating_bed()
+    rng = np.random.default_rng(0)
+    spiked = bed + (rng.random(len(bed)) < 0.02)[:, None] * [0, 0, 1.0]
+    far = np.vstack([spiked, [[5000.0, 5000.0, 3.0]]])
+    whole, tiled = despike(far, 0.05, 1.0, 0.3, block=256), despike(far, 0.05, 1.0, 0.3, block=16)
+    np.testing.assert_array_equal(tiled, whole)
+    assert tiled[-1] and 0 < (~tiled).sum() < len(bed)
+
+
 def test_despike_needs_enough_neighbours():
     lone = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.0, 0.05, 5.0]])  # 2 neighbours each: no verdict
     assert despike(lone, 0.05, 1.0, 0.3).all()
