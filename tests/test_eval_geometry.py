@@ -4,6 +4,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from scipy.spatial import cKDTree
 
 from ragsplat_core.errors import ConfigError
 from ragsplat_core.gaussians import quat_to_rotmat
@@ -154,6 +155,23 @@ def test_despike_tiles_give_the_same_cells():
     whole, tiled = despike(far, 0.05, 1.0, 0.3, block=256), despike(far, 0.05, 1.0, 0.3, block=16)
     np.testing.assert_array_equal(tiled, whole)
     assert tiled[-1] and 0 < (~tiled).sum() < len(bed)
+
+
+def test_despike_matches_a_cell_by_cell_reference():
+    # rough relief with spikes and holes of every size, even and odd neighbour counts, edges
+    rng = np.random.default_rng(3)
+    bed = undulating_bed(0.1)
+    bed = bed[rng.random(len(bed)) < 0.8]  # holes: counts vary
+    bed[:, 2] += rng.normal(0, 0.05, len(bed)) + (rng.random(len(bed)) < 0.05) * rng.normal(0, 1.0, len(bed))
+    tree = cKDTree(bed[:, :2])
+    ref = np.ones(len(bed), dtype=bool)
+    for g, near in enumerate(tree.query_ball_point(bed[:, :2], 0.5 + 1e-6)):
+        others = [k for k in near if k != g]
+        if len(others) >= 8:
+            ref[g] = abs(bed[g, 2] - np.median(bed[others, 2])) <= 0.3
+    keep = despike(bed, 0.1, 0.5, 0.3, block=16, chunk=100)
+    np.testing.assert_array_equal(keep, ref)
+    assert 0 < (~keep).sum() < 0.2 * len(bed)
 
 
 def test_despike_needs_enough_neighbours():
