@@ -307,7 +307,8 @@ def bed_note(header: dict) -> str:
     voxel = (f"{fuse['voxel']:g} m" if fuse.get("voxel") else f"{fuse['voxel_gsd']:g} x the views' ground sample "
              "distance") if fuse else "a few ground sample distances"
     trunc = f"{fuse['trunc_voxels']:g} voxels" if fuse else "a few voxels"
-    return ("Bed: volume = volume sampling of the Gaussians, noise filter, median height per cell; fused = the "
+    return ("Bed: volume = volume sampling of the Gaussians, noise filter, median height per cell, "
+            "despiking; fused = the "
             "true Gaussians' median depth maps of the training views (no water interface: straight rays) fused "
             f"in a TSDF (voxel {voxel}, truncation {trunc}), the topmost surface crossing per cell; for 3dgs "
             "both are its apparent bed. The reference rows have one bed each.")
