@@ -254,7 +254,7 @@ def extract_bed(gaussians: dict, resolution: float, level: float | None, region:
     settings (`ExtractConfig`) except the fields in `extract` (e.g. min_opacity, max_scale_gsd in ground
     sample distances `gsd`, `Dataset.gsd`). Raises ConfigError, OutputError (nothing found)."""
     georef = georef or Georef()  # default: the local frame
-    cfg = replace(ExtractConfig(), gsd=gsd, cell=resolution, seed=seed, **extract)
+    cfg = ExtractConfig(gsd=gsd, cell=resolution, seed=seed, **extract)
     means = gaussians["means"].detach().cpu().numpy()  # [N, 3]
     if region is None:
         xy = means[gaussians["opacities"].detach().cpu().numpy() >= cfg.min_opacity, :2]

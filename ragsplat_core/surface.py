@@ -269,8 +269,9 @@ def grid_median(points: np.ndarray, cell: float, origin: tuple[float, float] = (
     return np.column_stack([xy, med])
 
 
-def despike(grid: np.ndarray, cell: float, radius: float, tol: float, min_neighbours: int = 8,
-            block: int = 128, chunk: int = 4096) -> np.ndarray:
+def despike(grid: np.ndarray, cell: float, radius: float, tol: float,
+            min_neighbours: int = ExtractConfig.despike_min_neighbours, block: int = 128, chunk: int = 4096
+            ) -> np.ndarray:
     """Step 5: bool mask [G] of the cells of a height grid [G, 3] (nodes `cell` apart) to keep: a cell is
     dropped when its height differs by more than `tol` metres from the median height of the other occupied
     cells within `radius` metres (a disc), provided there are at least `min_neighbours` of them. A patch of
