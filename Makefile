@@ -12,15 +12,13 @@ PRESET ?= small
 # The training preset of a dataset preset: small-bed -> small, paper-reach -> paper.
 TRAIN_PRESET ?= $(firstword $(subst -, ,$(PRESET)))
 SEED ?= 0
-# Training seeds of the ablation (tables: mean +- std over them) and its variants (empty: all).
-SEEDS ?= 0 1 2
+# The ablation's training seeds (e.g. SEEDS="0 1"), variants (VARIANTS="3dgs full"), start (INIT=grid |
+# triangulated | refracted) and processes (JOBS=1): empty means `ragsplat ablation`'s own defaults, defined
+# once in eval/ablation.py (`ragsplat ablation --help` prints them).
+SEEDS ?=
 VARIANTS ?=
-# How every variant starts: refracted (tracks triangulated from the images, rays bent at the water: nothing
-# about the bed given), triangulated (straight rays, depths x n) or grid (the paper's plane at the bed depth,
-# which a reach with pools and banks has no single value of)
-INIT ?= refracted
-# Rows trained at once, each process with cores / JOBS threads (2 single-threaded on 2 cores: 1.7x the steps)
-JOBS ?= 2
+INIT ?=
+JOBS ?=
 DATA ?= data/$(PRESET)
 RUNS ?= runs/$(PRESET)
 
@@ -46,7 +44,8 @@ dataset: install
 
 # The main job: dataset if missing, every variant trained and evaluated, tables beside the paper's.
 ablation: dataset
-	$(VENV)/bin/ragsplat ablation --preset $(TRAIN_PRESET) --data $(DATA) --out $(RUNS) --seeds $(SEEDS) --init $(INIT) --jobs $(JOBS) $(if $(VARIANTS),--variants $(VARIANTS))
+	$(VENV)/bin/ragsplat ablation --preset $(TRAIN_PRESET) --data $(DATA) --out $(RUNS) $(if $(SEEDS),--seeds $(SEEDS)) \
+		$(if $(INIT),--init $(INIT)) $(if $(JOBS),--jobs $(JOBS)) $(if $(VARIANTS),--variants $(VARIANTS))
 
 lint: install
 	$(VENV)/bin/ruff check .

@@ -1,4 +1,5 @@
 import json
+import os
 from types import SimpleNamespace
 
 import numpy as np
@@ -117,9 +118,13 @@ def test_processes_share_a_queue_take_each_row_once_longest_first(tmp_path):
     assert not (out / "results.json").exists() and not (out / "init").exists()
     run_ablation(data, out, "smoke", ["3dgs", "2dgs+full"], [0, 1], runner, queue=queue, **quiet)
     assert len(runner.calls) == 4  # every row was taken already
-    assert sorted(p.name for p in queue.iterdir()) == ["2dgs+full-seed0", "2dgs+full-seed1", "3dgs-seed0",
-                                                      "3dgs-seed1"]
+    taken = ["2dgs+full-seed0", "2dgs+full-seed1", "3dgs-seed0", "3dgs-seed1"]
+    assert sorted(p.name for p in queue.iterdir()) == sorted(taken + [f"{name}.done" for name in taken])
+    assert ablation.held(queue, os.getpid()) == []  # every row it took, it finished
     assert ablation.take(queue, "x") and not ablation.take(queue, "x")
+    assert ablation.held(queue, os.getpid()) == ["x"] and ablation.held(queue, os.getpid() + 1) == []
+    ablation.finish(queue, "x")
+    assert ablation.held(queue, os.getpid()) == []
     rows = run_ablation(data, out, "smoke", ["3dgs", "2dgs+full"], [0, 1], runner, **quiet)
     assert len(runner.calls) == 4 and [r["seed"] for r in rows["2dgs+full"]] == [0, 1]
     assert list(rows) == ["3dgs", "2dgs+full", "init", "3dgs x n", "oracle plane"]

@@ -1,6 +1,7 @@
 """`ragsplat ablation` end to end on a tiny synthetic dataset with a shrunken smoke preset (seconds)."""
 
 import json
+import os
 import shutil
 from dataclasses import replace
 from pathlib import Path
@@ -25,7 +26,7 @@ def test_ablation_command(evaluable_dataset, tmp_path, monkeypatch, capsys):
     shutil.copytree(evaluable_dataset, data)
     out = tmp_path / "runs"
     argv = ["ablation", "--data", str(data), "--out", str(out), "--preset", "smoke", "--variants", "3dgs",
-            "full", "--seeds", "0", "1", "--no-download"]
+            "full", "--seeds", "0", "1", "--init", "grid", "--jobs", "1", "--no-download"]
     assert main(argv) == 0
     printed = capsys.readouterr().out
     assert "| full | 2 | volume |" in printed and "| 3dgs x n | 2 | volume |" in printed and "LPIPS n/a" in printed
@@ -94,7 +95,8 @@ def test_sigint_keeps_finished_rows_and_the_rerun_completes(evaluable_dataset, t
 
     out = tmp_path / "runs"
     cmd = [sys.executable, "-m", "ragsplat_core.cli.main", "ablation", "--data", str(evaluable_dataset), "--out",
-           str(out), "--preset", "smoke", "--variants", "3dgs", "position", "--no-download"]
+           str(out), "--preset", "smoke", "--variants", "3dgs", "position", "--seeds", "0", "--init", "grid",
+           "--jobs", "1", "--no-download"]
     env = {**os.environ, "TORCH_HOME": str(tmp_path / "torch")}  # no LPIPS backbone there: LPIPS n/a
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
     deadline = time.time() + 300
@@ -124,22 +126,27 @@ def test_jobs_train_every_row_once_and_the_tables_reuse_them(evaluable_dataset, 
     monkeypatch.setattr(metrics, "default_vgg16_path", lambda: tmp_path / "absent.pth")
     children = []
 
-    class Child:
+    class Child:  # a finished process (the rows trained in this one, in order)
+        fail = False
+
         def __init__(self, cmd, env, log):
             assert cmd[1:3] == ["-m", "ragsplat_core.cli.main"] and env["OMP_NUM_THREADS"] == env["NUMBA_NUM_THREADS"]
             children.append(cmd[3:])
-            self.rc = main(cmd[3:])
+            self.pid, self.returncode = os.getpid(), 1 if self.fail else main(cmd[3:])
+
+        def poll(self):
+            return self.returncode
 
         def wait(self):
-            return self.rc
+            return self.returncode
 
     monkeypatch.setattr(eval.cli, "spawn", Child)
     out = tmp_path / "runs"
     argv = ["ablation", "--data", str(evaluable_dataset), "--out", str(out), "--preset", "smoke", "--variants",
             "3dgs", "full", "--seeds", "0", "1", "--init", "grid", "--no-download"]
     assert main([*argv, "--jobs", "2"]) == 0
-    assert children[0] == children[1] and children[0][:-4] == argv
-    assert children[0][-4:-2] == ["--code", source_digest(*ablation.CODE)]  # keyed to the code at the start
+    assert children[0] == children[1] and children[0][:-6] == argv
+    assert children[0][-6:-2] == ["--jobs", "1", "--code", source_digest(*ablation.CODE)]  # keyed to the start
     queue = Path(children[0][-1])  # one queue folder of this command's, shared, removed at the end
     assert children[0][-2] == "--queue" and queue.parent == out
     assert not queue.exists()
@@ -148,6 +155,49 @@ def test_jobs_train_every_row_once_and_the_tables_reuse_them(evaluable_dataset, 
     assert list(json.loads((out / "results.json").read_text())["rows"]) == ["init", "3dgs x n", "oracle plane",
                                                                            "3dgs", "full"]
     # a failed process fails the command, with the log to read
-    monkeypatch.setattr(Child, "wait", lambda self: 1)
+    monkeypatch.setattr(Child, "fail", True)
     assert main([*argv, "--jobs", "2"]) == 2
-    assert "2 of 2 processes failed; see" in capsys.readouterr().err
+    assert "process 1 of 2 exited with 1 while training no row (log: " in capsys.readouterr().err
+
+
+def test_a_killed_process_is_named_with_its_row_and_the_rerun_finishes(evaluable_dataset, tmp_path):
+    """`--jobs 2` for real: a SIGKILL of one training process ends the command at once (exit 2, one line
+    naming the row that process held, the other process stopped at a checkpoint); the same command then
+    trains what is left and writes the tables."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "runs"
+    cmd = [sys.executable, "-m", "ragsplat_core.cli.main", "ablation", "--data", str(evaluable_dataset), "--out",
+           str(out), "--preset", "smoke", "--variants", "3dgs", "full", "--seeds", "0", "--init", "grid",
+           "--jobs", "2", "--no-download"]
+    env = {**os.environ, "TORCH_HOME": str(tmp_path / "torch")}  # no LPIPS backbone there: LPIPS n/a
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    victim, deadline = None, time.time() + 300
+    while victim is None and time.time() < deadline and proc.poll() is None:
+        for marker in out.glob(".queue-*/*-seed0"):  # a row a process took: its pid inside
+            pid = marker.read_text().strip()
+            if pid and (out / marker.name.replace("-seed", "/seed") / "key.json").exists():
+                victim = (int(pid), marker)
+                break
+        time.sleep(0.01)
+    assert victim is not None, proc.communicate()
+    pid, marker = victim
+    os.kill(pid, signal.SIGSTOP)  # frozen first: it cannot finish the row between the look and the kill
+    assert not marker.with_name(marker.name + ".done").exists()
+    os.kill(pid, signal.SIGKILL)
+    printed, err = proc.communicate(timeout=300)
+    row = marker.name.replace("-seed", " seed ")
+    assert proc.returncode == 2, err
+    assert f"was killed by SIGKILL while training {row}; stopping the others" in printed
+    lines = [line for line in err.splitlines() if line.startswith("ragsplat")]
+    assert len(lines) == 1 and f"was killed by SIGKILL while training {row} (log: " in lines[0], err
+    assert "rerun the same command to resume" in lines[0]
+    assert not (out / "results.json").exists()
+    done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600,
+                          check=False)
+    assert done.returncode == 0, done.stderr
+    rows = json.loads((out / "results.json").read_text())["rows"]
+    assert len(rows["3dgs"]) == 1 and len(rows["full"]) == 1

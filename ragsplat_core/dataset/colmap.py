@@ -30,7 +30,7 @@ import numpy as np
 from ragsplat_core.camera import Camera
 from ragsplat_core.dataset import layout
 from ragsplat_core.errors import DatasetError
-from ragsplat_core.outputs import write_bytes, write_json
+from ragsplat_core.outputs import locked, write_bytes, write_json
 
 IMPORT = "import.json"  # what was imported and how (the rerun check)
 POINTS = "points3D.npy"  # [P, 6] float64: x, y, z (local frame), r, g, b in [0, 1]
@@ -339,16 +339,25 @@ TRACKS = "colmap/tracks.npy"  # its observations [M, 4]; the image names are in 
 def triangulated_points(root: Path, fingerprint: str) -> Path:
     """The dataset's triangulated points as a .npy file [P, 6] (`triangulate`), computed once per dataset
     content (`fingerprint`) and cached inside it with their observations (`TRACKS`): a derived product, like
-    COLMAP's own database, that every run on the dataset shares."""
+    COLMAP's own database, that every run on the dataset shares. Made under a lock in the dataset: two
+    processes that need it at once (two rows of `ragsplat ablation --jobs 2`) do not both run pycolmap in
+    the same folder (which crashed one of them inside SQLite); the second waits and reads the first's."""
     path, work, tracks = Path(root) / TRIANGULATED, Path(root) / "colmap" / "triangulation", Path(root) / TRACKS
     stamp = path.with_suffix(".json")
-    if path.is_file() and tracks.is_file() and stamp.is_file() \
-            and json.loads(stamp.read_text()).get("fingerprint") == fingerprint:
+
+    def cached() -> bool:
+        return path.is_file() and tracks.is_file() and stamp.is_file() \
+            and json.loads(stamp.read_text()).get("fingerprint") == fingerprint
+
+    if cached():
         return path
-    pts, obs, names = triangulate(root, work)
-    layout.write_npy(path, pts)
-    layout.write_npy(tracks, obs)
-    write_json(stamp, {"fingerprint": fingerprint, "points": len(pts), "images": names})
+    with locked(Path(root) / "colmap" / ".lock"):
+        if cached():  # made by the process that held the lock
+            return path
+        pts, obs, names = triangulate(root, work)
+        layout.write_npy(path, pts)
+        layout.write_npy(tracks, obs)
+        write_json(stamp, {"fingerprint": fingerprint, "points": len(pts), "images": names})  # last: the mark
     return path
 
 

@@ -21,10 +21,11 @@ from ragsplat_core.raster.project import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE, Bins
 CHUNK_ELEMENTS = 1 << 20
 
 
-def over_tiles(fn, bins: Bins, width: int, height: int, *args) -> torch.Tensor:
+def over_tiles(fn, bins: Bins, width: int, height: int, *args) -> torch.Tensor | tuple[torch.Tensor, ...]:
     """[H, W, C] image of `fn(tiles [t], k, px [256], py [256], *args) -> [t, 256, C]`, which composites the
     tiles `tiles` with their Gaussian lists padded to k (px, py: pixel offsets inside a tile), run over
-    chunks of tiles grouped by list length and checkpointed when gradients are on."""
+    chunks of tiles grouped by list length and checkpointed when gradients are on. When `fn` returns a tuple
+    of such tensors, so does this (one image each)."""
     n_tiles = bins.tiles_x * bins.tiles_y
     counts = bins.offsets[1:] - bins.offsets[:-1]  # [n_tiles]
     pix = torch.arange(TILE * TILE, device=bins.offsets.device)
@@ -41,14 +42,19 @@ def over_tiles(fn, bins: Bins, width: int, height: int, *args) -> torch.Tensor:
         tiles = by_len[start:stop]  # [t]
         chunk = (tiles, max(cnt[stop - 1], 1), px, py, *args)
         # Recomputed in backward instead of kept: memory stays one chunk's worth of [t, 256, k] tensors.
-        out_rows.append(checkpoint(fn, *chunk, use_reentrant=False, preserve_rng_state=False)
-                        if torch.is_grad_enabled() else fn(*chunk))
+        res = checkpoint(fn, *chunk, use_reentrant=False, preserve_rng_state=False) \
+            if torch.is_grad_enabled() else fn(*chunk)
+        multi = isinstance(res, tuple)
+        out_rows.append(res if multi else (res,))
         out_tiles.append(tiles)
         start = stop
-    res = torch.cat(out_rows)  # [n_tiles, 256, C] in chunk order
-    res = res[torch.argsort(torch.cat(out_tiles))]  # tile order
-    res = res.reshape(bins.tiles_y, bins.tiles_x, TILE, TILE, -1).permute(0, 2, 1, 3, 4)
-    return res.reshape(bins.tiles_y * TILE, bins.tiles_x * TILE, -1)[:height, :width]
+    order = torch.argsort(torch.cat(out_tiles))  # chunk order -> tile order
+    images = []
+    for parts in zip(*out_rows):
+        res = torch.cat(parts)[order]  # [n_tiles, 256, C]
+        res = res.reshape(bins.tiles_y, bins.tiles_x, TILE, TILE, -1).permute(0, 2, 1, 3, 4)
+        images.append(res.reshape(bins.tiles_y * TILE, bins.tiles_x * TILE, -1)[:height, :width])
+    return tuple(images) if multi else images[0]
 
 
 def front_to_back(alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -75,13 +81,15 @@ def composite(proj: Projected, opacities: torch.Tensor, colors: torch.Tensor, bi
                 torch.zeros(height, width, dtype=colors.dtype, device=device) + zero,
                 torch.zeros(height, width, dtype=colors.dtype, device=device) if median else None)
     feats = torch.cat([colors, proj.depths[:, None]], -1)  # [N, 4]: what gets composited
-    res = over_tiles(_composite_tiles, bins, width, height, proj, opacities, feats, bins, median)  # [H, W, 5|6]
-    return res[..., :3], res[..., 4], res[..., 3], res[..., 5].detach() if median else None
+    res = over_tiles(_composite_tiles, bins, width, height, proj, opacities, feats, bins, median)
+    res, med = res if median else (res, None)  # [H, W, 5], [H, W, 1] or None
+    return res[..., :3], res[..., 4], res[..., 3], None if med is None else med[..., 0]
 
 
 def _composite_tiles(tiles, k, px, py, proj, opacities, feats, bins, median):
     """Composites tiles [t] with lists padded to k. Returns [t, 256, 5]: colour (3), z sum, transmittance;
-    [t, 256, 6] with the median z (no gradient) when `median`."""
+    with `median`, also the median z [t, 256, 1] as a second tensor outside the graph, so that the gradients
+    flow through the same operations with and without it."""
     slot = torch.arange(k, device=tiles.device)
     first = bins.offsets[tiles]  # [t]
     valid = slot[None, :] < (bins.offsets[tiles + 1] - first)[:, None]  # [t, k]
@@ -100,11 +108,12 @@ def _composite_tiles(tiles, k, px, py, proj, opacities, feats, bins, median):
     use = valid[:, None, :] & (power <= 0) & (alpha >= ALPHA_MIN)
     trans, _, weights = front_to_back(torch.where(use, alpha, torch.zeros_like(alpha)))
     acc = weights @ feats[idx]  # [t, 256, 4]
+    res = torch.cat([acc, trans[..., -1:]], -1)
     if not median:
-        return torch.cat([acc, trans[..., -1:]], -1)
+        return res
     with torch.no_grad():
         # trans is non-increasing along the list: the count of slots above 0.5 is the first one at or below
         first = (trans > 0.5).sum(-1)  # [t, 256]; k where the pixel never gets there
         z = torch.gather(proj.depths.detach()[idx], 1, first.clamp(max=k - 1))  # [t, 256]
         median = torch.where(first < k, z, torch.zeros_like(z))
-    return torch.cat([acc, trans[..., -1:], median[..., None]], -1)
+    return res, median[..., None]
