@@ -95,7 +95,7 @@ def test_files_read_by_users_tools(smoke):
                    check=True)
     via_cv = np.load(smoke / "cv.npy")
     (smoke / "cv.npy").unlink()
-    np.testing.assert_array_equal(via_cv, read_depth(smoke / f["gt_depth_file_path"]))
+    np.testing.assert_array_equal(via_cv, read_depth(smoke / f["gt_depth_file_path"]))  # one file's float32s
     assert via_cv.max() > 0
     # nerfstudio: poses as they are, the split by file lists, no key nerfstudio would misread
     assert tf["applied_transform"] == np.eye(4)[:3].tolist() and tf["orientation_override"] == "none"
@@ -182,7 +182,7 @@ def test_rerun_resumes_and_shards_merge(smoke, tmp_path):
     assert not (copy / "transforms.json").exists()  # incomplete: no merge yet
     assert main(["dataset", "--preset", "smoke", "--out", str(copy), "--shard", "1/2", "--quiet"]) == 0
     assert (copy / "transforms.json").read_text() == original
-    for name in ("0001", "0002"):  # re-rendered bit-identically (same seed)
+    for name in ("0001", "0002"):  # re-rendered bit-identically (same renderer, seed and machine as `smoke`)
         assert (copy / "images" / "wet" / f"{name}.png").read_bytes() == \
             (smoke / "images" / "wet" / f"{name}.png").read_bytes()
     assert not list(copy.rglob("*.tmp")) and not list(copy.rglob(".*.render"))
@@ -196,7 +196,7 @@ def test_rerun_renders_damaged_files_again(smoke, tmp_path, capsys):
     exr.write_bytes(b"\0" * exr.stat().st_size)  # same size, garbage: only the manifest's hash can tell
     assert main(["dataset", "--preset", "smoke", "--out", str(copy), "--quiet"]) == 0
     assert "2 damaged files rendered again" in capsys.readouterr().out
-    for p in (png, exr):
+    for p in (png, exr):  # the same renderer, seed and machine as `smoke`: the same bytes
         assert p.read_bytes() == (smoke / p.relative_to(copy)).read_bytes()
     manifest = json.loads((copy / "manifest.json").read_text())
     assert len(manifest) == 3 * len(json.loads((copy / "transforms.json").read_text())["frames"])

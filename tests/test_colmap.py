@@ -79,7 +79,7 @@ def test_text_and_binary_give_the_same_dataset(tmp_path):
         write_model(tmp_path / kind, tmp_path / "img", CENTRES, binary=kind == "bin")
         import_colmap(tmp_path / kind, tmp_path / "img", tmp_path / f"data-{kind}", level=0.0)
     a, b = (json.loads((tmp_path / f"data-{k}" / "transforms.json").read_text()) for k in ("txt", "bin"))
-    assert a == b
+    assert a == b  # the same poses, read from text (17 digits: lossless) or binary, through the same code
 
 
 def test_distorted_images_are_undistorted_to_the_pinhole_and_the_border_masked(tmp_path):
@@ -256,7 +256,8 @@ def test_triangulation_with_known_poses_finds_a_plane(tmp_path):
     import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", level=0.0)
     pts, obs, names = triangulate(tmp_path / "data", tmp_path / "work")
     again = triangulate(tmp_path / "data", tmp_path / "work2")
-    assert np.array_equal(pts, again[0]) and np.array_equal(obs, again[1]) and names == again[2]  # reproducible
+    # reproducible: the same COLMAP calls, one thread and a fixed seed, one process
+    assert np.array_equal(pts, again[0]) and np.array_equal(obs, again[1]) and names == again[2]
     assert len(pts) > 50
     # every observation is its point's pixel (COLMAP's pixel centres at i + 0.5, as ours)
     cams = {v.file_path: v.camera for v in load_dataset(tmp_path / "data", splits=("train",)).train}

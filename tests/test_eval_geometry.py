@@ -112,6 +112,8 @@ def test_plane_filter_kernel_matches_numpy_twin():
     pts = rng.permutation(np.vstack([bed, sparse, floaters, [[9.0, 9.0, 0.0], [0.0, -9.0, 0.0]]]))
     cfg = ExtractConfig(filter_radius=0.1, filter_k=2.0)
     fast, twin = plane_filter(pts, cfg, chunk=2500), plane_filter(pts, cfg, chunk=2500, fast=False)
+    # booleans from float64 fits (numba vs numpy, ~1e-13 apart): every point is >= 1e-4 (relative) from its
+    # threshold here (measured), so the two agree exactly
     np.testing.assert_array_equal(fast, twin)
     assert 0.5 < fast.mean() < 1  # both outcomes occur
     lax = ExtractConfig(filter_radius=0.1, filter_k=2.0, filter_min_neighbours=0)  # isolated points tested too
@@ -139,7 +141,7 @@ def test_despike_drops_a_floater_patch_and_keeps_the_relief():
     for dz in (2.0, -0.6):  # floaters above, a hole below
         spiked = bed + np.where(patch, dz, 0.0)[:, None] * [0, 0, 1]
         keep = despike(spiked, 0.05, 1.0, 0.3)
-        np.testing.assert_array_equal(keep, ~patch)
+        np.testing.assert_array_equal(keep, ~patch)  # booleans: the patch is 0.6 m or more off, the tolerance 0.3
     # too tight a tolerance takes the crests and troughs of real relief: a test that can fail
     assert not despike(bed, 0.05, 1.0, 0.05).all()
     assert despike(spiked, 0.05, 1.0, np.inf).all()  # off
@@ -153,7 +155,7 @@ def test_despike_tiles_give_the_same_cells():
     spiked = bed + (rng.random(len(bed)) < 0.02)[:, None] * [0, 0, 1.0]
     far = np.vstack([spiked, [[5000.0, 5000.0, 3.0]]])
     whole, tiled = despike(far, 0.05, 1.0, 0.3, block=256), despike(far, 0.05, 1.0, 0.3, block=16)
-    np.testing.assert_array_equal(tiled, whole)
+    np.testing.assert_array_equal(tiled, whole)  # medians select values: the same neighbours, the same verdicts
     assert tiled[-1] and 0 < (~tiled).sum() < len(bed)
 
 
@@ -170,7 +172,7 @@ def test_despike_matches_a_cell_by_cell_reference():
         if len(others) >= 8:
             ref[g] = abs(bed[g, 2] - np.median(bed[others, 2])) <= 0.3
     keep = despike(bed, 0.1, 0.5, 0.3, block=16, chunk=100)
-    np.testing.assert_array_equal(keep, ref)
+    np.testing.assert_array_equal(keep, ref)  # a median selects (or halves a sum of two) values: exact both ways
     assert 0 < (~keep).sum() < 0.2 * len(bed)
 
 

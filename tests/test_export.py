@@ -89,6 +89,7 @@ def test_export_writes_every_product(run, tmp_path, capsys):
         assert tif.transform.a == 0.05 and tif.transform.e == -0.05 and tif.transform.b == tif.transform.d == 0
         values = at_cells(tif, grid[:, :2])
         assert (tif.read(1) != NODATA).sum() == len(grid)  # nothing else is covered
+    # the same extraction in one process; the DEM's float32 of z (+ a zero offset) read back losslessly
     np.testing.assert_array_equal(values[:, 0], grid[:, 2].astype(np.float32))
     np.testing.assert_allclose(values[:, 1], -grid[:, 2], rtol=0, atol=1e-6)  # level 0
     las = laspy.read(out["laz"])
@@ -96,7 +97,7 @@ def test_export_writes_every_product(run, tmp_path, capsys):
     assert las.header.are_points_compressed
     np.testing.assert_allclose(np.column_stack([las.x, las.y, las.z]), grid, rtol=0, atol=0.0005)
     assert (las.classification == BATHYMETRIC).all()
-    np.testing.assert_array_equal(read_ply(out["ply"]), grid)
+    np.testing.assert_array_equal(read_ply(out["ply"]), grid)  # doubles: lossless
     assert out["png"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -141,7 +142,7 @@ def test_utm_offset_round_trip(tmp_path):
     np.testing.assert_array_equal(las.classification, np.where(wet, BATHYMETRIC, GROUND))
     assert las.header.global_encoding.wkt
     assert CRS.from_wkt(las.header.vlrs[0].string) == CRS.from_epsg(32633)
-    np.testing.assert_array_equal(read_ply(tmp_path / "bed.ply"), absolute)
+    np.testing.assert_array_equal(read_ply(tmp_path / "bed.ply"), absolute)  # the same one add; doubles: lossless
     with pytest.raises(ConfigError, match="CRS 'EPSG:0' is not usable"):
         Georef(crs="EPSG:0")
 

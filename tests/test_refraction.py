@@ -37,7 +37,7 @@ def point_from_air_angle(theta_a_deg, d, H, n, azimuth=0.7, cam=CAM, level=WATER
 def test_normal_incidence_does_not_bend():
     p = torch.tensor([[CAM[0], CAM[1], WATER.level - 4.0]], dtype=f64)
     q = apparent_points(p, CAM, WATER)
-    assert q[0, 0] == CAM[0] and q[0, 1] == CAM[1]
+    assert q[0, 0] == CAM[0] and q[0, 1] == CAM[1]  # a zero horizontal offset stays exactly zero
     assert float(q[0, 2]) == pytest.approx(WATER.level - 4.0 / WATER.n, rel=0, abs=1e-14)
 
 
@@ -91,6 +91,7 @@ def test_apparent_is_closer_to_nadir_and_shallower():
 def test_n_one_is_exact_identity():
     water = WaterSurface(level=0.5, n=1.0)
     p = random_points()
+    # exact: a float n = 1 skips the transform (`is_identity`), nothing is computed
     assert torch.equal(apparent_points(p, CAM, water), p)
     assert torch.equal(apparent_jacobian(p, CAM, water), torch.eye(3, dtype=f64).expand(len(p), 3, 3))
     out = refract_gaussians(p, torch.ones_like(p), torch.tensor([[1.0, 0, 0, 0]]).expand(len(p), 4),
@@ -109,6 +110,7 @@ def test_n_one_as_tensor_is_identity_to_round_off():
 def test_above_water_untouched():
     p = torch.tensor([[3.0, 1.0, 0.6], [3.0, 1.0, 0.5], [3.0, 1.0, 0.2]], dtype=f64)  # above, on, below
     q = apparent_points(p, CAM, WATER)
+    # exact: only the submerged rows are written (index_put / index_copy), the others are the inputs
     assert torch.equal(q[:2], p[:2]) and not torch.equal(q[2], p[2])
     J = apparent_jacobian(p, CAM, WATER)
     assert torch.equal(J[:2], torch.eye(3, dtype=f64).expand(2, 3, 3))
@@ -169,7 +171,7 @@ def test_waterline_band_is_thin_and_exact_below_it():
     from ragsplat_core.refraction import WATERLINE_BAND, waterline_weight
 
     d = torch.tensor([-1.0, 0.0, WATERLINE_BAND / 2, WATERLINE_BAND, 1.0], dtype=f64)
-    assert waterline_weight(d).tolist() == [0.0, 0.0, 0.5, 1.0, 1.0]
+    assert waterline_weight(d).tolist() == [0.0, 0.0, 0.5, 1.0, 1.0]  # t in {0, 1/2, 1}: every step exact
 
 
 def test_camera_not_above_water_raises():
@@ -295,6 +297,7 @@ def test_scale_modes_off_nadir_match_jacobian():
     torch.testing.assert_close(ani.covars, J @ covariance(quats, scales) @ J.transpose(1, 2))
     torch.testing.assert_close(ani.jacobians, J)  # the surfels' tangent map
     bare = refract_gaussians(*args, scale="anisotropic", covariances=False)  # what surfels ask for
+    # bit-identical: the same operations give J and the means whether or not covariances are asked for
     assert bare.covars is None and torch.equal(bare.jacobians, ani.jacobians) and torch.equal(bare.means, ani.means)
     assert iso.jacobians is None and det.jacobians is None
     # The paper's observation: the determinant shrinks more than the geometric mean of axis stretches.

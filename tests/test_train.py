@@ -215,7 +215,7 @@ def test_outputs_resume_and_determinism(wet, tmp_path):
     assert TrainConfig.from_dict(meta["config"]) == cfg
     ply = load_ply(tmp_path / "a/point_cloud.ply")
     for k, v in ply.items():
-        assert torch.equal(v, a.splats[k].detach()), k
+        assert torch.equal(v, a.splats[k].detach()), k  # float32 written and read back: lossless
     # interrupted after 9 steps (checkpoint at 5 plus 4 lost steps), rerun from the checkpoint
     b = Trainer(cfg, wet, tmp_path / "b")
     for _ in range(9):
@@ -225,7 +225,7 @@ def test_outputs_resume_and_determinism(wet, tmp_path):
     c = Trainer(cfg, wet, tmp_path / "b")
     assert c.step == 5
     c.train()
-    for k in a.splats:
+    for k in a.splats:  # resumed: the same steps on the same state (checkpoint lossless), one process
         assert torch.equal(a.splats[k], c.splats[k]), k
     with pytest.raises(OutputError, match="different settings .*seed"):
         Trainer(_cfg(variant="full", iterations=14, checkpoint_every=5, seed=1), wet, tmp_path / "a")
