@@ -44,8 +44,7 @@ dataset: install
 
 # The main job: dataset if missing, every variant trained and evaluated, tables beside the paper's.
 ablation: dataset
-	$(VENV)/bin/ragsplat ablation --preset $(TRAIN_PRESET) --data $(DATA) --out $(RUNS) $(if $(SEEDS),--seeds $(SEEDS)) \
-		$(if $(INIT),--init $(INIT)) $(if $(JOBS),--jobs $(JOBS)) $(if $(VARIANTS),--variants $(VARIANTS))
+	$(VENV)/bin/ragsplat ablation --preset $(TRAIN_PRESET) --data $(DATA) --out $(RUNS)$(if $(SEEDS), --seeds $(SEEDS))$(if $(INIT), --init $(INIT))$(if $(JOBS), --jobs $(JOBS))$(if $(VARIANTS), --variants $(VARIANTS))
 
 lint: install
 	$(VENV)/bin/ruff check .

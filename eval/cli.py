@@ -90,12 +90,15 @@ def prepare(args: argparse.Namespace, fingerprint: str) -> None:
     start: the dataset's triangulated tracks (cached in it) and the LPIPS weights (downloaded to the cache)."""
     from eval import metrics
 
+    metric, reason = metrics.load_lpips(args.vgg16, download=not args.no_download, log=print)  # a bad path: refused
+    if metric is None and not args.no_download:  # a failed download: the processes and the tables do not retry
+        print(f"LPIPS n/a: {reason}", flush=True)
+        args.no_download = True
     if args.init in ("triangulated", "refracted"):
         from ragsplat_core.dataset.colmap import triangulated_points
 
         print("the training images' tracks (triangulated once per dataset, cached in it) ...", flush=True)
         print(f"tracks: {triangulated_points(args.data, fingerprint)}", flush=True)
-    metrics.load_lpips(args.vgg16, download=not args.no_download, log=print)
 
 
 def run_jobs(args: argparse.Namespace, fingerprint: str, check) -> None:
@@ -105,6 +108,8 @@ def run_jobs(args: argparse.Namespace, fingerprint: str, check) -> None:
     raises KeyboardInterrupt once this process was interrupted; the processes are then stopped (`stop`)."""
     from eval.ablation import claim_out, held
 
+    claim_out(args.out)  # before the logs are written into it
+    prepare(args, fingerprint)
     threads = str(max(1, (os.cpu_count() or 1) // args.jobs))
     env = {**os.environ, "OMP_NUM_THREADS": threads, "MKL_NUM_THREADS": threads, "NUMBA_NUM_THREADS": threads}
     base = [sys.executable, "-m", "ragsplat_core.cli.main", "ablation", "--data", str(args.data), "--out",
@@ -112,8 +117,6 @@ def run_jobs(args: argparse.Namespace, fingerprint: str, check) -> None:
             *map(str, args.seeds), "--init", args.init, *(["--vgg16", args.vgg16] if args.vgg16 else []),
             *(["--no-download"] if args.no_download else []), *(["--device", args.device] if args.device else []),
             "--jobs", "1", "--code", args.code]
-    claim_out(args.out)  # before the logs are written into it
-    prepare(args, fingerprint)
     # this command's own folder: markers a killed run left in another one do not hold back this one's rows
     queue = Path(args.out) / f".queue-{os.getpid()}-{time.time_ns()}"
     base += ["--queue", str(queue)]

@@ -41,7 +41,7 @@ def ablated(evaluable_dataset, tmp_path_factory):
                                                    densify=replace(smoke.densify, reset_every=30_000),
                                                    backend="torch"))
         assert main(["ablation", "--data", str(evaluable_dataset), "--out", str(out), "--preset", "smoke",
-                     "--variants", "full", "--seeds", "0", "--no-download"]) == 0
+                     "--variants", "full", "--seeds", "0", "--init", "grid", "--jobs", "1", "--no-download"]) == 0
     return out
 
 
