@@ -23,6 +23,7 @@ from blender_scenes.protocol import PROTOCOL
 from datagen import flight
 from datagen.bed import Bed, ground_truth, make_bed, mesh, surface, waterline
 from datagen.spec import SceneSpec, validate
+from datagen.survey import write_survey
 from ragsplat_core.camera import Camera
 from ragsplat_core.dataset import layout
 from ragsplat_core.errors import OutputError, RagsplatError
@@ -273,6 +274,8 @@ def _merge(spec: SceneSpec, out: Path, poses) -> None:
                                                scene_metadata(spec, poses, np.load(out / layout.GT_GRID))))
     files = [layout.relative_path(kind, p.name) for kind in kinds for p in poses]
     write_json(out / layout.MANIFEST, {f: layout.file_digest(out / f) for f in files}, indent=0)
+    if spec.water is not None and "wet" in kinds:  # what a surveyor would hand over (`ragsplat survey`)
+        write_survey(out, poses, spec.water.level, seed=spec.seed)
 
 
 def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),

@@ -59,7 +59,7 @@ def test_version_and_command_order(capsys):
     with pytest.raises(SystemExit) as done:
         main(["--version"])
     assert done.value.code == 0 and capsys.readouterr().out.startswith("ragsplat ")
-    assert list(COMMANDS) == ["dataset", "train", "render", "eval", "ablation", "export", "stability",
+    assert list(COMMANDS) == ["dataset", "train", "render", "eval", "ablation", "export", "survey", "stability",
                              "bench"]
 
 

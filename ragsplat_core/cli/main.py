@@ -24,6 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("eval.cli_score", "score a trained run against the ground truth, beside the reference answers"),
     "ablation": ("eval.cli", "train every variant, evaluate, and print Tables 1 and 2 beside the paper's"),
     "export": ("ragsplat_core.cli.export", "a trained run's bed as survey products: DEM GeoTIFF, LAS/LAZ, PLY, PNG"),
+    "survey": ("ragsplat_core.cli.survey", "from a survey's photos, RTK positions and water level to a DEM"),
     "stability": ("ragsplat_core.cli.stability", "numerical stability report of the refraction transform"),
     "bench": ("ragsplat_core.cli.bench", "benchmarks: refraction solvers, rasterizer, training step"),
 }

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ragsplat_core.errors import ConfigError
+from ragsplat_core.errors import ConfigError, DatasetError
 from ragsplat_core.outputs import atomic_path, write_bytes, write_json
 
 TRANSFORMS = "transforms.json"
@@ -56,6 +56,13 @@ NO_HIT = 1e10  # Cycles' depth where a ray escapes; far beyond any scene distanc
 LOCAL_CRS = ('LOCAL_CS["ragsplat scene (local metres, z up)",LOCAL_DATUM["scene origin",0],UNIT["metre",1],'
              'AXIS["X",EAST],AXIS["Y",NORTH]]')
 NODATA = -9999.0  # raster cells without a value
+# What a surveyor hands over, beside a rendered dataset (`datagen.survey`) or from the field: the photos as the
+# drone writes them (JPEG with the focal length in EXIF), the camera centres as its RTK receiver records them
+# and the water level; no poses. `ragsplat survey` reads only these.
+SURVEY_IMAGES = "survey/images"
+SURVEY_POSITIONS = "survey/positions.csv"  # header name,x,y,z: image file name, metres, z up
+SURVEY_LEVEL = "survey/water_level.txt"  # one number: the water surface height, same frame
+SURVEY_RECORD = "survey/survey.json"  # how a synthetic survey was made (seed, noise), for the evaluation only
 
 
 @dataclass(frozen=True)
@@ -157,6 +164,67 @@ def read_png(path: Path) -> np.ndarray:
     else:
         raise ValueError(f"{path}: unsupported channel count {img.shape[2]}")
     return np.ascontiguousarray(img)
+
+
+def write_jpeg(path: Path, image: np.ndarray, focal_px: float, quality: int = 95) -> None:
+    """[H, W, 3] uint8 RGB as a JPEG whose EXIF gives the focal length as a camera does (FocalLength in mm
+    with FocalPlaneX/YResolution in pixels per mm, a nominal 0.01 mm pixel), which structure from motion
+    reads as its focal length prior."""
+    import io
+
+    from PIL import Image
+    from PIL.TiffImagePlugin import IFDRational
+
+    pitch_mm = 0.01
+    exif = Image.Exif()
+    exif[0x010F], exif[0x0110] = "ragsplat", "synthetic survey camera"  # Make, Model
+    sub = exif.get_ifd(0x8769)
+    sub[0x920A] = IFDRational(round(focal_px * pitch_mm * 1e6), 1_000_000)  # FocalLength (mm)
+    sub[0xA20E] = sub[0xA20F] = IFDRational(round(1e6 / pitch_mm), 1_000_000)  # FocalPlaneX/YResolution
+    sub[0xA210] = 4  # FocalPlaneResolutionUnit: millimetres
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(image)).save(buf, "JPEG", quality=quality, exif=exif)
+    write_bytes(path, buf.getvalue())
+
+
+def write_positions(path: Path, names: list[str], xyz: np.ndarray) -> None:
+    """`name,x,y,z` CSV (metres, millimetre precision) of camera centres or ground control points."""
+    rows = "".join(f"{n},{x:.4f},{y:.4f},{z:.4f}\n" for n, (x, y, z) in zip(names, np.asarray(xyz, float)))
+    write_bytes(path, ("name,x,y,z\n" + rows).encode())
+
+
+def read_positions(path: Path) -> dict[str, np.ndarray]:
+    """{name: [3]} from a `name,x,y,z` CSV (header required, any column order). Raises DatasetError."""
+    import csv
+
+    path = Path(path)
+    try:
+        with open(path, newline="") as f:
+            lines = list(csv.reader(f))
+    except OSError as err:
+        raise DatasetError(f"{path}: {err.strerror}") from None
+    header = [h.strip() for h in lines[0]] if lines else []
+    if not {"name", "x", "y", "z"} <= set(header):
+        raise DatasetError(f"{path}: expected the header name,x,y,z, got {','.join(header) or 'nothing'}")
+    out = {}
+    for k, cells in enumerate(lines[1:], start=2):
+        if not any(c.strip() for c in cells):
+            continue  # a blank line
+        row = dict(zip(header, (c.strip() for c in cells)))
+        if len(cells) != len(header):
+            raise DatasetError(f"{path}:{k}: {len(cells)} values for the {len(header)} columns of the header")
+        try:
+            xyz = np.array([float(row[c]) for c in "xyz"])
+        except ValueError:
+            raise DatasetError(f"{path}:{k}: x, y, z must be numbers, got {row['x']}, {row['y']}, {row['z']}") from None
+        if not np.isfinite(xyz).all() or not row["name"]:
+            raise DatasetError(f"{path}:{k}: a name and three finite numbers are needed")
+        if row["name"] in out:
+            raise DatasetError(f"{path}:{k}: {row['name']} appears twice")
+        out[row["name"]] = xyz
+    if not out:
+        raise DatasetError(f"{path}: no rows")
+    return out
 
 
 def write_png(path: Path, image) -> None:

@@ -1,0 +1,262 @@
+"""`ragsplat survey IMAGES --positions positions.csv --water-level Z --out RUN [--crs EPSG:N] [--masks DIR]`:
+from the drone's photos to a DEM, every stage cached in RUN and skipped by a rerun whose inputs are the same.
+
+1. structure from motion (`survey.sfm`: pycolmap SIFT, exhaustive matching, incremental mapping) -> RUN/sfm/;
+2. georeferencing: the similarity that takes the model's camera centres to the RTK positions, robust to a few
+   wrong ones (`survey.georef`), residuals per camera -> RUN/georef.json;
+3. the water: bundle adjustment with the submerged tracks projected through the water at the given level and
+   the cameras held near their RTK positions (`survey.bundle`), and where the model's points lie around the
+   level -> RUN/model/ (a COLMAP model), RUN/water.json;
+4. training (the imported survey in RUN/data, the best variant and start as `make ablation` measures them)
+   -> RUN/train/, and the products: RUN/dem.tif, RUN/bed.laz, RUN/depth.png (`ragsplat export`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+from ragsplat_core.cli.args import (
+    count,
+    finite_float,
+    out_dir,
+    positive_float,
+    positive_int,
+    refractive_index,
+)
+
+STAGES = ("sfm", "georef", "water", "train", "export")
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from eval.ablation import INIT
+    from ragsplat_core.train.config import PRESETS, VARIANTS
+
+    parser.add_argument("images", type=Path, metavar="IMAGES", help="the folder of the survey's photos (JPEG/PNG)")
+    parser.add_argument("--positions", type=Path, required=True, metavar="CSV",
+                        help="camera centres as the drone's RTK recorded them: CSV with header name,x,y,z "
+                             "(image file name; metres, z up, the frame of the water level and the products)")
+    parser.add_argument("--water-level", type=finite_float, required=True, metavar="Z",
+                        help="height of the calm water surface in the positions' frame (m)")
+    parser.add_argument("--out", required=True, type=out_dir, help="run directory (a rerun resumes)")
+    parser.add_argument("--n", type=refractive_index, default=1.33, help="refractive index of the water (1.33)")
+    parser.add_argument("--crs", metavar="CRS", help="the positions' CRS for the products, e.g. EPSG:32633")
+    parser.add_argument("--masks", type=Path, metavar="DIR",
+                        help="masks named <image name>.png, zero where pixels are left out of training")
+    parser.add_argument("--no-water-adjustment", action="store_true",
+                        help="keep the pinhole structure-from-motion poses (only for comparison: through water "
+                             "they are tilted and the bed comes out too deep)")
+    parser.add_argument("--rtk-sigma", type=positive_float, nargs=2, default=(0.02, 0.03), metavar=("H", "V"),
+                        help="RTK position accuracy, horizontal and vertical (m; default 0.02 0.03)")
+    parser.add_argument("--variant", default="2dgs+full", choices=list(VARIANTS), help="(default: 2dgs+full)")
+    parser.add_argument("--init", default=INIT, choices=["triangulated", "refracted"], help=f"(default: {INIT})")
+    parser.add_argument("--preset", default="small", choices=list(PRESETS), help="training preset (small)")
+    parser.add_argument("--iterations", type=positive_int, help="override the preset's iteration count")
+    parser.add_argument("--seed", type=count, default=0, help="training seed (default 0)")
+    parser.add_argument("--resolution", type=positive_float, default=0.05, metavar="M", help="DEM cell (0.05 m)")
+    parser.add_argument("--max-size", type=positive_int, metavar="PX",
+                        help="downscale images for training so their longer side is at most PX pixels")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _digest(*parts) -> str:
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _files_digest(paths: list[Path]) -> str:
+    h = hashlib.sha256()
+    for p in paths:
+        h.update(p.name.encode() + b"\0" + p.read_bytes())
+    return h.hexdigest()[:16]
+
+
+class Stamps:
+    """RUN/stages.json: the key each finished stage was made with; a stage whose key is unchanged is skipped."""
+
+    def __init__(self, run: Path):
+        self.path = run / "stages.json"
+        self.keys = json.loads(self.path.read_text()) if self.path.is_file() else {}
+
+    def done(self, stage: str, key: str) -> bool:
+        return self.keys.get(stage) == key
+
+    def mark(self, stage: str, key: str) -> None:
+        from ragsplat_core.outputs import write_json
+
+        self.keys = {**{s: k for s, k in self.keys.items() if STAGES.index(s) < STAGES.index(stage)}, stage: key}
+        write_json(self.path, self.keys)
+
+
+def _say(stage: str, text: str) -> None:
+    print(f"[{stage}] {text}", file=sys.stderr, flush=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+    import pycolmap
+    import torch
+
+    from ragsplat_core.dataset import layout
+    from ragsplat_core.errors import ConfigError, DatasetError
+    from ragsplat_core.outputs import claim, write_json
+    from ragsplat_core.refraction import WaterSurface
+    from ragsplat_core.survey import bundle, georef, sfm
+
+    if not args.images.is_dir():
+        raise DatasetError(f"{args.images}: no such folder of photos")
+    photos = sorted(p for p in args.images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if len(photos) < 3:
+        raise DatasetError(f"{args.images}: {len(photos)} photos (JPEG, PNG or TIFF); at least 3 are needed")
+    positions = layout.read_positions(args.positions)
+    names = [p.name for p in photos]
+    unknown = sorted(set(positions) - set(names))
+    located = [n for n in names if n in positions]
+    if len(located) < 3:
+        raise DatasetError(f"{args.positions}: {len(located)} of its names are photos in {args.images} "
+                           f"(e.g. {', '.join(sorted(positions)[:3])} vs {', '.join(names[:3])}); at least 3 are needed")
+    if unknown:
+        _say("check", f"{len(unknown)} names in {args.positions} are not photos in {args.images} (ignored), "
+             f"e.g. {unknown[0]}")
+    top = max(float(positions[n][2]) for n in located)
+    if not args.water_level < top:
+        raise ConfigError(f"--water-level {args.water_level:g} is not below any camera (highest at {top:g})")
+    WaterSurface(args.water_level, args.n)
+    claim(args.out, "survey run")
+    stamps = Stamps(args.out)
+    # a local origin (whole metres): UTM-sized coordinates keep millimetres in every float64 step
+    origin = np.round(np.mean([positions[n] for n in located], axis=0))
+    level = args.water_level - origin[2]
+    timings = {}
+
+    # 1. structure from motion
+    key = _digest(_files_digest(photos), "SIMPLE_RADIAL")
+    work = args.out / "sfm"
+    t0 = time.perf_counter()
+    if not stamps.done("sfm", key):
+        _say("sfm", f"structure from motion of {len(photos)} photos (pycolmap SIFT, exhaustive matching, "
+             "incremental mapping; CPU) ...")
+        rec = sfm.reconstruct(args.images, names, work)
+        rec.write_text(str(_fresh(work / "model")))
+        stamps.mark("sfm", key)
+    rec = pycolmap.Reconstruction(str(work / "model"))
+    timings["sfm_s"] = time.perf_counter() - t0
+    _say("sfm", f"{rec.num_reg_images()} of {len(photos)} photos registered, {rec.num_points3D()} points, "
+         f"reprojection error {rec.compute_mean_reprojection_error():.2f} px")
+
+    # 2. georeferencing to the RTK positions
+    key = _digest(key, layout.file_digest(args.positions), origin.tolist())
+    trk = sfm.tracks(rec)
+    have = [k for k, n in enumerate(trk.names) if n in positions]
+    if len(have) < 3:
+        raise DatasetError(f"{args.positions}: only {len(have)} registered photos have a position; 3 are needed")
+    src = trk.C[have].numpy()
+    dst = np.array([positions[trk.names[k]] for k in have]) - origin
+    sim, inliers = georef.ransac_similarity(src, dst, threshold=max(0.2, 10 * args.rtk_sigma[1]))
+    res = sim.apply(src) - dst
+    looks = (trk.R[:, 2, :].numpy() @ sim.R.T)[:, 2]  # the optical axes' z in the positions' frame
+    if np.median(looks) > -0.2:
+        raise DatasetError(f"{args.positions}: after alignment the cameras do not look down (median optical "
+                           f"axis z {np.median(looks):+.2f}): are the positions metres with z up?")
+    report = {"scale": sim.scale, "R": sim.R.tolist(), "t": (sim.t + origin).tolist(), "origin": origin.tolist(),
+              "inliers": int(inliers.sum()), "cameras": len(have),
+              "residual_m": {trk.names[k]: r.tolist() for k, r in zip(have, res)},
+              "rms_m": float(np.sqrt((res[inliers] ** 2).sum(1).mean()))}
+    write_json(args.out / "georef.json", report)
+    _say("georef", f"similarity to {len(have)} RTK positions: scale {sim.scale:.4g}, {int(inliers.sum())} inliers, "
+         f"rms {100 * report['rms_m']:.1f} cm (per camera: {args.out / 'georef.json'})")
+    stamps.mark("georef", key)
+
+    # 3. the water: bundle adjustment through it, cameras held at their RTK positions
+    key = _digest(key, level, args.n, args.no_water_adjustment, list(args.rtk_sigma))
+    model = args.out / "model"
+    t0 = time.perf_counter()
+    if not stamps.done("water", key):
+        R = trk.R @ torch.as_tensor(sim.R.T)  # world = s R x + t: cam_from_world' = cam_from_world R^T
+        C = torch.as_tensor(sim.apply(trk.C.numpy()))
+        P = torch.as_tensor(sim.apply(trk.points.numpy()))
+        water = WaterSurface(float(level), args.n)
+        prior = torch.full_like(C, float("nan"))
+        prior[have] = torch.as_tensor(dst)
+        if args.no_water_adjustment:
+            adj = None
+        else:
+            _say("water", f"bundle adjustment through the water ({len(trk.point)} observations of {len(P)} points, "
+                 f"{len(C)} cameras) ...")
+            adj = bundle.adjust(R, C, trk.intrinsics, P, trk.point, trk.image, trk.pixels, water,
+                                prior_C=prior, prior_sigma=(args.rtk_sigma[0],) * 2 + (args.rtk_sigma[1],))
+            R, C, P = adj.R, adj.C, adj.points
+        z = P[:, 2].numpy() - level
+        above = np.sort(z[z >= 0])
+        check = {"level": args.water_level, "n": args.n, "points_above": int((z >= 0).sum()),
+                 "points_below": int((z < 0).sum()),
+                 "lowest_above_m": float(np.percentile(above, 1)) if len(above) else None,
+                 "adjusted": adj is not None,
+                 "rms_px": None if adj is None else float(adj.residuals.pow(2).mean().sqrt()),
+                 "iterations": None if adj is None else adj.iterations}
+        sfm.set_poses(rec, trk, R, C + torch.as_tensor(origin), P + torch.as_tensor(origin))
+        rec.write_text(str(_fresh(model)))
+        write_json(args.out / "water.json", check)
+        for stale in ("data", "train"):  # made from the previous poses
+            shutil.rmtree(args.out / stale, ignore_errors=True)
+        stamps.mark("water", key)
+    check = json.loads((args.out / "water.json").read_text())
+    timings["water_s"] = time.perf_counter() - t0
+    lowest = check["lowest_above_m"]
+    _say("water", f"level {check['level']:g}: {check['points_below']} points below it, {check['points_above']} "
+         f"above" + ("" if lowest is None else f" (the lowest 1 % within {100 * lowest:.1f} cm of it)")
+         + ("" if check["rms_px"] is None else f"; reprojection error {check['rms_px']:.2f} px after the adjustment"))
+
+    # 4. training and the products
+    run_train = args.out / "train"
+    _train(args, model, run_train)
+    key = _digest(key, (run_train / "point_cloud.ply").stat().st_mtime_ns, args.resolution)
+    if not stamps.done("export", key):
+        from ragsplat_core.export import export_run
+
+        bed = export_run(run_train, args.out / "dem.tif", args.resolution, args.out / "bed.laz", None,
+                         args.out / "depth.png")
+        stamps.mark("export", key)
+        _say("export", f"{len(bed.grid)} cells of {args.resolution:g} m")
+    for name in ("dem.tif", "bed.laz", "depth.png"):
+        print(args.out / name)
+    return 0
+
+
+def _fresh(folder: Path) -> Path:
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    return folder
+
+
+def _train(args: argparse.Namespace, model: Path, out: Path) -> None:
+    """The survey imported into RUN/data (`dataset.colmap`), then trained in RUN/train (resumes)."""
+    from ragsplat_core.cli.progress import deferred_interrupts, training_bar
+    from ragsplat_core.dataset import layout
+    from ragsplat_core.dataset.colmap import import_colmap
+    from ragsplat_core.dataset.load import load_dataset
+    from ragsplat_core.train import Trainer, preset_config
+
+    done = import_colmap(model, args.images, args.out / "data", args.water_level, args.n, args.masks,
+                         args.crs or layout.LOCAL_CRS, args.max_size)
+    _say("train", f"{'reusing the' if done.reused else 'imported'} survey in {done.root}: {done.images} images")
+    overrides = {"variant": args.variant, "seed": args.seed, "init": args.init}
+    if args.iterations is not None:
+        overrides["iterations"] = args.iterations
+    cfg = preset_config(args.preset, **overrides)
+    ds = load_dataset(done.root, splits=("train",), load_dry=False)
+    trainer = Trainer(cfg, ds, out)
+    if trainer.step >= cfg.iterations:
+        return
+    with deferred_interrupts() as check:
+        bar, on_step = training_bar(cfg.iterations, f"train {cfg.variant}", trainer.step, args.no_progress,
+                                    check=check)
+        try:
+            trainer.train(on_step=on_step)
+        finally:
+            bar.close()

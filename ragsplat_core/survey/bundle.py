@@ -1,0 +1,164 @@
+"""Bundle adjustment through a flat water surface: camera poses and track points re-solved so that every
+observation of a submerged point is its projection through the water (`refraction.apparent_offsets`, the
+RA-GS transform), every other one a plain pinhole projection, with the cameras held near their measured
+positions (RTK) when given.
+
+Why: a pinhole bundle adjustment makes the straight rays of the submerged tracks meet at the apparent bed,
+and it gets there partly by tilting the cameras (1.3 degrees median on the `small` reach, more for
+oblique views); rays bent at the water from those cameras then overshoot the bed by tens of centimetres.
+Projecting the submerged tracks through the water removes the reason for the tilt (R-SfM, 2024, does this
+inside OpenSfM).
+
+The solver is Levenberg-Marquardt on all poses and points at once, in float64: the Jacobian blocks of every
+observation (it depends on one camera and one point) by autograd, the points eliminated by the Schur
+complement (a dense 6I x 6I system for I cameras), Huber weights against wrong matches. Intrinsics are held fixed. Tensors in, tensors out, float64, CPU or CUDA.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ragsplat_core.refraction import WaterSurface, apparent_offsets
+
+
+def skew(w: torch.Tensor) -> torch.Tensor:  # [N, 3] -> [N, 3, 3]
+    z = torch.zeros_like(w[:, 0])
+    return torch.stack([torch.stack([z, -w[:, 2], w[:, 1]], -1), torch.stack([w[:, 2], z, -w[:, 0]], -1),
+                        torch.stack([-w[:, 1], w[:, 0], z], -1)], -2)
+
+
+def project(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, X: torch.Tensor,
+            water: WaterSurface | None) -> torch.Tensor:
+    """[M, 2] pixel positions (centres at i + 0.5) of points X [M, 3] seen by cameras R [M, 3, 3] (world ->
+    camera), centres C [M, 3], intrinsics [M, 4] (fx, fy, cx, cy), one camera per point; a point below
+    `water.level` is seen at its apparent position through the water."""
+    if water is not None and not water.is_identity:
+        level = torch.as_tensor(water.level, dtype=X.dtype, device=X.device)
+        wet = X[:, 2] < level
+        v = X[wet, :2] - C[wet, :2]
+        rho, d_app = apparent_offsets((v * v).sum(-1), level - X[wet, 2], C[wet, 2] - level,
+                                      torch.as_tensor(water.n, dtype=X.dtype, device=X.device))
+        X = X.index_put((wet,), torch.cat([C[wet, :2] + rho[:, None] * v, (level - d_app)[:, None]], -1))
+    xc = (R @ (X - C)[:, :, None])[:, :, 0]  # [M, 3]
+    k = intrinsics
+    return torch.stack([k[:, 0] * xc[:, 0] / xc[:, 2] + k[:, 2], k[:, 1] * xc[:, 1] / xc[:, 2] + k[:, 3]], -1)
+
+
+@dataclass(frozen=True)
+class Bundle:
+    """The adjusted cameras and points, and how well they explain the observations."""
+
+    R: torch.Tensor  # [I, 3, 3] world -> camera
+    C: torch.Tensor  # [I, 3] camera centres
+    points: torch.Tensor  # [P, 3]
+    residuals: torch.Tensor  # [M] reprojection error (pixels) of every observation
+    iterations: int
+    cost: float  # robust cost at the end (pixels^2 units, priors included)
+
+
+def _rotate(R: torch.Tensor, w: torch.Tensor) -> torch.Tensor:  # R [N, 3, 3] turned by w [N, 3] (radians)
+    return R @ torch.linalg.matrix_exp(skew(w))
+
+
+def _huber(s: torch.Tensor, delta: float) -> tuple[torch.Tensor, torch.Tensor]:  # (cost, IRLS weight) of |r|
+    cost = torch.where(s <= delta, s * s, 2 * delta * s - delta * delta)
+    return cost, torch.where(s <= delta, torch.ones_like(s), delta / s.clamp(min=1e-300))
+
+
+def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: torch.Tensor,
+           point: torch.Tensor, image: torch.Tensor, pixels: torch.Tensor, water: WaterSurface | None,
+           prior_C: torch.Tensor | None = None, prior_sigma: tuple[float, float, float] = (0.02, 0.02, 0.03),
+           pixel_sigma: float = 1.0, huber: float = 2.0, iterations: int = 30, tol: float = 1e-9) -> Bundle:
+    """Levenberg-Marquardt on the cameras (R [I, 3, 3], C [I, 3]) and points [P, 3] given the observations
+    pixels [M, 2] of point [M] in image [M], the intrinsics [I, 4] held fixed. Cost: sum of Huber(|r| /
+    pixel_sigma) over the observations plus, with `prior_C` [I, 3], sum of ((C - prior_C) / prior_sigma)^2
+    (metres; x, y, z; rows of NaN: no prior), which also fixes the frame; without it the frame floats
+    (damped only).
+    Stops after `iterations` or when an accepted step lowers the cost by less than `tol` relative."""
+    dt = torch.float64
+    R, C, points, intrinsics, pixels = (x.to(dt) for x in (R, C, points, intrinsics, pixels))
+    n_img, n_pts = len(C), len(points)
+    sig = None if prior_C is None else torch.as_tensor(prior_sigma, dtype=dt, device=C.device)
+    if prior_C is not None:  # a camera without a position (NaN) has no prior
+        prior_C = prior_C.to(dt)
+        held = torch.isfinite(prior_C).all(1)[:, None]
+        prior_C = torch.where(held, prior_C, C)
+    # pairs of observations of the same point: where the Schur complement couples two cameras
+    order = torch.argsort(point, stable=True)
+    counts = torch.bincount(point, minlength=n_pts)
+    start = torch.cumsum(counts, 0) - counts
+    k = counts[point[order]]
+    rep = torch.repeat_interleave(order, k)  # each observation once per observation of its point
+    first = start[point[rep]]
+    within = torch.arange(len(rep), device=C.device) - torch.repeat_interleave(torch.cumsum(k, 0) - k, k)
+    pair_a, pair_b = rep, order[first + within]
+
+    K = intrinsics[image]
+
+    def residual(R_, C_, P_):  # [M, 2] in units of pixel_sigma
+        return (project(R_[image], C_[image], K, P_[point], water) - pixels) / pixel_sigma
+
+    def total(R_, C_, P_) -> tuple[float, torch.Tensor]:
+        r = residual(R_, C_, P_)
+        cost = _huber(r.norm(dim=-1), huber)[0].sum()
+        if sig is not None:
+            cost = cost + ((held * (C_ - prior_C) / sig) ** 2).sum()
+        return float(cost), r
+
+    def jacobians(R_, C_, P_) -> tuple[torch.Tensor, torch.Tensor]:
+        """[M, 2, 6] and [M, 2, 3]: each observation's residual w.r.t. its camera (turn, centre) and its
+        point, by autograd (exact; the water's through its implicit gradients): one backward per pixel axis,
+        the parameters repeated per observation so that the gradient of the sum is each one's own row."""
+        with torch.enable_grad():
+            turn = torch.zeros(len(point), 3, dtype=dt, device=C.device, requires_grad=True)
+            Cm = C_[image].detach().requires_grad_(True)
+            X = P_[point].detach().requires_grad_(True)
+            r_ = (project(R_[image] @ (eye3 + skew(turn)), Cm, K, X, water) - pixels) / pixel_sigma
+            rows = [torch.autograd.grad(r_[:, a].sum(), (turn, Cm, X), retain_graph=a == 0) for a in range(2)]
+        return (torch.stack([torch.cat(g[:2], -1) for g in rows], 1), torch.stack([g[2] for g in rows], 1))
+
+    eye3 = torch.eye(3, dtype=dt, device=C.device)
+    cost, r = total(R, C, points)
+    lam, it = 1e-3, 0
+    for it in range(1, iterations + 1):
+        Jc, Jp = jacobians(R, C, points)
+        w = _huber(r.norm(dim=-1), huber)[1][:, None, None]  # [M, 1, 1]
+        U = torch.zeros(n_img, 6, 6, dtype=dt, device=C.device).index_add_(0, image, Jc.mT @ (w * Jc))
+        V = torch.zeros(n_pts, 3, 3, dtype=dt, device=C.device).index_add_(0, point, Jp.mT @ (w * Jp))
+        W = Jc.mT @ (w * Jp)  # [M, 6, 3]
+        gc = torch.zeros(n_img, 6, dtype=dt, device=C.device).index_add_(0, image, (Jc.mT @ (w * r[:, :, None]))[..., 0])
+        gp = torch.zeros(n_pts, 3, dtype=dt, device=C.device).index_add_(0, point, (Jp.mT @ (w * r[:, :, None]))[..., 0])
+        if sig is not None:
+            U[:, 3:, 3:] += held[:, :, None] * torch.diag(1 / sig**2)
+            gc[:, 3:] += held * (C - prior_C) / sig**2
+        while True:
+            Ud = U + lam * torch.diag_embed(torch.diagonal(U, dim1=-2, dim2=-1) + 1e-9)
+            Vd = V + lam * torch.diag_embed(torch.diagonal(V, dim1=-2, dim2=-1)) + 1e-12 * eye3
+            Vi = torch.linalg.inv(Vd)  # [P, 3, 3]
+            Y = W @ Vi[point]  # [M, 6, 3]
+            S = torch.zeros(n_img, n_img, 6, 6, dtype=dt, device=C.device)
+            S.index_put_((image[pair_a], image[pair_b]), -(Y[pair_a] @ W[pair_b].mT), accumulate=True)
+            S[torch.arange(n_img), torch.arange(n_img)] += Ud
+            rhs = -gc + torch.zeros(n_img, 6, dtype=dt, device=C.device).index_add_(
+                0, image, (Y @ gp[point][:, :, None])[..., 0])
+            dc = torch.linalg.solve(S.permute(0, 2, 1, 3).reshape(6 * n_img, 6 * n_img), rhs.reshape(-1))
+            dc = dc.reshape(n_img, 6)
+            wtdc = torch.zeros(n_pts, 3, dtype=dt, device=C.device).index_add_(
+                0, point, (W.mT @ dc[image][:, :, None])[..., 0])
+            dp = -(Vi @ (gp + wtdc)[:, :, None])[..., 0]
+            R1, C1, P1 = _rotate(R, dc[:, :3]), C + dc[:, 3:], points + dp
+            new, r1 = total(R1, C1, P1)
+            if new < cost:
+                done = cost - new < tol * cost
+                R, C, points, cost, r = R1, C1, P1, new, r1
+                lam = max(lam / 3, 1e-12)
+                break
+            lam *= 4
+            if lam > 1e12:
+                done = True
+                break
+        if done:
+            break
+    return Bundle(R, C, points, (r * pixel_sigma).norm(dim=-1), it, cost)

@@ -1,0 +1,108 @@
+"""Structure from motion of a survey's photos with pycolmap on the CPU, and the model as tensors for the
+bundle adjustment through the water (`bundle.adjust`) and back.
+
+SIFT features with the focal length from each photo's EXIF (one camera per size and EXIF, COLMAP's AUTO
+mode), exhaustive matching, incremental mapping. The focal length and principal point are held at the EXIF
+values: refined by a pinhole bundle adjustment they absorb part of the refraction (the wet survey's poses
+got worse with them refined). The model comes out in an arbitrary frame and scale: `georef` fixes both.
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ragsplat_core.errors import DatasetError
+
+
+def reconstruct(images: Path, names: list[str], work: Path, camera_model: str = "SIMPLE_RADIAL",
+                threads: int = -1):
+    """The largest pycolmap Reconstruction of the photos `names` in `images`; `work` holds the feature
+    database and the mapper's models (made anew). Raises DatasetError when fewer than half of the photos
+    (or fewer than 3) are registered."""
+    import pycolmap
+
+    work = Path(work)
+    shutil.rmtree(work, ignore_errors=True)
+    (work / "sparse").mkdir(parents=True)
+    pycolmap.logging.minloglevel = int(pycolmap.logging.Level.ERROR.value)  # no progress chatter, errors only
+    pycolmap.set_random_seed(0)
+    extraction, matching = pycolmap.FeatureExtractionOptions(), pycolmap.FeatureMatchingOptions()
+    extraction.num_threads = matching.num_threads = threads
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera_model
+    db = work / "database.db"
+    pycolmap.extract_features(db, images, names, camera_mode=pycolmap.CameraMode.AUTO, reader_options=reader,
+                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads, options.random_seed = threads, 0
+    options.ba_refine_focal_length = options.ba_refine_principal_point = False
+    models = pycolmap.incremental_mapping(db, images, work / "sparse", options=options)
+    rec = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
+    registered = 0 if rec is None else rec.num_reg_images()
+    if registered < max(3, len(names) / 2):
+        raise DatasetError(f"{images}: structure from motion registered only {registered} of {len(names)} "
+                           "photos (too little overlap or texture, or photos of different places?)")
+    return rec
+
+
+@dataclass(frozen=True)
+class Tracks:
+    """A model's registered cameras and 3D points as tensors (float64), observations undistorted to each
+    camera's pinhole (its focal length and principal point): what `bundle.adjust` takes."""
+
+    names: list[str]  # [I] image names
+    image_ids: list[int]  # [I] the model's image ids
+    R: torch.Tensor  # [I, 3, 3] world -> camera
+    C: torch.Tensor  # [I, 3] centres
+    intrinsics: torch.Tensor  # [I, 4] fx, fy, cx, cy
+    point_ids: list[int]  # [P] the model's point ids
+    points: torch.Tensor  # [P, 3]
+    point: torch.Tensor  # [M] index into points
+    image: torch.Tensor  # [M] index into the cameras
+    pixels: torch.Tensor  # [M, 2] undistorted, centres at i + 0.5
+
+
+def tracks(rec) -> Tracks:
+    ids = sorted(rec.reg_image_ids(), key=lambda i: rec.images[i].name)
+    index = {i: k for k, i in enumerate(ids)}
+    R, C, K = [], [], []
+    for i in ids:
+        im, cam = rec.images[i], rec.images[i].camera
+        R.append(im.cam_from_world().rotation.matrix())
+        C.append(im.projection_center())
+        K.append([cam.focal_length_x, cam.focal_length_y, cam.principal_point_x, cam.principal_point_y])
+    pids = sorted(rec.point3D_ids())
+    pts = np.array([rec.points3D[p].xyz for p in pids]).reshape(-1, 3)
+    point, image, xy = [], [], []
+    for row, p in enumerate(pids):
+        for el in rec.points3D[p].track.elements:
+            if el.image_id in index:
+                point.append(row)
+                image.append(index[el.image_id])
+                xy.append(rec.images[el.image_id].points2D[el.point2D_idx].xy)
+    point, image, xy = np.array(point, np.int64), np.array(image, np.int64), np.array(xy, float).reshape(-1, 2)
+    pixels = np.zeros_like(xy)
+    for k, i in enumerate(ids):  # undistort: the camera's normalised coordinates, then its pinhole
+        rows = image == k
+        cam, (fx, fy, cx, cy) = rec.images[i].camera, K[k]
+        uv = np.asarray(cam.cam_from_img(xy[rows]), float)[:, :2]
+        pixels[rows] = np.column_stack([fx * uv[:, 0] + cx, fy * uv[:, 1] + cy])
+    t = lambda a, dt=torch.float64: torch.as_tensor(np.asarray(a), dtype=dt)
+    return Tracks([rec.images[i].name for i in ids], ids, t(R), t(C), t(K), pids, t(pts), t(point, torch.int64),
+                  t(image, torch.int64), t(pixels))
+
+
+def set_poses(rec, trk: Tracks, R: torch.Tensor, C: torch.Tensor, points: torch.Tensor) -> None:
+    """Writes poses R [I, 3, 3], C [I, 3] and points [P, 3] (in `trk`'s order) into the model `rec`."""
+    import pycolmap
+
+    for i, Ri, Ci in zip(trk.image_ids, R.double().numpy(), C.double().numpy()):
+        rec.frames[rec.images[i].frame_id].rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(Ri), -Ri @ Ci)
+    for p, xyz in zip(trk.point_ids, points.double().numpy()):
+        rec.points3D[p].xyz = xyz

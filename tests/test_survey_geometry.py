@@ -1,0 +1,172 @@
+"""The survey's geometry from first principles: the similarity fit (exact without noise, robust to wrong
+positions), the projection through the water (the pinhole at n = 1 and above the water, the per-camera RA-GS
+transform below it, the principal point at nadir), its Jacobians against finite differences, and the bundle
+adjustment recovering tilted cameras from observations made through the water where a pinhole adjustment
+leaves the bed too shallow. The positions CSV and the EXIF focal length as a drone writes them."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from ragsplat_core.camera import Camera
+from ragsplat_core.dataset import layout
+from ragsplat_core.errors import DatasetError
+from ragsplat_core.refraction import WaterSurface, apparent_points
+from ragsplat_core.survey import bundle, georef
+
+WATER = WaterSurface(0.0, 1.33)
+
+
+def rotation(axis, angle):
+    return torch.linalg.matrix_exp(bundle.skew(torch.tensor([axis], dtype=torch.float64) * angle))[0].numpy()
+
+
+def test_similarity_is_exact_without_noise_and_ignores_wrong_positions():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(30, 3)) * [20, 20, 2]
+    true = georef.Similarity(3.7, rotation([0.3, -0.5, 0.8], 0.9), np.array([4.5e5, 5.2e6, 230.0]))
+    fit = georef.fit_similarity(src, true.apply(src))
+    assert fit.scale == pytest.approx(true.scale, rel=1e-12) and np.allclose(fit.R, true.R, atol=1e-12)
+    dst = true.apply(src) + rng.normal(size=src.shape) * 0.02
+    dst[[3, 17]] += [5.0, -3.0, 1.0]  # two positions recorded wrong
+    sim, inliers = georef.ransac_similarity(src, dst, threshold=0.2)
+    assert not inliers[[3, 17]].any() and inliers.sum() == 28
+    assert np.abs(sim.apply(src) - true.apply(src)).max() < 0.05
+    with pytest.raises(ValueError, match="at least 3"):
+        georef.ransac_similarity(src[:2], dst[:2], 0.2)
+
+
+def cameras(tilts=(0, 25), size=(400, 300)):
+    out = []
+    for x in np.linspace(-12, 12, 4):
+        for y in np.linspace(-8, 8, 3):
+            for tilt in tilts:
+                eye = np.array([x, y, 30.0])
+                out.append(Camera.look_at(eye, eye + [0, 30 * math.tan(math.radians(tilt)), -30], *size, 70.0))
+    return out
+
+
+def stack(cams):
+    R = torch.tensor(np.stack([c.R for c in cams]))
+    C = torch.tensor(np.stack([c.camera_center for c in cams]))
+    K = torch.tensor([[c.fx, c.fy, c.cx, c.cy] for c in cams], dtype=torch.float64)
+    return R, C, K
+
+
+def test_projection_is_the_pinhole_above_the_water_and_the_ra_gs_transform_below():
+    cams = cameras()
+    R, C, K = stack(cams)
+    pts = torch.tensor(np.random.default_rng(1).uniform([-10, -8, -3], [10, 8, 1], size=(50, 3)))
+    for i, cam in enumerate(cams):
+        n = len(pts)
+        idx = torch.full((n,), i)
+        got = bundle.project(R[idx], C[idx], K[idx], pts, WATER).numpy()
+        want = cam.project(apparent_points(pts, torch.tensor(cam.camera_center), WATER).numpy())[0]
+        np.testing.assert_allclose(got, want, atol=1e-9)  # the same physics by another code path
+        plain = bundle.project(R[idx], C[idx], K[idx], pts, None).numpy()
+        np.testing.assert_allclose(plain, cam.project(pts.numpy())[0], atol=1e-9)
+        dry = pts[:, 2] >= 0
+        np.testing.assert_allclose(got[dry], plain[dry], atol=1e-12)
+        one = bundle.project(R[idx], C[idx], K[idx], pts, WaterSurface(0.0, 1.0)).numpy()
+        np.testing.assert_allclose(one, plain, atol=1e-12)  # n = 1 is the pinhole
+    nadir = cams[0]  # straight down: a point below the centre is seen at the principal point, at any depth
+    below = torch.tensor([[*nadir.camera_center[:2], -2.5]])
+    uv = bundle.project(R[:1], C[:1], K[:1], below, WATER)[0].numpy()
+    np.testing.assert_allclose(uv, [nadir.cx, nadir.cy], atol=1e-9)
+
+
+def scene(seed=0, points=1500, noise_px=0.3):
+    """Cameras at 30 m over a channel 3 m deep between dry banks; exact observations through the water."""
+    rng = np.random.default_rng(seed)
+    cams = cameras()
+    xy = rng.uniform([-20, -14], [20, 14], size=(points, 2))
+    pts = np.column_stack([xy, 0.8 - 3.0 * np.exp(-(xy[:, 1] / 8) ** 2)])
+    obs = []
+    for i, c in enumerate(cams):
+        uv, depth = c.project(apparent_points(torch.tensor(pts), torch.tensor(c.camera_center), WATER).numpy())
+        seen = (depth > 0) & (uv[:, 0] > 0) & (uv[:, 0] < c.width) & (uv[:, 1] > 0) & (uv[:, 1] < c.height)
+        obs += [(p, i, *uv[p]) for p in np.nonzero(seen)[0]]
+    obs = np.array(obs)
+    keep = np.bincount(obs[:, 0].astype(int), minlength=points) >= 2
+    remap = np.cumsum(keep) - 1
+    obs = obs[keep[obs[:, 0].astype(int)]]
+    point = torch.tensor(remap[obs[:, 0].astype(int)])
+    pixels = torch.tensor(obs[:, 2:]) + torch.tensor(rng.normal(0, noise_px, (len(obs), 2)))
+    return cams, torch.tensor(pts[keep]), point, torch.tensor(obs[:, 1].astype(np.int64)), pixels
+
+
+def rotation_error_deg(Ra, Rb):
+    M = Ra @ Rb.mT
+    return torch.rad2deg(torch.arccos(((M.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)))
+
+
+def test_jacobians_match_finite_differences():
+    cams, pts, point, image, _ = scene(points=200, noise_px=0.0)
+    R, C, K = stack(cams)
+    m = slice(0, 400)
+    turn = torch.zeros(400, 3, dtype=torch.float64, requires_grad=True)
+    Cm, X = C[image[m]].clone().requires_grad_(True), pts[point[m]].clone().requires_grad_(True)
+    uv = bundle.project(R[image[m]] @ (torch.eye(3, dtype=torch.float64) + bundle.skew(turn)), Cm, K[image[m]], X,
+                        WATER)
+    grads = torch.autograd.grad(uv[:, 0].sum(), (turn, Cm, X))
+    h = 1e-6
+    for which, (g, base) in enumerate(zip(grads, (torch.zeros(400, 3, dtype=torch.float64), C[image[m]],
+                                                   pts[point[m]]))):
+        for j in range(3):
+            e = torch.zeros_like(base)
+            e[:, j] = h
+            args = [torch.zeros(400, 3, dtype=torch.float64), C[image[m]], pts[point[m]]]
+            lo, hi = list(args), list(args)
+            lo[which], hi[which] = base - e, base + e
+            f = [bundle.project(R[image[m]] @ torch.linalg.matrix_exp(bundle.skew(a[0])), a[1], K[image[m]], a[2],
+                                WATER)[:, 0] for a in (lo, hi)]
+            np.testing.assert_allclose(g[:, j].numpy(), ((f[1] - f[0]) / (2 * h)).numpy(), rtol=1e-5, atol=1e-4)
+
+
+def test_adjustment_through_the_water_recovers_tilted_cameras_and_the_bed():
+    cams, pts, point, image, pixels = scene(points=700)
+    R, C, K = stack(cams)
+    rng = np.random.default_rng(3)
+    R0 = bundle._rotate(R, torch.tensor(rng.normal(0, math.radians(1.0), (len(cams), 3))))  # SfM's tilts
+    C0 = C + torch.tensor(rng.normal(0, 0.05, C.shape))
+    P0 = pts + torch.tensor(rng.normal(0, 0.2, pts.shape))
+    rtk = C + torch.tensor(rng.normal(size=C.shape) * [0.02, 0.02, 0.03])
+    wet = pts[:, 2] < 0
+    got = bundle.adjust(R0, C0, K, P0, point, image, pixels, WATER, prior_C=rtk)
+    assert got.residuals.pow(2).mean().sqrt() < 0.5  # at the noise: 0.3 px per axis
+    assert rotation_error_deg(got.R, R).median() < 0.1 and (got.C - C).norm(dim=1).median() < 0.03
+    assert (got.points[wet, 2] - pts[wet, 2]).abs().median() < 0.05
+    # a pinhole adjustment explains the same pixels with the bed at its apparent depth, far too shallow
+    pin = bundle.adjust(R0, C0, K, P0, point, image, pixels, None, prior_C=rtk)
+    assert (pin.points[wet, 2] - pts[wet, 2]).median() > 0.1
+    # a camera without a position (NaN) is adjusted without a prior
+    rtk[0] = float("nan")
+    assert rotation_error_deg(bundle.adjust(R0, C0, K, P0, point, image, pixels, WATER, prior_C=rtk).R, R).median() < 0.1
+
+
+def test_positions_csv(tmp_path):
+    path = tmp_path / "positions.csv"
+    layout.write_positions(path, ["a.jpg", "b.jpg"], np.array([[451234.5678, 5212345.1, 231.42], [1, 2, 3]]))
+    got = layout.read_positions(path)
+    assert list(got) == ["a.jpg", "b.jpg"] and np.allclose(got["a.jpg"], [451234.5678, 5212345.1, 231.42])
+    path.write_text("z, y, x, name\n3,2,1,c.jpg\n\n")  # any column order, spaces, a blank line
+    assert np.allclose(layout.read_positions(path)["c.jpg"], [1, 2, 3])
+    for text, message in (("name,x,y\na,1,2\n", "header name,x,y,z"), ("name,x,y,z\na,1,2,q\n", "must be numbers"),
+                          ("name,x,y,z\na,1,2,3\na,1,2,3\n", "appears twice"), ("name,x,y,z\n", "no rows"),
+                          ("name,x,y,z\na,1,2\n", "3 values for the 4 columns")):
+        path.write_text(text)
+        with pytest.raises(DatasetError, match=message):
+            layout.read_positions(path)
+
+
+def test_jpeg_carries_its_focal_length_as_structure_from_motion_reads_it(tmp_path):
+    import pycolmap
+
+    image = (np.random.default_rng(0).random((120, 160, 3)) * 255).astype(np.uint8)
+    layout.write_jpeg(tmp_path / "images" / "a.jpg", image, focal_px=137.25)
+    pycolmap.extract_features(tmp_path / "db.db", tmp_path / "images", device=pycolmap.Device.cpu)
+    with pycolmap.Database.open(tmp_path / "db.db") as db:
+        (cam,) = db.read_all_cameras()
+    assert cam.has_prior_focal_length and cam.params[0] == pytest.approx(137.25, abs=1e-3)
