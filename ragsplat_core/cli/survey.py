@@ -135,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
     timings = {}
 
     # 1. structure from motion
-    key = _digest(_files_digest(photos), "SIMPLE_RADIAL")
+    key = _digest(_files_digest(photos), "SIMPLE_PINHOLE")
     work = args.out / "sfm"
     t0 = time.perf_counter()
     if not stamps.done("sfm", key):
