@@ -87,14 +87,19 @@ class Stamps:
         return self.keys.get(stage) == key
 
     def mark(self, stage: str, key: str) -> None:
+        """Records `stage` as made with `key`; a new key makes every later stage stale."""
         from ragsplat_core.outputs import write_json
 
+        if self.keys.get(stage) == key:
+            return
         self.keys = {**{s: k for s, k in self.keys.items() if STAGES.index(s) < STAGES.index(stage)}, stage: key}
         write_json(self.path, self.keys)
 
 
-def _say(stage: str, text: str) -> None:
-    print(f"[{stage}] {text}", file=sys.stderr, flush=True)
+def _say(stage: str, text: str, since: float | None = None) -> None:
+    """One progress line; with `since` (a perf_counter start), the seconds the stage took."""
+    took = "" if since is None else f" ({time.perf_counter() - since:.0f} s)"
+    print(f"[{stage}] {text}{took}", file=sys.stderr, flush=True)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -132,7 +137,6 @@ def run(args: argparse.Namespace) -> int:
     # a local origin (whole metres): UTM-sized coordinates keep millimetres in every float64 step
     origin = np.round(np.mean([positions[n] for n in located], axis=0))
     level = args.water_level - origin[2]
-    timings = {}
 
     # 1. structure from motion
     key = _digest(_files_digest(photos), "SIMPLE_PINHOLE")
@@ -145,9 +149,8 @@ def run(args: argparse.Namespace) -> int:
         rec.write_text(str(_fresh(work / "model")))
         stamps.mark("sfm", key)
     rec = pycolmap.Reconstruction(str(work / "model"))
-    timings["sfm_s"] = time.perf_counter() - t0
     _say("sfm", f"{rec.num_reg_images()} of {len(photos)} photos registered, {rec.num_points3D()} points, "
-         f"reprojection error {rec.compute_mean_reprojection_error():.2f} px")
+         f"reprojection error {rec.compute_mean_reprojection_error():.2f} px", t0)
 
     # 2. georeferencing to the RTK positions
     key = _digest(key, layout.file_digest(args.positions), origin.tolist())
@@ -206,23 +209,24 @@ def run(args: argparse.Namespace) -> int:
             shutil.rmtree(args.out / stale, ignore_errors=True)
         stamps.mark("water", key)
     check = json.loads((args.out / "water.json").read_text())
-    timings["water_s"] = time.perf_counter() - t0
     lowest = check["lowest_above_m"]
     _say("water", f"level {check['level']:g}: {check['points_below']} points below it, {check['points_above']} "
          f"above" + ("" if lowest is None else f" (the lowest 1 % within {100 * lowest:.1f} cm of it)")
-         + ("" if check["rms_px"] is None else f"; reprojection error {check['rms_px']:.2f} px after the adjustment"))
+         + ("" if check["rms_px"] is None else f"; reprojection error {check['rms_px']:.2f} px after the adjustment"),
+         t0)
 
     # 4. training and the products
     run_train = args.out / "train"
     _train(args, model, run_train)
     key = _digest(key, (run_train / "point_cloud.ply").stat().st_mtime_ns, args.resolution)
+    t0 = time.perf_counter()
     if not stamps.done("export", key):
         from ragsplat_core.export import export_run
 
         bed = export_run(run_train, args.out / "dem.tif", args.resolution, args.out / "bed.laz", None,
                          args.out / "depth.png")
         stamps.mark("export", key)
-        _say("export", f"{len(bed.grid)} cells of {args.resolution:g} m")
+        _say("export", f"{len(bed.grid)} cells of {args.resolution:g} m", t0)
     for name in ("dem.tif", "bed.laz", "depth.png"):
         print(args.out / name)
     return 0
@@ -250,7 +254,8 @@ def _train(args: argparse.Namespace, model: Path, out: Path) -> None:
         overrides["iterations"] = args.iterations
     cfg = preset_config(args.preset, **overrides)
     ds = load_dataset(done.root, splits=("train",), load_dry=False)
-    trainer = Trainer(cfg, ds, out)
+    t0 = time.perf_counter()
+    trainer = Trainer(cfg, ds, out)  # the start (the refracted tracks: triangulated once, cached in RUN/data)
     if trainer.step >= cfg.iterations:
         return
     with deferred_interrupts() as check:
@@ -260,3 +265,5 @@ def _train(args: argparse.Namespace, model: Path, out: Path) -> None:
             trainer.train(on_step=on_step)
         finally:
             bar.close()
+    _say("train", f"{cfg.variant}, {cfg.iterations} iterations from the {cfg.init} start, {trainer.num_gaussians} "
+         f"Gaussians", t0)

@@ -1,0 +1,120 @@
+"""`ragsplat survey` end to end on a small synthetic survey (photos rendered through the water with our own
+rasterizer, JPEG with the focal length in EXIF, RTK positions with noise; no poses given), its resumption,
+and one clear line for each error a surveyor will meet."""
+
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from eval.poses import pose_errors
+from ragsplat_core.bench.synthetic import bed_scene, render_views, write_dataset
+from ragsplat_core.camera import Camera
+from ragsplat_core.cli.main import main
+from ragsplat_core.dataset import layout
+from ragsplat_core.refraction import WaterSurface
+
+WATER = WaterSurface(0.0, 1.33)
+
+
+@pytest.fixture(scope="session")
+def survey(tmp_path_factory):
+    """A gravel bed 0.8 m under water seen by 12 nadir and 6 oblique photos from 4 m: the survey folder
+    (photos, positions.csv with 5 / 8 mm noise) and, for scoring only, the same views as a dataset."""
+    root = tmp_path_factory.mktemp("survey")
+    scene = bed_scene(30000, half=3.0, depth=0.8, seed=0)
+    scene["colors"] = torch.rand(30000, 3, generator=torch.Generator().manual_seed(1))  # speckled, like gravel
+    cams = [Camera.look_at([x, y, 4.0], [x, y, 0.0], 240, 180, 60.0) for x in np.linspace(-1.2, 1.2, 4)
+            for y in np.linspace(-1.0, 1.0, 3)]
+    cams += [Camera.look_at([2.2 * math.cos(a), 2.2 * math.sin(a), 4.0], [0, 0, -0.8], 240, 180, 60.0,
+                            up=(0.0, 0.0, 1.0)) for a in np.arange(6) * math.pi / 3]
+    views = render_views(scene, cams, WATER)
+    for v in views:
+        v["split"] = "train"
+    write_dataset(root / "truth", views, WATER)
+    names = [f"{i:04d}.jpg" for i in range(len(views))]
+    for name, v in zip(names, views):
+        image = (np.clip(v["image"].numpy(), 0, 1) * 255 + 0.5).astype(np.uint8)
+        layout.write_jpeg(root / "images" / name, image, v["camera"].fx)
+    centres = np.array([c.camera_center for c in cams])
+    noise = np.random.default_rng(0).normal(size=centres.shape) * [0.005, 0.005, 0.008]
+    layout.write_positions(root / "positions.csv", names, centres + noise)
+    return root
+
+
+def args(survey, out, *extra):
+    return ["survey", str(survey / "images"), "--positions", str(survey / "positions.csv"), "--water-level", "0",
+            "--out", str(out), "--preset", "smoke", "--no-progress", *extra]
+
+
+@pytest.fixture(scope="session")
+def finished(survey, tmp_path_factory):
+    """`ragsplat survey` run once on the synthetic survey, and what it printed."""
+    import contextlib
+    import io
+
+    out = tmp_path_factory.mktemp("survey-run") / "run"
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        assert main(args(survey, out)) == 0, err.getvalue()
+    return out, err.getvalue()
+
+
+def test_photos_to_dem_and_a_rerun_skips_every_stage(survey, finished, capsys):
+    out, err = finished
+    assert "18 of 18 photos registered" in err and "similarity to 18 RTK positions" in err
+    for name in ("dem.tif", "bed.laz", "depth.png", "georef.json", "water.json", "model/images.txt"):
+        assert (out / name).stat().st_size > 0
+    poses = pose_errors(out / "model", survey / "truth")
+    assert poses["images"] == 18 and poses["centre_m"]["median"] < 0.02
+    water = json.loads((out / "water.json").read_text())
+    assert water["adjusted"] and water["rms_px"] < 1.0 and water["points_below"] > 1000
+    stamps = (out / "stages.json").read_text()
+    dem = (out / "dem.tif").stat().st_mtime_ns
+    assert main(args(survey, out)) == 0
+    assert "structure from motion of" not in capsys.readouterr().err  # nothing made again
+    assert (out / "stages.json").read_text() == stamps and (out / "dem.tif").stat().st_mtime_ns == dem
+
+
+def test_positions_that_name_no_photo_are_refused(survey, tmp_path, capsys):
+    wrong = tmp_path / "positions.csv"
+    layout.write_positions(wrong, ["IMG_1.JPG", "IMG_2.JPG", "IMG_3.JPG"], np.zeros((3, 3)))
+    argv = args(survey, tmp_path / "run")
+    argv[argv.index("--positions") + 1] = str(wrong)
+    assert main(argv) == 2
+    assert "0 of its names are photos" in capsys.readouterr().err and not (tmp_path / "run").exists()
+
+
+def test_a_level_above_every_camera_is_refused(survey, tmp_path, capsys):
+    argv = args(survey, tmp_path / "run")
+    argv[argv.index("--water-level") + 1] = "12.5"
+    assert main(argv) == 2
+    assert "--water-level 12.5 is not below any camera" in capsys.readouterr().err
+
+
+def test_too_few_photos_registered(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    for k in range(4):  # noise: nothing matches
+        layout.write_jpeg(tmp_path / "images" / f"{k}.jpg", (rng.random((120, 160, 3)) * 255).astype(np.uint8), 140.0)
+    layout.write_positions(tmp_path / "positions.csv", [f"{k}.jpg" for k in range(4)], rng.normal(size=(4, 3)) + 10)
+    assert main(args(tmp_path, tmp_path / "run")) == 2
+    assert "structure from motion registered only 0 of 4 photos" in capsys.readouterr().err
+
+
+def test_positions_that_are_not_z_up_are_refused(survey, finished, tmp_path, capsys):
+    flipped = tmp_path / "positions.csv"
+    rows = layout.read_positions(survey / "positions.csv")
+    layout.write_positions(flipped, list(rows), np.array([[x, y, -z] for x, y, z in rows.values()]))
+    out = tmp_path / "run"
+    # its structure from motion reused (same photos), the rest made anew
+    shutil.copytree(finished[0], out, ignore=shutil.ignore_patterns("model", "data", "train", "*.tif", "*.laz",
+                                                                    "*.png"))
+    argv = args(survey, out)
+    argv[argv.index("--positions") + 1] = str(flipped)
+    argv[argv.index("--water-level") + 1] = "-8"
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "structure from motion of" not in err and "the cameras do not look down" in err
