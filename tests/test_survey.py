@@ -107,11 +107,12 @@ def test_too_few_photos_registered(tmp_path, capsys):
 def test_positions_that_are_not_z_up_are_refused(survey, finished, tmp_path, capsys):
     flipped = tmp_path / "positions.csv"
     rows = layout.read_positions(survey / "positions.csv")
-    layout.write_positions(flipped, list(rows), np.array([[x, y, -z] for x, y, z in rows.values()]))
+    # y and z swapped (a y-up frame): the flight's plane turns vertical, the cameras look sideways
+    layout.write_positions(flipped, list(rows), np.array([[x, z, y] for x, y, z in rows.values()]))
     out = tmp_path / "run"
-    # its structure from motion reused (same photos), the rest made anew
-    shutil.copytree(finished[0], out, ignore=shutil.ignore_patterns("model", "data", "train", "*.tif", "*.laz",
-                                                                    "*.png"))
+    shutil.copytree(finished[0] / "sfm", out / "sfm")  # its structure from motion reused (same photos)
+    for name in (".ragsplat", "stages.json"):
+        shutil.copy(finished[0] / name, out / name)
     argv = args(survey, out)
     argv[argv.index("--positions") + 1] = str(flipped)
     argv[argv.index("--water-level") + 1] = "-8"

@@ -31,6 +31,7 @@ from ragsplat_core.cli.args import (
 )
 
 STAGES = ("sfm", "georef", "water", "train", "export")
+PRODUCTS = ("dem.tif", "bed.laz", "depth.png")
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 
 
@@ -83,8 +84,9 @@ class Stamps:
         self.path = run / "stages.json"
         self.keys = json.loads(self.path.read_text()) if self.path.is_file() else {}
 
-    def done(self, stage: str, key: str) -> bool:
-        return self.keys.get(stage) == key
+    def done(self, stage: str, key: str, *outputs: Path) -> bool:
+        """Whether `stage` was made with `key` and its `outputs` are still there."""
+        return self.keys.get(stage) == key and all(Path(o).exists() for o in outputs)
 
     def mark(self, stage: str, key: str) -> None:
         """Records `stage` as made with `key`; a new key makes every later stage stale."""
@@ -142,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
     key = _digest(_files_digest(photos), "SIMPLE_PINHOLE")
     work = args.out / "sfm"
     t0 = time.perf_counter()
-    if not stamps.done("sfm", key):
+    if not stamps.done("sfm", key, work / "model"):
         _say("sfm", f"structure from motion of {len(photos)} photos (pycolmap SIFT, exhaustive matching, "
              "incremental mapping; CPU) ...")
         rec = sfm.reconstruct(args.images, names, work)
@@ -179,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
     key = _digest(key, level, args.n, args.no_water_adjustment, list(args.rtk_sigma))
     model = args.out / "model"
     t0 = time.perf_counter()
-    if not stamps.done("water", key):
+    if not stamps.done("water", key, model, args.out / "water.json"):
         R = trk.R @ torch.as_tensor(sim.R.T)  # world = s R x + t: cam_from_world' = cam_from_world R^T
         C = torch.as_tensor(sim.apply(trk.C.numpy()))
         P = torch.as_tensor(sim.apply(trk.points.numpy()))
@@ -220,14 +222,14 @@ def run(args: argparse.Namespace) -> int:
     _train(args, model, run_train)
     key = _digest(key, (run_train / "point_cloud.ply").stat().st_mtime_ns, args.resolution)
     t0 = time.perf_counter()
-    if not stamps.done("export", key):
+    if not stamps.done("export", key, *(args.out / n for n in PRODUCTS)):
         from ragsplat_core.export import export_run
 
-        bed = export_run(run_train, args.out / "dem.tif", args.resolution, args.out / "bed.laz", None,
-                         args.out / "depth.png")
+        dem, las, png = (args.out / n for n in PRODUCTS)
+        bed = export_run(run_train, dem, args.resolution, las, None, png)
         stamps.mark("export", key)
         _say("export", f"{len(bed.grid)} cells of {args.resolution:g} m", t0)
-    for name in ("dem.tif", "bed.laz", "depth.png"):
+    for name in PRODUCTS:
         print(args.out / name)
     return 0
 
