@@ -42,12 +42,19 @@ from eval.evaluate import (
     score_grid,
 )
 from eval.references import (
+    DIETRICH_MAX_ANGLE,
     EXTRACTION,
     REFERENCES,
+    SEEDLESS,
+    TRACK_MIN_NEIGHBOURS,
+    TRACK_RADIUS,
+    TRACK_TOL,
     USES_GROUND_TRUTH,
     depth_times_n,
+    dietrich_grid,
     oracle_plane,
     start_extraction,
+    track_grids,
 )
 from eval.report import depth_error_map, jsonable, write_outputs
 from ragsplat_core.dataset import layout
@@ -308,15 +315,33 @@ def reference_rows(out: Path, runner, preset: str, seed: int, ecfg: ExtractConfi
             return score_grid(grid, truth), grid
 
         todo.append(("3dgs x n", row_dir(out, "3dgs x n", seed), {**base, "from": src["key"], "n": n}, corrected))
+        if hasattr(runner, "dietrich_grid"):
+            def dietrich_3dgs():
+                grid = runner.dietrich_grid(np.load(row_dir(out, "3dgs", seed) / "bed.npy"))
+                return score_grid(grid, truth), grid
+
+            todo.append(("dietrich (3dgs)", row_dir(out, "dietrich (3dgs)", seed),
+                         {**base, "from": src["key"], "n": n, "max_angle_deg": DIETRICH_MAX_ANGLE}, dietrich_3dgs))
     if not rows.get("oracle plane"):
         plane = oracle_plane(truth)
         todo.append(("oracle plane", row_dir(out, "oracle plane", None), {**base, "reference": "oracle plane"},
                      lambda: (score_grid(plane, truth), plane)))
+        if hasattr(runner, "track_grids"):  # seedless, like the plane: made once
+            try:
+                grids = runner.track_grids()
+            except DatasetError as err:
+                log(f"the tracks' reference rows n/a: {err}")
+                grids = {}
+            key = {**base, "tracks": {"radius": TRACK_RADIUS, "tol": TRACK_TOL, "min_neighbours": TRACK_MIN_NEIGHBOURS,
+                                      "dietrich_max_angle_deg": DIETRICH_MAX_ANGLE}}
+            for name, grid in grids.items():
+                todo.append((name, row_dir(out, name, None), {**key, "reference": name},
+                             lambda grid=grid: (score_grid(grid, truth), grid)))
     for name, folder, key, compute in todo:
         row = cached_row(folder, key, log)
         if row is None:
             geometry, grid = compute()
-            row = save_row(folder, {"name": name, "seed": None if name == "oracle plane" else seed, "key": key,
+            row = save_row(folder, {"name": name, "seed": None if name in SEEDLESS else seed, "key": key,
                                     "geometry": geometry, "uses_ground_truth": name in USES_GROUND_TRUTH,
                                     "extraction": EXTRACTION[name]}, grid, truth)
         found[name] = row
@@ -358,6 +383,17 @@ class TrainEval:
         if self.device is not None:
             overrides["device"] = self.device
         return preset_config(preset, **overrides)
+
+    def track_grids(self) -> dict[str, np.ndarray]:
+        """The tracks' reference grids (`references.track_grids`); DatasetError without water or tracks."""
+        if self.ds.water is None:
+            raise DatasetError(f"{self.ds.root}: no water, no refraction to correct")
+        return track_grids(self.ds.root, self.fingerprint, {v.file_path: v.camera for v in self.ds.train},
+                           self.ds.water, self.truth.nodes)
+
+    def dietrich_grid(self, bed: np.ndarray) -> np.ndarray:
+        """Dietrich's correction of an apparent bed grid [G, 3] by the training cameras."""
+        return dietrich_grid(bed, [v.camera for v in self.ds.train], self.ds.water)
 
     def initial(self, cfg) -> dict:
         """The activated Gaussians training would start from (nothing is written)."""

@@ -8,6 +8,16 @@ beat before its numbers mean anything.
   classical correction, the paper's Table 3): `depth_times_n` of the 3dgs variant's extracted grid;
 - `oracle plane`: a flat plane at the ground truth's median submerged height over every ground-truth cell
   (wet and banks): it reads the answer, so it is marked as using the ground truth.
+
+What a surveyor would do without ragsplat, from the dataset's own tracks (SIFT matches of the training photos
+triangulated with the known poses, `dataset.colmap`), each cleaned by the local outlier filter of a DEM
+(`track_filter`) and gridded by linear interpolation on their Delaunay triangulation (`tin`):
+- `triangulation (refracted)`: the tracks intersected through the water (`colmap.refracted_points`, the
+  start the variants train from);
+- `triangulation x n`: the straight-ray tracks with their submerged depths x n;
+- `dietrich (tracks)`: the straight-ray tracks corrected by Dietrich's (2017) multi-camera rule (`dietrich`);
+- `dietrich (3dgs)`: the same rule applied to the 3dgs row's dense apparent bed, every training camera that
+  sees a cell voting (the dense-cloud workflow).
 """
 
 from __future__ import annotations
@@ -19,11 +29,23 @@ import numpy as np
 
 from ragsplat_core.surface import ExtractConfig
 
-REFERENCES = ("init", "3dgs x n", "oracle plane")
+# In table order: what a surveyor would do without ragsplat first, then the trivial answers. `init` stays in
+# results.json but not in the tables (drawn as 3DGS blobs, the start scores near 0 by construction).
+REFERENCES = ("triangulation (refracted)", "dietrich (tracks)", "dietrich (3dgs)", "triangulation x n",
+              "3dgs x n", "oracle plane", "init")
+NOT_IN_TABLES = ("init",)
+SEEDLESS = ("oracle plane", "triangulation (refracted)", "dietrich (tracks)", "triangulation x n")  # no training
+# degrees: the angle filter of the dense cloud's correction (issue 26's pyBathySfM run used 35), not tuned here
+DIETRICH_MAX_ANGLE = 35.0
 USES_GROUND_TRUTH = ("oracle plane",)
 # Where each reference's height grid comes from, as the tables label it (no fused variant: 3dgs x n
 # corrects the 3dgs row's volume bed, init is the untrained start).
-EXTRACTION = {"init": "volume", "3dgs x n": "volume", "oracle plane": "-"}
+EXTRACTION = {"init": "volume", "3dgs x n": "volume", "oracle plane": "-", "triangulation (refracted)": "TIN",
+              "triangulation x n": "TIN", "dietrich (tracks)": "TIN", "dietrich (3dgs)": "volume"}
+# The tracks' outlier filter: the DEM's despiking rule (`surface.ExtractConfig`, chosen on the development reach
+# for trained beds), a point dropped when more than TRACK_TOL from the median of its neighbours within
+# TRACK_RADIUS; not tuned again for tracks.
+TRACK_RADIUS, TRACK_TOL, TRACK_MIN_NEIGHBOURS = 1.0, 0.3, 8
 
 
 def start_extraction(cfg: ExtractConfig) -> ExtractConfig:
@@ -47,3 +69,106 @@ def oracle_plane(truth) -> np.ndarray:
     """[P, 3]: every ground-truth node (submerged bed and banks) at the median submerged height."""
     nodes = truth.nodes
     return np.column_stack([nodes[:, :2], np.full(len(nodes), float(np.median(truth.grid[:, 2])))])
+
+
+def track_filter(points: np.ndarray, radius: float = TRACK_RADIUS, tol: float = TRACK_TOL,
+                 min_neighbours: int = TRACK_MIN_NEIGHBOURS) -> np.ndarray:
+    """bool [P]: the points [P, 3] to keep: a point is dropped when its height is more than `tol` metres from
+    the median height of the other points within `radius` metres (horizontally), given at least
+    `min_neighbours` of them; a point with fewer neighbours is kept (nothing to judge it by)."""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, float)
+    keep = np.ones(len(pts), dtype=bool)
+    for i, near in enumerate(cKDTree(pts[:, :2]).query_ball_point(pts[:, :2], radius)):
+        others = [j for j in near if j != i]
+        if len(others) >= min_neighbours and abs(pts[i, 2] - np.median(pts[others, 2])) > tol:
+            keep[i] = False
+    return keep
+
+
+def tin(points: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+    """[G', 3]: the nodes [G, 2] inside the convex hull of the points [P, 3] with heights interpolated
+    linearly on the points' Delaunay triangulation (the DEM a surveyor grids from a sparse cloud)."""
+    from scipy.interpolate import LinearNDInterpolator
+
+    pts = np.asarray(points, float)
+    z = LinearNDInterpolator(pts[:, :2], pts[:, 2])(np.asarray(nodes, float)[:, :2])
+    inside = np.isfinite(z)
+    return np.column_stack([nodes[inside, :2], z[inside]])
+
+
+def dietrich(apparent: np.ndarray, centres: np.ndarray, point: np.ndarray, camera: np.ndarray, level: float,
+             n: float, max_angle_deg: float | None = None, reduce=np.median) -> np.ndarray:
+    """[P, 3] Dietrich's (2017) multi-camera refraction correction of apparent points [P, 3] seen by the
+    cameras with centres [C, 3] (observation k: point[k] seen by camera[k]). Each camera gives the depth
+    h = h_a tan(r) / tan(i) from its own view of the point: h_a its apparent depth below `level`, r the air
+    ray's angle from the vertical, sin(r) = n sin(i) (at nadir h = n h_a); the point takes the `reduce`
+    (median, or mean) over its cameras, with `max_angle_deg` leaving out cameras that see it more obliquely
+    (the paper's angle filter). The point keeps its horizontal position (the rule's assumption: the true
+    point lies below the apparent one). Points at or above the level are unchanged; a submerged point with
+    no camera left gets NaN."""
+    app = np.asarray(apparent, float)
+    out = app.copy()
+    ha = level - app[:, 2]
+    wet = ha > 0
+    use = wet[point]
+    p, c = point[use], camera[use]
+    horizontal = np.linalg.norm(app[p, :2] - centres[c, :2], axis=1)
+    r = np.arctan2(horizontal, centres[c, 2] - app[p, 2])  # the ray camera -> apparent point, from vertical
+    i = np.arcsin(np.sin(r) / n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        factor = np.where(r > 1e-9, np.tan(r) / np.tan(i), n)  # tan r / tan i -> n at nadir
+    ok = np.ones(len(p), dtype=bool) if max_angle_deg is None else np.degrees(r) <= max_angle_deg
+    h = np.full(len(app), np.nan)
+    order = np.argsort(p[ok], kind="stable")
+    ps, hs = p[ok][order], (ha[p] * factor)[ok][order]
+    starts = np.flatnonzero(np.r_[True, ps[1:] != ps[:-1]]) if len(ps) else np.zeros(0, int)
+    for a, b in zip(starts, np.r_[starts[1:], len(ps)]):
+        h[ps[a]] = reduce(hs[a:b])
+    out[wet, 2] = level - h[wet]
+    return out
+
+
+def seen_by(points: np.ndarray, cameras) -> tuple[np.ndarray, np.ndarray]:
+    """(point [M], camera [M]): every pair of a point [P, 3] and a camera (of `cameras`) whose image holds
+    its straight-ray projection, in front of it."""
+    pairs = []
+    for k, cam in enumerate(cameras):
+        uv, z = cam.project(np.asarray(points, float))
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        pairs.append(np.column_stack([np.flatnonzero(inside), np.full(inside.sum(), k)]))
+    both = np.concatenate(pairs) if pairs else np.zeros((0, 2), int)
+    return both[:, 0], both[:, 1]
+
+
+def track_grids(root, fingerprint: str, cameras: dict, water, nodes: np.ndarray) -> dict[str, np.ndarray]:
+    """{reference name: height grid [G', 3] on `nodes` [G, 2]} for the tracks' references (module docstring)
+    of the dataset `root` (its cached triangulation; `cameras`: image name -> Camera). Raises DatasetError
+    when nothing can be triangulated."""
+    import json
+    from pathlib import Path
+
+    from ragsplat_core.dataset.colmap import TRACKS, refracted_points, triangulated_points
+
+    path = triangulated_points(root, fingerprint)
+    straight = np.load(path)[:, :3]
+    obs = np.load(Path(root) / TRACKS)
+    names = json.loads(path.with_suffix(".json").read_text())["images"]
+    centres = np.array([cameras[name].camera_center for name in names])
+    level, n = float(water.level), float(water.n)
+    # every camera of a track votes (the angle filter is the dense cloud's, where far oblique views abound)
+    corrected = dietrich(straight, centres, obs[:, 0].astype(np.int64), obs[:, 1].astype(np.int64), level, n)
+    clouds = {"triangulation (refracted)": refracted_points(root, fingerprint, cameras, water)[:, :3],
+              "dietrich (tracks)": corrected[np.isfinite(corrected).all(1)],
+              "triangulation x n": depth_times_n(straight, level, n)}
+    return {name: tin(pts[track_filter(pts)], nodes) for name, pts in clouds.items()}
+
+
+def dietrich_grid(bed: np.ndarray, cameras, water) -> np.ndarray:
+    """[G', 3] Dietrich's correction of a dense apparent bed [G, 3] (the 3dgs row's), every camera whose image
+    holds a cell voting, within the angle filter; cells no camera keeps are dropped."""
+    point, camera = seen_by(bed, cameras)
+    centres = np.array([c.camera_center for c in cameras]).reshape(-1, 3)
+    out = dietrich(bed, centres, point, camera, float(water.level), float(water.n), DIETRICH_MAX_ANGLE)
+    return out[np.isfinite(out).all(1)]

@@ -160,7 +160,7 @@ def test_rows_are_reused_only_under_their_key(tmp_path):
     rows = run_ablation(data, out, "smoke", ["full"], [1], runner, **quiet)
     assert len(runner.calls) == 4 and list(rows) == ["full", "init", "oracle plane"]
     res = json.loads((out / "results.json").read_text())
-    assert list(res["rows"]) == ["init", "oracle plane", "full"] and res["seeds"] == [1]
+    assert list(res["rows"]) == ["oracle plane", "init", "full"] and res["seeds"] == [1]
     assert "| 3dgs |" not in (out / "table2.md").read_text()
     # another dataset content (one image changed): recomputed, never reused
     runner.fingerprint = "bbbb"

@@ -1,0 +1,68 @@
+"""The field's reference methods from first principles: Dietrich's multi-camera correction (nadir gives
+depth x n; two symmetric cameras, whose straight rays meet right above the true point, give the true depth;
+the angle filter), the TIN DEM (a plane exactly, a paraboloid to the linear interpolation's error; nothing
+outside the hull), and the tracks' outlier filter (an injected outlier removed, the rest kept)."""
+
+import numpy as np
+import pytest
+import torch
+
+from eval.references import dietrich, tin, track_filter
+from ragsplat_core.refraction import WaterSurface, apparent_points
+
+N = 1.33
+
+
+def test_dietrich_at_nadir_is_depth_times_n():
+    app = np.array([[1.0, 2.0, -0.6], [0.0, 0.0, 0.5]])  # a submerged point and a dry one
+    got = dietrich(app, np.array([[1.0, 2.0, 30.0]]), np.array([0, 1]), np.array([0, 0]), 0.0, N)
+    np.testing.assert_allclose(got, [[1.0, 2.0, -0.6 * N], [0.0, 0.0, 0.5]], atol=1e-12)
+
+
+@pytest.mark.parametrize("offset", [3.0, 12.0, 25.0])
+def test_dietrich_recovers_a_point_seen_by_two_symmetric_cameras(offset):
+    # the light paths to X bend at the water; their straight air rays meet right above X (symmetry), where
+    # Dietrich's assumption holds, so each camera's rule gives the true depth
+    water, X, H = WaterSurface(0.0, N), np.array([0.0, 0.0, -2.0]), 20.0
+    centres = np.array([[-offset, 0.0, H], [offset, 0.0, H]])
+    crossing = []
+    for c in centres:
+        a = apparent_points(torch.tensor(X[None]), torch.tensor(c), water)[0].numpy()  # on the air ray
+        d = a - c
+        crossing.append(c + d * (-c[0] / d[0]))  # the air ray at x = 0
+    assert crossing[0] == pytest.approx(crossing[1], abs=1e-9)
+    got = dietrich(np.array([crossing[0]]), centres, np.array([0, 0]), np.array([0, 1]), 0.0, N)
+    np.testing.assert_allclose(got[0], X, atol=1e-9)
+    straight = crossing[0][2] * N  # depth x n, the nadir rule, is wrong off nadir (0.4 % at 8.5 deg)
+    assert abs(straight - X[2]) > 0.002 * abs(X[2])
+
+
+def test_dietrich_angle_filter_and_reduction():
+    app = np.array([[0.0, 0.0, -1.0]])
+    centres = np.array([[0.0, 0.0, 10.0], [10.0, 0.0, 10.0]])  # nadir, and 45 degrees away
+    point, camera = np.array([0, 0]), np.array([0, 1])
+    both = dietrich(app, centres, point, camera, 0.0, N, reduce=np.mean)[0, 2]
+    nadir = dietrich(app, centres, point, camera, 0.0, N, max_angle_deg=35)[0, 2]
+    assert nadir == pytest.approx(-N) and both < nadir  # the oblique view's rule gives a deeper point
+    assert np.isnan(dietrich(app, centres[1:], np.array([0]), np.array([0]), 0.0, N, max_angle_deg=35)[0, 2])
+
+
+def test_tin_recovers_a_plane_and_a_paraboloid_inside_the_hull():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-5, 5, size=(800, 2))
+    nodes = np.stack(np.meshgrid(np.arange(-6, 6.01, 0.25), np.arange(-6, 6.01, 0.25)), -1).reshape(-1, 2)
+    plane = tin(np.column_stack([xy, 0.3 * xy[:, 0] - 0.2 * xy[:, 1] + 1.0]), nodes)
+    np.testing.assert_allclose(plane[:, 2], 0.3 * plane[:, 0] - 0.2 * plane[:, 1] + 1.0, atol=1e-9)
+    assert np.abs(plane[:, :2]).max() <= 5.0 and len(plane) < len(nodes)  # nothing outside the hull
+    bowl = tin(np.column_stack([xy, 0.05 * (xy**2).sum(1)]), nodes)
+    err = bowl[:, 2] - 0.05 * (bowl[:, :2] ** 2).sum(1)
+    assert err.min() >= -1e-9 and np.median(err) < 0.01  # linear interpolation of a convex surface: above it
+
+
+def test_track_filter_removes_an_injected_outlier_and_keeps_the_rest():
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(0, 10, size=(2000, 2))
+    pts = np.column_stack([xy, np.sin(xy[:, 0] / 3) + rng.normal(0, 0.02, len(xy))])
+    pts[7, 2] += 1.5
+    keep = track_filter(pts)
+    assert not keep[7] and keep.sum() == len(pts) - 1
