@@ -275,7 +275,8 @@ def _merge(spec: SceneSpec, out: Path, poses) -> None:
     files = [layout.relative_path(kind, p.name) for kind in kinds for p in poses]
     write_json(out / layout.MANIFEST, {f: layout.file_digest(out / f) for f in files}, indent=0)
     if spec.water is not None and "wet" in kinds:  # what a surveyor would hand over (`ragsplat survey`)
-        write_survey(out, poses, spec.water.level, seed=spec.seed)
+        banks = np.load(out / layout.GT_BANKS) if (out / layout.GT_BANKS).is_file() else None
+        write_survey(out, poses, spec.water.level, seed=spec.seed, banks=banks)
 
 
 def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),

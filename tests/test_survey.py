@@ -40,8 +40,19 @@ def survey(tmp_path_factory):
         image = (np.clip(v["image"].numpy(), 0, 1) * 255 + 0.5).astype(np.uint8)
         layout.write_jpeg(root / "images" / name, image, v["camera"].fx)
     centres = np.array([c.camera_center for c in cams])
-    noise = np.random.default_rng(0).normal(size=centres.shape) * [0.005, 0.005, 0.008]
-    layout.write_positions(root / "positions.csv", names, centres + noise)
+    rng = np.random.default_rng(0)
+    layout.write_positions(root / "positions.csv", names, centres + rng.normal(size=centres.shape) * [0.005, 0.005,
+                                                                                                       0.008])
+    # ground control: five targets on posts above the water (the pixels given, as a surveyor picks them)
+    targets = np.array([[-1.5, -1.2, 0.2], [1.5, -1.2, 0.25], [1.5, 1.2, 0.15], [-1.5, 1.2, 0.2], [0.0, 0.0, 0.3]])
+    rows = []
+    for name, cam in zip(names, cams):
+        uv, z = cam.project(targets)
+        uv = uv + rng.normal(size=uv.shape) * 0.3
+        inside = (z > 0) & (uv >= 0).all(1) & (uv[:, 0] < cam.width) & (uv[:, 1] < cam.height)
+        rows += [(name, f"T{k}", *uv[k]) for k in np.flatnonzero(inside)]
+    layout.write_gcp_pixels(root / "gcp_pixels.csv", rows)
+    layout.write_positions(root / "gcp.csv", [f"T{k}" for k in range(5)], targets + rng.normal(size=(5, 3)) * 0.005)
     return root
 
 
@@ -110,12 +121,46 @@ def test_positions_that_are_not_z_up_are_refused(survey, finished, tmp_path, cap
     # y and z swapped (a y-up frame): the flight's plane turns vertical, the cameras look sideways
     layout.write_positions(flipped, list(rows), np.array([[x, z, y] for x, y, z in rows.values()]))
     out = tmp_path / "run"
-    shutil.copytree(finished[0] / "sfm", out / "sfm")  # its structure from motion reused (same photos)
-    for name in (".ragsplat", "stages.json"):
-        shutil.copy(finished[0] / name, out / name)
+    reuse_sfm(finished, out)
     argv = args(survey, out)
     argv[argv.index("--positions") + 1] = str(flipped)
     argv[argv.index("--water-level") + 1] = "-8"
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "structure from motion of" not in err and "the cameras do not look down" in err
+
+
+def gcp_args(survey, out, pixels=None):
+    argv = args(survey, out, "--gcp-pixels", str(pixels or survey / "gcp_pixels.csv"), "--stop-after", "water")
+    argv[argv.index("--positions"):argv.index("--positions") + 2] = ["--gcp", str(survey / "gcp.csv")]
+    return argv
+
+
+def reuse_sfm(finished, out):
+    shutil.copytree(finished[0] / "sfm", out / "sfm")  # its structure from motion reused (same photos)
+    for name in (".ragsplat", "stages.json"):
+        shutil.copy(finished[0] / name, out / name)
+
+
+def test_ground_control_instead_of_positions(survey, finished, tmp_path, capsys):
+    out = tmp_path / "run"
+    reuse_sfm(finished, out)
+    assert main(gcp_args(survey, out)) == 0
+    assert "similarity to 5 ground control points" in capsys.readouterr().err
+    poses = pose_errors(out / "model", survey / "truth")
+    assert poses["centre_m"]["median"] < 0.03 and poses["rotation_deg"]["median"] < 1.0
+    water = json.loads((out / "water.json").read_text())
+    assert max(abs(v) for r in water["gcp_residual_m"].values() for v in r) < 0.03
+    assert not (out / "train").exists()  # --stop-after water
+
+
+def test_ground_control_outside_the_model_is_refused(survey, finished, tmp_path, capsys):
+    few = tmp_path / "pixels.csv"  # every target in one photo only: none can be placed
+    rows = {}
+    for image, name, uv in layout.read_gcp_pixels(survey / "gcp_pixels.csv"):
+        rows.setdefault(name, (image, name, *uv))
+    layout.write_gcp_pixels(few, list(rows.values()))
+    out = tmp_path / "run"
+    reuse_sfm(finished, out)
+    assert main(gcp_args(survey, out, few)) == 2
+    assert "only 0 ground control points are seen in 2 or more registered photos" in capsys.readouterr().err

@@ -1,12 +1,14 @@
-"""`ragsplat survey IMAGES --positions positions.csv --water-level Z --out RUN [--crs EPSG:N] [--masks DIR]`:
+"""`ragsplat survey IMAGES --positions positions.csv | --gcp gcp.csv --gcp-pixels pixels.csv --water-level Z
+--out RUN [--crs EPSG:N] [--masks DIR]`:
 from the drone's photos to a DEM, every stage cached in RUN and skipped by a rerun whose inputs are the same.
 
 1. structure from motion (`survey.sfm`: pycolmap SIFT, exhaustive matching, incremental mapping) -> RUN/sfm/;
-2. georeferencing: the similarity that takes the model's camera centres to the RTK positions, robust to a few
-   wrong ones (`survey.georef`), residuals per camera -> RUN/georef.json;
+2. georeferencing: the similarity that takes the model's camera centres to the RTK positions, or the ground
+   control points triangulated from their pixels to their surveyed positions, robust to a few wrong ones
+   (`survey.georef`), residuals of each -> RUN/georef.json;
 3. the water: bundle adjustment with the submerged tracks projected through the water at the given level and
-   the cameras held near their RTK positions (`survey.bundle`), and where the model's points lie around the
-   level -> RUN/model/ (a COLMAP model), RUN/water.json;
+   the cameras held near their RTK positions, or the ground control points at theirs (`survey.bundle`), and
+   where the model's points lie around the level -> RUN/model/ (a COLMAP model), RUN/water.json;
 4. training (the imported survey in RUN/data, the best variant and start as `make ablation` measures them)
    -> RUN/train/, and the products: RUN/dem.tif, RUN/bed.laz, RUN/depth.png (`ragsplat export`).
 """
@@ -40,9 +42,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ragsplat_core.train.config import PRESETS, VARIANTS
 
     parser.add_argument("images", type=Path, metavar="IMAGES", help="the folder of the survey's photos (JPEG/PNG)")
-    parser.add_argument("--positions", type=Path, required=True, metavar="CSV",
-                        help="camera centres as the drone's RTK recorded them: CSV with header name,x,y,z "
-                             "(image file name; metres, z up, the frame of the water level and the products)")
+    frame = parser.add_mutually_exclusive_group(required=True)
+    frame.add_argument("--positions", type=Path, metavar="CSV",
+                       help="camera centres as the drone's RTK recorded them: CSV with header name,x,y,z "
+                            "(image file name; metres, z up, the frame of the water level and the products)")
+    frame.add_argument("--gcp", type=Path, metavar="CSV",
+                       help="ground control points instead: CSV with header name,x,y,z (as surveyed), with "
+                            "--gcp-pixels")
+    parser.add_argument("--gcp-pixels", type=Path, metavar="CSV",
+                        help="where each target is in the photos: CSV with header image,name,u,v (pixels, the "
+                             "image's top-left corner at 0,0)")
+    parser.add_argument("--gcp-sigma", type=positive_float, default=0.01, metavar="M",
+                        help="ground control accuracy, each axis (m; default 0.01)")
     parser.add_argument("--water-level", type=finite_float, required=True, metavar="Z",
                         help="height of the calm water surface in the positions' frame (m)")
     parser.add_argument("--out", required=True, type=out_dir, help="run directory (a rerun resumes)")
@@ -63,6 +74,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resolution", type=positive_float, default=0.05, metavar="M", help="DEM cell (0.05 m)")
     parser.add_argument("--max-size", type=positive_int, metavar="PX",
                         help="downscale images for training so their longer side is at most PX pixels")
+    parser.add_argument("--stop-after", choices=STAGES[:3], metavar="STAGE",
+                        help="stop after this stage (sfm, georef or water: the poses without training)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -120,24 +133,37 @@ def run(args: argparse.Namespace) -> int:
     photos = sorted(p for p in args.images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if len(photos) < 3:
         raise DatasetError(f"{args.images}: {len(photos)} photos (JPEG, PNG or TIFF); at least 3 are needed")
-    positions = layout.read_positions(args.positions)
     names = [p.name for p in photos]
-    unknown = sorted(set(positions) - set(names))
-    located = [n for n in names if n in positions]
-    if len(located) < 3:
-        raise DatasetError(f"{args.positions}: {len(located)} of its names are photos in {args.images} "
-                           f"(e.g. {', '.join(sorted(positions)[:3])} vs {', '.join(names[:3])}); at least 3 are needed")
+    if args.positions is not None:
+        positions, control = layout.read_positions(args.positions), None
+        known, source = positions, args.positions
+    else:
+        if args.gcp_pixels is None:
+            raise ConfigError("--gcp needs --gcp-pixels (where each target is in the photos)")
+        positions, control = None, layout.read_positions(args.gcp)
+        pixels = layout.read_gcp_pixels(args.gcp_pixels)
+        known, source = {image: None for image, _, _ in pixels}, args.gcp_pixels
+        strange = sorted({name for _, name, _ in pixels} - set(control))
+        if strange:
+            raise DatasetError(f"{args.gcp_pixels}: targets not in {args.gcp}: {', '.join(strange[:5])}")
+    unknown = sorted(set(known) - set(names))
+    located = [n for n in names if n in known]
+    if len(located) < (3 if control is None else 2):
+        raise DatasetError(f"{source}: {len(located)} of its names are photos in {args.images} "
+                           f"(e.g. {', '.join(sorted(known)[:3])} vs {', '.join(names[:3])}); at least "
+                           f"{3 if control is None else 2} are needed")
     if unknown:
-        _say("check", f"{len(unknown)} names in {args.positions} are not photos in {args.images} (ignored), "
+        _say("check", f"{len(unknown)} names in {source} are not photos in {args.images} (ignored), "
              f"e.g. {unknown[0]}")
-    top = max(float(positions[n][2]) for n in located)
-    if not args.water_level < top:
-        raise ConfigError(f"--water-level {args.water_level:g} is not below any camera (highest at {top:g})")
+    if positions is not None:
+        top = max(float(positions[n][2]) for n in located)
+        if not args.water_level < top:
+            raise ConfigError(f"--water-level {args.water_level:g} is not below any camera (highest at {top:g})")
     WaterSurface(args.water_level, args.n)
     claim(args.out, "survey run")
     stamps = Stamps(args.out)
     # a local origin (whole metres): UTM-sized coordinates keep millimetres in every float64 step
-    origin = np.round(np.mean([positions[n] for n in located], axis=0))
+    origin = np.round(np.mean(list((positions or control).values()), axis=0))
     level = args.water_level - origin[2]
 
     # 1. structure from motion
@@ -153,32 +179,52 @@ def run(args: argparse.Namespace) -> int:
     rec = pycolmap.Reconstruction(str(work / "model"))
     _say("sfm", f"{rec.num_reg_images()} of {len(photos)} photos registered, {rec.num_points3D()} points, "
          f"reprojection error {rec.compute_mean_reprojection_error():.2f} px", t0)
+    if args.stop_after == "sfm":
+        return 0
 
-    # 2. georeferencing to the RTK positions
-    key = _digest(key, layout.file_digest(args.positions), origin.tolist())
+    # 2. georeferencing: to the RTK positions, or to the ground control points seen in the photos
+    key = _digest(key, layout.file_digest(source), None if control is None else layout.file_digest(args.gcp),
+                  origin.tolist())
     trk = sfm.tracks(rec)
-    have = [k for k, n in enumerate(trk.names) if n in positions]
-    if len(have) < 3:
-        raise DatasetError(f"{args.positions}: only {len(have)} registered photos have a position; 3 are needed")
-    src = trk.C[have].numpy()
-    dst = np.array([positions[trk.names[k]] for k in have]) - origin
-    sim, inliers = georef.ransac_similarity(src, dst, threshold=max(0.2, 10 * args.rtk_sigma[1]))
+    if control is None:
+        have = [k for k, n in enumerate(trk.names) if n in positions]
+        if len(have) < 3:
+            raise DatasetError(f"{args.positions}: only {len(have)} registered photos have a position; 3 are needed")
+        src = trk.C[have].numpy()
+        dst = np.array([positions[trk.names[k]] for k in have]) - origin
+        what, labels, tol = f"{len(have)} RTK positions", [trk.names[k] for k in have], 10 * args.rtk_sigma[1]
+    else:
+        gcp = sfm.control_points(rec, trk, pixels)  # name -> (model xyz, observations)
+        usable = [n for n, (xyz, obs) in gcp.items() if np.isfinite(xyz).all()]
+        if len(usable) < 3:
+            seen = ", ".join(f"{n} ({len(gcp[n][1]) if n in gcp else 0} photos)" for n in sorted(control))
+            raise DatasetError(f"{args.gcp_pixels}: only {len(usable)} ground control points are seen in 2 or more "
+                               f"registered photos from different places; 3 are needed ({seen})")
+        src = np.array([gcp[n][0] for n in usable])
+        dst = np.array([control[n] for n in usable]) - origin
+        what, labels, tol = f"{len(usable)} ground control points", usable, 10 * args.gcp_sigma
+    sim, inliers = georef.ransac_similarity(src, dst, threshold=max(0.2, tol))
     res = sim.apply(src) - dst
     looks = (trk.R[:, 2, :].numpy() @ sim.R.T)[:, 2]  # the optical axes' z in the positions' frame
     if np.median(looks) > -0.2:
-        raise DatasetError(f"{args.positions}: after alignment the cameras do not look down (median optical "
-                           f"axis z {np.median(looks):+.2f}): are the positions metres with z up?")
-    report = {"scale": sim.scale, "R": sim.R.tolist(), "t": (sim.t + origin).tolist(), "origin": origin.tolist(),
-              "inliers": int(inliers.sum()), "cameras": len(have),
-              "residual_m": {trk.names[k]: r.tolist() for k, r in zip(have, res)},
+        raise DatasetError(f"{source}: after alignment the cameras do not look down (median optical "
+                           f"axis z {np.median(looks):+.2f}): are the coordinates metres with z up?")
+    top = float(sim.apply(trk.C.numpy())[:, 2].max() + origin[2])
+    if not args.water_level < top:
+        raise ConfigError(f"--water-level {args.water_level:g} is not below any camera (highest at {top:g})")
+    report = {"to": what, "scale": sim.scale, "R": sim.R.tolist(), "t": (sim.t + origin).tolist(),
+              "origin": origin.tolist(), "inliers": int(inliers.sum()), "count": len(labels),
+              "residual_m": {name: r.tolist() for name, r in zip(labels, res)},
               "rms_m": float(np.sqrt((res[inliers] ** 2).sum(1).mean()))}
     write_json(args.out / "georef.json", report)
-    _say("georef", f"similarity to {len(have)} RTK positions: scale {sim.scale:.4g}, {int(inliers.sum())} inliers, "
-         f"rms {100 * report['rms_m']:.1f} cm (per camera: {args.out / 'georef.json'})")
+    _say("georef", f"similarity to {what}: scale {sim.scale:.4g}, {int(inliers.sum())} inliers, "
+         f"rms {100 * report['rms_m']:.1f} cm (each one's: {args.out / 'georef.json'})")
     stamps.mark("georef", key)
+    if args.stop_after == "georef":
+        return 0
 
     # 3. the water: bundle adjustment through it, cameras held at their RTK positions
-    key = _digest(key, level, args.n, args.no_water_adjustment, list(args.rtk_sigma))
+    key = _digest(key, level, args.n, args.no_water_adjustment, list(args.rtk_sigma), args.gcp_sigma)
     model = args.out / "model"
     t0 = time.perf_counter()
     if not stamps.done("water", key, model, args.out / "water.json"):
@@ -186,16 +232,30 @@ def run(args: argparse.Namespace) -> int:
         C = torch.as_tensor(sim.apply(trk.C.numpy()))
         P = torch.as_tensor(sim.apply(trk.points.numpy()))
         water = WaterSurface(float(level), args.n)
-        prior = torch.full_like(C, float("nan"))
-        prior[have] = torch.as_tensor(dst)
+        point, image, pix, held, gcp_rows = trk.point, trk.image, trk.pixels, {}, None
+        if control is None:
+            prior = torch.full_like(C, float("nan"))
+            prior[have] = torch.as_tensor(dst)
+            held = {"prior_C": prior, "prior_sigma": (args.rtk_sigma[0],) * 2 + (args.rtk_sigma[1],)}
+        else:  # the targets join the points, held at their surveyed positions
+            gcp_rows = torch.arange(len(P), len(P) + len(usable))
+            obs = [(row, k, uv) for row, n in zip(gcp_rows.tolist(), usable) for k, uv in gcp[n][1]]
+            point = torch.cat([point, torch.tensor([o[0] for o in obs])])
+            image = torch.cat([image, torch.tensor([o[1] for o in obs])])
+            pix = torch.cat([pix, torch.as_tensor(np.array([o[2] for o in obs]))])
+            P = torch.cat([P, torch.as_tensor(sim.apply(src))])
+            held = {"prior_points": (gcp_rows, torch.as_tensor(dst)), "point_sigma": args.gcp_sigma}
         if args.no_water_adjustment:
             adj = None
         else:
-            _say("water", f"bundle adjustment through the water ({len(trk.point)} observations of {len(P)} points, "
+            _say("water", f"bundle adjustment through the water ({len(point)} observations of {len(P)} points, "
                  f"{len(C)} cameras) ...")
-            adj = bundle.adjust(R, C, trk.intrinsics, P, trk.point, trk.image, trk.pixels, water,
-                                prior_C=prior, prior_sigma=(args.rtk_sigma[0],) * 2 + (args.rtk_sigma[1],))
+            adj = bundle.adjust(R, C, trk.intrinsics, P, point, image, pix, water, **held)
             R, C, P = adj.R, adj.C, adj.points
+        if gcp_rows is not None:
+            gcp_residual = {n: (P[r] - torch.as_tensor(dst[k])).tolist() for k, (n, r) in
+                            enumerate(zip(usable, gcp_rows.tolist()))}
+            P = P[: len(trk.points)]
         z = P[:, 2].numpy() - level
         above = np.sort(z[z >= 0])
         check = {"level": args.water_level, "n": args.n, "points_above": int((z >= 0).sum()),
@@ -203,7 +263,8 @@ def run(args: argparse.Namespace) -> int:
                  "lowest_above_m": float(np.percentile(above, 1)) if len(above) else None,
                  "adjusted": adj is not None,
                  "rms_px": None if adj is None else float(adj.residuals.pow(2).mean().sqrt()),
-                 "iterations": None if adj is None else adj.iterations}
+                 "iterations": None if adj is None else adj.iterations,
+                 **({} if gcp_rows is None else {"gcp_residual_m": gcp_residual})}
         sfm.set_poses(rec, trk, R, C + torch.as_tensor(origin), P + torch.as_tensor(origin))
         rec.write_text(str(_fresh(model)))
         write_json(args.out / "water.json", check)
@@ -216,6 +277,9 @@ def run(args: argparse.Namespace) -> int:
          f"above" + ("" if lowest is None else f" (the lowest 1 % within {100 * lowest:.1f} cm of it)")
          + ("" if check["rms_px"] is None else f"; reprojection error {check['rms_px']:.2f} px after the adjustment"),
          t0)
+
+    if args.stop_after == "water":
+        return 0
 
     # 4. training and the products
     run_train = args.out / "train"

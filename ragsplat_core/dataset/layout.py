@@ -62,6 +62,8 @@ NODATA = -9999.0  # raster cells without a value
 SURVEY_IMAGES = "survey/images"
 SURVEY_POSITIONS = "survey/positions.csv"  # header name,x,y,z: image file name, metres, z up
 SURVEY_LEVEL = "survey/water_level.txt"  # one number: the water surface height, same frame
+SURVEY_GCP = "survey/gcp.csv"  # header name,x,y,z: ground control points as surveyed, same frame
+SURVEY_GCP_PIXELS = "survey/gcp_pixels.csv"  # header image,name,u,v: where each target is in each photo
 SURVEY_RECORD = "survey/survey.json"  # how a synthetic survey was made (seed, noise), for the evaluation only
 
 
@@ -222,6 +224,39 @@ def read_positions(path: Path) -> dict[str, np.ndarray]:
         if row["name"] in out:
             raise DatasetError(f"{path}:{k}: {row['name']} appears twice")
         out[row["name"]] = xyz
+    if not out:
+        raise DatasetError(f"{path}: no rows")
+    return out
+
+
+def write_gcp_pixels(path: Path, rows: list[tuple[str, str, float, float]]) -> None:
+    """`image,name,u,v` CSV: ground control point `name` seen in photo `image` at pixel (u, v) (column, row;
+    the image's top-left corner at (0, 0), so the first pixel's centre is at (0.5, 0.5))."""
+    body = "".join(f"{image},{name},{u:.3f},{v:.3f}\n" for image, name, u, v in rows)
+    write_bytes(path, ("image,name,u,v\n" + body).encode())
+
+
+def read_gcp_pixels(path: Path) -> list[tuple[str, str, np.ndarray]]:
+    """[(image, name, [u, v])] from an `image,name,u,v` CSV (header required). Raises DatasetError."""
+    import csv
+
+    path = Path(path)
+    try:
+        with open(path, newline="") as f:
+            lines = [row for row in csv.reader(f) if any(c.strip() for c in row)]
+    except OSError as err:
+        raise DatasetError(f"{path}: {err.strerror}") from None
+    header = [h.strip() for h in lines[0]] if lines else []
+    if not {"image", "name", "u", "v"} <= set(header):
+        raise DatasetError(f"{path}: expected the header image,name,u,v, got {','.join(header) or 'nothing'}")
+    out = []
+    for k, cells in enumerate(lines[1:], start=2):
+        row = dict(zip(header, (c.strip() for c in cells)))
+        try:
+            uv = np.array([float(row["u"]), float(row["v"])])
+        except (KeyError, ValueError):
+            raise DatasetError(f"{path}:{k}: u and v must be numbers") from None
+        out.append((row["image"], row["name"], uv))
     if not out:
         raise DatasetError(f"{path}: no rows")
     return out

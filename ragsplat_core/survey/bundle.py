@@ -70,12 +70,14 @@ def _huber(s: torch.Tensor, delta: float) -> tuple[torch.Tensor, torch.Tensor]: 
 def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: torch.Tensor,
            point: torch.Tensor, image: torch.Tensor, pixels: torch.Tensor, water: WaterSurface | None,
            prior_C: torch.Tensor | None = None, prior_sigma: tuple[float, float, float] = (0.02, 0.02, 0.03),
+           prior_points: tuple[torch.Tensor, torch.Tensor] | None = None, point_sigma: float = 0.01,
            pixel_sigma: float = 1.0, huber: float = 2.0, iterations: int = 30, tol: float = 1e-9) -> Bundle:
     """Levenberg-Marquardt on the cameras (R [I, 3, 3], C [I, 3]) and points [P, 3] given the observations
     pixels [M, 2] of point [M] in image [M], the intrinsics [I, 4] held fixed. Cost: sum of Huber(|r| /
     pixel_sigma) over the observations plus, with `prior_C` [I, 3], sum of ((C - prior_C) / prior_sigma)^2
-    (metres; x, y, z; rows of NaN: no prior), which also fixes the frame; without it the frame floats
-    (damped only).
+    (metres; x, y, z; rows of NaN: no prior), which also fixes the frame; with `prior_points` (indices [G],
+    positions [G, 3]: ground control points among the points) sum of ((P - position) / point_sigma)^2, which
+    fixes it too; without either the frame floats (damped only).
     Stops after `iterations` or when an accepted step lowers the cost by less than `tol` relative."""
     dt = torch.float64
     R, C, points, intrinsics, pixels = (x.to(dt) for x in (R, C, points, intrinsics, pixels))
@@ -100,11 +102,15 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
     def residual(R_, C_, P_):  # [M, 2] in units of pixel_sigma
         return (project(R_[image], C_[image], K, P_[point], water) - pixels) / pixel_sigma
 
+    gcp, gcp_xyz = (None, None) if prior_points is None else (prior_points[0], prior_points[1].to(dt))
+
     def total(R_, C_, P_) -> tuple[float, torch.Tensor]:
         r = residual(R_, C_, P_)
         cost = _huber(r.norm(dim=-1), huber)[0].sum()
         if sig is not None:
             cost = cost + ((held * (C_ - prior_C) / sig) ** 2).sum()
+        if gcp is not None:
+            cost = cost + (((P_[gcp] - gcp_xyz) / point_sigma) ** 2).sum()
         return float(cost), r
 
     def jacobians(R_, C_, P_) -> tuple[torch.Tensor, torch.Tensor]:
@@ -133,6 +139,9 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
         if sig is not None:
             U[:, 3:, 3:] += held[:, :, None] * torch.diag(1 / sig**2)
             gc[:, 3:] += held * (C - prior_C) / sig**2
+        if gcp is not None:
+            V[gcp] += torch.eye(3, dtype=dt, device=C.device) / point_sigma**2
+            gp[gcp] += (points[gcp] - gcp_xyz) / point_sigma**2
         while True:
             Ud = U + lam * torch.diag_embed(torch.diagonal(U, dim1=-2, dim2=-1) + 1e-9)
             Vd = V + lam * torch.diag_embed(torch.diagonal(V, dim1=-2, dim2=-1)) + 1e-12 * eye3

@@ -108,3 +108,32 @@ def set_poses(rec, trk: Tracks, R: torch.Tensor, C: torch.Tensor, points: torch.
         rec.frames[rec.images[i].frame_id].rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(Ri), -Ri @ Ci)
     for p, xyz in zip(trk.point_ids, points.double().numpy()):
         rec.points3D[p].xyz = xyz
+
+
+def control_points(rec, trk: Tracks, pixels: list[tuple[str, str, np.ndarray]]) -> dict:
+    """{target name: (xyz [3] in the model's frame, NaN when its rays do not meet; [(camera index in `trk`,
+    undistorted pixel [2])])} for the ground control targets seen at `pixels` [(image name, target, [u, v])]
+    in the registered photos: their straight rays (the targets stand on dry ground) intersected by least
+    squares, at least 2 photos at least a degree apart."""
+    from ragsplat_core.snell import closest_points
+
+    index = {name: k for k, name in enumerate(trk.names)}
+    seen: dict[str, list] = {}
+    for image, name, uv in pixels:
+        k = index.get(image)
+        if k is None:
+            continue
+        cam, (fx, fy, cx, cy) = rec.images[trk.image_ids[k]].camera, trk.intrinsics[k].tolist()
+        xy = np.asarray(cam.cam_from_img(np.asarray(uv, float)[None]), float)[0, :2]
+        seen.setdefault(name, []).append((k, np.array([fx * xy[0] + cx, fy * xy[1] + cy]), xy))
+    names = sorted(seen)
+    origins, dirs, group = [], [], []
+    for g, name in enumerate(names):
+        for k, _, xy in seen[name]:
+            d = trk.R[k].numpy().T @ np.array([xy[0], xy[1], 1.0])
+            origins.append(trk.C[k].numpy())
+            dirs.append(d / np.linalg.norm(d))
+            group.append(g)
+    xyz = closest_points(np.array(origins).reshape(-1, 3), np.array(dirs).reshape(-1, 3), np.array(group, int),
+                         len(names)) if names else np.zeros((0, 3))
+    return {name: (xyz[g], [(k, uv) for k, uv, _ in seen[name]]) for g, name in enumerate(names)}
