@@ -64,16 +64,17 @@ def spawn(cmd: list[str], env: dict, log: Path) -> subprocess.Popen:
 def stop(procs: list) -> None:
     """SIGTERM to every process still running (each writes a checkpoint of its finished steps and exits, as on
     Ctrl-C), then wait for them; an interrupt while waiting passes a second SIGTERM on, which stops them at once."""
-    try:
+    def terminate():
         for proc in procs:
             if proc.poll() is None:
                 proc.terminate()
+
+    terminate()
+    try:
         for proc in procs:
             proc.wait()
     except KeyboardInterrupt:
-        for proc in procs:
-            if proc.poll() is None:
-                proc.terminate()
+        terminate()
         for proc in procs:
             proc.wait()
         raise
