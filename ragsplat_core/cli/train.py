@@ -52,6 +52,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "--colmap: the model's points, else triangulated)")
     parser.add_argument("--init-depth", type=positive_float, help="grid depth below the water level (m); "
                         "default: scene.json spec.bed.depth")
+    parser.add_argument("--init-count", type=positive_int, metavar="N",
+                        help="start from at most N points (a seeded random subset; default: the preset's cap)")
     parser.add_argument("--init-points", metavar="FILE.npy", help="point cloud [N, 3] or [N, 6] (xyz, rgb in "
                         "[0, 1]) for --init points; submerged depths are multiplied by n")
     parser.add_argument("--water-level", type=finite_float, metavar="Z",
@@ -76,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     from ragsplat_core.train import Trainer, preset_config
 
     overrides = {"variant": args.variant, "seed": args.seed}
-    for key in ("iterations", "init", "init_depth", "init_points", "water_level", "water_n", "optimize_water", "checkpoint_every",
+    for key in ("iterations", "init", "init_depth", "init_count", "init_points", "water_level", "water_n", "optimize_water", "checkpoint_every",
                 "backend", "device"):
         if getattr(args, key) is not None:
             overrides[key] = getattr(args, key)
