@@ -268,6 +268,12 @@ def test_cli_train(wet, tmp_path, capsys):
     assert main(args) == 0  # finished run: resumes at the end, nothing to do
     assert main(["train", "--data", str(tmp_path / "none"), "--out", str(out)]) == 2
     assert main(args[:-2] + ["--seed", "4"]) == 2  # the checkpoint was written with other settings
+    few = tmp_path / "few"  # a start thinned to a seeded subset of the points
+    points = tmp_path / "points.npy"
+    np.save(points, np.random.default_rng(0).uniform(-0.5, 0.5, (300, 3)) - [0, 0, 1.0])
+    assert main(["train", "--data", str(wet.root), "--out", str(few), "--preset", "smoke", "--iterations", "1",
+                 "--init", "points", "--init-points", str(points), "--init-count", "50", "--no-progress"]) == 0
+    assert json.loads((few / "config.json").read_text())["config"]["init_count"] == 50
     err = capsys.readouterr().err.strip().splitlines()
     assert err[0] == f"resumed from step 3 of 3 ({out})"
     assert len(err) == 3 and "does not exist" in err[1] and "different settings" in err[2]
