@@ -327,11 +327,7 @@ def reference_rows(out: Path, runner, preset: str, seed: int, ecfg: ExtractConfi
         todo.append(("oracle plane", row_dir(out, "oracle plane", None), {**base, "reference": "oracle plane"},
                      lambda: (score_grid(plane, truth), plane)))
         if hasattr(runner, "track_grids"):  # seedless, like the plane: made once
-            try:
-                grids = runner.track_grids()
-            except DatasetError as err:
-                log(f"the tracks' reference rows n/a: {err}")
-                grids = {}
+            grids = runner.track_grids(log)
             key = {**base, "tracks": {"radius": TRACK_RADIUS, "tol": TRACK_TOL, "min_neighbours": TRACK_MIN_NEIGHBOURS,
                                       "dietrich_max_angle_deg": DIETRICH_MAX_ANGLE}}
             for name, grid in grids.items():
@@ -384,12 +380,17 @@ class TrainEval:
             overrides["device"] = self.device
         return preset_config(preset, **overrides)
 
-    def track_grids(self) -> dict[str, np.ndarray]:
-        """The tracks' reference grids (`references.track_grids`); DatasetError without water or tracks."""
-        if self.ds.water is None:
-            raise DatasetError(f"{self.ds.root}: no water, no refraction to correct")
-        return track_grids(self.ds.root, self.fingerprint, {v.file_path: v.camera for v in self.ds.train},
-                           self.ds.water, self.truth.nodes)
+    def track_grids(self, log: Callable[[str], None]) -> dict[str, np.ndarray]:
+        """The tracks' reference grids (`references.track_grids`), or none with the reason logged (a dataset
+        without water, or whose images give no tracks)."""
+        try:
+            if self.ds.water is None:
+                raise DatasetError(f"{self.ds.root}: no water, no refraction to correct")
+            return track_grids(self.ds.root, self.fingerprint, {v.file_path: v.camera for v in self.ds.train},
+                               self.ds.water, self.truth.nodes)
+        except DatasetError as err:
+            log(f"the tracks' reference rows n/a: {err}")
+            return {}
 
     def dietrich_grid(self, bed: np.ndarray) -> np.ndarray:
         """Dietrich's correction of an apparent bed grid [G, 3] by the training cameras."""

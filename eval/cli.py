@@ -91,8 +91,9 @@ def prepare(args: argparse.Namespace, fingerprint: str) -> None:
     start: the dataset's triangulated tracks (cached in it) and the LPIPS weights (downloaded to the cache)."""
     from eval import metrics
 
-    metric, reason = metrics.load_lpips(args.vgg16, download=not args.no_download, log=print)  # a bad path: refused
-    if metric is None and not args.no_download:  # a failed download: the processes and the tables do not retry
+    # a bad path is refused; the weights are not loaded here, only found or fetched
+    path, _, reason = metrics.vgg16_weights(args.vgg16, download=not args.no_download, log=print)
+    if path is None and not args.no_download:  # a failed download: the processes and the tables do not retry
         print(f"LPIPS n/a: {reason}", flush=True)
         args.no_download = True
     if args.init in ("triangulated", "refracted"):
@@ -125,11 +126,8 @@ def run_jobs(args: argparse.Namespace, fingerprint: str, check) -> None:
     print(f"training in {args.jobs} processes of {threads} thread(s); logs: {', '.join(map(str, logs))}",
           flush=True)
     procs = [spawn(base, env, log) for log in logs]
-    try:
-        while any(proc.poll() is None for proc in procs):
-            dead = [k for k, proc in enumerate(procs) if proc.poll() not in (None, 0)]
-            if dead:
-                break
+    try:  # until all have finished or one has failed
+        while any(proc.poll() is None for proc in procs) and not any(proc.poll() for proc in procs):
             check()
             time.sleep(0.2)
     except KeyboardInterrupt:

@@ -179,6 +179,30 @@ def download_vgg16(dst: Path) -> None:
         socket.setdefaulttimeout(previous)
 
 
+def vgg16_weights(vgg16_path: str | Path | None = None, download: bool = True,
+                  log: Callable[[str], None] | None = None) -> tuple[Path | None, str | None, str]:
+    """(the VGG16 weights file, the URL it was just downloaded from or None, "") or (None, None, one-line
+    reason), without loading them: see `load_lpips`."""
+    path = Path(vgg16_path) if vgg16_path else default_vgg16_path()
+    if vgg16_path and not path.is_file():
+        raise ConfigError(f"--vgg16 {path}: no such file (torchvision's {VGG16_FILE})")
+    if path.is_file():
+        return path, None, ""
+    missing = f"VGG16 ImageNet weights not found at {path}"
+    if not download:
+        return None, None, f"{missing} (download off; give --vgg16 PATH to {VGG16_FILE})"
+    if log is not None:
+        log(f"LPIPS: downloading {VGG16_URL} (528 MB) to {path}")
+    try:
+        download_vgg16(path)
+    except Exception as err:  # noqa: BLE001 (network, disk, checksum: any failure means n/a, no crash)
+        detail = (str(err).splitlines() or [""])[0] or type(err).__name__
+        return None, None, f"{missing}; downloading {VGG16_URL} failed: {detail} (give --vgg16 PATH to {VGG16_FILE})"
+    if not path.is_file():
+        return None, None, f"{missing}; downloading {VGG16_URL} left no file there"
+    return path, VGG16_URL, ""
+
+
 def load_lpips(vgg16_path: str | Path | None = None, download: bool = True,
                log: Callable[[str], None] | None = None) -> tuple[LPIPS | None, str]:
     """(metric, "") or (None, one-line reason); `metric.network` records the network and files used.
@@ -188,25 +212,9 @@ def load_lpips(vgg16_path: str | Path | None = None, download: bool = True,
     the download starts); a download failure makes LPIPS unavailable, with the reason. A path given
     explicitly must exist (ConfigError) and is never downloaded to.
     """
-    path = Path(vgg16_path) if vgg16_path else default_vgg16_path()
-    if vgg16_path and not path.is_file():
-        raise ConfigError(f"--vgg16 {path}: no such file (torchvision's {VGG16_FILE})")
-    downloaded_from = None
-    if not path.is_file():
-        missing = f"VGG16 ImageNet weights not found at {path}"
-        if not download:
-            return None, f"{missing} (download off; give --vgg16 PATH to {VGG16_FILE})"
-        if log is not None:
-            log(f"LPIPS: downloading {VGG16_URL} (528 MB) to {path}")
-        try:
-            download_vgg16(path)
-        except Exception as err:  # noqa: BLE001 (network, disk, checksum: any failure means n/a, no crash)
-            detail = (str(err).splitlines() or [""])[0] or type(err).__name__
-            return None, (f"{missing}; downloading {VGG16_URL} failed: {detail} "
-                          f"(give --vgg16 PATH to {VGG16_FILE})")
-        if not path.is_file():
-            return None, f"{missing}; downloading {VGG16_URL} left no file there"
-        downloaded_from = VGG16_URL
+    path, downloaded_from, reason = vgg16_weights(vgg16_path, download, log)
+    if path is None:
+        return None, reason
     try:
         network = {"net": VGG16_NET, "lin": f"{LPIPS_LIN} ({LPIPS_LIN_FILE.name})", "source": str(path),
                    "downloaded_from": downloaded_from}

@@ -71,18 +71,9 @@ def score_run(run: Path, data: Path | None = None, vgg16: str | None = None, dow
             "appearance": appearance, "geometry": geometry, "geometry_fused": fused,
             "references": {"init": evaluate_geometry(initial, truth, start_extraction(ecfg))[0],
                            "oracle plane": score_grid(oracle_plane(truth), truth),
-                           **_track_references(runner, log)},
+                           **{name: score_grid(grid, truth) for name, grid in runner.track_grids(log).items()}},
             "uses_ground_truth": list(USES_GROUND_TRUTH),
             **({} if dem is None else {"dem": _score_dem(dem, ds.georef, truth)})}
-
-
-def _track_references(runner: TrainEval, log) -> dict:
-    """The tracks' reference rows on the truth dataset (`references.track_grids`), or none with the reason."""
-    try:
-        return {name: score_grid(grid, runner.truth) for name, grid in runner.track_grids().items()}
-    except DatasetError as err:
-        log(f"the tracks' reference rows n/a: {err}")
-        return {}
 
 
 def _score_dem(path: Path, georef, truth) -> dict:
