@@ -83,13 +83,6 @@ def _digest(*parts) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def _files_digest(paths: list[Path]) -> str:
-    h = hashlib.sha256()
-    for p in paths:
-        h.update(p.name.encode() + b"\0" + p.read_bytes())
-    return h.hexdigest()[:16]
-
-
 class Stamps:
     """RUN/stages.json: the key each finished stage was made with; a stage whose key is unchanged is skipped."""
 
@@ -167,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
     level = args.water_level - origin[2]
 
     # 1. structure from motion
-    key = _digest(_files_digest(photos), "SIMPLE_PINHOLE")
+    key = _digest({p.name: layout.file_digest(p) for p in photos}, sfm.CAMERA_MODEL)
     work = args.out / "sfm"
     t0 = time.perf_counter()
     if not stamps.done("sfm", key, work / "model"):
@@ -223,7 +216,7 @@ def run(args: argparse.Namespace) -> int:
     if args.stop_after == "georef":
         return 0
 
-    # 3. the water: bundle adjustment through it, cameras held at their RTK positions
+    # 3. the water: bundle adjustment through it, cameras held at their RTK positions or targets at theirs
     key = _digest(key, level, args.n, args.no_water_adjustment, list(args.rtk_sigma), args.gcp_sigma)
     model = args.out / "model"
     t0 = time.perf_counter()
@@ -257,7 +250,7 @@ def run(args: argparse.Namespace) -> int:
                             enumerate(zip(usable, gcp_rows.tolist()))}
             P = P[: len(trk.points)]
         z = P[:, 2].numpy() - level
-        above = np.sort(z[z >= 0])
+        above = z[z >= 0]
         check = {"level": args.water_level, "n": args.n, "points_above": int((z >= 0).sum()),
                  "points_below": int((z < 0).sum()),
                  "lowest_above_m": float(np.percentile(above, 1)) if len(above) else None,

@@ -98,6 +98,7 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
     pair_a, pair_b = rep, order[first + within]
 
     K = intrinsics[image]
+    eye3 = torch.eye(3, dtype=dt, device=C.device)
 
     def residual(R_, C_, P_):  # [M, 2] in units of pixel_sigma
         return (project(R_[image], C_[image], K, P_[point], water) - pixels) / pixel_sigma
@@ -125,7 +126,6 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
             rows = [torch.autograd.grad(r_[:, a].sum(), (turn, Cm, X), retain_graph=a == 0) for a in range(2)]
         return (torch.stack([torch.cat(g[:2], -1) for g in rows], 1), torch.stack([g[2] for g in rows], 1))
 
-    eye3 = torch.eye(3, dtype=dt, device=C.device)
     cost, r = total(R, C, points)
     lam, it = 1e-3, 0
     for it in range(1, iterations + 1):
@@ -140,7 +140,7 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
             U[:, 3:, 3:] += held[:, :, None] * torch.diag(1 / sig**2)
             gc[:, 3:] += held * (C - prior_C) / sig**2
         if gcp is not None:
-            V[gcp] += torch.eye(3, dtype=dt, device=C.device) / point_sigma**2
+            V[gcp] += eye3 / point_sigma**2
             gp[gcp] += (points[gcp] - gcp_xyz) / point_sigma**2
         while True:
             Ud = U + lam * torch.diag_embed(torch.diagonal(U, dim1=-2, dim2=-1) + 1e-9)

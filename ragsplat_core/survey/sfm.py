@@ -20,8 +20,10 @@ import torch
 
 from ragsplat_core.errors import DatasetError
 
+CAMERA_MODEL = "SIMPLE_PINHOLE"  # one focal length, the principal point at the centre, no distortion
 
-def reconstruct(images: Path, names: list[str], work: Path, camera_model: str = "SIMPLE_PINHOLE",
+
+def reconstruct(images: Path, names: list[str], work: Path, camera_model: str = CAMERA_MODEL,
                 threads: int = -1):
     """The largest pycolmap Reconstruction of the photos `names` in `images`; `work` holds the feature
     database and the mapper's models (made anew). Raises DatasetError when fewer than half of the photos
