@@ -7,7 +7,12 @@ Job (JSON): {"geometry": npz path, "objects": [{"name", "material": {...}}], "wa
 "light": {...} or null, "render": {...}, "camera": {"width", "height", "fx", "fy", "cx", "cy"},
 "tasks": [{"pass": "wet"|"dry"|"depth", "name", "c2w_gl": 4x4, "out": path}]}.
 Materials: {"kind": "texture", "image": png} (diffuse albedo, repeating), {"kind": "emission", "strength"},
-{"kind": "refraction", "ior", "color"} (the water: visible to camera rays only).
+{"kind": "diffuse", "color"}, {"kind": "refraction", "ior", "color", "reflect": optional bool} (the water
+surface: visible to camera rays only; with "reflect", Fresnel reflection of sky and sun), {"kind": "volume",
+"absorption", "scattering"} (the water body). An object with "wet_only": true is hidden in the dry and depth
+passes, as the water surface is. Field conditions add "glossy_bounces" (1 for a reflecting surface) and
+"ripples": {"k", "amplitude", "level"} with "phases" in each wet task: the water mesh (its vertices and
+"water_weight" in the npz) is moved to that photo's surface (`datagen.conditions.ripple_height`) before it renders.
 
 Passes: "wet" renders with the water object, "dry" without; both 8-bit sRGB PNG, 'Standard' view transform.
 "depth" renders without water at 1 sample with a 0.01 px pixel filter (exact surface at the pixel centre)
@@ -82,7 +87,31 @@ def _material(spec: dict) -> bpy.types.Material:
         bsdf.inputs["IOR"].default_value = spec["ior"]
         bsdf.inputs["Roughness"].default_value = 0.0
         bsdf.inputs["Color"].default_value = (*([spec["color"]] * 3), 1.0)
+        surface = bsdf.outputs["BSDF"]
+        if spec.get("reflect"):
+            # A water surface: Fresnel's share R of the light is the mirror image of sky and sun (glint), the
+            # rest 1 - R is refracted (with the radiance drop above).
+            mirror = nodes.new("ShaderNodeBsdfGlossy")
+            mirror.inputs["Roughness"].default_value = 0.0
+            fresnel = nodes.new("ShaderNodeFresnel")
+            fresnel.inputs["IOR"].default_value = spec["ior"]
+            mix = nodes.new("ShaderNodeMixShader")
+            links.new(fresnel.outputs["Fac"], mix.inputs["Factor"])
+            links.new(bsdf.outputs["BSDF"], mix.inputs[1])
+            links.new(mirror.outputs["BSDF"], mix.inputs[2])
+            surface = mix.outputs["Shader"]
+        links.new(surface, out.inputs["Surface"])
+    elif spec["kind"] == "diffuse":
+        bsdf = nodes.new("ShaderNodeBsdfDiffuse")
+        bsdf.inputs["Color"].default_value = (*([spec["color"]] * 3), 1.0)
         links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+    elif spec["kind"] == "volume":
+        # The water body: homogeneous absorption and scattering (1/m per channel) and no surface, so rays
+        # cross its boundary unbent; camera, shadow and bounce rays alike are attenuated (Beer-Lambert).
+        vol = nodes.new("ShaderNodeVolumeCoefficients")
+        vol.inputs["Absorption Coefficients"].default_value = spec["absorption"]
+        vol.inputs["Scatter Coefficients"].default_value = spec["scattering"]
+        links.new(vol.outputs[0], out.inputs["Volume"])
     else:
         raise ValueError(f"unknown material kind {spec['kind']!r}")
     return mat
@@ -157,7 +186,8 @@ def _setup(job: dict) -> tuple[bpy.types.Scene, bpy.types.Object, bpy.types.Obje
     c.use_denoising = False
     c.seed, c.use_animated_seed = rs["seed"], False
     c.pixel_filter_type = "BLACKMAN_HARRIS"
-    c.max_bounces, c.diffuse_bounces, c.glossy_bounces = 4, 1, 0  # one interreflection between stones
+    # One interreflection between stones; a reflecting water surface needs its one mirror bounce.
+    c.max_bounces, c.diffuse_bounces, c.glossy_bounces = 4, 1, job.get("glossy_bounces", 0)
     c.transmission_bounces, c.transparent_max_bounces, c.volume_bounces = 2, 2, 0
     c.caustics_reflective = c.caustics_refractive = False
     c.sample_clamp_direct = c.sample_clamp_indirect = 0.0
@@ -165,17 +195,21 @@ def _setup(job: dict) -> tuple[bpy.types.Scene, bpy.types.Object, bpy.types.Obje
     job["device_used"] = _device(scene, rs["device"])
 
     geo = np.load(job["geometry"])
-    water = None
+    wet = []
     for o in job["objects"]:
         name = o["name"]
         obj = _mesh_object(name, geo[f"{name}_verts"], geo[f"{name}_tris"], geo.get(f"{name}_uv"))
         obj.data.materials.append(_material(o["material"]))
         if name == job["water"]:
-            water = obj
+            wet.append(obj)
             # Camera rays only: the bed is lit identically with and without water, no caustic paths.
             obj.visible_shadow = obj.visible_diffuse = obj.visible_glossy = False
             obj.visible_transmission = obj.visible_volume_scatter = False
+            if "ripples" in job:
+                obj.data.shade_smooth()  # the rippled surface's normals vary smoothly
         else:
+            if o.get("wet_only"):
+                wet.append(obj)
             obj.data.shade_smooth()
     _world(job["light"])
 
@@ -190,12 +224,24 @@ def _setup(job: dict) -> tuple[bpy.types.Scene, bpy.types.Object, bpy.types.Obje
     camera = bpy.data.objects.new("camera", cd)
     scene.collection.objects.link(camera)
     scene.camera = camera
-    return scene, camera, water
+    return scene, camera, wet
 
 
-def _configure(scene, water, kind: str, rs: dict) -> None:
-    if water is not None:
-        water.hide_render = kind != "wet"
+def _ripple(water: bpy.types.Object, geo, ripples: dict, phases: list[float]) -> None:
+    """Set the water mesh to this photo's surface: z = level + weight * ripple height."""
+    from datagen.conditions import ripple_height
+
+    verts = geo["water_verts"]
+    z = ripples["level"] + geo["water_weight"] * ripple_height(
+        verts[:, :2], np.array(ripples["k"]), np.array(ripples["amplitude"]), np.array(phases))
+    co = np.column_stack([verts[:, :2], z]).astype(np.float32)
+    water.data.vertices.foreach_set("co", co.ravel())
+    water.data.update()
+
+
+def _configure(scene, wet, kind: str, rs: dict) -> None:
+    for obj in wet:
+        obj.hide_render = kind != "wet"
     s = scene.render.image_settings
     if kind == "depth":
         scene.cycles.samples, scene.cycles.filter_width = 1, rs["depth_filter"]
@@ -244,14 +290,17 @@ def _seconds(stamp: str) -> float:
 def main(argv: list[str]) -> int:
     t0 = time.perf_counter()
     job = json.loads(Path(argv[0]).read_text())
-    scene, camera, water = _setup(job)
+    scene, camera, wet = _setup(job)
+    geo = np.load(job["geometry"]) if "ripples" in job else None
     _say(event="ready", build_s=time.perf_counter() - t0, device=job["device_used"])
     current = None
     for task in job["tasks"]:
         t_start = time.perf_counter()
         if task["pass"] != current:
             current = task["pass"]
-            _configure(scene, water, current, job["render"])
+            _configure(scene, wet, current, job["render"])
+        if "phases" in task:
+            _ripple(bpy.data.objects[job["water"]], geo, job["ripples"], task["phases"])
         camera.matrix_world = Matrix(task["c2w_gl"])
         out = Path(task["out"])
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from blender_scenes.protocol import PROTOCOL
-from datagen import flight
-from datagen.bed import Bed, ground_truth, make_bed, mesh, surface, waterline
+from datagen import conditions, flight
+from datagen.bed import Bed, ground_truth, height_at, make_bed, mesh, surface, waterline
 from datagen.spec import SceneSpec, validate
 from datagen.survey import write_survey
 from ragsplat_core.camera import Camera
@@ -31,6 +31,7 @@ from ragsplat_core.outputs import atomic_path, versions, write_json
 from ragsplat_core.scoring import plane_scores, thresholds
 
 FAR = 2000.0  # half-size (m) of the floor and water planes: beyond every view's horizon-free field
+TARGET_ALBEDO = (0.04, 0.85)  # the ground control targets' black and white (linear diffuse albedo)
 
 
 @dataclass
@@ -72,8 +73,9 @@ def _prepare_out(spec: SceneSpec, out: Path) -> None:
     write_json(saved, spec.to_dict())
 
 
-def _geometry(spec: SceneSpec, bed: Bed) -> dict[str, np.ndarray]:
-    """Everything Blender meshes: bed, the floor frame around it, the water plane (arrays for the npz)."""
+def _geometry(spec: SceneSpec, bed: Bed, targets: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Everything Blender meshes: bed, the floor frame around it, the water surface and, with field
+    conditions, the water body and the ground control `targets` [T, 3] (arrays for the npz)."""
     size = bed.heights.shape[0] * bed.texel  # the albedo image's period (m)
 
     def uv(xy):  # texel i's centre is at x0 + i * texel
@@ -93,10 +95,20 @@ def _geometry(spec: SceneSpec, bed: Bed) -> dict[str, np.ndarray]:
     else:
         fv, ft, fuv = _reach_floor(bed, a, b, f, uv)
     geo.update(floor_verts=fv, floor_tris=ft, floor_uv=fuv)
-    if spec.water is not None:
+    c = spec.conditions
+    if spec.water is not None and (c is None or c.ripple_amplitude == 0):
         lv = spec.water.level
         geo.update(water_verts=np.array([[-f, -f, lv], [f, -f, lv], [f, f, lv], [-f, f, lv]]),
                    water_tris=np.array([[0, 1, 2], [0, 2, 3]]))  # counter-clockwise: normal +Z
+    if c is None:
+        return geo
+    if c.ripple_amplitude > 0:
+        geo["water_verts"], geo["water_tris"], geo["water_weight"] = conditions.water_surface(spec, bed.extent, f)
+    if c.turbid:
+        geo["volume_verts"], geo["volume_tris"] = conditions.water_body(spec, float(bed.heights.min()) - 1.0, 1.01 * f)
+    if targets is not None:
+        for colour, (verts, tris) in conditions.target_meshes(c, targets).items():
+            geo[f"target_{colour}_verts"], geo[f"target_{colour}_tris"] = verts, tris
     return geo
 
 
@@ -138,17 +150,24 @@ def _write_bed_assets(spec: SceneSpec, out: Path) -> None:
              out / layout.GT_SURFACE, out / layout.GT_GRID]
     if spec.reach is not None:
         files += [out / layout.GT_BANKS, out / layout.GT_WATERLINE, out / layout.GT_ELEVATION]
+    c = spec.conditions
+    if c is not None and c.targets:
+        files.append(out / layout.GT_TARGETS)
     if all(p.exists() for p in files):
         return
     bed = make_bed(spec)
-    geo = _geometry(spec, bed)
+    grid, banks = ground_truth(spec, bed, flight.eval_region(spec), layout.GT_GRID_STEP)
+    targets = None
+    if c is not None and c.targets:
+        targets = conditions.place_targets(c, lambda xy: height_at(bed, xy), banks, spec.level, spec.seed)
+        layout.write_npy(out / layout.GT_TARGETS, targets)
+    geo = _geometry(spec, bed, targets)
     with atomic_path(files[0]) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **geo)
     # Blender reads images bottom row first: flip so that texel row j (y index) is at v = (j + 0.5) / M.
     layout.write_png(files[1], np.ascontiguousarray(bed.albedo[::-1]))
     layout.write_ply(files[2], geo["bed_verts"], geo["bed_tris"], "ragsplat riverbed (world metres, z up)")
     surface(bed).save(files[3])
-    grid, banks = ground_truth(spec, bed, flight.eval_region(spec), layout.GT_GRID_STEP)
     layout.write_npy(out / layout.GT_GRID, grid)
     if banks is not None:
         layout.write_npy(out / layout.GT_BANKS, banks)
@@ -195,11 +214,27 @@ def run_blender(job: dict, workdir: Path, progress: Callable[[dict], None] | Non
 def _job(spec: SceneSpec, out: Path, cam: Camera, tasks: list[dict]) -> dict:
     texture = {"kind": "texture", "image": str(out / "scene" / "albedo.png")}
     objects = [{"name": "bed", "material": texture}, {"name": "floor", "material": texture}]
+    c = spec.conditions
     if spec.water is not None:
-        objects.append({"name": "water", "material": {"kind": "refraction", "ior": spec.water.n,
-                                                      "color": radiance_factor(spec)}})
+        water = {"kind": "refraction", "ior": spec.water.n, "color": radiance_factor(spec)}
+        if c is not None and c.reflection:
+            water["reflect"] = True
+        objects.append({"name": "water", "material": water})
+    field_job = {}
+    if c is not None:
+        if c.turbid:
+            absorption, scattering = conditions.attenuation(c)
+            objects.append({"name": "volume", "wet_only": True, "material": {
+                "kind": "volume", "absorption": absorption.tolist(), "scattering": scattering.tolist()}})
+        if c.targets:
+            objects += [{"name": "target_black", "material": {"kind": "diffuse", "color": TARGET_ALBEDO[0]}},
+                        {"name": "target_white", "material": {"kind": "diffuse", "color": TARGET_ALBEDO[1]}}]
+        if c.ripple_amplitude > 0:
+            k, amplitude = conditions.ripple_waves(c, spec.seed)
+            field_job["ripples"] = {"k": k.tolist(), "amplitude": amplitude.tolist(), "level": spec.level}
+        field_job["glossy_bounces"] = 1 if c.reflection else 0  # the mirror ray that sees sky and sun
     r = spec.render
-    return {
+    return {**field_job,
         "geometry": str(out / "scene" / "geometry.npz"),
         "objects": objects,
         "water": "water" if spec.water is not None else None,
@@ -210,6 +245,14 @@ def _job(spec: SceneSpec, out: Path, cam: Camera, tasks: list[dict]) -> dict:
                    "cy": cam.cy},
         "tasks": tasks,
     }
+
+
+def _surface(spec: SceneSpec, kind: str, name: str) -> dict:
+    """A wet task's ripple phases (its own surface: the view's index seeds them), else nothing."""
+    c = spec.conditions
+    if kind != "wet" or c is None or c.ripple_amplitude == 0:
+        return {}
+    return {"phases": conditions.ripple_phases(c, spec.seed, int(name)).tolist()}
 
 
 def max_depth(spec: SceneSpec) -> float:
@@ -229,6 +272,7 @@ def null_models(spec: SceneSpec, gt: np.ndarray) -> dict:
 def scene_metadata(spec: SceneSpec, poses, gt: np.ndarray) -> dict:
     region = flight.eval_region(spec)
     corners = np.array([[region[a], region[b]] for a in ("xmin", "xmax") for b in ("ymin", "ymax")])
+    extra = {} if spec.conditions is None else {"conditions": conditions.figures(spec)}
     return layout.scene_json(
         spec.to_dict(), region,
         scene="bed" if spec.reach is None else "reach",
@@ -247,6 +291,7 @@ def scene_metadata(spec: SceneSpec, poses, gt: np.ndarray) -> dict:
         depth={"channel": layout.DEPTH_CHANNEL, "meaning": "z-depth (m) along the optical axis, dry scene",
                "no_hit": layout.NO_HIT},
         bed_grid_step_m=layout.GT_GRID_STEP,
+        **extra,
     )
 
 
@@ -274,9 +319,14 @@ def _merge(spec: SceneSpec, out: Path, poses) -> None:
                                                scene_metadata(spec, poses, np.load(out / layout.GT_GRID))))
     files = [layout.relative_path(kind, p.name) for kind in kinds for p in poses]
     write_json(out / layout.MANIFEST, {f: layout.file_digest(out / f) for f in files}, indent=0)
+    for p in poses:  # derived from the EXR, outside the manifest and the fingerprint (which read the EXR)
+        tiff = layout.depth_tiff(out, p.name)
+        if not tiff.is_file():
+            layout.write_depth_tiff(tiff, layout.read_depth(layout.output_path(out, "depth", p.name)))
     if spec.water is not None and "wet" in kinds:  # what a surveyor would hand over (`ragsplat survey`)
         banks = np.load(out / layout.GT_BANKS) if (out / layout.GT_BANKS).is_file() else None
-        write_survey(out, poses, spec.water.level, seed=spec.seed, banks=banks)
+        targets = np.load(out / layout.GT_TARGETS) if (out / layout.GT_TARGETS).is_file() else None
+        write_survey(out, poses, spec.water.level, seed=spec.seed, banks=banks, targets=targets)
 
 
 def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
@@ -302,7 +352,7 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
                and not layout.intact(layout.output_path(out, kind, p.name),
                                      manifest.get(layout.relative_path(kind, p.name)))]
     tasks = [{"pass": kind, "name": p.name, "c2w_gl": p.camera.c2w_gl.tolist(),
-              "out": str(layout.output_path(out, kind, p.name))}
+              "out": str(layout.output_path(out, kind, p.name)), **_surface(spec, kind, p.name)}
              for kind in kinds for p in mine
              if not layout.output_path(out, kind, p.name).exists() or layout.relative_path(kind, p.name) in damaged]
     stats = RenderStats()

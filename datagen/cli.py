@@ -30,13 +30,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-water", action="store_true", help="dry scene: render only the dry set")
     parser.add_argument("--no-radiance-scale", action="store_true",
                         help="water refraction colour 1 instead of 1/n^2 (no radiance drop at the interface)")
+    parser.add_argument("--turbidity", type=float, metavar="S",
+                        help="field conditions: the water body's absorption and scattering times S (clear river "
+                             "water, the small-field default, is 1; 0 is clear water)")
+    parser.add_argument("--reflection", action=argparse.BooleanOptionalAction, default=None,
+                        help="field conditions: Fresnel reflection of sky and sun (glint) at the water surface")
+    parser.add_argument("--ripple-amplitude", type=float, metavar="M",
+                        help="field conditions: rms height (m) of the ripples, a new surface in every photo; 0: flat")
+    parser.add_argument("--sun-elevation", type=float, metavar="DEG", help="sun elevation above the horizon (deg)")
+    parser.add_argument("--sun-azimuth", type=float, metavar="DEG",
+                        help="sun azimuth (deg, counter-clockwise from +x): with --sun-elevation, where the glint falls")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
     from datagen import flight
     from datagen.build import generate, overhead_fraction
-    from datagen.spec import preset, validate
+    from datagen.spec import preset, validate, with_conditions
     from ragsplat_core.cli.progress import bar
 
     spec = preset(args.preset, seed=args.seed)
@@ -44,6 +54,10 @@ def run(args: argparse.Namespace) -> int:
         spec = replace(spec, water=replace(spec.water, radiance_scale=False))
     if args.no_water:
         spec = replace(spec, water=None)
+    if (args.turbidity, args.reflection, args.ripple_amplitude) != (None, None, None):
+        spec = with_conditions(spec, args.turbidity, args.reflection, args.ripple_amplitude)
+    sun = {k: v for k, v in (("sun_elevation", args.sun_elevation), ("sun_azimuth", args.sun_azimuth)) if v is not None}
+    spec = replace(spec, light=replace(spec.light, **sun))
     validate(spec)
     print(f"{spec.preset}: {len(flight.plan(spec))} views, {spec.flight.width} px, ground sample distance "
           f"{flight.gsd(spec) * 100:.2f} cm/px on the bed ({spec.bed.depth:g} m deep), seed {spec.seed}")

@@ -97,6 +97,32 @@ class RenderSpec:
 
 
 @dataclass(frozen=True)
+class FieldConditions:
+    """Field conditions, each off at its default (the ideal survey: still, clear, non-reflecting water).
+    Rendered by Cycles itself (`datagen.conditions` makes the geometry and numbers, `blender_scenes.render` the
+    materials): a water body that absorbs and scatters per colour channel, Fresnel reflection of sky and
+    sun at the surface, ripples with a new phase in every photo, and checkerboard ground control targets on
+    the banks."""
+
+    # Water body: absorption and scattering coefficients (1/m) per linear RGB channel, each times
+    # `turbidity` (the sweep's scale). Beer-Lambert along every in-water path, the sunlight's included.
+    absorption: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    scattering: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    turbidity: float = 1.0
+    reflection: bool = False  # Fresnel reflection of the sky and the sun (glint) at the surface
+    ripple_amplitude: float = 0.0  # rms height (m) of the surface about the level; 0: a flat plane
+    ripple_wavelengths: tuple[float, float] = (0.2, 2.0)  # shortest and longest ripple (m)
+    ripple_waves: int = 32  # sinusoids in the seeded spectrum
+    ripple_cell: float = 0.03  # mesh spacing (m) of the rippled surface: several vertices per shortest ripple
+    targets: int = 0  # checkerboard ground control targets on the banks (reach scenes)
+    target_size: float = 0.3  # side (m) of a target: 2 x 2 black and white squares
+
+    @property
+    def turbid(self) -> bool:
+        return self.turbidity > 0 and max(*self.absorption, *self.scattering) > 0
+
+
+@dataclass(frozen=True)
 class SceneSpec:
     preset: str
     seed: int = 0
@@ -106,6 +132,7 @@ class SceneSpec:
     flight: FlightSpec = field(default_factory=FlightSpec)
     light: LightSpec = field(default_factory=LightSpec)
     render: RenderSpec = field(default_factory=RenderSpec)
+    conditions: FieldConditions | None = None  # None: the ideal survey (no key in spec.json)
 
     @property
     def level(self) -> float:
@@ -117,7 +144,10 @@ class SceneSpec:
         return self.water.n if self.water is not None else 1.0
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        if self.conditions is None:  # the ideal presets' spec.json, and so their datasets, stay as they were
+            del d["conditions"]
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> SceneSpec:
@@ -131,7 +161,9 @@ class SceneSpec:
             reach = ReachSpec(**{**reach, "boulders": StoneClass(**reach["boulders"])})
         return cls(preset=d["preset"], seed=int(d["seed"]), bed=BedSpec(**bed), reach=reach,
                    water=None if d["water"] is None else WaterSpec(**d["water"]),
-                   flight=FlightSpec(**flight), light=LightSpec(**d["light"]), render=RenderSpec(**d["render"]))
+                   flight=FlightSpec(**flight), light=LightSpec(**d["light"]), render=RenderSpec(**d["render"]),
+                   conditions=None if d.get("conditions") is None else FieldConditions(**{
+                       k: tuple(v) if isinstance(v, list) else v for k, v in d["conditions"].items()}))
 
 
 # Presets. River reaches (`ReachSpec`): smoke (CI scale, seconds), small (the default of `make dataset`,
@@ -184,6 +216,27 @@ PRESETS: dict[str, SceneSpec] = {
 }
 
 
+# Clear river water (diffuse attenuation of a few tenths per metre, strongest in red), sky reflection with
+# some glint in the 40 degree obliques facing the sun, light wind ripples, six bank targets.
+CLEAR_RIVER = FieldConditions(absorption=(0.40, 0.12, 0.15), scattering=(0.04, 0.05, 0.06), reflection=True,
+                              ripple_amplitude=0.005, targets=6)
+PRESETS["small-field"] = replace(PRESETS["small"], preset="small-field", conditions=CLEAR_RIVER)
+PRESETS["smoke-field"] = replace(PRESETS["smoke"], preset="smoke-field", conditions=replace(
+    CLEAR_RIVER, ripple_wavelengths=(0.3, 2.0), ripple_cell=0.04, target_size=0.6))
+
+
+def with_conditions(spec: SceneSpec, turbidity: float | None = None, reflection: bool | None = None,
+                    ripple_amplitude: float | None = None) -> SceneSpec:
+    """`spec` with these field conditions changed (None: as the spec has them). An ideal spec starts from
+    CLEAR_RIVER with every effect off, so that `--turbidity 1` alone gives clear river water and nothing
+    else; a spec left with no effect on is the ideal one (no conditions)."""
+    c = spec.conditions or replace(CLEAR_RIVER, turbidity=0.0, reflection=False, ripple_amplitude=0.0, targets=0)
+    changes = {"turbidity": turbidity, "reflection": reflection, "ripple_amplitude": ripple_amplitude}
+    c = replace(c, **{k: v for k, v in changes.items() if v is not None})
+    ideal = not (c.turbid or c.reflection or c.ripple_amplitude > 0 or c.targets)
+    return replace(spec, conditions=None if ideal and spec.conditions is None else c)
+
+
 def preset(name: str, seed: int | None = None) -> SceneSpec:
     if name not in PRESETS:
         raise SpecError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
@@ -225,6 +278,26 @@ def validate(spec: SceneSpec) -> None:
         raise SpecError(f"bad render settings: samples {r.samples}, device {r.device!r}, threads {r.threads}")
     if not (r.filter_width > 0 and r.depth_filter > 0):
         raise SpecError("pixel filter widths must be positive")
+    if not (0 < spec.light.sun_elevation <= 90 and math.isfinite(spec.light.sun_azimuth)):
+        raise SpecError(f"sun elevation must be in (0, 90] deg, got {spec.light.sun_elevation}")
+    if spec.conditions is not None:
+        _validate_conditions(spec)
+
+
+def _validate_conditions(spec: SceneSpec) -> None:
+    c = spec.conditions
+    if spec.water is None:
+        raise SpecError("field conditions need water: drop --no-water or use an ideal preset")
+    if min(*c.absorption, *c.scattering, c.turbidity, c.ripple_amplitude) < 0:
+        raise SpecError("absorption, scattering, turbidity and ripple amplitude must be >= 0")
+    shortest, longest = c.ripple_wavelengths
+    if not (0 < shortest <= longest) or c.ripple_waves < 1:
+        raise SpecError(f"ripple wavelengths {c.ripple_wavelengths} need 0 < shortest <= longest, and a wave")
+    if c.ripple_amplitude > 0 and not 0 < c.ripple_cell <= shortest / 6:
+        raise SpecError(f"ripple cell {c.ripple_cell} m must be at most a sixth of the shortest ripple "
+                        f"({shortest} m): fewer vertices per wave facet it")
+    if c.targets and (spec.reach is None or c.target_size <= 0):
+        raise SpecError("ground control targets need a reach with banks, and a positive target size")
 
 
 def _validate_reach(spec: SceneSpec) -> None:

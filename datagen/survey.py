@@ -30,14 +30,14 @@ class SurveyNoise:
 
 
 def write_survey(root: Path, poses, level: float, seed: int = 0, noise: SurveyNoise = SurveyNoise(),
-                 banks: np.ndarray | None = None) -> bool:
+                 banks: np.ndarray | None = None, targets: np.ndarray | None = None) -> bool:
     """Writes ROOT/survey/ from the dataset ROOT's wet training views `poses` (`flight.plan`: name, camera,
     split) and the true water `level` (see the module docstring); with the banks' ground truth points
     `banks` [B, 3], also ground control: `noise.gcp_count` points on the banks spread apart (`gcp.csv`, with
     `noise.gcp`) and their pixels in every training photo that holds them (`gcp_pixels.csv`, with
-    `noise.gcp_pixel`), as a surveyor who picked the targets' centres would give them (rendered targets are
-    the field-conditions issue's). Returns False when a survey made with the same seed and noise is already
-    there (nothing written)."""
+    `noise.gcp_pixel`), as a surveyor who picked the targets' centres would give them; where the scene has
+    checkerboard `targets` [T, 3] rendered (field conditions), those are the ground control. Returns False
+    when a survey made with the same seed and noise is already there (nothing written)."""
     root = Path(root)
     record = {"seed": seed, "noise": asdict(noise), "views": "the training views, wet"}
     path = root / layout.SURVEY_RECORD
@@ -54,8 +54,9 @@ def write_survey(root: Path, poses, level: float, seed: int = 0, noise: SurveyNo
     layout.write_positions(root / layout.SURVEY_POSITIONS, names, centres + rng.normal(size=centres.shape) * sigma)
     write_bytes(root / layout.SURVEY_LEVEL, f"{level + rng.normal() * noise.level:.4f}\n".encode())
     dry = np.zeros((0, 3)) if banks is None else banks[banks[:, 2] > level + 0.05]
-    if len(dry) >= 3:
+    if targets is None and len(dry) >= 3:
         targets = spread(dry, noise.gcp_count, rng)
+    if targets is not None:
         gcps = [f"GCP{k + 1}" for k in range(len(targets))]
         layout.write_positions(root / layout.SURVEY_GCP, gcps, targets + rng.normal(size=targets.shape) * noise.gcp)
         rows = []

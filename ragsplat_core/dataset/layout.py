@@ -46,6 +46,7 @@ GT_GRID = "gt/bed_grid.npy"
 GT_BANKS = "gt/bank_grid.npy"
 GT_ELEVATION = "gt/bed_elevation.tif"
 GT_WATERLINE = "gt/waterline.json"
+GT_TARGETS = "gt/gcp_targets.npy"  # field conditions: the rendered ground control targets' centres [T, 3], exact
 GT_GRID_STEP = 0.05  # metres between ground-truth grid points
 # Not colmap/sparse/0: nerfstudio's loader finds a model there and stops at an interactive question.
 COLMAP = "colmap"
@@ -134,6 +135,20 @@ def write_depth(path: Path, depth: np.ndarray) -> None:
     channels = {DEPTH_CHANNEL: np.ascontiguousarray(depth, dtype=np.float32)}
     with atomic_path(path) as tmp, OpenEXR.File(header, channels) as f:
         f.write(str(tmp))
+
+
+def depth_tiff(root: Path, name: str) -> Path:
+    """The float32 TIFF twin of view `name`'s depth EXR: OpenCV's wheels read no EXR, every library a TIFF."""
+    return output_path(root, "depth", name).with_suffix(".tif")
+
+
+def write_depth_tiff(path: Path, depth: np.ndarray) -> None:
+    """z-depth [H, W] -> single-band float32 TIFF (deflate), written atomically."""
+    from PIL import Image
+
+    with atomic_path(path) as tmp:
+        Image.fromarray(np.ascontiguousarray(depth, dtype=np.float32)).save(tmp, format="TIFF",
+                                                                           compression="tiff_adobe_deflate")
 
 
 def read_depth(path) -> np.ndarray:
