@@ -162,7 +162,7 @@ def _device(scene, wanted: str) -> str:
     return "CPU"
 
 
-def _setup(job: dict) -> tuple[bpy.types.Scene, bpy.types.Object, bpy.types.Object | None]:
+def _setup(job: dict) -> tuple[bpy.types.Scene, bpy.types.Object, list[bpy.types.Object], dict]:
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     r, cam, rs = scene.render, job["camera"], job["render"]
@@ -194,7 +194,7 @@ def _setup(job: dict) -> tuple[bpy.types.Scene, bpy.types.Object, bpy.types.Obje
     scene.view_layers[0].use_pass_z = True
     job["device_used"] = _device(scene, rs["device"])
 
-    geo = np.load(job["geometry"])
+    geo = dict(np.load(job["geometry"]))  # decompressed once: the ripples read the water mesh per photo
     wet = []
     for o in job["objects"]:
         name = o["name"]
@@ -224,7 +224,7 @@ def _setup(job: dict) -> tuple[bpy.types.Scene, bpy.types.Object, bpy.types.Obje
     camera = bpy.data.objects.new("camera", cd)
     scene.collection.objects.link(camera)
     scene.camera = camera
-    return scene, camera, wet
+    return scene, camera, wet, geo
 
 
 def _ripple(water: bpy.types.Object, geo, ripples: dict, phases: list[float]) -> None:
@@ -290,8 +290,7 @@ def _seconds(stamp: str) -> float:
 def main(argv: list[str]) -> int:
     t0 = time.perf_counter()
     job = json.loads(Path(argv[0]).read_text())
-    scene, camera, wet = _setup(job)
-    geo = np.load(job["geometry"]) if "ripples" in job else None
+    scene, camera, wet, geo = _setup(job)
     _say(event="ready", build_s=time.perf_counter() - t0, device=job["device_used"])
     current = None
     for task in job["tasks"]:

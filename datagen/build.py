@@ -31,7 +31,6 @@ from ragsplat_core.outputs import atomic_path, versions, write_json
 from ragsplat_core.scoring import plane_scores, thresholds
 
 FAR = 2000.0  # half-size (m) of the floor and water planes: beyond every view's horizon-free field
-TARGET_ALBEDO = (0.04, 0.85)  # the ground control targets' black and white (linear diffuse albedo)
 
 
 @dataclass
@@ -96,13 +95,13 @@ def _geometry(spec: SceneSpec, bed: Bed, targets: np.ndarray | None = None) -> d
         fv, ft, fuv = _reach_floor(bed, a, b, f, uv)
     geo.update(floor_verts=fv, floor_tris=ft, floor_uv=fuv)
     c = spec.conditions
-    if spec.water is not None and (c is None or c.ripple_amplitude == 0):
+    if spec.water is not None and (c is None or not c.rippled):
         lv = spec.water.level
         geo.update(water_verts=np.array([[-f, -f, lv], [f, -f, lv], [f, f, lv], [-f, f, lv]]),
                    water_tris=np.array([[0, 1, 2], [0, 2, 3]]))  # counter-clockwise: normal +Z
     if c is None:
         return geo
-    if c.ripple_amplitude > 0:
+    if c.rippled:
         geo["water_verts"], geo["water_tris"], geo["water_weight"] = conditions.water_surface(spec, bed.extent, f)
     if c.turbid:
         geo["volume_verts"], geo["volume_tris"] = conditions.water_body(spec, float(bed.heights.min()) - 1.0, 1.01 * f)
@@ -227,9 +226,9 @@ def _job(spec: SceneSpec, out: Path, cam: Camera, tasks: list[dict]) -> dict:
             objects.append({"name": "volume", "wet_only": True, "material": {
                 "kind": "volume", "absorption": absorption.tolist(), "scattering": scattering.tolist()}})
         if c.targets:
-            objects += [{"name": "target_black", "material": {"kind": "diffuse", "color": TARGET_ALBEDO[0]}},
-                        {"name": "target_white", "material": {"kind": "diffuse", "color": TARGET_ALBEDO[1]}}]
-        if c.ripple_amplitude > 0:
+            objects += [{"name": "target_black", "material": {"kind": "diffuse", "color": conditions.TARGET_ALBEDO[0]}},
+                        {"name": "target_white", "material": {"kind": "diffuse", "color": conditions.TARGET_ALBEDO[1]}}]
+        if c.rippled:
             k, amplitude = conditions.ripple_waves(c, spec.seed)
             field_job["ripples"] = {"k": k.tolist(), "amplitude": amplitude.tolist(), "level": spec.level}
         field_job["glossy_bounces"] = 1 if c.reflection else 0  # the mirror ray that sees sky and sun
@@ -250,7 +249,7 @@ def _job(spec: SceneSpec, out: Path, cam: Camera, tasks: list[dict]) -> dict:
 def _surface(spec: SceneSpec, kind: str, name: str) -> dict:
     """A wet task's ripple phases (its own surface: the view's index seeds them), else nothing."""
     c = spec.conditions
-    if kind != "wet" or c is None or c.ripple_amplitude == 0:
+    if kind != "wet" or c is None or not c.rippled:
         return {}
     return {"phases": conditions.ripple_phases(c, spec.seed, int(name)).tolist()}
 

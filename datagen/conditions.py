@@ -15,11 +15,15 @@ import math
 
 import numpy as np
 
+from datagen.bed import _smoothstep
 from datagen.spec import FieldConditions, SceneSpec
+from ragsplat_core.errors import SpecError
 
 # Random streams of the conditions, apart from the bed's own (`make_bed` draws from default_rng(seed)).
 _WAVES, _PHASES, _TARGETS = 1, 2, 3
-TARGET_LIFT = 0.005  # m: a target lies this far above the ground under it (no z-fighting with the bank)
+TARGET_LIFT = 0.005  # m: a target lies this far above the highest ground under it (no z-fighting)
+TARGET_TILT = 20.0  # deg: the steepest ground a (level) target is laid on
+TARGET_ALBEDO = (0.04, 0.85)  # the targets' black and white (linear diffuse albedo)
 
 
 def ripple_waves(c: FieldConditions, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -59,8 +63,7 @@ def water_surface(spec: SceneSpec, size: float, far: float) -> tuple[np.ndarray,
     xs = np.linspace(-size / 2, size / 2, count)
     gx, gy = np.meshgrid(xs, xs)
     inner = size / 2 - np.maximum(np.abs(gx), np.abs(gy))  # distance to the grid's edge
-    s = np.clip(inner / spec.bed.taper, 0.0, 1.0)
-    weight = (s * s * (3 - 2 * s)).ravel()  # smoothstep: 0 on the edge, 1 inside the taper
+    weight = _smoothstep(inner / spec.bed.taper).ravel()  # 0 on the edge, 1 inside the taper
     verts = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, spec.level)], -1)
     idx = np.arange(count * count).reshape(count, count)
     v00, v10, v01, v11 = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
@@ -83,8 +86,9 @@ def water_surface(spec: SceneSpec, size: float, far: float) -> tuple[np.ndarray,
 
 def water_body(spec: SceneSpec, bottom: float, far: float) -> tuple[np.ndarray, np.ndarray]:
     """(vertices [8, 3], triangles [12, 3], outward) of the closed box that holds the water's volume: from
-    `bottom` (below the bed) to just below the lowest ripple trough, +-far across. Its faces are volume
-    boundaries only (no surface), so light crosses them unbent; the refracting surface is `water_surface`."""
+    `bottom` (below the bed) to 1 mm below four rms ripple heights (the water above it is clear; a trough
+    reaches below it with a probability of about 1e-4), +-far across. Its faces are volume boundaries only
+    (no surface), so light crosses them unbent; the refracting surface is `water_surface`."""
     c = spec.conditions
     top = spec.level - 4 * c.ripple_amplitude - 0.001
     x = np.array([-far, far])
@@ -102,19 +106,20 @@ def attenuation(c: FieldConditions) -> tuple[np.ndarray, np.ndarray]:
 def place_targets(c: FieldConditions, height, banks: np.ndarray, level: float, seed: int) -> np.ndarray:
     """Centres [T, 3] of `c.targets` ground control targets on dry ground, far apart: on the emerged
     ground-truth points `banks` [B, 3] whose whole target square stays 3 cm above the water and whose
-    ground under it is within 20 degrees of level; `height(xy [N, 2]) -> [N]` is the ground. Each centre
-    is on the target's (lifted) plane, the point a surveyor measures."""
+    ground under it is within TARGET_TILT of level; `height(xy [N, 2]) -> [N]` is the ground. A target is
+    a level board just clear of the highest ground under it; its centre, the point a surveyor measures,
+    is on the board."""
     from datagen.survey import spread
 
     half = c.target_size / 2
     offsets = np.array([[sx, sy] for sx in (-half, 0, half) for sy in (-half, 0, half)])
     under = height((banks[:, None, :2] + offsets).reshape(-1, 2)).reshape(len(banks), -1)  # [B, 9]
     tilt = np.hypot(under[:, 7] - under[:, 1], under[:, 5] - under[:, 3]) / (2 * half)  # central differences
-    good = (under.min(1) > level + 0.03) & (tilt < math.tan(math.radians(20)))
+    good = (under.min(1) > level + 0.03) & (tilt < math.tan(math.radians(TARGET_TILT)))
     if good.sum() < c.targets:
-        raise ValueError(f"only {good.sum()} places on the banks fit a {c.target_size} m target "
-                         f"({c.targets} wanted)")
-    chosen = spread(banks[good], c.targets, np.random.default_rng([0 if seed is None else seed, _TARGETS]))
+        raise SpecError(f"only {good.sum()} places on the banks fit a {c.target_size} m target "
+                        f"({c.targets} wanted): fewer or smaller targets, or another seed")
+    chosen = spread(banks[good], c.targets, np.random.default_rng([seed, _TARGETS]))
     return np.column_stack([chosen[:, :2], height(chosen[:, :2]) + _lift(c, height, chosen)])
 
 
@@ -147,7 +152,8 @@ def target_meshes(c: FieldConditions, centres: np.ndarray) -> dict[str, tuple[np
 
 
 def figures(spec: SceneSpec) -> dict:
-    """What scene.json records of the conditions: the coefficients in force and the ripples' size."""
+    """What scene.json records of the conditions, for a reader of the dataset's figures: the coefficients
+    in force and the ripples' slope, beside the spec's own settings."""
     c = spec.conditions
     absorption, scattering = attenuation(c)
     k, amplitude = ripple_waves(c, spec.seed)

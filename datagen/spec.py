@@ -121,6 +121,10 @@ class FieldConditions:
     def turbid(self) -> bool:
         return self.turbidity > 0 and max(*self.absorption, *self.scattering) > 0
 
+    @property
+    def rippled(self) -> bool:
+        return self.ripple_amplitude > 0
+
 
 @dataclass(frozen=True)
 class SceneSpec:
@@ -233,7 +237,7 @@ def with_conditions(spec: SceneSpec, turbidity: float | None = None, reflection:
     c = spec.conditions or replace(CLEAR_RIVER, turbidity=0.0, reflection=False, ripple_amplitude=0.0, targets=0)
     changes = {"turbidity": turbidity, "reflection": reflection, "ripple_amplitude": ripple_amplitude}
     c = replace(c, **{k: v for k, v in changes.items() if v is not None})
-    ideal = not (c.turbid or c.reflection or c.ripple_amplitude > 0 or c.targets)
+    ideal = not (c.turbid or c.reflection or c.rippled or c.targets)
     return replace(spec, conditions=None if ideal and spec.conditions is None else c)
 
 
@@ -279,7 +283,8 @@ def validate(spec: SceneSpec) -> None:
     if not (r.filter_width > 0 and r.depth_filter > 0):
         raise SpecError("pixel filter widths must be positive")
     if not (0 < spec.light.sun_elevation <= 90 and math.isfinite(spec.light.sun_azimuth)):
-        raise SpecError(f"sun elevation must be in (0, 90] deg, got {spec.light.sun_elevation}")
+        raise SpecError(f"sun elevation must be in (0, 90] deg and the azimuth finite, got "
+                        f"{spec.light.sun_elevation} and {spec.light.sun_azimuth}")
     if spec.conditions is not None:
         _validate_conditions(spec)
 
@@ -288,14 +293,17 @@ def _validate_conditions(spec: SceneSpec) -> None:
     c = spec.conditions
     if spec.water is None:
         raise SpecError("field conditions need water: drop --no-water or use an ideal preset")
-    if min(*c.absorption, *c.scattering, c.turbidity, c.ripple_amplitude) < 0:
-        raise SpecError("absorption, scattering, turbidity and ripple amplitude must be >= 0")
+    numbers = (*c.absorption, *c.scattering, c.turbidity, c.ripple_amplitude, *c.ripple_wavelengths, c.ripple_cell,
+               c.target_size)
+    if not all(math.isfinite(v) for v in numbers) or min(numbers) < 0:
+        raise SpecError("absorption, scattering, turbidity, ripple amplitude, wavelengths, cell and target size "
+                        "must be finite and >= 0")
     shortest, longest = c.ripple_wavelengths
     if not (0 < shortest <= longest) or c.ripple_waves < 1:
         raise SpecError(f"ripple wavelengths {c.ripple_wavelengths} need 0 < shortest <= longest, and a wave")
-    if c.ripple_amplitude > 0 and not 0 < c.ripple_cell <= shortest / 6:
+    if c.rippled and not 0 < c.ripple_cell <= shortest / 6:
         raise SpecError(f"ripple cell {c.ripple_cell} m must be at most a sixth of the shortest ripple "
-                        f"({shortest} m): fewer vertices per wave facet it")
+                        f"({shortest} m): with fewer vertices per wave the mesh facets it")
     if c.targets and (spec.reach is None or c.target_size <= 0):
         raise SpecError("ground control targets need a reach with banks, and a positive target size")
 

@@ -62,7 +62,7 @@ def test_rippled_mesh_fades_into_the_flat_frame():
     assert area == pytest.approx((2 * FAR) ** 2, rel=1e-9)  # no hole, no overlap
 
 
-def test_water_body_is_closed_below_every_trough():
+def test_water_body_is_a_closed_box_below_the_ripples():
     spec = preset("smoke-field")
     verts, tris = conditions.water_body(spec, -5.0, 100.0)
     a, b, c = verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]
@@ -158,4 +158,7 @@ def test_bad_conditions_are_refused(change, message):
         validate(replace(preset("small-bed"), conditions=CLEAR_RIVER))
     with pytest.raises(SpecError, match="sun elevation"):
         validate(replace(spec, light=replace(spec.light, sun_elevation=-5.0)))
-    assert math.isfinite(spec.light.sun_azimuth)
+    with pytest.raises(SpecError, match="azimuth finite"):
+        validate(replace(spec, light=replace(spec.light, sun_azimuth=math.inf)))
+    with pytest.raises(SpecError, match="finite and >= 0"):  # NaN passes every comparison
+        validate(with_conditions(spec, ripple_amplitude=math.nan))

@@ -138,7 +138,8 @@ def write_depth(path: Path, depth: np.ndarray) -> None:
 
 
 def depth_tiff(root: Path, name: str) -> Path:
-    """The float32 TIFF twin of view `name`'s depth EXR: OpenCV's wheels read no EXR, every library a TIFF."""
+    """The float32 TIFF twin of view `name`'s depth EXR: every image library reads a float TIFF, while OpenCV
+    reads EXR only with an environment variable set (and, as reported, 5.0's wheels not at all)."""
     return output_path(root, "depth", name).with_suffix(".tif")
 
 
@@ -394,7 +395,8 @@ def intact(path: Path, expected: list | None = None) -> bool:
 
 def fingerprint(root: Path) -> str:
     """Identifies a dataset by its content: sha256 over transforms.json, scene.json, every file a frame
-    names (training, dry and depth images, masks) and every ground-truth file, so changing any one of them gives
+    names (training, dry and depth images, masks) and the ground-truth files (not the targets' centres,
+    which the spec in scene.json fixes, nor the depth TIFFs, copies of the EXRs), so changing any one gives
     another fingerprint (the ablation's row key, the trainer's checkpoint check). Reads every byte once:
     about a second for the 200 MB small reach."""
     root = Path(root)
