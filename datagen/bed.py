@@ -207,18 +207,23 @@ def _linear_to_srgb(c: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
 
 
+def grid_triangles(k: int) -> np.ndarray:
+    """Triangles [2 (k-1)^2, 3] int64 of a k x k vertex grid numbered row by row (index j * k + i, j along
+    y): cell (j, i) -> (00, 10, 11) and (00, 11, 01), counter-clockwise seen from +z."""
+    idx = np.arange(k * k).reshape(k, k)
+    v00, v10, v01, v11 = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]  # 10: +x, 01: +y
+    return np.concatenate([np.stack([v00, v10, v11], -1).reshape(-1, 3),
+                           np.stack([v00, v11, v01], -1).reshape(-1, 3)])
+
+
 def mesh(bed: Bed) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices [V, 3] float64 and triangles [F, 3] int64; cell (j, i) -> (00, 10, 11) and (00, 11, 01)."""
+    """Vertices [V, 3] float64 and triangles [F, 3] int64 (`grid_triangles`)."""
     h = bed.mesh_heights
     k = h.shape[0]
     c = bed.x0 + np.arange(k) * bed.cell
     gx, gy = np.meshgrid(c, c)
     verts = np.stack([gx.ravel(), gy.ravel(), h.ravel()], -1)
-    idx = np.arange(k * k).reshape(k, k)
-    v00, v10, v01, v11 = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]  # 10: +x, 01: +y
-    tris = np.concatenate([np.stack([v00, v10, v11], -1).reshape(-1, 3),
-                           np.stack([v00, v11, v01], -1).reshape(-1, 3)])
-    return verts, tris
+    return verts, grid_triangles(k)
 
 
 def surface(bed: Bed) -> Surface:

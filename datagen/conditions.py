@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from datagen.bed import _smoothstep
+from datagen.bed import _smoothstep, grid_triangles
 from datagen.spec import FieldConditions, SceneSpec
 from ragsplat_core.errors import SpecError
 
@@ -65,21 +65,15 @@ def water_surface(spec: SceneSpec, size: float, far: float) -> tuple[np.ndarray,
     inner = size / 2 - np.maximum(np.abs(gx), np.abs(gy))  # distance to the grid's edge
     weight = _smoothstep(inner / spec.bed.taper).ravel()  # 0 on the edge, 1 inside the taper
     verts = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, spec.level)], -1)
-    idx = np.arange(count * count).reshape(count, count)
-    v00, v10, v01, v11 = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
-    tris = [np.stack([v00, v10, v11], -1).reshape(-1, 3), np.stack([v00, v11, v01], -1).reshape(-1, 3)]
-    # The frame: four trapezoids from the grid's edge to +-far, each a quad (2 triangles).
-    a, f, z = size / 2, far, spec.level
-    frame = np.array([[-a, -a, z], [a, -a, z], [a, a, z], [-a, a, z], [-f, -f, z], [f, -f, z], [f, f, z], [-f, f, z]])
-    corner = [idx[0, 0], idx[0, -1], idx[-1, -1], idx[-1, 0]]  # the grid's corners, in the frame's order
-    o = len(verts) - 4  # frame vertices 0-3 are the grid corners themselves; 4-7 are appended
-    far_ids = [o + 4, o + 5, o + 6, o + 7]
-    quads = [(far_ids[0], far_ids[1], corner[1], corner[0]), (far_ids[1], far_ids[2], corner[2], corner[1]),
-             (far_ids[2], far_ids[3], corner[3], corner[2]), (far_ids[3], far_ids[0], corner[0], corner[3])]
+    tris = [grid_triangles(count)]
+    # The frame: four trapezoids from the grid's corners out to the corners of +-far.
+    f, n = far, len(verts)
+    outer = np.array([[-f, -f, spec.level], [f, -f, spec.level], [f, f, spec.level], [-f, f, spec.level]])
+    corner = [0, count - 1, count * count - 1, count * (count - 1)]  # the grid's, in the outer corners' order
     # The grid's edges carry intermediate vertices the frame's triangles do not share: the surface is flat
     # there (weight 0), so the T-junctions leave no gap.
-    tris.append(np.array([t for q in quads for t in ((q[0], q[1], q[2]), (q[0], q[2], q[3]))]))
-    verts = np.concatenate([verts, frame[4:]])
+    tris.append(_triangles([(n + q, n + (q + 1) % 4, corner[(q + 1) % 4], corner[q]) for q in range(4)]))
+    verts = np.concatenate([verts, outer])
     weight = np.concatenate([weight, np.zeros(4)])
     return verts, np.concatenate(tris), weight
 
@@ -95,7 +89,12 @@ def water_body(spec: SceneSpec, bottom: float, far: float) -> tuple[np.ndarray, 
     verts = np.array([[x[i], x[j], z] for z in (bottom, top) for j in (0, 1) for i in (0, 1)])
     # 0..3 bottom (y-, x- first), 4..7 top; faces counter-clockwise seen from outside.
     quads = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
-    return verts, np.array([t for q in quads for t in ((q[0], q[1], q[2]), (q[0], q[2], q[3]))])
+    return verts, _triangles(quads)
+
+
+def _triangles(quads) -> np.ndarray:
+    """[2 Q, 3] from Q quads (a, b, c, d) in order around each: (a, b, c) and (a, c, d)."""
+    return np.array([t for q in quads for t in ((q[0], q[1], q[2]), (q[0], q[2], q[3]))])
 
 
 def attenuation(c: FieldConditions) -> tuple[np.ndarray, np.ndarray]:
