@@ -211,23 +211,28 @@ def write_positions(path: Path, names: list[str], xyz: np.ndarray) -> None:
     write_bytes(path, ("name,x,y,z\n" + rows).encode())
 
 
-def read_positions(path: Path) -> dict[str, np.ndarray]:
-    """{name: [3]} from a `name,x,y,z` CSV (header required, any column order). Raises DatasetError."""
+def _read_csv(path: Path, columns: str) -> tuple[list[str], list[tuple[int, list[str]]]]:
+    """(header, [(line number, cells)]) of a CSV whose header (its first non-blank line) holds every one of
+    `columns` ("a,b,c", any order); blank lines are skipped, line numbers are the file's. Raises DatasetError."""
     import csv
 
-    path = Path(path)
     try:
         with open(path, newline="") as f:
-            lines = list(csv.reader(f))
+            lines = [(k, cells) for k, cells in enumerate(csv.reader(f), start=1) if any(c.strip() for c in cells)]
     except OSError as err:
         raise DatasetError(f"{path}: {err.strerror}") from None
-    header = [h.strip() for h in lines[0]] if lines else []
-    if not {"name", "x", "y", "z"} <= set(header):
-        raise DatasetError(f"{path}: expected the header name,x,y,z, got {','.join(header) or 'nothing'}")
+    header = [h.strip() for h in lines[0][1]] if lines else []
+    if not set(columns.split(",")) <= set(header):
+        raise DatasetError(f"{path}: expected the header {columns}, got {','.join(header) or 'nothing'}")
+    return header, lines[1:]
+
+
+def read_positions(path: Path) -> dict[str, np.ndarray]:
+    """{name: [3]} from a `name,x,y,z` CSV (header required, any column order). Raises DatasetError."""
+    path = Path(path)
+    header, lines = _read_csv(path, "name,x,y,z")
     out = {}
-    for k, cells in enumerate(lines[1:], start=2):
-        if not any(c.strip() for c in cells):
-            continue  # a blank line
+    for k, cells in lines:
         row = dict(zip(header, (c.strip() for c in cells)))
         if len(cells) != len(header):
             raise DatasetError(f"{path}:{k}: {len(cells)} values for the {len(header)} columns of the header")
@@ -254,19 +259,10 @@ def write_gcp_pixels(path: Path, rows: list[tuple[str, str, float, float]]) -> N
 
 def read_gcp_pixels(path: Path) -> list[tuple[str, str, np.ndarray]]:
     """[(image, name, [u, v])] from an `image,name,u,v` CSV (header required). Raises DatasetError."""
-    import csv
-
     path = Path(path)
-    try:
-        with open(path, newline="") as f:
-            lines = [row for row in csv.reader(f) if any(c.strip() for c in row)]
-    except OSError as err:
-        raise DatasetError(f"{path}: {err.strerror}") from None
-    header = [h.strip() for h in lines[0]] if lines else []
-    if not {"image", "name", "u", "v"} <= set(header):
-        raise DatasetError(f"{path}: expected the header image,name,u,v, got {','.join(header) or 'nothing'}")
+    header, lines = _read_csv(path, "image,name,u,v")
     out = []
-    for k, cells in enumerate(lines[1:], start=2):
+    for k, cells in lines:
         row = dict(zip(header, (c.strip() for c in cells)))
         try:
             uv = np.array([float(row["u"]), float(row["v"])])
