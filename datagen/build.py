@@ -150,14 +150,15 @@ def _write_bed_assets(spec: SceneSpec, out: Path) -> None:
     if spec.reach is not None:
         files += [out / layout.GT_BANKS, out / layout.GT_WATERLINE, out / layout.GT_ELEVATION]
     c = spec.conditions
-    if c is not None and c.targets:
+    with_targets = c is not None and c.targets > 0
+    if with_targets:
         files.append(out / layout.GT_TARGETS)
     if all(p.exists() for p in files):
         return
     bed = make_bed(spec)
     grid, banks = ground_truth(spec, bed, flight.eval_region(spec), layout.GT_GRID_STEP)
     targets = None
-    if c is not None and c.targets:
+    if with_targets:
         targets = conditions.place_targets(c, lambda xy: height_at(bed, xy), banks, spec.level, spec.seed)
         layout.write_npy(out / layout.GT_TARGETS, targets)
     geo = _geometry(spec, bed, targets)

@@ -221,7 +221,7 @@ PRESETS: dict[str, SceneSpec] = {
 
 
 # Clear river water (diffuse attenuation of a few tenths per metre, strongest in red), sky reflection with
-# some glint in the 40 degree obliques facing the sun, light wind ripples, six bank targets.
+# the default sun's glint (35 degrees from nadir, towards the sun), light wind ripples, six bank targets.
 CLEAR_RIVER = FieldConditions(absorption=(0.40, 0.12, 0.15), scattering=(0.04, 0.05, 0.06), reflection=True,
                               ripple_amplitude=0.005, targets=6)
 PRESETS["small-field"] = replace(PRESETS["small"], preset="small-field", conditions=CLEAR_RIVER)

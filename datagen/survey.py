@@ -53,9 +53,9 @@ def write_survey(root: Path, poses, level: float, seed: int = 0, noise: SurveyNo
     centres = np.array([p.camera.camera_center for p in train])
     layout.write_positions(root / layout.SURVEY_POSITIONS, names, centres + rng.normal(size=centres.shape) * sigma)
     write_bytes(root / layout.SURVEY_LEVEL, f"{level + rng.normal() * noise.level:.4f}\n".encode())
-    dry = np.zeros((0, 3)) if banks is None else banks[banks[:, 2] > level + 0.05]
-    if targets is None and len(dry) >= 3:
-        targets = spread(dry, noise.gcp_count, rng)
+    if targets is None and banks is not None:
+        dry = banks[banks[:, 2] > level + 0.05]
+        targets = spread(dry, noise.gcp_count, rng) if len(dry) >= 3 else None
     if targets is not None:
         gcps = [f"GCP{k + 1}" for k in range(len(targets))]
         layout.write_positions(root / layout.SURVEY_GCP, gcps, targets + rng.normal(size=targets.shape) * noise.gcp)
