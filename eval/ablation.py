@@ -46,9 +46,6 @@ from eval.references import (
     EXTRACTION,
     REFERENCES,
     SEEDLESS,
-    TRACK_MIN_NEIGHBOURS,
-    TRACK_RADIUS,
-    TRACK_TOL,
     USES_GROUND_TRUTH,
     depth_times_n,
     dietrich_grid,
@@ -62,6 +59,7 @@ from ragsplat_core.errors import ConfigError, DatasetError
 from ragsplat_core.fusion import FuseConfig, height_mesh
 from ragsplat_core.outputs import claim, source_digest, versions, write_json
 from ragsplat_core.surface import EXTRACT_TUNING, ExtractConfig
+from ragsplat_core.tracks import TRACK_MIN_NEIGHBOURS, TRACK_RADIUS, TRACK_TOL
 from ragsplat_core.train.config import SURFELS, TUNING, VARIANTS
 
 

@@ -22,10 +22,11 @@ def by_density(dem: Path, data: Path, radius: float = 0.5) -> list[dict]:
     from scipy.spatial import cKDTree
 
     from eval.ablation import TrainEval
-    from eval.references import track_filter, track_grids
+    from eval.references import track_grids
     from eval.score import dem_points
     from ragsplat_core.dataset.colmap import refracted_points
     from ragsplat_core.dataset.layout import GT_GRID_STEP
+    from ragsplat_core.tracks import track_filter
 
     runner = TrainEval(data)
     ds, truth = runner.ds, runner.truth

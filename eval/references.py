@@ -11,7 +11,7 @@ beat before its numbers mean anything.
 
 What a surveyor would do without ragsplat, from the dataset's own tracks (SIFT matches of the training photos
 triangulated with the known poses, `dataset.colmap`), each cleaned by the local outlier filter of a DEM
-(`track_filter`) and gridded by linear interpolation on their Delaunay triangulation (`tin`):
+(`tracks.track_filter`) and gridded by linear interpolation on their Delaunay triangulation (`tracks.tin`):
 - `triangulation (refracted)`: the tracks intersected through the water (`colmap.refracted_points`, the
   start the variants train from);
 - `triangulation x n`: the straight-ray tracks with their submerged depths x n;
@@ -28,6 +28,7 @@ from dataclasses import replace
 import numpy as np
 
 from ragsplat_core.surface import ExtractConfig
+from ragsplat_core.tracks import tin, track_filter
 
 # In table order: what a surveyor would do without ragsplat first, then the trivial answers. `init` stays in
 # results.json but not in the tables (drawn as 3DGS blobs, the start scores near 0 by construction).
@@ -42,12 +43,6 @@ USES_GROUND_TRUTH = ("oracle plane",)
 # corrects the 3dgs row's volume bed, init is the untrained start).
 EXTRACTION = {"init": "volume", "3dgs x n": "volume", "oracle plane": "-", "triangulation (refracted)": "TIN",
               "triangulation x n": "TIN", "dietrich (tracks)": "TIN", "dietrich (3dgs)": "volume"}
-# The tracks' outlier filter: the DEM's despiking rule (`surface.ExtractConfig`, chosen on the development reach
-# for trained beds), a point dropped when more than TRACK_TOL from the median of its neighbours within
-# TRACK_RADIUS; not tuned again for tracks.
-TRACK_RADIUS, TRACK_TOL, TRACK_MIN_NEIGHBOURS = 1.0, 0.3, 8
-
-
 def start_extraction(cfg: ExtractConfig) -> ExtractConfig:
     """The extraction of the `init` row: the table's, with no opacity or size cull. Every start has the same
     opacity (`init_opacity`, 0.1) and scales set by the spacing of its points, training choices rather than
@@ -69,33 +64,6 @@ def oracle_plane(truth) -> np.ndarray:
     """[P, 3]: every ground-truth node (submerged bed and banks) at the median submerged height."""
     nodes = truth.nodes
     return np.column_stack([nodes[:, :2], np.full(len(nodes), float(np.median(truth.grid[:, 2])))])
-
-
-def track_filter(points: np.ndarray, radius: float = TRACK_RADIUS, tol: float = TRACK_TOL,
-                 min_neighbours: int = TRACK_MIN_NEIGHBOURS) -> np.ndarray:
-    """bool [P]: the points [P, 3] to keep: a point is dropped when its height is more than `tol` metres from
-    the median height of the other points within `radius` metres (horizontally), given at least
-    `min_neighbours` of them; a point with fewer neighbours is kept (nothing to judge it by)."""
-    from scipy.spatial import cKDTree
-
-    pts = np.asarray(points, float)
-    keep = np.ones(len(pts), dtype=bool)
-    for i, near in enumerate(cKDTree(pts[:, :2]).query_ball_point(pts[:, :2], radius)):
-        others = [j for j in near if j != i]
-        if len(others) >= min_neighbours and abs(pts[i, 2] - np.median(pts[others, 2])) > tol:
-            keep[i] = False
-    return keep
-
-
-def tin(points: np.ndarray, nodes: np.ndarray) -> np.ndarray:
-    """[G', 3]: the nodes [G, 2] inside the convex hull of the points [P, 3] with heights interpolated
-    linearly on the points' Delaunay triangulation (the DEM a surveyor grids from a sparse cloud)."""
-    from scipy.interpolate import LinearNDInterpolator
-
-    pts = np.asarray(points, float)
-    z = LinearNDInterpolator(pts[:, :2], pts[:, 2])(np.asarray(nodes, float)[:, :2])
-    inside = np.isfinite(z)
-    return np.column_stack([nodes[inside, :2], z[inside]])
 
 
 def dietrich(apparent: np.ndarray, centres: np.ndarray, point: np.ndarray, camera: np.ndarray, level: float,

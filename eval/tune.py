@@ -1,10 +1,10 @@
 """Choose a training hyperparameter on a development dataset (never the evaluation one):
 `python -m eval.tune --data DEV_DIR --out DIR [--preset small] [--param lr_means | densify.max_gaussians | ...]
-[--values ...]
-[--variants full] [--seed 0]` trains each variant at each value, scores the bed like the ablation and prints
-F1 at 1 % / 3 % of depth, wet RMSE and training time per value, and the value with the best mean F1 at 3 %
-over the variants. The choice is recorded by hand in `ragsplat_core.train.config.TUNING` (with the dataset
-seed), which every results.json repeats.
+[--values ...] [--variants full] [--seed 0] [--set PARAM=VALUE ...]` trains each variant at each value (the
+`--set` parameters held fixed), scores the bed like the ablation and prints F1 at 1 % / 3 % of depth, wet RMSE,
+p95 and cover and the training time per value, and the value with the best mean F1 at 3 % over the variants.
+The choice is recorded by hand in `ragsplat_core.train.config.TUNING` (with the dataset seed), which every
+results.json repeats.
 """
 
 from __future__ import annotations
@@ -42,14 +42,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--values", type=float, nargs="+", default=[1.6e-4, 5e-4, 1.6e-3, 5e-3])
     parser.add_argument("--variants", nargs="+", default=["full"])
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--set", nargs="+", default=[], metavar="PARAM=VALUE",
+                        help="other parameters held at these values in every run (e.g. iterations=3000)")
     args = parser.parse_args(argv)
+    fixed = {}
+    for item in args.set:
+        name, _, value = item.partition("=")
+        if name not in PARAMS or not value:
+            parser.error(f"--set takes PARAM=VALUE with PARAM one of {', '.join(PARAMS)}; got {item!r}")
+        fixed[name] = float(value)
     runner = TrainEval(args.data)
     claim(args.out, "tuning")
     ecfg = extract_config(args.preset, len(runner.truth.grid), args.seed, runner.gsd)
     results = []
     for value in args.values:
         for variant in args.variants:
-            cfg = with_value(runner.config(variant, args.preset, args.seed), args.param, value)
+            cfg = runner.config(variant, args.preset, args.seed)
+            for name, held in fixed.items():
+                cfg = with_value(cfg, name, held)
+            cfg = with_value(cfg, args.param, value)
             folder = args.out / f"{variant}-{args.param}-{value:g}"
             done = folder / "row.json"
             if done.is_file():
@@ -60,13 +71,16 @@ def main(argv: list[str] | None = None) -> int:
                 row = save_row(folder, {**row, "name": variant, "seed": args.seed}, grid, runner.truth, fused)
             g = row["geometry"]
             results.append({"variant": variant, "value": value, "f1_1%": g["f1"]["1%"], "f1_3%": g["f1"]["3%"],
-                            "rmse_wet": g["survey"]["wet"]["rmse"], "train_s": row["time"]["wall_s"]})
+                            "rmse_wet": g["survey"]["wet"]["rmse"], "p95_wet": g["survey"]["wet"]["p95"],
+                            "cover_wet": g["survey"]["coverage"], "train_s": row["time"]["wall_s"]})
             print(f"{variant} {args.param}={value:g}: F1@1% {100 * g['f1']['1%']:.1f}  F1@3% "
-                  f"{100 * g['f1']['3%']:.1f}  wet RMSE {100 * g['survey']['wet']['rmse']:.1f} cm", flush=True)
+                  f"{100 * g['f1']['3%']:.1f}  wet RMSE {100 * g['survey']['wet']['rmse']:.1f} cm  p95 "
+                  f"{100 * g['survey']['wet']['p95']:.1f} cm  cover {100 * g['survey']['coverage']:.1f} %  "
+                  f"{row['time']['wall_s']:.0f} s", flush=True)
     score = {v: np.mean([r["f1_3%"] for r in results if r["value"] == v]) for v in args.values}
     best = max(score, key=score.get)
     write_json(args.out / "tune.json", {"data": str(args.data.resolve()), "dataset_seed": runner.dataset_seed,
-                                        "param": args.param, "results": results, "chosen": best,
+                                        "param": args.param, "fixed": fixed, "results": results, "chosen": best,
                                         "rule": "max mean F1@3% over the variants", "versions": versions("torch")})
     print(f"chosen {args.param} = {best:g} (mean F1@3% {100 * score[best]:.1f} over {', '.join(args.variants)}) "
           f"on dataset seed {runner.dataset_seed}")

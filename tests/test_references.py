@@ -1,14 +1,16 @@
 """The field's reference methods from first principles: Dietrich's multi-camera correction (nadir gives
 depth x n; two symmetric cameras, whose straight rays meet right above the true point, give the true depth;
 the angle filter), the TIN DEM (a plane exactly, a paraboloid to the linear interpolation's error; nothing
-outside the hull), and the tracks' outlier filter (an injected outlier removed, the rest kept)."""
+outside the hull), the tracks' outlier filter (an injected outlier removed, the rest kept), and the start's fill of
+the tracks' gaps (in a hole only, on the filtered TIN)."""
 
 import numpy as np
 import pytest
 import torch
 
-from eval.references import dietrich, tin, track_filter
+from eval.references import dietrich
 from ragsplat_core.refraction import WaterSurface, apparent_points
+from ragsplat_core.tracks import fill_gaps, tin, track_filter
 
 N = 1.33
 
@@ -66,3 +68,26 @@ def test_track_filter_removes_an_injected_outlier_and_keeps_the_rest():
     pts[7, 2] += 1.5
     keep = track_filter(pts)
     assert not keep[7] and keep.sum() == len(pts) - 1
+
+
+def test_fill_gaps_fills_a_hole_from_the_filtered_tin_and_nowhere_else():
+    rng = np.random.default_rng(2)
+    xy = rng.uniform(-3, 3, size=(4000, 2))
+    xy = xy[np.hypot(*xy.T) > 1.0]  # a round hole of radius 1 m, as deep bed with no tracks
+    z = 0.2 * xy[:, 0] - 0.1 * xy[:, 1] - 1.0  # a sloping plane
+    pts = np.column_stack([xy, z, np.tile([0.2, 0.4, 0.6], (len(xy), 1))])
+    pts[np.argmin(np.hypot(*(xy - [1.1, 0.0]).T)), 2] += 2.0  # a gross outlier on the hole's rim
+    fill = fill_gaps(pts, 0.2)
+    assert fill.shape[1] == 6 and len(fill) > 0
+    near = np.hypot(*fill[:, :2].T)
+    assert near.max() < 1.0 + 1e-9  # only in the hole: elsewhere every node has a point within 0.2 m
+    assert len(fill) >= 0.6 * np.pi / 0.2**2  # most of its ~78 nodes (those over 0.2 m from the rim's points)
+    np.testing.assert_allclose(fill[:, :2] / 0.2, np.round(fill[:, :2] / 0.2), atol=1e-9)  # on the grid
+    # the TIN of the filtered points: the plane to round-off, the outlier left out
+    np.testing.assert_allclose(fill[:, 2], 0.2 * fill[:, 0] - 0.1 * fill[:, 1] - 1.0, atol=1e-9)
+    np.testing.assert_allclose(fill[:, 3:], np.tile([0.2, 0.4, 0.6], (len(fill), 1)))  # the nearest colour
+    assert fill_gaps(pts[:, :3], 0.2).shape == (len(fill), 3)
+    dense = fill_gaps(pts, 5.0)  # no node is 5 m from every point inside the hull
+    assert dense.shape == (0, 6)
+    with pytest.raises(ValueError, match="spacing"):
+        fill_gaps(pts, 0.0)

@@ -106,6 +106,22 @@ def test_points_init(wet, tmp_path):
     assert torch.allclose(tr.splats["means"][:, 2].detach(), torch.tensor(pts[:, 2] * 1.33, dtype=torch.float32))
 
 
+def test_points_init_fills_the_gaps_of_the_points(wet, tmp_path):
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-0.5, 0.5, (3000, 2))
+    xy = xy[np.abs(xy[:, 0]) > 0.15]  # a 0.3 m strip without points
+    np.save(tmp_path / "pc.npy", np.column_stack([xy, np.full(len(xy), -0.5), np.full((len(xy), 3), 0.5)]))
+    plain = Trainer(_cfg(init="points", init_points=str(tmp_path / "pc.npy"), init_count=5000), wet)
+    filled = Trainer(_cfg(init="points", init_points=str(tmp_path / "pc.npy"), init_count=5000, init_fill=0.08), wet)
+    extra = filled.splats["means"].detach()[plain.num_gaussians:]
+    assert plain.num_gaussians == len(xy) and len(extra) > 0
+    assert float(extra[:, 0].abs().max()) < 0.15 and torch.allclose(extra[:, 2], torch.tensor(-0.5 * 1.33))
+    with pytest.raises(ValueError, match="init_fill"):
+        _cfg(init_fill=0.1)  # the grid start has no gaps to fill
+    with pytest.raises(ValueError, match="init_fill"):
+        _cfg(init="points", init_points="x.npy", init_fill=-1.0)
+
+
 def test_points_init_keeps_a_seeded_subset_of_a_large_cloud(wet, tmp_path):
     rng = np.random.default_rng(0)
     pts = np.column_stack([rng.uniform(-0.5, 0.5, (50, 2)), rng.uniform(-0.6, -0.4, 50), rng.uniform(0, 1, (50, 3))])

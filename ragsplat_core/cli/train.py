@@ -54,6 +54,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "default: scene.json spec.bed.depth")
     parser.add_argument("--init-count", type=positive_int, metavar="N",
                         help="start from at most N points (a seeded random subset; default: the preset's cap)")
+    parser.add_argument("--init-fill", type=positive_float, metavar="M",
+                        help="fill the gaps of a point start from its TIN: grid nodes M metres apart with no point "
+                        "within M (default: the preset's)")
     parser.add_argument("--init-points", metavar="FILE.npy", help="point cloud [N, 3] or [N, 6] (xyz, rgb in "
                         "[0, 1]) for --init points; submerged depths are multiplied by n")
     parser.add_argument("--water-level", type=finite_float, metavar="Z",
@@ -78,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     from ragsplat_core.train import Trainer, preset_config
 
     overrides = {"variant": args.variant, "seed": args.seed}
-    for key in ("iterations", "init", "init_depth", "init_count", "init_points", "water_level", "water_n", "optimize_water", "checkpoint_every",
+    for key in ("iterations", "init", "init_depth", "init_count", "init_fill", "init_points", "water_level", "water_n", "optimize_water", "checkpoint_every",
                 "backend", "device"):
         if getattr(args, key) is not None:
             overrides[key] = getattr(args, key)

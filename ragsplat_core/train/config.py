@@ -49,6 +49,9 @@ class TrainConfig:
     # grid Gaussians (approximately: a square grid over the views' footprint), or at most this many points
     init_count: int = 10_000
     init_points: str | None = None  # .npy [N, 3] or [N, 6] (xyz, rgb in [0, 1]) for init="points"
+    # a point start's gaps filled from its TIN (`tracks.fill_gaps`): grid nodes at this spacing (m) with no
+    # point within it; 0: the points alone
+    init_fill: float = 0.0
     init_opacity: float = 0.1
     sh_degree: int = 3
     sh_degree_every: int = 1000  # raise the active SH degree by one every this many iterations (at 30k)
@@ -102,6 +105,10 @@ class TrainConfig:
             raise ConfigError(f"sh_degree must be 0..3, got {self.sh_degree}")
         if self.checkpoint_every is not None and self.checkpoint_every < 0:
             raise ConfigError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
+        if not (math.isfinite(self.init_fill) and self.init_fill >= 0):
+            raise ConfigError(f"init_fill is a spacing in metres and must be >= 0, got {self.init_fill}")
+        if self.init_fill > 0 and self.init == "grid":
+            raise ConfigError("init_fill fills the gaps between a start's points; init='grid' has none")
         if self.init_depth is not None and not self.init_depth > 0:
             raise ConfigError(f"init_depth is a depth below the water level and must be > 0, got {self.init_depth}")
         if self.water_level is not None and not math.isfinite(self.water_level):

@@ -210,6 +210,7 @@ class Trainer:
         cfg = self.cfg
         if cfg.init in ("points", "triangulated", "refracted"):
             from ragsplat_core.dataset.colmap import refracted_points, triangulated_points
+            from ragsplat_core.tracks import fill_gaps
 
             if cfg.init == "refracted":
                 if self.water is None:
@@ -226,6 +227,8 @@ class Trainer:
                     raise ConfigError(f"{source}: expected an array [N, 3] or [N, 6], got {arr.shape}")
             if len(arr) > cfg.init_count:  # a survey's model can hold millions: a seeded random subset
                 arr = arr[np.sort(np.random.default_rng(cfg.seed).choice(len(arr), cfg.init_count, replace=False))]
+            if cfg.init_fill > 0:  # after the cap: it fills the gaps of the points actually used
+                arr = np.concatenate([arr, fill_gaps(arr, cfg.init_fill)])
             pts = torch.from_numpy(arr[:, :3]).float()
             rgb = torch.from_numpy(arr[:, 3:]).float() if arr.shape[1] == 6 else torch.full_like(pts, 0.5)
             # straight-ray points sit at apparent depths (x n, the field's correction); refracted ones are true
