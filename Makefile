@@ -9,8 +9,8 @@ ifndef OMP_WAIT_POLICY
 export GOMP_SPINCOUNT ?= 2000
 endif
 PRESET ?= small
-# The training preset of a dataset preset: small-bed -> small, paper-reach -> paper.
-TRAIN_PRESET ?= $(firstword $(subst -, ,$(PRESET)))
+# The training preset of a dataset preset: small-bed -> small, paper-reach -> paper; small-field has its own.
+TRAIN_PRESET ?= $(if $(filter small-field,$(PRESET)),small-field,$(firstword $(subst -, ,$(PRESET))))
 SEED ?= 0
 # The ablation's training seeds (e.g. SEEDS="0 1"), variants (VARIANTS="3dgs full"), start (INIT=grid |
 # triangulated | refracted) and processes (JOBS=1): empty means `ragsplat ablation`'s own defaults, defined

@@ -60,7 +60,7 @@ from ragsplat_core.fusion import FuseConfig, height_mesh
 from ragsplat_core.outputs import claim, source_digest, versions, write_json
 from ragsplat_core.surface import EXTRACT_TUNING, ExtractConfig
 from ragsplat_core.tracks import TRACK_MIN_NEIGHBOURS, TRACK_RADIUS, TRACK_TOL
-from ragsplat_core.train.config import SURFELS, TUNING, VARIANTS
+from ragsplat_core.train.config import FIELD_TUNING, SURFELS, TUNING, VARIANTS
 
 
 @dataclass(frozen=True)
@@ -76,6 +76,7 @@ class AblationPreset:
 PRESETS = {
     "smoke": AblationPreset("smoke", checkpoints=8, samples_per_cell=4),
     "small": AblationPreset("small", checkpoints=8, samples_per_cell=16),
+    "small-field": AblationPreset("small-field", checkpoints=8, samples_per_cell=16),
     "paper": AblationPreset("paper", checkpoints=8, samples_per_cell=16),
 }
 CODE = ("ragsplat_core", "eval")  # the sources whose digest is part of every row key
@@ -283,7 +284,8 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
         for name, row in reference_rows(out, runner, preset, seed, ecfg, base, rows, log).items():
             rows.setdefault(name, []).append(row)
     header = {"data": str(Path(data).resolve()), "dataset_fingerprint": runner.fingerprint,
-              "dataset_seed": runner.dataset_seed, "tuning": TUNING, "extract_tuning": EXTRACT_TUNING,
+              "dataset_seed": runner.dataset_seed, "tuning": TUNING,
+              **({"field_tuning": FIELD_TUNING} if preset == "small-field" else {}), "extract_tuning": EXTRACT_TUNING,
               "preset": preset, "seeds": list(seeds),
               "init": getattr(runner, "init", "grid"),
               "harness_preset": asdict(PRESETS[preset]), "code_digest": base["code"],

@@ -54,9 +54,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "default: scene.json spec.bed.depth")
     parser.add_argument("--init-count", type=positive_int, metavar="N",
                         help="start from at most N points (a seeded random subset; default: the preset's cap)")
-    parser.add_argument("--init-fill", type=positive_float, metavar="M",
+    parser.add_argument("--init-fill", type=finite_float, metavar="M",
                         help="fill the gaps of a point start from its TIN: grid nodes M metres apart with no point "
-                        "within M (default: the preset's)")
+                        "within M; 0: the points alone (default: the preset's)")
     parser.add_argument("--init-points", metavar="FILE.npy", help="point cloud [N, 3] or [N, 6] (xyz, rgb in "
                         "[0, 1]) for --init points; submerged depths are multiplied by n")
     parser.add_argument("--water-level", type=finite_float, metavar="Z",
