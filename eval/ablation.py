@@ -76,9 +76,9 @@ class AblationPreset:
 PRESETS = {
     "smoke": AblationPreset("smoke", checkpoints=8, samples_per_cell=4),
     "small": AblationPreset("small", checkpoints=8, samples_per_cell=16),
-    "small-field": AblationPreset("small-field", checkpoints=8, samples_per_cell=16),
     "paper": AblationPreset("paper", checkpoints=8, samples_per_cell=16),
 }
+PRESETS["small-field"] = replace(PRESETS["small"], name="small-field")
 CODE = ("ragsplat_core", "eval")  # the sources whose digest is part of every row key
 # The main job's defaults, here only (`ragsplat ablation` takes them; the Makefile passes nothing unless told):
 # every row starts from the refracted tracks (F1@3% about 20 % from the paper's plane on the reach, which has no

@@ -43,6 +43,8 @@ USES_GROUND_TRUTH = ("oracle plane",)
 # corrects the 3dgs row's volume bed, init is the untrained start).
 EXTRACTION = {"init": "volume", "3dgs x n": "volume", "oracle plane": "-", "triangulation (refracted)": "TIN",
               "triangulation x n": "TIN", "dietrich (tracks)": "TIN", "dietrich (3dgs)": "volume"}
+
+
 def start_extraction(cfg: ExtractConfig) -> ExtractConfig:
     """The extraction of the `init` row: the table's, with no opacity or size cull. Every start has the same
     opacity (`init_opacity`, 0.1) and scales set by the spacing of its points, training choices rather than

@@ -56,18 +56,19 @@ def fill_gaps(points: np.ndarray, spacing: float) -> np.ndarray:
     pts = np.asarray(points, float)
     if not spacing > 0:
         raise ValueError(f"spacing must be > 0, got {spacing}")
+    none = np.zeros((0, pts.shape[1]))
     if len(pts) < 3:
-        return np.zeros((0, pts.shape[1]))
+        return none
     lo, hi = np.floor(pts[:, :2].min(0) / spacing), np.ceil(pts[:, :2].max(0) / spacing)
     axes = [np.arange(a, b + 1) * spacing for a, b in zip(lo, hi)]
     nodes = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 2)
     tree = cKDTree(pts[:, :2])
-    gaps = tree.query(nodes)[0] > spacing
-    kept = pts[track_filter(pts)]
+    gaps = nodes[tree.query(nodes)[0] > spacing]
+    kept = pts[track_filter(pts)] if len(gaps) else none  # the filter only when there is a gap to fill
     if len(kept) < 3:
-        return np.zeros((0, pts.shape[1]))
-    z = tin(kept, nodes[gaps])
+        return none
+    z = tin(kept, gaps)
     if not len(z):
-        return np.zeros((0, pts.shape[1]))
+        return none
     colours = pts[tree.query(z[:, :2])[1], 3:]
     return np.column_stack([z, colours])

@@ -224,10 +224,9 @@ PRESETS: dict[str, TrainConfig] = {
                          lr_means=SHORT_LR_MEANS, densify=DensifyConfig(max_gaussians=4_000)),
     "small": TrainConfig(preset="small", iterations=1500, init_count=16_000, lr_means=SMALL_LR_MEANS,
                          densify=DensifyConfig(max_gaussians=40_000)),
-    "small-field": TrainConfig(preset="small-field", iterations=3000, init="refracted", init_count=16_000, init_fill=0.2,
-                               lr_means=SMALL_LR_MEANS, densify=DensifyConfig(max_gaussians=40_000)),
     "paper": TrainConfig(preset="paper", iterations=30_000, init_count=40_000),
 }
+PRESETS["small-field"] = replace(PRESETS["small"], preset="small-field", init="refracted", **FIELD_TUNING["chosen"])
 
 
 def preset_config(name: str, **overrides) -> TrainConfig:
