@@ -42,6 +42,19 @@ def tin(points: np.ndarray, nodes: np.ndarray) -> np.ndarray:
     return np.column_stack([nodes[inside, :2], z[inside]])
 
 
+def gap_nodes(tree, lo: np.ndarray, hi: np.ndarray, spacing: float, chunk: int = 1_000_000) -> np.ndarray:
+    """[G, 2]: the nodes of the `spacing` grid (a node at the origin) over the box lo..hi [2] with no point of
+    `tree` (a cKDTree of [P, 2]) within `spacing`, in x-major order; built `chunk` nodes at a time, so that a
+    survey of square kilometres needs no grid of tens of millions of nodes at once."""
+    xs, ys = (np.arange(np.floor(a / spacing), np.ceil(b / spacing) + 1) * spacing for a, b in zip(lo, hi))
+    step = max(1, chunk // len(ys))  # x columns per chunk
+    out = []
+    for i in range(0, len(xs), step):
+        nodes = np.stack(np.meshgrid(xs[i:i + step], ys, indexing="ij"), -1).reshape(-1, 2)
+        out.append(nodes[tree.query(nodes, distance_upper_bound=spacing * (1 + 1e-9))[0] > spacing])
+    return np.concatenate(out)
+
+
 def fill_gaps(points: np.ndarray, spacing: float) -> np.ndarray:
     """[F, C] points for the gaps of a sparse cloud [P, C] (C = 3, or 6 with colours): the nodes of a square
     grid of `spacing` metres (a node at the origin) that lie inside the cloud's convex hull and have no point
@@ -59,11 +72,8 @@ def fill_gaps(points: np.ndarray, spacing: float) -> np.ndarray:
     none = np.zeros((0, pts.shape[1]))
     if len(pts) < 3:
         return none
-    lo, hi = np.floor(pts[:, :2].min(0) / spacing), np.ceil(pts[:, :2].max(0) / spacing)
-    axes = [np.arange(a, b + 1) * spacing for a, b in zip(lo, hi)]
-    nodes = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 2)
     tree = cKDTree(pts[:, :2])
-    gaps = nodes[tree.query(nodes)[0] > spacing]
+    gaps = gap_nodes(tree, pts[:, :2].min(0), pts[:, :2].max(0), spacing)
     kept = pts[track_filter(pts)] if len(gaps) else none  # the filter only when there is a gap to fill
     if len(kept) < 3:
         return none

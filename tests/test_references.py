@@ -10,7 +10,7 @@ import torch
 
 from eval.references import dietrich
 from ragsplat_core.refraction import WaterSurface, apparent_points
-from ragsplat_core.tracks import fill_gaps, tin, track_filter
+from ragsplat_core.tracks import fill_gaps, gap_nodes, tin, track_filter
 
 N = 1.33
 
@@ -91,3 +91,18 @@ def test_fill_gaps_fills_a_hole_from_the_filtered_tin_and_nowhere_else():
     assert dense.shape == (0, 6)
     with pytest.raises(ValueError, match="spacing"):
         fill_gaps(pts, 0.0)
+
+
+def test_gap_nodes_in_chunks_are_the_whole_grids_gaps():
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-2.05, 3.1, size=(300, 2))
+    tree = cKDTree(xy)
+    lo, hi = xy.min(0), xy.max(0)
+    xs, ys = (np.arange(np.floor(a / 0.2), np.ceil(b / 0.2) + 1) * 0.2 for a, b in zip(lo, hi))
+    nodes = np.stack(np.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)  # the whole grid at once
+    want = nodes[tree.query(nodes)[0] > 0.2]
+    assert 0 < len(want) < len(nodes)
+    for chunk in (1, 27, 100, 10**6):  # a column, one column, a few, all
+        np.testing.assert_array_equal(gap_nodes(tree, lo, hi, 0.2, chunk), want)
