@@ -189,15 +189,17 @@ def error_vs_time(curves: dict[str, list[list[dict]]], path: str | Path, title: 
     volume extraction: the fused bed is scored at the end only).
     `curves[variant]` is one list per seed of the points the ablation records ({"iteration", "time_s",
     "psnr_refr", "psnr_dry", "f1": {...}}); `time_s` is training time only (evaluation
-    pauses the clock). `lines[name]` = {"1%": f1, "3%": f1} draws a reference row as a dashed horizontal
-    line."""
+    pauses the clock). `lines[name]` = {"1%": f1, "3%": f1} draws a reference row as a black horizontal line,
+    dashed its own way."""
     import matplotlib
 
     matplotlib.use("Agg")  # files only, no display
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 4, figsize=(19, 4.2), constrained_layout=True)
-    colors = {v: plt.cm.tab10(i % 10) for i, v in enumerate(list(curves) + list(lines or {}))}
+    colors = {v: plt.cm.tab10(i % 10) for i, v in enumerate(curves)}
+    # references in black, one dash pattern each: ten variants already use every tab10 colour
+    dashes = {name: ("--", "-.", ":", (0, (5, 1, 1, 1, 1, 1)))[i % 4] for i, name in enumerate(lines or {})}
     legend = {}
     for ax, (key, label) in zip(axes, PANELS):
         scale = 100 if key in ("1%", "3%") else 1
@@ -216,7 +218,7 @@ def error_vs_time(curves: dict[str, list[list[dict]]], path: str | Path, title: 
                                               label=variant)[0]
         for name, ref in (lines or {}).items():
             if key in ref and ref[key] is not None:
-                legend[name] = ax.axhline(scale * ref[key], ls="--", lw=1, color=colors[name], label=name)
+                legend[name] = ax.axhline(scale * ref[key], ls=dashes[name], lw=1, color="k", label=name)
         ax.set_xlabel("training wall-clock time (min)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
