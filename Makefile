@@ -13,12 +13,13 @@ PRESET ?= small
 TRAIN_PRESET ?= $(if $(filter small-field,$(PRESET)),small-field,$(firstword $(subst -, ,$(PRESET))))
 SEED ?= 0
 # The ablation's training seeds (e.g. SEEDS="0 1"), variants (VARIANTS="3dgs full"), start (INIT=grid |
-# triangulated | refracted) and processes (JOBS=1): empty means `ragsplat ablation`'s own defaults, defined
-# once in eval/ablation.py (`ragsplat ablation --help` prints them).
+# triangulated | refracted), processes (JOBS=1) and training device (DEVICE=cuda | cpu): empty means
+# `ragsplat ablation`'s own defaults, defined once in eval/ablation.py (`ragsplat ablation --help` prints them).
 SEEDS ?=
 VARIANTS ?=
 INIT ?=
 JOBS ?=
+DEVICE ?=
 DATA ?= data/$(PRESET)
 RUNS ?= runs/$(PRESET)
 
@@ -44,7 +45,7 @@ dataset: install
 
 # The main job: dataset if missing, every variant trained and evaluated, tables beside the paper's.
 ablation: dataset
-	$(VENV)/bin/ragsplat ablation --preset $(TRAIN_PRESET) --data $(DATA) --out $(RUNS)$(if $(SEEDS), --seeds $(SEEDS))$(if $(INIT), --init $(INIT))$(if $(JOBS), --jobs $(JOBS))$(if $(VARIANTS), --variants $(VARIANTS))
+	$(VENV)/bin/ragsplat ablation --preset $(TRAIN_PRESET) --data $(DATA) --out $(RUNS)$(if $(SEEDS), --seeds $(SEEDS))$(if $(INIT), --init $(INIT))$(if $(JOBS), --jobs $(JOBS))$(if $(DEVICE), --device $(DEVICE))$(if $(VARIANTS), --variants $(VARIANTS))
 
 lint: install
 	$(VENV)/bin/ruff check .

@@ -82,11 +82,23 @@ PRESETS["small-field"] = replace(PRESETS["small"], name="small-field")
 CODE = ("ragsplat_core", "eval")  # the sources whose digest is part of every row key
 # The main job's defaults, here only (`ragsplat ablation` takes them; the Makefile passes nothing unless told):
 # every row starts from the refracted tracks (F1@3% about 20 % from the paper's plane on the reach, which has no
-# single bed depth), three training seeds (tables: mean +- std), and two processes of cores / 2 threads (two
-# single-threaded rows together did 1.7x the steps of one with both threads on the 2-core CPU).
+# single bed depth), three training seeds (tables: mean +- std), and on the CPU two processes of cores / 2
+# threads (two single-threaded rows together did 1.7x the steps of one with both threads on the 2-core CPU).
+# On CUDA six processes per GPU: a `small` row leaves one H100 mostly idle (launch-bound), and six at once
+# trained all 27 rows in 6.7 min where one alone took 61 s for its longest row (docs/performance.md).
 INIT = "refracted"
 SEEDS = (0, 1, 2)
 JOBS = 2
+JOBS_PER_GPU = 6
+
+
+def default_jobs(device: str | None) -> int:
+    """`--jobs`' default for training on `device` (None: the presets' "auto", CUDA when available)."""
+    import torch
+
+    if (device in (None, "auto") and torch.cuda.is_available()) or str(device).startswith("cuda"):
+        return JOBS_PER_GPU * (1 if ":" in str(device) else max(1, torch.cuda.device_count()))
+    return JOBS
 
 
 def extract_config(preset: str, n_gt: int, seed: int, gsd: float | None) -> ExtractConfig:

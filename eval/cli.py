@@ -27,7 +27,7 @@ from ragsplat_core.errors import RagsplatError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from eval.ablation import INIT, JOBS, PRESETS, SEEDS
+    from eval.ablation import INIT, JOBS, JOBS_PER_GPU, PRESETS, SEEDS
     from ragsplat_core.train.config import VARIANTS
 
     parser.add_argument("--data", required=True, type=dataset_dir, help="dataset directory (transforms.json, gt/)")
@@ -45,8 +45,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"(default: {INIT})")
     lpips_arguments(parser)
     parser.add_argument("--device", default=None, help="torch device for training (default: the preset's)")
-    parser.add_argument("--jobs", type=positive_int, default=JOBS, metavar="N",
-                        help=f"train the rows in N processes at once, each with cores / N threads (default: {JOBS})")
+    parser.add_argument("--jobs", type=positive_int, default=None, metavar="N",
+                        help=f"train the rows in N processes at once, each with cores / N threads, shared out over "
+                             f"the GPUs on CUDA (default: {JOBS} on the CPU, {JOBS_PER_GPU} per GPU on CUDA)")
     parser.add_argument("--code", default=None, help=argparse.SUPPRESS)  # the digest --jobs started with
     parser.add_argument("--queue", type=Path, default=None, help=argparse.SUPPRESS)  # the rows --jobs' processes take
 
@@ -114,6 +115,7 @@ def run_jobs(args: argparse.Namespace, fingerprint: str, check) -> None:
     prepare(args, fingerprint)
     threads = str(max(1, (os.cpu_count() or 1) // args.jobs))
     env = {**os.environ, "OMP_NUM_THREADS": threads, "MKL_NUM_THREADS": threads, "NUMBA_NUM_THREADS": threads}
+    gpus = visible_gpus(args.device)
     base = [sys.executable, "-m", "ragsplat_core.cli.main", "ablation", "--data", str(args.data), "--out",
             str(args.out), "--preset", args.preset, "--variants", *args.variants, "--seeds",
             *map(str, args.seeds), "--init", args.init, *(["--vgg16", args.vgg16] if args.vgg16 else []),
@@ -125,7 +127,8 @@ def run_jobs(args: argparse.Namespace, fingerprint: str, check) -> None:
     logs = [Path(args.out) / f"part-{k}-of-{args.jobs}.log" for k in range(args.jobs)]
     print(f"training in {args.jobs} processes of {threads} thread(s); logs: {', '.join(map(str, logs))}",
           flush=True)
-    procs = [spawn(base, env, log) for log in logs]
+    procs = [spawn(base, {**env, **({"CUDA_VISIBLE_DEVICES": gpus[k % len(gpus)]} if gpus else {})}, log)
+             for k, log in enumerate(logs)]
     try:  # until all have finished or one has failed
         while any(proc.poll() is None for proc in procs) and not any(proc.poll() for proc in procs):
             check()
@@ -150,6 +153,17 @@ def run_jobs(args: argparse.Namespace, fingerprint: str, check) -> None:
     shutil.rmtree(queue, ignore_errors=True)
 
 
+def visible_gpus(device: str | None) -> list[str]:
+    """The GPUs `--jobs`' processes are shared out over (each sees one as "cuda"): every visible one when
+    training goes to CUDA without an index; none (the environment as it is) otherwise."""
+    import torch
+
+    if device not in (None, "auto", "cuda") or not torch.cuda.is_available():
+        return []
+    listed = os.environ.get("CUDA_VISIBLE_DEVICES")
+    return listed.split(",") if listed else [str(k) for k in range(torch.cuda.device_count())]
+
+
 def lpips_arguments(parser: argparse.ArgumentParser) -> None:
     """--vgg16 and --no-download: where LPIPS's weights come from (`eval.metrics.load_lpips`)."""
     parser.add_argument("--vgg16", default=None, metavar="PATH",
@@ -160,12 +174,14 @@ def lpips_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from eval.ablation import CODE, TrainEval, run_ablation
+    from eval.ablation import CODE, TrainEval, default_jobs, run_ablation
     from ragsplat_core.cli.progress import deferred_interrupts, training_bar
     from ragsplat_core.outputs import source_digest
 
     if args.code is None:
         args.code = source_digest(*CODE)
+    if args.jobs is None:
+        args.jobs = default_jobs(args.device)
     with deferred_interrupts() as check:  # Ctrl-C: the trainer checkpoints its finished steps, then stops
         # the dataset and its ground truth are loaded and checked before any process starts
         train_eval = TrainEval(args.data, args.device, training_bar=partial(training_bar, leave=False, check=check),

@@ -24,10 +24,10 @@ not necessarily orthogonal) and replace quats and scales (which may then be None
 surfels as t' = J t, J = refraction.apparent_jacobian(...). The normal is then t'_u x t'_v normalised.
 
 Backends: "torch" (plain PyTorch, autograd, any device: the reference), "cpu" (numba kernels with a
-hand-written backward, float32 compositing, CPU tensors), "gsplat" (gsplat's CUDA `rasterization_2dgs`,
-optional, quats and scales only; see `_rasterize_gsplat` for where it differs), "auto" (as `rasterize`,
-but never gsplat when tangents are given). Gradients flow to means, quats, scales (or tangents),
-opacities, colors and background, through every output.
+hand-written backward, float32 compositing, CPU tensors), "gsplat" (gsplat's CUDA 2DGS rasterization stage
+fed with this module's projection, so tangents too; optional, CUDA tensors; see `raster/surfel_gsplat.py`
+for where it differs: alpha clamp 0.999, depths at the surfels' centres), "auto" (as `rasterize`).
+Gradients flow to means, quats, scales (or tangents), opacities, colors and background, through every output.
 """
 
 from __future__ import annotations
@@ -35,8 +35,7 @@ from __future__ import annotations
 import torch
 
 from ragsplat_core.camera import Camera
-from ragsplat_core.errors import ConfigError
-from ragsplat_core.raster.project import NEAR, TILE, bin_tiles
+from ragsplat_core.raster.project import bin_tiles
 from ragsplat_core.raster.surfel_project import project_surfels, surfel_tangents
 from ragsplat_core.rasterize import check_shapes, choose_backend, resolve
 
@@ -50,15 +49,24 @@ def rasterize_surfels(means, quats, scales, opacities, colors, camera: Camera, b
     """
     _check(means, quats, scales, opacities, colors, tangents, means.shape[0])
     background = torch.as_tensor(background, dtype=colors.dtype, device=colors.device).reshape(3)
-    backend = choose_surfel_backend(backend, means.device, tangents is not None)
-    if backend == "gsplat":
-        return _rasterize_gsplat(means, quats, scales, opacities, colors, camera, background)
+    backend = choose_backend(backend, means.device)
     if tangents is None:
         tangents = surfel_tangents(quats, scales, fast=backend == "cpu")  # [N, 3, 2]
-    proj = project_surfels(means, tangents, opacities, camera)
+    proj = project_surfels(means, tangents, opacities, camera, transforms=backend == "gsplat")
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
+    meta = {"means2d": means2d, "radii": proj.radii, "depths": proj.depths, "visible": proj.visible,
+            "backend": backend, "width": camera.width, "height": camera.height}
+    if backend == "gsplat":
+        from ragsplat_core.raster.surfel_gsplat import composite as composite_gsplat
+
+        dtype = colors.dtype
+        image, alpha, depth, normals, distortion, median, tiles = composite_gsplat(
+            proj, opacities, colors, background, camera.width, camera.height)
+        meta.update(normals=normals.to(dtype), median_depth=median[..., None].to(dtype),
+                    distortion=distortion[..., None].to(dtype), tiles_touched=tiles)
+        return image.to(dtype), alpha[..., None].to(dtype), depth[..., None].to(dtype), meta
     bins = bin_tiles(proj, camera.width, camera.height, fast=backend == "cpu")
     if backend == "torch":
         from ragsplat_core.raster.surfel_torch import composite
@@ -66,10 +74,8 @@ def rasterize_surfels(means, quats, scales, opacities, colors, camera: Camera, b
         from ragsplat_core.raster.surfel_cpu import composite
     sums, trans, distortion, median = composite(proj, opacities, colors, bins, camera.width, camera.height)
     image, alpha, depth = resolve(sums[..., :3], trans, sums[..., 6], background)
-    meta = {"normals": sums[..., 3:6], "median_depth": median[..., None], "distortion": distortion[..., None],
-            "means2d": means2d, "radii": proj.radii, "depths": proj.depths, "visible": proj.visible,
-            "tiles_touched": bins.tiles_touched, "backend": backend, "width": camera.width,
-            "height": camera.height}
+    meta.update(normals=sums[..., 3:6], median_depth=median[..., None], distortion=distortion[..., None],
+                tiles_touched=bins.tiles_touched)
     return image, alpha[..., None], depth[..., None], meta
 
 
@@ -89,17 +95,6 @@ def depth_normals(depth: torch.Tensor, camera: Camera) -> torch.Tensor:
     return torch.nn.functional.pad(n * ok[..., None], (0, 0, 1, 1, 1, 1))
 
 
-def choose_surfel_backend(backend: str, device: torch.device, tangents: bool) -> str:
-    """As `rasterize.choose_backend`; gsplat cannot take tangents (it builds surfels from quats and
-    scales), so "auto" falls back to torch for them and an explicit "gsplat" is a ConfigError."""
-    chosen = choose_backend(backend, device)
-    if chosen == "gsplat" and tangents:
-        if backend == "gsplat":
-            raise ConfigError("backend 'gsplat' takes quats and scales, not tangents; use 'torch' or 'cpu'")
-        return "torch"
-    return chosen
-
-
 def _check(means, quats, scales, opacities, colors, tangents, n):
     shapes = {"means": (means, (n, 3)), "opacities": (opacities, (n,)), "colors": (colors, (n, 3))}
     if tangents is None:
@@ -107,37 +102,3 @@ def _check(means, quats, scales, opacities, colors, tangents, n):
     else:
         shapes.update(tangents=(tangents, (n, 3, 2)))
     check_shapes("rasterize_surfels", shapes)
-
-
-def _rasterize_gsplat(means, quats, scales, opacities, colors, camera, background):
-    """gsplat's fused CUDA 2DGS rasterizer (unpacked). Differs from the other backends (gsplat 1.5): alpha
-    clamp 0.999; the filter is centred on the centre of the disk's image conic (not the projected centre);
-    depth, median depth and distortion use each surfel's centre z (not the per-pixel intersection z);
-    `means2d` is that conic centre and its `.grad` gsplat's densification gradient (`gradient_2dgs`).
-    Colours go in per camera, [1, N, 3]: gsplat 1.5.3's 2DGS path does not broadcast [N, 3] colours to the
-    camera axis before appending depth (seen on an H100)."""
-    from gsplat import rasterization_2dgs
-
-    dtype, device = means.dtype, means.device
-    viewmat = torch.tensor(camera.w2c, dtype=torch.float32, device=device)[None]  # [1, 4, 4]
-    K = torch.tensor(camera.K, dtype=torch.float32, device=device)[None]  # [1, 3, 3]
-    scales3 = torch.cat([scales, torch.ones_like(scales[:, :1])], -1)  # [N, 3]; the third is not used
-    renders, alphas, normals, _, distortion, median, info = rasterization_2dgs(
-        means.float(), quats.float(), scales3.float(), opacities.float(), colors.float()[None], viewmat, K,
-        camera.width, camera.height, near_plane=NEAR, packed=False, tile_size=TILE,
-        backgrounds=background.float()[None], render_mode="RGB+ED", distloss=True)
-    alpha = alphas[0].to(dtype)  # [H, W, 1]
-    # gsplat keeps the last surfel's z where the transmittance never reaches 0.5; here that is 0.
-    median = torch.where(alpha >= 0.5, median[0].to(dtype), torch.zeros_like(alpha))
-    means2d = info["means2d"][0].detach()
-    densify = info["gradient_2dgs"]  # [1, N, 2] leaf whose gradient gsplat fills for densification
-    if densify.requires_grad:
-        densify.register_hook(lambda grad: setattr(means2d, "grad", grad[0]))
-    radii = info["radii"][0]
-    if radii.dim() == 2:  # per-axis radii [N, 2]
-        radii = radii.max(-1).values
-    meta = {"normals": normals[0].to(dtype), "median_depth": median, "distortion": distortion[0].to(dtype),
-            "means2d": means2d, "radii": radii.to(torch.int32), "depths": info["depths"][0],
-            "visible": radii > 0, "tiles_touched": info["tiles_per_gauss"][0], "backend": "gsplat",
-            "width": camera.width, "height": camera.height}
-    return renders[0, ..., :3].to(dtype), alpha, renders[0, ..., 3:4].to(dtype), meta

@@ -269,3 +269,24 @@ def test_tune_sets_nested_and_top_level_parameters():
     longer = with_value(cfg, "iterations", 3000.0)
     assert longer.iterations == 3000 and isinstance(longer.iterations, int)
     assert {"lr_means", "iterations", "densify.max_gaussians", "densify.grow_grad2d"} <= set(PARAMS)
+
+
+def test_default_jobs_and_the_gpus_they_share(monkeypatch):
+    # `--jobs` left out: 2 processes on the CPU, JOBS_PER_GPU per GPU on CUDA, shared out round the GPUs.
+    import torch
+
+    from eval import ablation, cli
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert ablation.default_jobs(None) == ablation.default_jobs("cpu") == ablation.JOBS == 2
+    assert cli.visible_gpus(None) == []
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    assert ablation.default_jobs(None) == ablation.default_jobs("cuda") == 2 * ablation.JOBS_PER_GPU
+    assert ablation.default_jobs("cuda:1") == ablation.JOBS_PER_GPU  # all on the one named
+    assert ablation.default_jobs("cpu") == ablation.JOBS
+    assert cli.visible_gpus("cuda") == cli.visible_gpus(None) == ["0", "1"]
+    assert cli.visible_gpus("cuda:1") == cli.visible_gpus("cpu") == []
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,3")
+    assert cli.visible_gpus(None) == ["2", "3"]

@@ -4,8 +4,9 @@ Each timed iteration is `Trainer.train_step` itself (SH colours, the refraction 
 rasterize, L1 + SSIM loss, backward, NaN checks, Adam, densification statistics) at 256 x 256 on a
 synthetic under-water bed seen from a nadir and four 20-degree oblique cameras, with N Gaussians on a grid
 over the nadir footprint (all in view), SH degree 3 active and no growing or pruning during the timing
-(refinement starts later in the paper schedule), so N stays fixed. `3dgs` and `full` iterations alternate
-in one loop so both see the same machine state; the overhead ratio is median(full) / median(3dgs).
+(refinement starts later in the paper schedule), so N stays fixed. `3dgs`, `full` and `2dgs+full` (refracted
+surfels) iterations alternate in one loop so all see the same machine state; the overhead ratios are
+median(full) / median(3dgs) and median(2dgs+full) / median(full).
 The two do not rasterize the same work (the apparent Gaussians are smaller, fainter and closer to the
 axis), so the transform's own cost, forward + backward of `refract_gaussians`, is printed beside it
 (`refr`, and as a share of the 3dgs iteration).
@@ -86,7 +87,8 @@ def _transform_time(tr, steps: int, device: str) -> float:
 
 def bench_train_step(counts=(10_000, 40_000), pairs=None, steps: int = 10, warmup: int = 3, seed: int = 0,
                      log=print) -> list[dict]:
-    """One row per (backend, device, N): median seconds per iteration for 3dgs and full, and their ratio."""
+    """One row per (backend, device, N): median seconds per iteration for 3dgs, full and 2dgs+full, and the
+    ratios full / 3dgs and 2dgs+full / full."""
     from ragsplat_core.train import Trainer, preset_config
 
     water = WaterSurface(0.0, 1.33)
@@ -95,7 +97,7 @@ def bench_train_step(counts=(10_000, 40_000), pairs=None, steps: int = 10, warmu
         for count in counts:
             ds = _dataset(count, water, device)
             trainers = {}
-            for variant in ("3dgs", "full"):
+            for variant in ("3dgs", "full", "2dgs+full"):
                 # paper schedule (30k): refinement starts at 500, after the timed steps; SH degree 3 at once
                 cfg = preset_config("paper", variant=variant, seed=seed, backend=backend, device=device,
                                     init_depth=DEPTH, init_count=count, sh_degree_every=1, checkpoint_every=0)
@@ -114,10 +116,12 @@ def bench_train_step(counts=(10_000, 40_000), pairs=None, steps: int = 10, warmu
             row = {"backend": backend, "device": device, "size": f"{SIZE}x{SIZE}",
                    "gaussians": trainers["full"].num_gaussians, "steps": steps,
                    "median_s_3dgs": med["3dgs"], "median_s_full": med["full"],
-                   "ratio_full_3dgs": med["full"] / med["3dgs"], "median_s_transform": med["transform"],
+                   "ratio_full_3dgs": med["full"] / med["3dgs"], "median_s_2dgs_full": med["2dgs+full"],
+                   "ratio_2dgs_full_full": med["2dgs+full"] / med["full"], "median_s_transform": med["transform"],
                    "transform_share_of_3dgs": med["transform"] / med["3dgs"],
-                   "all_s_3dgs": times["3dgs"], "all_s_full": times["full"]}
+                   "all_s_3dgs": times["3dgs"], "all_s_full": times["full"], "all_s_2dgs_full": times["2dgs+full"]}
             rows.append(row)
             log(f"{backend:>6} {device:>4} {row['gaussians']:>6} {med['3dgs']:10.4f} {med['full']:10.4f} "
-                f"{row['ratio_full_3dgs']:9.3f} {med['transform']:10.4f} {row['transform_share_of_3dgs']:9.3f}")
+                f"{row['ratio_full_3dgs']:9.3f} {med['transform']:10.4f} {row['transform_share_of_3dgs']:9.3f} "
+                f"{med['2dgs+full']:10.4f} {row['ratio_2dgs_full_full']:9.3f}")
     return rows

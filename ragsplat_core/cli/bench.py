@@ -117,7 +117,7 @@ def _train_step(args: argparse.Namespace) -> int:
     print(f"train-step benchmark: {SIZE}x{SIZE}, median of {args.steps} iterations after {args.warmup} warm-up; "
           f"torch {torch.__version__}, {torch.get_num_threads()} threads, {platform.processor() or platform.machine()}")
     print(f"{'backend':>6} {'dev':>4} {'N':>6} {'3dgs (s)':>10} {'full (s)':>10} {'full/3dgs':>9} "
-          f"{'refr (s)':>10} {'refr/3dgs':>9}")
+          f"{'refr (s)':>10} {'refr/3dgs':>9} {'2dgs+full':>10} {'/full':>9}")
     rows = bench_train_step(args.counts, pairs, args.steps, args.warmup)
     write_json(args.out, {"rows": rows, "torch": torch.__version__, "threads": torch.get_num_threads(),
                           **openmp_wait()}, indent=1)

@@ -26,9 +26,15 @@ disk of radius sqrt(r2 / 2) px. A surfel whose disk reaches the camera's plane z
 image (the ellipse becomes a hyperbola) and is culled, as is one whose centre is nearer than 0.01.
 The box is a pure acceleration: renders do not depend on tiles or backend.
 
-`means2d` is the projection of the centre (gsplat's 2DGS uses the centre of the disk's image conic
-instead, which differs for tilted surfels). The camera-frame centre is rebuilt from it (same point), so
+`means2d` is the projection of the centre (gsplat's own 2DGS projection uses the centre of the disk's image
+conic instead, which differs for tilted surfels). The camera-frame centre is rebuilt from it (same point), so
 `means2d.grad` is the full screen-space gradient of the loss at fixed depth, as for `rasterize`.
+
+The gsplat backend takes the same surfels as gsplat's "ray transforms" T = K [a b p] (which maps (u, v, 1)
+to homogeneous pixels: the 2DGS paper's KWH, stored by rows as gsplat stores it), built here from the
+tangents in a few differentiable ops: no quaternion, no SVD. For a pixel (px, py) gsplat intersects the
+planes h_u = px T_2 - T_0 and h_v = py T_2 - T_1; (u, v) = (h_u x h_v)_xy / (h_u x h_v)_z is the same
+intersection as `rays` gives (tests/test_surfel.py compares them).
 """
 
 from __future__ import annotations
@@ -50,6 +56,8 @@ class SurfelsProjected(NamedTuple):
     box: torch.Tensor  # [N, 4] int64 inclusive pixel ranges (i0, i1, j0, j1), clipped to the image
     visible: torch.Tensor  # [N] bool
     radii: torch.Tensor  # [N] int32 max distance (pixels) from means2d to the box edge, 0 = not visible
+    reach: torch.Tensor  # [N, 2] int32 the same per axis (x, y): the box lies within means2d +- reach
+    transforms: torch.Tensor | None  # [N, 3, 3] K [a b p], differentiable; only with transforms=True
 
 
 def surfel_tangents(quats: torch.Tensor, scales: torch.Tensor, fast: bool = False) -> torch.Tensor:
@@ -64,8 +72,9 @@ def surfel_tangents(quats: torch.Tensor, scales: torch.Tensor, fast: bool = Fals
 
 
 def project_surfels(means: torch.Tensor, tangents: torch.Tensor, opacities: torch.Tensor,
-                    camera: Camera) -> SurfelsProjected:
-    """Project surfels (means [N, 3], scaled world tangents [N, 3, 2], opacities [N]) into `camera`."""
+                    camera: Camera, transforms: bool = False) -> SurfelsProjected:
+    """Project surfels (means [N, 3], scaled world tangents [N, 3, 2], opacities [N]) into `camera`;
+    `transforms`: also gsplat's ray transforms (see the module notes)."""
     dtype, device = means.dtype, means.device
     R = torch.tensor(camera.R, dtype=dtype, device=device)
     tc = torch.tensor(camera.t, dtype=dtype, device=device)
@@ -85,6 +94,15 @@ def project_surfels(means: torch.Tensor, tangents: torch.Tensor, opacities: torc
     hv = torch.linalg.cross(p, a)
     rays = torch.stack([hu[:, 0] / fx, hu[:, 1] / fy, hv[:, 0] / fx, hv[:, 1] / fy, n[:, 0] / fx,
                         n[:, 1] / fy, (n * rc).sum(-1)], -1)  # [N, 7]
+    T = None
+    if transforms:
+        K = torch.tensor(camera.K, dtype=dtype, device=device)
+        T = K @ torch.stack([a, b, p], -1)  # [N, 3, 3]
+        # placed at means2d: `shift` is zero, and its two terms cancel in every gradient but means2d's own,
+        # which becomes the translation of the surfel's whole image on the screen, as the twins' dx = px -
+        # means2d make it (densification reads it); T's row 2, (a_z, b_z, z), does not move with it
+        shift = means2d - torch.stack([u, v], -1)  # [N, 2]
+        T = T + torch.cat([shift[:, :, None] * T[:, 2:3], torch.zeros_like(T[:, :1])], 1)
 
     normals = torch.nn.functional.normalize(torch.linalg.cross(tangents[..., 0], tangents[..., 1]), dim=-1)
     centre = torch.tensor(camera.camera_center, dtype=dtype, device=device)
@@ -93,13 +111,14 @@ def project_surfels(means: torch.Tensor, tangents: torch.Tensor, opacities: torc
     normals = normals * facing[:, None]  # [N, 3]
 
     with torch.no_grad():
-        box, visible, radii = _screen_box(a.detach(), b.detach(), p.detach(), u.detach(), v.detach(),
+        box, visible, reach = _screen_box(a.detach(), b.detach(), p.detach(), u.detach(), v.detach(),
                                           opacities.detach(), front, camera)
-    return SurfelsProjected(means2d, rays, pc[:, 2], normals, box, visible, radii)
+    return SurfelsProjected(means2d, rays, pc[:, 2], normals, box, visible, reach.amax(-1), reach, T)
 
 
 def _screen_box(a, b, p, u, v, opacities, front, camera: Camera):
-    """Pixel box of each surfel (see the module notes), in float64 so every backend bins alike."""
+    """Pixel box of each surfel (see the module notes), in float64 so every backend bins alike: (box [N, 4],
+    visible [N], reach [N, 2] int32 pixels from (u, v) to the box's farther edge per axis, 0 if not visible)."""
     a, b, p, u, v = (x.double() for x in (a, b, p, u, v))
     W, H = camera.width, camera.height
     r2 = 2 * torch.log(torch.clamp(opacities.double(), min=ALPHA_MIN) * 255.0)  # [N]
@@ -133,6 +152,6 @@ def _screen_box(a, b, p, u, v, opacities, front, camera: Camera):
     visible = ok & (i1 >= 0) & (i0 <= W - 1) & (j1 >= 0) & (j0 <= H - 1) & (i0 <= i1) & (j0 <= j1)
     box = torch.stack([i0.clamp(0, W - 1), i1.clamp(0, W - 1), j0.clamp(0, H - 1), j1.clamp(0, H - 1)], -1)
     box = torch.where(visible[:, None], box, torch.zeros_like(box)).to(torch.int64)
-    reach = torch.stack([u - lo_u, hi_u - u, v - lo_v, hi_v - v], -1).amax(-1)
-    radii = torch.where(visible, torch.ceil(reach), torch.zeros_like(reach)).to(torch.int32)
-    return box, visible, radii
+    reach = torch.stack([torch.maximum(u - lo_u, hi_u - u), torch.maximum(v - lo_v, hi_v - v)], -1)  # [N, 2]
+    reach = torch.where(visible[:, None], torch.ceil(reach), torch.zeros_like(reach)).to(torch.int32)
+    return box, visible, reach

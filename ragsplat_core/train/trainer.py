@@ -41,7 +41,7 @@ from ragsplat_core.outputs import atomic_path, claim, versions, write_json
 from ragsplat_core.ply import save_ply
 from ragsplat_core.raster.surfel_project import surfel_tangents
 from ragsplat_core.rasterize import choose_backend, rasterize
-from ragsplat_core.rasterize_surfels import choose_surfel_backend, depth_normals, rasterize_surfels
+from ragsplat_core.rasterize_surfels import depth_normals, rasterize_surfels
 from ragsplat_core.refraction import ApparentGaussians, WaterSurface, opacity_factor, refract_gaussians
 from ragsplat_core.snell import footprint
 from ragsplat_core.ssim import psnr, ssim, ssim_map
@@ -90,8 +90,8 @@ def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, backgrou
     if not surfels:
         return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, camera, background, covars=g.covars,
                          backend=backend, median=median)
-    # [N, 3, 2] t' = J t through the water; without it quats and scales (gsplat on CUDA takes only those)
-    fast = g.jacobians is not None and choose_surfel_backend(backend, g.means.device, True) == "cpu"
+    # [N, 3, 2] t' = J t through the water; without it quats and scales
+    fast = g.jacobians is not None and choose_backend(backend, g.means.device) == "cpu"
     tangents = None if g.jacobians is None else g.jacobians @ surfel_tangents(g.quats, g.scales[:, :2], fast)
     return rasterize_surfels(g.means, g.quats, g.scales[:, :2], g.opacities, g.colors, camera, background,
                              tangents=tangents, backend=backend)
