@@ -1,5 +1,5 @@
 """`ragsplat eval RUN [--data DIR] [--out FILE.json] [--min-opacity A] [--max-scale-gsd K] [--despike-radius M]
-[--despike-tol M] [--vgg16 PATH] [--no-download]`: a finished training run
+[--despike-tol M] [--fill-gap-cells K] [--vgg16 PATH] [--no-download]`: a finished training run
 scored against its dataset's ground truth with the ablation's measures, without retraining (`eval.score`);
 prints the bed's scores beside the reference answers and writes them all as JSON (default RUN/eval.json)."""
 

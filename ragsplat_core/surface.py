@@ -20,7 +20,11 @@ Extraction (the paper's Section 3, "Geometry Extraction"):
 5. despiking (a DEM's usual last step): a cell whose height is more than `despike_tol` from the median of
    the occupied cells within `despike_radius` is dropped (`despike`). Floaters that are opaque and small
    enough to pass steps 1-3 gather in patches of a few tens of cells metres above or below the bed; the
-   point filter keeps them because each patch is a plane of its own.
+   point filter keeps them because each patch is a plane of its own;
+6. optionally (`fill_gap_cells` > 0, default 0: off) hole filling as a surveyor grids a DEM: every empty
+   cell whose nearest occupied cell is at most that many cells away gets the height of the occupied cells'
+   linear (Delaunay) interpolation (`fill_holes`). Where deep Gaussians were culled or sampled thinly the
+   grid has scattered one-cell holes; wider gaps stay empty.
 
 The evaluation scores the grid with `ragsplat_core.scoring.geometry_metrics` (`eval.evaluate`).
 """
@@ -108,6 +112,7 @@ class ExtractConfig:
     despike_radius: float = 1.0  # metres
     despike_tol: float = 0.3  # metres
     despike_min_neighbours: int = 8
+    fill_gap_cells: float = 0.0  # step 6; 0: off
     seed: int = 0
 
     def to_dict(self) -> dict:
@@ -331,7 +336,30 @@ def extract_surface(means, scales, quats, opacities, cfg: ExtractConfig = Extrac
     grid = grid[smooth]  # before the crop, so that cells at the region's edge have their neighbours outside it
     if region is not None:
         grid = grid[in_region(grid, region, tol=1e-6 * cfg.cell)]
+    extracted = len(grid)
+    grid = fill_holes(grid, cfg.cell, origin, cfg.fill_gap_cells)
     stats = {"gaussians": len(kept), "gaussians_sampled": int(kept.sum()), "samples": len(pts),
-             "samples_after_filter": int(mask.sum()), "grid_spikes": spikes, "grid_points": len(grid),
+             "samples_after_filter": int(mask.sum()), "grid_spikes": spikes, "grid_filled": len(grid) - extracted,
+             "grid_points": len(grid),
              "config": cfg.to_dict(), "grid_origin": list(origin)}
     return grid, stats
+
+
+def fill_holes(grid: np.ndarray, cell: float, origin: tuple[float, float], gap_cells: float) -> np.ndarray:
+    """`grid` [G, 3] (one point per occupied cell at its node, nodes at origin + k cell) and, after it, a
+    point at every empty node of its bounding box whose nearest occupied node is at most `gap_cells` cells
+    away and that lies inside the occupied nodes' convex hull, its height linear on their Delaunay
+    triangulation (`tracks.tin`). gap_cells <= 0: `grid` itself."""
+    if gap_cells <= 0 or len(grid) < 3:
+        return grid
+    from scipy.ndimage import distance_transform_edt
+
+    from ragsplat_core.tracks import tin
+
+    ij = np.round((grid[:, :2] - np.asarray(origin)) / cell).astype(np.int64)  # [G, 2]
+    lo = ij.min(0)
+    occupied = np.zeros(ij.max(0) - lo + 1, dtype=bool)
+    occupied[tuple((ij - lo).T)] = True
+    near = ~occupied & (distance_transform_edt(~occupied) <= gap_cells + 1e-9)  # in cells
+    nodes = (np.argwhere(near) + lo) * cell + np.asarray(origin)  # [H, 2]
+    return np.vstack([grid, tin(grid, nodes)]) if len(nodes) else grid

@@ -248,3 +248,25 @@ def test_wide_gaussians_are_not_sampled():
     assert stats["gaussians_sampled"] == n and np.abs(grid[:, 2] + 1).max() < 0.01
     with pytest.raises(ConfigError, match="ground sample distance"):  # a size cull with nothing to scale it
         extract_surface(means, scales, quats, opac, replace(cfg, gsd=None), region)
+
+
+def test_fill_holes_recovers_a_plane_and_leaves_wide_gaps():
+    # A plane on a 5 cm lattice with one-cell holes and a hole 5 cells wide: filling 1 cell gives back the
+    # plane's exact height in the small holes and leaves the wide one empty; 0 changes nothing.
+    from ragsplat_core.surface import fill_holes
+
+    cell, origin = 0.05, (0.1, -0.2)
+    i, j = np.meshgrid(np.arange(40), np.arange(30), indexing="ij")
+    xy = np.column_stack([i.ravel(), j.ravel()]) * cell + origin
+    full = np.column_stack([xy, 0.3 * xy[:, 0] - 0.2 * xy[:, 1] + 1.0])
+    small = ((i % 7 == 3) & (j % 5 == 2)).ravel()  # isolated one-cell holes
+    wide = ((i >= 20) & (i < 25) & (j >= 10) & (j < 15)).ravel()
+    grid = full[~small & ~wide]
+    assert fill_holes(grid, cell, origin, 0.0) is grid
+    filled = fill_holes(grid, cell, origin, 1.0)
+    assert np.array_equal(filled[:len(grid)], grid)  # the measured cells first, unchanged
+    new = filled[len(grid):]
+    rim = wide & ~((i > 20) & (i < 24) & (j > 10) & (j < 14)).ravel()  # the wide hole's cells next to measured ones
+    cells = lambda p: set(map(tuple, np.round((p[:, :2] - origin) / cell).astype(int)))
+    assert cells(new) == cells(full[small | rim])  # the wide hole's inner 3 x 3 stays empty
+    np.testing.assert_allclose(new[:, 2], 0.3 * new[:, 0] - 0.2 * new[:, 1] + 1.0, atol=1e-12)

@@ -52,6 +52,13 @@ def positive_float(text: str) -> float:
     return value
 
 
+def non_negative_float(text: str) -> float:
+    value = _number(float, text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {value:g}")
+    return value
+
+
 def limit(text: str) -> float:
     """A positive number or inf (no limit)."""
     if text.strip().lower() in ("inf", "infinity"):
@@ -93,12 +100,13 @@ def dataset_dir(text: str) -> Path:
     return path.parent if path.name == "transforms.json" and path.is_file() else path
 
 
-CULLS = ("min_opacity", "max_scale_gsd", "despike_radius", "despike_tol")  # what a command may change of the bed
+# what a command may change of the bed
+CULLS = ("min_opacity", "max_scale_gsd", "despike_radius", "despike_tol", "fill_gap_cells")
 
 
 def cull_arguments(parser: argparse.ArgumentParser) -> None:
-    """--min-opacity, --max-scale-gsd, --despike-radius and --despike-tol: the volume bed's culls
-    (`ExtractConfig`); read them back with `cull_overrides`."""
+    """--min-opacity, --max-scale-gsd, --despike-radius, --despike-tol and --fill-gap-cells: the volume
+    bed's culls and hole filling (`ExtractConfig`); read them back with `cull_overrides`."""
     parser.add_argument("--min-opacity", type=positive_float, metavar="A",
                         help="only Gaussians at least this opaque make the bed (default: the evaluation's, chosen on "
                              "the development reach; lower it for a short or sparse run)")
@@ -112,6 +120,9 @@ def cull_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--despike-tol", type=limit, metavar="M",
                         help="and dropped when more than M metres from it (default: the evaluation's; inf: keep "
                              "every cell)")
+    parser.add_argument("--fill-gap-cells", type=non_negative_float, metavar="K",
+                        help="fill the holes: an empty cell at most K cells from a filled one gets the linear "
+                             "interpolation of the filled cells (default: the evaluation's, 0: none)")
 
 
 def cull_overrides(args: argparse.Namespace) -> dict:

@@ -1,5 +1,5 @@
 """`ragsplat export RUN --dem FILE.tif [--resolution 0.05] [--min-opacity A] [--max-scale-gsd K]
-[--despike-radius M] [--despike-tol M] [--las FILE.las|.laz] [--ply FILE] [--png FILE]`.
+[--despike-radius M] [--despike-tol M] [--fill-gap-cells K] [--las FILE.las|.laz] [--ply FILE] [--png FILE]`.
 
 Turns a finished training run into survey products (`ragsplat_core.export`): the DEM GeoTIFF (bed elevation
 and water depth), and on request the bed points as LAS/LAZ and PLY and a depth map PNG.
