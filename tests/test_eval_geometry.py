@@ -219,12 +219,14 @@ def test_extraction_despikes_a_floater_patch():
     n = len(means)
     scales, quats, opac = np.tile([0.03, 0.03, 0.003], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1)), np.full(n, 0.9)
     region = {"xmin": 0.2, "xmax": 1.7, "ymin": 0.2, "ymax": 1.7}
-    cfg = ExtractConfig(n_samples=40_000, gsd=0.025)
+    cfg = ExtractConfig(n_samples=40_000, gsd=0.025, fill_gap_cells=0.0)  # the despiked cells stay empty
     kept, _ = extract_surface(means, scales, quats, opac, replace(cfg, despike_tol=math.inf), region)
     assert (kept[:, 2] > 0).sum() >= 20  # the patch is in the grid without despiking
     grid, stats = extract_surface(means, scales, quats, opac, cfg, region)
     assert stats["grid_spikes"] >= 20 and np.abs(grid[:, 2] + 1).max() < 0.01
     assert len(grid) == len(kept) - stats["grid_spikes"]
+    filled, fstats = extract_surface(means, scales, quats, opac, replace(cfg, fill_gap_cells=1.0), region)
+    assert fstats["grid_filled"] > 0 and np.abs(filled[:, 2] + 1).max() < 0.01  # the hole's rim, at the bed
 
 
 def test_wide_gaussians_are_not_sampled():
