@@ -361,10 +361,12 @@ def fill_holes(grid: np.ndarray, cell: float, origin: tuple[float, float], gap_c
     """`grid` [G, 3] (one point per occupied cell at its node, nodes at origin + k cell) and, after it, a
     point at every empty node of its bounding box whose nearest occupied node is at most `gap_cells` cells
     away and that lies inside the occupied nodes' convex hull, its height linear on their Delaunay
-    triangulation (`tracks.tin`). gap_cells <= 0: `grid` itself."""
+    triangulation (`tracks.tin`). gap_cells <= 0, or occupied nodes on one line (a hull with no inside):
+    `grid` itself."""
     if gap_cells <= 0 or len(grid) < 3:
         return grid
     from scipy.ndimage import distance_transform_edt
+    from scipy.spatial import QhullError
 
     from ragsplat_core.tracks import tin
 
@@ -374,4 +376,9 @@ def fill_holes(grid: np.ndarray, cell: float, origin: tuple[float, float], gap_c
     occupied[tuple((ij - lo).T)] = True
     near = ~occupied & (distance_transform_edt(~occupied) <= gap_cells + 1e-9)  # in cells
     nodes = (np.argwhere(near) + lo) * cell + np.asarray(origin)  # [H, 2]
-    return np.vstack([grid, tin(grid, nodes)]) if len(nodes) else grid
+    if not len(nodes):
+        return grid
+    try:
+        return np.vstack([grid, tin(grid, nodes)])
+    except QhullError:  # every occupied node on one line (a one-row DEM): no triangle to interpolate in
+        return grid

@@ -272,3 +272,5 @@ def test_fill_holes_recovers_a_plane_and_leaves_wide_gaps():
     cells = lambda p: set(map(tuple, np.round((p[:, :2] - origin) / cell).astype(int)))
     assert cells(new) == cells(full[small | rim])  # the wide hole's inner 3 x 3 stays empty
     np.testing.assert_allclose(new[:, 2], 0.3 * new[:, 0] - 0.2 * new[:, 1] + 1.0, atol=1e-12)
+    line = full[((j == 4) & (i % 3 != 1)).ravel()]  # one row with gaps: no hull to interpolate in
+    assert fill_holes(line, cell, origin, 1.0) is line
