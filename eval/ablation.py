@@ -92,13 +92,25 @@ JOBS = 2
 JOBS_PER_GPU = 6
 
 
-def default_jobs(device: str | None) -> int:
-    """`--jobs`' default for training on `device` (None: the presets' "auto", CUDA when available)."""
+def visible_gpus(device: str | None) -> list[str]:
+    """The GPUs `--jobs`' processes are shared out over (each sees one as "cuda"): every visible one when
+    training goes to CUDA without an index (None: the presets' "auto", CUDA when available); none (the
+    environment as it is) otherwise."""
     import torch
 
-    if (device in (None, "auto") and torch.cuda.is_available()) or str(device).startswith("cuda"):
-        return JOBS_PER_GPU * (1 if ":" in str(device) else max(1, torch.cuda.device_count()))
-    return JOBS
+    if device not in (None, "auto", "cuda") or not torch.cuda.is_available():
+        return []
+    listed = os.environ.get("CUDA_VISIBLE_DEVICES")
+    return listed.split(",") if listed else [str(k) for k in range(torch.cuda.device_count())]
+
+
+def default_jobs(device: str | None) -> int:
+    """`--jobs`' default for training on `device`: JOBS_PER_GPU on each GPU it shares out over, or on the
+    one GPU it names ("cuda:1", or "cuda" where none is visible), else JOBS."""
+    gpus = visible_gpus(device)
+    if gpus:
+        return JOBS_PER_GPU * len(gpus)
+    return JOBS_PER_GPU if str(device).startswith("cuda") else JOBS
 
 
 def extract_config(preset: str, n_gt: int, seed: int, gsd: float | None) -> ExtractConfig:

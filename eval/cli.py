@@ -109,13 +109,13 @@ def run_jobs(args: argparse.Namespace, fingerprint: str, check) -> None:
     keyed to the sources as they were when the command started (`--code`), each taking the next row that
     none has taken from a queue folder of this command's own (`--queue`, removed at the end). `check()`
     raises KeyboardInterrupt once this process was interrupted; the processes are then stopped (`stop`)."""
-    from eval.ablation import claim_out, held
+    from eval.ablation import claim_out, held, visible_gpus
 
     claim_out(args.out)  # before the logs are written into it
     prepare(args, fingerprint)
     threads = str(max(1, (os.cpu_count() or 1) // args.jobs))
     env = {**os.environ, "OMP_NUM_THREADS": threads, "MKL_NUM_THREADS": threads, "NUMBA_NUM_THREADS": threads}
-    gpus = visible_gpus(args.device)
+    gpus = visible_gpus(args.device)  # [] on the CPU
     base = [sys.executable, "-m", "ragsplat_core.cli.main", "ablation", "--data", str(args.data), "--out",
             str(args.out), "--preset", args.preset, "--variants", *args.variants, "--seeds",
             *map(str, args.seeds), "--init", args.init, *(["--vgg16", args.vgg16] if args.vgg16 else []),
@@ -151,17 +151,6 @@ def run_jobs(args: argparse.Namespace, fingerprint: str, check) -> None:
                         f"{': ' + why if why else ''}); finished rows and checkpoints are kept, rerun the same "
                         "command to resume")
     shutil.rmtree(queue, ignore_errors=True)
-
-
-def visible_gpus(device: str | None) -> list[str]:
-    """The GPUs `--jobs`' processes are shared out over (each sees one as "cuda"): every visible one when
-    training goes to CUDA without an index; none (the environment as it is) otherwise."""
-    import torch
-
-    if device not in (None, "auto", "cuda") or not torch.cuda.is_available():
-        return []
-    listed = os.environ.get("CUDA_VISIBLE_DEVICES")
-    return listed.split(",") if listed else [str(k) for k in range(torch.cuda.device_count())]
 
 
 def lpips_arguments(parser: argparse.ArgumentParser) -> None:

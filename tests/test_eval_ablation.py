@@ -275,18 +275,18 @@ def test_default_jobs_and_the_gpus_they_share(monkeypatch):
     # `--jobs` left out: 2 processes on the CPU, JOBS_PER_GPU per GPU on CUDA, shared out round the GPUs.
     import torch
 
-    from eval import ablation, cli
+    from eval import ablation
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     assert ablation.default_jobs(None) == ablation.default_jobs("cpu") == ablation.JOBS == 2
-    assert cli.visible_gpus(None) == []
+    assert ablation.visible_gpus(None) == []
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
     monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
     assert ablation.default_jobs(None) == ablation.default_jobs("cuda") == 2 * ablation.JOBS_PER_GPU
     assert ablation.default_jobs("cuda:1") == ablation.JOBS_PER_GPU  # all on the one named
     assert ablation.default_jobs("cpu") == ablation.JOBS
-    assert cli.visible_gpus("cuda") == cli.visible_gpus(None) == ["0", "1"]
-    assert cli.visible_gpus("cuda:1") == cli.visible_gpus("cpu") == []
+    assert ablation.visible_gpus("cuda") == ablation.visible_gpus(None) == ["0", "1"]
+    assert ablation.visible_gpus("cuda:1") == ablation.visible_gpus("cpu") == []
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,3")
-    assert cli.visible_gpus(None) == ["2", "3"]
+    assert ablation.visible_gpus(None) == ["2", "3"]
