@@ -30,11 +30,11 @@ def composite(proj: SurfelsProjected, opacities: torch.Tensor, colors: torch.Ten
 
     tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
     means2d = proj.means2d.float()[None]  # [1, N, 2]
-    depths = proj.depths.float()[None]  # [1, N]
-    tiles, isect_ids, flatten_ids = isect_tiles(means2d.detach(), proj.reach[None].contiguous(), depths.detach(),
-                                                TILE, tiles_x, tiles_y)
+    depths = proj.depths.float()  # [N]: the tiles' sort key, and composited as the last feature
+    tiles, isect_ids, flatten_ids = isect_tiles(means2d.detach(), proj.reach[None].contiguous(),
+                                                depths.detach()[None], TILE, tiles_x, tiles_y)
     offsets = isect_offset_encode(isect_ids, 1, tiles_x, tiles_y)  # [1, tiles_y, tiles_x]
-    feats = torch.cat([colors.float(), proj.depths.float()[:, None]], -1)[None]  # [1, N, 4]: depth last
+    feats = torch.cat([colors.float(), depths[:, None]], -1)[None]  # [1, N, 4]: depth last
     bg = torch.cat([background.float(), background.new_zeros(1).float()])[None]  # [1, 4]
     densify = torch.zeros_like(means2d)  # gsplat's densification gradient: means2d.grad is ours
     out, alpha, normals, distortion, median = rasterize_to_pixels_2dgs(
