@@ -189,6 +189,9 @@ SHORT_LR_MEANS = 1.6e-3  # smoke (CI): a scale argument, not tuned
 SMALL_LR_MEANS = 5e-3
 # 2DGS's normal consistency at 0.05 smooths the bed's stones at this resolution: a fifth of it (TUNING["surfel_terms"]).
 SMALL_LAMBDA_NORMAL = 0.01
+# The photometric loss weighs (1 - SSIM) at 0.8, not 3DGS's 0.2: the bed's fine relief shows in the images'
+# structure more than in their mean colour (TUNING["ssim_lambda"]).
+SMALL_SSIM_LAMBDA = 0.8
 TUNING = {"preset": "small", "dataset_preset": "small", "dataset_seed": 1, "training_seed": 0,
           "chosen": {"lr_means": SMALL_LR_MEANS}, "tried": {"lr_means": [5e-4, 1.6e-3, 5e-3]},
           "rule": "max F1@3% of the full variant",
@@ -225,6 +228,33 @@ TUNING = {"preset": "small", "dataset_preset": "small", "dataset_seed": 1, "trai
                         "seed 1": {"2DGS's": [78.1, 97.7, 3.8, 7.2, 97.3],
                                    "lambda_normal 0.01": [81.7, 97.7, 3.4, 6.3, 96.8]}},
               "command": "python -m eval.tune --data data/small-dev --out DIR --param P --values V "
+                         "--variants 2dgs+full --seed S"},
+          # Then, with normal 0.01, the loss's SSIM weight, the position rate, densification's threshold and the
+          # SH degree (2dgs+full, each row the preset with the named one changed; the base row is seed 0's
+          # "lambda_normal 0.01" above and seed 1's below it):
+          "ssim_lambda": {
+              "chosen": {"ssim_lambda": SMALL_SSIM_LAMBDA},
+              "rule": "max F1@1% (mean of the two seeds) among settings within 0.5 point of the best F1@3%",
+              "columns": ["F1@1% (%)", "F1@3% (%)", "wet RMSE (cm)", "wet p95 (cm)", "wet cover (%)"],
+              "tried": {"seed 0": {"ssim_lambda 0.2 (3DGS)": [81.3, 97.5, 3.2, 6.4, 95.7],
+                                   "ssim_lambda 0.1": [77.3, 97.1, 4.0, 8.1, 96.4],
+                                   "ssim_lambda 0.4": [82.4, 98.0, 3.2, 6.6, 97.1],
+                                   "ssim_lambda 0.6": [82.5, 98.1, 3.5, 6.2, 96.9],
+                                   "ssim_lambda 0.8": [82.9, 98.3, 3.4, 6.3, 97.4],
+                                   "ssim_lambda 1": [81.9, 97.9, 4.0, 7.0, 97.2],
+                                   "lr_means 2.5e-3": [80.3, 97.4, 3.6, 7.4, 96.7],
+                                   "lr_means 1e-2": [80.2, 97.9, 3.5, 6.9, 96.9],
+                                   "densify.grow_grad2d 1e-4": [79.9, 97.7, 3.7, 7.3, 97.3],
+                                   "densify.grow_grad2d 4e-4": [80.0, 97.4, 3.7, 6.9, 96.1],
+                                   "sh_degree 1": [81.9, 97.8, 3.1, 6.2, 96.0]},
+                        "seed 1": {"ssim_lambda 0.2 (3DGS)": [81.7, 97.7, 3.4, 6.3, 96.8],
+                                   "ssim_lambda 0.4": [82.7, 98.0, 3.2, 6.3, 97.1],
+                                   "ssim_lambda 0.6": [82.7, 98.3, 3.5, 6.5, 97.8],
+                                   "ssim_lambda 0.8": [82.4, 98.3, 3.6, 6.6, 97.6]}},
+              # the same loss for the 3DGS rows of the preset: `full`, seed 0, checked before it was kept
+              "full seed 0": {"ssim_lambda 0.2 (3DGS)": [70.4, 94.0, 5.3, 12.2, 95.6],
+                              "ssim_lambda 0.8": [75.6, 95.9, 4.8, 10.4, 96.5]},
+              "command": "python -m eval.tune --data data/small-dev --out DIR --param P --values V "
                          "--variants 2dgs+full --seed S"}}
 # `small-field`: the `small` preset for photos under field conditions (turbid, reflecting, rippled water), tuned
 # on the development seed of the `small-field` dataset, never on its evaluation seed: the 2 x 2 of iterations and
@@ -255,10 +285,13 @@ PRESETS: dict[str, TrainConfig] = {
     "smoke": TrainConfig(preset="smoke", iterations=150, init_count=1_500, sh_degree=1,
                          lr_means=SHORT_LR_MEANS, densify=DensifyConfig(max_gaussians=4_000)),
     "small": TrainConfig(preset="small", iterations=1500, init_count=16_000, lr_means=SMALL_LR_MEANS,
-                         lambda_normal=SMALL_LAMBDA_NORMAL, densify=DensifyConfig(max_gaussians=40_000)),
+                         lambda_normal=SMALL_LAMBDA_NORMAL, ssim_lambda=SMALL_SSIM_LAMBDA,
+                         densify=DensifyConfig(max_gaussians=40_000)),
     "paper": TrainConfig(preset="paper", iterations=30_000, init_count=40_000),
 }
-PRESETS["small-field"] = replace(PRESETS["small"], preset="small-field", init="refracted", **FIELD_TUNING["chosen"])
+# small-field keeps 3DGS's SSIM weight: small's 0.8 was not checked on the field reach.
+PRESETS["small-field"] = replace(PRESETS["small"], preset="small-field", init="refracted", ssim_lambda=0.2,
+                                 **FIELD_TUNING["chosen"])
 
 
 def preset_config(name: str, **overrides) -> TrainConfig:
