@@ -266,8 +266,8 @@ def test_tune_sets_nested_and_top_level_parameters():
     assert capped.densify.max_gaussians == 20000 and isinstance(capped.densify.max_gaussians, int)
     assert capped.densify.prune_opa == cfg.densify.prune_opa and capped.iterations == cfg.iterations
     assert with_value(cfg, "lr_means", 1e-3).lr_means == 1e-3
-    longer = with_value(cfg, "iterations", 3000.0)
-    assert longer.iterations == 3000 and isinstance(longer.iterations, int)
+    longer = with_value(cfg, "iterations", 4500.0)
+    assert longer.iterations == 4500 and isinstance(longer.iterations, int)
     assert {"lr_means", "iterations", "densify.max_gaussians", "densify.grow_grad2d"} <= set(PARAMS)
 
 
