@@ -200,6 +200,10 @@ SMALL_REFINE_STOP = 9_000
 # long. Chosen for the best variant: `full` loses at 3 000 (4 points at 1 %, seed 0), and keeps the same preset so
 # that the rows differ by their model alone.
 SMALL_ITERATIONS = 3000
+# What the later tuning records below score a bed by (`eval.tune`'s figures), and their two selection rules.
+BED_COLUMNS = ["F1@1% (%)", "F1@3% (%)", "wet RMSE (cm)", "wet p95 (cm)", "wet cover (%)"]
+RULE_1PCT = "max F1@1% (mean of the two seeds) among settings within 0.5 point of the best F1@3%"
+FIELD_RULE = "max F1@3% of 2dgs+full, on both seeds"
 TUNING = {"preset": "small", "dataset_preset": "small", "dataset_seed": 1, "training_seed": 0,
           "chosen": {"lr_means": SMALL_LR_MEANS}, "tried": {"lr_means": [5e-4, 1.6e-3, 5e-3]},
           "rule": "max F1@3% of the full variant",
@@ -225,7 +229,7 @@ TUNING = {"preset": "small", "dataset_preset": "small", "dataset_seed": 1, "trai
           "surfel_terms": {
               "chosen": {"lambda_normal": SMALL_LAMBDA_NORMAL},
               "rule": "max F1@1% among settings within 0.5 point of the best F1@3%, wet cover >= 85 %",
-              "columns": ["F1@1% (%)", "F1@3% (%)", "wet RMSE (cm)", "wet p95 (cm)", "wet cover (%)"],
+              "columns": BED_COLUMNS,
               "tried": {"seed 0": {"2DGS's": [78.0, 97.5, 3.7, 7.3, 96.7],
                                    "lambda_normal 0.2": [66.8, 95.3, 5.3, 10.6, 96.6],
                                    "lambda_normal 0.01": [81.3, 97.5, 3.2, 6.4, 95.7],
@@ -242,8 +246,8 @@ TUNING = {"preset": "small", "dataset_preset": "small", "dataset_seed": 1, "trai
           # "lambda_normal 0.01" above and seed 1's below it):
           "ssim_lambda": {
               "chosen": {"ssim_lambda": SMALL_SSIM_LAMBDA},
-              "rule": "max F1@1% (mean of the two seeds) among settings within 0.5 point of the best F1@3%",
-              "columns": ["F1@1% (%)", "F1@3% (%)", "wet RMSE (cm)", "wet p95 (cm)", "wet cover (%)"],
+              "rule": RULE_1PCT,
+              "columns": BED_COLUMNS,
               "tried": {"seed 0": {"ssim_lambda 0.2 (3DGS)": [81.3, 97.5, 3.2, 6.4, 95.7],
                                    "ssim_lambda 0.1": [77.3, 97.1, 4.0, 8.1, 96.4],
                                    "ssim_lambda 0.4": [82.4, 98.0, 3.2, 6.6, 97.1],
@@ -268,8 +272,8 @@ TUNING = {"preset": "small", "dataset_preset": "small", "dataset_seed": 1, "trai
           # base rows being the "ssim_lambda 0.8" ones above:
           "refine_stop": {
               "chosen": {"densify.refine_stop_iter": SMALL_REFINE_STOP},
-              "rule": "max F1@1% (mean of the two seeds) among settings within 0.5 point of the best F1@3%",
-              "columns": ["F1@1% (%)", "F1@3% (%)", "wet RMSE (cm)", "wet p95 (cm)", "wet cover (%)"],
+              "rule": RULE_1PCT,
+              "columns": BED_COLUMNS,
               "tried": {"seed 0": {"15000 (3DGS)": [82.9, 98.3, 3.4, 6.3, 97.4],
                                    "6000": [83.9, 98.2, 3.7, 6.3, 97.9], "9000": [83.9, 98.3, 3.5, 6.1, 97.8],
                                    "22500": [81.7, 97.7, 3.5, 6.3, 95.6],
@@ -283,8 +287,8 @@ TUNING = {"preset": "small", "dataset_preset": "small", "dataset_seed": 1, "trai
           # Then, with that stop, a longer run and a larger cap (each row the preset at 1 500 steps with the named
           # one changed):
           "length": {"chosen": {"iterations": SMALL_ITERATIONS},
-                     "rule": "max F1@1% (mean of the two seeds) among settings within 0.5 point of the best F1@3%",
-                     "columns": ["F1@1% (%)", "F1@3% (%)", "wet RMSE (cm)", "wet p95 (cm)", "wet cover (%)"],
+                     "rule": RULE_1PCT,
+                     "columns": BED_COLUMNS,
                      "tried": {"seed 0": {"iterations 1500": [83.9, 98.3, 3.5, 6.1, 97.8],
                                           "iterations 2000": [84.8, 98.6, 3.6, 5.8, 98.4],
                                           "iterations 3000": [85.2, 99.0, 3.4, 5.7, 98.9],
@@ -304,7 +308,7 @@ TUNING = {"preset": "small", "dataset_preset": "small", "dataset_seed": 1, "trai
 FIELD_TUNING = {"preset": "small-field", "dataset_preset": "small-field", "dataset_seed": 1, "training_seed": 0,
                 "variant": "2dgs+full", "chosen": {"iterations": 3000, "init_fill": 0.2},
                 "rule": "max F1@3% of 2dgs+full",
-                "columns": ["F1@1% (%)", "F1@3% (%)", "wet RMSE (cm)", "wet p95 (cm)", "wet cover (%)", "training (s)"],
+                "columns": BED_COLUMNS + ["training (s)"],
                 "tried": {"1500, no fill": [62.6, 87.7, 8.8, 13.7, 81.3, 487],
                           "3000, no fill": [62.5, 88.1, 11.5, 9.1, 76.8, 951],
                           "1500, fill 0.2 m": [66.0, 87.9, 6.1, 8.2, 76.3, 476],
@@ -313,9 +317,8 @@ FIELD_TUNING = {"preset": "small-field", "dataset_preset": "small-field", "datas
                            "iterations --values 3000 1500 --set init_fill=F --variants 2dgs+full (F = 0, 0.2)",
                 # Later, `small`'s weaker normal term (TUNING["surfel_terms"]) checked here before it was kept:
                 # 3 000 iterations, fill 0.2 m, the default extraction (one-cell fill), training seeds 0 and 1.
-                "lambda_normal": {"kept": SMALL_LAMBDA_NORMAL, "rule": "max F1@3% of 2dgs+full, on both seeds",
-                                  "columns": ["F1@1% (%)", "F1@3% (%)", "wet RMSE (cm)", "wet p95 (cm)",
-                                              "wet cover (%)"],
+                "lambda_normal": {"kept": SMALL_LAMBDA_NORMAL, "rule": FIELD_RULE,
+                                  "columns": BED_COLUMNS,
                                   "tried": {"0.05 (2DGS)": {"seed 0": [68.5, 90.8, 4.7, 8.4, 83.5],
                                                             "seed 1": [67.9, 89.8, 6.1, 8.8, 82.6]},
                                             "0.01": {"seed 0": [71.3, 91.5, 6.8, 8.2, 85.0],
@@ -324,9 +327,8 @@ FIELD_TUNING = {"preset": "small-field", "dataset_preset": "small-field", "datas
                                              "small-field --param lambda_normal --values 0.01 --variants 2dgs+full "
                                              "--seed S (0.05: the runs above, rescored by `ragsplat eval`)"},
                 # and `small`'s SSIM weight (TUNING["ssim_lambda"]), checked the same way with normal 0.01:
-                "ssim_lambda": {"kept": SMALL_SSIM_LAMBDA, "rule": "max F1@3% of 2dgs+full, on both seeds",
-                                "columns": ["F1@1% (%)", "F1@3% (%)", "wet RMSE (cm)", "wet p95 (cm)",
-                                            "wet cover (%)"],
+                "ssim_lambda": {"kept": SMALL_SSIM_LAMBDA, "rule": FIELD_RULE,
+                                "columns": BED_COLUMNS,
                                 "tried": {"0.2 (3DGS)": {"seed 0": [71.3, 91.5, 6.8, 8.2, 85.0],
                                                          "seed 1": [70.6, 90.9, 6.8, 8.4, 84.5]},
                                           "0.8": {"seed 0": [73.4, 95.1, 5.2, 8.9, 93.7],
@@ -337,9 +339,8 @@ FIELD_TUNING = {"preset": "small-field", "dataset_preset": "small-field", "datas
                 # and `small`'s earlier densification stop (TUNING["refine_stop"]), checked the same way with
                 # SSIM 0.8: no gain at 3 % on either seed, so the field keeps 3DGS's stop (half the run)
                 "refine_stop": {"kept": {"densify.refine_stop_iter": 15_000},
-                                "rule": "max F1@3% of 2dgs+full, on both seeds",
-                                "columns": ["F1@1% (%)", "F1@3% (%)", "wet RMSE (cm)", "wet p95 (cm)",
-                                            "wet cover (%)"],
+                                "rule": FIELD_RULE,
+                                "columns": BED_COLUMNS,
                                 "tried": {"15000 (3DGS)": {"seed 0": [73.4, 95.1, 5.2, 8.9, 93.7],
                                                            "seed 1": [73.1, 94.7, 8.2, 9.7, 93.6]},
                                           "9000": {"seed 0": [72.7, 94.8, 5.1, 9.3, 93.4],
