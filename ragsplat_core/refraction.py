@@ -27,6 +27,7 @@ reach the points, the camera, the water level and n.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -171,6 +172,7 @@ def _place(loc: _Local, rho, d_app):  # [M, 3] apparent points from r'/r and d'
     return torch.cat([loc.origin + rho[:, None] * loc.v, (loc.level - d_app)[:, None]], -1)
 
 
+@torch.compiler.disable  # under torch.compile: a graph break (it reads a value), not a traced float() and a warning
 def _check_camera(camera_center, water) -> None:
     if not _value(camera_center[2]) > _value(water.level):
         raise ValueError(f"camera centre z = {_value(camera_center[2])} is not above the water level "
@@ -260,6 +262,11 @@ def _abs_det(loc: _Local, der: _Derivatives):  # [M]: tangential rho times the r
     return torch.abs(der.rho * (j11 * der.dapp_d - 2 * loc.r2 * der.rho_d * der.dapp_r2))
 
 
+@torch.compiler.disable  # data-dependent: under torch.compile a graph break, not a traced bool() and a warning
+def _wet_rows(wet):  # [M] indices of the True entries of wet [N], None when all are
+    return None if bool(wet.all()) else wet.nonzero().squeeze(1)
+
+
 class ApparentGaussians(NamedTuple):
     means: torch.Tensor  # [N, 3]
     scales: torch.Tensor  # [N, 3]
@@ -295,8 +302,8 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
     if water.is_identity or not (position or opacity or color or scale != "none"):
         return ApparentGaussians(means, scales, quats, opacities, colors, covars, jacobians)
     wet = _submerged(means, water)
-    all_wet = bool(wet.all())
-    rows = None if all_wet else wet.nonzero().squeeze(1)  # found once: a boolean index searches every time
+    rows = _wet_rows(wet)  # found once: a boolean index searches every time
+    all_wet = rows is None
 
     def put(full, part):  # writes the submerged rows; skips the scatter when every Gaussian is submerged
         return part if all_wet else full.index_copy(0, rows, part)
@@ -328,3 +335,13 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
         c = take(colors)
         colors = put(colors, linear_to_srgb(srgb_to_linear(c) * fade.reshape(-1, *[1] * (c.dim() - 1))))
     return ApparentGaussians(means, scales, quats, opacities, colors, covars, jacobians)
+
+
+@functools.cache
+def compiled_refract_gaussians():
+    """`refract_gaussians` through `torch.compile` (dynamic shapes): its few dozen small elementwise ops become
+    a handful of fused kernels. That matters where every op is a kernel launch: on a GPU the eager transform is
+    launch-bound (the same 7-10 ms at 40k and 200k Gaussians, docs/performance.md). Values and gradients equal
+    the eager ones to round-off (tests/test_refraction.py); each new family of shapes compiles first (tens of
+    seconds on a CPU)."""
+    return torch.compile(refract_gaussians, dynamic=True)

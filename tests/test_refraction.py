@@ -10,6 +10,7 @@ from ragsplat_core.refraction import (
     WaterSurface,
     apparent_jacobian,
     apparent_points,
+    compiled_refract_gaussians,
     covariance,
     refract_gaussians,
 )
@@ -343,3 +344,32 @@ def test_water_rays_bend_by_snell_and_meet_at_the_true_point():
         np.testing.assert_allclose(closest_points(origins, dirs, np.tile([0, 1], 3), 2), true, atol=1e-9)
     # one view, or views along the same line, do not fix a point
     assert np.isnan(closest_points(origins[:1], dirs[:1], np.array([0]), 1)).all()
+
+
+@pytest.mark.parametrize("flags", [{"scale": "isotropic", "color": True},  # `full` (+ colour)
+                                   {"scale": "anisotropic", "covariances": False}])  # `2dgs+full`'s tangents
+def test_compiled_transform_matches_eager_in_values_and_gradients(flags):
+    # torch.compile fuses the ops and may reorder their arithmetic: the same values to float32 round-off, not
+    # bit-equal. Gaussians above the level, in the waterline band and below, seen off nadir.
+    g = torch.Generator().manual_seed(3)
+    n = 300
+    means = random_points(n, seed=3, depth=(-0.5, 4.0), radius=8.0).float()
+    means[:20, 2] = WATER.level - torch.rand(20, generator=g) * 0.01  # the waterline band
+    inputs = [means, torch.rand(n, 3, generator=g) * 0.05 + 0.01,
+              torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=-1), torch.rand(n, generator=g),
+              torch.rand(n, 3, generator=g)]
+    cam = torch.tensor([2.0, -1.0, 6.0])
+    outs = {}
+    for name, transform in (("eager", refract_gaussians), ("compiled", compiled_refract_gaussians())):
+        leaves = [t.clone().requires_grad_(True) for t in inputs]
+        a = transform(*leaves, cam, WATER, **flags)
+        values = [t for t in (a.means, a.scales, a.opacities, a.colors, a.covars, a.jacobians) if t is not None]
+        # a fixed random weighting of every output, so each output's gradient reaches the inputs
+        loss = sum((v * torch.randn(v.shape, generator=torch.Generator().manual_seed(k))).sum()
+                   for k, v in enumerate(values))
+        outs[name] = values + list(torch.autograd.grad(loss, leaves, allow_unused=True))
+    for eager, compiled in zip(outs["eager"], outs["compiled"], strict=True):
+        if eager is None:
+            assert compiled is None
+            continue
+        torch.testing.assert_close(compiled, eager, rtol=1e-4, atol=1e-5)

@@ -62,11 +62,11 @@ def _dataset(count: int, water: WaterSurface, device: str) -> Dataset:
                    {"xmin": -half, "xmax": half, "ymin": -half, "ymax": half})
 
 
-def _transform_time(tr, steps: int, device: str) -> float:
-    """Median seconds of `refract_gaussians` alone (forward + backward, `full` flags) on the trainer's
-    Gaussians, cut out of the graph: the part of a `full` iteration that plain 3DGS does not do."""
+def _transform_time(tr, steps: int, device: str, transform) -> float:
+    """Median seconds of `transform` (`refract_gaussians` or its compiled twin) alone, forward + backward with
+    `full` flags, on the trainer's Gaussians, cut out of the graph: the part of a `full` iteration that plain
+    3DGS does not do."""
     from ragsplat_core.gaussians import activated, colors_for_view
-    from ragsplat_core.refraction import refract_gaussians
 
     with torch.no_grad():
         scales, quats, opac = activated(tr.splats)
@@ -76,19 +76,22 @@ def _transform_time(tr, steps: int, device: str) -> float:
     for i in range(steps + 1):
         center = tr.centers[i % len(tr.centers)]
         t0 = time.perf_counter()
-        a = refract_gaussians(*leaves, center, tr.water, **tr.flags)
+        a = transform(*leaves, center, tr.water, **tr.flags)
         (a.means.sum() + a.scales.sum() + a.opacities.sum() + a.colors.sum()).backward()
         if device == "cuda":
             torch.cuda.synchronize()
-        if i:  # the first call warms up
+        if i:  # the first call warms up (and compiles)
             out.append(time.perf_counter() - t0)
     return statistics.median(out)
 
 
 def bench_train_step(counts=(10_000, 40_000), pairs=None, steps: int = 10, warmup: int = 3, seed: int = 0,
-                     log=print) -> list[dict]:
+                     log=print, compiled: bool = False) -> list[dict]:
     """One row per (backend, device, N): median seconds per iteration for 3dgs, full and 2dgs+full, and the
-    ratios full / 3dgs and 2dgs+full / full."""
+    ratios full / 3dgs and 2dgs+full / full. `compiled`: also `full` and `2dgs+full` with the transform through
+    torch.compile (`TrainConfig.compile_refraction`; the warm-up steps take the compile), in the same loop,
+    and their ratios to the eager ones."""
+    from ragsplat_core.refraction import compiled_refract_gaussians, refract_gaussians
     from ragsplat_core.train import Trainer, preset_config
 
     water = WaterSurface(0.0, 1.33)
@@ -97,11 +100,13 @@ def bench_train_step(counts=(10_000, 40_000), pairs=None, steps: int = 10, warmu
         for count in counts:
             ds = _dataset(count, water, device)
             trainers = {}
-            for variant in ("3dgs", "full", "2dgs+full"):
+            runs = [("3dgs", False), ("full", False), ("2dgs+full", False)]
+            for variant, fused in runs + ([("full", True), ("2dgs+full", True)] if compiled else []):
                 # paper schedule (30k): refinement starts at 500, after the timed steps; SH degree 3 at once
                 cfg = preset_config("paper", variant=variant, seed=seed, backend=backend, device=device,
-                                    init_depth=DEPTH, init_count=count, sh_degree_every=1, checkpoint_every=0)
-                trainers[variant] = Trainer(cfg, ds, None)
+                                    init_depth=DEPTH, init_count=count, sh_degree_every=1, checkpoint_every=0,
+                                    compile_refraction=fused)
+                trainers[variant + " compiled" * fused] = Trainer(cfg, ds, None)
             times = {v: [] for v in trainers}
             for i in range(warmup + steps):
                 for variant, tr in trainers.items():
@@ -112,7 +117,7 @@ def bench_train_step(counts=(10_000, 40_000), pairs=None, steps: int = 10, warmu
                     if i >= warmup:
                         times[variant].append(time.perf_counter() - t0)
             med = {v: statistics.median(t) for v, t in times.items()}
-            med["transform"] = _transform_time(trainers["full"], steps, device)
+            med["transform"] = _transform_time(trainers["full"], steps, device, refract_gaussians)
             row = {"backend": backend, "device": device, "size": f"{SIZE}x{SIZE}",
                    "gaussians": trainers["full"].num_gaussians, "steps": steps,
                    "median_s_3dgs": med["3dgs"], "median_s_full": med["full"],
@@ -124,4 +129,14 @@ def bench_train_step(counts=(10_000, 40_000), pairs=None, steps: int = 10, warmu
             log(f"{backend:>6} {device:>4} {row['gaussians']:>6} {med['3dgs']:10.4f} {med['full']:10.4f} "
                 f"{row['ratio_full_3dgs']:9.3f} {med['transform']:10.4f} {row['transform_share_of_3dgs']:9.3f} "
                 f"{med['2dgs+full']:10.4f} {row['ratio_2dgs_full_full']:9.3f}")
+            if compiled:
+                med["transform compiled"] = _transform_time(trainers["full"], steps, device,
+                                                            compiled_refract_gaussians())
+                row["compiled"] = {k: {"median_s": med[f"{k} compiled"], "ratio_to_eager": med[f"{k} compiled"] / med[k]}
+                                   for k in ("full", "2dgs+full", "transform")}
+                row["compiled"]["all_s"] = {k: times[f"{k} compiled"] for k in ("full", "2dgs+full")}
+                log(f"{'':>18} compiled: full {med['full compiled']:.4f} s (x{row['compiled']['full']['ratio_to_eager']:.3f}"
+                    f" of eager), 2dgs+full {med['2dgs+full compiled']:.4f} s "
+                    f"(x{row['compiled']['2dgs+full']['ratio_to_eager']:.3f}), refr {med['transform compiled']:.4f} s "
+                    f"(x{row['compiled']['transform']['ratio_to_eager']:.3f})")
     return rows

@@ -72,6 +72,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write a checkpoint every N steps (default: every 10 %% of the run; 0: only at the end)")
     parser.add_argument("--backend", choices=list(BACKENDS), help="rasterizer backend (default: auto)")
     parser.add_argument("--device", help="torch device (default: CUDA when available, else CPU)")
+    parser.add_argument("--compile-refraction", action="store_true", default=None,
+                        help="fuse the refraction transform's small ops with torch.compile (for a GPU, where they "
+                        "are launch-bound; compiles first)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -82,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
 
     overrides = {"variant": args.variant, "seed": args.seed}
     for key in ("iterations", "init", "init_depth", "init_count", "init_fill", "init_points", "water_level", "water_n", "optimize_water", "checkpoint_every",
-                "backend", "device"):
+                "backend", "device", "compile_refraction"):
         if getattr(args, key) is not None:
             overrides[key] = getattr(args, key)
     data = args.data if args.colmap is None else _import(args, overrides)

@@ -42,7 +42,13 @@ from ragsplat_core.ply import save_ply
 from ragsplat_core.raster.surfel_project import surfel_tangents
 from ragsplat_core.rasterize import choose_backend, rasterize
 from ragsplat_core.rasterize_surfels import depth_normals, rasterize_surfels
-from ragsplat_core.refraction import ApparentGaussians, WaterSurface, opacity_factor, refract_gaussians
+from ragsplat_core.refraction import (
+    ApparentGaussians,
+    WaterSurface,
+    compiled_refract_gaussians,
+    opacity_factor,
+    refract_gaussians,
+)
 from ragsplat_core.snell import footprint
 from ragsplat_core.ssim import psnr, ssim, ssim_map
 from ragsplat_core.train.config import VARIANTS, TrainConfig
@@ -59,27 +65,29 @@ SURFEL_THICKNESS = 1e-5  # metres
 
 
 def view_gaussians(splats, center: torch.Tensor, sh_degree: int, water: WaterSurface | None,
-                   flags: dict | None, backend: str = "torch", surfels: bool = False) -> ApparentGaussians:
+                   flags: dict | None, backend: str = "torch", surfels: bool = False,
+                   compiled: bool = False) -> ApparentGaussians:
     """The Gaussians as the rasterizer takes them for the camera at `center` [3]: the true ones (`flags`
     None) or the apparent ones through `water` (RA-GS, `flags` of `refract_gaussians`). With the `cpu`
     backend (what "auto" means on CPU) the view colours come from its SH kernel. `surfels`: no apparent
-    covariances (a surfel renders from its mapped tangents, `jacobians`)."""
+    covariances (a surfel renders from its mapped tangents, `jacobians`). `compiled`: the transform through
+    `compiled_refract_gaussians` (the same values to round-off)."""
     scales, quats, opac = activated(splats)
     fast = choose_backend(backend, splats["means"].device) == "cpu"
     colors = colors_for_view(splats, center, sh_degree, fast)
     if flags is None:
         return ApparentGaussians(splats["means"], scales, quats, opac, colors, None, None)
-    return refract_gaussians(splats["means"], scales, quats, opac, colors, center, water, **flags,
-                             covariances=not surfels)
+    transform = compiled_refract_gaussians() if compiled else refract_gaussians
+    return transform(splats["means"], scales, quats, opac, colors, center, water, **flags, covariances=not surfels)
 
 
 def render_splats(splats, camera: Camera, center: torch.Tensor, sh_degree: int, water: WaterSurface | None,
-                  flags: dict | None, surfels: bool, background: torch.Tensor, backend: str):
+                  flags: dict | None, surfels: bool, background: torch.Tensor, backend: str, compiled: bool = False):
     """(image [H,W,3], alpha [H,W,1], depth [H,W,1], meta) of `camera` (centre `center` [3]) as training
     renders it (`view_gaussians`, then `rasterize_view`). The trainer and a finished run's renders
     (`export.Model`) share it."""
-    return rasterize_view(view_gaussians(splats, center, sh_degree, water, flags, backend, surfels), camera, surfels,
-                          background, backend)
+    return rasterize_view(view_gaussians(splats, center, sh_degree, water, flags, backend, surfels, compiled), camera,
+                          surfels, background, backend)
 
 
 def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, background: torch.Tensor, backend: str,
@@ -295,7 +303,8 @@ class Trainer:
     # ---- rendering ----------------------------------------------------------------------------------
     def _render(self, camera: Camera, center: torch.Tensor, interface: bool, water: WaterSurface | None):
         return render_splats(self.splats, camera, center, self.active_sh_degree, water,
-                             self.flags if interface else None, self.cfg.surfels, self.background, self.cfg.backend)
+                             self.flags if interface else None, self.cfg.surfels, self.background, self.cfg.backend,
+                             self.cfg.compile_refraction)
 
     def render(self, camera: Camera, interface: bool = True):
         """(image [H,W,3], alpha [H,W,1], depth [H,W,1]) of `camera`, no gradients.
