@@ -27,6 +27,9 @@ VARIANTS: dict[str, dict | None] = {
     "2dgs+full": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
 }
 SURFELS = frozenset({"2dgs", "2dgs+full"})  # variants rendered as surfels (`rasterize_surfels`)
+# Settings of how a run executes, not of what it computes (the same steps, equal to round-off): a checkpoint
+# written under one value resumes under another.
+RUN_ONLY = frozenset({"compile_refraction", "checkpoint_every"})
 
 # optimize_water -> the WaterSurface fields it calibrates
 WATER_PARAMS: dict[str, tuple[str, ...]] = {"none": (), "level": ("level",), "level+n": ("level", "n")}
@@ -77,6 +80,7 @@ class TrainConfig:
     device: str = "auto"  # "auto": CUDA when available, else CPU
     # The refraction transform through torch.compile (`compiled_refract_gaussians`): fewer kernel launches on a
     # GPU, where the eager transform is launch-bound; a compile at the start. Not yet timed on a GPU (issue 29).
+    # Like checkpoint_every, one of RUN_ONLY: a checkpoint resumes under either value.
     compile_refraction: bool = False
     checkpoint_every: int | None = None  # None: every 10 % of the run; 0: only at the end (and on interrupt)
     # The water plane: the dataset's unless overridden (on a dataset without water, water_level adds one with

@@ -51,7 +51,7 @@ from ragsplat_core.refraction import (
 )
 from ragsplat_core.snell import footprint
 from ragsplat_core.ssim import psnr, ssim, ssim_map
-from ragsplat_core.train.config import VARIANTS, TrainConfig
+from ragsplat_core.train.config import RUN_ONLY, VARIANTS, TrainConfig
 from ragsplat_core.train.strategy import DefaultStrategy
 
 CHECKPOINT = "ckpt.pt"
@@ -517,7 +517,8 @@ class Trainer:
             raise OutputError(f"{path}: checkpoint of another dataset (fingerprint {theirs}, {self.ds.root} is "
                               f"{ours}); use another output directory")
         saved = TrainConfig.from_dict(data["config"])
-        diff = [f.name for f in fields(TrainConfig) if getattr(saved, f.name) != getattr(self.cfg, f.name)]
+        diff = [f.name for f in fields(TrainConfig)
+                if f.name not in RUN_ONLY and getattr(saved, f.name) != getattr(self.cfg, f.name)]
         # More iterations extend a run (the schedule stretches to the new count from here on, so the result
         # is not that of a fresh run of that length); anything else would mix two configurations.
         if diff == ["iterations"] and self.cfg.iterations >= int(data["step"]):
