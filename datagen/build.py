@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -175,6 +176,14 @@ def _write_bed_assets(spec: SceneSpec, out: Path) -> None:
         layout.write_waterline(out / layout.GT_WATERLINE, waterline(bed, spec.level), spec.level)
 
 
+# Signals of a crash inside the renderer, not of a kill (the OOM killer's SIGKILL, the user's SIGINT / SIGTERM).
+CRASH_SIGNALS = frozenset({signal.SIGSEGV, signal.SIGBUS, signal.SIGABRT, signal.SIGILL, signal.SIGFPE})
+
+
+class RendererCrashed(RagsplatError):
+    """The Blender process died of a crash signal: worth a new process, which resumes from the kept images."""
+
+
 def run_blender(job: dict, workdir: Path, progress: Callable[[dict], None] | None = None) -> RenderStats:
     """Render `job` in one Blender (bpy) process; `progress(event)` is called after each finished image."""
     jobfile = workdir / f"job.{os.getpid()}.json"
@@ -206,8 +215,10 @@ def run_blender(job: dict, workdir: Path, progress: Callable[[dict], None] | Non
                 stale.unlink(missing_ok=True)
     if code != 0:
         why = f"killed by signal {-code}{' (out of memory?)' if code == -9 else ''}" if code < 0 else f"exit {code}"
-        raise RagsplatError(f"Blender render process failed ({why}); finished images are kept, rerun to resume; "
-                            f"see {workdir / 'blender.log'}")
+        crashed = code < 0 and -code in CRASH_SIGNALS
+        raise (RendererCrashed if crashed else RagsplatError)(
+            f"Blender render process failed ({why}); finished images are kept, rerun to resume; "
+            f"see {workdir / 'blender.log'}")
     return stats
 
 
@@ -330,11 +341,13 @@ def _merge(spec: SceneSpec, out: Path, poses) -> None:
 
 
 def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
-             progress: Callable[[dict], None] | None = None) -> dict:
+             progress: Callable[[dict], None] | None = None, retries: int = 1) -> dict:
     """Render the missing images of this shard, then merge metadata if the whole dataset is present.
 
-    `progress(event)` gets {"event": "plan", "images", "views", "passes"} before rendering starts and the
-    renderer's {"event": "done", ...} after each image."""
+    `progress(event)` gets {"event": "plan", "images", "views", "passes"} before rendering starts (again after
+    a retry) and the renderer's {"event": "done", ...} after each image. A renderer that crashes (a signal in
+    CRASH_SIGNALS) is started again up to `retries` times, from the images it finished: Cycles once died of
+    SIGSEGV before its first image in CI and rendered the same job in six later tries."""
     t0 = time.perf_counter()
     validate(spec)
     index, count = shard
@@ -359,7 +372,12 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
     if tasks:
         if progress is not None:
             progress({"event": "plan", "images": len(tasks), "views": len(mine), "passes": len(kinds)})
-        stats = run_blender(_job(spec, out, poses[0].camera, tasks), out / "scene", progress)
+        try:
+            stats = run_blender(_job(spec, out, poses[0].camera, tasks), out / "scene", progress)
+        except RendererCrashed:
+            if retries <= 0:
+                raise
+            return generate(spec, out, shard, progress, retries - 1)
     complete = all(layout.output_path(out, k, p.name).exists() for k in kinds for p in poses)
     if complete:
         _merge(spec, out, poses)

@@ -285,6 +285,29 @@ def test_a_killed_renderer_and_a_full_disk_are_one_line_and_the_rerun_completes(
     assert not list(out.rglob("*.tmp")) and not list(out.glob("scene/job.*"))
     monkeypatch.undo()
 
+    # a crash (SIGSEGV) is retried once by a new renderer; a second crash is reported as the kill above
+    starts = []
+
+    def crashes(times):
+        def popen(cmd, **kw):
+            if "blender_scenes.render" not in cmd:  # git, for the metadata's versions
+                return real_popen(cmd, **kw)
+            starts.append(cmd)
+            if len(starts) <= times:
+                cmd = [sys.executable, "-c", "import os, signal; os.kill(os.getpid(), signal.SIGSEGV)"]
+            return real_popen(cmd, **kw)
+        return popen
+
+    monkeypatch.setattr(build.subprocess, "Popen", crashes(2))
+    assert main(argv) == 2 and len(starts) == 2
+    assert "killed by signal 11" in capsys.readouterr().err
+    starts.clear()
+    monkeypatch.setattr(build.subprocess, "Popen", crashes(1))
+    assert main(argv) == 0 and len(starts) == 2
+    assert (out / "manifest.json").is_file()
+    shutil.rmtree(out)
+    monkeypatch.undo()
+
     real_replace = os.replace
 
     def disk_full(src, dst):  # the disk fills when the metadata is written, after every image
