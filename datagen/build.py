@@ -347,7 +347,7 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
     `progress(event)` gets {"event": "plan", "images", "views", "passes"} before rendering starts (again after
     a retry) and the renderer's {"event": "done", ...} after each image. A renderer that crashes (a signal in
     CRASH_SIGNALS) is started again up to `retries` times, from the images it finished: Cycles once died of
-    SIGSEGV before its first image in CI and rendered the same job in six later tries."""
+    SIGSEGV before its first image in CI and rendered the same job in seven later tries."""
     t0 = time.perf_counter()
     validate(spec)
     index, count = shard

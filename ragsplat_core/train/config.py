@@ -80,7 +80,6 @@ class TrainConfig:
     device: str = "auto"  # "auto": CUDA when available, else CPU
     # The refraction transform through torch.compile (`compiled_refract_gaussians`): fewer kernel launches on a
     # GPU, where the eager transform is launch-bound; a compile at the start. Not yet timed on a GPU (issue 29).
-    # Like checkpoint_every, one of RUN_ONLY: a checkpoint resumes under either value.
     compile_refraction: bool = False
     checkpoint_every: int | None = None  # None: every 10 % of the run; 0: only at the end (and on interrupt)
     # The water plane: the dataset's unless overridden (on a dataset without water, water_level adds one with
