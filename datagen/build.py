@@ -183,6 +183,10 @@ CRASH_SIGNALS = frozenset({signal.SIGSEGV, signal.SIGBUS, signal.SIGABRT, signal
 class RendererCrashed(RagsplatError):
     """The Blender process died of a crash signal: worth a new process, which resumes from the kept images."""
 
+    def __init__(self, message: str, signum: int):
+        super().__init__(message)
+        self.signum = signum
+
 
 def run_blender(job: dict, workdir: Path, progress: Callable[[dict], None] | None = None) -> RenderStats:
     """Render `job` in one Blender (bpy) process; `progress(event)` is called after each finished image."""
@@ -215,10 +219,11 @@ def run_blender(job: dict, workdir: Path, progress: Callable[[dict], None] | Non
                 stale.unlink(missing_ok=True)
     if code != 0:
         why = f"killed by signal {-code}{' (out of memory?)' if code == -9 else ''}" if code < 0 else f"exit {code}"
-        crashed = code < 0 and -code in CRASH_SIGNALS
-        raise (RendererCrashed if crashed else RagsplatError)(
-            f"Blender render process failed ({why}); finished images are kept, rerun to resume; "
-            f"see {workdir / 'blender.log'}")
+        message = (f"Blender render process failed ({why}); finished images are kept, rerun to resume; "
+                   f"see {workdir / 'blender.log'}")
+        if code < 0 and -code in CRASH_SIGNALS:
+            raise RendererCrashed(message, -code)
+        raise RagsplatError(message)
     return stats
 
 
@@ -344,10 +349,11 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
              progress: Callable[[dict], None] | None = None, retries: int = 1) -> dict:
     """Render the missing images of this shard, then merge metadata if the whole dataset is present.
 
-    `progress(event)` gets {"event": "plan", "images", "views", "passes"} before rendering starts (again after
-    a retry) and the renderer's {"event": "done", ...} after each image. A renderer that crashes (a signal in
-    CRASH_SIGNALS) is started again up to `retries` times, from the images it finished: Cycles once died of
-    SIGSEGV before its first image in CI and rendered the same job in seven later tries."""
+    `progress(event)` gets {"event": "plan", "images", "views", "passes"} before rendering starts and the
+    renderer's {"event": "done", ...} after each image. A renderer that crashes (a signal in CRASH_SIGNALS) is
+    started again up to `retries` times, from the images it finished, after {"event": "retry", "signal",
+    "log"} (then "plan" again): Cycles once died of SIGSEGV before its first image in CI and rendered the
+    same job in seven later tries."""
     t0 = time.perf_counter()
     validate(spec)
     index, count = shard
@@ -374,9 +380,11 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
             progress({"event": "plan", "images": len(tasks), "views": len(mine), "passes": len(kinds)})
         try:
             stats = run_blender(_job(spec, out, poses[0].camera, tasks), out / "scene", progress)
-        except RendererCrashed:
+        except RendererCrashed as crash:
             if retries <= 0:
                 raise
+            if progress is not None:
+                progress({"event": "retry", "signal": crash.signum, "log": str(out / "scene" / "blender.log")})
             return generate(spec, out, shard, progress, retries - 1)
     complete = all(layout.output_path(out, k, p.name).exists() for k in kinds for p in poses)
     if complete:

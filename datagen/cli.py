@@ -67,6 +67,10 @@ def run(args: argparse.Namespace) -> int:
         if event["event"] == "plan":
             bars.append(bar(event["images"], f"{spec.preset}: {event['views']} views x {event['passes']}", "img",
                             disable=args.quiet))
+        elif event["event"] == "retry":
+            bars[-1].close()
+            print(f"the renderer crashed (signal {event['signal']}, see {event['log']}); "
+                  "starting it again from the finished images", flush=True)
         else:
             bars[-1].update(1)
 

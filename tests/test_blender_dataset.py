@@ -300,10 +300,13 @@ def test_a_killed_renderer_and_a_full_disk_are_one_line_and_the_rerun_completes(
 
     monkeypatch.setattr(build.subprocess, "Popen", crashes(2))
     assert main(argv) == 2 and len(starts) == 2
-    assert "killed by signal 11" in capsys.readouterr().err
+    said = capsys.readouterr()
+    assert "killed by signal 11" in said.err and len(said.err.strip().splitlines()) == 1, said.err
+    assert "the renderer crashed (signal 11, see " in said.out, said.out  # the retry, told once
     starts.clear()
     monkeypatch.setattr(build.subprocess, "Popen", crashes(1))
     assert main(argv) == 0 and len(starts) == 2
+    assert capsys.readouterr().out.count("the renderer crashed (signal 11") == 1
     assert (out / "manifest.json").is_file()
     shutil.rmtree(out)
     monkeypatch.undo()
