@@ -256,7 +256,8 @@ def test_triangulation_with_known_poses_finds_a_plane(tmp_path):
     import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", level=0.0)
     pts, obs, names = triangulate(tmp_path / "data", tmp_path / "work")
     again = triangulate(tmp_path / "data", tmp_path / "work2")
-    # reproducible: the same COLMAP calls, one thread and a fixed seed, one process
+    # the same twice on this small, clean case (across processes a large reach's count can differ by a few:
+    # the comment in `triangulate`)
     assert np.array_equal(pts, again[0]) and np.array_equal(obs, again[1]) and names == again[2]
     assert len(pts) > 50
     # every observation is its point's pixel (COLMAP's pixel centres at i + 0.5, as ours)

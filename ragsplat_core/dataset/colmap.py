@@ -285,7 +285,10 @@ def triangulate(root: Path, work: Path) -> tuple[np.ndarray, np.ndarray, list[st
     work.mkdir(parents=True)
     pycolmap.logging.minloglevel = int(pycolmap.logging.Level.ERROR.value)  # no progress chatter, errors only
     # One thread and a fixed seed: with COLMAP's default threads the same images gave 5 241 or 5 251 points
-    # on the small reach; reproducible runs matter more than the minutes (the result is cached).
+    # on the small reach. Still not bit-reproducible from one process to the next: the approximate matcher and
+    # the verification's RANSAC (its random_seed -1) draw their own: the `small` survey's photos and adjusted
+    # poses gave 5 155 points in 15 of 18 runs, 5 157 twice, 5 160 once (OMP_NUM_THREADS=1 did not help).
+    # The result is cached per dataset, so the rows of one dataset share one set of tracks.
     pycolmap.set_random_seed(0)
     extraction, matching = pycolmap.FeatureExtractionOptions(), pycolmap.FeatureMatchingOptions()
     extraction.num_threads = matching.num_threads = 1
