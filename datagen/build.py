@@ -183,9 +183,9 @@ CRASH_SIGNALS = frozenset({signal.SIGSEGV, signal.SIGBUS, signal.SIGABRT, signal
 class RendererCrashed(RagsplatError):
     """The Blender process died of a crash signal: worth a new process, which resumes from the kept images."""
 
-    def __init__(self, message: str, signum: int):
+    def __init__(self, message: str, signum: int, log: Path):
         super().__init__(message)
-        self.signum = signum
+        self.signum, self.log = signum, log
 
 
 def run_blender(job: dict, workdir: Path, progress: Callable[[dict], None] | None = None) -> RenderStats:
@@ -193,7 +193,8 @@ def run_blender(job: dict, workdir: Path, progress: Callable[[dict], None] | Non
     jobfile = workdir / f"job.{os.getpid()}.json"
     write_json(jobfile, job)
     stats = RenderStats()
-    with open(workdir / "blender.log", "a") as log:
+    log_path = workdir / "blender.log"
+    with open(log_path, "a") as log:
         proc = subprocess.Popen([sys.executable, "-m", "blender_scenes.render", str(jobfile)],
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
         try:
@@ -219,10 +220,9 @@ def run_blender(job: dict, workdir: Path, progress: Callable[[dict], None] | Non
                 stale.unlink(missing_ok=True)
     if code != 0:
         why = f"killed by signal {-code}{' (out of memory?)' if code == -9 else ''}" if code < 0 else f"exit {code}"
-        message = (f"Blender render process failed ({why}); finished images are kept, rerun to resume; "
-                   f"see {workdir / 'blender.log'}")
+        message = f"Blender render process failed ({why}); finished images are kept, rerun to resume; see {log_path}"
         if code < 0 and -code in CRASH_SIGNALS:
-            raise RendererCrashed(message, -code)
+            raise RendererCrashed(message, -code, log_path)
         raise RagsplatError(message)
     return stats
 
@@ -384,7 +384,7 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
             if retries <= 0:
                 raise
             if progress is not None:
-                progress({"event": "retry", "signal": crash.signum, "log": str(out / "scene" / "blender.log")})
+                progress({"event": "retry", "signal": crash.signum, "log": str(crash.log)})
             return generate(spec, out, shard, progress, retries - 1)
     complete = all(layout.output_path(out, k, p.name).exists() for k in kinds for p in poses)
     if complete:
