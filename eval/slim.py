@@ -1,0 +1,147 @@
+"""A slim copy of a dataset: what `ragsplat ablation` reads and nothing else, for a machine that cannot take the
+whole of it (the `small` reach is 200 MB; a lent GPU takes 64 MiB, its wheels included).
+
+`python -m eval.slim DATA OUT [--stand-ins DIR]` copies `transforms.json`, `scene.json`, `manifest.json`, every
+frame's wet and dry image (and mask), the COLMAP text model, the cached tracks and the ground truth the scores
+read (`bed_grid.npy`, `bank_grid.npy`, `bed_surface.npz`, `waterline.json`; not the mesh, the depth EXRs or
+the elevation GeoTIFF). Every score of a row made from the copy equals the row made from the whole dataset.
+
+The tracks are made in DATA first when they are missing (pycolmap), and the copy's stamp names the copy's
+own fingerprint: the copy then never triangulates again, which would need pycolmap and, as the triangulation
+is not bit-reproducible from one process to the next (docs/method.md), could start the rows from other
+points. The stamp may be carried over because the tracks are made from the wet images and the cameras alone,
+which the copy keeps byte for byte.
+
+`--stand-ins DIR` also writes a package `rasterio` into DIR for a machine without GDAL (rasterio's wheel is
+39 MB): put DIR first on PYTHONPATH there. It parses no CRS (returns the text it is given) and its GeoTIFF
+writer writes an empty file, so each row's `bed.tif` is empty there; no score reads one (`--dem` does, and is
+refused). Never install it beside a real rasterio."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+from pathlib import Path
+
+from ragsplat_core.dataset import layout
+from ragsplat_core.dataset.colmap import TRACKS, TRIANGULATED, triangulated_points
+from ragsplat_core.errors import DatasetError, RagsplatError
+from ragsplat_core.outputs import write_json
+
+TRUTH = (layout.GT_GRID, layout.GT_BANKS, layout.GT_SURFACE, layout.GT_WATERLINE)
+FRAME_FILES = ("file_path", "dry_file_path", "mask_path")  # not gt_depth_file_path: no score reads the EXRs
+
+
+def slim_copy(src: Path, dst: Path) -> dict:
+    """Copy what the ablation reads from dataset `src` into the new folder `dst` (module docstring).
+    Returns {"files", "bytes", "fingerprint" (the copy's), "points" (the tracks')}. Raises DatasetError when
+    `src` is no dataset or `dst` is not empty."""
+    src, dst = Path(src), Path(dst)
+    if not (src / layout.TRANSFORMS).is_file():
+        raise DatasetError(f"{src}: no {layout.TRANSFORMS}, not a dataset")
+    if dst.exists() and any(dst.iterdir()):
+        raise DatasetError(f"{dst}: not empty; a slim copy goes into a new folder")
+    stamp = Path(TRIANGULATED).with_suffix(".json")
+    triangulated_points(src, layout.fingerprint(src))  # the tracks, made here once if missing
+    frames = json.loads((src / layout.TRANSFORMS).read_text())["frames"]
+    names = [layout.TRANSFORMS, layout.SCENE, layout.MANIFEST, *TRUTH, TRIANGULATED, TRACKS, str(stamp)]
+    names += [str(p.relative_to(src)) for p in sorted((src / layout.COLMAP).glob("*.txt"))]
+    names += [f[k] for f in frames for k in FRAME_FILES if f.get(k)]
+    total = 0
+    for name in dict.fromkeys(names):
+        if (src / name).is_file():  # the optional ones (banks, waterline, masks) may be absent
+            (dst / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(src / name, dst / name)
+            total += (dst / name).stat().st_size
+    record = json.loads((dst / stamp).read_text())
+    record["fingerprint"] = layout.fingerprint(dst)
+    write_json(dst / stamp, record)
+    return {"files": sum(p.is_file() for p in dst.rglob("*")), "bytes": total,
+            "fingerprint": record["fingerprint"], "points": record["points"]}
+
+
+# The rasterio a slim copy needs where rasterio is absent: what `layout.Georef.wkt` and `layout.write_raster`
+# call, and nothing that reads a raster (`eval.score.dem_points` finds no `open` for reading).
+STAND_IN = {
+    "__init__.py": '''"""A stand-in for rasterio written by `python -m eval.slim --stand-ins` (see there): it parses no CRS and
+writes empty GeoTIFFs. Only for scoring an ablation on a machine without GDAL."""
+import builtins
+
+from rasterio import crs, errors, transform  # noqa: F401 (the submodules the project imports)
+
+
+class _EmptyTiff:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def write(self, image, band):
+        pass
+
+    def set_band_description(self, band, text):
+        pass
+
+
+def open(path, mode="r", **kwargs):  # noqa: A001 (rasterio's own name)
+    if mode != "w":
+        raise errors.RasterioIOError(f"{path}: the rasterio stand-in reads no raster")
+    builtins.open(path, "wb").close()
+    return _EmptyTiff()
+''',
+    "crs.py": '''class CRS:
+    def __init__(self, text):
+        self.text = text
+
+    @classmethod
+    def from_user_input(cls, text):
+        return cls(text)
+
+    def to_wkt(self):
+        return self.text
+''',
+    "errors.py": '''class CRSError(ValueError):
+    pass
+
+
+class RasterioIOError(OSError):
+    pass
+''',
+    "transform.py": '''def Affine(*coefficients):  # noqa: N802 (rasterio's own name)
+    return tuple(coefficients)
+''',
+}
+
+
+def write_stand_ins(folder: Path) -> Path:
+    """Write the rasterio stand-in (`STAND_IN`) as a package in `folder`; returns the package's path."""
+    package = Path(folder) / "rasterio"
+    package.mkdir(parents=True, exist_ok=True)
+    for name, text in STAND_IN.items():
+        (package / name).write_text(text)
+    return package
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m eval.slim", description=__doc__.split("\n\n")[0])
+    parser.add_argument("data", type=Path, help="the dataset (its tracks are made there first if missing)")
+    parser.add_argument("out", type=Path, help="a new folder for the copy")
+    parser.add_argument("--stand-ins", type=Path, metavar="DIR",
+                        help="also write a rasterio stand-in package into DIR (a machine without GDAL)")
+    args = parser.parse_args(argv)
+    try:
+        made = slim_copy(args.data, args.out)
+        package = write_stand_ins(args.stand_ins) if args.stand_ins else None
+    except (RagsplatError, OSError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(f"{args.out}: {made['files']} files, {made['bytes'] / 2**20:.1f} MiB, fingerprint {made['fingerprint']}, "
+          f"{made['points']} tracks" + (f"; rasterio stand-in in {package}" if package else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
