@@ -1,5 +1,5 @@
 """A slim copy of a dataset: what `ragsplat ablation` reads and nothing else, for a machine that cannot take the
-whole of it (the `small` reach is 200 MB; a lent GPU takes 64 MiB, its wheels included).
+whole of it (the `small` reach is 228 MB; a lent GPU takes 64 MiB, its wheels included).
 
 `python -m eval.slim DATA OUT [--stand-ins DIR]` copies `transforms.json`, `scene.json`, `manifest.json`, every
 frame's wet and dry image (and mask), the COLMAP text model, the cached tracks and the ground truth the scores
@@ -63,7 +63,7 @@ def slim_copy(src: Path, dst: Path) -> dict:
 
 
 # The rasterio a slim copy needs where rasterio is absent: what `layout.Georef.wkt` and `layout.write_raster`
-# call, and nothing that reads a raster (`eval.score.dem_points` finds no `open` for reading).
+# call; reading a raster is refused (`eval.score.dem_points` then raises DatasetError).
 STAND_IN = {
     "__init__.py": '''"""A stand-in for rasterio written by `python -m eval.slim --stand-ins` (see there): it parses no CRS and
 writes empty GeoTIFFs. Only for scoring an ablation on a machine without GDAL."""
