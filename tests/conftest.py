@@ -2,14 +2,28 @@
 
 Tests that start Blender carry the `blender` marker (`pytest -m "not blender"` skips them)."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
+from eval import metrics
+from ragsplat_core import train
 from ragsplat_core.bench.synthetic import bed_scene, render_views, ring_cameras, write_dataset
 from ragsplat_core.dataset import layout
 from ragsplat_core.refraction import WaterSurface
 
 WATER = WaterSurface(0.0, 1.33)
+
+
+def tiny_smoke(mp: pytest.MonkeyPatch, folder) -> None:
+    """An ablation row in seconds: the smoke preset at 6 iterations of the torch rasterizer, opaque from the
+    start and with no opacity reset (so the median depth, T <= 0.5, has a surface to fuse; the stretched
+    schedule would reset at every step), and LPIPS n/a (its weights looked for in `folder`, where they are not)."""
+    mp.setattr(metrics, "default_vgg16_path", lambda: folder / "absent.pth")
+    smoke = train.PRESETS["smoke"]
+    mp.setitem(train.PRESETS, "smoke", replace(smoke, iterations=6, init_count=200, init_opacity=0.9,
+                                               densify=replace(smoke.densify, reset_every=30_000), backend="torch"))
 
 
 def render_dataset(root, scene, cameras, water, test_views: int, region: dict, bed: dict | None = None,

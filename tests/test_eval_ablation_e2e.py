@@ -7,6 +7,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from conftest import tiny_smoke
 
 from eval import ablation, metrics
 from ragsplat_core import train
@@ -15,12 +16,7 @@ from ragsplat_core.outputs import source_digest
 
 
 def test_ablation_command(evaluable_dataset, tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(metrics, "default_vgg16_path", lambda: tmp_path / "absent.pth")  # LPIPS n/a
-    # opaque from the start and no opacity reset, so the median depth (T <= 0.5) has a surface to fuse
-    smoke = train.PRESETS["smoke"]
-    monkeypatch.setitem(train.PRESETS, "smoke", replace(smoke, iterations=6, init_count=200, init_opacity=0.9,
-                                                        densify=replace(smoke.densify, reset_every=30_000),
-                                                        backend="torch"))
+    tiny_smoke(monkeypatch, tmp_path)
     monkeypatch.setitem(ablation.PRESETS, "smoke", replace(ablation.PRESETS["smoke"], checkpoints=3))
     data = tmp_path / "data"
     shutil.copytree(evaluable_dataset, data)

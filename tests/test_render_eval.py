@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
-from conftest import WATER, render_dataset
+from conftest import WATER, render_dataset, tiny_smoke
 
 from eval import ablation, metrics
 from eval.evaluate import evaluate_geometry, score_grid
@@ -34,12 +34,7 @@ def ablated(evaluable_dataset, tmp_path_factory):
     finished run, and its row.json holds the scores `ragsplat eval` must reproduce."""
     out = tmp_path_factory.mktemp("ablation")
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(metrics, "default_vgg16_path", lambda: out / "absent.pth")  # LPIPS n/a
-        # opaque from the start and no opacity reset (the stretched schedule would reset at every step)
-        smoke = train.PRESETS["smoke"]
-        mp.setitem(train.PRESETS, "smoke", replace(smoke, iterations=6, init_count=200, init_opacity=0.9,
-                                                   densify=replace(smoke.densify, reset_every=30_000),
-                                                   backend="torch"))
+        tiny_smoke(mp, out)
         assert main(["ablation", "--data", str(evaluable_dataset), "--out", str(out), "--preset", "smoke",
                      "--variants", "full", "--seeds", "0", "--init", "grid", "--jobs", "1", "--no-download"]) == 0
     return out

@@ -7,14 +7,13 @@ import os
 import shutil
 import subprocess
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from conftest import tiny_smoke
 
-from eval import ablation, metrics, slim
+from eval import ablation, slim
 from eval.references import SEEDLESS
-from ragsplat_core import train
 from ragsplat_core.cli.main import main
 from ragsplat_core.dataset import colmap, layout
 from ragsplat_core.dataset.load import load_dataset
@@ -45,12 +44,7 @@ def fake_tracks(calls):
 def test_a_slim_copy_scores_a_row_as_the_whole_dataset(evaluable_dataset, tmp_path, monkeypatch, capsys):
     calls = []
     monkeypatch.setattr(colmap, "triangulate", fake_tracks(calls))
-    monkeypatch.setattr(metrics, "default_vgg16_path", lambda: tmp_path / "absent.pth")
-    smoke = train.PRESETS["smoke"]
-    monkeypatch.setitem(train.PRESETS, "smoke", replace(smoke, iterations=6, init_count=200, init_opacity=0.9,
-                                                        densify=replace(smoke.densify, reset_every=30_000),
-                                                        backend="torch"))
-    monkeypatch.setitem(ablation.PRESETS, "smoke", replace(ablation.PRESETS["smoke"], checkpoints=3))
+    tiny_smoke(monkeypatch, tmp_path)
     data, copy = tmp_path / "data", tmp_path / "copy"
     shutil.copytree(evaluable_dataset, data)
     layout.write_ply(data / layout.GT_MESH, np.zeros((3, 3)))  # in the fingerprint, left out of the copy
