@@ -6,8 +6,10 @@
 #   bash eval/gpu_check.sh ablation OUT DATA  `ragsplat ablation` on DATA (the dataset or its slim copy,
 #                                           `python -m eval.slim`), its small files packed in OUT/rows.tar.gz
 # Needs a CUDA torch and gsplat where PYTHON runs. Settings (environment): PYTHON (python3), DEVICE (cuda),
-# BACKENDS (gsplat:cuda), PRESET (small), VARIANTS ("full 2dgs+full"), SEEDS ("0 1 2"). The same stages run on
-# a CPU with DEVICE=cpu BACKENDS=cpu:cpu PRESET=smoke (the plumbing only: the tests of CUDA skip there).
+# BACKENDS (gsplat:cuda), PRESET (small), VARIANTS ("full 2dgs+full"), SEEDS ("0 1 2"), RUNS (OUT/runs: the
+# ablation's folder; elsewhere, a rerun on the same machine resumes), LIMIT_S (540: the ablation is stopped then,
+# its finished rows packed). The same stages run on a CPU with DEVICE=cpu BACKENDS=cpu:cpu PRESET=smoke (the
+# plumbing only: the tests of CUDA skip there).
 set -euo pipefail
 stage=${1:?stage: tests or ablation} out=${2:?OUT folder}
 root="$(cd "$(dirname "$0")/.." && pwd)"
@@ -31,13 +33,18 @@ tests)
     ;;
 ablation)
     data=${3:?DATA: the dataset or its slim copy}
+    runs=${RUNS:-$out/runs}
     SECONDS=0
+    rc=0
+    # stopped (SIGTERM: checkpoints written) before the caller's limit, so that the finished rows still come back
     # shellcheck disable=SC2086 (lists)
-    ragsplat ablation --preset "${PRESET:-small}" --data "$data" --out "$out/runs" --device "${DEVICE:-cuda}" \
-        --variants ${VARIANTS:-full 2dgs+full} --seeds ${SEEDS:-0 1 2} --no-download
-    echo "ablation: ${SECONDS} s wall"
-    (cd "$out" && find runs \( -name row.json -o -name '*.md' -o -name results.json -o -name '*.log' \
-        -o -name error_vs_time.png \) -print0 | tar czf rows.tar.gz --null -T -)
+    timeout "${LIMIT_S:-540}" "$py" -m ragsplat_core.cli.main ablation --preset "${PRESET:-small}" --data "$data" \
+        --out "$runs" --device "${DEVICE:-cuda}" --variants ${VARIANTS:-full 2dgs+full} --seeds ${SEEDS:-0 1 2} \
+        --no-download || rc=$?
+    echo "ablation: ${SECONDS} s wall, exit ${rc}"
+    (cd "$runs" && find . \( -name row.json -o -name '*.md' -o -name results.json -o -name '*.log' \
+        -o -name error_vs_time.png \) -print0 | tar czf "$out/rows.tar.gz" --null -T -)
+    exit "$rc"
     ;;
 *)
     echo "unknown stage $stage (tests or ablation)" >&2
