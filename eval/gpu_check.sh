@@ -1,15 +1,15 @@
 #!/usr/bin/env bash
-# The GPU figures of docs/performance.md ("On a GPU"), in two stages that each end well inside 10 minutes on one
-# H100 (a lent machine's limit for one command); everything they print goes to OUT/STAGE.log too.
-#   bash eval/gpu_check.sh tests OUT        the CUDA and gsplat tests, then `ragsplat bench train-step` with the
-#                                           compiled transform (OUT/train_step.json)
+# The GPU figures of docs/performance.md ("On a GPU"), in two stages that each end well inside 10 minutes
+# on one H100 (a lent machine's limit for one command); what they print also goes to OUT/STAGE.log.
+#   bash eval/gpu_check.sh tests OUT          the CUDA and gsplat tests, then `ragsplat bench train-step`
+#                                             with the compiled transform (OUT/train_step.json)
 #   bash eval/gpu_check.sh ablation OUT DATA  `ragsplat ablation` on DATA (the dataset or its slim copy,
-#                                           `python -m eval.slim`), its small files packed in OUT/rows.tar.gz
+#                                             `python -m eval.slim`), its small files in OUT/rows.tar.gz
 # Needs a CUDA torch and gsplat where PYTHON runs. Settings (environment): PYTHON (python3), DEVICE (cuda),
-# BACKENDS (gsplat:cuda), PRESET (small), VARIANTS ("full 2dgs+full"), SEEDS ("0 1 2"), RUNS (OUT/runs: the
-# ablation's folder; elsewhere, a rerun on the same machine resumes), LIMIT_S (540: the ablation is stopped then,
-# its finished rows packed). The same stages run on a CPU with DEVICE=cpu BACKENDS=cpu:cpu PRESET=smoke (the
-# plumbing only: the tests of CUDA skip there).
+# BACKENDS (gsplat:cuda), PRESET (small), VARIANTS ("full 2dgs+full"), SEEDS ("0 1 2"), RUNS (OUT/runs:
+# the ablation's folder; elsewhere, a rerun on the same machine resumes), LIMIT_S (540: the ablation is
+# stopped then and its finished rows packed). The same stages run on a CPU with DEVICE=cpu
+# BACKENDS=cpu:cpu PRESET=smoke (the plumbing only: the tests of CUDA skip there).
 set -euo pipefail
 stage=${1:?stage: tests or ablation} out=${2:?OUT folder}
 root="$(cd "$(dirname "$0")/.." && pwd)"
@@ -19,28 +19,31 @@ mkdir -p "$out"
 out="$(cd "$out" && pwd)"
 exec > >(tee "$out/$stage.log") 2>&1
 cd "$root"
-ragsplat() { "$py" -m ragsplat_core.cli.main "$@"; }
-nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null || echo "no nvidia-smi"
-"$py" -c 'import sys, numpy, torch; print(sys.version.split()[0], "torch", torch.__version__, "numpy", numpy.__version__,
-"cuda", torch.cuda.is_available())'
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null \
+    || echo "no nvidia-smi"
+"$py" -c 'import sys, numpy, torch
+print(sys.version.split()[0], "torch", torch.__version__, "numpy", numpy.__version__,
+      "cuda", torch.cuda.is_available())'
 case "$stage" in
 tests)
     SECONDS=0
-    "$py" -m pytest -q -p no:cacheprovider tests/test_surfel.py tests/test_rasterize_backends.py tests/test_refraction.py
+    "$py" -m pytest -q -p no:cacheprovider tests/test_surfel.py tests/test_rasterize_backends.py \
+        tests/test_refraction.py
     echo "tests: ${SECONDS} s (gsplat's first use compiles it)"
-    ragsplat bench train-step --backends ${BACKENDS:-gsplat:cuda} --counts 40000 200000 --compile \
-        --out "$out/train_step.json"
+    # shellcheck disable=SC2086 (a list)
+    "$py" -m ragsplat_core.cli.main bench train-step --backends ${BACKENDS:-gsplat:cuda} \
+        --counts 40000 200000 --compile --out "$out/train_step.json"
     ;;
 ablation)
     data=${3:?DATA: the dataset or its slim copy}
     runs=${RUNS:-$out/runs}
     SECONDS=0
     rc=0
-    # stopped (SIGTERM: checkpoints written) before the caller's limit, so that the finished rows still come back
+    # stopped (SIGTERM: checkpoints written) before the caller's limit, so the finished rows come back
     # shellcheck disable=SC2086 (lists)
-    timeout "${LIMIT_S:-540}" "$py" -m ragsplat_core.cli.main ablation --preset "${PRESET:-small}" --data "$data" \
-        --out "$runs" --device "${DEVICE:-cuda}" --variants ${VARIANTS:-full 2dgs+full} --seeds ${SEEDS:-0 1 2} \
-        --no-download || rc=$?
+    timeout "${LIMIT_S:-540}" "$py" -m ragsplat_core.cli.main ablation --preset "${PRESET:-small}" \
+        --data "$data" --out "$runs" --device "${DEVICE:-cuda}" --variants ${VARIANTS:-full 2dgs+full} \
+        --seeds ${SEEDS:-0 1 2} --no-download || rc=$?
     echo "ablation: ${SECONDS} s wall, exit ${rc}"
     (cd "$runs" && find . \( -name row.json -o -name '*.md' -o -name results.json -o -name '*.log' \
         -o -name error_vs_time.png \) -print0 | tar czf "$out/rows.tar.gz" --null -T -)
