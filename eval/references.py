@@ -119,12 +119,12 @@ def track_grids(root, fingerprint: str, cameras: dict, water, nodes: np.ndarray)
     import json
     from pathlib import Path
 
-    from ragsplat_core.dataset.colmap import TRACKS, refracted_points, triangulated_points
+    from ragsplat_core.dataset.colmap import STAMP, TRACKS, refracted_points, triangulated_points
 
     path = triangulated_points(root, fingerprint)
     straight = np.load(path)[:, :3]
     obs = np.load(Path(root) / TRACKS)
-    names = json.loads(path.with_suffix(".json").read_text())["images"]
+    names = json.loads((Path(root) / STAMP).read_text())["images"]
     centres = np.array([cameras[name].camera_center for name in names])
     level, n = float(water.level), float(water.n)
     # every camera of a track votes (the angle filter is the dense cloud's, where far oblique views abound)

@@ -26,7 +26,7 @@ import sys
 from pathlib import Path
 
 from ragsplat_core.dataset import layout
-from ragsplat_core.dataset.colmap import TRACKS, TRIANGULATED, triangulated_points
+from ragsplat_core.dataset.colmap import STAMP, TRACKS, TRIANGULATED, triangulated_points
 from ragsplat_core.errors import DatasetError, RagsplatError
 from ragsplat_core.outputs import write_json
 
@@ -43,10 +43,9 @@ def slim_copy(src: Path, dst: Path) -> dict:
         raise DatasetError(f"{src}: no {layout.TRANSFORMS}, not a dataset")
     if dst.exists() and any(dst.iterdir()):
         raise DatasetError(f"{dst}: not empty; a slim copy goes into a new folder")
-    stamp = Path(TRIANGULATED).with_suffix(".json")
     triangulated_points(src, layout.fingerprint(src))  # the tracks, made here once if missing
     frames = json.loads((src / layout.TRANSFORMS).read_text())["frames"]
-    names = [layout.TRANSFORMS, layout.SCENE, layout.MANIFEST, *TRUTH, TRIANGULATED, TRACKS, str(stamp)]
+    names = [layout.TRANSFORMS, layout.SCENE, layout.MANIFEST, *TRUTH, TRIANGULATED, TRACKS, STAMP]
     names += [str(p.relative_to(src)) for p in sorted((src / layout.COLMAP).glob("*.txt"))]
     names += [f[k] for f in frames for k in FRAME_FILES if f.get(k)]
     total = 0
@@ -55,9 +54,9 @@ def slim_copy(src: Path, dst: Path) -> dict:
             (dst / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(src / name, dst / name)
             total += (dst / name).stat().st_size
-    record = json.loads((dst / stamp).read_text())
+    record = json.loads((dst / STAMP).read_text())
     record["fingerprint"] = layout.fingerprint(dst)
-    write_json(dst / stamp, record)
+    write_json(dst / STAMP, record)
     return {"files": sum(p.is_file() for p in dst.rglob("*")), "bytes": total,
             "fingerprint": record["fingerprint"], "points": record["points"]}
 

@@ -29,15 +29,13 @@ def fake_tracks(calls):
         ds = load_dataset(root, splits=("train",), load_dry=False)
         bed = np.load(root / layout.GT_GRID)[::9]
         pts = np.column_stack([bed[:, :2], bed[:, 2] / ds.water.n, np.zeros((len(bed), 3))])
-        names = sorted(v.file_path for v in ds.train)
-        cameras = {v.file_path: v.camera for v in ds.train}
+        views = sorted(ds.train, key=lambda v: v.file_path)
         obs = []
-        for k, name in enumerate(names):
-            uv, z = cameras[name].project(pts[:, :3])
-            cam = cameras[name]
+        for k, cam in enumerate(v.camera for v in views):
+            uv, z = cam.project(pts[:, :3])
             seen = np.flatnonzero((z > 0) & (uv >= 0).all(1) & (uv < [cam.width, cam.height]).all(1))
             obs += [(i, k, *uv[i]) for i in seen]
-        return pts, np.asarray(obs, dtype=np.float64), names
+        return pts, np.asarray(obs, dtype=np.float64), [v.file_path for v in views]
     return triangulate
 
 
@@ -51,7 +49,7 @@ def test_a_slim_copy_scores_a_row_as_the_whole_dataset(evaluable_dataset, tmp_pa
     assert slim.main([str(data), str(copy)]) == 0
     assert f"{copy}: " in capsys.readouterr().out and calls == [data]  # the tracks were made in the source
 
-    stamp = json.loads((copy / "colmap" / "triangulated.json").read_text())
+    stamp = json.loads((copy / colmap.STAMP).read_text())
     assert stamp["fingerprint"] == layout.fingerprint(copy) != layout.fingerprint(data)
     assert colmap.triangulated_points(copy, layout.fingerprint(copy)) == copy / colmap.TRIANGULATED
     assert calls == [data]  # the copy's tracks are the source's, not made again

@@ -335,8 +335,9 @@ def triangulate(root: Path, work: Path) -> tuple[np.ndarray, np.ndarray, list[st
     return pts, np.asarray(obs, dtype=np.float64), names
 
 
-TRIANGULATED = "colmap/triangulated.npy"  # a dataset's cached `triangulate` result, with a .json of its key
-TRACKS = "colmap/tracks.npy"  # its observations [M, 4]; the image names are in the .json
+TRIANGULATED = "colmap/triangulated.npy"  # a dataset's cached `triangulate` result
+TRACKS = "colmap/tracks.npy"  # its observations [M, 4]
+STAMP = "colmap/triangulated.json"  # their key (the dataset's fingerprint), point count and image names
 
 
 def triangulated_points(root: Path, fingerprint: str) -> Path:
@@ -346,7 +347,7 @@ def triangulated_points(root: Path, fingerprint: str) -> Path:
     processes that need it at once (two rows of `ragsplat ablation --jobs 2`) do not both run pycolmap in
     the same folder (which crashed one of them inside SQLite); the second waits and reads the first's."""
     path, work, tracks = Path(root) / TRIANGULATED, Path(root) / "colmap" / "triangulation", Path(root) / TRACKS
-    stamp = path.with_suffix(".json")
+    stamp = Path(root) / STAMP
 
     def cached() -> bool:
         return path.is_file() and tracks.is_file() and stamp.is_file() \
@@ -379,7 +380,7 @@ def refracted_points(root: Path, fingerprint: str, cameras: dict, water) -> np.n
     path = triangulated_points(root, fingerprint)
     pts = np.load(path)
     obs = np.load(Path(root) / TRACKS)
-    names = json.loads(path.with_suffix(".json").read_text())["images"]
+    names = json.loads((Path(root) / STAMP).read_text())["images"]
     point, image = obs[:, 0].astype(np.int64), obs[:, 1].astype(np.int64)
     origins, dirs = np.zeros((len(obs), 3)), np.zeros((len(obs), 3))
     for k, name in enumerate(names):
