@@ -1,18 +1,35 @@
 #!/usr/bin/env bash
-# The GPU figures of docs/performance.md ("On a GPU"), in two stages that each end well inside 10 minutes
-# on one H100 (a lent machine's limit for one command); what they print also goes to OUT/STAGE.log.
+# The GPU figures of docs/performance.md ("On a GPU"), in stages that end inside 10 minutes on one H100
+# (a lent machine's limit for one command); what they print also goes to OUT/STAGE.log.
 #   bash eval/gpu_check.sh tests OUT          the CUDA and gsplat tests, then `ragsplat bench train-step`
 #                                             with the compiled transform (OUT/train_step.json)
 #   bash eval/gpu_check.sh ablation OUT DATA  `ragsplat ablation` on DATA (the dataset or its slim copy,
 #                                             `python -m eval.slim`), its small files in OUT/rows.tar.gz
+#   bash eval/gpu_check.sh all OUT DATA       both in one command (one machine start, one gsplat compile):
+#                                             the ablation gets what is left of LIMIT_S after the tests
 # Needs a CUDA torch and gsplat where PYTHON runs. Settings (environment): PYTHON (python3), DEVICE (cuda),
 # BACKENDS (gsplat:cuda), PRESET (small), VARIANTS ("full 2dgs+full"), SEEDS ("0 1 2"), RUNS (OUT/runs:
-# the ablation's folder; elsewhere, a rerun on the same machine resumes), LIMIT_S (540: the ablation is
-# stopped then and its finished rows packed). The same stages run on a CPU with DEVICE=cpu
+# the ablation's folder; elsewhere, a rerun on the same machine resumes), LIMIT_S (540 s: the ablation, or
+# with `all` the whole stage, is stopped then and its finished rows packed). The same stages run on a CPU with DEVICE=cpu
 # BACKENDS=cpu:cpu PRESET=smoke (the plumbing only: the tests of CUDA skip there).
 set -euo pipefail
-stage=${1:?stage: tests or ablation} out=${2:?OUT folder}
+stage=${1:?stage: tests, ablation or all} out=${2:?OUT folder}
 root="$(cd "$(dirname "$0")/.." && pwd)"
+if [ "$stage" = all ]; then
+    data=${3:?DATA: the dataset or its slim copy}
+    # a failed test does not cancel the ablation (its rows are the other half of the figures); the
+    # stage's exit is the first failure's
+    rc=0
+    bash "$0" tests "$out" || rc=$?
+    left=$(( ${LIMIT_S:-540} - SECONDS ))
+    if [ "$left" -lt 60 ]; then  # (and `timeout 0` would be no limit at all)
+        echo "all: ${left} s of LIMIT_S left after the tests; the ablation is not started" >&2
+        exit $(( rc ? rc : 124 ))
+    fi
+    rc_ablation=0
+    LIMIT_S=$left bash "$0" ablation "$out" "$data" || rc_ablation=$?
+    exit $(( rc ? rc : rc_ablation ))
+fi
 py=${PYTHON:-python3}
 export PYTHONPATH="$root${PYTHONPATH:+:$PYTHONPATH}"
 mkdir -p "$out"
@@ -50,7 +67,7 @@ ablation)
     exit "$rc"
     ;;
 *)
-    echo "unknown stage $stage (tests or ablation)" >&2
+    echo "unknown stage $stage (tests, ablation or all)" >&2
     exit 2
     ;;
 esac
