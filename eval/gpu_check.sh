@@ -10,8 +10,8 @@
 # Needs a CUDA torch and gsplat where PYTHON runs. Settings (environment): PYTHON (python3), DEVICE (cuda),
 # BACKENDS (gsplat:cuda), PRESET (small), VARIANTS ("full 2dgs+full"), SEEDS ("0 1 2"), RUNS (OUT/runs:
 # the ablation's folder; elsewhere, a rerun on the same machine resumes), LIMIT_S (540 s: the ablation, or
-# with `all` the whole stage, is stopped then and its finished rows packed). The same stages run on a CPU with DEVICE=cpu
-# BACKENDS=cpu:cpu PRESET=smoke (the plumbing only: the tests of CUDA skip there).
+# with `all` the whole stage, is stopped then and its finished rows packed). The same stages run on a CPU
+# with DEVICE=cpu BACKENDS=cpu:cpu PRESET=smoke (the plumbing only: the tests of CUDA skip there).
 set -euo pipefail
 stage=${1:?stage: tests, ablation or all} out=${2:?OUT folder}
 root="$(cd "$(dirname "$0")/.." && pwd)"

@@ -1,10 +1,11 @@
-"""A slim copy of a dataset: what `ragsplat ablation` reads and nothing else, for a machine that cannot take the
-whole of it (the `small` reach is 228 MB; a lent GPU takes 64 MiB, its wheels included).
+"""A slim copy of a dataset: what `ragsplat ablation` reads and nothing else, for a machine that cannot take
+the whole of it (the `small` reach is 228 MB; a lent GPU takes 64 MiB, its wheels included).
 
-`python -m eval.slim DATA OUT [--stand-ins DIR]` copies `transforms.json`, `scene.json`, `manifest.json`, every
-frame's wet and dry image (and mask), the COLMAP text model, the cached tracks and the ground truth the scores
-read (`bed_grid.npy`, `bank_grid.npy`, `bed_surface.npz`, `waterline.json`; not the mesh, the depth EXRs or
-the elevation GeoTIFF). Every score of a row made from the copy equals the row made from the whole dataset.
+`python -m eval.slim DATA OUT [--stand-ins DIR]` copies `transforms.json`, `scene.json`, `manifest.json`,
+every frame's wet and dry image (and mask), the COLMAP text model, the cached tracks and the ground truth the
+scores read (`bed_grid.npy`, `bank_grid.npy`, `bed_surface.npz`, `waterline.json`; not the mesh, the depth
+EXRs or the elevation GeoTIFF). Every score of a row made from the copy equals the row made from the whole
+dataset.
 
 The tracks are made in DATA first when they are missing (pycolmap), and the copy's stamp names the copy's
 own fingerprint: the copy then never triangulates again, which would need pycolmap and, as the triangulation
@@ -64,8 +65,8 @@ def slim_copy(src: Path, dst: Path) -> dict:
 # The rasterio a slim copy needs where rasterio is absent: what `layout.Georef.wkt` and `layout.write_raster`
 # call; reading a raster is refused (`eval.score.dem_points` then raises DatasetError).
 STAND_IN = {
-    "__init__.py": '''"""A stand-in for rasterio written by `python -m eval.slim --stand-ins` (see there): it parses no CRS and
-writes empty GeoTIFFs. Only for scoring an ablation on a machine without GDAL."""
+    "__init__.py": '''"""A stand-in for rasterio written by `python -m eval.slim --stand-ins` (see there):
+it parses no CRS and writes empty GeoTIFFs. Only for scoring an ablation on a machine without GDAL."""
 import builtins
 
 from rasterio import crs, errors, transform  # noqa: F401 (the submodules the project imports)
@@ -137,8 +138,9 @@ def main(argv: list[str] | None = None) -> int:
     except (RagsplatError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    print(f"{args.out}: {made['files']} files, {made['bytes'] / 2**20:.1f} MiB, fingerprint {made['fingerprint']}, "
-          f"{made['points']} tracks" + (f"; rasterio stand-in in {package}" if package else ""))
+    print(f"{args.out}: {made['files']} files, {made['bytes'] / 2**20:.1f} MiB, "
+          f"fingerprint {made['fingerprint']}, {made['points']} tracks"
+          + (f"; rasterio stand-in in {package}" if package else ""))
     return 0
 
 

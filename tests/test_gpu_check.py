@@ -11,8 +11,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# the stand-in: `-c` prints the versions line, a module's first two words are recorded; pytest exits with TESTS_RC; the ablation writes a row in
-# its --out folder and records the `timeout` that runs it (its parent's command line)
+# the stand-in: `-c` prints the versions line; `-m` calls are recorded by their first three words; pytest
+# exits with TESTS_RC; the ablation writes a row in its --out folder and records the `timeout` that runs it
+# (its parent's command line)
 PYTHON = """#!/usr/bin/env bash
 [ "$1" = -c ] && echo "3.12 torch stand-in" && exit
 echo "$1 $2 $3" >> "$CALLS"
