@@ -13,8 +13,9 @@ grids scored the same way (no fused variant). Every row writes `row.json`, the e
 `bed_fused.tif`, `bed_fused.ply`: the height grid as a triangle mesh, `depth_error_fused.png`).
 
 A row is reused only when its key matches: the dataset's content fingerprint (images and ground truth),
-the resolved training and extraction configs, the harness preset and the source digest of ragsplat_core
-and eval. A killed row resumes from its checkpoint only under the same key (`key.json`, written before
+the resolved training and extraction configs, the harness preset and the source digest of the code that
+computes it (`ROW_CODE`: ragsplat_core and the harness's training and scoring; a reference row also its
+settings and `eval/references.py`), so a change to the tables or the references alone retrains nothing. A killed row resumes from its checkpoint only under the same key (`key.json`, written before
 training starts); otherwise it starts over. Then `eval.report` (re)writes `OUT/results.json`, the tables
 and `error_vs_time.png` from the rows of this run's variants and seeds only. The command is `eval.cli`.
 """
@@ -43,13 +44,15 @@ from eval.evaluate import (
 )
 from eval.references import (
     DIETRICH_MAX_ANGLE,
+    DIETRICH_TRACKS,
     EXTRACTION,
     REFERENCES,
     SEEDLESS,
+    TIN_FILTER,
     USES_GROUND_TRUTH,
     depth_times_n,
     dietrich_grid,
-    oracle_plane,
+    oracle_grids,
     start_extraction,
     track_grids,
 )
@@ -59,7 +62,6 @@ from ragsplat_core.errors import ConfigError, DatasetError
 from ragsplat_core.fusion import FuseConfig, height_mesh
 from ragsplat_core.outputs import claim, source_digest, versions, write_json
 from ragsplat_core.surface import EXTRACT_TUNING, ExtractConfig
-from ragsplat_core.tracks import TRACK_MIN_NEIGHBOURS, TRACK_RADIUS, TRACK_TOL
 from ragsplat_core.train.config import FIELD_TUNING, SURFELS, TUNING, VARIANTS
 
 
@@ -69,7 +71,7 @@ class AblationPreset:
 
     name: str
     checkpoints: int  # evaluation intervals along training: points at step 0, k * iterations / this, the end
-    samples_per_cell: int  # extraction samples per GT grid cell (n_samples = this x GT points), table and curves
+    samples_per_cell: int  # extraction samples per ground-truth node of the region (wet and banks), table and curves
     fuse: FuseConfig = field(default_factory=FuseConfig)  # the fused extraction, table and curves
 
 
@@ -79,13 +81,23 @@ PRESETS = {
     "paper": AblationPreset("paper", checkpoints=8, samples_per_cell=16),
 }
 PRESETS["small-field"] = replace(PRESETS["small"], name="small-field")
-CODE = ("ragsplat_core", "eval")  # the sources whose digest is part of every row key
+PRESETS["small-3dgs"] = replace(PRESETS["small"], name="small-3dgs")
+CODE = ("ragsplat_core", "eval")  # the sources whose digest stamps results.json
+# The sources a row's numbers come from, whose digest is part of every row key: training, extraction and
+# scoring (the references' own code joins a reference row's key; the tables are written anew every run).
+ROW_CODE = ("ragsplat_core", "eval/ablation.py", "eval/evaluate.py", "eval/metrics.py")
+# The protocol's reach seeds (dataset seeds of `small`): hyperparameters and the references' settings chosen on
+# the development reach; the evaluation reach measured after every tuning round until issue 46 (so partly a
+# validation set); the untouched reach rendered and measured once, with the presets frozen (results.json:
+# "dataset_role").
+DATASET_SEEDS = {"development": 1, "evaluation": 0, "untouched": 7}
 # The main job's defaults, here only (`ragsplat ablation` takes them; the Makefile passes nothing unless told):
 # every row starts from the refracted tracks (F1@3% about 20 % from the paper's plane on the reach, which has no
 # single bed depth), three training seeds (tables: mean +- std), and on the CPU two processes of cores / 2
 # threads (two single-threaded rows together did 1.7x the steps of one with both threads on the 2-core CPU).
 # On CUDA six processes per GPU: a `small` row leaves one H100 mostly idle (launch-bound), and six at once
-# trained all 27 rows in 6.7 min where one alone took 61 s for its longest row (docs/performance.md).
+# trained all 27 rows of the 1 500-step preset of then in 6.7 min where one alone took 61 s for its longest
+# row (docs/performance.md; not measured at today's 3 000 steps).
 INIT = "refracted"
 SEEDS = (0, 1, 2)
 JOBS = 2
@@ -113,9 +125,17 @@ def default_jobs(device: str | None) -> int:
     return JOBS_PER_GPU if str(device).startswith("cuda") else JOBS
 
 
-def extract_config(preset: str, n_gt: int, seed: int, gsd: float | None) -> ExtractConfig:
-    """The table's extraction for a GT grid of `n_gt` nodes and views of `gsd` m per pixel (`Dataset.gsd`)."""
-    return replace(ExtractConfig(), n_samples=PRESETS[preset].samples_per_cell * n_gt, seed=seed, gsd=gsd)
+def dataset_role(seed: int | None, preset: str) -> str:
+    """What the protocol uses the reach of dataset seed `seed` for (`DATASET_SEEDS`; the `small` family's)."""
+    if not preset.startswith("small"):
+        return "other"
+    return next((role for role, s in DATASET_SEEDS.items() if s == seed), "other")
+
+
+def extract_config(preset: str, n_nodes: int, seed: int, gsd: float | None) -> ExtractConfig:
+    """The table's extraction over a region of `n_nodes` ground-truth nodes (`GroundTruth.nodes`: wet and banks,
+    the cells `ragsplat export` counts over the same region) with views of `gsd` m per pixel (`Dataset.gsd`)."""
+    return replace(ExtractConfig(), n_samples=PRESETS[preset].samples_per_cell * n_nodes, seed=seed, gsd=gsd)
 
 
 def eval_steps(iterations: int, checkpoints: int, reset_every: int = 0, reset_stop: int = 0) -> list[int]:
@@ -265,9 +285,9 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
     claim_out(out)
     stamp = versions("torch", "scipy")  # the code that runs now, not the checkout at the end of a long run
     truth = runner.truth
-    live = source_digest(*CODE)
+    live = source_digest(*ROW_CODE)
     if code is not None and code != live:
-        raise ConfigError(f"the sources under {' and '.join(CODE)} changed since this command started "
+        raise ConfigError(f"the sources of {', '.join(ROW_CODE)} changed since this command started "
                           f"(digest {code}, now {live}); rerun it")
     base = {"dataset": runner.fingerprint, "code": live, "harness": asdict(PRESETS[preset])}
     lpips_metric, lpips_reason = metrics.load_lpips(vgg16, download=download, log=log)
@@ -297,26 +317,30 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
         for seed, variant in sorted(jobs, key=lambda job: job[1] not in SURFELS):  # the longest first
             job = f"{slug(variant)}-seed{seed}"
             if take(queue, job):
-                ecfg = extract_config(preset, len(truth.grid), seed, runner.gsd)
+                ecfg = extract_config(preset, len(truth.nodes), seed, runner.gsd)
                 rows.setdefault(variant, []).append(trained_row(seed, variant, ecfg))
                 finish(queue, job)
         return rows
     for seed in seeds:
-        ecfg = extract_config(preset, len(truth.grid), seed, runner.gsd)
+        ecfg = extract_config(preset, len(truth.nodes), seed, runner.gsd)
         for variant in variants:
             rows.setdefault(variant, []).append(trained_row(seed, variant, ecfg))
         for name, row in reference_rows(out, runner, preset, seed, ecfg, base, rows, log).items():
             rows.setdefault(name, []).append(row)
     header = {"data": str(Path(data).resolve()), "dataset_fingerprint": runner.fingerprint,
-              "dataset_seed": runner.dataset_seed, "tuning": TUNING,
+              "dataset_seed": runner.dataset_seed, "dataset_seeds": DATASET_SEEDS,
+              "dataset_role": dataset_role(runner.dataset_seed, preset), "tuning": TUNING,
               **({"field_tuning": FIELD_TUNING} if preset == "small-field" else {}), "extract_tuning": EXTRACT_TUNING,
               "preset": preset, "seeds": list(seeds),
               "init": getattr(runner, "init", "grid"),
-              "harness_preset": asdict(PRESETS[preset]), "code_digest": base["code"],
+              "harness_preset": asdict(PRESETS[preset]), "code_digest": source_digest(*CODE),
+              "row_code_digest": base["code"],
               "versions": stamp, "command": sys.argv,
               "max_depth_m": truth.max_depth, "level": truth.level,
               "lpips_network": getattr(lpips_metric, "network", None),
-              "references": {"names": list(REFERENCES), "use_ground_truth": list(USES_GROUND_TRUTH)}}
+              "references": {"names": list(REFERENCES), "use_ground_truth": list(USES_GROUND_TRUTH),
+                             "tin_filter": TIN_FILTER, "dietrich_tracks": DIETRICH_TRACKS,
+                             "dietrich_3dgs_max_angle_deg": DIETRICH_MAX_ANGLE}}
     log(write_outputs(out, rows, header, lpips_reason))
     return rows
 
@@ -325,6 +349,7 @@ def reference_rows(out: Path, runner, preset: str, seed: int, ecfg: ExtractConfi
                    rows: dict[str, list[dict]], log) -> dict[str, dict]:
     """The reference rows of one seed (the oracle plane, which has no seed, with the first)."""
     truth, found = runner.truth, {}
+    base = {**base, "references_code": source_digest("eval/references.py")}
     cfg = runner.config("3dgs", preset, seed)  # the initialisation does not depend on the variant
     init_key = {**base, "init": {k: v for k, v in cfg.to_dict().items() if k.startswith("init") or k in
                                  ("seed", "sh_degree", "preset")}, "extract": ecfg.to_dict()}
@@ -347,13 +372,12 @@ def reference_rows(out: Path, runner, preset: str, seed: int, ecfg: ExtractConfi
             todo.append(("dietrich (3dgs)", row_dir(out, "dietrich (3dgs)", seed),
                          {**base, "from": src["key"], "n": n, "max_angle_deg": DIETRICH_MAX_ANGLE}, dietrich_3dgs))
     if not rows.get("oracle plane"):
-        plane = oracle_plane(truth)
-        todo.append(("oracle plane", row_dir(out, "oracle plane", None), {**base, "reference": "oracle plane"},
-                     lambda: (score_grid(plane, truth), plane)))
-        if hasattr(runner, "track_grids"):  # seedless, like the plane: made once
+        for name, plane in oracle_grids(truth).items():
+            todo.append((name, row_dir(out, name, None), {**base, "reference": name},
+                         lambda plane=plane: (score_grid(plane, truth), plane)))
+        if hasattr(runner, "track_grids"):  # seedless, like the planes: made once
             grids = runner.track_grids(log)
-            key = {**base, "tracks": {"radius": TRACK_RADIUS, "tol": TRACK_TOL, "min_neighbours": TRACK_MIN_NEIGHBOURS,
-                                      "dietrich_max_angle_deg": DIETRICH_MAX_ANGLE}}
+            key = {**base, "tracks": {"tin_filter": TIN_FILTER, "dietrich": DIETRICH_TRACKS}}
             for name, grid in grids.items():
                 todo.append((name, row_dir(out, name, None), {**key, "reference": name},
                              lambda grid=grid: (score_grid(grid, truth), grid)))

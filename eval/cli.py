@@ -163,12 +163,12 @@ def lpips_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from eval.ablation import CODE, TrainEval, default_jobs, run_ablation
+    from eval.ablation import ROW_CODE, TrainEval, default_jobs, run_ablation
     from ragsplat_core.cli.progress import deferred_interrupts, training_bar
     from ragsplat_core.outputs import source_digest
 
     if args.code is None:
-        args.code = source_digest(*CODE)
+        args.code = source_digest(*ROW_CODE)
     if args.jobs is None:
         args.jobs = default_jobs(args.device)
     with deferred_interrupts() as check:  # Ctrl-C: the trainer checkpoints its finished steps, then stops

@@ -18,6 +18,8 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from ragsplat_core.scoring import quantile_with_holes
+
 BINS = {"tracks": ((0, 0), (1, 2), (3, 5), (6, 10), (11, None)),  # counts, both ends included
         "views": ((0, 19), (20, 39), (40, 59), (60, None)),
         "relief": ((None, 1), (1, 3), (3, 6), (6, None))}  # cm, [lo, hi)
@@ -55,14 +57,17 @@ def in_bin(values: np.ndarray, lo, hi, closed: bool) -> np.ndarray:
 
 def summary(dz: np.ndarray) -> dict:
     """Cover, share within GOOD, |dz| median and 95th percentile (cm) and bias (cm) of the errors dz [C]
-    (NaN: a cell left out)."""
+    (NaN: a cell left out). As `eval.evaluate.survey_figures`: a hole counts as a miss in the share within
+    GOOD and as beyond every error in the p95 (None when more than about 5 % are holes); the median and bias
+    are over the covered cells."""
     ok = np.isfinite(dz)
     e = dz[ok]
     if not ok.any():
-        return {"cover": float(ok.mean()) if len(dz) else None, "good": None, "median_cm": None, "p95_cm": None,
-                "bias_cm": None}
-    return {"cover": float(ok.mean()), "good": float((np.abs(e) < GOOD).mean()),
-            "median_cm": float(np.median(np.abs(e)) * 100), "p95_cm": float(np.percentile(np.abs(e), 95) * 100),
+        return {"cover": float(ok.mean()) if len(dz) else None, "good": 0.0 if len(dz) else None, "median_cm": None,
+                "p95_cm": None, "bias_cm": None}
+    p95 = quantile_with_holes(np.abs(e), int((~ok).sum()), 0.95)
+    return {"cover": float(ok.mean()), "good": float((np.abs(e) < GOOD).sum() / len(dz)),
+            "median_cm": float(np.median(np.abs(e)) * 100), "p95_cm": None if p95 is None else p95 * 100,
             "bias_cm": float(e.mean() * 100)}
 
 
@@ -83,7 +88,7 @@ def breakdown(dz: dict[str, np.ndarray], keys: dict[str, np.ndarray]) -> dict[st
 def by_place(dem: Path, data: Path, radius: float = 0.5) -> dict[str, list[dict]]:
     """`breakdown` of the DEM's and the refracted tracks' TIN's errors at the wet ground-truth nodes."""
     from eval.ablation import TrainEval
-    from eval.references import track_grids
+    from eval.references import TIN_FILTER, track_grids
     from eval.score import dem_points
     from ragsplat_core.dataset.colmap import refracted_points
     from ragsplat_core.dataset.layout import GT_GRID_STEP
@@ -93,7 +98,7 @@ def by_place(dem: Path, data: Path, radius: float = 0.5) -> dict[str, list[dict]
     ds, truth = runner.ds, runner.truth
     cams = {v.file_path: v.camera for v in ds.train}
     tracks = refracted_points(ds.root, ds.fingerprint, cams, ds.water)[:, :3]
-    tracks = tracks[track_filter(tracks)]
+    tracks = tracks if TIN_FILTER is None else tracks[track_filter(tracks, **TIN_FILTER)]
     gt = truth.grid  # [G, 3] the wet nodes
     tin = track_grids(ds.root, ds.fingerprint, cams, ds.water, gt[:, :2])["triangulation (refracted)"]
 

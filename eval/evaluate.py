@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 from eval import metrics
 from ragsplat_core.dataset.layout import GT_GRID_STEP
 from ragsplat_core.fusion import FuseConfig, fuse
-from ragsplat_core.scoring import geometry_metrics, thresholds
+from ragsplat_core.scoring import IHO_ORDERS, WITHIN, geometry_metrics, quantile_with_holes, thresholds, tvu
 from ragsplat_core.surface import ExtractConfig, extract_surface
 
 
@@ -85,23 +85,45 @@ def score_grid(grid: np.ndarray, truth) -> dict:
 
 def survey_figures(grid: np.ndarray, truth) -> dict:
     """What a surveyor asks of a bathymetry: dz = predicted - true bed height at each cell's centre (the exact
-    surface when the dataset has one, else the nearest ground-truth node), as vertical bias (mean dz), RMSE
-    and 95th percentile of |dz| (metres), over the wet cells, by depth band (thirds of the maximum depth) and
-    over the emerged banks; `coverage` = wet cells with a prediction / wet ground-truth cells."""
+    surface when the dataset has one, else the nearest ground-truth node), over the wet cells, by depth band
+    (thirds of the maximum depth) and over the emerged banks.
+
+    The rule that makes beds of different cover comparable: every wet ground-truth cell counts, a wet cell
+    the bed leaves empty (a hole) as a miss. So `p95` (of |dz|) counts a hole as larger than any error (None
+    when more than about 5 % of the band's cells are holes), and `within` (|dz| < 3 / 5 cm) and `iho` (|dz|
+    within each IHO S-44 order's TVU at the cell's true depth) are fractions of all the band's wet cells.
+    `bias` and `rmse` cannot count a hole: they are over the covered cells, with `cover` beside them. The
+    banks are scored over their covered cells only (no hole rule: a bed may stop at the waterline).
+    `coverage` = covered wet cells / wet ground-truth cells."""
     dz, depth = height_error(grid, truth)
     D = truth.max_depth
-    bands = {"wet": depth > 0, "banks": depth <= 0}
+    true_depth = truth.level - truth.grid[:, 2]  # [G] every wet ground-truth cell
     edges = [0.0, D / 3, 2 * D / 3, np.inf]  # the last band takes anything deeper than D too
+    bands = {"wet": (depth > 0, true_depth > 0)}
     for name, lo, hi in zip(("shallow", "middle", "deep"), edges[:-1], edges[1:]):
-        bands[name] = (depth > lo) & (depth <= hi)
+        bands[name] = ((depth > lo) & (depth <= hi), (true_depth > lo) & (true_depth <= hi))
     out = {"band_edges_m": [0.0, D / 3, 2 * D / 3, D],
-           "coverage": float(bands["wet"].sum() / len(truth.grid))}
-    for name, mask in bands.items():
-        e = dz[mask]
-        out[name] = {"n": int(mask.sum()), "bias": float(e.mean()) if len(e) else None,
-                     "rmse": float(np.sqrt((e**2).mean())) if len(e) else None,
-                     "p95": float(np.percentile(np.abs(e), 95)) if len(e) else None}
+           "coverage": float((depth > 0).sum() / len(truth.grid))}
+    for name, (mask, cells) in bands.items():
+        out[name] = wet_figures(dz[mask], depth[mask], max(int(cells.sum()) - int(mask.sum()), 0))
+    e = dz[depth <= 0]
+    out["banks"] = {"n": len(e), "bias": float(e.mean()) if len(e) else None,
+                    "rmse": float(np.sqrt((e**2).mean())) if len(e) else None,
+                    "p95": float(np.percentile(np.abs(e), 95)) if len(e) else None}
     return out
+
+
+def wet_figures(dz: np.ndarray, depth: np.ndarray, holes: int) -> dict:
+    """`survey_figures` of one band: the errors dz [N] of its covered cells at true depths [N] (metres) and the
+    number of its wet cells left empty."""
+    e, total = np.abs(dz), len(dz) + holes
+    share = (lambda ok: float(ok.sum() / total)) if total else (lambda ok: None)
+    return {"n": len(dz), "holes": holes, "cover": float(len(dz) / total) if total else None,
+            "bias": float(dz.mean()) if len(dz) else None,
+            "rmse": float(np.sqrt((dz**2).mean())) if len(dz) else None,
+            "p95": quantile_with_holes(e, holes, 0.95),
+            "within": {name: share(e < t) for name, t in WITHIN.items()},
+            "iho": {order: share(e <= tvu(depth, order)) for order in IHO_ORDERS}}
 
 
 def height_error(grid: np.ndarray, truth) -> tuple[np.ndarray, np.ndarray]:

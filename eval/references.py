@@ -6,16 +6,18 @@ beat before its numbers mean anything.
   them, see `eval.ablation.TrainEval.initial`);
 - `3dgs x n`: the refraction-unaware 3DGS bed with every submerged depth multiplied by n (the field's
   classical correction, the paper's Table 3): `depth_times_n` of the 3dgs variant's extracted grid;
-- `oracle plane`: a flat plane at the ground truth's median submerged height over every ground-truth cell
-  (wet and banks): it reads the answer, so it is marked as using the ground truth.
+- `oracle plane`: the least-squares tilted plane through the submerged ground truth, over every ground-truth
+  cell (wet and banks); `oracle median plane`: a flat plane at the ground truth's median submerged height
+  (the second null). Both read the answer, so they are marked as using the ground truth.
 
 What a surveyor would do without ragsplat, from the dataset's own tracks (SIFT matches of the training photos
 triangulated with the known poses, `dataset.colmap`), each cleaned by the local outlier filter of a DEM
-(`tracks.track_filter`) and gridded by linear interpolation on their Delaunay triangulation (`tracks.tin`):
+(`tracks.track_filter`, its settings `TIN_FILTER`) and gridded by linear interpolation on their Delaunay triangulation (`tracks.tin`):
 - `triangulation (refracted)`: the tracks intersected through the water (`colmap.refracted_points`, the
   start the variants train from);
 - `triangulation x n`: the straight-ray tracks with their submerged depths x n;
-- `dietrich (tracks)`: the straight-ray tracks corrected by Dietrich's (2017) multi-camera rule (`dietrich`);
+- `dietrich (tracks)`: the straight-ray tracks corrected by Dietrich's (2017) multi-camera rule (`dietrich`,
+  with pyBathySfM's angle filter and reduction, `DIETRICH_TRACKS`);
 - `dietrich (3dgs)`: the same rule applied to the 3dgs row's dense apparent bed, every training camera that
   sees a cell voting (the dense-cloud workflow).
 """
@@ -33,16 +35,25 @@ from ragsplat_core.tracks import tin, track_filter
 # In table order: what a surveyor would do without ragsplat first, then the trivial answers. `init` stays in
 # results.json but not in the tables (drawn as 3DGS blobs, the start scores near 0 by construction).
 REFERENCES = ("triangulation (refracted)", "dietrich (tracks)", "dietrich (3dgs)", "triangulation x n",
-              "3dgs x n", "oracle plane", "init")
+              "3dgs x n", "oracle plane", "oracle median plane", "init")
 NOT_IN_TABLES = ("init",)
-SEEDLESS = ("oracle plane", "triangulation (refracted)", "dietrich (tracks)", "triangulation x n")  # no training
-# degrees: the angle filter of the dense cloud's correction (issue 26's pyBathySfM run used 35), not tuned here
-DIETRICH_MAX_ANGLE = 35.0
-USES_GROUND_TRUTH = ("oracle plane",)
+ORACLES = ("oracle plane", "oracle median plane")
+SEEDLESS = (*ORACLES, "triangulation (refracted)", "dietrich (tracks)", "triangulation x n")  # no training
+USES_GROUND_TRUTH = ORACLES
 # Where each reference's height grid comes from, as the tables label it (no fused variant: 3dgs x n
 # corrects the 3dgs row's volume bed, init is the untrained start).
-EXTRACTION = {"init": "volume", "3dgs x n": "volume", "oracle plane": "-", "triangulation (refracted)": "TIN",
-              "triangulation x n": "TIN", "dietrich (tracks)": "TIN", "dietrich (3dgs)": "volume"}
+EXTRACTION = {"init": "volume", "3dgs x n": "volume", "oracle plane": "-", "oracle median plane": "-",
+              "triangulation (refracted)": "TIN", "triangulation x n": "TIN", "dietrich (tracks)": "TIN",
+              "dietrich (3dgs)": "volume"}
+# The references' own settings, chosen on the development reach by the method's rule (`python -m
+# eval.tune_references data/small-dev`; the figures in docs/evaluation.md, "The references' settings"): the
+# tracks' outlier filter before the TIN (`tracks.track_filter`), and Dietrich's per-camera angle filter and
+# reduction (pyBathySfM's defaults, 35 degrees and the mean, as the starting point).
+TIN_FILTER = {"radius": 1.0, "tol": 0.3, "min_neighbours": 8}
+DIETRICH_TRACKS = {"max_angle_deg": 35.0, "reduce": "mean"}
+# degrees: the dense cloud's angle filter (pyBathySfM's default; a dense bed has far oblique views in plenty)
+DIETRICH_MAX_ANGLE = 35.0
+REDUCE = {"mean": np.mean, "median": np.median}
 
 
 def start_extraction(cfg: ExtractConfig) -> ExtractConfig:
@@ -62,10 +73,17 @@ def depth_times_n(grid: np.ndarray, level: float, n: float) -> np.ndarray:
     return out
 
 
-def oracle_plane(truth) -> np.ndarray:
-    """[P, 3]: every ground-truth node (submerged bed and banks) at the median submerged height."""
-    nodes = truth.nodes
-    return np.column_stack([nodes[:, :2], np.full(len(nodes), float(np.median(truth.grid[:, 2])))])
+def oracle_grids(truth) -> dict[str, np.ndarray]:
+    """{name: [P, 3]} the two planes of `ORACLES` over every ground-truth node (submerged bed and banks): the
+    least-squares plane z = a + b x + c y through the submerged ground truth, and the flat plane at its median
+    height."""
+    nodes, wet = truth.nodes, truth.grid
+    A = np.column_stack([np.ones(len(wet)), wet[:, :2]])
+    coef = np.linalg.lstsq(A, wet[:, 2], rcond=None)[0]
+    tilted = np.column_stack([np.ones(len(nodes)), nodes[:, :2]]) @ coef
+    flat = np.full(len(nodes), float(np.median(wet[:, 2])))
+    return {"oracle plane": np.column_stack([nodes[:, :2], tilted]),
+            "oracle median plane": np.column_stack([nodes[:, :2], flat])}
 
 
 def dietrich(apparent: np.ndarray, centres: np.ndarray, point: np.ndarray, camera: np.ndarray, level: float,
@@ -112,10 +130,26 @@ def seen_by(points: np.ndarray, cameras) -> tuple[np.ndarray, np.ndarray]:
     return both[:, 0], both[:, 1]
 
 
-def track_grids(root, fingerprint: str, cameras: dict, water, nodes: np.ndarray) -> dict[str, np.ndarray]:
+def track_grids(root, fingerprint: str, cameras: dict, water, nodes: np.ndarray, tin_filter: dict | None = TIN_FILTER,
+                dietrich_tracks: dict = DIETRICH_TRACKS) -> dict[str, np.ndarray]:
     """{reference name: height grid [G', 3] on `nodes` [G, 2]} for the tracks' references (module docstring)
-    of the dataset `root` (its cached triangulation; `cameras`: image name -> Camera). Raises DatasetError
-    when nothing can be triangulated."""
+    of the dataset `root` (its cached triangulation; `cameras`: image name -> Camera), with the outlier filter
+    `tin_filter` (`track_filter`'s keywords, or None: none) and Dietrich's `dietrich_tracks` (`max_angle_deg`,
+    None: every camera; `reduce`: a name of `REDUCE`). Raises DatasetError when nothing can be triangulated."""
+    clouds = track_clouds(root, fingerprint, cameras, water, dietrich_tracks)
+    return {name: gridded(pts, nodes, tin_filter) for name, pts in clouds.items()}
+
+
+def gridded(points: np.ndarray, nodes: np.ndarray, tin_filter: dict | None = TIN_FILTER) -> np.ndarray:
+    """[G', 3] a point cloud [P, 3+] as a surveyor grids it: outlier-filtered (`tin_filter`, None: not) and
+    interpolated linearly on its Delaunay triangulation at `nodes` [G, 2]."""
+    keep = np.ones(len(points), bool) if tin_filter is None else track_filter(points, **tin_filter)
+    return tin(points[keep], nodes)
+
+
+def track_clouds(root, fingerprint: str, cameras: dict, water, dietrich_tracks: dict = DIETRICH_TRACKS
+                 ) -> dict[str, np.ndarray]:
+    """{reference name: point cloud [P, 3]} of the tracks' references before gridding (`track_grids`)."""
     import json
     from pathlib import Path
 
@@ -127,12 +161,11 @@ def track_grids(root, fingerprint: str, cameras: dict, water, nodes: np.ndarray)
     names = json.loads((Path(root) / STAMP).read_text())["images"]
     centres = np.array([cameras[name].camera_center for name in names])
     level, n = float(water.level), float(water.n)
-    # every camera of a track votes (the angle filter is the dense cloud's, where far oblique views abound)
-    corrected = dietrich(straight, centres, obs[:, 0].astype(np.int64), obs[:, 1].astype(np.int64), level, n)
-    clouds = {"triangulation (refracted)": refracted_points(root, fingerprint, cameras, water)[:, :3],
-              "dietrich (tracks)": corrected[np.isfinite(corrected).all(1)],
-              "triangulation x n": depth_times_n(straight, level, n)}
-    return {name: tin(pts[track_filter(pts)], nodes) for name, pts in clouds.items()}
+    corrected = dietrich(straight, centres, obs[:, 0].astype(np.int64), obs[:, 1].astype(np.int64), level, n,
+                         dietrich_tracks["max_angle_deg"], REDUCE[dietrich_tracks["reduce"]])
+    return {"triangulation (refracted)": refracted_points(root, fingerprint, cameras, water)[:, :3],
+            "dietrich (tracks)": corrected[np.isfinite(corrected).all(1)],
+            "triangulation x n": depth_times_n(straight, level, n)}
 
 
 def dietrich_grid(bed: np.ndarray, cameras, water) -> np.ndarray:

@@ -21,6 +21,7 @@ import numpy as np
 
 from ragsplat_core.dataset.layout import GT_GRID_STEP
 from ragsplat_core.outputs import atomic_path, write_bytes, write_json
+from ragsplat_core.scoring import IHO_ORDERS
 from ragsplat_core.train.config import VARIANTS
 
 PUBLISHED_FILE = Path(__file__).resolve().parent / "published_tables.json"
@@ -53,6 +54,10 @@ T3_COLUMNS = [
     ("bias (cm)", None, ("geometry", "survey", "wet", "bias"), "{:+.1f}", 100),
     ("RMSE (cm)", None, ("geometry", "survey", "wet", "rmse"), "{:.1f}", 100),
     ("p95 (cm)", None, ("geometry", "survey", "wet", "p95"), "{:.1f}", 100),
+    ("within 3 cm (%)", None, ("geometry", "survey", "wet", "within", "3cm"), "{:.1f}", 100),
+    ("within 5 cm (%)", None, ("geometry", "survey", "wet", "within", "5cm"), "{:.1f}", 100),
+    *[(f"IHO {order} (%)", None, ("geometry", "survey", "wet", "iho", order), "{:.1f}", 100)
+      for order in reversed(IHO_ORDERS)],  # the strictest first
     ("RMSE shallow", None, ("geometry", "survey", "shallow", "rmse"), "{:.1f}", 100),
     ("RMSE middle", None, ("geometry", "survey", "middle", "rmse"), "{:.1f}", 100),
     ("RMSE deep", None, ("geometry", "survey", "deep", "rmse"), "{:.1f}", 100),
@@ -298,23 +303,39 @@ def geometry_notes(header: dict) -> list[str]:
            ("CD in metres (mean of accuracy and completeness, unsquared); P/R/F1 in %, strict < threshold; "
             "mean ± sample standard deviation over the training seeds (the extraction seed is the training "
             "seed)."),
-           ("Reference rows, what a surveyor would do without ragsplat: triangulation (refracted) = the "
-            "dataset's SIFT tracks intersected through the water; dietrich (tracks) = the straight-ray tracks "
-            "corrected by Dietrich's (2017) multi-camera rule (the median over the track's cameras); "
-            "triangulation x n = the straight-ray tracks with depths x n; each outlier-filtered "
-            "(a point 0.3 m from the median of its neighbours within 1 m dropped) and gridded by linear "
-            "interpolation on its Delaunay triangulation (TIN); dietrich (3dgs) = the rule applied to the 3dgs "
-            "bed, every camera within 35 degrees of the vertical that sees a cell voting. The trivial answers: 3dgs x n = the 3dgs bed with "
-            "submerged depths multiplied by n (the classical correction); oracle plane = a flat plane at the "
-            "ground truth's median height (it reads the ground truth). The untrained start (init) is in "
-            "results.json only."),
+           references_note(header),
            bed_note(header)]
     if tuning:
         warn = " THIS IS THE DEVELOPMENT DATASET: these numbers are not an evaluation." \
             if header.get("dataset_seed") == tuning.get("dataset_seed") else ""
         out.append(f"Hyperparameters were chosen on dataset seed {tuning.get('dataset_seed')} (development); "
                    f"this dataset has seed {header.get('dataset_seed')}.{warn}")
+    role = header.get("dataset_role")
+    if role and role != "other":
+        out.append(f"Protocol: dataset seeds {header.get('dataset_seeds')}; this is the {role} reach.")
     return out
+
+
+def references_note(header: dict) -> str:
+    """What the reference rows are, with their settings as the header records them."""
+    refs = header.get("references") or {}
+    tin, die = refs.get("tin_filter"), refs.get("dietrich_tracks") or {}
+    cleaned = "not outlier-filtered" if tin is None else \
+        (f"outlier-filtered (a point {tin['tol']:g} m from the median of its neighbours within "
+         f"{tin['radius']:g} m dropped, given {tin['min_neighbours']})") if tin else "outlier-filtered"
+    angle = die.get("max_angle_deg")
+    cams = "every camera" if angle is None else f"the cameras within {angle:g} degrees of the vertical"
+    dense = refs.get("dietrich_3dgs_max_angle_deg")
+    return ("Reference rows, what a surveyor would do without ragsplat: triangulation (refracted) = the dataset's "
+            "SIFT tracks intersected through the water; dietrich (tracks) = the straight-ray tracks corrected by "
+            f"Dietrich's (2017) multi-camera rule ({die.get('reduce', 'median')} over {cams}); triangulation x n "
+            f"= the straight-ray tracks with depths x n; each {cleaned} and gridded by linear interpolation on its "
+            "Delaunay triangulation (TIN), settings chosen on the development reach; dietrich (3dgs) = the rule "
+            f"applied to the 3dgs bed, every camera within {dense if dense is not None else 35:g} degrees of the "
+            "vertical that sees a cell voting. The trivial answers: 3dgs x n = the 3dgs bed with submerged depths "
+            "multiplied by n (the classical correction); oracle plane = the least-squares tilted plane through the "
+            "ground truth's submerged bed, oracle median plane = the flat plane at its median height (both read "
+            "the ground truth). The untrained start (init) is in results.json only.")
 
 
 def bed_note(header: dict) -> str:
@@ -334,8 +355,14 @@ def survey_notes(header: dict) -> list[str]:
     depth = header.get("max_depth_m") or 0
     return [(f"dz = predicted - true bed height at the centre of each reconstructed 5 cm cell (exact surface); "
              f"wet = true depth > 0; bands are thirds of the maximum depth ({depth:g} m); banks = emerged "
-             "ground in the evaluation region; p95 = 95th percentile of |dz|; wet cover = wet cells "
-             "reconstructed / wet ground-truth cells.")]
+             "ground in the evaluation region; wet cover = wet cells reconstructed / wet ground-truth cells."),
+            ("Holes count as misses: p95 (of |dz|), within 3 / 5 cm and the IHO columns are over every wet "
+             "ground-truth cell, a cell the bed leaves empty counting as beyond every threshold (p95 n/a when "
+             "more than 5 % are empty); bias and RMSE cannot count a hole and are over the covered cells, "
+             "wet cover beside them. IHO: the share of wet cells within the IHO S-44 (2020) total vertical "
+             "uncertainty at 95 %, sqrt(a^2 + (b d)^2) at the cell's true depth d: "
+             + ", ".join(f"{k} ({a:g} m, {b:g})" for k, (a, b) in reversed(IHO_ORDERS.items()))
+             + " (order 1: 1a and 1b).")]
 
 
 def write_outputs(out: Path, rows: dict[str, list[dict]], header: dict, lpips_reason: str) -> str:

@@ -18,7 +18,7 @@ import numpy as np
 from eval import metrics
 from eval.ablation import CODE, PRESETS, TrainEval, extract_config
 from eval.evaluate import evaluate_fused, evaluate_geometry, evaluate_views, score_grid
-from eval.references import USES_GROUND_TRUTH, oracle_plane, start_extraction
+from eval.references import USES_GROUND_TRUTH, oracle_grids, start_extraction
 from eval.report import T2_COLUMNS, T3_COLUMNS, values
 from ragsplat_core.errors import ConfigError, DatasetError
 from ragsplat_core.export import load_model
@@ -50,7 +50,7 @@ def score_run(run: Path, data: Path | None = None, vgg16: str | None = None, dow
         raise DatasetError(f"{runner.ds.root} is in another frame than {ds.root} (offsets {runner.ds.georef.offset}"
                            f" and {ds.georef.offset})")
     truth = runner.truth
-    ecfg = replace(extract_config(cfg.preset, len(truth.grid), cfg.seed, ds.gsd), **(extract or {}))
+    ecfg = replace(extract_config(cfg.preset, len(truth.nodes), cfg.seed, ds.gsd), **(extract or {}))
     lpips_metric, lpips_reason = metrics.load_lpips(vgg16, download=download, log=log)
     if lpips_reason:
         log(f"LPIPS n/a: {lpips_reason}")
@@ -70,7 +70,7 @@ def score_run(run: Path, data: Path | None = None, vgg16: str | None = None, dow
             "code_digest": source_digest(*CODE), "num_gaussians": int(model.splats["means"].shape[0]),
             "appearance": appearance, "geometry": geometry, "geometry_fused": fused,
             "references": {"init": evaluate_geometry(initial, truth, start_extraction(ecfg))[0],
-                           "oracle plane": score_grid(oracle_plane(truth), truth),
+                           **{name: score_grid(grid, truth) for name, grid in oracle_grids(truth).items()},
                            **{name: score_grid(grid, truth) for name, grid in runner.track_grids(log).items()}},
             "uses_ground_truth": list(USES_GROUND_TRUTH),
             **({} if dem is None else {"dem": _score_dem(dem, ds.georef, truth)})}

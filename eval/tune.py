@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         fixed[name] = float(value)
     runner = TrainEval(args.data)
     claim(args.out, "tuning")
-    ecfg = extract_config(args.preset, len(runner.truth.grid), args.seed, runner.gsd)
+    ecfg = extract_config(args.preset, len(runner.truth.nodes), args.seed, runner.gsd)
     results = []
     for value in args.values:
         for variant in args.variants:

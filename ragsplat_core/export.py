@@ -35,10 +35,21 @@ from ragsplat_core.train.trainer import PLY, fades_opacity, median_depth, render
 
 BATHYMETRIC, GROUND = 40, 2  # ASPRS classes (LAS 1.4 R15): submerged bed ("bathymetric point"), emerged
 LAS_SCALE = 0.001  # metres per integer step of the LAS coordinates
-# Samples per m^2 of the area: 16 per 5 cm cell, the ablation's density (the noise filter needs 6 neighbours
-# within 10 cm, whatever the cell), and never fewer than 16 per cell at finer resolutions.
-SAMPLE_DENSITY, SAMPLES_PER_CELL = 16 / 0.05**2, 16
+# Extraction samples per cell of the DEM grid inside the region: the evaluation's rule (`eval.ablation`'s
+# `extract_config`: samples_per_cell x the ground-truth grid's nodes, 16 for every preset but the CI's `smoke`),
+# so that at the evaluation's 5 cm a run exports the bed `ragsplat eval` scores (on a reach its grid counts the
+# wet nodes only; the export cannot know which are wet before extracting and counts them all).
+SAMPLES_PER_CELL = 16
 MAX_SAMPLES = 20_000_000  # about 4 GB while sampling (200 bytes each): a finer resolution is a typo
+# The noise filter's neighbourhood (`ExtractConfig.filter_radius`, 10 cm = 2 cells of the evaluation's 5 cm)
+# grows with a coarser DEM cell to stay 2 cells wide: the samples thin out with the cells (16 per cell of
+# 50 cm leave about 2 within 10 cm, and the filter, which wants 6, would drop the whole bed).
+FILTER_RADIUS_CELLS = 2.0
+# Never fewer samples than this per Gaussian, whatever the cell: `surface.largest_remainder` hands them out in
+# proportion to volume, floors first, so with fewer samples than Gaussians only the largest (and, among equals,
+# the first in the file) are sampled at all. At the evaluation's 5 cm it does not bind (the `small` reach: 16 x
+# 30 535 nodes for at most 40 000 Gaussians).
+SAMPLES_PER_GAUSSIAN = 4
 
 
 @dataclass(frozen=True)
@@ -246,31 +257,70 @@ def render_views(model: Model, views: list[View], kind: str, out: Path, on_view=
     return written
 
 
+def grid_origin(resolution: float, georef: Georef | None = None) -> tuple[float, float]:
+    """A node of the export grid in the local frame: its nodes lie on multiples of `resolution` in the CRS
+    (tiles of two runs line up), so the nearest such node to the local origin, minus the offset."""
+    offset = (georef or Georef()).offset
+    return tuple(round(x0 / resolution) * resolution - x0 for x0 in offset[:2])
+
+
+def grid_cells(lo, hi, resolution: float, georef: Georef | None = None) -> int:
+    """The number of export grid nodes (`grid_origin`) in the box [lo, hi] ((x, y) each, local frame), edges
+    included to the extraction's tolerance (`extract_surface` crops with 1e-6 cell)."""
+    origin, tol, count = grid_origin(resolution, georef), 1e-6 * resolution, 1
+    for a, b, o in zip(lo, hi, origin):
+        count *= max(0, math.floor((b - o + tol) / resolution) - math.ceil((a - o - tol) / resolution) + 1)
+    return count
+
+
+def sample_count(lo, hi, resolution: float, georef: Georef | None = None, gaussians: int = 0) -> int:
+    """The extraction's sample count for a DEM of `resolution` m over the box [lo, hi] from a model of
+    `gaussians` Gaussians: `SAMPLES_PER_CELL` per cell of its grid there (at least one cell), and at least
+    `SAMPLES_PER_GAUSSIAN` per Gaussian. Cheap: callers check a survey's size with it before any work.
+    Raises ConfigError above `MAX_SAMPLES`."""
+    cells = max(grid_cells(lo, hi, resolution, georef), 1)
+    n = max(SAMPLES_PER_CELL * cells, SAMPLES_PER_GAUSSIAN * gaussians)
+    if SAMPLES_PER_GAUSSIAN * gaussians > MAX_SAMPLES:
+        raise ConfigError(f"{gaussians:.3g} Gaussians need {n:.3g} samples (at most {MAX_SAMPLES:.0e}, "
+                          f"{SAMPLES_PER_GAUSSIAN} each); train a smaller model or export parts of it")
+    if n > MAX_SAMPLES:
+        area = float(np.prod(np.asarray(hi, float) - np.asarray(lo, float)))
+        need = 1.01 * resolution * math.sqrt(n / MAX_SAMPLES)  # the count goes as 1 / resolution^2
+        step = 10.0 ** (math.floor(math.log10(need)) - 1)
+        raise ConfigError(f"resolution {resolution:g} m over {area:.4g} m^2 is {cells:.3g} cells, {n:.3g} samples "
+                          f"(at most {MAX_SAMPLES:.0e}, {SAMPLES_PER_CELL} per cell); choose a coarser resolution, "
+                          f"{math.ceil(need / step) * step:.2g} m or more")
+    return n
+
+
+def export_box(gaussians: dict, region: dict | None, min_opacity: float) -> tuple[np.ndarray, np.ndarray]:
+    """The (lo, hi) corners [2] of what is exported: the region, or without one the 1st to 99th percentile of
+    the opaque Gaussians' positions (not floaters')."""
+    if region is not None:
+        return np.array([region["xmin"], region["ymin"]]), np.array([region["xmax"], region["ymax"]])
+    means = gaussians["means"].detach().cpu().numpy()  # [N, 3]
+    xy = means[gaussians["opacities"].detach().cpu().numpy() >= min_opacity, :2]
+    return np.percentile(xy, [1, 99], axis=0) if len(xy) else (np.zeros(2), np.zeros(2))
+
+
 def extract_bed(gaussians: dict, resolution: float, level: float | None, region: dict | None = None,
                 georef: Georef | None = None, seed: int = 0, gsd: float | None = None, **extract) -> Bed:
     """The bed of activated Gaussians (means [N, 3], scales [N, 3], quats [N, 4], opacities [N]) on a grid
-    of `resolution` metres whose nodes lie on multiples of it in the CRS (tiles of two runs line up),
-    inside `region` {xmin, xmax, ymin, ymax} when given, by `surface.extract_surface` with the evaluation's
-    settings (`ExtractConfig`) except the fields in `extract` (e.g. min_opacity, max_scale_gsd in ground
-    sample distances `gsd`, `Dataset.gsd`). Raises ConfigError, OutputError (nothing found)."""
+    of `resolution` metres whose nodes lie on multiples of it in the CRS (`grid_origin`), inside `region`
+    {xmin, xmax, ymin, ymax} when given, by `surface.extract_surface` with the evaluation's settings
+    (`ExtractConfig`; `sample_count` samples, the noise filter `FILTER_RADIUS_CELLS` wide at cells coarser
+    than the evaluation's) except the fields in `extract` (e.g. min_opacity, max_scale_gsd in ground sample
+    distances `gsd`, `Dataset.gsd`). Raises ConfigError (too many samples: before any work), OutputError
+    (nothing found)."""
     georef = georef or Georef()  # default: the local frame
     cfg = ExtractConfig(gsd=gsd, cell=resolution, seed=seed, **extract)
-    means = gaussians["means"].detach().cpu().numpy()  # [N, 3]
-    if region is None:
-        xy = means[gaussians["opacities"].detach().cpu().numpy() >= cfg.min_opacity, :2]
-        lo, hi = np.percentile(xy, [1, 99], axis=0) if len(xy) else (np.zeros(2), np.zeros(2))  # not floaters'
-    else:
-        lo, hi = np.array([region["xmin"], region["ymin"]]), np.array([region["xmax"], region["ymax"]])
-    area = max(float(np.prod(hi - lo)), resolution**2)
-    n = math.ceil(area * max(SAMPLE_DENSITY, SAMPLES_PER_CELL / resolution**2))
-    if n > MAX_SAMPLES:
-        raise ConfigError(f"resolution {resolution:g} m over {area:.4g} m^2 needs {n:.3g} samples (at most "
-                          f"{MAX_SAMPLES:.0e}); choose a coarser resolution")
-    # A node at absolute (k * resolution): local origin = the nearest such node minus the offset.
-    origin = tuple(round(x0 / resolution) * resolution - x0 for x0 in georef.offset[:2])
+    n = sample_count(*export_box(gaussians, region, cfg.min_opacity), resolution, georef,
+                     len(gaussians["means"]))
+    if "filter_radius" not in extract:
+        cfg = replace(cfg, filter_radius=max(cfg.filter_radius, FILTER_RADIUS_CELLS * resolution))
     cfg = replace(cfg, n_samples=n)
     grid, _ = extract_surface(gaussians["means"], gaussians["scales"], gaussians["quats"],
-                              gaussians["opacities"], cfg, region, origin)
+                              gaussians["opacities"], cfg, region, grid_origin(resolution, georef))
     if not len(grid):
         raise OutputError(f"no bed surface: no Gaussian is opaque enough (>= {cfg.min_opacity}) and small enough "
                           f"(<= {cfg.max_scale_gsd:g} ground sample distances), or the noise filter removed every "

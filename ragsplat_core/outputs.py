@@ -89,13 +89,14 @@ def git_commit() -> str | None:
 
 
 def source_digest(*dirs: str) -> str:
-    """sha256 (16 hex digits) over the Python sources under the given folders of the source tree
-    ("ragsplat_core", "eval"): the code version of a result, also outside git and with uncommitted edits."""
+    """sha256 (16 hex digits) over the Python sources under the given folders or files of the source tree
+    ("ragsplat_core", "eval/evaluate.py"): the code version of a result, also outside git and with uncommitted
+    edits."""
     import hashlib
 
     h = hashlib.sha256()
     for d in dirs:
-        for path in sorted((ROOT / d).rglob("*.py")):
+        for path in [ROOT / d] if (ROOT / d).is_file() else sorted((ROOT / d).rglob("*.py")):
             h.update(str(path.relative_to(ROOT)).encode() + b"\0" + path.read_bytes() + b"\0")
     return h.hexdigest()[:16]
 

@@ -43,6 +43,36 @@ def thresholds(max_depth: float) -> dict[str, float]:
     return {"10cm": 0.10, "30cm": 0.30, "1%": 0.01 * max_depth, "3%": 0.03 * max_depth}
 
 
+# IHO S-44 (6th edition, 2020), total vertical uncertainty at 95 %: TVU(d) = sqrt(a^2 + (b d)^2), (a m, b) per
+# order. Order 1a and 1b share their TVU.
+IHO_ORDERS = {"order 2": (1.0, 0.023), "order 1": (0.5, 0.013), "special": (0.25, 0.0075),
+              "exclusive": (0.15, 0.0075)}
+# metres: bands tighter than every IHO order at a few metres of depth, where a river engineer's question lies
+WITHIN = {"3cm": 0.03, "5cm": 0.05}
+
+
+def tvu(depth: np.ndarray, order: str) -> np.ndarray:
+    """[N] IHO S-44 total vertical uncertainty at 95 % (metres) of `order` at each depth [N] (metres)."""
+    a, b = IHO_ORDERS[order]
+    return np.sqrt(a**2 + (b * np.asarray(depth, np.float64)) ** 2)
+
+
+def quantile_with_holes(abs_err: np.ndarray, holes: int, q: float) -> float | None:
+    """The `q` quantile (numpy's linear rule) of the errors [N] together with `holes` cells that have none, a hole
+    counting as larger than every error: None when the quantile falls on or between holes (more than about
+    1 - q of the cells are holes), and numpy's percentile of the errors alone when `holes` is 0."""
+    e = np.sort(np.asarray(abs_err, np.float64))
+    total = len(e) + int(holes)
+    if total == 0:
+        return None
+    pos = q * (total - 1)
+    hi = int(np.ceil(pos))
+    if hi >= len(e):
+        return None
+    lo = int(np.floor(pos))
+    return float(e[lo] + (pos - lo) * (e[hi] - e[lo]))
+
+
 def plane_scores(gt: np.ndarray, z: float, max_depth: float) -> dict:
     """A flat plane at height `z`, sampled on the ground truth's own nodes, scored at `thresholds`."""
     plane = np.column_stack([gt[:, :2], np.full(len(gt), z)])

@@ -127,7 +127,7 @@ def test_processes_share_a_queue_take_each_row_once_longest_first(tmp_path):
     assert ablation.held(queue, os.getpid()) == []
     rows = run_ablation(data, out, "smoke", ["3dgs", "2dgs+full"], [0, 1], runner, **quiet)
     assert len(runner.calls) == 4 and [r["seed"] for r in rows["2dgs+full"]] == [0, 1]
-    assert list(rows) == ["3dgs", "2dgs+full", "init", "3dgs x n", "oracle plane"]
+    assert list(rows) == ["3dgs", "2dgs+full", "init", "3dgs x n", "oracle plane", "oracle median plane"]
     assert (out / "results.json").is_file()
     # the sources edited while the processes ran: refused, not keyed to two versions of the code
     with pytest.raises(ConfigError, match="changed since this command started"):
@@ -140,7 +140,7 @@ def test_rows_are_reused_only_under_their_key(tmp_path):
     quiet = {"log": lambda s: None, "download": False}
     rows = run_ablation(data, out, "smoke", ["3dgs", "full"], [0, 1], runner, **quiet)
     assert runner.calls == [("3dgs", 0), ("full", 0), ("3dgs", 1), ("full", 1)]
-    assert list(rows) == ["3dgs", "full", "init", "3dgs x n", "oracle plane"]
+    assert list(rows) == ["3dgs", "full", "init", "3dgs x n", "oracle plane", "oracle median plane"]
     assert [r["seed"] for r in rows["full"]] == [0, 1] and len(rows["oracle plane"]) == 1
     # the classical correction of an apparent flat bed (depth / n) is exact: every reference has a known answer
     assert rows["3dgs x n"][0]["geometry"]["f1"]["1%"] == 1.0
@@ -158,9 +158,9 @@ def test_rows_are_reused_only_under_their_key(tmp_path):
     assert rows["full"][0]["outputs"]["depth_error_fused"].endswith("depth_error_fused.png")
     # same key: reused; only the requested variants and seeds are tabulated
     rows = run_ablation(data, out, "smoke", ["full"], [1], runner, **quiet)
-    assert len(runner.calls) == 4 and list(rows) == ["full", "init", "oracle plane"]
+    assert len(runner.calls) == 4 and list(rows) == ["full", "init", "oracle plane", "oracle median plane"]
     res = json.loads((out / "results.json").read_text())
-    assert list(res["rows"]) == ["oracle plane", "init", "full"] and res["seeds"] == [1]
+    assert list(res["rows"]) == ["oracle plane", "oracle median plane", "init", "full"] and res["seeds"] == [1]
     assert "| 3dgs |" not in (out / "table2.md").read_text()
     # another dataset content (one image changed): recomputed, never reused
     runner.fingerprint = "bbbb"
@@ -184,18 +184,77 @@ def test_a_stale_checkpoint_is_not_resumed(tmp_path):
     assert not (folder / "ckpt.pt").exists()
 
 
-def test_survey_figures_of_a_known_offset():
+def slope_truth():
+    """A 2 x 0.5 m slope from 0 to 1.95 m deep on 5 cm nodes: its first row of 10 nodes is the bank."""
     x, y = np.meshgrid(np.arange(40) * 0.05, np.arange(10) * 0.05, indexing="ij")
-    z = -0.05 * x.ravel()  # a slope from 0 to 1.95 m deep
-    truth = GroundTruth(np.column_stack([x.ravel(), y.ravel(), z])[1 * 10:], {}, 1.95, 0.0,
-                        banks=np.column_stack([x.ravel(), y.ravel(), z])[:10])
-    pred = np.column_stack([x.ravel(), y.ravel(), z + 0.02])[::2]
-    s = score_grid(pred, truth)["survey"]
-    assert s["wet"]["bias"] == pytest.approx(0.02) and s["wet"]["rmse"] == pytest.approx(0.02)
-    assert s["wet"]["p95"] == pytest.approx(0.02) and s["coverage"] == pytest.approx(195 / 390)
-    assert s["banks"]["n"] == 5 and s["shallow"]["n"] + s["middle"]["n"] + s["deep"]["n"] == s["wet"]["n"]
+    nodes = np.column_stack([x.ravel(), y.ravel(), -0.05 * x.ravel()])
+    return GroundTruth(nodes[10:], {}, 1.95, 0.0, banks=nodes[:10]), nodes
+
+
+def test_survey_figures_count_holes_as_misses():
+    truth, nodes = slope_truth()
+    pred = nodes + [0, 0, 0.02]
+    whole = score_grid(pred, truth)["survey"]
+    assert whole["wet"]["bias"] == pytest.approx(0.02) and whole["wet"]["rmse"] == pytest.approx(0.02)
+    assert whole["wet"]["p95"] == pytest.approx(0.02) and whole["coverage"] == 1.0 and whole["wet"]["holes"] == 0
+    assert whole["wet"]["within"] == {"3cm": 1.0, "5cm": 1.0} and all(v == 1.0 for v in whole["wet"]["iho"].values())
+    half = score_grid(pred[::2], truth)["survey"]  # every other cell: half the wet cells are holes
+    wet = half["wet"]
+    assert half["coverage"] == pytest.approx(195 / 390) and wet["n"] + wet["holes"] == 390
+    assert wet["bias"] == pytest.approx(0.02) and wet["rmse"] == pytest.approx(0.02)  # over the covered cells
+    assert wet["p95"] is None  # half the cells have no error to rank
+    assert wet["within"]["3cm"] == pytest.approx(195 / 390) and wet["within"]["5cm"] == pytest.approx(195 / 390)
+    assert all(v == pytest.approx(195 / 390) for v in wet["iho"].values())
+    for band in ("shallow", "middle", "deep"):
+        assert half[band]["n"] + half[band]["holes"] == whole[band]["n"]
+    assert half["banks"]["n"] == 5 and sum(half[b]["n"] for b in ("shallow", "middle", "deep")) == wet["n"]
     assert references.depth_times_n(np.array([[0, 0, -1.0], [0, 0, 0.5]]), 0.0, 1.33).tolist() == \
         [[0, 0, -1.33], [0, 0, 0.5]]
+
+
+def test_a_bank_cell_never_counts_as_wet():
+    truth, nodes = slope_truth()
+    pred = nodes.copy()
+    pred[:10, 2] += 5.0  # the banks 5 m too high, the bed exact
+    s = score_grid(pred, truth)["survey"]
+    assert s["wet"]["bias"] == 0.0 and s["wet"]["p95"] == 0.0 and s["wet"]["within"]["3cm"] == 1.0
+    assert s["banks"]["bias"] == pytest.approx(5.0) and s["banks"]["n"] == 10 and s["coverage"] == 1.0
+
+
+def test_iho_shares_at_the_order_s_bound():
+    from ragsplat_core.scoring import tvu
+
+    truth, nodes = slope_truth()
+    depth = -nodes[:, 2]
+    pred = nodes.copy()
+    pred[:, 2] += np.where(np.arange(len(nodes)) % 2 == 0, 0.99, 1.01) * tvu(depth, "special")  # half inside
+    iho = score_grid(pred, truth)["survey"]["wet"]["iho"]
+    assert iho["special"] == pytest.approx(0.5) and iho["exclusive"] == 0.0 and iho["order 1"] == 1.0
+    assert tvu(np.array([0.0, 10.0]), "order 2") == pytest.approx([1.0, np.hypot(1.0, 0.23)])
+
+
+def test_quantile_with_holes_is_numpy_s_with_holes_as_the_largest():
+    from ragsplat_core.scoring import quantile_with_holes
+
+    e = np.random.default_rng(0).uniform(0, 1, 200)
+    assert quantile_with_holes(e, 0, 0.95) == pytest.approx(np.percentile(e, 95), abs=0, rel=1e-12)
+    for holes in (1, 5, 9):  # the quantile still falls among the errors
+        assert quantile_with_holes(e, holes, 0.95) == pytest.approx(np.percentile(np.r_[e, np.full(holes, 9.0)], 95))
+    assert quantile_with_holes(e, 11, 0.95) is None and quantile_with_holes(np.zeros(0), 0, 0.95) is None
+
+
+def test_oracle_planes_on_a_tilted_bed_with_relief():
+    x, y = np.meshgrid(np.arange(30) * 0.1, np.arange(20) * 0.1, indexing="ij")
+    x, y = x.ravel(), y.ravel()
+    z = -1.0 - 0.2 * x + 0.1 * y + 0.05 * np.sin(7 * x) * np.cos(5 * y)  # tilted, with stones
+    truth = GroundTruth(np.column_stack([x, y, z]), {}, float(-z.min()), 0.0)
+    grids = references.oracle_grids(truth)
+    plane, flat = grids["oracle plane"], grids["oracle median plane"]
+    A = np.column_stack([np.ones_like(x), x, y])
+    assert plane[:, 2] == pytest.approx(A @ np.linalg.lstsq(A, z, rcond=None)[0])
+    assert np.abs(plane[:, 2] - z).max() < 0.06  # the tilt is found: only the stones are left
+    assert flat[:, 2] == pytest.approx(np.median(z)) and np.abs(flat[:, 2] - z).max() > 0.3
+    assert score_grid(plane, truth)["f1"]["10cm"] == 1.0 > score_grid(flat, truth)["f1"]["10cm"]
 
 
 def test_evaluate_views_conditions():

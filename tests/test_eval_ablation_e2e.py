@@ -29,7 +29,7 @@ def test_ablation_command(evaluable_dataset, tmp_path, monkeypatch, capsys):
     assert "| oracle plane (uses GT) | - | - |" in printed and "F1@3% (%) | paper |" in printed
     res = json.loads((out / "results.json").read_text())
     # the field's references first (the tracks' need a triangulable dataset: not this tiny one), init last
-    assert list(res["rows"]) == ["dietrich (3dgs)", "3dgs x n", "oracle plane", "init", "3dgs", "full"]
+    assert list(res["rows"]) == ["dietrich (3dgs)", "3dgs x n", "oracle plane", "oracle median plane", "init", "3dgs", "full"]
     assert res["seeds"] == [0, 1] and "the tracks' reference rows n/a" in printed
     assert "| init |" not in printed and "| dietrich (3dgs) | 2 | volume |" in printed
     full = res["rows"]["full"][0]
@@ -145,14 +145,14 @@ def test_jobs_train_every_row_once_and_the_tables_reuse_them(evaluable_dataset, 
             "3dgs", "full", "--seeds", "0", "1", "--init", "grid", "--no-download"]
     assert main([*argv, "--jobs", "2"]) == 0
     assert children[0] == children[1] and children[0][:-6] == argv
-    assert children[0][-6:-2] == ["--jobs", "1", "--code", source_digest(*ablation.CODE)]  # keyed to the start
+    assert children[0][-6:-2] == ["--jobs", "1", "--code", source_digest(*ablation.ROW_CODE)]  # keyed to the start
     queue = Path(children[0][-1])  # one queue folder of this command's, shared, removed at the end
     assert children[0][-2] == "--queue" and queue.parent == out
     assert not queue.exists()
     printed = capsys.readouterr().out
     assert printed.count("training ...") == 4 and printed.count("reusing the finished row") == 4
-    assert list(json.loads((out / "results.json").read_text())["rows"]) == ["dietrich (3dgs)", "3dgs x n",
-                                                                           "oracle plane", "init", "3dgs", "full"]
+    assert list(json.loads((out / "results.json").read_text())["rows"]) == \
+        ["dietrich (3dgs)", "3dgs x n", "oracle plane", "oracle median plane", "init", "3dgs", "full"]
     # a failed process fails the command, with the log to read
     monkeypatch.setattr(Child, "fail", True)
     assert main([*argv, "--jobs", "2"]) == 2

@@ -54,5 +54,9 @@ def test_breakdown_partitions_the_cells_and_summarises_each_bin():
     m = in_bin(keys["views"], *BINS["views"][1], closed=True)
     assert rows[1]["dem"] == summary(dz[m])
     s = summary(np.array([0.01, -0.02, 0.05, np.nan]))
-    assert s["cover"] == 0.75 and s["good"] == pytest.approx(2 / 3)
+    # the hole is a miss: 2 of the 4 cells within 3 cm (not 2 of the 3 covered), and a quarter of holes leaves
+    # no p95; median and bias are over the covered cells
+    assert s["cover"] == 0.75 and s["good"] == pytest.approx(2 / 4) and s["p95_cm"] is None
     assert s["bias_cm"] == pytest.approx(100 * 0.04 / 3) and s["median_cm"] == pytest.approx(2.0)
+    e = np.r_[np.linspace(0.0, 0.099, 100), np.nan]  # one hole in 101: the p95 is still among the errors
+    assert summary(e)["p95_cm"] == pytest.approx(100 * np.percentile(np.r_[e[:100], 1e9], 95))

@@ -13,17 +13,23 @@ import torch
 from conftest import WATER, render_dataset
 from rasterio.crs import CRS
 
+from eval.ablation import extract_config
+from eval.evaluate import evaluate_geometry
+from ragsplat_core import export
 from ragsplat_core.bench.synthetic import bed_scene, ring_cameras
 from ragsplat_core.cli.main import main
+from ragsplat_core.dataset import load_dataset
 from ragsplat_core.dataset.layout import LOCAL_CRS, NODATA
 from ragsplat_core.errors import ConfigError
 from ragsplat_core.export import (
     BATHYMETRIC,
     GROUND,
+    MAX_SAMPLES,
     Georef,
     extract_bed,
     hillshade,
     load_run,
+    sample_count,
     write_dem,
     write_las,
     write_ply,
@@ -114,6 +120,57 @@ def test_flat_bed_at_known_depth(run, tmp_path):
         # the region [-0.8, 0.8]^2 at 10 cm, nodes on multiples of 10 cm: 17 x 17 cells, all covered
         assert elevation.shape == (17, 17) and tif.transform.c == pytest.approx(-0.85)
     assert np.abs(depth - 1.5).max() < 0.005 and np.abs(elevation + 1.5).max() < 0.005
+
+
+def test_export_extracts_the_bed_that_eval_scores(evaluable_dataset):
+    """At the evaluation's 5 cm the export samples as `ragsplat eval` does (`extract_config`: 16 per node of the
+    ground-truth grid, 21 x 21 here, all under water): the same bed, cell for cell (the count by area of
+    before, 6 400 per m^2, drew 6 400 samples instead of 7 056: other samples, other medians)."""
+    ds = load_dataset(evaluable_dataset, splits=(), ground_truth=True)
+    truth = ds.ground_truth
+    g = plane_gaussians(lambda x, y: -1.0 + 0.1 * np.sin(2.0 * x) * np.cos(1.5 * y))
+    _, scored = evaluate_geometry(g, truth, extract_config("small", len(truth.grid), 3, ds.gsd))
+    bed = extract_bed(g, 0.05, ds.water.level, ds.eval_region, seed=3, gsd=ds.gsd)
+    assert len(truth.grid) == 441 and len(scored) > 400
+
+    def by_node(grid):
+        return grid[np.lexsort(np.round(grid[:, :2] / 0.05).T.astype(int))]
+
+    np.testing.assert_allclose(by_node(bed.grid), by_node(scored), rtol=0, atol=1e-9)
+
+
+def test_a_coarser_resolution_draws_fewer_samples(monkeypatch):
+    """16 samples per cell of the DEM grid in the region: a quarter as many at twice the cell (with the
+    noise filter's radius at 2 cells, so that 50 cm cells still make a bed), never fewer than 4 per Gaussian
+    (a sample for only some of them goes to the first ones in the file), and the size check before any
+    sampling, naming a resolution that passes it. The count by area of before drew 16 384 at every cell."""
+    drawn = []
+    real = export.extract_surface
+
+    def spy(*args):
+        drawn.append((args[4].n_samples, args[4].filter_radius))
+        return real(*args)
+
+    monkeypatch.setattr(export, "extract_surface", spy)
+    g = plane_gaussians(lambda x, y: np.full_like(x, -1.5), step=0.1)  # 21 x 21 Gaussians
+    for resolution, nodes, n in ((0.05, 33, 16 * 33**2), (0.1, 17, 16 * 17**2), (0.5, 3, 4 * 21**2)):
+        bed = extract_bed(g, resolution, 0.0, REGION, gsd=0.01)  # nodes: multiples of it in [-0.8, 0.8]
+        assert drawn[-1] == (n, max(0.1, 2 * resolution)), resolution
+        assert len(bed.grid) == nodes**2 and np.abs(bed.grid[:, 2] + 1.5).max() < 0.01, resolution
+    # a coarse model for a coarse DEM: 9 x 9 Gaussians 10 cm wide, 324 samples, about 2 within 10 cm of each
+    coarse = plane_gaussians(lambda x, y: np.full_like(x, -1.5), step=0.25)
+    coarse["scales"] = torch.tensor([[0.1, 0.1, 0.003]] * len(coarse["means"]))
+    bed = extract_bed(coarse, 0.5, 0.0, REGION, gsd=0.05)  # found: the noise filter looks 1 m around
+    assert drawn[-1] == (4 * 9**2, 1.0) and len(bed.grid) == 9 and np.abs(bed.grid[:, 2] + 1.5).max() < 0.01
+    big = {"xmin": -60.0, "xmax": 60.0, "ymin": -60.0, "ymax": 60.0}  # 1.4 ha: 5.8e6 cells of 5 cm
+    with pytest.raises(ConfigError, match=r"9.22e\+07 samples .*resolution, (\S+) m or more") as refused:
+        extract_bed(g, 0.05, 0.0, big, gsd=0.01)
+    assert len(drawn) == 4  # refused before sampling
+    coarser = float(str(refused.value).split("resolution, ")[1].split(" m")[0])
+    lo, hi = (-60.0, -60.0), (60.0, 60.0)
+    assert sample_count(lo, hi, coarser) <= MAX_SAMPLES  # and not far above the finest that passes:
+    with pytest.raises(ConfigError):
+        sample_count(lo, hi, 0.9 * coarser)
 
 
 def test_utm_offset_round_trip(tmp_path):

@@ -14,7 +14,7 @@ from conftest import WATER, render_dataset, tiny_smoke
 
 from eval import ablation, metrics
 from eval.evaluate import evaluate_geometry, score_grid
-from eval.references import oracle_plane
+from eval.references import oracle_grids
 from eval.report import jsonable
 from ragsplat_core import train
 from ragsplat_core.bench.synthetic import bed_scene, ring_cameras
@@ -134,16 +134,16 @@ def test_eval_matches_the_ablation_and_the_library(run, ablated, evaluable_datas
     gaussians, _, seed = load_run(run)
     ds = load_dataset(evaluable_dataset, splits=(), ground_truth=True)
     truth, ds_gsd = ds.ground_truth, ds.gsd
-    geometry, _ = evaluate_geometry(gaussians, truth, ablation.extract_config("smoke", len(truth.grid), seed, ds_gsd))
+    geometry, _ = evaluate_geometry(gaussians, truth, ablation.extract_config("smoke", len(truth.nodes), seed, ds_gsd))
     assert res["geometry"] == json.loads(json.dumps(jsonable(geometry)))
-    assert res["references"]["oracle plane"] == json.loads(json.dumps(jsonable(score_grid(oracle_plane(truth),
+    assert res["references"]["oracle plane"] == json.loads(json.dumps(jsonable(score_grid(oracle_grids(truth)["oracle plane"],
                                                                                             truth))))
     assert main(["eval", str(run), "--no-download"]) == 0  # the default place: RUN/eval.json
     assert json.loads((run / "eval.json").read_text())["geometry"] == res["geometry"]
     # the volume bed's culls changed: recorded with its scores, and the same as the library's
     assert main(["eval", str(run), "--no-download", "--min-opacity", "0.05", "--max-scale-gsd", "inf"]) == 0
     loose = json.loads((run / "eval.json").read_text())["geometry"]
-    cfg = replace(ablation.extract_config("smoke", len(truth.grid), seed, ds_gsd), min_opacity=0.05,
+    cfg = replace(ablation.extract_config("smoke", len(truth.nodes), seed, ds_gsd), min_opacity=0.05,
                   max_scale_gsd=math.inf)
     assert loose["extraction"]["config"] == {**res["geometry"]["extraction"]["config"], "min_opacity": 0.05,
                                              "max_scale_gsd": None}  # JSON has no inf

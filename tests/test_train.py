@@ -174,7 +174,7 @@ def test_render_without_interface_is_the_true_scene(wet, variant):
     assert torch.allclose(img, want.clamp(0, 1))
     wet_img, _, _ = tr.render(cam, interface=True)
     assert (wet_img - img).abs().max() > 1e-3
-    if variant == "full+color":  # through the water the albedo is darkened by n^(-2/2.2) on top of opacity
+    if variant == "full+color":  # darkened through the water on top of opacity (1 / n^2 in linear light)
         assert float(wet_img.mean()) < float(img.mean())
 
 
@@ -298,9 +298,20 @@ def test_cli_train(wet, tmp_path, capsys):
 
 
 def test_refraction_aware_training_recovers_depth(tmp_path):
-    """End to end: a textured bed 2 m under water, 10 oblique views; both runs start from a flat grid half
-    way between the apparent depth (d / n) and the true depth. Plain 3DGS must drift up towards the
-    apparent bed, the full RA-GS transform must not, and both must fit the images better than at the start."""
+    """End to end: a textured bed 2 m under water, 10 oblique views; every run starts from a flat grid half
+    way between the apparent depth (d / n) and the true depth, 24.8 cm above the bed. The refraction-aware
+    variants must bring the bed to its true depth (the mean absolute height error falls below a third of the
+    start's), the unaware ones must rise towards the apparent bed instead, and all must fit the images better
+    than at the start.
+
+    The run isolates the geometry from the 3DGS schedule, which squeezed into a short run cannot move a bed
+    24.8 cm (`smoke` at 120 steps: `full` ended at +22.4 cm, `2dgs+full` at +24.6): its position rate decays
+    1000x (at most about 8 cm of travel in 120 steps), opacities are reset every 12 steps while densification
+    runs, and the faint grey start (opacity 0.1, colour rate 2.5e-3) builds slowly the texture that the depth
+    gradient locks on to. Here: a constant position rate, no densification, a denser and more opaque start, a
+    faster colour rate. Measured (seed 0), bias / mean |error| after 100 steps from +24.8 / 24.8 cm: `full`
+    +0.9 / 4.6, `2dgs+full` +1.7 / 3.5, `3dgs` +40.0 / 43.1, `2dgs` +42.2 / 42.6; with `smoke`'s position
+    rate instead (1.6e-3 decaying to 1.6e-6) `full` ends at +21.8."""
     d, half = 2.0, 1.5
     views = render_views(bed_scene(1500, half, d, seed=0), ring_cameras(10, 64, 1.5, 2.5, target=(0, 0, -d)),
                          WATER)
@@ -309,16 +320,18 @@ def test_refraction_aware_training_recovers_depth(tmp_path):
     region = {"xmin": -1, "xmax": 1, "ymin": -1, "ymax": 1}
     ds = load_dataset(write_dataset(tmp_path / "e2e", views, WATER, region, bed={"depth": d, "size": 2 * half}))
 
-    def bed_error(tr):  # opacity-weighted signed height error of the Gaussians over the central region
+    def bed_error(tr):  # opacity-weighted (signed mean, mean absolute) height error over the central region
         m = tr.splats["means"].detach()
-        truth = -d + 0.1 * d * torch.sin(2.0 * m[:, 0] / half) * torch.cos(1.5 * m[:, 1] / half)
+        dz = m[:, 2] - (-d + 0.1 * d * torch.sin(2.0 * m[:, 0] / half) * torch.cos(1.5 * m[:, 1] / half))
         w = torch.sigmoid(tr.splats["opacities"].detach()) * ((m[:, 0].abs() < 1) & (m[:, 1].abs() < 1))
-        return float(((m[:, 2] - truth) * w).sum() / w.sum())
+        return float((dz * w).sum() / w.sum()), float((dz.abs() * w).sum() / w.sum())
 
+    apparent = d - d / WATER.n  # the apparent bed's height above the true one (0.496 m)
     err, fit = {}, {}
     for variant in ("3dgs", "full", "2dgs", "2dgs+full"):
-        cfg = preset_config("smoke", variant=variant, iterations=120, init_depth=(d + d / WATER.n) / 2,
-                            init_count=400)
+        cfg = preset_config("smoke", variant=variant, iterations=100, init_depth=(d + d / WATER.n) / 2,
+                            init_count=1000, init_opacity=0.5, lr_means=5e-3, lr_means_final=5e-3, lr_sh0=1e-2,
+                            densify=DensifyConfig(refine_stop_iter=0))  # no growth, pruning or resets
         tr = Trainer(cfg, ds)
         start = bed_error(tr)
         hist = []
@@ -326,11 +339,11 @@ def test_refraction_aware_training_recovers_depth(tmp_path):
         err[variant] = bed_error(tr)
         fit[variant] = (np.mean(hist[:10]), np.mean(hist[-10:]))
         assert fit[variant][1] > fit[variant][0] + 1.0, (variant, fit)
-    assert start == pytest.approx((d - d / WATER.n) / 2, abs=0.02)  # above the bed to begin with
-    assert err["3dgs"] > start + 0.01, err  # pulled up towards the apparent depth
-    assert err["full"] < err["3dgs"] - 0.02, err
-    # Surfels move less in 120 steps (measured: 2dgs +0.006, 2dgs+full -0.001 from the start), the order holds
-    assert err["2dgs"] > start and err["2dgs+full"] < err["2dgs"] - 0.005, err
+    assert start[0] == pytest.approx(apparent / 2, abs=0.02)  # above the bed to begin with
+    for variant in ("full", "2dgs+full"):  # recovered: the bias and the bed's shape (|bias| <= mean |dz|)
+        assert err[variant][1] < start[1] / 3, (start, err)
+    for variant in ("3dgs", "2dgs"):  # pulled up towards the apparent bed, a third of the way at least
+        assert err[variant][0] > start[0] + (apparent - start[0]) / 3 and err[variant][1] > start[1], (start, err)
 
 
 def test_sigint_checkpoints_finished_steps_and_resume_says_so(evaluable_dataset, tmp_path):

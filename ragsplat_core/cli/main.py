@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("ragsplat_core.cli.train", "train one RA-GS variant on a dataset directory (resumable)"),
     "render": ("ragsplat_core.cli.render", "render a trained run at its dataset's views: wet, dry or z-depth"),
     "eval": ("eval.cli_score", "score a trained run against the ground truth, beside the reference answers"),
+    "score": ("eval.cli_bed", "score any bed (DEM, LAS/LAZ, PLY, CSV) against a dataset's ground truth"),
     "ablation": ("eval.cli", "train every variant, evaluate, and print Tables 1 and 2 beside the paper's"),
     "export": ("ragsplat_core.cli.export", "a trained run's bed as survey products: DEM GeoTIFF, LAS/LAZ, PLY, PNG"),
     "survey": ("ragsplat_core.cli.survey", "from a survey's photos, RTK positions and water level to a DEM"),

@@ -1,0 +1,80 @@
+"""`ragsplat score FILE --truth DIR [--out FILE.json] [--band K] [--kind elevation|depth] [--crs CRS]
+[--no-filter] [--references]`: any bed (a DEM GeoTIFF, LAS/LAZ, PLY or CSV points, from any software) on the
+ground truth's nodes, scored by the ablation's own measures (`eval.bed_file`); prints its row beside the
+reference rows that need no training, writes the scores as JSON and its error map as PNG."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ragsplat_core.cli.args import dataset_dir, out_file_ending, positive_int
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("file", type=Path, metavar="FILE",
+                        help="the bed: a DEM GeoTIFF (.tif, .tiff), LAS/LAZ, PLY (vertex x y z) or CSV (a "
+                             "header with x,y,z) points; in the dataset's CRS or any CRS that converts to "
+                             "it, or in the dataset's local frame")
+    parser.add_argument("--truth", required=True, type=dataset_dir, metavar="DIR",
+                        help="the dataset whose ground truth scores it (transforms.json, scene.json, gt/)")
+    parser.add_argument("--out", type=out_file_ending(".json"), metavar="FILE.json",
+                        help="the scores as JSON, the error map beside it as NAME_error.png (default: "
+                             "FILE_score.json beside FILE)")
+    parser.add_argument("--band", type=positive_int, default=1, metavar="K", help="a DEM's band (default: 1)")
+    parser.add_argument("--kind", choices=("elevation", "depth"), default="elevation",
+                        help="what the values are (a DEM's band, the points' z); a depth d is the bed height "
+                             "level - d at the dataset's water level (default: elevation)")
+    parser.add_argument("--crs", metavar="CRS",
+                        help="the file's CRS (EPSG:32633, WKT...) where it names none (PLY, CSV) or a wrong "
+                             "one")
+    parser.add_argument("--no-filter", action="store_true",
+                        help="points: no outlier filter before the TIN (default: filtered as ragsplat's own "
+                             "references are, `tracks.track_filter`)")
+    parser.add_argument("--references", action="store_true",
+                        help="also the tracks' reference rows (TIN of the triangulated tracks, Dietrich's "
+                             "correction): triangulates the dataset if not cached yet, minutes")
+
+
+def table(result: dict) -> str:
+    """The file's row, then the reference rows, in the columns of the ablation's Tables 2 and 3."""
+    from eval.references import EXTRACTION
+    from eval.report import T2_COLUMNS, T3_COLUMNS, values
+
+    columns = T2_COLUMNS + T3_COLUMNS
+    rows = [(Path(result["file"]).name, "DEM" if result["kind"] == "DEM" else "TIN", result["geometry"])]
+    rows += [(f"{name} (uses GT)" if name in result["uses_ground_truth"] else name, EXTRACTION.get(name, "-"),
+              geometry) for name, geometry in result["references"].items()]
+    head = ["Row", "bed"] + [c[0] for c in columns]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, bed, geometry in rows:
+        cells = [name, bed]
+        for _, _, keys, fmt, scale in columns:
+            found = values([{"geometry": geometry}], keys, scale)
+            cells.append(fmt.format(found[0]) if found else "n/a")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    from eval.bed_file import score_file
+    from eval.report import depth_error_map, jsonable, survey_notes
+    from ragsplat_core.outputs import write_json
+
+    result, grid, truth = score_file(args.file, args.truth, args.references, log=print, band=args.band,
+                                     depth=args.kind == "depth", despike=not args.no_filter, crs=args.crs)
+    out = args.out if args.out is not None else args.file.with_name(args.file.stem + "_score.json")
+    figure = depth_error_map(grid, truth, out.with_name(out.stem + "_error.png"), args.file.name)
+    result["error_map"] = str(figure)
+    write_json(out, jsonable(result), indent=1)
+    what = "cells" if result["kind"] == "DEM" else "points"
+    print(f"{result['file']}: {result['kind']}, {result[what]} {what}, in {result['frame']}; "
+          f"{result['wet_nodes_covered']} of the ground truth's {result['wet_nodes']} wet cells covered")
+    print(table(result))
+    print(f"\n- F1 at 10 / 30 cm and at 1 % / 3 % of the maximum depth ({result['max_depth_m']:g} m).")
+    print("\n".join(f"- {note}" for note in survey_notes({"max_depth_m": result["max_depth_m"]})))
+    if not args.references:
+        print("- the tracks' reference rows: add --references (triangulates the dataset if not cached, "
+              "minutes)")
+    print(f"wrote {figure}\nwrote {out}")
+    return 0
