@@ -50,9 +50,11 @@ EXTRACTION = {"init": "volume", "3dgs x n": "volume", "oracle plane": "-", "orac
 # tracks' outlier filter before the TIN (`tracks.track_filter`), and Dietrich's per-camera angle filter and
 # reduction (pyBathySfM's defaults, 35 degrees and the mean, as the starting point).
 TIN_FILTER = {"radius": 1.0, "tol": 0.3, "min_neighbours": 8}
-DIETRICH_TRACKS = {"max_angle_deg": 35.0, "reduce": "mean"}
-# degrees: the dense cloud's angle filter (pyBathySfM's default; a dense bed has far oblique views in plenty)
-DIETRICH_MAX_ANGLE = 35.0
+DIETRICH_TRACKS = {"max_angle_deg": None, "reduce": "mean"}
+# The same rule on the 3dgs row's dense apparent bed (`dietrich_grid`), chosen on the development reach's 3dgs bed
+# (`--bed`): the angle filter in degrees and the reduction.
+DIETRICH_MAX_ANGLE = 40.0
+DIETRICH_DENSE_REDUCE = "median"
 REDUCE = {"mean": np.mean, "median": np.median}
 
 
@@ -168,10 +170,12 @@ def track_clouds(root, fingerprint: str, cameras: dict, water, dietrich_tracks: 
             "triangulation x n": depth_times_n(straight, level, n)}
 
 
-def dietrich_grid(bed: np.ndarray, cameras, water) -> np.ndarray:
+def dietrich_grid(bed: np.ndarray, cameras, water, max_angle_deg: float | None = DIETRICH_MAX_ANGLE,
+                  reduce: str = DIETRICH_DENSE_REDUCE) -> np.ndarray:
     """[G', 3] Dietrich's correction of a dense apparent bed [G, 3] (the 3dgs row's), every camera whose image
-    holds a cell voting, within the angle filter; cells no camera keeps are dropped."""
+    holds a cell voting, within the angle filter `max_angle_deg` (None: none), by `reduce` (a name of `REDUCE`);
+    cells no camera keeps are dropped."""
     point, camera = seen_by(bed, cameras)
     centres = np.array([c.camera_center for c in cameras]).reshape(-1, 3)
-    out = dietrich(bed, centres, point, camera, float(water.level), float(water.n), DIETRICH_MAX_ANGLE)
+    out = dietrich(bed, centres, point, camera, float(water.level), float(water.n), max_angle_deg, REDUCE[reduce])
     return out[np.isfinite(out).all(1)]

@@ -318,6 +318,8 @@ def geometry_notes(header: dict) -> list[str]:
 
 def references_note(header: dict) -> str:
     """What the reference rows are, with their settings as the header records them."""
+    from eval.references import DIETRICH_DENSE_REDUCE
+
     refs = header.get("references") or {}
     tin, die = refs.get("tin_filter"), refs.get("dietrich_tracks") or {}
     cleaned = "not outlier-filtered" if tin is None else \
@@ -331,8 +333,8 @@ def references_note(header: dict) -> str:
             f"Dietrich's (2017) multi-camera rule ({die.get('reduce', 'median')} over {cams}); triangulation x n "
             f"= the straight-ray tracks with depths x n; each {cleaned} and gridded by linear interpolation on its "
             "Delaunay triangulation (TIN), settings chosen on the development reach; dietrich (3dgs) = the rule "
-            f"applied to the 3dgs bed, every camera within {dense if dense is not None else 35:g} degrees of the "
-            "vertical that sees a cell voting. The trivial answers: 3dgs x n = the 3dgs bed with submerged depths "
+            f"applied to the 3dgs bed ({DIETRICH_DENSE_REDUCE} over the cameras that see a cell"
+            + ("" if dense is None else f", within {dense:g} degrees of the vertical") + "). The trivial answers: 3dgs x n = the 3dgs bed with submerged depths "
             "multiplied by n (the classical correction); oracle plane = the least-squares tilted plane through the "
             "ground truth's submerged bed, oracle median plane = the flat plane at its median height (both read "
             "the ground truth). The untrained start (init) is in results.json only.")

@@ -5,12 +5,14 @@ best F1 at 3 %), so that the field's practice gets the care the method got:
 1. the outlier filter of the tracks before their TIN (`tracks.track_filter`: radius, tolerance; or none),
    chosen on `triangulation (refracted)`, the best reference, and then used for every tracks' reference;
 2. Dietrich's per-camera angle filter and reduction (pyBathySfM's 35 degrees and mean the starting point),
-   chosen on `dietrich (tracks)` with the filter of 1.
+   chosen on `dietrich (tracks)` with the filter of 1;
+3. with `--bed BED.npy` (the development reach's `3dgs` row's volume bed, `ragsplat ablation --data
+   data/small-dev --variants 3dgs --seeds 0`), the same two on `dietrich (3dgs)`, the rule on a dense cloud.
 
-`python -m eval.tune_references DATA [OUT.json]`: DATA is the development reach (`data/small-dev`, dataset
-seed 1); prints one Markdown table per step with the chosen row marked, and writes every figure as JSON.
-The chosen values go into `eval.references` (`TIN_FILTER`, `DIETRICH_TRACKS`) by hand, with the tables in
-docs/evaluation.md.
+`python -m eval.tune_references DATA [OUT.json] [--bed BED.npy]`: DATA is the development reach
+(`data/small-dev`, dataset seed 1); prints one Markdown table per step with the chosen row marked, and writes
+every figure as JSON. The chosen values go into `eval.references` (`TIN_FILTER`, `DIETRICH_TRACKS`,
+`DIETRICH_MAX_ANGLE`, `DIETRICH_DENSE_REDUCE`) by hand, with the tables in docs/evaluation.md.
 """
 
 from __future__ import annotations
@@ -18,8 +20,10 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from eval.evaluate import score_grid
-from eval.references import DIETRICH_TRACKS, gridded, track_clouds
+from eval.references import dietrich_grid, gridded, track_clouds
 from ragsplat_core.tracks import TRACK_MIN_NEIGHBOURS
 
 TIN_FILTERS = [None] + [{"radius": r, "tol": t, "min_neighbours": TRACK_MIN_NEIGHBOURS}
@@ -53,9 +57,9 @@ def table(rows: list[dict], chosen: int, label) -> str:
     return "\n".join(lines)
 
 
-def tune(data: Path) -> dict:
-    """Both steps on the dataset `data`: {"tin_filter": {...}, "dietrich": {...}} with every setting's figures
-    and the choice."""
+def tune(data: Path, bed: Path | None = None) -> dict:
+    """The steps on the dataset `data`: {"tin_filter": {...}, "dietrich": {...}, "dietrich_dense": {...} with
+    `bed`} with every setting's figures and the choice."""
     from eval.ablation import TrainEval
 
     runner = TrainEval(data)
@@ -69,28 +73,44 @@ def tune(data: Path) -> dict:
     for setting in DIETRICH_SETTINGS:
         cloud = track_clouds(ds.root, ds.fingerprint, cameras, ds.water, setting)["dietrich (tracks)"]
         die_rows.append({"setting": setting, **figures(gridded(cloud, truth.nodes, chosen_filter), truth)})
-    return {"data": str(Path(data).resolve()), "dataset_seed": runner.dataset_seed, "fingerprint": ds.fingerprint,
-            "rule": "max F1@1% among settings within 0.5 point of the best F1@3%",
-            "start": {"dietrich": DIETRICH_TRACKS},
-            "tin_filter": {"rows": tin_rows, "chosen": chosen_filter},
-            "dietrich": {"rows": die_rows, "chosen": die_rows[choose(die_rows)]["setting"]}}
+    out = {"data": str(Path(data).resolve()), "dataset_seed": runner.dataset_seed, "fingerprint": ds.fingerprint,
+           "rule": "max F1@1% among settings within 0.5 point of the best F1@3%",
+           "tin_filter": {"rows": tin_rows, "chosen": chosen_filter},
+           "dietrich": {"rows": die_rows, "chosen": die_rows[choose(die_rows)]["setting"]}}
+    if bed is not None:
+        apparent = np.load(bed)
+        views = [v.camera for v in ds.train]
+        dense = [{"setting": d, **figures(dietrich_grid(apparent, views, ds.water, d["max_angle_deg"], d["reduce"]),
+                                          truth)} for d in DIETRICH_SETTINGS]
+        out["dietrich_dense"] = {"bed": str(bed), "rows": dense, "chosen": dense[choose(dense)]["setting"]}
+    return out
 
 
 def main(argv: list[str]) -> int:
+    bed = None
+    if "--bed" in argv[:-1]:
+        k = argv.index("--bed")
+        bed, argv = Path(argv[k + 1]), argv[:k] + argv[k + 2:]
     if len(argv) not in (1, 2):
-        print(__doc__.strip().splitlines()[-5])
+        print("usage: python -m eval.tune_references DATA [OUT.json] [--bed BED.npy]", file=sys.stderr)
         return 2
     from eval.report import jsonable
     from ragsplat_core.outputs import write_json
 
-    result = tune(Path(argv[0]))
+    result = tune(Path(argv[0]), bed)
     tin_rows, die_rows = result["tin_filter"]["rows"], result["dietrich"]["rows"]
     print(f"dataset seed {result['dataset_seed']}: the tracks' outlier filter, on triangulation (refracted)")
     print(table(tin_rows, choose(tin_rows), lambda f: "none" if f is None else
                 f"radius {f['radius']:g} m, tol {f['tol']:g} m"))
     print(f"\nDietrich's rule on the tracks, with that filter ({result['tin_filter']['chosen']})")
-    print(table(die_rows, choose(die_rows), lambda d: f"{d['reduce']}, "
-                + ("every camera" if d["max_angle_deg"] is None else f"<= {d['max_angle_deg']:g} deg")))
+    def angle(d):
+        return f"{d['reduce']}, " + ("every camera" if d["max_angle_deg"] is None else f"<= {d['max_angle_deg']:g} deg")
+
+    print(table(die_rows, choose(die_rows), angle))
+    if "dietrich_dense" in result:
+        dense = result["dietrich_dense"]["rows"]
+        print(f"\nDietrich's rule on the dense 3dgs bed {bed}")
+        print(table(dense, choose(dense), angle))
     if len(argv) == 2:
         write_json(Path(argv[1]), jsonable(result), indent=1)
     return 0

@@ -106,3 +106,25 @@ def test_gap_nodes_in_chunks_are_the_whole_grids_gaps():
     assert 0 < len(want) < len(nodes)
     for chunk in (1, len(ys), 3 * len(ys) + 1, 10**6):  # a column per chunk (twice), three columns, all at once
         np.testing.assert_array_equal(gap_nodes(tree, lo, hi, 0.2, chunk), want)
+
+
+def test_gridded_applies_the_outlier_filter_it_is_given():
+    from eval.references import gridded
+
+    x, y = np.meshgrid(np.linspace(0, 4, 21), np.linspace(0, 4, 21), indexing="ij")
+    pts = np.column_stack([x.ravel(), y.ravel(), -1.0 - 0.1 * x.ravel()])
+    pts[220, 2] += 2.0  # one track 2 m too high at the centre
+    nodes = pts[:, :2]
+    kept = gridded(pts, nodes, {"radius": 1.0, "tol": 0.3, "min_neighbours": 8})
+    raw = gridded(pts, nodes, None)
+    assert np.abs(kept[:, 2] - (-1.0 - 0.1 * kept[:, 0])).max() < 1e-9  # the plane again, the spike gone
+    assert raw[np.argmax(raw[:, 2])][2] == pytest.approx(-1.0 - 0.1 * 2.0 + 2.0)  # unfiltered: the spike stays
+
+
+def test_tune_references_rule_prefers_1pct_within_half_a_point_at_3pct():
+    from eval.tune_references import choose
+
+    rows = [{"f1_1pct": 0.70, "f1_3pct": 0.960}, {"f1_1pct": 0.72, "f1_3pct": 0.956},
+            {"f1_1pct": 0.80, "f1_3pct": 0.950}]
+    assert choose(rows) == 1  # the third is more than 0.5 point below the best F1@3%
+    assert choose(rows[:1]) == 0
