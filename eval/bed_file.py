@@ -13,9 +13,9 @@ Frames. A file is brought into the dataset's local frame (`layout.Georef`: absol
   of the two, the one that puts more of the ground truth's wet nodes under the bed is used.
 
 Gridding, onto the ground truth's nodes (`GroundTruth.nodes`), so that every bed is scored on the same cells:
-- a DEM is read at each node: where the node is a cell centre (a DEM on the truth's lattice, as `ragsplat
-  export` writes one), that cell's value; elsewhere bilinear between the four cell centres around it. A node
-  with an uncovered cell among those it reads is left out;
+- a DEM is read at each node: where the node is a cell centre (a DEM on the truth's lattice), that cell's
+  value; elsewhere bilinear between the four cell centres around it, or, where one of them is empty, the
+  value of the cell the node lies in. A node in an empty cell is a hole;
 - points as ragsplat's own references grid their tracks (`eval.references.gridded`): the outlier filter
   `tracks.track_filter` with the references' settings `TIN_FILTER` (switchable), then linear on their
   Delaunay triangulation (`tracks.tin`). Only the points within the filter's radius of the nodes are read.
@@ -188,7 +188,9 @@ def read_dem(path: Path, band: int) -> tuple[np.ndarray, object, object]:
 def dem_at(values: np.ndarray, transform, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(heights [N], read [N] bool) of the raster `values` [H, W] (NaN: uncovered) at points xy [N, 2] in its
     coordinates: a point on a cell centre (to `SNAP` of a cell) takes that cell's value, any other bilinear
-    between the four cell centres around it; not read where a cell it needs is uncovered or outside."""
+    between the four cell centres around it; where one of those four is uncovered or outside, the value of the
+    cell the point lies in (a raster cell stands for its square: a bed's edge keeps its cells on another
+    lattice); not read where that cell is uncovered or outside too."""
     col, row = ~transform @ (xy[:, 0], xy[:, 1])
     at = np.column_stack([col, row]) - 0.5  # [N, 2] in cells from the first cell's centre
     at = np.where(np.abs(at - np.round(at)) < SNAP, np.round(at), at)
@@ -204,7 +206,12 @@ def dem_at(values: np.ndarray, transform, xy: np.ndarray) -> tuple[np.ndarray, n
         used = weight > 0
         read &= ~used | np.isfinite(v)
         z += np.where(used, weight * np.nan_to_num(v), 0.0)
-    return z, read
+    c, r = np.floor(at + 0.5).astype(np.int64).T  # the cell the point lies in
+    inside = (c >= 0) & (c < values.shape[1]) & (r >= 0) & (r < values.shape[0])
+    own = np.full(len(xy), np.nan)
+    own[inside] = values[r[inside], c[inside]]
+    z = np.where(read, z, np.nan_to_num(own))
+    return z, read | np.isfinite(own)
 
 
 def points_grid(xyz: np.ndarray, nodes: np.ndarray, despike: bool) -> tuple[np.ndarray, int]:
@@ -275,7 +282,7 @@ def read_bed(path: Path, truth, georef, band: int = 1, depth: bool = False, desp
             f"({_label(CRS.from_user_input(georef.crs))})")
     grid[:, 2] = truth.level - grid[:, 2] if depth else grid[:, 2] - frame.offset[2]
     if kind == "DEM":
-        how = {"band": band, "cells": count, "gridding": "the cell at a node, bilinear between cell centres"}
+        how = {"band": band, "cells": count, "gridding": "bilinear between cell centres, else the cell a node lies in"}
     else:
         how = {"points": count, "points_near": near, "gridding": "TIN",
                "filter": TIN_FILTER if despike else None}

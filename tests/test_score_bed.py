@@ -218,3 +218,21 @@ def test_a_file_elsewhere_or_unknown_is_refused_in_one_line(evaluable_dataset, t
     err = capsys.readouterr().err
     assert err.startswith(f"ragsplat score: error: {path}: ") and message in err and err.count("\n") == 1
     assert not list(tmp_path.glob("*.json")) and not list(tmp_path.glob("*.png"))
+
+
+def test_a_dem_off_the_truth_s_lattice_keeps_its_cells_at_a_hole_s_edge():
+    from rasterio.transform import from_origin
+
+    from eval.bed_file import dem_at
+
+    values = np.arange(16, dtype=float).reshape(4, 4)  # cell (row r, col c) holds 4 r + c
+    values[1, 1] = np.nan  # one empty cell
+    tf = from_origin(0.0, 4.0, 1.0, 1.0)  # 1 m cells, north up: cell (r, c) spans x c..c+1, y 3-r..4-r
+    xy = np.array([[2.8, 1.8],  # between four covered centres: bilinear
+                   [1.3, 2.3],  # in the empty cell: a hole
+                   [2.2, 2.2],  # in cell (1, 2), beside the hole: that cell's value, not a new hole
+                   [0.5, 3.5]])  # on a centre: that cell
+    z, read = dem_at(values, tf, xy)
+    assert read.tolist() == [True, False, True, True]
+    assert z[0] == pytest.approx(4 * (3.5 - 1.8) + (2.8 - 0.5))  # the plane 4 r + c at centres r = 3.5 - y, c = x - 0.5
+    assert z[2] == values[1, 2] and z[3] == values[0, 0]
