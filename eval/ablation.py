@@ -47,6 +47,7 @@ from eval.references import (
     DIETRICH_TRACKS,
     EXTRACTION,
     REFERENCES,
+    REFERENCES_CODE,
     SEEDLESS,
     TIN_FILTER,
     USES_GROUND_TRUTH,
@@ -349,7 +350,7 @@ def reference_rows(out: Path, runner, preset: str, seed: int, ecfg: ExtractConfi
                    rows: dict[str, list[dict]], log) -> dict[str, dict]:
     """The reference rows of one seed (the oracle plane, which has no seed, with the first)."""
     truth, found = runner.truth, {}
-    base = {**base, "references_code": source_digest("eval/references.py")}
+    base = {**base, "references_code": REFERENCES_CODE}
     cfg = runner.config("3dgs", preset, seed)  # the initialisation does not depend on the variant
     init_key = {**base, "init": {k: v for k, v in cfg.to_dict().items() if k.startswith("init") or k in
                                  ("seed", "sh_degree", "preset")}, "extract": ecfg.to_dict()}

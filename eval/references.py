@@ -29,8 +29,13 @@ from dataclasses import replace
 
 import numpy as np
 
+from ragsplat_core.outputs import source_digest
 from ragsplat_core.surface import ExtractConfig
 from ragsplat_core.tracks import tin, track_filter
+
+# This module's source as imported: part of every reference row's key (read once, so that a file edited during a
+# long run cannot key a row computed with the settings loaded before the edit)
+REFERENCES_CODE = source_digest("eval/references.py")
 
 # In table order: what a surveyor would do without ragsplat first, then the trivial answers. `init` stays in
 # results.json but not in the tables (drawn as 3DGS blobs, the start scores near 0 by construction).
