@@ -15,9 +15,10 @@ grids scored the same way (no fused variant). Every row writes `row.json`, the e
 A row is reused only when its key matches: the dataset's content fingerprint (images and ground truth),
 the resolved training and extraction configs, the harness preset and the source digest of the code that
 computes it (`ROW_CODE`: ragsplat_core and the harness's training and scoring; a reference row also its
-settings and `eval/references.py`), so a change to the tables or the references alone retrains nothing. A killed row resumes from its checkpoint only under the same key (`key.json`, written before
-training starts); otherwise it starts over. Then `eval.report` (re)writes `OUT/results.json`, the tables
-and `error_vs_time.png` from the rows of this run's variants and seeds only. The command is `eval.cli`.
+settings and `eval/references.py`), so a change to the tables or the references alone retrains nothing. A
+killed row resumes from its checkpoint only under the same key (`key.json`, written before training starts);
+otherwise it starts over. Then `eval.report` (re)writes `OUT/results.json`, the tables and `error_vs_time.png`
+from the rows of this run's variants and seeds only. The command is `eval.cli`.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ from eval.evaluate import (
     score_grid,
 )
 from eval.references import (
+    DIETRICH_DENSE_REDUCE,
     DIETRICH_MAX_ANGLE,
     DIETRICH_TRACKS,
     EXTRACTION,
@@ -124,6 +126,12 @@ def default_jobs(device: str | None) -> int:
     if gpus:
         return JOBS_PER_GPU * len(gpus)
     return JOBS_PER_GPU if str(device).startswith("cuda") else JOBS
+
+
+def dataset_seed(data: Path) -> int | None:
+    """The seed the dataset `data` was rendered with (its scene.json), None for one that was not rendered."""
+    scene = Path(data) / layout.SCENE
+    return json.loads(scene.read_text()).get("seed") if scene.is_file() else None
 
 
 def dataset_role(seed: int | None, preset: str) -> str:
@@ -341,7 +349,8 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
               "lpips_network": getattr(lpips_metric, "network", None),
               "references": {"names": list(REFERENCES), "use_ground_truth": list(USES_GROUND_TRUTH),
                              "tin_filter": TIN_FILTER, "dietrich_tracks": DIETRICH_TRACKS,
-                             "dietrich_3dgs_max_angle_deg": DIETRICH_MAX_ANGLE}}
+                             "dietrich_3dgs_max_angle_deg": DIETRICH_MAX_ANGLE,
+                             "dietrich_3dgs_reduce": DIETRICH_DENSE_REDUCE}}
     log(write_outputs(out, rows, header, lpips_reason))
     return rows
 
@@ -371,7 +380,8 @@ def reference_rows(out: Path, runner, preset: str, seed: int, ecfg: ExtractConfi
                 return score_grid(grid, truth), grid
 
             todo.append(("dietrich (3dgs)", row_dir(out, "dietrich (3dgs)", seed),
-                         {**base, "from": src["key"], "n": n, "max_angle_deg": DIETRICH_MAX_ANGLE}, dietrich_3dgs))
+                         {**base, "from": src["key"], "n": n, "max_angle_deg": DIETRICH_MAX_ANGLE,
+                          "reduce": DIETRICH_DENSE_REDUCE}, dietrich_3dgs))
     if not rows.get("oracle plane"):
         for name, plane in oracle_grids(truth).items():
             todo.append((name, row_dir(out, name, None), {**base, "reference": name},
@@ -415,8 +425,7 @@ class TrainEval:
         self.fingerprint = self.ds.fingerprint
         self.refractive_index = self.ds.water.n if self.ds.water is not None else 1.0
         self.gsd = self.ds.gsd
-        scene = Path(data) / layout.SCENE
-        self.dataset_seed = json.loads(scene.read_text()).get("seed") if scene.is_file() else None
+        self.dataset_seed = dataset_seed(data)
         self.device = device
         self.training_bar = training_bar
         self.init = init  # TrainConfig.init of every row

@@ -25,7 +25,6 @@ A file whose bed covers fewer than `MIN_COVER` of the truth's wet nodes is refus
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -298,8 +297,8 @@ def score_file(path: Path, data: Path, references: bool = False,
     (`references.oracle_grids`) and, with `references`, the tracks' grids (`TrainEval.track_grids`: it
     triangulates a dataset without a cached triangulation, minutes). Returns (the result, the bed grid
     [G', 3], the ground truth)."""
+    from eval.ablation import dataset_seed
     from eval.evaluate import score_grid
-    from ragsplat_core.dataset import layout
     from ragsplat_core.dataset.load import load_dataset
 
     ds = load_dataset(data, splits=(), ground_truth=True)
@@ -310,9 +309,8 @@ def score_file(path: Path, data: Path, references: bool = False,
         from eval.ablation import TrainEval
 
         rows.update(TrainEval(data).track_grids(log))
-    scene = Path(data) / layout.SCENE
     return {**record, "data": str(Path(data).resolve()), "dataset_fingerprint": ds.fingerprint,
-            "dataset_seed": json.loads(scene.read_text()).get("seed") if scene.is_file() else None,
+            "dataset_seed": dataset_seed(data),
             "georef": ds.georef.to_json(), "max_depth_m": truth.max_depth, "level": truth.level,
             "geometry": score_grid(grid, truth),
             "references": {name: score_grid(g, truth) for name, g in rows.items()},

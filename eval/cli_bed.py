@@ -39,21 +39,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def table(result: dict) -> str:
     """The file's row, then the reference rows, in the columns of the ablation's Tables 2 and 3."""
     from eval.references import EXTRACTION
-    from eval.report import T2_COLUMNS, T3_COLUMNS, values
+    from eval.report import T2_COLUMNS, T3_COLUMNS, geometry_table
 
-    columns = T2_COLUMNS + T3_COLUMNS
-    rows = [(Path(result["file"]).name, "DEM" if result["kind"] == "DEM" else "TIN", result["geometry"])]
-    rows += [(f"{name} (uses GT)" if name in result["uses_ground_truth"] else name, EXTRACTION.get(name, "-"),
+    rows = [([Path(result["file"]).name, "DEM" if result["kind"] == "DEM" else "TIN"], result["geometry"])]
+    rows += [([f"{name} (uses GT)" if name in result["uses_ground_truth"] else name, EXTRACTION.get(name, "-")],
               geometry) for name, geometry in result["references"].items()]
-    head = ["Row", "bed"] + [c[0] for c in columns]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for name, bed, geometry in rows:
-        cells = [name, bed]
-        for _, _, keys, fmt, scale in columns:
-            found = values([{"geometry": geometry}], keys, scale)
-            cells.append(fmt.format(found[0]) if found else "n/a")
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    return geometry_table(["Row", "bed"], rows, T2_COLUMNS + T3_COLUMNS)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -88,17 +88,16 @@ def breakdown(dz: dict[str, np.ndarray], keys: dict[str, np.ndarray]) -> dict[st
 def by_place(dem: Path, data: Path, radius: float = 0.5) -> dict[str, list[dict]]:
     """`breakdown` of the DEM's and the refracted tracks' TIN's errors at the wet ground-truth nodes."""
     from eval.ablation import TrainEval
-    from eval.references import TIN_FILTER, track_grids
+    from eval.references import despiked, track_grids
     from eval.score import dem_points
     from ragsplat_core.dataset.colmap import refracted_points
     from ragsplat_core.dataset.layout import GT_GRID_STEP
-    from ragsplat_core.tracks import track_filter
 
     runner = TrainEval(data)
     ds, truth = runner.ds, runner.truth
     cams = {v.file_path: v.camera for v in ds.train}
     tracks = refracted_points(ds.root, ds.fingerprint, cams, ds.water)[:, :3]
-    tracks = tracks if TIN_FILTER is None else tracks[track_filter(tracks, **TIN_FILTER)]
+    tracks = despiked(tracks)
     gt = truth.grid  # [G, 3] the wet nodes
     tin = track_grids(ds.root, ds.fingerprint, cams, ds.water, gt[:, :2])["triangulation (refracted)"]
 

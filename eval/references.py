@@ -12,12 +12,13 @@ beat before its numbers mean anything.
 
 What a surveyor would do without ragsplat, from the dataset's own tracks (SIFT matches of the training photos
 triangulated with the known poses, `dataset.colmap`), each cleaned by the local outlier filter of a DEM
-(`tracks.track_filter`, its settings `TIN_FILTER`) and gridded by linear interpolation on their Delaunay triangulation (`tracks.tin`):
+(`tracks.track_filter`, its settings `TIN_FILTER`) and gridded by linear interpolation on their Delaunay
+triangulation (`tracks.tin`):
 - `triangulation (refracted)`: the tracks intersected through the water (`colmap.refracted_points`, the
   start the variants train from);
 - `triangulation x n`: the straight-ray tracks with their submerged depths x n;
 - `dietrich (tracks)`: the straight-ray tracks corrected by Dietrich's (2017) multi-camera rule (`dietrich`,
-  with pyBathySfM's angle filter and reduction, `DIETRICH_TRACKS`);
+  its angle filter and reduction `DIETRICH_TRACKS`);
 - `dietrich (3dgs)`: the same rule applied to the 3dgs row's dense apparent bed, every training camera that
   sees a cell voting (the dense-cloud workflow).
 """
@@ -147,11 +148,15 @@ def track_grids(root, fingerprint: str, cameras: dict, water, nodes: np.ndarray,
     return {name: gridded(pts, nodes, tin_filter) for name, pts in clouds.items()}
 
 
+def despiked(points: np.ndarray, tin_filter: dict | None = TIN_FILTER) -> np.ndarray:
+    """[P', 3+] the points [P, 3+] the outlier filter keeps (`track_filter` with `tin_filter`; None: all)."""
+    return points if tin_filter is None else points[track_filter(points, **tin_filter)]
+
+
 def gridded(points: np.ndarray, nodes: np.ndarray, tin_filter: dict | None = TIN_FILTER) -> np.ndarray:
-    """[G', 3] a point cloud [P, 3+] as a surveyor grids it: outlier-filtered (`tin_filter`, None: not) and
-    interpolated linearly on its Delaunay triangulation at `nodes` [G, 2]."""
-    keep = np.ones(len(points), bool) if tin_filter is None else track_filter(points, **tin_filter)
-    return tin(points[keep], nodes)
+    """[G', 3] a point cloud [P, 3+] as a surveyor grids it: outlier-filtered (`despiked`) and interpolated
+    linearly on its Delaunay triangulation at `nodes` [G, 2]."""
+    return tin(despiked(points, tin_filter), nodes)
 
 
 def track_clouds(root, fingerprint: str, cameras: dict, water, dietrich_tracks: dict = DIETRICH_TRACKS

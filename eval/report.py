@@ -154,6 +154,19 @@ def _table(rows: dict[str, list[dict]], published: dict, table: str | None, colu
     return "\n".join(lines) + "\n"
 
 
+def geometry_table(head: list[str], rows: list[tuple[list[str], dict]], columns) -> str:
+    """A Markdown table of single beds (no seeds): per row its leading cells (under `head`) and its geometry
+    scores (`score_grid`'s), in `columns` (entries of T2_COLUMNS / T3_COLUMNS); a missing value prints n/a."""
+    lines = ["| " + " | ".join(head + [c[0] for c in columns]) + " |", "|" + "---|" * (len(head) + len(columns))]
+    for lead, geometry in rows:
+        cells = list(lead)
+        for _, _, keys, fmt, scale in columns:
+            found = values([{"geometry": geometry}], keys, scale)
+            cells.append(fmt.format(found[0]) if found else "n/a")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def _notes(notes) -> str:
     return "".join(f"\n- {n}" for n in notes) + ("\n" if notes else "")
 
@@ -318,8 +331,6 @@ def geometry_notes(header: dict) -> list[str]:
 
 def references_note(header: dict) -> str:
     """What the reference rows are, with their settings as the header records them."""
-    from eval.references import DIETRICH_DENSE_REDUCE
-
     refs = header.get("references") or {}
     tin, die = refs.get("tin_filter"), refs.get("dietrich_tracks") or {}
     cleaned = "not outlier-filtered" if tin is None else \
@@ -333,7 +344,7 @@ def references_note(header: dict) -> str:
             f"Dietrich's (2017) multi-camera rule ({die.get('reduce', 'median')} over {cams}); triangulation x n "
             f"= the straight-ray tracks with depths x n; each {cleaned} and gridded by linear interpolation on its "
             "Delaunay triangulation (TIN), settings chosen on the development reach; dietrich (3dgs) = the rule "
-            f"applied to the 3dgs bed ({DIETRICH_DENSE_REDUCE} over the cameras that see a cell"
+            f"applied to the 3dgs bed ({refs.get('dietrich_3dgs_reduce', 'median')} over the cameras that see a cell"
             + ("" if dense is None else f", within {dense:g} degrees of the vertical") + "). The trivial answers: 3dgs x n = the 3dgs bed with submerged depths "
             "multiplied by n (the classical correction); oracle plane = the least-squares tilted plane through the "
             "ground truth's submerged bed, oracle median plane = the flat plane at its median height (both read "

@@ -19,7 +19,7 @@ from eval import metrics
 from eval.ablation import CODE, PRESETS, TrainEval, extract_config
 from eval.evaluate import evaluate_fused, evaluate_geometry, evaluate_views, score_grid
 from eval.references import USES_GROUND_TRUTH, oracle_grids, start_extraction
-from eval.report import T2_COLUMNS, T3_COLUMNS, values
+from eval.report import T2_COLUMNS, T3_COLUMNS, geometry_table
 from ragsplat_core.errors import ConfigError, DatasetError
 from ragsplat_core.export import load_model
 from ragsplat_core.outputs import source_digest, versions
@@ -111,17 +111,11 @@ def table(result: dict) -> str:
              (f"{result['variant']} (this run), fused", result["geometry_fused"])]
     if "dem" in result:
         rows.append((f"its DEM ({Path(result['dem']['file']).name})", result["dem"]))
-    head = ["Row"] + [c[0] for c in COLUMNS]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for name, geometry in rows:
-        cells = [name]
-        for _, _, keys, fmt, scale in COLUMNS:
-            found = values([{"geometry": geometry}], keys, scale)
-            cells.append(fmt.format(found[0]) if found else "n/a")
-        lines.append("| " + " | ".join(cells) + " |")
+    lines = [geometry_table(["Row"], [([name], geometry) for name, geometry in rows], COLUMNS)]
     depth = result["max_depth_m"]
-    lines += ["", (f"- F1 at 10 / 30 cm and at 1 % / 3 % of the maximum depth ({depth:g} m); bias, RMSE and p95 "
-                   "of dz = predicted - true bed height over the wet cells, banks bias over the emerged ground."),
+    lines += ["", (f"- F1 at 10 / 30 cm and at 1 % / 3 % of the maximum depth ({depth:g} m); dz = predicted - true "
+                   "bed height: p95 of |dz| over every wet cell (a hole counts as a miss), bias and RMSE over the "
+                   "covered wet cells, banks bias over the emerged ground."),
               ("- volume: volume sampling of the Gaussians; fused: TSDF fusion of the true Gaussians' median "
                "depth maps of the training views.")]
     app = result["appearance"]
