@@ -23,7 +23,6 @@ from eval.report import T2_COLUMNS, T3_COLUMNS, geometry_table
 from ragsplat_core.errors import ConfigError, DatasetError
 from ragsplat_core.export import load_model
 from ragsplat_core.outputs import source_digest, versions
-from ragsplat_core.surface import in_region
 
 # The short table: the ablation's CD and F1 columns (Table 2) and the wet and banks bias and errors (Table 3)
 COLUMNS = [c for c in T2_COLUMNS if c[0].startswith(("CD", "F1"))] + \
@@ -77,12 +76,13 @@ def score_run(run: Path, data: Path | None = None, vgg16: str | None = None, dow
 
 
 def _score_dem(path: Path, georef, truth) -> dict:
-    """The DEM's cells inside the evaluation region scored like an extracted bed, and its error map written
-    beside it (NAME_error.png)."""
+    """The DEM read at the ground truth's nodes as `ragsplat score` reads it (`bed_file.read_bed`: the same
+    cells as every row; a DEM's own cells off that lattice would add their horizontal offset to every F1
+    distance) and scored like an extracted bed, its error map written beside it (NAME_error.png)."""
+    from eval.bed_file import read_bed
     from eval.report import depth_error_map
 
-    grid = dem_points(path, georef)
-    grid = grid[in_region(grid, truth.region, tol=1e-6)]  # the GeoTIFF's cell centres carry round-off
+    grid, _ = read_bed(path, truth, georef)
     figure = depth_error_map(grid, truth, Path(path).with_name(Path(path).stem + "_error.png"),
                              Path(path).name)
     return {"file": str(path), "error_map": str(figure), **score_grid(grid, truth)}
