@@ -23,6 +23,11 @@ The apparent point (the paper's Eq. 5 rewritten in alpha) is
 At n = 1: D = 1, alpha = 1 / (H + d), d' = d, rho = 1. Gradients never pass through the solver loop: one
 final Newton step with a detached slope turns the solve into implicit differentiation, so gradients
 reach the points, the camera, the water level and n.
+
+A river's surface slopes: `WaterSurface.slope` makes it the tilted plane z = level + sx x + sy y. Refraction
+depends on the interface's normal alone, so the tilted transform is the flat one in the plane's own frame,
+exactly: rotate the world so that the normal is +z, transform, rotate back (`_plane_frame`). Gradients reach
+the slope through the rotation as they reach the level.
 """
 
 from __future__ import annotations
@@ -61,6 +66,8 @@ def opacity_factor(means, water: WaterSurface):
     """[N] rendered / true opacity of Gaussians centred at means [N, 3] under `water` (RA-GS's 1 / n^2,
     blended at the water line as in `refract_gaussians`; 1 above the level). Pruning and opacity resets
     apply their thresholds to what is rendered through it."""
+    if water.tilted:  # the depth along the plane's normal, as the transform blends
+        return _fade(waterline_weight(-_to_plane(means, *_plane_frame(water, means))[:, 2]), water.n)
     level = torch.as_tensor(water.level, dtype=means.dtype, device=means.device)
     return _fade(waterline_weight(level - means[:, 2]), water.n)
 
@@ -76,24 +83,87 @@ def linear_to_srgb(c):
 
 @dataclass(frozen=True)
 class WaterSurface:
-    """Horizontal water plane z = level (world metres) with refractive index n relative to air.
+    """The water surface z = level + slope[0] x + slope[1] y (world metres; `level` is its height at x = y = 0)
+    with refractive index n relative to air: a horizontal plane by default, a tilted one for a river whose
+    surface falls along the reach (slope = (dz/dx, dz/dy): a 1 % fall along +x is (-0.01, 0)).
 
-    `level` and `n` may be 0-d tensors that require grad, for calibrating them.
+    `level`, `n` and `slope` may be tensors that require grad (0-d; slope [2]), for calibrating them.
     """
 
     level: float = 0.0
     n: float = 1.33
+    slope: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self):
+        if isinstance(self.slope, list):  # as JSON gives it; a tuple keeps the dataclass hashable
+            object.__setattr__(self, "slope", tuple(self.slope))
         if not math.isfinite(_value(self.level)):
             raise ValueError(f"water level must be finite, got {self.level}")
         if not (math.isfinite(_value(self.n)) and _value(self.n) >= 1.0):
             raise ValueError(f"refractive index must be finite and >= 1, got {self.n}")
+        sx, sy = (_value(v) for v in self.slope)
+        if not (math.isfinite(sx) and math.isfinite(sy) and math.hypot(sx, sy) < 1):
+            raise ValueError(f"water surface slope must be finite and under 1 (45 degrees), got {self.slope}")
 
     @property
     def is_identity(self) -> bool:
         """True when refraction is exactly the identity: n == 1 and nothing asks for its gradient."""
         return _value(self.n) == 1.0 and not (torch.is_tensor(self.n) and self.n.requires_grad)
+
+    @property
+    def tilted(self) -> bool:
+        """False for the horizontal plane z = level (a zero slope that nothing asks the gradient of), which
+        keeps today's transform and its arithmetic exactly."""
+        return torch.is_tensor(self.slope) and self.slope.requires_grad or any(_value(v) != 0 for v in self.slope)
+
+    def height(self, xy):
+        """[...] surface height at horizontal points xy [..., 2] (tensors or numpy arrays)."""
+        if not self.tilted:
+            return self.level + 0 * xy[..., 0]
+        return self.level + self.slope[0] * xy[..., 0] + self.slope[1] * xy[..., 1]
+
+    def depth(self, points):
+        """[...] vertical depth of points [..., 3] below the surface (negative above it): height - z."""
+        if not self.tilted:
+            return self.level - points[..., 2]
+        return self.height(points[..., :2]) - points[..., 2]
+
+    def shifted(self, offset) -> WaterSurface:
+        """The same surface in a frame whose origin lies at `offset` [3] of this one (x_new = x - offset)."""
+        ox, oy, oz = (float(v) for v in offset)
+        sx, sy = (_value(v) for v in self.slope)
+        return WaterSurface(_value(self.level) + sx * ox + sy * oy - oz, _value(self.n), (sx, sy))
+
+    def to_json(self) -> dict:
+        """{"level", "n"}, and "slope" [sx, sy] for a tilted surface (a flat one's files stay as they were)."""
+        out = {"level": _value(self.level), "n": _value(self.n)}
+        if self.tilted:
+            out["slope"] = [_value(v) for v in self.slope]
+        return out
+
+
+def _plane_frame(water: WaterSurface, like):
+    """(R [3, 3], p0 [3]) of a tilted surface's own frame: q = R (p - p0) puts the surface at q_z = 0 with
+    its normal along +z. R is the smallest rotation taking the normal to +z (Rodrigues), p0 the surface
+    point above the origin; both carry gradients to level and slope. `like`: a tensor for dtype and device."""
+    kw = {"dtype": like.dtype, "device": like.device}
+    sx, sy = (torch.as_tensor(v, **kw) for v in water.slope)
+    norm = torch.sqrt(1 + sx * sx + sy * sy)
+    nx, ny, nz = -sx / norm, -sy / norm, 1 / norm  # the upward unit normal
+    zero = torch.zeros((), **kw)
+    # v = normal x e_z = (ny, -nx, 0); R = I + [v]x + [v]x^2 / (1 + normal . e_z)
+    vx = torch.stack([torch.stack([zero, zero, -nx]), torch.stack([zero, zero, -ny]), torch.stack([nx, ny, zero])])
+    R = torch.eye(3, **kw) + vx + vx @ vx / (1 + nz)
+    p0 = torch.stack([zero, zero, torch.as_tensor(water.level, **kw)])
+    return R, p0
+
+
+def _to_plane(points, R, p0):  # [N, 3] -> [N, 3] in the plane's frame
+    return (points - p0) @ R.T
+
+
+def _from_plane(points, R, p0):
+    return points @ R + p0
 
 
 def _value(x) -> float:
@@ -174,9 +244,15 @@ def _place(loc: _Local, rho, d_app):  # [M, 3] apparent points from r'/r and d'
 
 @torch.compiler.disable  # under torch.compile: a graph break (it reads a value), not a traced float() and a warning
 def _check_camera(camera_center, water) -> None:
-    if not _value(camera_center[2]) > _value(water.level):
-        raise ValueError(f"camera centre z = {_value(camera_center[2])} is not above the water level "
-                         f"{_value(water.level)}: refraction needs the camera in air")
+    C = [_value(v) for v in camera_center]
+    surface = _value(water.level) + sum(_value(s) * c for s, c in zip(water.slope, C[:2]))
+    if not C[2] > surface:
+        raise ValueError(f"camera centre z = {C[2]} is not above the water surface ({surface} there): "
+                         f"refraction needs the camera in air")
+
+
+def _flat_in_plane(water: WaterSurface) -> WaterSurface:  # a tilted surface in its own frame: q_z = 0
+    return WaterSurface(0.0, water.n)
 
 
 def _submerged(points, water):  # [N] bool
@@ -191,6 +267,13 @@ def apparent_points(points, camera_center, water: WaterSurface, steps: int | Non
     _check_camera(camera_center, water)
     if water.is_identity:
         return points.clone()
+    if water.tilted:  # the flat transform in the plane's frame; points above it stay exactly as they are
+        R, p0 = _plane_frame(water, points)
+        local = _to_plane(points, R, p0)
+        moved = apparent_points(local, _to_plane(torch.as_tensor(camera_center, dtype=points.dtype,
+                                                                 device=points.device)[None], R, p0)[0],
+                                _flat_in_plane(water), steps)
+        return torch.where((local[:, 2] < 0)[:, None], _from_plane(moved, R, p0), points)
     wet = _submerged(points, water)
     loc = _local(points[wet], camera_center, water)
     return points.index_put((wet,), _place(loc, *apparent_offsets(loc.r2, loc.d, loc.H, loc.n, steps)))
@@ -245,6 +328,10 @@ def apparent_jacobian(points, camera_center, water: WaterSurface, steps: int | N
     J = torch.eye(3, dtype=points.dtype, device=points.device).expand(N, 3, 3).clone()
     if water.is_identity:
         return J
+    if water.tilted:  # J_world = R^T J_plane R
+        R, p0 = _plane_frame(water, points)
+        C = _to_plane(torch.as_tensor(camera_center, dtype=points.dtype, device=points.device)[None], R, p0)[0]
+        return R.T @ apparent_jacobian(_to_plane(points, R, p0), C, _flat_in_plane(water), steps) @ R
     wet = _submerged(points, water)
     loc = _local(points[wet], camera_center, water)
     return J.index_put((wet,), _jacobian(loc, _derivatives(loc, steps)))
@@ -301,6 +388,9 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
         jacobians = torch.eye(3, dtype=means.dtype, device=means.device).expand(len(means), 3, 3)
     if water.is_identity or not (position or opacity or color or scale != "none"):
         return ApparentGaussians(means, scales, quats, opacities, colors, covars, jacobians)
+    if water.tilted:
+        return _refract_tilted(means, scales, quats, opacities, colors, camera_center, water, position, scale,
+                               opacity, color, steps, covars)
     wet = _submerged(means, water)
     rows = _wet_rows(wet)  # found once: a boolean index searches every time
     all_wet = rows is None
@@ -335,6 +425,26 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
         c = take(colors)
         colors = put(colors, linear_to_srgb(srgb_to_linear(c) * fade.reshape(-1, *[1] * (c.dim() - 1))))
     return ApparentGaussians(means, scales, quats, opacities, colors, covars, jacobians)
+
+
+def _refract_tilted(means, scales, quats, opacities, colors, camera_center, water, position, scale, opacity,
+                    color, steps, covars) -> ApparentGaussians:
+    """`refract_gaussians` under a tilted surface: the flat transform in the plane's frame, its positions and
+    Jacobians rotated back (J_world = R^T J_plane R; covariances J Sigma J^T in the world). The isotropic
+    and determinant scale factors are the plane frame's (the determinant is the same in any frame)."""
+    R, p0 = _plane_frame(water, means)
+    local = _to_plane(means, R, p0)
+    C = _to_plane(torch.as_tensor(camera_center, dtype=means.dtype, device=means.device)[None], R, p0)[0]
+    out = refract_gaussians(local, scales, quats, opacities, colors, C, _flat_in_plane(water), position, scale,
+                            opacity, color, steps, covariances=False)
+    if position:  # rows above the surface keep their coordinates exactly, not rotated there and back
+        means = torch.where((local[:, 2] < 0)[:, None], _from_plane(out.means, R, p0), means)
+    jacobians = None
+    if scale == "anisotropic":
+        jacobians = R.T @ out.jacobians @ R
+        if covars is not None:
+            covars = jacobians @ covars @ jacobians.transpose(1, 2)
+    return ApparentGaussians(means, out.scales, quats, out.opacities, out.colors, covars, jacobians)
 
 
 @functools.cache

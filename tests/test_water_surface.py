@@ -1,0 +1,166 @@
+"""A sloping water surface (a river's): the tilted plane's transform, tested from physics (Snell's law with the
+tilted normal, RA-GS's apparent depth along it, rotation equivariance) and against the horizontal plane."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from ragsplat_core.refraction import (
+    WaterSurface,
+    apparent_jacobian,
+    apparent_points,
+    covariance,
+    opacity_factor,
+    refract_gaussians,
+)
+
+f64 = torch.float64
+CAM = torch.tensor([1.0, -2.0, 12.0], dtype=f64)
+TILTED = WaterSurface(level=0.5, n=1.33, slope=(-0.01, 0.004))  # 1 % fall along +x, a little across
+
+
+def below(water, n=300, seed=0, depth=(0.02, 6.0), radius=20.0):
+    g = torch.Generator().manual_seed(seed)
+    xy = (torch.rand(n, 2, generator=g, dtype=f64) - 0.5) * 2 * radius
+    d = depth[0] + torch.rand(n, generator=g, dtype=f64) * (depth[1] - depth[0])
+    return torch.cat([xy, (water.height(xy) - d)[:, None]], -1)
+
+
+def unit_normal(water):
+    sx, sy = water.slope
+    v = torch.tensor([-sx, -sy, 1.0], dtype=f64)
+    return v / v.norm()
+
+
+def test_horizontal_surface_is_todays_transform_exactly():
+    p = below(WaterSurface(0.5, 1.33))
+    flat = WaterSurface(0.5, 1.33, slope=(0.0, 0.0))
+    assert not flat.tilted and flat == WaterSurface(0.5, 1.33)
+    q = refract_gaussians(p, torch.full_like(p, 0.05), torch.tensor([[1.0, 0, 0, 0]], dtype=f64).expand(len(p), 4),
+                          torch.full((len(p),), 0.5, dtype=f64), torch.rand(len(p), 3, dtype=f64), CAM, flat,
+                          scale="anisotropic")
+    r = refract_gaussians(p, torch.full_like(p, 0.05), torch.tensor([[1.0, 0, 0, 0]], dtype=f64).expand(len(p), 4),
+                          torch.full((len(p),), 0.5, dtype=f64), torch.rand(len(p), 3, dtype=f64), CAM,
+                          WaterSurface(0.5, 1.33), scale="anisotropic")
+    assert torch.equal(q.means, r.means) and torch.equal(q.jacobians, r.jacobians)
+
+
+def test_a_vanishing_tilt_tends_to_the_flat_transform():
+    p = below(WaterSurface(0.5, 1.33))
+    flat = apparent_points(p, CAM, WaterSurface(0.5, 1.33))
+    tiny = apparent_points(p, CAM, WaterSurface(0.5, 1.33, slope=(1e-12, -1e-12)))
+    assert torch.allclose(tiny, flat, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("theta_a", [0.0, 10.0, 35.0, 60.0])
+def test_snell_holds_at_the_tilted_interface_and_the_depth_is_rags_along_the_normal(theta_a):
+    """Build the true point forwards: an air ray at theta_a from the tilted normal, bent by Snell's law at the
+    surface, followed for a distance under it. The transform must put the apparent point on that air ray, at
+    RA-GS's apparent depth d' = d (cos ta / cos tw)^3 / n along the normal (d the true one along it)."""
+    water = TILTED
+    N = unit_normal(water)
+    n = water.n
+    # an air direction at theta_a from -N, turned a little about it
+    e1 = torch.linalg.cross(N, torch.tensor([0.3, 1.0, 0.0], dtype=f64))
+    e1 = e1 / e1.norm()
+    ta = math.radians(theta_a)
+    air = -math.cos(ta) * N + math.sin(ta) * e1
+    t = (water.height(CAM[None, :2])[0] - CAM[2]) / (air @ torch.tensor([-water.slope[0], -water.slope[1], 1.0],
+                                                                       dtype=f64))
+    hit = CAM + t * air  # on the plane: N . (hit - p0) = 0
+    assert float(water.depth(hit[None])[0]) == pytest.approx(0, abs=1e-12)
+    tw = math.asin(math.sin(ta) / n)
+    wet_dir = -math.cos(tw) * N + math.sin(tw) * e1
+    d_normal = 2.5
+    p = hit + d_normal / math.cos(tw) * wet_dir
+    q = apparent_points(p[None], CAM, water)[0]
+    # on the air ray through the interface point
+    to_q = q - CAM
+    assert float(torch.linalg.norm(torch.linalg.cross(to_q, air))) == pytest.approx(0, abs=1e-9)
+    # at RA-GS's apparent depth along the normal
+    d_app = float(-(q - hit) @ N)
+    expected = d_normal * (math.cos(ta) / math.cos(tw)) ** 3 / n
+    assert d_app == pytest.approx(expected, rel=1e-10)
+
+
+def test_equivariant_under_any_rotation_about_the_normal():
+    """The transform must not depend on which frame of the plane is used: a tilted world rotated about the
+    normal through a point of the surface gives the rotated apparent points."""
+    water = TILTED
+    N = unit_normal(water)
+    p = below(water, n=80)
+    phi = 0.9
+    K = torch.tensor([[0, -N[2], N[1]], [N[2], 0, -N[0]], [-N[1], N[0], 0]], dtype=f64)
+    Rot = torch.eye(3, dtype=f64) + math.sin(phi) * K + (1 - math.cos(phi)) * K @ K  # about N
+    o = torch.tensor([3.0, -1.0, 0.0], dtype=f64)
+    o[2] = water.height(o[None, :2])[0]  # a point of the surface: the rotated plane is the same plane
+    turn = lambda x: (x - o) @ Rot.T + o  # noqa: E731
+    a = turn(apparent_points(p, CAM, water))
+    b = apparent_points(turn(p), turn(CAM[None])[0], water)
+    assert torch.allclose(a, b, rtol=0, atol=1e-10)
+
+
+def test_n_one_is_the_pinhole_and_points_above_stay_exactly():
+    p = below(TILTED)
+    assert torch.allclose(apparent_points(p, CAM, WaterSurface(0.5, 1.0, TILTED.slope)), p, rtol=0, atol=1e-12)
+    above = p.clone()
+    above[:, 2] = TILTED.height(p[:, :2]) + 0.3
+    assert torch.equal(apparent_points(above, CAM, TILTED), above)
+
+
+def test_tilted_jacobian_matches_differences_and_the_gaussians_use_it():
+    p = below(TILTED, n=40)
+    J = apparent_jacobian(p, CAM, TILTED)
+    eps = 1e-6
+    for k in range(3):
+        e = torch.zeros(3, dtype=f64)
+        e[k] = eps
+        col = (apparent_points(p + e, CAM, TILTED) - apparent_points(p - e, CAM, TILTED)) / (2 * eps)
+        assert torch.allclose(J[:, :, k], col, rtol=0, atol=1e-7)
+    quats = torch.nn.functional.normalize(torch.rand(len(p), 4, dtype=f64), dim=-1)
+    scales = torch.rand(len(p), 3, dtype=f64) * 0.1
+    out = refract_gaussians(p, scales, quats, torch.full((len(p),), 0.6, dtype=f64), torch.rand(len(p), 3, dtype=f64),
+                            CAM, TILTED, scale="anisotropic")
+    assert torch.allclose(out.jacobians, J, rtol=0, atol=1e-12)
+    assert torch.allclose(out.covars, J @ covariance(quats, scales) @ J.transpose(1, 2), rtol=0, atol=1e-14)
+    assert torch.allclose(out.means, apparent_points(p, CAM, TILTED), rtol=0, atol=1e-12)
+    assert torch.allclose(out.opacities, 0.6 * opacity_factor(p, TILTED), rtol=0, atol=1e-15)
+
+
+def test_gradients_reach_level_slope_and_n():
+    p = below(TILTED, n=6, depth=(0.5, 4.0))
+    level = torch.tensor(0.5, dtype=f64, requires_grad=True)
+    slope = torch.tensor([-0.01, 0.004], dtype=f64, requires_grad=True)
+    n = torch.tensor(1.33, dtype=f64, requires_grad=True)
+
+    def f(level, slope, n):
+        return apparent_points(p, CAM, WaterSurface(level, n, slope))
+
+    assert torch.autograd.gradcheck(f, (level, slope, n), eps=1e-7, atol=1e-6, rtol=1e-5)
+
+    def g(level, slope):
+        out = refract_gaussians(p, torch.full_like(p, 0.1), torch.tensor([[1.0, 0, 0, 0]], dtype=f64).expand(6, 4),
+                                torch.full((6,), 0.5, dtype=f64), torch.ones(6, 3, dtype=f64), CAM,
+                                WaterSurface(level, 1.33, slope), scale="anisotropic")
+        return out.means, out.jacobians, out.covars
+
+    assert torch.autograd.gradcheck(g, (level, slope), eps=1e-7, atol=1e-6, rtol=1e-5)
+
+
+def test_surface_height_depth_shift_and_json():
+    w = WaterSurface(2.0, 1.33, [0.01, -0.02])  # a list, as JSON gives it
+    assert w.slope == (0.01, -0.02) and hash(w)
+    xy = np.array([[10.0, 5.0]])
+    assert w.height(xy)[0] == pytest.approx(2.0 + 0.1 - 0.1)
+    assert w.depth(np.array([[10.0, 5.0, 1.5]]))[0] == pytest.approx(0.5)
+    off = (100.0, 50.0, 3.0)
+    s = w.shifted(off)
+    assert s.height(xy - np.array(off[:2]))[0] == pytest.approx(w.height(xy)[0] - off[2], abs=1e-12)
+    assert WaterSurface(**w.to_json()) == w
+    assert WaterSurface(0.5, 1.33).to_json() == {"level": 0.5, "n": 1.33}  # a flat surface's files as they were
+    with pytest.raises(ValueError, match="slope"):
+        WaterSurface(0.0, 1.33, (2.0, 0.0))
+    with pytest.raises(ValueError, match="above the water surface"):
+        apparent_points(below(w, n=2), torch.tensor([0.0, 0.0, 1.9], dtype=f64), WaterSurface(2.0, 1.33, (0.0, -0.1)))
