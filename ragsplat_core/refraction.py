@@ -134,12 +134,6 @@ class WaterSurface:
         sx, sy = (_value(v) for v in self.slope)
         return WaterSurface(_value(self.level) + sx * ox + sy * oy - oz, _value(self.n), (sx, sy))
 
-    def to_json(self) -> dict:
-        """{"level", "n"}, and "slope" [sx, sy] for a tilted surface (a flat one's files stay as they were)."""
-        out = {"level": _value(self.level), "n": _value(self.n)}
-        if self.tilted:
-            out["slope"] = [_value(v) for v in self.slope]
-        return out
 
 
 def _plane_frame(water: WaterSurface, like):

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from ragsplat_core.dataset.layout import water_json
 from ragsplat_core.refraction import (
     WaterSurface,
     apparent_jacobian,
@@ -158,8 +159,8 @@ def test_surface_height_depth_shift_and_json():
     off = (100.0, 50.0, 3.0)
     s = w.shifted(off)
     assert s.height(xy - np.array(off[:2]))[0] == pytest.approx(w.height(xy)[0] - off[2], abs=1e-12)
-    assert WaterSurface(**w.to_json()) == w
-    assert WaterSurface(0.5, 1.33).to_json() == {"level": 0.5, "n": 1.33}  # a flat surface's files as they were
+    assert WaterSurface(**water_json(w)) == w
+    assert water_json(WaterSurface(0.5, 1.33)) == {"level": 0.5, "n": 1.33}  # a flat surface's files as they were
     with pytest.raises(ValueError, match="slope"):
         WaterSurface(0.0, 1.33, (2.0, 0.0))
     with pytest.raises(ValueError, match="above the water surface"):

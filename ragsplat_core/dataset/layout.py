@@ -433,9 +433,22 @@ def frame(name: str, camera, split: str, kind: str, file_path: str, dry_file_pat
     return {k: v for k, v in out.items() if v is not None}
 
 
+def water_json(water) -> dict | None:
+    """The data contract's water, as transforms.json and scene.json hold it: None for a dry scene, else
+    {"level", "n"} and, for a sloping surface, "slope": [dz/dx, dz/dy] (the plane z = level + sx x + sy y;
+    a flat surface's files stay as they were). `water`: anything with `level`, `n` and optionally `slope`."""
+    if water is None:
+        return None
+    out = {"level": float(water.level), "n": float(water.n)}
+    slope = [float(v) for v in getattr(water, "slope", (0.0, 0.0))]
+    if any(slope):
+        out["slope"] = slope
+    return out
+
+
 def transforms_json(camera, frames: list[dict], water, georef: Georef | None = None) -> dict:
     """transforms.json: shared pinhole intrinsics of `camera` (no distortion; a frame may carry its own),
-    `water` (anything with `level` and `n`, or None for a dry scene), the frames and, for an imported survey,
+    `water` (see `water_json`; None for a dry scene), the frames and, for an imported survey,
     its `georef`. For nerfstudio: poses are used as they are (identity `applied_transform`, no
     re-orientation) and the split is given by file lists."""
     out = {
@@ -445,7 +458,7 @@ def transforms_json(camera, frames: list[dict], water, georef: Georef | None = N
         "applied_transform": np.eye(4)[:3].tolist(), "orientation_override": "none",
         "train_filenames": [f["file_path"] for f in frames if f["split"] == "train"],
         "test_filenames": [f["file_path"] for f in frames if f["split"] == "test"],
-        "water": None if water is None else {"level": water.level, "n": water.n},
+        "water": water_json(water),
         "frames": frames,
     }
     if georef is not None:

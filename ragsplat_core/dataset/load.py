@@ -42,8 +42,8 @@ class GroundTruth:
 
     grid: np.ndarray  # [N, 3] float64 submerged bed points on a regular horizontal grid over `region`
     region: dict[str, float]  # {"xmin", "xmax", "ymin", "ymax"}: the evaluated part of the bed
-    max_depth: float  # metres below the water level: what the scale-free thresholds (1 %, 3 %) refer to
-    level: float  # the water plane's height (0 for a dry scene)
+    max_depth: float  # metres below the water surface: what the scale-free thresholds (1 %, 3 %) refer to
+    water: WaterSurface  # the surface depths are measured from (a dry scene: the plane z = 0, n = 1)
     banks: np.ndarray | None = None  # [M, 3] emerged ground on the same grid (a reach), or None
     surface: layout.Surface | None = None  # the exact height function (gt/bed_surface.npz), when present
 
@@ -181,8 +181,12 @@ def _water(meta: dict, path: Path) -> WaterSurface | None:
         return None
     if not isinstance(spec, dict):
         raise _fail(path, f"'water' must be an object {{level, n}} or null, got {spec!r}")
+    slope = spec.get("slope", [0.0, 0.0])
+    if not (isinstance(slope, list) and len(slope) == 2):
+        raise _fail(path, f"'water.slope' must be [dz/dx, dz/dy], got {slope!r}")
     try:
-        return WaterSurface(_number(spec, "level", path, "water."), _number(spec, "n", path, "water."))
+        return WaterSurface(_number(spec, "level", path, "water."), _number(spec, "n", path, "water."),
+                            tuple(_number(dict(enumerate(slope)), i, path, "water.slope ") for i in range(2)))
     except ValueError as err:
         if isinstance(err, DatasetError):
             raise
@@ -271,9 +275,10 @@ def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: b
             raise _fail(tpath, f"{where} has no 'file_path'")
         intr, size = _intrinsics(meta, frame, tpath, where)
         camera = _camera(frame, intr, size, tpath, where)
-        if water is not None and not camera.camera_center[2] > water.level:
+        if water is not None and not water.depth(camera.camera_center) < 0:
             raise _fail(tpath, f"{where} ({name}): camera centre z = {camera.camera_center[2]:g} is not above the "
-                               f"water level {water.level:g}; refraction needs the camera in air")
+                               f"water surface ({water.height(camera.camera_center[:2]):g} there); refraction "
+                               f"needs the camera in air")
         if split == "train":
             train_cameras.append(camera)
         if split not in splits:
@@ -303,7 +308,9 @@ def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: b
             if region["xmin"] >= region["xmax"] or region["ymin"] >= region["ymax"]:
                 raise _fail(spath, f"eval_region is empty: {region}")
     truth = _ground_truth(root, region, water, scene if spath.exists() else {}) if ground_truth else None
-    gsd = None if water is None else ground_sample_distance(train_cameras, water.level)
+    # at the surface's height under the cameras' middle (a river's slope changes it by a few per mille)
+    gsd = None if water is None else ground_sample_distance(train_cameras, float(water.height(
+        np.median([c.camera_center[:2] for c in train_cameras], axis=0)))) if train_cameras else None
     return Dataset(root, water, views, bed, region, truth, layout.fingerprint(root), _georef(meta, tpath), gsd)
 
 
@@ -333,7 +340,7 @@ def _ground_truth(root: Path, region: dict | None, water, scene: dict) -> Ground
     if not path.is_file():
         raise _fail(path, "ground-truth bed grid is missing")
     grid = _grid(path)
-    level = water.level if water is not None else 0.0
+    water = water if water is not None else WaterSurface(0.0, 1.0)
     nulls = scene.get("null_models")
     depth = _positive(nulls.get("max_depth_m")) if isinstance(nulls, dict) else None
     banks = _grid(root / layout.GT_BANKS) if (root / layout.GT_BANKS).is_file() else None
@@ -342,7 +349,7 @@ def _ground_truth(root: Path, region: dict | None, water, scene: dict) -> Ground
         surface = layout.Surface.load(spath) if spath.is_file() else None
     except (OSError, ValueError, KeyError) as err:
         raise _fail(spath, f"not a readable bed surface ({err})") from None
-    return GroundTruth(grid, region, depth or float(level - grid[:, 2].min()), level, banks, surface)
+    return GroundTruth(grid, region, depth or float(water.depth(grid).max()), water, banks, surface)
 
 
 def _grid(path: Path) -> np.ndarray:
