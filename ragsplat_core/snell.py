@@ -1,4 +1,4 @@
-"""Where a camera ray meets a horizontal plane under flat water: the refracted footprint.
+"""Where a camera ray meets a horizontal plane under the water: the refracted footprint and the bent rays.
 
 A ray leaving the camera at `angle` from the vertical crosses the water plane and continues at
 asin(sin(angle) / n) (Snell), so over `altitude` metres of air and `depth` metres of water it travels
@@ -21,15 +21,17 @@ def ground_offset(angle: float, altitude: float, depth: float, n: float) -> floa
 
 def footprint(cameras, water, z: float) -> tuple[float, float, float, float]:
     """(xmin, xmax, ymin, ymax) where the image-corner rays of `cameras` meet the plane `z`, refracted at
-    the water (`water`: an object with `level` and `n`, or None) when it lies above the plane; rays that
-    never reach the plane are ignored. Raises ValueError when no ray does."""
+    the water (`water`: a `WaterSurface`, or None) when it lies above the plane; rays that never reach the
+    plane are ignored. A sloping surface is taken at its height under each camera (a bound for planning,
+    not a ray trace). Raises ValueError when no ray does."""
     xs, ys = [], []
     for cam in cameras:
         corners = np.array([[0, 0], [cam.width, 0], [0, cam.height], [cam.width, cam.height]], float)
         centre = cam.camera_center
         rays = cam.unproject(corners, np.ones(4)) - centre  # [4, 3]
-        wet = water is not None and water.level > z and centre[2] > water.level
-        altitude, depth, n = ((centre[2] - water.level, water.level - z, water.n) if wet
+        level = None if water is None else float(water.height(centre[:2]))
+        wet = water is not None and level > z and centre[2] > level
+        altitude, depth, n = ((centre[2] - level, level - z, water.n) if wet
                               else (centre[2] - z, 0.0, 1.0))
         if altitude <= 0:
             continue
@@ -48,19 +50,22 @@ def footprint(cameras, water, z: float) -> tuple[float, float, float, float]:
 
 def water_rays(camera, pixels: np.ndarray, water) -> tuple[np.ndarray, np.ndarray]:
     """The light paths under the water of `pixels` [M, 2] (continuous, centres at i + 0.5) of `camera`:
-    (points [M, 3] where the rays cross the plane z = water.level, unit directions [M, 3] inside the water,
-    bent by Snell's law). A camera ray that never reaches the plane gets NaN."""
+    (points [M, 3] where the rays cross the water's plane, unit directions [M, 3] inside the water, bent by
+    Snell's law at its normal; `water`: a `WaterSurface`, flat or tilted). A camera ray that never reaches
+    the plane from above gets NaN."""
     centre = camera.camera_center
     d = camera.unproject(np.asarray(pixels, float), np.ones(len(pixels))) - centre  # [M, 3], camera z = 1
     d /= np.linalg.norm(d, axis=1, keepdims=True)
+    sx, sy = (float(v) for v in water.slope)
+    normal = np.array([-sx, -sy, 1.0]) / np.sqrt(1 + sx * sx + sy * sy)  # upward; exactly (0, 0, 1) when flat
+    cos_i = -d @ normal
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(d[:, 2] < 0, (water.level - centre[2]) / d[:, 2], np.nan)
+        t = np.where(cos_i > 0, (float(water.level) - centre @ [-sx, -sy, 1.0]) / (d @ [-sx, -sy, 1.0]), np.nan)
     origin = centre + t[:, None] * d
-    # Snell in vector form for the upward normal (0, 0, 1): the tangential part shrinks by 1 / n
-    cos_i = -d[:, 2]
-    eta = 1.0 / water.n
+    # Snell in vector form: the part along the surface shrinks by 1 / n
+    eta = 1.0 / float(water.n)
     cos_t = np.sqrt(1.0 - eta * eta * (1.0 - cos_i * cos_i))
-    bent = eta * d + (eta * cos_i - cos_t)[:, None] * np.array([0.0, 0.0, 1.0])
+    bent = eta * d + (eta * cos_i - cos_t)[:, None] * normal
     return origin, bent / np.linalg.norm(bent, axis=1, keepdims=True)
 
 

@@ -165,3 +165,21 @@ def test_surface_height_depth_shift_and_json():
         WaterSurface(0.0, 1.33, (2.0, 0.0))
     with pytest.raises(ValueError, match="above the water surface"):
         apparent_points(below(w, n=2), torch.tensor([0.0, 0.0, 1.9], dtype=f64), WaterSurface(2.0, 1.33, (0.0, -0.1)))
+
+
+def test_water_rays_bend_at_the_tilted_normal_and_meet_at_the_true_point():
+    """`snell.water_rays` under a tilted surface: the rays of one true point's pixels in several views, through
+    the tilted transform, meet at it; the crossing points lie on the surface."""
+    from ragsplat_core.camera import Camera
+    from ragsplat_core.snell import closest_points, water_rays
+
+    water = WaterSurface(level=0.5, n=1.33, slope=(-0.02, 0.01))
+    cams = [Camera.look_at([x, y, 4.5], [0.0, 0.0, -1.0], 64, 48, 60.0) for x, y in ((0, 0), (2, 0.5), (-1.5, 2))]
+    true = np.array([[0.3, -0.2, -1.0], [-0.4, 0.5, -2.5]])
+    rays = []
+    for cam in cams:
+        seen = apparent_points(torch.from_numpy(true), torch.from_numpy(cam.camera_center), water).numpy()
+        rays.append(water_rays(cam, cam.project(seen)[0], water))
+    origins, dirs = (np.concatenate(r) for r in zip(*rays))
+    np.testing.assert_allclose(water.depth(origins), 0, atol=1e-12)
+    np.testing.assert_allclose(closest_points(origins, dirs, np.tile([0, 1], 3), 2), true, atol=1e-9)
