@@ -55,20 +55,20 @@ SAMPLES_PER_GAUSSIAN = 4
 @dataclass(frozen=True)
 class Bed:
     """The extracted bed of one run: grid points [G, 3] in the local frame, one per covered cell (its centre,
-    the median height), and the water level (None: a dry scene)."""
+    the median height), and the water surface in the same frame (None: a dry scene)."""
 
     grid: np.ndarray
     resolution: float
-    level: float | None
+    water: WaterSurface | None
     georef: Georef
 
     def absolute(self) -> np.ndarray:  # [G, 3] in the CRS
         return self.grid + np.asarray(self.georef.offset, dtype=np.float64)
 
-    def depth(self) -> np.ndarray:  # [G] water depth, NaN on emerged ground and in a dry scene
-        if self.level is None:
+    def depth(self) -> np.ndarray:  # [G] water depth (surface height - bed), NaN on emerged ground, dry scene
+        if self.water is None:
             return np.full(len(self.grid), np.nan)
-        d = self.level - self.grid[:, 2]
+        d = self.water.depth(self.grid)
         return np.where(d > 0, d, np.nan)
 
 
@@ -80,7 +80,7 @@ def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None 
     bed."""
     meta, ds, splats, seed = _read_run(Path(run), data, splits=())
     water = run_water(meta, ds)
-    bed = extract_bed(activated_dict(splats), resolution, None if water is None else water.level, ds.eval_region,
+    bed = extract_bed(activated_dict(splats), resolution, water, ds.eval_region,
                       ds.georef, seed, ds.gsd, **extract)
     write_dem(dem, bed)
     for path, write in ((las, write_las), (ply, write_ply), (png, write_png)):
@@ -194,7 +194,8 @@ def run_water(meta: dict, ds: Dataset) -> WaterSurface | None:
     for key in ("water_final", "water"):
         if meta.get(key) is not None or (key == "water" and key in meta):
             w = meta[key]
-            return None if w is None else WaterSurface(float(w["level"]), float(w["n"]))
+            return None if w is None else WaterSurface(float(w["level"]), float(w["n"]),
+                                                       tuple(float(v) for v in w.get("slope", (0.0, 0.0))))
     return ds.water
 
 
@@ -303,7 +304,7 @@ def export_box(gaussians: dict, region: dict | None, min_opacity: float) -> tupl
     return np.percentile(xy, [1, 99], axis=0) if len(xy) else (np.zeros(2), np.zeros(2))
 
 
-def extract_bed(gaussians: dict, resolution: float, level: float | None, region: dict | None = None,
+def extract_bed(gaussians: dict, resolution: float, water: WaterSurface | None, region: dict | None = None,
                 georef: Georef | None = None, seed: int = 0, gsd: float | None = None, **extract) -> Bed:
     """The bed of activated Gaussians (means [N, 3], scales [N, 3], quats [N, 4], opacities [N]) on a grid
     of `resolution` metres whose nodes lie on multiples of it in the CRS (`grid_origin`), inside `region`
@@ -325,16 +326,20 @@ def extract_bed(gaussians: dict, resolution: float, level: float | None, region:
         raise OutputError(f"no bed surface: no Gaussian is opaque enough (>= {cfg.min_opacity}) and small enough "
                           f"(<= {cfg.max_scale_gsd:g} ground sample distances), or the noise filter removed every "
                           "sample")
-    return Bed(grid, resolution, level, georef)
+    return Bed(grid, resolution, water, georef)
 
 
 def write_dem(path: Path, bed: Bed) -> None:
     """GeoTIFF, two float32 bands: 1 = bed elevation (m, z up, + z0), 2 = water depth (m, nodata on
     emerged ground); nodata (`layout.NODATA`) outside the covered cells."""
-    above = "" if bed.level is None else f"; water level {bed.level + bed.georef.offset[2]:g} m"
+    above = ""
+    if bed.water is not None:
+        w = bed.water.shifted([-v for v in bed.georef.offset])  # in the CRS
+        above = f"; water level {w.level:g} m" + (f" at x = y = 0, slope {w.slope[0]:g}, {w.slope[1]:g}"
+                                                  if w.tilted else "")
     layout.write_raster(path, bed.absolute()[:, :2], [
         (bed.absolute()[:, 2], f"bed elevation (m, z up{above})"),
-        (bed.depth(), "water depth (m, level - bed where the bed is submerged; nodata on emerged ground)"),
+        (bed.depth(), "water depth (m, surface - bed where the bed is submerged; nodata on emerged ground)"),
     ], bed.resolution, crs=bed.georef.crs)
 
 

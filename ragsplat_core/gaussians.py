@@ -158,7 +158,7 @@ def init_points(points: torch.Tensor, rgb: torch.Tensor, water: WaterSurface | N
 
     A cloud reconstructed through the water (MVS on refracted images) sits at apparent depths, about the true
     depth / n; photogrammetric practice multiplies the underwater depths by n. `depth_scale` (default
-    `water.n`; 1 to keep the cloud as is) multiplies (level - z) of the points below the level. Scales are
+    `water.n`; 1 to keep the cloud as is) multiplies the depths of the points below the surface. Scales are
     the mean distance to the 3 nearest neighbours (as 3DGS), computed with scipy on the CPU.
     """
     from scipy.spatial import cKDTree
@@ -171,8 +171,9 @@ def init_points(points: torch.Tensor, rgb: torch.Tensor, water: WaterSurface | N
     means = points.detach().clone()
     if water is not None:
         k = water.n if depth_scale is None else depth_scale
-        below = means[:, 2] < water.level
-        means[below, 2] = water.level + (means[below, 2] - water.level) * k
+        d = water.depth(means.double()).to(means)  # [N] vertical depth below the surface
+        below = d > 0
+        means[below, 2] += d[below] * (1 - k)
     pts = means.detach().cpu().double().numpy()
     k_nn = min(4, len(pts))
     dist, _ = cKDTree(pts).query(pts, k=k_nn)

@@ -273,6 +273,25 @@ def apparent_points(points, camera_center, water: WaterSurface, steps: int | Non
     return points.index_put((wet,), _place(loc, *apparent_offsets(loc.r2, loc.d, loc.H, loc.n, steps)))
 
 
+def apparent_points_each(points, centers, water: WaterSurface, steps: int | None = None):
+    """[M, 3] apparent points of true points [M, 3], each seen from its own camera centre centers [M, 3] (the
+    bundle adjustment's observations); points above the surface are returned unchanged."""
+    if water.is_identity:
+        return points.clone()
+    if water.tilted:
+        R, p0 = _plane_frame(water, points)
+        local = _to_plane(points, R, p0)
+        moved = apparent_points_each(local, _to_plane(centers, R, p0), _flat_in_plane(water), steps)
+        return torch.where((local[:, 2] < 0)[:, None], _from_plane(moved, R, p0), points)
+    level = torch.as_tensor(water.level, dtype=points.dtype, device=points.device)
+    wet = points[:, 2] < level
+    C = centers[wet]
+    v = points[wet, :2] - C[:, :2]
+    rho, d_app = apparent_offsets((v * v).sum(-1), level - points[wet, 2], C[:, 2] - level,
+                                  torch.as_tensor(water.n, dtype=points.dtype, device=points.device), steps)
+    return points.index_put((wet,), torch.cat([C[:, :2] + rho[:, None] * v, (level - d_app)[:, None]], -1))
+
+
 class _Derivatives(NamedTuple):
     """rho, d' and their total derivatives w.r.t. r2 and d, for the submerged points [M]."""
 

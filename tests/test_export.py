@@ -21,6 +21,7 @@ from ragsplat_core.cli.main import main
 from ragsplat_core.dataset import load_dataset
 from ragsplat_core.dataset.layout import LOCAL_CRS, NODATA
 from ragsplat_core.errors import ConfigError
+from ragsplat_core.refraction import WaterSurface
 from ragsplat_core.export import (
     BATHYMETRIC,
     GROUND,
@@ -154,17 +155,17 @@ def test_a_coarser_resolution_draws_fewer_samples(monkeypatch):
     monkeypatch.setattr(export, "extract_surface", spy)
     g = plane_gaussians(lambda x, y: np.full_like(x, -1.5), step=0.1)  # 21 x 21 Gaussians
     for resolution, nodes, n in ((0.05, 33, 16 * 33**2), (0.1, 17, 16 * 17**2), (0.5, 3, 4 * 21**2)):
-        bed = extract_bed(g, resolution, 0.0, REGION, gsd=0.01)  # nodes: multiples of it in [-0.8, 0.8]
+        bed = extract_bed(g, resolution, WaterSurface(0.0), REGION, gsd=0.01)  # nodes: multiples of it in [-0.8, 0.8]
         assert drawn[-1] == (n, max(0.1, 2 * resolution)), resolution
         assert len(bed.grid) == nodes**2 and np.abs(bed.grid[:, 2] + 1.5).max() < 0.01, resolution
     # a coarse model for a coarse DEM: 9 x 9 Gaussians 10 cm wide, 324 samples, about 2 within 10 cm of each
     coarse = plane_gaussians(lambda x, y: np.full_like(x, -1.5), step=0.25)
     coarse["scales"] = torch.tensor([[0.1, 0.1, 0.003]] * len(coarse["means"]))
-    bed = extract_bed(coarse, 0.5, 0.0, REGION, gsd=0.05)  # found: the noise filter looks 1 m around
+    bed = extract_bed(coarse, 0.5, WaterSurface(0.0), REGION, gsd=0.05)  # found: the noise filter looks 1 m around
     assert drawn[-1] == (4 * 9**2, 1.0) and len(bed.grid) == 9 and np.abs(bed.grid[:, 2] + 1.5).max() < 0.01
     big = {"xmin": -60.0, "xmax": 60.0, "ymin": -60.0, "ymax": 60.0}  # 1.4 ha: 5.8e6 cells of 5 cm
     with pytest.raises(ConfigError, match=r"9.22e\+07 samples .*resolution, (\S+) m or more") as refused:
-        extract_bed(g, 0.05, 0.0, big, gsd=0.01)
+        extract_bed(g, 0.05, WaterSurface(0.0), big, gsd=0.01)
     assert len(drawn) == 4  # refused before sampling
     coarser = float(str(refused.value).split("resolution, ")[1].split(" m")[0])
     lo, hi = (-60.0, -60.0), (60.0, 60.0)
@@ -178,7 +179,7 @@ def test_utm_offset_round_trip(tmp_path):
     x0, y0, z0 = 500_000.012, 5_000_000.037, 100.0
     georef = Georef((x0, y0, z0), "EPSG:32633")
     g = plane_gaussians(lambda x, y: 0.2 * x - 0.1)
-    bed = extract_bed(g, 0.05, 0.0, {"xmin": -0.7, "xmax": 0.7, "ymin": -0.7, "ymax": 0.7}, georef, gsd=0.01)
+    bed = extract_bed(g, 0.05, WaterSurface(0.0), {"xmin": -0.7, "xmax": 0.7, "ymin": -0.7, "ymax": 0.7}, georef, gsd=0.01)
     absolute = bed.grid + [x0, y0, z0]
     wet = bed.grid[:, 2] < 0
     assert 0.3 < wet.mean() < 0.9 and np.abs(bed.grid[:, 2] - (0.2 * bed.grid[:, 0] - 0.1)).max() < 0.01

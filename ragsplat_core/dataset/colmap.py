@@ -386,7 +386,7 @@ def refracted_points(root: Path, fingerprint: str, cameras: dict, water) -> np.n
     for k, name in enumerate(names):
         rows = image == k
         origins[rows], dirs[rows] = water_rays(cameras[name], obs[rows, 2:], water)
-    wet = pts[:, 2] < water.level
+    wet = water.depth(pts[:, :3]) > 0
     use = wet[point] & np.isfinite(origins).all(1)
     xyz = closest_points(origins[use], dirs[use], point[use], len(pts))
     out = pts.copy()

@@ -1,5 +1,5 @@
 """Bundle adjustment through a flat water surface: camera poses and track points re-solved so that every
-observation of a submerged point is its projection through the water (`refraction.apparent_offsets`, the
+observation of a submerged point is its projection through the water (`refraction.apparent_points_each`, the
 RA-GS transform), every other one a plain pinhole projection, with the cameras held near their measured
 positions (RTK) when given.
 
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ragsplat_core.refraction import WaterSurface, apparent_offsets
+from ragsplat_core.refraction import WaterSurface, apparent_points_each
 
 
 def skew(w: torch.Tensor) -> torch.Tensor:  # [N, 3] -> [N, 3, 3]
@@ -33,14 +33,9 @@ def project(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, X: torch
             water: WaterSurface | None) -> torch.Tensor:
     """[M, 2] pixel positions (centres at i + 0.5) of points X [M, 3] seen by cameras R [M, 3, 3] (world ->
     camera), centres C [M, 3], intrinsics [M, 4] (fx, fy, cx, cy), one camera per point; a point below
-    `water.level` is seen at its apparent position through the water."""
-    if water is not None and not water.is_identity:
-        level = torch.as_tensor(water.level, dtype=X.dtype, device=X.device)
-        wet = X[:, 2] < level
-        v = X[wet, :2] - C[wet, :2]
-        rho, d_app = apparent_offsets((v * v).sum(-1), level - X[wet, 2], C[wet, 2] - level,
-                                      torch.as_tensor(water.n, dtype=X.dtype, device=X.device))
-        X = X.index_put((wet,), torch.cat([C[wet, :2] + rho[:, None] * v, (level - d_app)[:, None]], -1))
+    the water surface is seen at its apparent position through the water."""
+    if water is not None:
+        X = apparent_points_each(X, C, water)
     xc = (R @ (X - C)[:, :, None])[:, :, 0]  # [M, 3]
     k = intrinsics
     return torch.stack([k[:, 0] * xc[:, 0] / xc[:, 2] + k[:, 2], k[:, 1] * xc[:, 1] / xc[:, 2] + k[:, 3]], -1)

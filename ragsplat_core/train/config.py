@@ -85,8 +85,10 @@ class TrainConfig:
     # The water plane: the dataset's unless overridden (on a dataset without water, water_level adds one with
     # water_n or 1.33). optimize_water calibrates it from the images: "level" or "level+n", each with its
     # own Adam step size (Adam moves a parameter by about its lr per step).
-    water_level: float | None = None  # metres, the model's frame
+    water_level: float | None = None  # metres, the model's frame (a sloping surface's height at x = y = 0)
     water_n: float | None = None
+    # (dz/dx, dz/dy) of a sloping surface; (0, 0) makes a sloping dataset's water one level (a flat-water tool)
+    water_slope: tuple[float, float] | None = None
     optimize_water: str = "none"  # "none" | "level" | "level+n"
     # Absolute metres, not x camera extent as the means: how far the level is off is set by how it was
     # measured (a GNSS point on the waterline, a few cm to dm), not by how wide the survey is.
@@ -120,6 +122,9 @@ class TrainConfig:
             raise ConfigError(f"init_depth is a depth below the water level and must be > 0, got {self.init_depth}")
         if self.water_level is not None and not math.isfinite(self.water_level):
             raise ConfigError(f"water_level must be finite, got {self.water_level}")
+        if self.water_slope is not None and not (len(self.water_slope) == 2 and all(
+                math.isfinite(v) and abs(v) < 1 for v in self.water_slope)):
+            raise ConfigError(f"water_slope is (dz/dx, dz/dy), each finite and under 1, got {self.water_slope}")
         if self.water_n is not None and not (math.isfinite(self.water_n) and self.water_n >= 1):
             raise ConfigError(f"water_n is a refractive index and must be finite and >= 1, got {self.water_n}")
         if self.optimize_water not in WATER_PARAMS:

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from ragsplat_core.camera import Camera
+from ragsplat_core.dataset import layout
 from ragsplat_core.dataset.load import Dataset
 from ragsplat_core.errors import ConfigError, DatasetError, OutputError, TrainingDiverged
 from ragsplat_core.gaussians import PARAM_NAMES, activated, colors_for_view, init_grid, init_points
@@ -196,13 +197,20 @@ class Trainer:
                 raise ConfigError(f"{self.ds.root}: the dataset has no water; give its level (water_level, "
                                   f"--water-level) to {'calibrate' if cfg.water_params else 'set n'}")
             return None
-        given = {"level": cfg.water_level, "n": cfg.water_n}
+        given = {"level": cfg.water_level, "n": cfg.water_n,
+                 "slope": None if cfg.water_slope is None else tuple(cfg.water_slope)}
         water = replace(water or WaterSurface(), **{k: v for k, v in given.items() if v is not None})
-        low = min(float(v.camera.camera_center[2]) for v in self.views)
-        if not low > water.level:
-            raise ConfigError(f"water level {water.level:g} m is not below every training camera (the lowest is "
-                              f"at {low:g} m): refraction needs the cameras in air")
+        self._check_cameras_above(water, ConfigError)
         return water
+
+    def _check_cameras_above(self, water: WaterSurface, error: type) -> None:
+        """Every training camera in air above `water`; else `error` in one line (refraction needs it)."""
+        centres = np.array([v.camera.camera_center for v in self.views])
+        i = int(np.argmax(water.depth(centres)))
+        if not water.depth(centres[i]) < 0:
+            raise error(f"the water surface ({float(water.height(centres[i, :2])):g} m there) is not below every "
+                        f"training camera ({self.views[i].name} is at {centres[i, 2]:g} m): refraction needs "
+                        f"the cameras in air")
 
     @property
     def water(self) -> WaterSurface | None:
@@ -247,9 +255,10 @@ class Trainer:
         if depth is None:
             raise ConfigError("grid initialisation needs the bed depth: scene.json has no spec.bed.depth, "
                               "give init_depth (--init-depth)")
-        level = self.water.level if self.water is not None else 0.0
-        z = level - depth
-        height = max(float(c[2]) for c in self.centers) - level
+        water = self.water or WaterSurface(0.0, 1.0)
+        centres = np.array([v.camera.camera_center for v in self.views])
+        z = float(water.height(np.median(centres[:, :2], axis=0))) - depth  # the plane's height under the flight
+        height = float(-water.depth(centres).max())
         if depth > MAX_DEPTH_PER_HEIGHT * height:  # e.g. a depth given in mm: the grid would be kilometres wide
             raise ConfigError(f"init depth {depth:g} m is more than {MAX_DEPTH_PER_HEIGHT}x the cameras' height "
                               f"above the water ({height:.3g} m); give the bed depth in metres below the water "
@@ -267,7 +276,12 @@ class Trainer:
                 raise DatasetError(f"{self.ds.root}: the training views do not see the {bed.size} m bed "
                                    f"at depth {depth} m")
         spacing = math.sqrt((box[1] - box[0]) * (box[3] - box[2]) / cfg.init_count)
-        return init_grid(*box, z, spacing, cfg.sh_degree, cfg.init_opacity)
+        splats = init_grid(*box, z, spacing, cfg.sh_degree, cfg.init_opacity)
+        if water.tilted:  # the start follows the surface: `depth` below it everywhere
+            with torch.no_grad():
+                means = splats["means"]
+                means[:, 2] = water.height(means[:, :2].double()).to(means) - depth
+        return splats
 
     def _lr(self, name: str) -> float:
         c = self.cfg
@@ -406,10 +420,7 @@ class Trainer:
         with torch.no_grad():
             if "n" in self.water_params:  # the index of water relative to air: n < 1 is not a medium
                 self.water_params["n"].clamp_(min=1.0)
-        level, low = self.water.level, min(float(c[2]) for c in self.centers)
-        if not level < low:
-            raise TrainingDiverged(f"iteration {step}: the water level rose to {level:g} m, above the lowest "
-                                   f"camera ({low:g} m)")
+        self._check_cameras_above(self.water, TrainingDiverged)  # a calibrated level that rose above them
 
     def _nonfinite_report(self) -> str:
         for name in PARAM_NAMES:
@@ -479,13 +490,13 @@ class Trainer:
                 **{f"last_{k}": v for k, v in self.last.items() if k != "n"}}
 
     def _water_dict(self) -> dict | None:  # the water as it stands now, as JSON
-        return None if self._water0 is None else asdict(self.water)
+        return layout.water_json(self.water)
 
     # ---- persistence -------------------------------------------------------------------------------------
     def _write_config(self) -> None:
         meta = {"config": self.cfg.to_dict(), "dataset": str(Path(self.ds.root).resolve()),
                 "dataset_fingerprint": self.ds.fingerprint, "scene_scale": self.scene_scale,
-                "water": None if self._water0 is None else asdict(self._water0),
+                "water": layout.water_json(self._water0),
                 "water_final": self._water_dict() if self.step >= self.cfg.iterations else None,
                 "refraction_applied": self.flags,
                 "device": str(self.device),
