@@ -21,7 +21,6 @@ from ragsplat_core.cli.main import main
 from ragsplat_core.dataset import load_dataset
 from ragsplat_core.dataset.layout import LOCAL_CRS, NODATA
 from ragsplat_core.errors import ConfigError
-from ragsplat_core.refraction import WaterSurface
 from ragsplat_core.export import (
     BATHYMETRIC,
     GROUND,
@@ -36,6 +35,7 @@ from ragsplat_core.export import (
     write_ply,
 )
 from ragsplat_core.ply import save_ply
+from ragsplat_core.refraction import WaterSurface
 
 REGION = {"xmin": -0.8, "xmax": 0.8, "ymin": -0.8, "ymax": 0.8}
 

@@ -97,7 +97,7 @@ def test_equivariant_under_any_rotation_about_the_normal():
     Rot = torch.eye(3, dtype=f64) + math.sin(phi) * K + (1 - math.cos(phi)) * K @ K  # about N
     o = torch.tensor([3.0, -1.0, 0.0], dtype=f64)
     o[2] = water.height(o[None, :2])[0]  # a point of the surface: the rotated plane is the same plane
-    turn = lambda x: (x - o) @ Rot.T + o  # noqa: E731
+    turn = lambda x: (x - o) @ Rot.T + o
     a = turn(apparent_points(p, CAM, water))
     b = apparent_points(turn(p), turn(CAM[None])[0], water)
     assert torch.allclose(a, b, rtol=0, atol=1e-10)
