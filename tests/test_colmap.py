@@ -15,6 +15,7 @@ from ragsplat_core.cli.main import main
 from ragsplat_core.dataset.colmap import IMPORT, POINTS, import_colmap
 from ragsplat_core.dataset.load import load_dataset
 from ragsplat_core.errors import DatasetError
+from ragsplat_core.refraction import WaterSurface
 
 DOWN = np.diag([1.0, -1.0, -1.0])  # world -> camera of a nadir camera (x right = east, looking down -z)
 
@@ -58,7 +59,7 @@ CENTRES = [(0, 0, 5), (1, 0, 5), (0, 1, 5.2)]
 def test_import_reads_poses_intrinsics_and_points(tmp_path, binary):
     rec = write_model(tmp_path / "model", tmp_path / "img", CENTRES, points=[(0, 0, -1), (1, 1, 0.5)],
                       binary=binary)
-    done = import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", level=0.2)
+    done = import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", WaterSurface(0.2))
     assert (done.images, done.cameras, done.points, done.undistorted) == (3, 1, 2, 0)
     ds = load_dataset(tmp_path / "data")
     assert ds.water.level == 0.2 and ds.water.n == 1.33
@@ -77,7 +78,7 @@ def test_import_reads_poses_intrinsics_and_points(tmp_path, binary):
 def test_text_and_binary_give_the_same_dataset(tmp_path):
     for kind in ("txt", "bin"):
         write_model(tmp_path / kind, tmp_path / "img", CENTRES, binary=kind == "bin")
-        import_colmap(tmp_path / kind, tmp_path / "img", tmp_path / f"data-{kind}", level=0.0)
+        import_colmap(tmp_path / kind, tmp_path / "img", tmp_path / f"data-{kind}", WaterSurface(0.0))
     a, b = (json.loads((tmp_path / f"data-{k}" / "transforms.json").read_text()) for k in ("txt", "bin"))
     assert a == b  # the same poses, read from text (17 digits: lossless) or binary, through the same code
 
@@ -86,7 +87,7 @@ def test_distorted_images_are_undistorted_to_the_pinhole_and_the_border_masked(t
     cam = pycolmap.Camera.create_from_model_name(1, "OPENCV", 80.0, 160, 120)
     cam.params = [80.0, 82.0, 81.0, 59.0, 0.25, 0.05, 0.002, -0.001]  # strong pincushion distortion
     write_model(tmp_path / "model", tmp_path / "img", CENTRES[:1], cams=[cam])
-    done = import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", level=0.0)
+    done = import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", WaterSurface(0.0))
     assert done.undistorted == 1
     (view,) = load_dataset(tmp_path / "data").views
     c = view.camera
@@ -109,7 +110,7 @@ def test_each_camera_keeps_its_own_intrinsics(tmp_path):
     tele = pycolmap.Camera.create_from_model_name(2, "SIMPLE_RADIAL", 150.0, 120, 90)
     tele.params = [150.0, 61.0, 44.0, 0.0]  # no distortion: copied as it is
     write_model(tmp_path / "model", tmp_path / "img", CENTRES, cams=[wide, tele])
-    done = import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", 0.0)
+    done = import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", WaterSurface(0.0))
     assert (done.cameras, done.undistorted) == (2, 0)
     got = {v.name: (v.camera.fx, v.camera.cx, v.camera.cy, v.camera.width) for v in load_dataset(tmp_path / "data").views}
     assert got == {"img01.jpg": (80.0, 48.0, 36.0, 96), "sub/img02.png": (150.0, 61.0, 44.0, 120),
@@ -123,7 +124,7 @@ def test_downscale_and_user_masks(tmp_path):
     m = np.full((72, 96), 255, np.uint8)
     m[:, :24] = 0  # glint on the left quarter
     cv2.imwrite(str(masks / "img01.jpg.png"), m)
-    import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", 0.0, masks=masks, max_size=48)
+    import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", WaterSurface(0.0), masks=masks, max_size=48)
     (view,) = load_dataset(tmp_path / "data").views
     c = view.camera
     assert (c.width, c.height, c.fx, c.cx, c.cy) == (48, 36, 40.0, 24.0, 18.0)
@@ -134,7 +135,7 @@ def test_utm_sized_coordinates_train_near_the_origin_and_keep_the_offset(tmp_pat
     east, north = 512_345.678, 5_123_456.789
     centres = [(east + x, north + y, 105.0 + z) for x, y, z in CENTRES]
     write_model(tmp_path / "model", tmp_path / "img", centres, points=[(east, north, 99.0)])
-    done = import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", 100.0, crs="EPSG:32633")
+    done = import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", WaterSurface(100.0), crs="EPSG:32633")
     ds = load_dataset(tmp_path / "data")
     assert ds.georef.crs == "EPSG:32633" and ds.georef.offset == done.georef.offset
     x0, y0, z0 = ds.georef.offset
@@ -150,12 +151,12 @@ def test_utm_sized_coordinates_train_near_the_origin_and_keep_the_offset(tmp_pat
 
 def test_a_second_import_reuses_the_directory_and_refuses_other_inputs(tmp_path):
     write_model(tmp_path / "model", tmp_path / "img", CENTRES)
-    import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", 0.0)
+    import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", WaterSurface(0.0))
     stamp = (tmp_path / "data" / IMPORT).stat().st_mtime_ns
-    assert import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", 0.0).reused
+    assert import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", WaterSurface(0.0)).reused
     assert (tmp_path / "data" / IMPORT).stat().st_mtime_ns == stamp
     with pytest.raises(DatasetError, match="level changed"):
-        import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", 0.3)
+        import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", WaterSurface(0.3))
 
 
 @pytest.mark.parametrize("case, phrase", [
@@ -253,7 +254,7 @@ def test_triangulation_with_known_poses_finds_a_plane(tmp_path):
         H = to_opencv @ K @ np.column_stack([R[:, 0], R[:, 1], R[:, 2] * z_plane + t]) @ plane_from_texture
         grey = cv2.warpPerspective(texture, H, (160, 160), flags=cv2.INTER_LINEAR)
         cv2.imwrite(str(tmp_path / "img" / im.name), np.repeat(grey[..., None], 3, 2), [cv2.IMWRITE_JPEG_QUALITY, 100])
-    import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", level=0.0)
+    import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", WaterSurface(0.0))
     pts, obs, names = triangulate(tmp_path / "data", tmp_path / "work")
     again = triangulate(tmp_path / "data", tmp_path / "work2")
     # the same twice on this small, clean case (across processes a large reach's count can differ by a few:

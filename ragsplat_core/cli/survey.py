@@ -1,14 +1,16 @@
-"""`ragsplat survey IMAGES --positions positions.csv | --gcp gcp.csv --gcp-pixels pixels.csv --water-level Z
---out RUN [--crs EPSG:N] [--masks DIR]`:
+"""`ragsplat survey IMAGES --positions positions.csv | --gcp gcp.csv --gcp-pixels pixels.csv
+--water-level Z | --water-surface EDGE.csv --out RUN [--crs EPSG:N] [--masks DIR]`:
 from the drone's photos to a DEM, every stage cached in RUN and skipped by a rerun whose inputs are the same.
 
 1. structure from motion (`survey.sfm`: pycolmap SIFT, exhaustive matching, incremental mapping) -> RUN/sfm/;
 2. georeferencing: the similarity that takes the model's camera centres to the RTK positions, or the ground
    control points triangulated from their pixels to their surveyed positions, robust to a few wrong ones
    (`survey.georef`), residuals of each -> RUN/georef.json;
-3. the water: bundle adjustment with the submerged tracks projected through the water at the given level and
-   the cameras held near their RTK positions, or the ground control points at theirs (`survey.bundle`), and
-   where the model's points lie around the level -> RUN/model/ (a COLMAP model), RUN/water.json;
+3. the water: one level, or the surface fitted to the water's edge points (`survey.water`: a level or a
+   sloping plane, whichever the points support); bundle adjustment with the submerged tracks projected
+   through it and the cameras held near their RTK positions, or the ground control points at theirs
+   (`survey.bundle`), and where the model's points lie around the surface along the reach -> RUN/model/ (a
+   COLMAP model), RUN/water.json;
 4. training (the imported survey in RUN/data, the best variant and start as `make ablation` measures them)
    -> RUN/train/, and the products: RUN/dem.tif, RUN/bed.laz, RUN/depth.png (`ragsplat export`).
 """
@@ -54,8 +56,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "image's top-left corner at 0,0)")
     parser.add_argument("--gcp-sigma", type=positive_float, default=0.01, metavar="M",
                         help="ground control accuracy, each axis (m; default 0.01)")
-    parser.add_argument("--water-level", type=finite_float, required=True, metavar="Z",
-                        help="height of the calm water surface in the positions' frame (m)")
+    surface = parser.add_mutually_exclusive_group(required=True)
+    surface.add_argument("--water-level", type=finite_float, metavar="Z",
+                         help="height of the calm, flat water surface in the positions' frame (m)")
+    surface.add_argument("--water-surface", type=Path, metavar="CSV",
+                         help="points on the water's edge as measured along both banks (RTK): CSV with header "
+                              "x,y,z, the positions' frame; a river's sloping surface is fitted to them")
     parser.add_argument("--out", required=True, type=out_dir, help="run directory (a rerun resumes)")
     parser.add_argument("--n", type=refractive_index, default=1.33, help="refractive index of the water (1.33)")
     parser.add_argument("--crs", metavar="CRS", help="the positions' CRS for the products, e.g. EPSG:32633")
@@ -120,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
     from ragsplat_core.outputs import claim, write_json
     from ragsplat_core.refraction import WaterSurface
     from ragsplat_core.survey import bundle, georef, sfm
+    from ragsplat_core.survey import water as water_fit
 
     if not args.images.is_dir():
         raise DatasetError(f"{args.images}: no such folder of photos")
@@ -148,16 +155,21 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         _say("check", f"{len(unknown)} names in {source} are not photos in {args.images} (ignored), "
              f"e.g. {unknown[0]}")
+    edge = None
+    if args.water_surface is not None:
+        edge = water_fit.fit_edge(layout.read_points(args.water_surface))
+        surface = WaterSurface(edge.level, args.n, edge.slope)
+        _say("check", f"water surface from {len(edge.residuals)} edge points: {_describe(surface)}, rms "
+             f"{100 * edge.report()['rms_m']:.1f} cm, {int((~edge.inliers).sum())} left out")
+    else:
+        surface = WaterSurface(args.water_level, args.n)
     if positions is not None:
-        top = max(float(positions[n][2]) for n in located)
-        if not args.water_level < top:
-            raise ConfigError(f"--water-level {args.water_level:g} is not below any camera (highest at {top:g})")
-    WaterSurface(args.water_level, args.n)
+        _check_above(surface, np.array([positions[n] for n in located]))
     claim(args.out, "survey run")
     stamps = Stamps(args.out)
     # a local origin (whole metres): UTM-sized coordinates keep millimetres in every float64 step
     origin = np.round(np.mean(list((positions or control).values()), axis=0))
-    level = args.water_level - origin[2]
+    water = surface.shifted(origin)  # in the local frame
 
     # 1. structure from motion
     key = _digest({p.name: layout.file_digest(p) for p in photos}, sfm.CAMERA_MODEL)
@@ -202,9 +214,7 @@ def run(args: argparse.Namespace) -> int:
     if np.median(looks) > -0.2:
         raise DatasetError(f"{source}: after alignment the cameras do not look down (median optical "
                            f"axis z {np.median(looks):+.2f}): are the coordinates metres with z up?")
-    top = float(sim.apply(trk.C.numpy())[:, 2].max() + origin[2])
-    if not args.water_level < top:
-        raise ConfigError(f"--water-level {args.water_level:g} is not below any camera (highest at {top:g})")
+    _check_above(water, sim.apply(trk.C.numpy()))
     report = {"to": what, "scale": sim.scale, "R": sim.R.tolist(), "t": (sim.t + origin).tolist(),
               "origin": origin.tolist(), "inliers": int(inliers.sum()), "count": len(labels),
               "residual_m": {name: r.tolist() for name, r in zip(labels, res)},
@@ -217,14 +227,13 @@ def run(args: argparse.Namespace) -> int:
         return 0
 
     # 3. the water: bundle adjustment through it, cameras held at their RTK positions or targets at theirs
-    key = _digest(key, level, args.n, args.no_water_adjustment, list(args.rtk_sigma), args.gcp_sigma)
+    key = _digest(key, layout.water_json(water), args.no_water_adjustment, list(args.rtk_sigma), args.gcp_sigma)
     model = args.out / "model"
     t0 = time.perf_counter()
     if not stamps.done("water", key, model, args.out / "water.json"):
         R = trk.R @ torch.as_tensor(sim.R.T)  # world = s R x + t: cam_from_world' = cam_from_world R^T
         C = torch.as_tensor(sim.apply(trk.C.numpy()))
         P = torch.as_tensor(sim.apply(trk.points.numpy()))
-        water = WaterSurface(float(level), args.n)
         point, image, pix, held, gcp_rows = trk.point, trk.image, trk.pixels, {}, None
         if control is None:
             prior = torch.full_like(C, float("nan"))
@@ -249,9 +258,13 @@ def run(args: argparse.Namespace) -> int:
             gcp_residual = {n: (P[r] - torch.as_tensor(dst[k])).tolist() for k, (n, r) in
                             enumerate(zip(usable, gcp_rows.tolist()))}
             P = P[: len(trk.points)]
-        z = P[:, 2].numpy() - level
+        z = -water.depth(P.numpy())  # height above the surface
         above = z[z >= 0]
-        check = {"level": args.water_level, "n": args.n, "points_above": int((z >= 0).sum()),
+        check = {"surface": layout.water_json(surface), "described": _describe(surface),
+                 **({} if edge is None else {"edge_fit": edge.report(), "along_the_reach": water_fit.profile(
+                     P.numpy(), water.height(P.numpy()[:, :2]), layout.read_points(args.water_surface)
+                     - origin)}),
+                 "points_above": int((z >= 0).sum()),
                  "points_below": int((z < 0).sum()),
                  "lowest_above_m": float(np.percentile(above, 1)) if len(above) else None,
                  "adjusted": adj is not None,
@@ -266,7 +279,7 @@ def run(args: argparse.Namespace) -> int:
         stamps.mark("water", key)
     check = json.loads((args.out / "water.json").read_text())
     lowest = check["lowest_above_m"]
-    _say("water", f"level {check['level']:g}: {check['points_below']} points below it, {check['points_above']} "
+    _say("water", f"{check['described']}: {check['points_below']} points below it, {check['points_above']} "
          f"above" + ("" if lowest is None else f" (the lowest 1 % within {100 * lowest:.1f} cm of it)")
          + ("" if check["rms_px"] is None else f"; reprojection error {check['rms_px']:.2f} px after the adjustment"),
          t0)
@@ -276,7 +289,7 @@ def run(args: argparse.Namespace) -> int:
 
     # 4. training and the products
     run_train = args.out / "train"
-    _train(args, model, run_train)
+    _train(args, model, run_train, surface)
     key = _digest(key, (run_train / "point_cloud.ply").stat().st_mtime_ns, args.resolution)
     t0 = time.perf_counter()
     if not stamps.done("export", key, *(args.out / n for n in PRODUCTS)):
@@ -291,13 +304,33 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _describe(water) -> str:
+    if not water.tilted:
+        return f"level {water.level:g} m"
+    return (f"a plane falling {100 * (water.slope[0] ** 2 + water.slope[1] ** 2) ** 0.5:.2f} % (slope "
+            f"{water.slope[0]:+.5f}, {water.slope[1]:+.5f}; {water.level:.3f} m at x = y = 0)")
+
+
+def _check_above(water, centres) -> None:
+    """ConfigError unless some camera of centres [V, 3] is above the water surface."""
+    import numpy as np
+
+    from ragsplat_core.errors import ConfigError
+
+    top = int(np.argmin(water.depth(centres)))
+    if not water.depth(centres[top]) < 0:
+        raise ConfigError(f"the water surface ({_describe(water)}) is not below any camera (the highest above it "
+                          f"is at {centres[top, 2]:g} m, the surface {float(water.height(centres[top, :2])):g} m "
+                          "there)")
+
+
 def _fresh(folder: Path) -> Path:
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
     return folder
 
 
-def _train(args: argparse.Namespace, model: Path, out: Path) -> None:
+def _train(args: argparse.Namespace, model: Path, out: Path, surface) -> None:
     """The survey imported into RUN/data (`dataset.colmap`), then trained in RUN/train (resumes)."""
     from ragsplat_core.cli.progress import deferred_interrupts, training_bar
     from ragsplat_core.dataset import layout
@@ -305,7 +338,7 @@ def _train(args: argparse.Namespace, model: Path, out: Path) -> None:
     from ragsplat_core.dataset.load import load_dataset
     from ragsplat_core.train import Trainer, preset_config
 
-    done = import_colmap(model, args.images, args.out / "data", args.water_level, args.n, args.masks,
+    done = import_colmap(model, args.images, args.out / "data", surface, args.masks,
                          args.crs or layout.LOCAL_CRS, args.max_size)
     _say("train", f"{'reusing the' if done.reused else 'imported'} survey in {done.root}: {done.images} images")
     overrides = {"variant": args.variant, "seed": args.seed, "init": args.init}

@@ -117,6 +117,7 @@ def _import(args: argparse.Namespace, overrides: dict) -> Path:
     from ragsplat_core.dataset.colmap import POINTS, import_colmap
     from ragsplat_core.errors import ConfigError
     from ragsplat_core.outputs import claim
+    from ragsplat_core.refraction import WaterSurface
     from ragsplat_core.train.trainer import CHECKPOINT
 
     missing = [flag for flag, value in (("--images", args.images), ("--water-level", args.water_level)) if value is None]
@@ -124,8 +125,8 @@ def _import(args: argparse.Namespace, overrides: dict) -> Path:
         raise ConfigError(f"--colmap needs {' and '.join(missing)}")
     claim(args.out, "train run", legacy=(CHECKPOINT,))  # before the import writes into it
     # the imported dataset carries the water: not an override of it
-    level, n = overrides.pop("water_level"), overrides.pop("water_n", 1.33)
-    done = import_colmap(args.colmap, args.images, args.out / "data", level, n, args.masks,
+    water = WaterSurface(overrides.pop("water_level"), overrides.pop("water_n", 1.33))  # ValueError: one line
+    done = import_colmap(args.colmap, args.images, args.out / "data", water, args.masks,
                          args.crs or layout.LOCAL_CRS, args.max_size)
     offset = ", ".join(f"{x:g}" for x in done.georef.offset)
     print(f"{'reusing the' if done.reused else 'imported'} survey in {done.root}: {done.images} images, "

@@ -87,8 +87,8 @@ def _offset(centres: np.ndarray) -> tuple[float, float, float]:
     return tuple(float(np.round(m)) if b else 0.0 for m, b in zip(centres.mean(0), big))
 
 
-def _check_frame(names: list[str], centres: np.ndarray, axes: np.ndarray, level: float, model: Path) -> None:
-    """One line for a frame that cannot be a z-up survey over water at `level` (centres, axes: [V, 3])."""
+def _check_frame(names: list[str], centres: np.ndarray, axes: np.ndarray, water, model: Path) -> None:
+    """One line for a frame that cannot be a z-up survey over `water` (centres, axes: [V, 3])."""
     mean = axes.mean(0)
     off_nadir = np.degrees(np.arccos(np.clip(-mean[2] / max(np.linalg.norm(mean), 1e-12), -1, 1)))
     if mean[2] > 0 and off_nadir > 90 + MAX_OFF_NADIR / 2:
@@ -97,10 +97,11 @@ def _check_frame(names: list[str], centres: np.ndarray, axes: np.ndarray, level:
     if off_nadir > MAX_OFF_NADIR:
         raise DatasetError(f"{model}: the cameras look {off_nadir:.0f} deg away from straight down on average: the "
                     "model's z axis is not up; align it metric with z up (colmap model_aligner)")
-    low = int(np.argmin(centres[:, 2]))
-    if not centres[low, 2] > level:
-        raise DatasetError(f"{model}: camera {names[low]} is at z = {centres[low, 2]:.4g}, not above the water level "
-                    f"{level:g}; give the level in the model's frame (metric, z up)")
+    low = int(np.argmax(water.depth(centres)))
+    if not water.depth(centres[low]) < 0:
+        raise DatasetError(f"{model}: camera {names[low]} is at z = {centres[low, 2]:.4g}, not above the water "
+                           f"surface ({float(water.height(centres[low, :2])):g} there); give the water in the "
+                           "model's frame (metric, z up)")
 
 
 def _mask_file(masks: Path, name: str) -> Path:
@@ -146,21 +147,18 @@ def _resample(image: np.ndarray, used: np.ndarray, maps, size: tuple[int, int]) 
     return image, valid > 1 - 1e-4
 
 
-def import_colmap(model: Path, images: Path, out: Path, level: float, n: float = 1.33, masks: Path | None = None,
+def import_colmap(model: Path, images: Path, out: Path, water, masks: Path | None = None,
                   crs: str = layout.LOCAL_CRS, max_size: int | None = None) -> Imported:
-    """Write the dataset directory `out` from a COLMAP model, its image folder and the water level (the
-    model's frame, metres, z up). Splits from the model folder's train.txt / test.txt when present (image
+    """Write the dataset directory `out` from a COLMAP model, its image folder and the water (`WaterSurface`,
+    flat or sloping, in the model's frame, metres, z up). Splits from the model folder's train.txt / test.txt when present (image
     names, one per line), else every image trains. A second call with the same inputs reuses `out`; other
     inputs are refused. Raises DatasetError (model, images, frame), ConfigError (CRS)."""
     import cv2
 
-    from ragsplat_core.refraction import WaterSurface
-
     model, images, out = Path(model), Path(images), Path(out)
-    WaterSurface(level, n)  # ValueError on a bad level / index: refused before reading anything
     sources = sorted(p for p in model.iterdir() if p.is_file()) if model.is_dir() else []
     key = {"model": str(model.resolve()), "model_digest": _digest(sources), "images": str(images.resolve()),
-           "level": level, "n": n, "masks": None if masks is None else str(Path(masks).resolve()), "crs": crs,
+           **layout.water_json(water), "masks": None if masks is None else str(Path(masks).resolve()), "crs": crs,
            "max_size": max_size}
     if (out / IMPORT).is_file():
         done = json.loads((out / IMPORT).read_text())
@@ -179,7 +177,7 @@ def import_colmap(model: Path, images: Path, out: Path, level: float, n: float =
         raise DatasetError(f"{images}: {len(missing)} of the model's {len(names)} images are missing, e.g. {missing[0]}")
     centres = np.stack([im.projection_center() for im in regs])  # [V, 3]
     axes = np.stack([im.viewing_direction() for im in regs])  # [V, 3] unit optical axes
-    _check_frame(names, centres, axes, level, model)
+    _check_frame(names, centres, axes, water, model)
     georef = layout.Georef(_offset(centres), crs)
     shift = np.asarray(georef.offset)
     splits = _splits(model, names)
@@ -228,7 +226,7 @@ def import_colmap(model: Path, images: Path, out: Path, level: float, n: float =
         first = first or camera
         entry = layout.frame(im.name, camera, splits[im.name], "survey", rel, mask_path=mask_rel)
         frames.append({**entry, "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": w, "h": h})
-    local = WaterSurface(level - georef.offset[2], n)
+    local = water.shifted(georef.offset)
     write_json(out / layout.TRANSFORMS, layout.transforms_json(first, frames, local, georef), indent=1)
 
     pts = _points(rec, shift)

@@ -63,6 +63,7 @@ NODATA = -9999.0  # raster cells without a value
 SURVEY_IMAGES = "survey/images"
 SURVEY_POSITIONS = "survey/positions.csv"  # header name,x,y,z: image file name, metres, z up
 SURVEY_LEVEL = "survey/water_level.txt"  # one number: the water surface height, same frame
+SURVEY_EDGE = "survey/water_edge.csv"  # header x,y,z: points on the water's edge along both banks, same frame
 SURVEY_GCP = "survey/gcp.csv"  # header name,x,y,z: ground control points as surveyed, same frame
 SURVEY_GCP_PIXELS = "survey/gcp_pixels.csv"  # header image,name,u,v: where each target is in each photo
 SURVEY_RECORD = "survey/survey.json"  # how a synthetic survey was made (seed, noise), for the evaluation only
@@ -248,6 +249,29 @@ def read_positions(path: Path) -> dict[str, np.ndarray]:
     if not out:
         raise DatasetError(f"{path}: no rows")
     return out
+
+
+def read_points(path: Path) -> np.ndarray:
+    """[K, 3] from an `x,y,z` CSV (header required, any column order; other columns ignored), e.g. the water's
+    edge as a surveyor measured it. Raises DatasetError."""
+    path = Path(path)
+    header, lines = _read_csv(path, "x,y,z")
+    out = []
+    for k, cells in lines:
+        row = dict(zip(header, (c.strip() for c in cells)))
+        try:
+            out.append([float(row[c]) for c in "xyz"])
+        except (KeyError, ValueError):
+            raise DatasetError(f"{path}:{k}: x, y, z must be three numbers") from None
+    pts = np.array(out, dtype=np.float64).reshape(-1, 3)
+    if not np.isfinite(pts).all():
+        raise DatasetError(f"{path}: every x, y, z must be finite")
+    return pts
+
+
+def write_points(path: Path, points: np.ndarray) -> None:
+    """An `x,y,z` CSV of points [K, 3] (millimetres), as `read_points` reads it."""
+    write_bytes(path, ("x,y,z\n" + "".join(f"{x:.3f},{y:.3f},{z:.4f}\n" for x, y, z in points)).encode())
 
 
 def write_gcp_pixels(path: Path, rows: list[tuple[str, str, float, float]]) -> None:

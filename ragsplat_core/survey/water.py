@@ -1,0 +1,111 @@
+"""The water surface from points on its edge, as a surveyor measures them with RTK along both banks.
+
+A river's surface falls downstream (0.1-1 % on gravel-bed rivers), and the field's correction takes a water
+surface elevation per point for that reason (pyBathySfM interpolates it from such edge points). Here the
+points give either one level or the tilted plane z = level + sx x + sy y (`refraction.WaterSurface`), whichever
+the points support: both are fitted robustly (Huber weights on the residuals' MAD, the worst points out
+beyond 3.5 of it) and the plane is kept when it lowers the Bayesian information criterion, which asks a
+fall well above the points' scatter for the two more numbers. Points along one bank only (a line) fix no
+cross slope: the plane then tilts along that line alone.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ragsplat_core.errors import DatasetError
+
+MIN_SIGMA = 0.002  # m: a scatter below this (RTK's own) is not taken as a fit better than RTK can measure
+OUTLIER = 3.5  # robust standard deviations
+
+
+@dataclass(frozen=True)
+class EdgeFit:
+    """The fitted surface (in the points' frame) and how the points lie around it."""
+
+    kind: str  # "plane" or "level"
+    level: float  # height at x = y = 0
+    slope: tuple[float, float]  # (dz/dx, dz/dy); (0, 0) for one level
+    residuals: np.ndarray  # [K] point z - surface height
+    inliers: np.ndarray  # [K] bool
+    bic: dict[str, float]  # of each model, on the inliers
+
+    def report(self) -> dict:
+        r = self.residuals[self.inliers]
+        return {"kind": self.kind, "level_at_origin": self.level, "slope": list(self.slope),
+                "fall_percent": 100 * math.hypot(*self.slope), "points": len(self.residuals),
+                "inliers": int(self.inliers.sum()), "rms_m": float(np.sqrt(np.mean(r * r))),
+                "max_abs_m": float(np.abs(r).max()), "bic": self.bic,
+                "residual_m": [round(float(v), 4) for v in self.residuals]}
+
+
+def _robust_lstsq(A: np.ndarray, z: np.ndarray, iterations: int = 30) -> tuple[np.ndarray, np.ndarray]:
+    """(coefficients, inliers) of A c ~ z by Huber-weighted least squares, then refitted on the inliers."""
+    w = np.ones(len(z))
+    for _ in range(iterations):
+        c = np.linalg.lstsq(A * w[:, None], z * w, rcond=None)[0]
+        r = z - A @ c
+        sigma = max(1.4826 * np.median(np.abs(r - np.median(r))), MIN_SIGMA)
+        w = np.sqrt(np.minimum(1.0, 1.345 * sigma / np.maximum(np.abs(r), 1e-12)))
+    inliers = np.abs(r) <= OUTLIER * sigma
+    c = np.linalg.lstsq(A[inliers], z[inliers], rcond=None)[0]
+    return c, inliers
+
+
+def fit_edge(points: np.ndarray) -> EdgeFit:
+    """One level or a tilted plane through the water's edge points [K, 3] (see the module docstring).
+    Raises DatasetError for fewer than 3 points or non-finite ones."""
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) < 3 or not np.isfinite(points).all():
+        raise DatasetError(f"the water's edge needs at least 3 finite points x,y,z, got {points.shape}")
+    mean = points.mean(0)
+    xy = points[:, :2] - mean[:2]
+    z = points[:, 2]
+    # principal axes of the points: along the reach (u) and across it (v)
+    _, s, vt = np.linalg.svd(xy, full_matrices=False)
+    across = len(s) > 1 and s[1] > 0.05 * s[0]
+    axes = vt if across else vt[:1]
+    uv = xy @ axes.T  # [K, 1 or 2]
+    ones = np.ones((len(z), 1))
+    (c_level,), in_level = _robust_lstsq(ones, z)
+    c_plane, in_plane = _robust_lstsq(np.hstack([ones, uv]), z)
+
+    def bic(residual, k):  # on the points both fits keep, with the scatter floored at RTK's
+        both = in_level & in_plane
+        m = int(both.sum())
+        rss = max(float(np.sum(residual[both] ** 2)), m * MIN_SIGMA**2)
+        return m * math.log(rss / m) + k * math.log(m)
+
+    r_level = z - c_level
+    gradient = c_plane[1:] @ axes  # dz/d(x, y)
+    r_plane = z - c_plane[0] - xy @ gradient
+    scores = {"level": bic(r_level, 1), "plane": bic(r_plane, 1 + len(axes))}
+    if scores["plane"] < scores["level"] and math.hypot(*gradient) < 1:
+        level = float(c_plane[0] - gradient @ mean[:2])
+        return EdgeFit("plane", level, (float(gradient[0]), float(gradient[1])), r_plane, in_plane, scores)
+    return EdgeFit("level", float(c_level), (0.0, 0.0), r_level, in_level, scores)
+
+
+def profile(points: np.ndarray, height: np.ndarray, axis_points: np.ndarray, bins: int = 5) -> list[dict]:
+    """How points [P, 3] lie around the surface (`height` [P] of it under each) along the reach, in `bins`
+    equal stretches of the main axis of `axis_points` [K, 2] (the edge points'): per stretch the count below
+    and above it and the 1st percentile of heights above it (the lowest dry points, which a right surface
+    puts just above zero everywhere along the reach)."""
+    xy = np.asarray(axis_points, float)[:, :2]
+    mean = xy.mean(0)
+    u_axis = np.linalg.svd(xy - mean, full_matrices=False)[2][0]
+    u = (points[:, :2] - mean) @ u_axis
+    lo, hi = ((xy - mean) @ u_axis).min(), ((xy - mean) @ u_axis).max()
+    edges = np.linspace(lo, hi, bins + 1)
+    out = []
+    for a, b in itertools.pairwise(edges):
+        dz = points[(u >= a) & (u <= b), 2] - height[(u >= a) & (u <= b)]
+        above = dz[dz >= 0]
+        out.append({"from_m": round(float(a), 2), "to_m": round(float(b), 2), "below": int((dz < 0).sum()),
+                    "above": len(above),
+                    "lowest_above_m": float(np.percentile(above, 1)) if len(above) else None})
+    return out
