@@ -161,7 +161,7 @@ def test_a_second_import_reuses_the_directory_and_refuses_other_inputs(tmp_path)
 
 @pytest.mark.parametrize("case, phrase", [
     ("no images", "3 of the model's 3 images are missing"),
-    ("under water", "camera img01.jpg is at z = 5, not above the water level 6"),
+    ("under water", "camera img01.jpg is at z = 5, not above the water surface (6 there)"),
     ("upside down", "upside down"),
     ("z not up", "z axis is not up"),
     ("not a model", "not a COLMAP model"),

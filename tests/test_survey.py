@@ -103,7 +103,7 @@ def test_a_level_above_every_camera_is_refused(survey, tmp_path, capsys):
     argv = args(survey, tmp_path / "run")
     argv[argv.index("--water-level") + 1] = "12.5"
     assert main(argv) == 2
-    assert "--water-level 12.5 is not below any camera" in capsys.readouterr().err
+    assert "(level 12.5 m) is not below any camera" in capsys.readouterr().err
 
 
 def test_too_few_photos_registered(tmp_path, capsys):
@@ -164,3 +164,55 @@ def test_ground_control_outside_the_model_is_refused(survey, finished, tmp_path,
     reuse_sfm(finished, out)
     assert main(gcp_args(survey, out, few)) == 2
     assert "only 0 ground control points are seen in 2 or more registered photos" in capsys.readouterr().err
+
+
+def test_a_sloping_surface_from_the_edge_points(tmp_path, capsys):
+    """Photos through a surface falling 2 % along x, the water's edge measured at 16 points (1 cm noise): the
+    survey fits the plane, adjusts and trains through it, and its DEM's depths are below the sloping surface."""
+    water = WaterSurface(0.0, 1.33, (-0.02, 0.0))
+    scene = bed_scene(30000, half=3.0, depth=0.8, seed=2)
+    scene["means"][:, 2] += water.height(scene["means"][:, :2].double()).float()  # the bed falls with it
+    scene["colors"] = torch.rand(30000, 3, generator=torch.Generator().manual_seed(3))
+    cams = [Camera.look_at([x, y, 4.0], [x, y, 0.0], 240, 180, 60.0) for x in np.linspace(-1.2, 1.2, 4)
+            for y in np.linspace(-1.0, 1.0, 3)]
+    cams += [Camera.look_at([2.2 * math.cos(a), 2.2 * math.sin(a), 4.0], [0, 0, -0.8], 240, 180, 60.0,
+                            up=(0.0, 0.0, 1.0)) for a in np.arange(6) * math.pi / 3]
+    views = render_views(scene, cams, water)
+    names = [f"{i:04d}.jpg" for i in range(len(views))]
+    for name, v in zip(names, views):
+        layout.write_jpeg(tmp_path / "images" / name, (np.clip(v["image"].numpy(), 0, 1) * 255 + 0.5).astype(np.uint8),
+                          v["camera"].fx)
+    rng = np.random.default_rng(1)
+    centres = np.array([c.camera_center for c in cams])
+    layout.write_positions(tmp_path / "positions.csv", names, centres + rng.normal(size=centres.shape) * 0.005)
+    x = np.tile(np.linspace(-3, 3, 8), 2)
+    y = np.repeat([-3.2, 3.2], 8)
+    edge = np.column_stack([x, y, water.height(np.column_stack([x, y])) + rng.normal(0, 0.01, 16)])
+    layout.write_points(tmp_path / "edge.csv", edge)
+    argv = ["survey", str(tmp_path / "images"), "--positions", str(tmp_path / "positions.csv"), "--water-surface",
+            str(tmp_path / "edge.csv"), "--out", str(tmp_path / "run"), "--preset", "smoke", "--no-progress"]
+    assert main(argv) == 0, capsys.readouterr().err
+    report = json.loads((tmp_path / "run" / "water.json").read_text())
+    fit = report["edge_fit"]
+    assert fit["kind"] == "plane" and abs(fit["slope"][0] + 0.02) < 0.003 and abs(fit["slope"][1]) < 0.003
+    assert report["surface"]["slope"] == fit["slope"] and len(report["along_the_reach"]) == 5
+    data = json.loads((tmp_path / "run" / "data" / "transforms.json").read_text())
+    assert data["water"]["slope"] == fit["slope"]  # the imported survey carries the surface
+    import rasterio
+
+    with rasterio.open(tmp_path / "run" / "dem.tif") as dem:
+        z, depth = dem.read(1), dem.read(2)
+        rows, cols = np.nonzero((depth != layout.NODATA) & (z != layout.NODATA))
+        xs, ys = rasterio.transform.xy(dem.transform, rows, cols)
+    xy = np.column_stack([xs, ys])
+    surface = WaterSurface(report["surface"]["level"], 1.33, tuple(report["surface"]["slope"]))
+    np.testing.assert_allclose(depth[rows, cols], surface.height(xy) - z[rows, cols], atol=1e-3)  # float32 bands
+    # the depths are right below the sloping surface along the whole reach: no trend from one end to the other
+    # (one level at the mean would be 4 cm off at each end, in opposite directions)
+    true = 0.8 - 0.08 * np.sin(2 * xy[:, 0] / 3.0) * np.cos(1.5 * xy[:, 1] / 3.0)  # `bed_scene`'s relief
+    err = depth[rows, cols] - true
+    upstream, downstream = xy[:, 0] < -1, xy[:, 0] > 1
+    print("median error", np.median(err), "upstream", np.median(err[upstream]), "downstream",
+          np.median(err[downstream]))
+    assert np.median(np.abs(err)) < 0.05
+    assert abs(np.median(err[upstream]) - np.median(err[downstream])) < 0.04
