@@ -20,6 +20,9 @@ VARIANTS ?=
 INIT ?=
 JOBS ?=
 DEVICE ?=
+# ONE_LEVEL=1: the method and the references given one flat water level, the mean of the dataset's surveyed
+# edge points, instead of its (sloping) surface (`ragsplat ablation --one-level`; use another RUNS).
+ONE_LEVEL ?=
 DATA ?= data/$(PRESET)
 RUNS ?= runs/$(PRESET)
 
@@ -45,7 +48,7 @@ dataset: install
 
 # The main job: dataset if missing, every variant trained and evaluated, tables beside the paper's.
 ablation: dataset
-	$(VENV)/bin/ragsplat ablation --preset $(TRAIN_PRESET) --data $(DATA) --out $(RUNS)$(if $(SEEDS), --seeds $(SEEDS))$(if $(INIT), --init $(INIT))$(if $(JOBS), --jobs $(JOBS))$(if $(DEVICE), --device $(DEVICE))$(if $(VARIANTS), --variants $(VARIANTS))
+	$(VENV)/bin/ragsplat ablation --preset $(TRAIN_PRESET) --data $(DATA) --out $(RUNS)$(if $(SEEDS), --seeds $(SEEDS))$(if $(INIT), --init $(INIT))$(if $(JOBS), --jobs $(JOBS))$(if $(DEVICE), --device $(DEVICE))$(if $(VARIANTS), --variants $(VARIANTS))$(if $(ONE_LEVEL), --one-level)
 
 lint: install
 	$(VENV)/bin/ruff check .

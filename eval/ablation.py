@@ -19,6 +19,12 @@ settings and `eval/references.py`), so a change to the tables or the references 
 killed row resumes from its checkpoint only under the same key (`key.json`, written before training starts);
 otherwise it starts over. Then `eval.report` (re)writes `OUT/results.json`, the tables and `error_vs_time.png`
 from the rows of this run's variants and seeds only. The command is `eval.cli`.
+
+The water. Every row is scored against the ground truth's own surface (`GroundTruth.water`, a river's sloping
+plane included: depths below it). What the method and the references are given is the dataset's surface, or,
+with one level (`--one-level`, `one_level_water`), one flat level at the mean height of the water's edge points
+a surveyor measured (`EDGE_POINTS`): what a flat-water tool does on a sloping river. That choice is part of
+every row key and of results.json ("one_level").
 """
 
 from __future__ import annotations
@@ -64,6 +70,7 @@ from ragsplat_core.dataset import layout
 from ragsplat_core.errors import ConfigError, DatasetError
 from ragsplat_core.fusion import FuseConfig, height_mesh
 from ragsplat_core.outputs import claim, source_digest, versions, write_json
+from ragsplat_core.refraction import WaterSurface
 from ragsplat_core.surface import EXTRACT_TUNING, ExtractConfig
 from ragsplat_core.train.config import FIELD_TUNING, SURFELS, TUNING, VARIANTS
 
@@ -103,6 +110,9 @@ DATASET_SEEDS = {"development": 1, "evaluation": 0, "untouched": 7}
 # row (docs/performance.md; not measured at today's 3 000 steps).
 INIT = "refracted"
 SEEDS = (0, 1, 2)
+# The water's edge as a surveyor measures it (header x,y,z; the generator writes it into every reach dataset):
+# where one level (`--one-level`) is taken from.
+EDGE_POINTS = layout.SURVEY_EDGE
 JOBS = 2
 JOBS_PER_GPU = 6
 
@@ -132,6 +142,26 @@ def dataset_seed(data: Path) -> int | None:
     """The seed the dataset `data` was rendered with (its scene.json), None for one that was not rendered."""
     scene = Path(data) / layout.SCENE
     return json.loads(scene.read_text()).get("seed") if scene.is_file() else None
+
+
+def one_level_water(data: Path, water: WaterSurface | None) -> tuple[WaterSurface, dict]:
+    """(the flat surface, its record) that a flat-water tool puts on the dataset `data` with the surface
+    `water`: one level, the mean height of the water's edge points a surveyor measured (`EDGE_POINTS`), with
+    the dataset's n. Raises DatasetError (no such file, or not an x,y,z CSV of finite points) or ConfigError
+    (a dataset without water)."""
+    path = Path(data) / EDGE_POINTS
+    if water is None:
+        raise ConfigError(f"{data}: no water, so no level to give (--one-level)")
+    if not path.is_file():
+        raise DatasetError(f"{path}: no such file; one level (--one-level) is the mean height of the water's "
+                           "edge points as surveyed (a CSV with header x,y,z)")
+    pts = layout.read_points(path)
+    if not len(pts):
+        raise DatasetError(f"{path}: no points; one level (--one-level) is the mean height of the water's edge")
+    level = float(pts[:, 2].mean())
+    flat = WaterSurface(level, float(water.n))
+    # the file as the dataset names it: a moved dataset keeps its rows' keys
+    return flat, {"level": level, "n": float(water.n), "edge_points": len(pts), "edge_file": EDGE_POINTS}
 
 
 def dataset_role(seed: int | None, preset: str) -> str:
@@ -299,6 +329,9 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
         raise ConfigError(f"the sources of {', '.join(ROW_CODE)} changed since this command started "
                           f"(digest {code}, now {live}); rerun it")
     base = {"dataset": runner.fingerprint, "code": live, "harness": asdict(PRESETS[preset])}
+    one_level = getattr(runner, "one_level", None)  # the flat water the method and the references are given
+    if one_level is not None:  # keyed apart: rows with and without it never mix in one folder
+        base["one_level"] = one_level
     lpips_metric, lpips_reason = metrics.load_lpips(vgg16, download=download, log=log)
     if lpips_reason:
         log(f"LPIPS n/a: {lpips_reason}")
@@ -345,7 +378,7 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
               "harness_preset": asdict(PRESETS[preset]), "code_digest": source_digest(*CODE),
               "row_code_digest": base["code"],
               "versions": stamp, "command": sys.argv,
-              "max_depth_m": truth.max_depth, "level": truth.level,
+              "max_depth_m": truth.max_depth, "water": layout.water_json(truth.water), "one_level": one_level,
               "lpips_network": getattr(lpips_metric, "network", None),
               "references": {"names": list(REFERENCES), "use_ground_truth": list(USES_GROUND_TRUTH),
                              "tin_filter": TIN_FILTER, "dietrich_tracks": DIETRICH_TRACKS,
@@ -367,10 +400,11 @@ def reference_rows(out: Path, runner, preset: str, seed: int, ecfg: ExtractConfi
              lambda: evaluate_geometry(runner.initial(cfg), truth, start_extraction(ecfg)))]
     if rows.get("3dgs") and rows["3dgs"][-1]["seed"] == seed:
         src = rows["3dgs"][-1]
-        n = runner.refractive_index
+        water = getattr(runner, "water", None) or truth.water  # what the references are given
+        n = float(water.n)
 
         def corrected():
-            grid = depth_times_n(np.load(row_dir(out, "3dgs", seed) / "bed.npy"), truth.level, n)
+            grid = depth_times_n(np.load(row_dir(out, "3dgs", seed) / "bed.npy"), water)
             return score_grid(grid, truth), grid
 
         todo.append(("3dgs x n", row_dir(out, "3dgs x n", seed), {**base, "from": src["key"], "n": n}, corrected))
@@ -411,10 +445,13 @@ class TrainEval:
 
     The dataset (with its dry images) and the ground truth are loaded once for all variants.
     `training_bar(total, desc, initial) -> (bar, on_step)` shows training progress (None: nothing shown).
+    `one_level`: every row and reference is given one flat level at the mean of the surveyed edge points
+    instead of the dataset's surface (`one_level_water`; `water` is what they are given, `one_level` its
+    record or None); the scoring keeps the ground truth's surface.
     """
 
     def __init__(self, data: Path, device: str | None = None, training_bar: Callable | None = None,
-                 init: str = INIT):
+                 init: str = INIT, one_level: bool = False):
         from ragsplat_core.dataset.load import load_dataset
 
         self.ds = load_dataset(data, ground_truth=True)
@@ -423,7 +460,7 @@ class TrainEval:
                                "(held-out views are needed)")
         self.truth = self.ds.ground_truth
         self.fingerprint = self.ds.fingerprint
-        self.refractive_index = self.ds.water.n if self.ds.water is not None else 1.0
+        self.water, self.one_level = one_level_water(data, self.ds.water) if one_level else (self.ds.water, None)
         self.gsd = self.ds.gsd
         self.dataset_seed = dataset_seed(data)
         self.device = device
@@ -434,25 +471,28 @@ class TrainEval:
         from ragsplat_core.train import preset_config
 
         overrides = {"variant": variant, "seed": seed, "init": self.init}
+        if self.one_level is not None:  # what a flat-water tool is given: one level, no slope
+            overrides.update(water_level=self.one_level["level"], water_slope=(0.0, 0.0))
         if self.device is not None:
             overrides["device"] = self.device
         return preset_config(preset, **overrides)
 
     def track_grids(self, log: Callable[[str], None]) -> dict[str, np.ndarray]:
-        """The tracks' reference grids (`references.track_grids`), or none with the reason logged (a dataset
-        without water, or whose images give no tracks)."""
+        """The tracks' reference grids (`references.track_grids`, through the water the references are given:
+        `water`), or none with the reason logged (a dataset without water, or whose images give no tracks)."""
         try:
             if self.ds.water is None:
                 raise DatasetError(f"{self.ds.root}: no water, no refraction to correct")
             return track_grids(self.ds.root, self.fingerprint, {v.file_path: v.camera for v in self.ds.train},
-                               self.ds.water, self.truth.nodes)
+                               self.water, self.truth.nodes)
         except DatasetError as err:
             log(f"the tracks' reference rows n/a: {err}")
             return {}
 
     def dietrich_grid(self, bed: np.ndarray) -> np.ndarray:
-        """Dietrich's correction of an apparent bed grid [G, 3] by the training cameras."""
-        return dietrich_grid(bed, [v.camera for v in self.ds.train], self.ds.water)
+        """Dietrich's correction of an apparent bed grid [G, 3] by the training cameras through the water the
+        references are given (`water`)."""
+        return dietrich_grid(bed, [v.camera for v in self.ds.train], self.water)
 
     def initial(self, cfg) -> dict:
         """The activated Gaussians training would start from (nothing is written)."""

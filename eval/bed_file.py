@@ -2,7 +2,8 @@
 
 File kinds, by extension: a DEM GeoTIFF (.tif, .tiff; one band of bed elevation or water depth), LAS/LAZ, PLY
 (ascii or binary, a `vertex` element with x, y, z) and CSV points (a header naming x, y and z columns). A
-depth is made a bed height with the dataset's water level: z = level - depth.
+depth is made a bed height below the dataset's water surface: z = its height at the node's x, y - depth (one
+level for a lake, a sloping plane's height there for a river).
 
 Frames. A file is brought into the dataset's local frame (`layout.Georef`: absolute = local + offset):
 - when both the file and the dataset name a geodetic CRS (projected or geographic), the file is reprojected
@@ -279,7 +280,7 @@ def read_bed(path: Path, truth, georef, band: int = 1, depth: bool = False, desp
             f"{MIN_COVER:.0%}): another place or frame? It spans x {x0:.2f}..{x1:.2f}, y {y0:.2f}..{y1:.2f} "
             f"({_label(file_crs)}), the truth x {lo[0]:.2f}..{hi[0]:.2f}, y {lo[1]:.2f}..{hi[1]:.2f} "
             f"({_label(CRS.from_user_input(georef.crs))})")
-    grid[:, 2] = truth.level - grid[:, 2] if depth else grid[:, 2] - frame.offset[2]
+    grid[:, 2] = truth.water.height(grid[:, :2]) - grid[:, 2] if depth else grid[:, 2] - frame.offset[2]
     if kind == "DEM":
         how = {"band": band, "cells": count, "gridding": "bilinear between cell centres, else the cell a node lies in"}
     else:
@@ -299,6 +300,7 @@ def score_file(path: Path, data: Path, references: bool = False,
     [G', 3], the ground truth)."""
     from eval.ablation import dataset_seed
     from eval.evaluate import score_grid
+    from ragsplat_core.dataset import layout
     from ragsplat_core.dataset.load import load_dataset
 
     ds = load_dataset(data, splits=(), ground_truth=True)
@@ -311,7 +313,7 @@ def score_file(path: Path, data: Path, references: bool = False,
         rows.update(TrainEval(data).track_grids(log))
     return {**record, "data": str(Path(data).resolve()), "dataset_fingerprint": ds.fingerprint,
             "dataset_seed": dataset_seed(data),
-            "georef": ds.georef.to_json(), "max_depth_m": truth.max_depth, "level": truth.level,
+            "georef": ds.georef.to_json(), "max_depth_m": truth.max_depth, "water": layout.water_json(truth.water),
             "geometry": score_grid(grid, truth),
             "references": {name: score_grid(g, truth) for name, g in rows.items()},
             "uses_ground_truth": list(USES_GROUND_TRUTH)}, grid, truth

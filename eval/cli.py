@@ -1,6 +1,10 @@
 """`ragsplat ablation --data DIR --out DIR [--preset smoke|small|paper] [--variants ...] [--seeds S ...]
-[--init ...] [--jobs N]`: every variant trained and evaluated per seed, the reference rows scored, Tables 1-3
-printed (mean +- std over seeds) beside the paper's (`eval.ablation`, which also holds the defaults).
+[--init ...] [--jobs N] [--one-level]`: every variant trained and evaluated per seed, the reference rows scored,
+Tables 1-3 printed (mean +- std over seeds) beside the paper's (`eval.ablation`, which also holds the defaults).
+
+`--one-level` measures what a flat-water tool does on a sloping river: the method and every reference are
+given one level, the mean height of the dataset's surveyed water edge (`eval.ablation.one_level_water`),
+while every row is still scored against the true surface and bed.
 
 `--jobs N` trains the rows in N processes with cores / N threads each, then reuses their rows in this one for
 the references and the tables: on the 2-core CPU two single-threaded trainings together did 1.7x the steps of
@@ -27,7 +31,7 @@ from ragsplat_core.errors import RagsplatError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from eval.ablation import INIT, JOBS, JOBS_PER_GPU, PRESETS, SEEDS
+    from eval.ablation import EDGE_POINTS, INIT, JOBS, JOBS_PER_GPU, PRESETS, SEEDS
     from ragsplat_core.train.config import VARIANTS
 
     parser.add_argument("--data", required=True, type=dataset_dir, help="dataset directory (transforms.json, gt/)")
@@ -43,6 +47,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "triangulated from the training images with their known poses (no answer given): "
                              "straight rays, depths x n (triangulated), or rays bent at the water (refracted) "
                              f"(default: {INIT})")
+    parser.add_argument("--one-level", action="store_true",
+                        help=f"give every variant and every reference one flat water level, the mean height of "
+                             f"the dataset's {EDGE_POINTS} (the water's edge as surveyed), instead of its "
+                             "surface: what a flat-water tool does on a sloping river; scored against the true "
+                             "surface and bed as always, its rows keyed apart from those without it")
     lpips_arguments(parser)
     parser.add_argument("--device", default=None, help="torch device for training (default: the preset's)")
     parser.add_argument("--jobs", type=positive_int, default=None, metavar="N",
@@ -120,7 +129,7 @@ def run_jobs(args: argparse.Namespace, fingerprint: str, check) -> None:
             str(args.out), "--preset", args.preset, "--variants", *args.variants, "--seeds",
             *map(str, args.seeds), "--init", args.init, *(["--vgg16", args.vgg16] if args.vgg16 else []),
             *(["--no-download"] if args.no_download else []), *(["--device", args.device] if args.device else []),
-            "--jobs", "1", "--code", args.code]
+            *(["--one-level"] if args.one_level else []), "--jobs", "1", "--code", args.code]
     # this command's own folder: markers a killed run left in another one do not hold back this one's rows
     queue = Path(args.out) / f".queue-{os.getpid()}-{time.time_ns()}"
     base += ["--queue", str(queue)]
@@ -174,7 +183,7 @@ def run(args: argparse.Namespace) -> int:
     with deferred_interrupts() as check:  # Ctrl-C: the trainer checkpoints its finished steps, then stops
         # the dataset and its ground truth are loaded and checked before any process starts
         train_eval = TrainEval(args.data, args.device, training_bar=partial(training_bar, leave=False, check=check),
-                               init=args.init)
+                               init=args.init, one_level=args.one_level)
         if args.jobs > 1 and args.queue is None:
             run_jobs(args, train_eval.fingerprint, check)  # then every trained row is on disk, reused below
         run_ablation(args.data, args.out, args.preset, args.variants, args.seeds, train_eval, vgg16=args.vgg16,

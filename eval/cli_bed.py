@@ -24,7 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--band", type=positive_int, default=1, metavar="K", help="a DEM's band (default: 1)")
     parser.add_argument("--kind", choices=("elevation", "depth"), default="elevation",
                         help="what the values are (a DEM's band, the points' z); a depth d is the bed height "
-                             "level - d at the dataset's water level (default: elevation)")
+                             "h - d, h the height of the dataset's water surface there (its level, or a "
+                             "sloping river's plane) (default: elevation)")
     parser.add_argument("--crs", metavar="CRS",
                         help="the file's CRS (EPSG:32633, WKT...) where it names none (PLY, CSV) or a wrong "
                              "one")
@@ -63,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
           f"{result['wet_nodes_covered']} of the ground truth's {result['wet_nodes']} wet cells covered")
     print(table(result))
     print(f"\n- F1 at 10 / 30 cm and at 1 % / 3 % of the maximum depth ({result['max_depth_m']:g} m).")
-    print("\n".join(f"- {note}" for note in survey_notes({"max_depth_m": result["max_depth_m"]})))
+    print("\n".join(f"- {note}" for note in survey_notes({"max_depth_m": result["max_depth_m"], "water": result["water"]})))
     if not args.references:
         print("- the tracks' reference rows: add --references (triangulates the dataset if not cached, "
               "minutes)")

@@ -97,7 +97,7 @@ def survey_figures(grid: np.ndarray, truth) -> dict:
     `coverage` = covered wet cells / wet ground-truth cells."""
     dz, depth = height_error(grid, truth)
     D = truth.max_depth
-    true_depth = truth.level - truth.grid[:, 2]  # [G] every wet ground-truth cell
+    true_depth = truth.water.depth(truth.grid)  # [G] every wet ground-truth cell, below the surface above it
     edges = [0.0, D / 3, 2 * D / 3, np.inf]  # the last band takes anything deeper than D too
     bands = {"wet": (depth > 0, true_depth > 0)}
     for name, lo, hi in zip(("shallow", "middle", "deep"), edges[:-1], edges[1:]):
@@ -127,13 +127,14 @@ def wet_figures(dz: np.ndarray, depth: np.ndarray, holes: int) -> dict:
 
 
 def height_error(grid: np.ndarray, truth) -> tuple[np.ndarray, np.ndarray]:
-    """(dz [P], true depth below the water level [P]) of each predicted cell at its centre."""
+    """(dz [P], true depth [P]) of each predicted cell at its centre: the true bed's depth below the water
+    surface above it (`truth.water`, a sloping one's height there)."""
     if truth.surface is not None:
         z_true = truth.surface.height_at(grid[:, :2])
     else:
         nodes = truth.nodes
         z_true = nodes[cKDTree(nodes[:, :2]).query(grid[:, :2])[1], 2] if len(grid) else np.zeros(0)
-    return grid[:, 2] - z_true, truth.level - z_true
+    return grid[:, 2] - z_true, truth.water.height(grid[:, :2]) - z_true
 
 
 def evaluate_geometry(gaussians: dict, truth, cfg: ExtractConfig) -> tuple[dict, np.ndarray]:

@@ -21,6 +21,11 @@ triangulation (`tracks.tin`):
   its angle filter and reduction `DIETRICH_TRACKS`);
 - `dietrich (3dgs)`: the same rule applied to the 3dgs row's dense apparent bed, every training camera that
   sees a cell voting (the dense-cloud workflow).
+
+The water they are given (a `WaterSurface`: the dataset's, or one level, `ragsplat ablation --one-level`) is
+read as the field reads a river's: depths below the surface's height above each point (`water.height`, a
+sloping plane's too), Dietrich's water surface elevation per point as pyBathySfM takes it, wet where a point
+lies below the surface there, the refracted rays bent at its tilted normal (`snell.water_rays`).
 """
 
 from __future__ import annotations
@@ -72,12 +77,14 @@ def start_extraction(cfg: ExtractConfig) -> ExtractConfig:
     return replace(cfg, min_opacity=0.0, max_scale_gsd=math.inf)
 
 
-def depth_times_n(grid: np.ndarray, level: float, n: float) -> np.ndarray:
-    """[P, 3] heights -> the same cells with every depth below `level` multiplied by `n` (the apparent depth
-    of a nadir view is the true depth / n, so an uncorrected reconstruction is scaled back by n)."""
+def depth_times_n(grid: np.ndarray, water) -> np.ndarray:
+    """[P, 3] heights -> the same cells with every depth below the surface `water` (a `WaterSurface`: its
+    height above each cell, a sloping river's too) multiplied by its n (the apparent depth of a nadir view is
+    the true depth / n, so an uncorrected reconstruction is scaled back by n)."""
     out = np.array(grid, dtype=np.float64, copy=True)
-    wet = out[:, 2] < level
-    out[wet, 2] = level - n * (level - out[wet, 2])
+    height = np.asarray(water.height(out[:, :2]), dtype=np.float64)
+    wet = out[:, 2] < height
+    out[wet, 2] = height[wet] - float(water.n) * (height[wet] - out[wet, 2])
     return out
 
 
@@ -94,19 +101,23 @@ def oracle_grids(truth) -> dict[str, np.ndarray]:
             "oracle median plane": np.column_stack([nodes[:, :2], flat])}
 
 
-def dietrich(apparent: np.ndarray, centres: np.ndarray, point: np.ndarray, camera: np.ndarray, level: float,
-             n: float, max_angle_deg: float | None = None, reduce=np.median) -> np.ndarray:
+def dietrich(apparent: np.ndarray, centres: np.ndarray, point: np.ndarray, camera: np.ndarray, water,
+             max_angle_deg: float | None = None, reduce=np.median) -> np.ndarray:
     """[P, 3] Dietrich's (2017) multi-camera refraction correction of apparent points [P, 3] seen by the
-    cameras with centres [C, 3] (observation k: point[k] seen by camera[k]). Each camera gives the depth
-    h = h_a tan(r) / tan(i) from its own view of the point: h_a its apparent depth below `level`, r the air
-    ray's angle from the vertical, sin(r) = n sin(i) (at nadir h = n h_a); the point takes the `reduce`
-    (median, or mean) over its cameras, with `max_angle_deg` leaving out cameras that see it more obliquely
-    (the paper's angle filter). The point keeps its horizontal position (the rule's assumption: the true
-    point lies below the apparent one). Points at or above the level are unchanged; a submerged point with
-    no camera left gets NaN."""
+    cameras with centres [C, 3] (observation k: point[k] seen by camera[k]) through `water` (a
+    `WaterSurface`). As pyBathySfM, each point takes the water surface elevation above it (its own: the
+    sloping surface's height at the point's x, y, where pyBathySfM interpolates the surveyor's edge points).
+    Each camera gives the depth h = h_a tan(r) / tan(i) from its own view of the point: h_a its apparent
+    depth below that elevation, r the air ray's angle from the vertical, sin(r) = n sin(i) (at nadir h = n
+    h_a); the point takes the `reduce` (median, or mean) over its cameras, with `max_angle_deg` leaving out
+    cameras that see it more obliquely (the paper's angle filter), and lies at that elevation - h. The point
+    keeps its horizontal position (the rule's assumption: the true point lies below the apparent one). Points
+    at or above the surface are unchanged; a submerged point with no camera left gets NaN."""
     app = np.asarray(apparent, float)
     out = app.copy()
-    ha = level - app[:, 2]
+    n = float(water.n)
+    surface = np.asarray(water.height(app[:, :2]), dtype=np.float64)  # [P] the elevation above each point
+    ha = surface - app[:, 2]
     wet = ha > 0
     use = wet[point]
     p, c = point[use], camera[use]
@@ -122,7 +133,7 @@ def dietrich(apparent: np.ndarray, centres: np.ndarray, point: np.ndarray, camer
     starts = np.flatnonzero(np.r_[True, ps[1:] != ps[:-1]]) if len(ps) else np.zeros(0, int)
     for a, b in zip(starts, np.r_[starts[1:], len(ps)]):
         h[ps[a]] = reduce(hs[a:b])
-    out[wet, 2] = level - h[wet]
+    out[wet, 2] = surface[wet] - h[wet]
     return out
 
 
@@ -172,12 +183,11 @@ def track_clouds(root, fingerprint: str, cameras: dict, water, dietrich_tracks: 
     obs = np.load(Path(root) / TRACKS)
     names = json.loads((Path(root) / STAMP).read_text())["images"]
     centres = np.array([cameras[name].camera_center for name in names])
-    level, n = float(water.level), float(water.n)
-    corrected = dietrich(straight, centres, obs[:, 0].astype(np.int64), obs[:, 1].astype(np.int64), level, n,
+    corrected = dietrich(straight, centres, obs[:, 0].astype(np.int64), obs[:, 1].astype(np.int64), water,
                          dietrich_tracks["max_angle_deg"], REDUCE[dietrich_tracks["reduce"]])
     return {"triangulation (refracted)": refracted_points(root, fingerprint, cameras, water)[:, :3],
             "dietrich (tracks)": corrected[np.isfinite(corrected).all(1)],
-            "triangulation x n": depth_times_n(straight, level, n)}
+            "triangulation x n": depth_times_n(straight, water)}
 
 
 def dietrich_grid(bed: np.ndarray, cameras, water, max_angle_deg: float | None = DIETRICH_MAX_ANGLE,
@@ -187,5 +197,5 @@ def dietrich_grid(bed: np.ndarray, cameras, water, max_angle_deg: float | None =
     cells no camera keeps are dropped."""
     point, camera = seen_by(bed, cameras)
     centres = np.array([c.camera_center for c in cameras]).reshape(-1, 3)
-    out = dietrich(bed, centres, point, camera, float(water.level), float(water.n), max_angle_deg, REDUCE[reduce])
+    out = dietrich(bed, centres, point, camera, water, max_angle_deg, REDUCE[reduce])
     return out[np.isfinite(out).all(1)]

@@ -293,8 +293,25 @@ def depth_error_map(grid: np.ndarray, truth, path: str | Path, title: str = "") 
     return Path(path)
 
 
+def water_notes(header: dict) -> list[str]:
+    """The water the rows were scored against when it slopes, and the one level they were given instead of
+    it (`ragsplat ablation --one-level`), as the header records them ("water", "one_level")."""
+    out, water, flat = [], header.get("water") or {}, header.get("one_level")
+    if water.get("slope"):
+        sx, sy = water["slope"]
+        out.append(f"Water: a sloping surface, z = {water['level']:g} + {sx:g} x + {sy:g} y (a fall of "
+                   f"{100 * math.hypot(sx, sy):.2g} %); every depth (the thresholds' maximum depth, the bands, IHO) "
+                   "is the depth below it.")
+    if flat:
+        out.append(f"ONE LEVEL (--one-level): every variant and every reference was given one flat water level, "
+                   f"{flat['level']:.3f} m (the mean of the {flat['edge_points']} surveyed edge points, "
+                   f"{Path(flat['edge_file']).name}), instead of the dataset's surface: what a flat-water tool "
+                   "does. The scores are against the true surface and bed, as in every run.")
+    return out
+
+
 def notes(rows: dict[str, list[dict]], header: dict, lpips_reason: str) -> list[str]:
-    out = []
+    out = water_notes(header)
     if lpips_reason:
         out.append(f"LPIPS n/a: {lpips_reason}")
     out.append("SSIM: the standard SSIM (Wang et al. 2004, Gaussian window 11, sigma 1.5, valid region: the "
@@ -312,7 +329,7 @@ def geometry_notes(header: dict) -> list[str]:
     thresholds = (f"Thresholds: absolute 10 / 30 cm, and 1 % / 3 % of the maximum depth ({depth:g} m: "
                   f"{10 * depth:g} / {30 * depth:g} mm); the paper's 10 / 30 cm are 1 % / 3 % of its 10 m, so "
                   "only the depth-scaled columns are compared with it.")
-    out = [thresholds if depth else "Thresholds: absolute 10 / 30 cm.",
+    out = [*water_notes(header), thresholds if depth else "Thresholds: absolute 10 / 30 cm.",
            ("CD in metres (mean of accuracy and completeness, unsquared); P/R/F1 in %, strict < threshold; "
             "mean ± sample standard deviation over the training seeds (the extraction seed is the training "
             "seed)."),
@@ -341,9 +358,10 @@ def references_note(header: dict) -> str:
     dense = refs.get("dietrich_3dgs_max_angle_deg")
     return ("Reference rows, what a surveyor would do without ragsplat: triangulation (refracted) = the dataset's "
             "SIFT tracks intersected through the water; dietrich (tracks) = the straight-ray tracks corrected by "
-            f"Dietrich's (2017) multi-camera rule ({die.get('reduce', 'median')} over {cams}); triangulation x n "
-            f"= the straight-ray tracks with depths x n; each {cleaned} and gridded by linear interpolation on its "
-            "Delaunay triangulation (TIN), settings chosen on the development reach; dietrich (3dgs) = the rule "
+            f"Dietrich's (2017) multi-camera rule ({die.get('reduce', 'median')} over {cams}, each point below "
+            "the water surface's height above it, pyBathySfM's per-point water surface elevation); triangulation "
+            f"x n = the straight-ray tracks with depths x n; each {cleaned} and gridded by linear interpolation on "
+            "its Delaunay triangulation (TIN), settings chosen on the development reach; dietrich (3dgs) = the rule "
             f"applied to the 3dgs bed ({refs.get('dietrich_3dgs_reduce', 'median')} over the cameras that see a cell"
             + ("" if dense is None else f", within {dense:g} degrees of the vertical") + "). The trivial answers: 3dgs x n = the 3dgs bed with submerged depths "
             "multiplied by n (the classical correction); oracle plane = the least-squares tilted plane through the "
@@ -366,7 +384,7 @@ def bed_note(header: dict) -> str:
 
 def survey_notes(header: dict) -> list[str]:
     depth = header.get("max_depth_m") or 0
-    return [(f"dz = predicted - true bed height at the centre of each reconstructed 5 cm cell (exact surface); "
+    return [*water_notes(header), (f"dz = predicted - true bed height at the centre of each reconstructed 5 cm cell (exact surface); "
              f"wet = true depth > 0; bands are thirds of the maximum depth ({depth:g} m); banks = emerged "
              "ground in the evaluation region; wet cover = wet cells reconstructed / wet ground-truth cells."),
             ("Holes count as misses: p95 (of |dz|), within 3 / 5 cm and the IHO columns are over every wet "

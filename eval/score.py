@@ -20,6 +20,7 @@ from eval.ablation import CODE, PRESETS, TrainEval, extract_config
 from eval.evaluate import evaluate_fused, evaluate_geometry, evaluate_views, score_grid
 from eval.references import USES_GROUND_TRUTH, oracle_grids, start_extraction
 from eval.report import T2_COLUMNS, T3_COLUMNS, geometry_table
+from ragsplat_core.dataset import layout
 from ragsplat_core.errors import ConfigError, DatasetError
 from ragsplat_core.export import load_model
 from ragsplat_core.outputs import source_digest, versions
@@ -60,11 +61,10 @@ def score_run(run: Path, data: Path | None = None, vgg16: str | None = None, dow
     geometry, _ = evaluate_geometry(model.gaussians(), truth, ecfg)
     fused, _ = evaluate_fused(model.median_depth, ds.train, truth, PRESETS[cfg.preset].fuse, ecfg.cell)
     initial = runner.initial(replace(cfg, device=str(model.device), backend=model.backend))
-    water = None if model.water is None else {"level": float(model.water.level), "n": float(model.water.n)}
     return {"run": str(run), "data": str(Path(ds.root).resolve()), "dataset_fingerprint": ds.fingerprint,
             "dataset_seed": runner.dataset_seed, "variant": cfg.variant, "preset": cfg.preset, "seed": cfg.seed,
-            "harness_preset": asdict(PRESETS[cfg.preset]), "water": water, "max_depth_m": truth.max_depth,
-            "level": truth.level, "lpips": {"available": not lpips_reason, "reason": lpips_reason or None},
+            "harness_preset": asdict(PRESETS[cfg.preset]), "water": layout.water_json(model.water),
+            "truth_water": layout.water_json(truth.water), "max_depth_m": truth.max_depth, "lpips": {"available": not lpips_reason, "reason": lpips_reason or None},
             "lpips_network": getattr(lpips_metric, "network", None), "versions": versions("torch", "scipy"),
             "code_digest": source_digest(*CODE), "num_gaussians": int(model.splats["means"].shape[0]),
             "appearance": appearance, "geometry": geometry, "geometry_fused": fused,

@@ -13,7 +13,10 @@ from eval.report import load_published, table1, table2, table3, write_outputs
 from ragsplat_core.dataset.load import GroundTruth
 from ragsplat_core.errors import ConfigError
 from ragsplat_core.fusion import FuseConfig
+from ragsplat_core.refraction import WaterSurface
 from ragsplat_core.train.config import VARIANTS, preset_config
+
+WATER = WaterSurface(0.0, 1.33)
 
 
 def fake_row(i: int, seed: int = 0) -> dict:
@@ -87,8 +90,8 @@ class FakeRunner:
     def __init__(self):
         x, y = np.meshgrid(np.arange(5) * 0.05, np.arange(5) * 0.05, indexing="ij")
         grid = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, -1.0)])
-        self.truth = GroundTruth(grid, {"xmin": 0, "xmax": 0.2, "ymin": 0, "ymax": 0.2}, 2.0, 0.0)
-        self.fingerprint, self.dataset_seed, self.refractive_index, self.gsd = "aaaa", 0, 1.33, 0.01
+        self.truth = GroundTruth(grid, {"xmin": 0, "xmax": 0.2, "ymin": 0, "ymax": 0.2}, 2.0, WATER)
+        self.fingerprint, self.dataset_seed, self.gsd = "aaaa", 0, 0.01
         self.calls = []
 
     def config(self, variant, preset, seed):
@@ -188,7 +191,7 @@ def slope_truth():
     """A 2 x 0.5 m slope from 0 to 1.95 m deep on 5 cm nodes: its first row of 10 nodes is the bank."""
     x, y = np.meshgrid(np.arange(40) * 0.05, np.arange(10) * 0.05, indexing="ij")
     nodes = np.column_stack([x.ravel(), y.ravel(), -0.05 * x.ravel()])
-    return GroundTruth(nodes[10:], {}, 1.95, 0.0, banks=nodes[:10]), nodes
+    return GroundTruth(nodes[10:], {}, 1.95, WATER, banks=nodes[:10]), nodes
 
 
 def test_survey_figures_count_holes_as_misses():
@@ -208,7 +211,7 @@ def test_survey_figures_count_holes_as_misses():
     for band in ("shallow", "middle", "deep"):
         assert half[band]["n"] + half[band]["holes"] == whole[band]["n"]
     assert half["banks"]["n"] == 5 and sum(half[b]["n"] for b in ("shallow", "middle", "deep")) == wet["n"]
-    assert references.depth_times_n(np.array([[0, 0, -1.0], [0, 0, 0.5]]), 0.0, 1.33).tolist() == \
+    assert references.depth_times_n(np.array([[0, 0, -1.0], [0, 0, 0.5]]), WATER).tolist() == \
         [[0, 0, -1.33], [0, 0, 0.5]]
 
 
@@ -247,7 +250,7 @@ def test_oracle_planes_on_a_tilted_bed_with_relief():
     x, y = np.meshgrid(np.arange(30) * 0.1, np.arange(20) * 0.1, indexing="ij")
     x, y = x.ravel(), y.ravel()
     z = -1.0 - 0.2 * x + 0.1 * y + 0.05 * np.sin(7 * x) * np.cos(5 * y)  # tilted, with stones
-    truth = GroundTruth(np.column_stack([x, y, z]), {}, float(-z.min()), 0.0)
+    truth = GroundTruth(np.column_stack([x, y, z]), {}, float(-z.min()), WATER)
     grids = references.oracle_grids(truth)
     plane, flat = grids["oracle plane"], grids["oracle median plane"]
     A = np.column_stack([np.ones_like(x), x, y])
@@ -282,7 +285,7 @@ def test_evaluate_geometry_flat_bed():
          "quats": torch.tensor([[1.0, 0, 0, 0]]).expand(len(bed), 4), "opacities": torch.full((len(bed),), 0.9)}
     region = {"xmin": 0.3, "xmax": 1.2, "ymin": 0.3, "ymax": 1.2}
     gt = bed[(np.abs(bed[:, :2] - 0.75) < 0.451).all(1)]  # nodes 6 .. 24 on both axes
-    res, grid = evaluate_geometry(g, GroundTruth(gt, region, 2.0, 0.0), ablation.extract_config("small", 19 * 19, 0, 0.01))
+    res, grid = evaluate_geometry(g, GroundTruth(gt, region, 2.0, WATER), ablation.extract_config("small", 19 * 19, 0, 0.01))
     assert res["n_gt"] == 19 * 19 and res["f1"]["10cm"] == 1.0 and res["chamfer"] < 0.005 and len(grid) > 350
     assert res["extraction"]["config"]["n_samples"] == 16 * 19 * 19
 
@@ -295,7 +298,7 @@ def test_evaluate_fused_flat_bed():
     maps = {id(c): torch.tensor(depth_map(c, lambda xy: np.full(len(xy), -1.0))) for c in cams}
     x, y = np.meshgrid(np.arange(-10, 11) * 0.05, np.arange(-8, 9) * 0.05, indexing="ij")
     gt = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, -1.0)])
-    truth = GroundTruth(gt, {"xmin": -0.5, "xmax": 0.5, "ymin": -0.4, "ymax": 0.4}, 1.0, 0.0)
+    truth = GroundTruth(gt, {"xmin": -0.5, "xmax": 0.5, "ymin": -0.4, "ymax": 0.4}, 1.0, WATER)
     views = [SimpleNamespace(camera=c) for c in cams]
     res, grid = evaluate_fused(lambda cam: maps[id(cam)], views, truth, FuseConfig(), 0.05)
     assert len(grid) == len(gt) and np.abs(grid[:, 2] + 1.0).max() < 1e-3

@@ -17,7 +17,7 @@ N = 1.33
 
 def test_dietrich_at_nadir_is_depth_times_n():
     app = np.array([[1.0, 2.0, -0.6], [0.0, 0.0, 0.5]])  # a submerged point and a dry one
-    got = dietrich(app, np.array([[1.0, 2.0, 30.0]]), np.array([0, 1]), np.array([0, 0]), 0.0, N)
+    got = dietrich(app, np.array([[1.0, 2.0, 30.0]]), np.array([0, 1]), np.array([0, 0]), WaterSurface(0.0, N))
     np.testing.assert_allclose(got, [[1.0, 2.0, -0.6 * N], [0.0, 0.0, 0.5]], atol=1e-12)
 
 
@@ -33,7 +33,7 @@ def test_dietrich_recovers_a_point_seen_by_two_symmetric_cameras(offset):
         d = a - c
         crossing.append(c + d * (-c[0] / d[0]))  # the air ray at x = 0
     assert crossing[0] == pytest.approx(crossing[1], abs=1e-9)
-    got = dietrich(np.array([crossing[0]]), centres, np.array([0, 0]), np.array([0, 1]), 0.0, N)
+    got = dietrich(np.array([crossing[0]]), centres, np.array([0, 0]), np.array([0, 1]), water)
     np.testing.assert_allclose(got[0], X, atol=1e-9)
     straight = crossing[0][2] * N  # depth x n, the nadir rule, is wrong off nadir (0.4 % at 8.5 deg)
     assert abs(straight - X[2]) > 0.002 * abs(X[2])
@@ -43,10 +43,11 @@ def test_dietrich_angle_filter_and_reduction():
     app = np.array([[0.0, 0.0, -1.0]])
     centres = np.array([[0.0, 0.0, 10.0], [10.0, 0.0, 10.0]])  # nadir, and 45 degrees away
     point, camera = np.array([0, 0]), np.array([0, 1])
-    both = dietrich(app, centres, point, camera, 0.0, N, reduce=np.mean)[0, 2]
-    nadir = dietrich(app, centres, point, camera, 0.0, N, max_angle_deg=35)[0, 2]
+    both = dietrich(app, centres, point, camera, WaterSurface(0.0, N), reduce=np.mean)[0, 2]
+    nadir = dietrich(app, centres, point, camera, WaterSurface(0.0, N), max_angle_deg=35)[0, 2]
     assert nadir == pytest.approx(-N) and both < nadir  # the oblique view's rule gives a deeper point
-    assert np.isnan(dietrich(app, centres[1:], np.array([0]), np.array([0]), 0.0, N, max_angle_deg=35)[0, 2])
+    assert np.isnan(dietrich(app, centres[1:], np.array([0]), np.array([0]), WaterSurface(0.0, N),
+                             max_angle_deg=35)[0, 2])
 
 
 def test_tin_recovers_a_plane_and_a_paraboloid_inside_the_hull():

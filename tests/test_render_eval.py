@@ -24,7 +24,7 @@ from ragsplat_core.dataset.load import load_dataset
 from ragsplat_core.export import load_model, load_run, write_render
 
 KEYS = {"run", "data", "dataset_fingerprint", "dataset_seed", "variant", "preset", "seed", "harness_preset", "water",
-        "max_depth_m", "level", "lpips", "lpips_network", "versions", "code_digest", "num_gaussians", "appearance",
+        "max_depth_m", "truth_water", "lpips", "lpips_network", "versions", "code_digest", "num_gaussians", "appearance",
         "geometry", "geometry_fused", "references", "uses_ground_truth"}
 
 
@@ -121,7 +121,7 @@ def test_eval_matches_the_ablation_and_the_library(run, ablated, evaluable_datas
         assert text in printed
     res = json.loads(out.read_text())
     assert set(res) == KEYS and res["variant"] == "full" and res["seed"] == 0 and res["preset"] == "smoke"
-    assert res["water"] == {"level": 0.0, "n": 1.33} and res["lpips"]["available"] is False
+    assert res["water"] == res["truth_water"] == {"level": 0.0, "n": 1.33} and res["lpips"]["available"] is False
     row = json.loads((ablated / "full" / "seed0" / "row.json").read_text())
     # bit-identical: the same library functions on the same run (its PLY is float32, lossless) in one process;
     # JSON keeps a float exactly

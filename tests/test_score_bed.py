@@ -16,8 +16,10 @@ from ragsplat_core.cli.main import main
 from ragsplat_core.dataset import layout
 from ragsplat_core.dataset.load import load_dataset
 from ragsplat_core.export import Bed, Georef, write_dem
+from ragsplat_core.refraction import WaterSurface
 
 OFFSET = (500_000.012, 5_000_000.037, 100.0)  # not on multiples of the 5 cm cells
+WATER = WaterSurface(0.0, 1.33)  # the evaluable dataset's (conftest)
 UP = 0.02  # m: the points above the true bed, between 1 % and 3 % of the 1.08 m maximum depth
 
 
@@ -90,7 +92,7 @@ def test_an_exported_dem_scores_as_its_grid(evaluable_dataset, tmp_path, capsys)
     truth = truth_of(evaluable_dataset)
     g = truth.grid
     grid = np.column_stack([g[:, :2], g[:, 2] + 0.03 * np.sin(7 * g[:, 0])])[np.arange(len(g)) % 7 != 3]
-    write_dem(tmp_path / "bed.tif", Bed(grid, 0.05, 0.0, Georef()))  # as `ragsplat export --dem` writes it
+    write_dem(tmp_path / "bed.tif", Bed(grid, 0.05, WATER, Georef()))  # as `ragsplat export --dem` writes it
     result = score(tmp_path / "bed.tif", evaluable_dataset)
     assert_same(result["geometry"], score_grid(grid, truth), atol=1e-6)  # float32 heights near 1 m
     assert (result["kind"], result["band"], result["cells"]) == ("DEM", 1, len(grid))
@@ -103,7 +105,7 @@ def test_an_exported_dem_scores_as_its_grid(evaluable_dataset, tmp_path, capsys)
 
 def test_a_depth_band_scores_as_the_elevation_band(evaluable_dataset, tmp_path):
     truth = truth_of(evaluable_dataset)
-    write_dem(tmp_path / "bed.tif", Bed(truth.grid + [0, 0, UP], 0.05, 0.0, Georef()))  # band 2: level - z
+    write_dem(tmp_path / "bed.tif", Bed(truth.grid + [0, 0, UP], 0.05, WATER, Georef()))  # band 2: the depth below the water
     elevation = score(tmp_path / "bed.tif", evaluable_dataset)
     depth = score(tmp_path / "bed.tif", evaluable_dataset, "--band", "2", "--kind", "depth")
     assert_same(depth["geometry"], elevation["geometry"], atol=1e-6)
@@ -142,12 +144,12 @@ def test_utm_files_and_another_crs_land_on_the_same_cells(utm_dataset, evaluable
     truth = truth_of(utm_dataset)
     grid = truth.grid + [0, 0, UP]
     # a DEM in the dataset's CRS, the offset not taken off (`ragsplat export` of a survey)
-    write_dem(tmp_path / "utm.tif", Bed(grid, 0.05, 0.0, Georef(OFFSET, "EPSG:32633")))
+    write_dem(tmp_path / "utm.tif", Bed(grid, 0.05, WATER, Georef(OFFSET, "EPSG:32633")))
     result = score(tmp_path / "utm.tif", utm_dataset)
     assert result["crs"] == "EPSG:32633" and result["frame"] == "the dataset's CRS, its offset taken off"
     assert_same(result["geometry"], score_grid(grid, truth), atol=1e-5)  # float32 heights at 100 m
     higher = Georef((*OFFSET[:2], OFFSET[2] + 0.05), "EPSG:32633")
-    write_dem(tmp_path / "high.tif", Bed(grid, 0.05, 0.0, higher))
+    write_dem(tmp_path / "high.tif", Bed(grid, 0.05, WATER, higher))
     high = score(tmp_path / "high.tif", utm_dataset)["geometry"]["survey"]["wet"]["bias"]
     assert high == pytest.approx(UP + 0.05, abs=1e-5)  # the dataset's z0 is what is taken off
     assert main(["score", str(tmp_path / "utm.tif"), "--truth", str(evaluable_dataset)]) == 2  # local frame
