@@ -11,8 +11,9 @@ Materials: {"kind": "texture", "image": png} (diffuse albedo, repeating), {"kind
 surface: visible to camera rays only; with "reflect", Fresnel reflection of sky and sun), {"kind": "volume",
 "absorption", "scattering"} (the water body). An object with "wet_only": true is hidden in the dry and depth
 passes, as the water surface is. Field conditions add "glossy_bounces" (1 for a reflecting surface) and
-"ripples": {"k", "amplitude", "level"} with "phases" in each wet task: the water mesh (its vertices and
-"water_weight" in the npz) is moved to that photo's surface (`datagen.conditions.ripple_height`) before it renders.
+"ripples": {"k", "amplitude", "level", "slope": optional [dz/dx, dz/dy]} with "phases" in each wet task: the
+water mesh (its vertices and "water_weight" in the npz) is moved to that photo's surface before it renders:
+the mean surface level + sx x + sy y plus the weighted ripples (`datagen.conditions.ripple_height`).
 
 Passes: "wet" renders with the water object, "dry" without; both 8-bit sRGB PNG, 'Standard' view transform.
 "depth" renders without water at 1 sample with a 0.01 px pixel filter (exact surface at the pixel centre)
@@ -228,12 +229,14 @@ def _setup(job: dict) -> tuple[bpy.types.Scene, bpy.types.Object, list[bpy.types
 
 
 def _ripple(water: bpy.types.Object, geo, ripples: dict, phases: list[float]) -> None:
-    """Set the water mesh to this photo's surface: z = level + weight * ripple height."""
+    """Set the water mesh to this photo's surface: z = level (+ sx x + sy y) + weight * ripple height."""
     from datagen.conditions import ripple_height
 
     verts = geo["water_verts"]
     z = ripples["level"] + geo["water_weight"] * ripple_height(
         verts[:, :2], np.array(ripples["k"]), np.array(ripples["amplitude"]), np.array(phases))
+    if "slope" in ripples:  # the mean surface of a sloping river
+        z = z + verts[:, :2] @ np.array(ripples["slope"], np.float64)
     co = np.column_stack([verts[:, :2], z]).astype(np.float32)
     water.data.vertices.foreach_set("co", co.ravel())
     water.data.update()

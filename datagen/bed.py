@@ -11,6 +11,12 @@ size classes merged by maximum:
   water; towards the border it fades into one cross-section `profile(y)`, which the floor extrudes along x
   to the horizon, with flat land beyond the banks.
 Albedo: a per-stone colour with speckle, sand-coloured noise between stones, soil and grass on dry land.
+
+Everything here is built in the flat scene, under the water plane z = level. A sloping water surface
+(`WaterSpec.slope`) tilts the valley with it: the world is the flat scene sheared vertically, every height
+z -> z + sx x + sy y (`shear`, `world_surface`), so vertical depths below the surface, what is wet and
+the waterline are exactly the flat scene's. The generator shears what it writes; this module's functions
+(`ground_truth`'s `z < level`, `waterline`) work in the flat scene.
 """
 
 from __future__ import annotations
@@ -231,6 +237,37 @@ def surface(bed: Bed) -> Surface:
     return Surface(bed.x0, bed.cell, bed.mesh_heights)
 
 
+def shear(spec: SceneSpec, points: np.ndarray) -> np.ndarray:
+    """World points [..., 3] of the flat scene's `points` [..., 3]: z + sx x + sy y under a sloping water
+    surface (a new array); the very `points` under a flat surface or none."""
+    w = spec.water
+    if w is None or not w.sloping:
+        return points
+    out = np.array(points, np.float64)
+    out[..., 2] += w.slope[0] * out[..., 0] + w.slope[1] * out[..., 1]
+    return out
+
+
+def world_surface(spec: SceneSpec, bed: Bed) -> Surface:
+    """`surface(bed)` sheared with the water (`shear`): exact, as the shear maps each triangle onto one."""
+    flat = surface(bed)
+    if spec.water is None or not spec.water.sloping:
+        return flat
+    k = flat.heights.shape[0]
+    c = bed.x0 + np.arange(k) * bed.cell
+    gx, gy = np.meshgrid(c, c)
+    return Surface(bed.x0, bed.cell, shear(spec, np.stack([gx, gy, flat.heights], -1))[..., 2])
+
+
+def world_waterline(spec: SceneSpec, bed: Bed) -> list[np.ndarray]:
+    """`waterline` in the world: polylines [K, 2] under a flat surface, [K, 3] with their heights on a
+    sloping one."""
+    lines = waterline(bed, spec.level)
+    if spec.water is None or not spec.water.sloping:
+        return lines
+    return [np.column_stack([line, spec.water.height(line)]) for line in lines]
+
+
 def height_at(bed: Bed, xy: np.ndarray) -> np.ndarray:
     """Exact height [N] of the triangulated mesh at horizontal points [N, 2] (inside the mesh)."""
     return surface(bed).height_at(xy)
@@ -246,8 +283,9 @@ def ground_truth_grid(bed: Bed, region: dict[str, float], step: float) -> np.nda
 
 
 def ground_truth(spec: SceneSpec, bed: Bed, region: dict[str, float], step: float):
-    """(bed grid [N, 3], bank grid [M, 3] or None) over `region`: for a reach the submerged bed, which is
-    what bathymetry measures, and the emerged ground apart; for the gravel bed the whole grid."""
+    """(bed grid [N, 3], bank grid [M, 3] or None) over `region`, in the flat scene (`shear` for the world):
+    for a reach the submerged bed (below the level there: the depth below a sloping surface once sheared),
+    which is what bathymetry measures, and the emerged ground apart; for the gravel bed the whole grid."""
     grid = ground_truth_grid(bed, region, step)
     if spec.reach is None:
         return grid, None

@@ -22,14 +22,14 @@ import numpy as np
 
 from blender_scenes.protocol import PROTOCOL
 from datagen import conditions, flight
-from datagen.bed import Bed, ground_truth, height_at, make_bed, mesh, surface, waterline
+from datagen.bed import Bed, ground_truth, height_at, make_bed, mesh, shear, world_surface, world_waterline
 from datagen.spec import SceneSpec, validate
 from datagen.survey import write_survey
 from ragsplat_core.camera import Camera
 from ragsplat_core.dataset import layout
 from ragsplat_core.errors import OutputError, RagsplatError
 from ragsplat_core.outputs import atomic_path, versions, write_json
-from ragsplat_core.scoring import plane_scores, thresholds
+from ragsplat_core.scoring import geometry_metrics, plane_scores, thresholds
 
 FAR = 2000.0  # half-size (m) of the floor and water planes: beyond every view's horizon-free field
 
@@ -75,7 +75,14 @@ def _prepare_out(spec: SceneSpec, out: Path) -> None:
 
 def _geometry(spec: SceneSpec, bed: Bed, targets: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Everything Blender meshes: bed, the floor frame around it, the water surface and, with field
-    conditions, the water body and the ground control `targets` [T, 3] (arrays for the npz)."""
+    conditions, the water body and the ground control `targets` [T, 3] (arrays for the npz). `bed` and
+    `targets` are the flat scene's; the vertices returned the world's (`bed.shear`: under a sloping surface
+    the whole scene, water included, falls with it)."""
+    geo = _flat_geometry(spec, bed, targets)
+    return {k: shear(spec, v) if k.endswith("_verts") else v for k, v in geo.items()}
+
+
+def _flat_geometry(spec: SceneSpec, bed: Bed, targets: np.ndarray | None) -> dict[str, np.ndarray]:
     size = bed.heights.shape[0] * bed.texel  # the albedo image's period (m)
 
     def uv(xy):  # texel i's centre is at x0 + i * texel
@@ -156,24 +163,26 @@ def _write_bed_assets(spec: SceneSpec, out: Path) -> None:
         files.append(out / layout.GT_TARGETS)
     if all(p.exists() for p in files):
         return
-    bed = make_bed(spec)
+    bed = make_bed(spec)  # the flat scene: what is written is sheared into the world (`bed.shear`)
     grid, banks = ground_truth(spec, bed, flight.eval_region(spec), layout.GT_GRID_STEP)
     targets = None
     if with_targets:
         targets = conditions.place_targets(c, lambda xy: height_at(bed, xy), banks, spec.level, spec.seed)
-        layout.write_npy(out / layout.GT_TARGETS, targets)
+        layout.write_npy(out / layout.GT_TARGETS, shear(spec, targets))
     geo = _geometry(spec, bed, targets)
     with atomic_path(files[0]) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **geo)
     # Blender reads images bottom row first: flip so that texel row j (y index) is at v = (j + 0.5) / M.
     layout.write_png(files[1], np.ascontiguousarray(bed.albedo[::-1]))
     layout.write_ply(files[2], geo["bed_verts"], geo["bed_tris"], "ragsplat riverbed (world metres, z up)")
-    surface(bed).save(files[3])
+    world_surface(spec, bed).save(files[3])
+    grid = shear(spec, grid)
     layout.write_npy(out / layout.GT_GRID, grid)
     if banks is not None:
-        layout.write_npy(out / layout.GT_BANKS, banks)
+        layout.write_npy(out / layout.GT_BANKS, shear(spec, banks))
         layout.write_elevation(out / layout.GT_ELEVATION, grid, layout.GT_GRID_STEP)
-        layout.write_waterline(out / layout.GT_WATERLINE, waterline(bed, spec.level), spec.level)
+        # polylines [K, 2] at the level, or [K, 3] with their heights on a sloping surface
+        layout.write_waterline(out / layout.GT_WATERLINE, world_waterline(spec, bed), spec.level)
 
 
 # Signals of a crash inside the renderer, not of a kill (the OOM killer's SIGKILL, the user's SIGINT / SIGTERM).
@@ -248,6 +257,8 @@ def _job(spec: SceneSpec, out: Path, cam: Camera, tasks: list[dict]) -> dict:
         if c.rippled:
             k, amplitude = conditions.ripple_waves(c, spec.seed)
             field_job["ripples"] = {"k": k.tolist(), "amplitude": amplitude.tolist(), "level": spec.level}
+            if spec.water.sloping:  # the mean surface the ripples ride on: level + sx x + sy y
+                field_job["ripples"]["slope"] = list(spec.water.slope)
         field_job["glossy_bounces"] = 1 if c.reflection else 0  # the mirror ray that sees sky and sun
     r = spec.render
     return {**field_job,
@@ -278,11 +289,26 @@ def max_depth(spec: SceneSpec) -> float:
 
 def null_models(spec: SceneSpec, gt: np.ndarray) -> dict:
     """Scores of trivial answers against the ground-truth grid [N, 3]: a flat plane at its median height, and
-    at the wet region's mean depth. A benchmark on which these score well cannot tell bathymetries apart."""
+    at the wet region's mean depth. A benchmark on which these score well cannot tell bathymetries apart.
+    Under a sloping surface the planes lie parallel to it, at the median and the mean depth below it ("z":
+    their height at x = y = 0)."""
     depth = max_depth(spec)
     return {"max_depth_m": depth, "thresholds_m": thresholds(depth),
-            "median_plane": plane_scores(gt, float(np.median(gt[:, 2])), depth),
-            "mean_depth_plane": plane_scores(gt, float(gt[:, 2].mean()), depth)}
+            "median_plane": _plane_scores(spec, gt, np.median, depth),
+            "mean_depth_plane": _plane_scores(spec, gt, np.mean, depth)}
+
+
+def _plane_scores(spec: SceneSpec, gt: np.ndarray, statistic, depth: float) -> dict:
+    w = spec.water
+    if w is None or not w.sloping:
+        return plane_scores(gt, float(statistic(gt[:, 2])), depth)
+    tilt = w.height(gt[:, :2]) - w.level  # the surface's rise above its height at x = y = 0
+    z = float(statistic(gt[:, 2] - tilt))
+    named = thresholds(depth)
+    m = geometry_metrics(np.column_stack([gt[:, :2], z + tilt]), gt, tuple(named.values()))
+    scores = {f"{k}_{name}": m[f"{k}@{t:g}"] for name, t in named.items()
+              for k in ("precision", "recall", "f1")}
+    return {"z": z, "chamfer": m["chamfer"], **scores}
 
 
 def scene_metadata(spec: SceneSpec, poses, gt: np.ndarray) -> dict:
@@ -295,7 +321,7 @@ def scene_metadata(spec: SceneSpec, poses, gt: np.ndarray) -> dict:
         null_models=null_models(spec, gt),
         seed=spec.seed,
         versions=versions("bpy"),
-        water=None if spec.water is None else {"level": spec.water.level, "n": spec.water.n},
+        water=layout.water_json(spec.water),
         radiance={"refraction_color": radiance_factor(spec),
                   "model": "1/n^2 (etendue)" if radiance_factor(spec) != 1.0 else "none"},
         flight={"footprint_m": flight.footprint(spec), "spacing_m": flight.spacing(spec),
@@ -342,7 +368,12 @@ def _merge(spec: SceneSpec, out: Path, poses) -> None:
     if spec.water is not None and "wet" in kinds:  # what a surveyor would hand over (`ragsplat survey`)
         banks = np.load(out / layout.GT_BANKS) if (out / layout.GT_BANKS).is_file() else None
         targets = np.load(out / layout.GT_TARGETS) if (out / layout.GT_TARGETS).is_file() else None
-        write_survey(out, poses, spec.water.level, seed=spec.seed, banks=banks, targets=targets)
+        edges = None
+        if (out / layout.GT_WATERLINE).is_file():
+            lines = json.loads((out / layout.GT_WATERLINE).read_text())["geometry"]["coordinates"]
+            edges = [np.asarray(line, np.float64)[:, :2] for line in lines]
+        write_survey(out, poses, spec.water, seed=spec.seed, banks=banks, targets=targets, waterline=edges,
+                     region=flight.eval_region(spec))
 
 
 def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),

@@ -28,6 +28,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="render only views k with k mod N == i (0 <= i < N); merge when all are done")
     parser.add_argument("--seed", type=count, default=0, help="scene seed (default 0): same seed, same data")
     parser.add_argument("--no-water", action="store_true", help="dry scene: render only the dry set")
+    parser.add_argument("--water-slope", type=float, metavar="S",
+                        help="the water surface falls by the fraction S downstream (+x; 0.01: 1 %%), the bed "
+                             "and banks with it (depths as in the flat preset); default: the preset's")
     parser.add_argument("--no-radiance-scale", action="store_true",
                         help="water refraction colour 1 instead of 1/n^2 (no radiance drop at the interface)")
     parser.add_argument("--turbidity", type=float, metavar="S",
@@ -46,12 +49,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from datagen import flight
     from datagen.build import generate, overhead_fraction
-    from datagen.spec import preset, validate, with_conditions
+    from datagen.spec import preset, validate, with_conditions, with_slope
     from ragsplat_core.cli.progress import bar
 
     spec = preset(args.preset, seed=args.seed)
     if args.no_radiance_scale and spec.water is not None:
         spec = replace(spec, water=replace(spec.water, radiance_scale=False))
+    if args.water_slope is not None:
+        spec = with_slope(spec, args.water_slope)
     if args.no_water:
         spec = replace(spec, water=None)
     if (args.turbidity, args.reflection, args.ripple_amplitude) != (None, None, None):

@@ -7,6 +7,9 @@ proportion to wavelength), scaled so that the surface's rms height is `ripple_am
 its own phases from (seed, view index): a new surface per photo, the same one on a rerun or in any shard.
 The mean surface is the level (a sum of cosines with independent phases has mean zero); the ground truth
 stays the bed. Towards the bed's border the ripples fade to the flat plane that continues to the horizon.
+Like the bed (`datagen.bed`), everything here is made in the flat scene; under a sloping water surface the
+generator shears it (`datagen.bed.shear`), so the ripples ride on the sloping mean surface and the water
+body's top stays parallel to it.
 """
 
 from __future__ import annotations

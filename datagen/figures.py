@@ -31,11 +31,14 @@ def write_figures(data: Path, out: Path, view: str | None = None) -> list[Path]:
     layout.write_png(views, pair)
 
     surface = layout.Surface.load(data / layout.GT_SURFACE)
-    level = (tf["water"] or {"level": 0.0})["level"]
+    water = tf["water"] or {"level": 0.0}
     k = surface.heights.shape[0]
     ext = [surface.x0, surface.x0 + (k - 1) * surface.cell] * 2
+    c = surface.x0 + np.arange(k) * surface.cell
+    sx, sy = water.get("slope", (0.0, 0.0))
+    above = surface.heights - (water["level"] + sx * c[None, :] + sy * c[:, None])  # [j (y), i (x)]
     fig, ax = plt.subplots(figsize=(6.4, 5.2), constrained_layout=True)
-    im = ax.imshow(surface.heights - level, origin="lower", extent=ext, cmap="terrain")
+    im = ax.imshow(above, origin="lower", extent=ext, cmap="terrain")
     fig.colorbar(im, ax=ax, label="bed height above the water (m)")
     if (data / layout.GT_WATERLINE).is_file():
         for line in json.loads((data / layout.GT_WATERLINE).read_text())["geometry"]["coordinates"]:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import sys
 
 from datagen import flight
-from datagen.bed import ground_truth, make_bed
+from datagen.bed import ground_truth, make_bed, shear
 from datagen.build import max_depth, null_models
 from datagen.spec import preset
 from ragsplat_core.dataset import layout
@@ -22,7 +22,7 @@ def table(runs: list[tuple[str, int]]) -> str:
     for name, seed in runs:
         spec = preset(name, seed=seed)
         grid, _ = ground_truth(spec, make_bed(spec), flight.eval_region(spec), layout.GT_GRID_STEP)
-        scores = null_models(spec, grid)
+        scores = null_models(spec, shear(spec, grid))
         m, mean = scores["median_plane"], scores["mean_depth_plane"]
         lines.append(f"| {name}, {seed} | {max_depth(spec):g} m | {100 * m['f1_1%']:.1f} | {100 * m['f1_3%']:.1f} | "
                      f"{100 * m['f1_10cm']:.1f} | {100 * m['f1_30cm']:.1f} | {100 * mean['f1_3%']:.1f} |")

@@ -10,6 +10,8 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field, replace
 
+import numpy as np
+
 from ragsplat_core.errors import SpecError
 
 
@@ -59,9 +61,23 @@ class ReachSpec:
 
 @dataclass(frozen=True)
 class WaterSpec:
-    level: float = 0.0  # z of the flat water plane (m)
+    """The water surface z = level + slope[0] x + slope[1] y (`ragsplat_core.refraction.WaterSurface`'s
+    meaning): a flat plane by default; a river falling by a fraction S downstream (+x) has slope (-S, 0).
+    The whole scene falls with it (`datagen.bed.shear`), so the depths are those of the flat scene."""
+
+    level: float = 0.0  # z of the water surface at x = y = 0 (m)
     n: float = 1.33  # refractive index relative to air
     radiance_scale: bool = True  # refraction colour 1/n^2 (Cycles does not apply the radiance drop itself)
+    slope: tuple[float, float] = (0.0, 0.0)  # (dz/dx, dz/dy); (0, 0): no key in spec.json
+
+    @property
+    def sloping(self) -> bool:
+        return any(v != 0 for v in self.slope)
+
+    def height(self, xy: np.ndarray) -> np.ndarray:
+        """Surface height [...] at horizontal points xy [..., 2] (exactly `level` where the slope is 0)."""
+        xy = np.asarray(xy, np.float64)
+        return self.level + self.slope[0] * xy[..., 0] + self.slope[1] * xy[..., 1]
 
 
 @dataclass(frozen=True)
@@ -151,6 +167,8 @@ class SceneSpec:
         d = asdict(self)
         if self.conditions is None:  # the ideal presets' spec.json, and so their datasets, stay as they were
             del d["conditions"]
+        if self.water is not None and not self.water.sloping:  # so do the flat presets'
+            del d["water"]["slope"]
         return d
 
     @classmethod
@@ -164,7 +182,8 @@ class SceneSpec:
         if reach is not None:
             reach = ReachSpec(**{**reach, "boulders": StoneClass(**reach["boulders"])})
         return cls(preset=d["preset"], seed=int(d["seed"]), bed=BedSpec(**bed), reach=reach,
-                   water=None if d["water"] is None else WaterSpec(**d["water"]),
+                   water=None if d["water"] is None else WaterSpec(**{
+                       k: tuple(v) if isinstance(v, list) else v for k, v in d["water"].items()}),
                    flight=FlightSpec(**flight), light=LightSpec(**d["light"]), render=RenderSpec(**d["render"]),
                    conditions=None if d.get("conditions") is None else FieldConditions(**{
                        k: tuple(v) if isinstance(v, list) else v for k, v in d["conditions"].items()}))
@@ -229,6 +248,18 @@ PRESETS["smoke-field"] = replace(PRESETS["smoke"], preset="smoke-field", conditi
     CLEAR_RIVER, ripple_wavelengths=(0.3, 2.0), ripple_cell=0.04, target_size=0.6))
 
 
+def with_slope(spec: SceneSpec, fall: float, name: str | None = None) -> SceneSpec:
+    """`spec` with its water surface falling by the fraction `fall` downstream (+x): slope (-fall, 0)."""
+    water = None if spec.water is None else replace(spec.water, slope=(-float(fall) if fall else 0.0, 0.0))
+    return replace(spec, water=water, preset=name or spec.preset)
+
+
+# A steep gravel-bed river: the reach falling 1 % (10 cm over `small`'s 10 m evaluated stretch), and its
+# CI-scale twin.
+PRESETS["small-slope"] = with_slope(PRESETS["small"], 0.01, "small-slope")
+PRESETS["smoke-slope"] = with_slope(PRESETS["smoke"], 0.01, "smoke-slope")
+
+
 def with_conditions(spec: SceneSpec, turbidity: float | None = None, reflection: bool | None = None,
                     ripple_amplitude: float | None = None) -> SceneSpec:
     """`spec` with these field conditions changed (None: as the spec has them). An ideal spec starts from
@@ -248,6 +279,9 @@ def preset(name: str, seed: int | None = None) -> SceneSpec:
     return spec if seed is None else replace(spec, seed=int(seed))
 
 
+MAX_SLOPE = 0.1  # steepest water surface (dz per metre) a spec may ask for: 10 %, ten times a steep river
+
+
 def validate(spec: SceneSpec) -> None:
     """Raise SpecError naming the first problem; a spec that passes can be planned and rendered."""
     b, f, r = spec.bed, spec.flight, spec.render
@@ -255,6 +289,8 @@ def validate(spec: SceneSpec) -> None:
         raise SpecError(f"water refractive index must be finite and >= 1, got {spec.water.n}")
     if not (f.altitude > 0 and math.isfinite(f.altitude)):
         raise SpecError(f"camera under water: flight altitude {f.altitude} m must be above the water level")
+    if spec.water is not None:
+        _validate_slope(spec)
     if not (b.depth > 0 and math.isfinite(b.depth)):
         raise SpecError(f"bed depth {b.depth} m must be positive (the bed lies below the water level)")
     if spec.reach is None:
@@ -287,6 +323,18 @@ def validate(spec: SceneSpec) -> None:
                         f"{spec.light.sun_elevation} and {spec.light.sun_azimuth}")
     if spec.conditions is not None:
         _validate_conditions(spec)
+
+
+def _validate_slope(spec: SceneSpec) -> None:
+    slope = spec.water.slope
+    if not (len(slope) == 2 and all(math.isfinite(v) for v in slope) and math.hypot(*slope) <= MAX_SLOPE):
+        raise SpecError(f"water slope {tuple(slope)} must be finite and at most {MAX_SLOPE:g} in gradient "
+                        "(rivers fall 0.001-0.01)")
+    rise = math.hypot(*slope) * spec.bed.size / math.sqrt(2)  # from the centre to a corner of the bed
+    if rise and not rise < spec.flight.altitude / 2:
+        raise SpecError(f"water slope {tuple(slope)} lifts the surface {rise:.2f} m within the bed, more "
+                        f"than half the {spec.flight.altitude} m flight altitude: a gentler slope or a "
+                        "higher flight")
 
 
 def _validate_conditions(spec: SceneSpec) -> None:

@@ -1,5 +1,7 @@
 """Physical cross-check: emissive markers on the bed, rendered by Cycles through the water, land where the
-refraction model (`apparent_points`) projects them; the naive pinhole misses by pixels."""
+refraction model (`apparent_points`) projects them; the naive pinhole misses by pixels. Under a sloping
+surface (a plane tilted as a river's, steeper than one so that the tilt is worth a pixel) the tilted model
+lands them too, and the flat one at the same level misses."""
 
 import math
 
@@ -17,6 +19,7 @@ pytestmark = pytest.mark.blender
 
 WIDTH, FOV, ALTITUDE, DEPTH, N = 160, 70.0, 3.0, 2.0, 1.33
 MARKER_RADIUS = 0.06  # m: about 3 px across at this scale
+SLOPE = (-0.08, 0.04)  # dz/dx, dz/dy of the tilted surface: the flat model misses by about a pixel
 
 
 def disc(centre, radius, segments=32):
@@ -46,19 +49,19 @@ def centroids(image_srgb: np.ndarray) -> np.ndarray:
     return np.array([[col + 0.5, row + 0.5] for row, col in com])
 
 
-@pytest.fixture(scope="module")
-def rendered(tmp_path_factory):
-    work = tmp_path_factory.mktemp("markers")
-    z = -DEPTH
+def render_markers(work, water: WaterSurface, far: float):
+    """(marker centres [16, 3], cameras, images): horizontal discs DEPTH below `water` (a bed that falls
+    with it), under the surface's plane out to +-far, rendered by Cycles from `views`."""
     xs = np.array([-0.9, -0.3, 0.3, 0.9])
-    centres = np.array([[x, y, z] for x in xs for y in xs])  # 16 markers on the bed plane
+    xy = np.array([[x, y] for x in xs for y in xs])
+    centres = np.column_stack([xy, water.height(xy) - DEPTH])  # 16 markers on the bed plane
     parts = [disc(c, MARKER_RADIUS) for c in centres]
     offsets = np.cumsum([0] + [len(v) for v, _ in parts[:-1]])
-    far = 100.0
+    corners = np.array([[-far, -far], [far, -far], [far, far], [-far, far]], float)
     np.savez(work / "geometry.npz",
              markers_verts=np.concatenate([v for v, _ in parts]),
              markers_tris=np.concatenate([t + o for (_, t), o in zip(parts, offsets)]),
-             water_verts=np.array([[-far, -far, 0], [far, -far, 0], [far, far, 0], [-far, far, 0]], float),
+             water_verts=np.column_stack([corners, water.height(corners)]),
              water_tris=np.array([[0, 1, 2], [0, 2, 3]]))
     cams = views()
     cam = cams["nadir"]
@@ -67,7 +70,7 @@ def rendered(tmp_path_factory):
     job = {
         "geometry": str(work / "geometry.npz"),
         "objects": [{"name": "markers", "material": {"kind": "emission", "strength": 0.6}},
-                    {"name": "water", "material": {"kind": "refraction", "ior": N, "color": 1.0}}],
+                    {"name": "water", "material": {"kind": "refraction", "ior": water.n, "color": 1.0}}],
         "water": "water",
         "light": None,
         "render": {"samples": 64, "device": "CPU", "threads": 0, "seed": 0, "filter_width": 1.5,
@@ -80,23 +83,53 @@ def rendered(tmp_path_factory):
     return centres, cams, {name: cv2.imread(str(work / f"{name}.png"))[..., ::-1] for name in cams}
 
 
-@pytest.mark.parametrize("name", ["nadir", "oblique40"])
-def test_markers_land_on_the_refracted_projection(rendered, name):
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    return render_markers(tmp_path_factory.mktemp("markers"), WaterSurface(0.0, N), far=100.0)
+
+
+@pytest.fixture(scope="module")
+def rendered_sloping(tmp_path_factory):
+    # +-30 m: the tilted plane stays below the cameras everywhere they look
+    return render_markers(tmp_path_factory.mktemp("markers_sloping"), WaterSurface(0.0, N, SLOPE), far=30.0)
+
+
+def errors(rendered, name: str, water: WaterSurface, other: WaterSurface | None = None):
+    """Pixel distances from each predicted marker (the model with `water`; the naive pinhole, or the model
+    with `other`) to the nearest detected blob, over the markers well inside the image."""
     centres, cams, images = rendered
     cam = cams[name]
     found = centroids(images[name])
-    water = WaterSurface(0.0, N)
-    app = apparent_points(torch.tensor(centres), torch.tensor(cam.camera_center), water).numpy()
-    expected, _ = cam.project(app)
-    naive, _ = cam.project(centres)
+
+    def predict(surface):
+        seen = centres if surface is None else apparent_points(
+            torch.tensor(centres), torch.tensor(cam.camera_center), surface).numpy()
+        return cam.project(seen)[0]
+
+    expected, alternative = predict(water), predict(other)
     inside = np.all((expected > 4) & (expected < WIDTH - 4), axis=1)
     assert inside.sum() >= 8 and len(found) == inside.sum()
 
     def match(pred):  # distance from each predicted marker to the nearest detected blob
         return np.linalg.norm(pred[inside, None] - found[None], axis=-1).min(1)
 
-    err, err_naive = match(expected), match(naive)
-    print(f"\n{name}: {inside.sum()} markers, refracted-model error max {err.max():.3f} px "
+    return match(expected), match(alternative), int(inside.sum())
+
+
+@pytest.mark.parametrize("name", ["nadir", "oblique40"])
+def test_markers_land_on_the_refracted_projection(rendered, name):
+    err, err_naive, count = errors(rendered, name, WaterSurface(0.0, N))
+    print(f"\n{name}: {count} markers, refracted-model error max {err.max():.3f} px "
           f"(mean {err.mean():.3f}); naive pinhole error max {err_naive.max():.2f} px (mean {err_naive.mean():.2f})")
     assert err.max() <= 0.15
     assert err_naive.mean() > 2.0  # the refraction is large at this scale: the check has teeth
+
+
+@pytest.mark.parametrize("name", ["nadir", "oblique40"])
+def test_markers_under_a_sloping_surface_land_on_the_tilted_projection(rendered_sloping, name):
+    err, err_flat, count = errors(rendered_sloping, name, WaterSurface(0.0, N, SLOPE), WaterSurface(0.0, N))
+    print(f"\n{name}, slope {SLOPE}: {count} markers, tilted-model error max {err.max():.3f} px "
+          f"(mean {err.mean():.3f}); flat model at the same level: max {err_flat.max():.2f} px "
+          f"(mean {err_flat.mean():.2f})")
+    assert err.max() <= 0.15
+    assert err_flat.mean() > 0.5  # the tilt moves every marker: the check has teeth
