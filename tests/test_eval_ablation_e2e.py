@@ -200,3 +200,27 @@ def test_a_killed_process_is_named_with_its_row_and_the_rerun_finishes(evaluable
     assert done.returncode == 0, done.stderr
     rows = json.loads((out / "results.json").read_text())["rows"]
     assert len(rows["3dgs"]) == 1 and len(rows["full"]) == 1
+
+
+def test_one_level_trains_with_the_level_it_is_given_and_scores_against_the_surface(evaluable_dataset, tmp_path,
+                                                                                     monkeypatch, capsys):
+    # `--one-level` for real (a shrunken smoke row): the row trains under one level at the mean of the surveyed
+    # edge points, the references are given it, the truth's surface scores them, and results.json records both
+    smoke = train.PRESETS["smoke"]
+    monkeypatch.setitem(train.PRESETS, "smoke", replace(smoke, iterations=4, init_count=100, backend="torch"))
+    monkeypatch.setitem(ablation.PRESETS, "smoke", replace(ablation.PRESETS["smoke"], checkpoints=2))
+    monkeypatch.setattr(metrics, "default_vgg16_path", lambda: tmp_path / "absent.pth")
+    data = tmp_path / "data"
+    shutil.copytree(evaluable_dataset, data)
+    (data / "survey").mkdir()
+    (data / ablation.EDGE_POINTS).write_text("x,y,z\n-0.5,-0.6,0.03\n0.5,-0.6,0.01\n-0.5,0.6,0.02\n0.5,0.6,0.0\n")
+    out = tmp_path / "runs"
+    assert main(["ablation", "--data", str(data), "--out", str(out), "--preset", "smoke", "--variants", "3dgs",
+                 "full", "--seeds", "0", "--init", "grid", "--jobs", "1", "--no-download", "--one-level"]) == 0
+    printed = capsys.readouterr().out
+    assert "ONE LEVEL (--one-level)" in printed and "0.015 m (the mean of the 4 surveyed edge points" in printed
+    res = json.loads((out / "results.json").read_text())
+    assert res["one_level"]["level"] == pytest.approx(0.015) and res["water"] == {"level": 0.0, "n": 1.33}
+    full = res["rows"]["full"][0]
+    assert full["config"]["water_level"] == pytest.approx(0.015) and full["config"]["water_slope"] == [0.0, 0.0]
+    assert all(rows[0]["key"]["one_level"] == res["one_level"] for rows in res["rows"].values())
