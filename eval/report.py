@@ -299,13 +299,14 @@ def water_notes(header: dict) -> list[str]:
     out, water, flat = [], header.get("water") or {}, header.get("one_level")
     if water.get("slope"):
         sx, sy = water["slope"]
-        out.append(f"Water: a sloping surface, z = {water['level']:g} + {sx:g} x + {sy:g} y (a fall of "
+        terms = "".join(f" {'-' if v < 0 else '+'} {abs(v):g} {axis}" for v, axis in ((sx, "x"), (sy, "y")) if v)
+        out.append(f"Water: a sloping surface, z = {water['level']:g}{terms} (a fall of "
                    f"{100 * math.hypot(sx, sy):.2g} %); every depth (the thresholds' maximum depth, the bands, IHO) "
                    "is the depth below it.")
     if flat:
         out.append(f"ONE LEVEL (--one-level): every variant and every reference was given one flat water level, "
                    f"{flat['level']:.3f} m (the mean of the {flat['edge_points']} surveyed edge points, "
-                   f"{Path(flat['edge_file']).name}), instead of the dataset's surface: what a flat-water tool "
+                   f"{flat['edge_file']}), instead of the dataset's surface: what a flat-water tool "
                    "does. The scores are against the true surface and bed, as in every run.")
     return out
 

@@ -19,7 +19,7 @@ from eval import metrics
 from eval.ablation import CODE, PRESETS, TrainEval, extract_config
 from eval.evaluate import evaluate_fused, evaluate_geometry, evaluate_views, score_grid
 from eval.references import USES_GROUND_TRUTH, oracle_grids, start_extraction
-from eval.report import T2_COLUMNS, T3_COLUMNS, geometry_table
+from eval.report import T2_COLUMNS, T3_COLUMNS, geometry_table, water_notes
 from ragsplat_core.dataset import layout
 from ragsplat_core.errors import ConfigError, DatasetError
 from ragsplat_core.export import load_model
@@ -118,6 +118,7 @@ def table(result: dict) -> str:
                    "covered wet cells, banks bias over the emerged ground."),
               ("- volume: volume sampling of the Gaussians; fused: TSDF fusion of the true Gaussians' median "
                "depth maps of the training views.")]
+    lines += [f"- {note}" for note in water_notes({"water": result.get("truth_water")})]  # a sloping surface
     app = result["appearance"]
     for cond, what in (("refr", "through the water vs the with-water images"), ("dry", "without it vs the dry images")):
         if app[cond] is not None:

@@ -208,7 +208,8 @@ def test_one_level_rows_give_the_references_the_level_and_are_scored_against_the
     assert "one_level" not in surface["3dgs x n"][0]["key"]
     res = json.loads((tmp_path / "surface" / "results.json").read_text())
     assert res["water"] == {"level": 0.0, "n": N, "slope": list(SLOPE)} and res["one_level"] is None
-    assert "Water: a sloping surface" in (tmp_path / "surface" / "table2.md").read_text()
+    assert "Water: a sloping surface, z = 0 - 0.05 x + 0.02 y (a fall of 5.4 %)" in \
+        (tmp_path / "surface" / "table2.md").read_text()
     assert "ONE LEVEL" not in (tmp_path / "surface" / "table2.md").read_text()
     # ... and below one level at the mean height it is off by (n - 1) x the surface's rise over the level:
     # +-1.6 cm at the ends of 2 m falling 10 cm, more than 1 % of the 1 m depth
