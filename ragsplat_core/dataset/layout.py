@@ -347,7 +347,7 @@ class Surface:
 def write_elevation(path: Path, points: np.ndarray, step: float, nodata: float = NODATA) -> None:
     """Grid points [N, 3] on a regular `step` lattice -> single-band float32 GeoTIFF of their heights
     (`write_raster`)."""
-    write_raster(path, points[:, :2], [(points[:, 2], "bed elevation (m, z up, water plane at the scene's level)")],
+    write_raster(path, points[:, :2], [(points[:, 2], "bed elevation (m, z up, the scene's frame)")],
                  step, nodata=nodata)
 
 
@@ -381,7 +381,8 @@ def write_raster(path: Path, xy: np.ndarray, bands: list[tuple[np.ndarray, str]]
 
 
 def write_waterline(path: Path, lines: list[np.ndarray], level: float) -> None:
-    """Polylines [K, 2] where the bed crosses the water plane, as a GeoJSON MultiLineString (local metres)."""
+    """Polylines [K, 2] ([K, 3] under a sloping surface: the height too) where the bed crosses the water
+    surface, as a GeoJSON MultiLineString (local metres)."""
     write_json(path, {"type": "Feature", "properties": {"level": level, "crs": "local metres (see LOCAL_CRS)"},
                       "geometry": {"type": "MultiLineString",
                                    "coordinates": [np.round(line, 6).tolist() for line in lines]}})
