@@ -347,7 +347,7 @@ class Surface:
 def write_elevation(path: Path, points: np.ndarray, step: float, nodata: float = NODATA) -> None:
     """Grid points [N, 3] on a regular `step` lattice -> single-band float32 GeoTIFF of their heights
     (`write_raster`)."""
-    write_raster(path, points[:, :2], [(points[:, 2], "bed elevation (m, z up, the scene's frame)")],
+    write_raster(path, points[:, :2], [(points[:, 2], "bed elevation (m, z up, water plane at the scene's level)")],
                  step, nodata=nodata)
 
 
