@@ -66,6 +66,9 @@ def opacity_factor(means, water: WaterSurface):
     """[N] rendered / true opacity of Gaussians centred at means [N, 3] under `water` (RA-GS's 1 / n^2,
     blended at the water line as in `refract_gaussians`; 1 above the level). Pruning and opacity resets
     apply their thresholds to what is rendered through it."""
+    if water.curved:  # the depth along the tangent plane's normal above each, as the transform blends
+        R, p0 = _tangent_frames(water, means)
+        return _fade(waterline_weight(-torch.einsum("nj,nj->n", R[:, 2], means - p0)), water.n)
     if water.tilted:  # the depth along the plane's normal, as the transform blends
         return _fade(waterline_weight(-_to_plane(means, *_plane_frame(water, means))[:, 2]), water.n)
     level = torch.as_tensor(water.level, dtype=means.dtype, device=means.device)
@@ -81,11 +84,78 @@ def linear_to_srgb(c):
     return torch.where(c <= 0.0031308, 12.92 * c, 1.055 * c.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
 
 
+def _lib(x):  # the array library of x: torch for tensors, numpy otherwise
+    if torch.is_tensor(x):
+        return torch
+    import numpy
+
+    return numpy
+
+
+@dataclass(frozen=True)
+class Profile:
+    """Heights added to a surface's plane along a reach's main axis: r(s) at s = (xy - origin) . direction,
+    through the knots (stations [K] increasing, offsets [K]) by a C1 cubic Hermite curve (Catmull-Rom
+    tangents, one-sided at the ends), flat beyond the ends. A river's surface steps down its riffles and
+    lies nearly level over its pools: the plane takes the mean fall, the profile the rest."""
+
+    origin: tuple[float, float]
+    direction: tuple[float, float]  # unit, in the xy plane
+    stations: tuple[float, ...]
+    offsets: tuple[float, ...]
+
+    def __post_init__(self):
+        for name in ("origin", "direction", "stations", "offsets"):
+            object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
+        s, u = self.stations, self.direction
+        if not (len(s) == len(self.offsets) >= 2 and all(b > a for a, b in zip(s, s[1:]))
+                and all(math.isfinite(v) for v in (*s, *self.offsets, *self.origin, *u))
+                and abs(math.hypot(*u) - 1) < 1e-9):
+            raise ValueError("a water profile needs >= 2 increasing stations, as many finite offsets and a unit "
+                             "direction")
+
+    def _knots(self, like):
+        lib = _lib(like)
+        if lib is torch:
+            return (torch.tensor(self.stations, dtype=like.dtype, device=like.device),
+                    torch.tensor(self.offsets, dtype=like.dtype, device=like.device))
+        return lib.asarray(self.stations), lib.asarray(self.offsets)
+
+    def along(self, xy):  # [...] the station of horizontal points xy [..., 2]
+        return (xy[..., 0] - self.origin[0]) * self.direction[0] + (xy[..., 1] - self.origin[1]) * self.direction[1]
+
+    def value_and_slope(self, s):
+        """(r(s), dr/ds) at stations s [...] (tensors or numpy arrays)."""
+        lib = _lib(s)
+        ks, kr = self._knots(s)
+        K = len(self.stations)
+        dr = (kr[1:] - kr[:-1]) / (ks[1:] - ks[:-1])  # [K-1] the chords' slopes
+        tangent = lib.concatenate([dr[:1], (dr[1:] + dr[:-1]) / 2, dr[-1:]])  # [K] Catmull-Rom at the knots
+        inside = (s >= ks[0]) & (s <= ks[-1])
+        clipped = lib.clip(s, ks[0], ks[-1]) if lib is not torch else s.clamp(ks[0], ks[-1])
+        i = lib.searchsorted(ks, clipped, side="right") if lib is not torch else \
+            torch.searchsorted(ks, clipped.contiguous(), right=True)
+        i = (i - 1).clip(0, K - 2) if lib is not torch else (i - 1).clamp(0, K - 2)
+        h = ks[i + 1] - ks[i]
+        t = (clipped - ks[i]) / h
+        t2, t3 = t * t, t * t * t
+        value = (2 * t3 - 3 * t2 + 1) * kr[i] + (t3 - 2 * t2 + t) * h * tangent[i] \
+            + (-2 * t3 + 3 * t2) * kr[i + 1] + (t3 - t2) * h * tangent[i + 1]
+        slope = ((6 * t2 - 6 * t) * kr[i] + (3 * t2 - 4 * t + 1) * h * tangent[i]
+                 + (-6 * t2 + 6 * t) * kr[i + 1] + (3 * t2 - 2 * t) * h * tangent[i + 1]) / h
+        return value, slope * inside
+
+    def shifted(self, offset_xy) -> Profile:
+        return Profile((self.origin[0] - offset_xy[0], self.origin[1] - offset_xy[1]), self.direction,
+                       self.stations, self.offsets)
+
+
 @dataclass(frozen=True)
 class WaterSurface:
     """The water surface z = level + slope[0] x + slope[1] y (world metres; `level` is its height at x = y = 0)
     with refractive index n relative to air: a horizontal plane by default, a tilted one for a river whose
-    surface falls along the reach (slope = (dz/dx, dz/dy): a 1 % fall along +x is (-0.01, 0)).
+    surface falls along the reach (slope = (dz/dx, dz/dy): a 1 % fall along +x is (-0.01, 0)), plus, for a
+    surface that curves along the reach, a `profile` (`Profile`) added to the plane.
 
     `level`, `n` and `slope` may be tensors that require grad (0-d; slope [2]), for calibrating them.
     """
@@ -93,10 +163,13 @@ class WaterSurface:
     level: float = 0.0
     n: float = 1.33
     slope: tuple[float, float] = (0.0, 0.0)
+    profile: Profile | None = None
 
     def __post_init__(self):
         if isinstance(self.slope, list):  # as JSON gives it; a tuple keeps the dataclass hashable
             object.__setattr__(self, "slope", tuple(self.slope))
+        if isinstance(self.profile, dict):
+            object.__setattr__(self, "profile", Profile(**self.profile))
         if not math.isfinite(_value(self.level)):
             raise ValueError(f"water level must be finite, got {self.level}")
         if not (math.isfinite(_value(self.n)) and _value(self.n) >= 1.0):
@@ -116,15 +189,31 @@ class WaterSurface:
         keeps today's transform and its arithmetic exactly."""
         return torch.is_tensor(self.slope) and self.slope.requires_grad or any(_value(v) != 0 for v in self.slope)
 
+    @property
+    def curved(self) -> bool:
+        """A surface with a profile along the reach: refracted through the tangent plane above each point."""
+        return self.profile is not None
+
     def height(self, xy):
         """[...] surface height at horizontal points xy [..., 2] (tensors or numpy arrays)."""
-        if not self.tilted:
+        if not (self.tilted or self.curved):
             return self.level + 0 * xy[..., 0]
-        return self.level + self.slope[0] * xy[..., 0] + self.slope[1] * xy[..., 1]
+        z = self.level + self.slope[0] * xy[..., 0] + self.slope[1] * xy[..., 1]
+        return z if self.profile is None else z + self.profile.value_and_slope(self.profile.along(xy))[0]
+
+    def gradient(self, xy):
+        """[..., 2] (dz/dx, dz/dy) of the surface at horizontal points xy [..., 2]."""
+        lib = _lib(xy)
+        g = lib.stack([self.slope[0] + 0 * xy[..., 0], self.slope[1] + 0 * xy[..., 1]], -1)
+        if self.profile is None:
+            return g
+        ds = self.profile.value_and_slope(self.profile.along(xy))[1]
+        return g + ds[..., None] * lib.asarray(self.profile.direction) if lib is not torch else \
+            g + ds[..., None] * torch.tensor(self.profile.direction, dtype=xy.dtype, device=xy.device)
 
     def depth(self, points):
         """[...] vertical depth of points [..., 3] below the surface (negative above it): height - z."""
-        if not self.tilted:
+        if not (self.tilted or self.curved):
             return self.level - points[..., 2]
         return self.height(points[..., :2]) - points[..., 2]
 
@@ -132,7 +221,8 @@ class WaterSurface:
         """The same surface in a frame whose origin lies at `offset` [3] of this one (x_new = x - offset)."""
         ox, oy, oz = (float(v) for v in offset)
         sx, sy = (_value(v) for v in self.slope)
-        return WaterSurface(_value(self.level) + sx * ox + sy * oy - oz, _value(self.n), (sx, sy))
+        return WaterSurface(_value(self.level) + sx * ox + sy * oy - oz, _value(self.n), (sx, sy),
+                            None if self.profile is None else self.profile.shifted((ox, oy)))
 
 
 
@@ -142,14 +232,20 @@ def _plane_frame(water: WaterSurface, like):
     point above the origin; both carry gradients to level and slope. `like`: a tensor for dtype and device."""
     kw = {"dtype": like.dtype, "device": like.device}
     sx, sy = (torch.as_tensor(v, **kw) for v in water.slope)
+    zero = torch.zeros((), **kw)
+    return _rotations(sx, sy), torch.stack([zero, zero, torch.as_tensor(water.level, **kw)])
+
+
+def _rotations(sx, sy):
+    """[..., 3, 3] the smallest rotations taking the upward normals of planes with gradients (sx, sy) [...] to
+    +z (Rodrigues: v = normal x e_z, R = I + [v]x + [v]x^2 / (1 + normal . e_z))."""
     norm = torch.sqrt(1 + sx * sx + sy * sy)
     nx, ny, nz = -sx / norm, -sy / norm, 1 / norm  # the upward unit normal
-    zero = torch.zeros((), **kw)
-    # v = normal x e_z = (ny, -nx, 0); R = I + [v]x + [v]x^2 / (1 + normal . e_z)
-    vx = torch.stack([torch.stack([zero, zero, -nx]), torch.stack([zero, zero, -ny]), torch.stack([nx, ny, zero])])
-    R = torch.eye(3, **kw) + vx + vx @ vx / (1 + nz)
-    p0 = torch.stack([zero, zero, torch.as_tensor(water.level, **kw)])
-    return R, p0
+    zero = torch.zeros_like(nx)
+    vx = torch.stack([torch.stack([zero, zero, -nx], -1), torch.stack([zero, zero, -ny], -1),
+                      torch.stack([nx, ny, zero], -1)], -2)
+    eye = torch.eye(3, dtype=nx.dtype, device=nx.device)
+    return eye + vx + vx @ vx / (1 + nz)[..., None, None]
 
 
 def _to_plane(points, R, p0):  # [N, 3] -> [N, 3] in the plane's frame
@@ -228,8 +324,8 @@ def _local(points, camera_center, water) -> _Local:
     level = torch.as_tensor(water.level, dtype=points.dtype, device=points.device)
     n = torch.as_tensor(water.n, dtype=points.dtype, device=points.device)
     C = torch.as_tensor(camera_center, dtype=points.dtype, device=points.device)
-    v = points[:, :2] - C[:2]
-    return _Local(v, (v * v).sum(-1), level - points[:, 2], C[2] - level, n, C[:2], level)
+    v = points[:, :2] - C[..., :2]  # C [3], or [M, 3]: a camera per point (the curved surface's own frames)
+    return _Local(v, (v * v).sum(-1), level - points[:, 2], C[..., 2] - level, n, C[..., :2], level)
 
 
 def _place(loc: _Local, rho, d_app):  # [M, 3] apparent points from r'/r and d'
@@ -238,11 +334,15 @@ def _place(loc: _Local, rho, d_app):  # [M, 3] apparent points from r'/r and d'
 
 @torch.compiler.disable  # under torch.compile: a graph break (it reads a value), not a traced float() and a warning
 def _check_camera(camera_center, water) -> None:
-    C = [_value(v) for v in camera_center]
-    surface = _value(water.level) + sum(_value(s) * c for s, c in zip(water.slope, C[:2]))
-    if not C[2] > surface:
-        raise ValueError(f"camera centre z = {C[2]} is not above the water surface ({surface} there): "
-                         f"refraction needs the camera in air")
+    C = torch.as_tensor(camera_center).detach().double().reshape(-1, 3)  # one camera, or one per row
+    if not len(C):
+        return
+    with torch.no_grad():
+        surface = torch.as_tensor(water.height(C[:, :2]), dtype=C.dtype)
+    low = int(torch.argmin(C[:, 2] - surface))
+    if not float(C[low, 2]) > float(surface[low]):
+        raise ValueError(f"camera centre z = {float(C[low, 2])} is not above the water surface "
+                         f"({float(surface[low])} there): refraction needs the camera in air")
 
 
 def _flat_in_plane(water: WaterSurface) -> WaterSurface:  # a tilted surface in its own frame: q_z = 0
@@ -261,6 +361,9 @@ def apparent_points(points, camera_center, water: WaterSurface, steps: int | Non
     _check_camera(camera_center, water)
     if water.is_identity:
         return points.clone()
+    if water.curved:  # through the tangent plane above each point
+        return _refract_curved(points, points, None, points[:, 0], points, camera_center, water, True, "none",
+                               False, False, steps, None).means
     if water.tilted:  # the flat transform in the plane's frame; points above it stay exactly as they are
         R, p0 = _plane_frame(water, points)
         local = _to_plane(points, R, p0)
@@ -278,6 +381,12 @@ def apparent_points_each(points, centers, water: WaterSurface, steps: int | None
     bundle adjustment's observations); points above the surface are returned unchanged."""
     if water.is_identity:
         return points.clone()
+    if water.curved:  # each point through the tangent plane above it
+        R, p0 = _tangent_frames(water, points)
+        local = torch.einsum("nij,nj->ni", R, points - p0)
+        moved = apparent_points_each(local, torch.einsum("nij,nj->ni", R, centers - p0), _flat_in_plane(water),
+                                     steps)
+        return torch.where((local[:, 2] < 0)[:, None], torch.einsum("nji,nj->ni", R, moved) + p0, points)
     if water.tilted:
         R, p0 = _plane_frame(water, points)
         local = _to_plane(points, R, p0)
@@ -341,6 +450,10 @@ def apparent_jacobian(points, camera_center, water: WaterSurface, steps: int | N
     J = torch.eye(3, dtype=points.dtype, device=points.device).expand(N, 3, 3).clone()
     if water.is_identity:
         return J
+    if water.curved:  # the tangent planes' (see `_refract_curved`)
+        eye = torch.eye(3, dtype=points.dtype, device=points.device)
+        return _refract_curved(points, points, None, points[:, 0], points, camera_center, water, False,
+                               "anisotropic", False, False, steps, None).jacobians.clone() if len(points) else eye[:0]
     if water.tilted:  # J_world = R^T J_plane R
         R, p0 = _plane_frame(water, points)
         C = _to_plane(torch.as_tensor(camera_center, dtype=points.dtype, device=points.device)[None], R, p0)[0]
@@ -401,6 +514,9 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
         jacobians = torch.eye(3, dtype=means.dtype, device=means.device).expand(len(means), 3, 3)
     if water.is_identity or not (position or opacity or color or scale != "none"):
         return ApparentGaussians(means, scales, quats, opacities, colors, covars, jacobians)
+    if water.curved:
+        return _refract_curved(means, scales, quats, opacities, colors, camera_center, water, position, scale,
+                               opacity, color, steps, covars)
     if water.tilted:
         return _refract_tilted(means, scales, quats, opacities, colors, camera_center, water, position, scale,
                                opacity, color, steps, covars)
@@ -417,7 +533,8 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
     level = torch.as_tensor(water.level, dtype=means.dtype, device=means.device)
     w = waterline_weight(level - take(means)[:, 2])  # [M]
     if position or scale != "none":
-        loc = _local(take(means), camera_center, water)
+        per_row = torch.is_tensor(camera_center) and camera_center.dim() == 2  # `_refract_curved`'s frames
+        loc = _local(take(means), take(camera_center) if per_row else camera_center, water)
         der = _derivatives(loc, steps) if scale != "none" else None
         if position:
             rho, d_app = (der.rho, der.d_app) if der else apparent_offsets(loc.r2, loc.d, loc.H, loc.n, steps)
@@ -455,6 +572,39 @@ def _refract_tilted(means, scales, quats, opacities, colors, camera_center, wate
     jacobians = None
     if scale == "anisotropic":
         jacobians = R.T @ out.jacobians @ R
+        if covars is not None:
+            covars = jacobians @ covars @ jacobians.transpose(1, 2)
+    return ApparentGaussians(means, out.scales, quats, out.opacities, out.colors, covars, jacobians)
+
+
+def _tangent_frames(water: WaterSurface, points):
+    """(R [N, 3, 3], p0 [N, 3]): the frame of the tangent plane of a curved surface above each of points
+    [N, 3] (p0 the surface point straight above, R its normal to +z)."""
+    xy = points[:, :2]
+    g = water.gradient(xy)
+    return _rotations(g[:, 0], g[:, 1]), torch.cat([xy, water.height(xy)[:, None]], -1)
+
+
+def _refract_curved(means, scales, quats, opacities, colors, camera_center, water, position, scale, opacity,
+                    color, steps, covars) -> ApparentGaussians:
+    """`refract_gaussians` under a curved surface (a profile along the reach): each Gaussian through the tangent
+    plane above it, exactly as `_refract_tilted` does for one plane, the planes' frames one per row. The
+    approximation: the light path meets the surface off the point's vertical (by up to d tan(theta_w) + the
+    air leg's share), where the surface departs from that tangent plane by about curvature x offset^2 / 2
+    (tests/test_water_surface.py measures it against a ray trace by Fermat's principle). The Jacobians are
+    the planes' (R^T J R): the plane's own motion with the point is left out of them, not of the gradients."""
+    R, p0 = _tangent_frames(water, means)
+    local = torch.einsum("nij,nj->ni", R, means - p0)
+    C = torch.as_tensor(camera_center, dtype=means.dtype, device=means.device)
+    C_local = torch.einsum("nij,nj->ni", R, C[None] - p0)
+    out = refract_gaussians(local, scales, quats, opacities, colors, C_local, _flat_in_plane(water), position,
+                            scale, opacity, color, steps, covariances=False)
+    if position:
+        back = torch.einsum("nji,nj->ni", R, out.means) + p0
+        means = torch.where((local[:, 2] < 0)[:, None], back, means)
+    jacobians = None
+    if scale == "anisotropic":
+        jacobians = R.transpose(1, 2) @ out.jacobians @ R
         if covars is not None:
             covars = jacobians @ covars @ jacobians.transpose(1, 2)
     return ApparentGaussians(means, out.scales, quats, out.opacities, out.colors, covars, jacobians)

@@ -58,3 +58,24 @@ def test_profile_says_where_points_lie_along_the_reach():
     height = np.where(pts[:, 0] < 500, 1.0, -1.0)  # the first half under the surface, the rest above
     bins = profile(pts, height, edge[:, :2], bins=2)
     assert bins[0]["below"] > 0 and bins[0]["above"] == 0 and bins[1]["above"] > 0 and bins[1]["below"] == 0
+
+
+def test_a_riffle_is_a_profile_and_a_plane_stays_a_plane():
+    """A surface that falls 1 % over pools and steps down 8 cm more at a riffle: the points support a profile;
+    its heights are right along the whole reach (within the noise), where the best plane is 2-3 cm off."""
+    rng = np.random.default_rng(3)
+    x = np.concatenate([np.linspace(-40, 40, 25)] * 2)
+    y = np.concatenate([np.full(25, -4.0), np.full(25, 4.0)])
+    step = -0.04 * np.tanh(x / 4)  # the riffle at x = 0
+    z = 50.0 - 0.01 * x + step + rng.normal(0, 0.005, len(x))
+    fit = fit_edge(np.column_stack([x, y, z]))
+    assert fit.kind == "profile" and fit.profile is not None
+    from ragsplat_core.refraction import WaterSurface
+
+    surface = WaterSurface(fit.level, 1.33, fit.slope, fit.profile)
+    xs = np.column_stack([np.linspace(-35, 35, 71), np.zeros(71)])
+    truth = 50.0 - 0.01 * xs[:, 0] - 0.04 * np.tanh(xs[:, 0] / 4)
+    assert np.abs(surface.height(xs) - truth).max() < 0.02
+    plane = WaterSurface(fit.level, 1.33, fit.slope)
+    assert np.abs(plane.height(xs) - truth).max() > 0.02
+    assert fit_edge(banks()).kind == "plane"  # a straight fall stays a plane

@@ -9,9 +9,11 @@ import torch
 
 from ragsplat_core.dataset.layout import water_json
 from ragsplat_core.refraction import (
+    Profile,
     WaterSurface,
     apparent_jacobian,
     apparent_points,
+    apparent_points_each,
     covariance,
     opacity_factor,
     refract_gaussians,
@@ -183,3 +185,82 @@ def test_water_rays_bend_at_the_tilted_normal_and_meet_at_the_true_point():
     origins, dirs = (np.concatenate(r) for r in zip(*rays))
     np.testing.assert_allclose(water.depth(origins), 0, atol=1e-12)
     np.testing.assert_allclose(closest_points(origins, dirs, np.tile([0, 1], 3), 2), true, atol=1e-9)
+
+
+# A riffle: the surface falls 1 % on average and 6 cm more over 8 m around x = 0 (up to 1.6 % more there).
+RIFFLE = WaterSurface(0.0, 1.33, (-0.01, 0.0), Profile((0.0, 0.0), (1.0, 0.0), (-20, -4, 4, 20), (0.03, 0.03, -0.03,
+                                                                                                   -0.03)))
+
+
+def fermat(P, C, water):
+    """The interface point of the true light path from P under the surface to the camera C: the point of the
+    surface where the optical length |I - C| + n |P - I| is least (Fermat's principle), found numerically."""
+    from scipy.optimize import minimize
+
+    def length(xy):
+        I = np.array([xy[0], xy[1], float(water.height(np.asarray(xy)[None])[0])])
+        return np.linalg.norm(I - C) + water.n * np.linalg.norm(P - I)
+
+    r = minimize(length, P[:2] + (C[:2] - P[:2]) * 0.3, method="Nelder-Mead",
+                 options={"xatol": 1e-11, "fatol": 1e-15, "maxiter": 20000})
+    return np.array([*r.x, float(water.height(r.x[None])[0])])
+
+
+def test_profile_heights_and_gradients():
+    xy = np.column_stack([np.linspace(-25, 25, 201), np.full(201, 3.0)])
+    z, g = RIFFLE.height(xy), RIFFLE.gradient(xy)
+    eps = 1e-6
+    dz = (RIFFLE.height(xy + [eps, 0]) - RIFFLE.height(xy - [eps, 0])) / (2 * eps)
+    np.testing.assert_allclose(g[:, 0], dz, atol=1e-8)
+    np.testing.assert_allclose(g[:, 1], 0.0)
+    assert z[0] == pytest.approx(0.25 + 0.03) and z[-1] == pytest.approx(-0.25 - 0.03)  # flat profile beyond
+    t = torch.from_numpy(xy)
+    np.testing.assert_allclose(RIFFLE.height(t).numpy(), z, atol=1e-15)  # tensors and arrays alike
+    np.testing.assert_allclose(RIFFLE.gradient(t).numpy(), g, atol=1e-15)
+    assert water_json(RIFFLE)["profile"]["offsets"] == [0.03, 0.03, -0.03, -0.03]
+    assert WaterSurface(**water_json(RIFFLE)) == RIFFLE and hash(RIFFLE)
+    moved = RIFFLE.shifted((100.0, 50.0, 2.0))
+    np.testing.assert_allclose(moved.height(xy - [100.0, 50.0]), z - 2.0, atol=1e-12)
+
+
+def test_a_flat_profile_is_the_plane():
+    p = below(TILTED)
+    flat = WaterSurface(0.5, 1.33, TILTED.slope, Profile((0.0, 0.0), (0.6, 0.8), (-30.0, 30.0), (0.0, 0.0)))
+    assert torch.allclose(apparent_points(p, CAM, flat), apparent_points(p, CAM, TILTED), rtol=0, atol=1e-12)
+
+
+def test_curved_surface_against_a_ray_trace():
+    """Under the riffle, the tangent plane above each point puts its apparent point on the true light path's air
+    ray within 1e-3 rad (0.2 px of a 256 px, 70 degree view; measured 0.08 px at most), several times closer
+    than one plane through the mean fall; under a plane the same trace agrees to round-off (the tracer's check)."""
+    rng = np.random.default_rng(0)
+    C = np.array([0.0, 0.0, 4.0])
+    mean_plane = WaterSurface(0.0, 1.33, (-0.01, 0.0))
+    worst = {"tangent": 0.0, "mean plane": 0.0, "plane check": 0.0}
+    for _ in range(40):
+        xy = rng.uniform(-8, 8, 2)
+        depth = rng.uniform(0.2, 3.0)
+        for name, surface, model in (("tangent", RIFFLE, RIFFLE), ("mean plane", RIFFLE, mean_plane),
+                                     ("plane check", mean_plane, mean_plane)):
+            P = np.array([*xy, float(surface.height(xy[None])[0]) - depth])
+            air = fermat(P, C, surface) - C
+            q = apparent_points(torch.from_numpy(P[None]), torch.from_numpy(C), model)[0].numpy() - C
+            angle = math.acos(min(1.0, float(air @ q / np.linalg.norm(air) / np.linalg.norm(q))))
+            worst[name] = max(worst[name], angle)
+    assert worst["plane check"] < 1e-6
+    assert worst["tangent"] < 1e-3 and worst["tangent"] < worst["mean plane"] / 3
+
+
+def test_curved_transform_is_consistent_and_differentiable():
+    p = below(RIFFLE, n=30, radius=10.0)
+    quats = torch.nn.functional.normalize(torch.rand(len(p), 4, dtype=f64), dim=-1)
+    scales = torch.rand(len(p), 3, dtype=f64) * 0.1
+    out = refract_gaussians(p, scales, quats, torch.full((len(p),), 0.6, dtype=f64), torch.rand(len(p), 3, dtype=f64),
+                            CAM, RIFFLE, scale="anisotropic")
+    assert torch.allclose(out.means, apparent_points(p, CAM, RIFFLE), rtol=0, atol=1e-12)
+    assert torch.allclose(out.jacobians, apparent_jacobian(p, CAM, RIFFLE), rtol=0, atol=1e-12)
+    assert torch.allclose(out.opacities, 0.6 * opacity_factor(p, RIFFLE), rtol=0, atol=1e-15)
+    each = apparent_points_each(p, CAM.expand(len(p), 3), RIFFLE)
+    assert torch.allclose(each, out.means, rtol=0, atol=1e-12)
+    q = p[:4].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda q: apparent_points(q, CAM, RIFFLE), (q,), eps=1e-7, atol=1e-6)

@@ -158,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
     edge = None
     if args.water_surface is not None:
         edge = water_fit.fit_edge(layout.read_points(args.water_surface))
-        surface = WaterSurface(edge.level, args.n, edge.slope)
+        surface = WaterSurface(edge.level, args.n, edge.slope, edge.profile)
         _say("check", f"water surface from {len(edge.residuals)} edge points: {_describe(surface)}, rms "
              f"{100 * edge.report()['rms_m']:.1f} cm, {int((~edge.inliers).sum())} left out")
     else:
@@ -305,8 +305,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _describe(water) -> str:
-    if not water.tilted:
+    if not (water.tilted or water.curved):
         return f"level {water.level:g} m"
+    if water.curved:
+        return (f"a plane falling {100 * (water.slope[0] ** 2 + water.slope[1] ** 2) ** 0.5:.2f} % with a profile "
+                f"of {len(water.profile.stations)} stations along the reach ({water.level:.3f} m at x = y = 0)")
     return (f"a plane falling {100 * (water.slope[0] ** 2 + water.slope[1] ** 2) ** 0.5:.2f} % (slope "
             f"{water.slope[0]:+.5f}, {water.slope[1]:+.5f}; {water.level:.3f} m at x = y = 0)")
 

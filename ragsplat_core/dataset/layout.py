@@ -468,6 +468,9 @@ def water_json(water) -> dict | None:
     slope = [float(v) for v in getattr(water, "slope", (0.0, 0.0))]
     if any(slope):
         out["slope"] = slope
+    profile = getattr(water, "profile", None)
+    if profile is not None:  # a surface curved along the reach: `refraction.Profile`
+        out["profile"] = {k: list(getattr(profile, k)) for k in ("origin", "direction", "stations", "offsets")}
     return out
 
 

@@ -184,9 +184,14 @@ def _water(meta: dict, path: Path) -> WaterSurface | None:
     slope = spec.get("slope", [0.0, 0.0])
     if not (isinstance(slope, list) and len(slope) == 2):
         raise _fail(path, f"'water.slope' must be [dz/dx, dz/dy], got {slope!r}")
+    profile = spec.get("profile")
+    if profile is not None and not (isinstance(profile, dict) and all(
+            isinstance(profile.get(k), list) for k in ("origin", "direction", "stations", "offsets"))):
+        raise _fail(path, "'water.profile' must be an object {origin, direction, stations, offsets} of lists")
     try:
         return WaterSurface(_number(spec, "level", path, "water."), _number(spec, "n", path, "water."),
-                            tuple(_number(dict(enumerate(slope)), i, path, "water.slope ") for i in range(2)))
+                            tuple(_number(dict(enumerate(slope)), i, path, "water.slope ") for i in range(2)),
+                            profile)
     except ValueError as err:
         if isinstance(err, DatasetError):
             raise

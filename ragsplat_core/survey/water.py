@@ -2,11 +2,13 @@
 
 A river's surface falls downstream (0.1-1 % on gravel-bed rivers), and the field's correction takes a water
 surface elevation per point for that reason (pyBathySfM interpolates it from such edge points). Here the
-points give either one level or the tilted plane z = level + sx x + sy y (`refraction.WaterSurface`), whichever
-the points support: both are fitted robustly (Huber weights on the residuals' MAD, the worst points out
-beyond 3.5 of it) and the plane is kept when it lowers the Bayesian information criterion, which asks a
-fall well above the points' scatter for the two more numbers. Points along one bank only (a line) fix no
-cross slope: the plane then tilts along that line alone.
+points give one level, the tilted plane z = level + sx x + sy y (`refraction.WaterSurface`), or that plane
+and a profile along the reach's main axis (`refraction.Profile`: the medians of the plane's residuals in
+stretches of at least `PROFILE_POINTS` points, a smooth curve through them), whichever the points support:
+each is fitted robustly (Huber weights on the residuals' MAD, the worst points out beyond 3.5 of it) and
+the model with the lowest Bayesian information criterion is kept, which asks a fall (a bend of the profile)
+well above the points' scatter for each number more. Points along one bank only (a line) fix no cross
+slope: the plane then tilts along that line alone.
 """
 
 from __future__ import annotations
@@ -18,25 +20,30 @@ from dataclasses import dataclass
 import numpy as np
 
 from ragsplat_core.errors import DatasetError
+from ragsplat_core.refraction import Profile
 
 MIN_SIGMA = 0.002  # m: a scatter below this (RTK's own) is not taken as a fit better than RTK can measure
 OUTLIER = 3.5  # robust standard deviations
+PROFILE_POINTS = 6  # edge points per stretch of a profile (both banks together); 3 stretches at least
 
 
 @dataclass(frozen=True)
 class EdgeFit:
     """The fitted surface (in the points' frame) and how the points lie around it."""
 
-    kind: str  # "plane" or "level"
+    kind: str  # "level", "plane" or "profile"
     level: float  # height at x = y = 0
     slope: tuple[float, float]  # (dz/dx, dz/dy); (0, 0) for one level
     residuals: np.ndarray  # [K] point z - surface height
     inliers: np.ndarray  # [K] bool
     bic: dict[str, float]  # of each model, on the inliers
+    profile: Profile | None = None  # added to the plane ("profile")
 
     def report(self) -> dict:
         r = self.residuals[self.inliers]
         return {"kind": self.kind, "level_at_origin": self.level, "slope": list(self.slope),
+                "profile": None if self.profile is None else {"stations": list(self.profile.stations),
+                                                               "offsets": list(self.profile.offsets)},
                 "fall_percent": 100 * math.hypot(*self.slope), "points": len(self.residuals),
                 "inliers": int(self.inliers.sum()), "rms_m": float(np.sqrt(np.mean(r * r))),
                 "max_abs_m": float(np.abs(r).max()), "bic": self.bic,
@@ -84,10 +91,33 @@ def fit_edge(points: np.ndarray) -> EdgeFit:
     gradient = c_plane[1:] @ axes  # dz/d(x, y)
     r_plane = z - c_plane[0] - xy @ gradient
     scores = {"level": bic(r_level, 1), "plane": bic(r_plane, 1 + len(axes))}
-    if scores["plane"] < scores["level"] and math.hypot(*gradient) < 1:
-        level = float(c_plane[0] - gradient @ mean[:2])
-        return EdgeFit("plane", level, (float(gradient[0]), float(gradient[1])), r_plane, in_plane, scores)
-    return EdgeFit("level", float(c_level), (0.0, 0.0), r_level, in_level, scores)
+    plane = (float(c_plane[0] - gradient @ mean[:2]), (float(gradient[0]), float(gradient[1])))
+    profile = _profile(uv[:, 0], r_plane, in_plane, mean[:2], vt[0])
+    if profile is not None:
+        r_profile = r_plane - profile.value_and_slope(profile.along(points[:, :2]))[0]
+        scores["profile"] = bic(r_profile, 1 + len(axes) + len(profile.stations))
+    best = min(scores, key=scores.get)
+    if math.hypot(*gradient) >= 1 or best == "level":
+        return EdgeFit("level", float(c_level), (0.0, 0.0), r_level, in_level, scores)
+    if best == "plane":
+        return EdgeFit("plane", *plane, r_plane, in_plane, scores)
+    return EdgeFit("profile", *plane, r_profile, in_plane & (np.abs(r_profile) <= OUTLIER * max(
+        1.4826 * np.median(np.abs(r_profile[in_plane])), MIN_SIGMA)), scores, profile)
+
+
+def _profile(u: np.ndarray, residual: np.ndarray, keep: np.ndarray, origin, direction) -> Profile | None:
+    """The plane's residuals along the main axis as a `Profile`: the median residual and station of each
+    stretch of `PROFILE_POINTS` kept points (None for fewer than 3 stretches)."""
+    order = np.argsort(u[keep])
+    bins = len(order) // PROFILE_POINTS
+    if bins < 3:
+        return None
+    parts = np.array_split(order, bins)
+    stations = np.array([np.median(u[keep][p]) for p in parts])
+    offsets = np.array([np.median(residual[keep][p]) for p in parts])
+    if not np.all(np.diff(stations) > 0):
+        return None
+    return Profile(tuple(origin), tuple(direction / np.linalg.norm(direction)), tuple(stations), tuple(offsets))
 
 
 def profile(points: np.ndarray, height: np.ndarray, axis_points: np.ndarray, bins: int = 5) -> list[dict]:
