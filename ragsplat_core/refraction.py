@@ -33,6 +33,7 @@ the slope through the rotation as they reach the level.
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -108,7 +109,7 @@ class Profile:
         for name in ("origin", "direction", "stations", "offsets"):
             object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
         s, u = self.stations, self.direction
-        if not (len(s) == len(self.offsets) >= 2 and all(b > a for a, b in zip(s, s[1:]))
+        if not (len(s) == len(self.offsets) >= 2 and all(b > a for a, b in itertools.pairwise(s))
                 and all(math.isfinite(v) for v in (*s, *self.offsets, *self.origin, *u))
                 and abs(math.hypot(*u) - 1) < 1e-9):
             raise ValueError("a water profile needs >= 2 increasing stations, as many finite offsets and a unit "
