@@ -63,7 +63,7 @@ CASES = [
      None),
     ("camera under water", lambda t: edit_json(t / "data" / "transforms.json",
                                                lambda m: m.update(water={"level": 50.0, "n": 1.33})),
-     TRAIN, "not above the water level", None),
+     TRAIN, "not above the water surface", None),
     ("refractive index < 1", lambda t: edit_json(t / "data" / "transforms.json",
                                                  lambda m: m.update(water={"level": 0.0, "n": 0.5})),
      TRAIN, "refractive index must be finite and >= 1, got 0.5", None),
