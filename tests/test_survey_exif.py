@@ -72,6 +72,8 @@ def test_a_photo_without_gps_is_one_line_naming_it(tmp_path, capsys):
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and "IMG_1.JPG: no GPS position" in lines[0] and "--positions" in lines[0]
     assert not (tmp_path / "run").exists()
+    assert main([*argv, "--gcp-pixels", str(tmp_path / "pixels.csv")]) == 2  # no --gcp: not the photos' GPS
+    assert "--gcp-pixels needs --gcp" in capsys.readouterr().err
 
 
 def meridian_arc(lat_deg: float) -> float:
@@ -251,3 +253,29 @@ def test_photos_alone_with_consumer_gps_keep_every_camera(geotagged, tmp_path, c
     # held to centimetres as if they were RTK, the same photos lose cameras as "outliers": issue 48's point 3
     assert main(survey_args(root, layout.SURVEY_IMAGES_GPS, out, "--gps-sigma", "0.02", "0.03")) == 0
     assert json.loads((out / "georef.json").read_text())["inliers"] < 18
+
+
+def test_the_adjustment_holds_each_camera_to_its_own_accuracy():
+    """A per-camera prior (RTK and consumer GPS in one flight): the same as the tuple when every row is the
+    same; a camera held to metres goes where its photos put it, away from a position 0.5 m off."""
+    from ragsplat_core.survey import bundle
+
+    rng = np.random.default_rng(0)
+    cams = [Camera.look_at([x, y, 5.0], [x, y, 0.0], 120, 90, 60.0) for x in (-1.0, 0.0, 1.0) for y in (-0.5, 0.5)]
+    R = torch.tensor(np.array([c.R for c in cams]))
+    C = torch.tensor(np.array([c.camera_center for c in cams]))
+    K = torch.tensor([[c.fx, c.fy, c.cx, c.cy] for c in cams])
+    P = torch.tensor(np.column_stack([rng.uniform(-2, 2, (150, 2)), rng.uniform(-0.3, 0.3, 150)]))
+    point, image = torch.arange(150).repeat(len(cams)), torch.arange(len(cams)).repeat_interleave(150)
+    pixels = bundle.project(R[image], C[image], K[image], P[point], None)
+    inside = ((pixels >= 0) & (pixels < torch.tensor([120.0, 90.0]))).all(1)
+    point, image, pixels = point[inside], image[inside], pixels[inside]
+    prior = C.clone()
+    prior[0, 0] += 0.5  # one camera's GPS 0.5 m off
+    same = bundle.adjust(R, C, K, P, point, image, pixels, None, prior_C=prior, prior_sigma=(0.02, 0.02, 0.03))
+    rows = bundle.adjust(R, C, K, P, point, image, pixels, None, prior_C=prior,
+                         prior_sigma=torch.tensor([[0.02, 0.02, 0.03]] * len(cams)))
+    torch.testing.assert_close(rows.C, same.C)
+    each = torch.tensor([[2.0, 2.0, 3.0]] + [[0.02, 0.02, 0.03]] * (len(cams) - 1))
+    loose = bundle.adjust(R, C, K, P, point, image, pixels, None, prior_C=prior, prior_sigma=each)
+    assert (loose.C - C).norm(dim=1).max() < 0.02 < (same.C - C).norm(dim=1).max()

@@ -154,6 +154,9 @@ def run(args: argparse.Namespace) -> int:
     elif args.gcp is None:  # the positions from the photos' EXIF GPS and DJI XMP
         from ragsplat_core.survey import exif
 
+        if args.gcp_pixels is not None:
+            raise ConfigError("--gcp-pixels needs --gcp (the targets' surveyed positions)")
+
         tagged = exif.read_photos(photos)
         positions, crs = exif.positions(tagged, args.crs)
         args.crs = args.crs or exif.crs_label(crs)
