@@ -282,7 +282,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
 
     # 3. the water: bundle adjustment through it, cameras held at their RTK positions or targets at theirs
-    key = _digest(key, layout.water_json(water), args.no_water_adjustment, list(rtk_sigma) if sigma is None else given, args.gcp_sigma)
+    held_by = list(rtk_sigma) if sigma is None else given  # the positions' accuracy, one or per camera
+    key = _digest(key, layout.water_json(water), args.no_water_adjustment, held_by, args.gcp_sigma)
     model = args.out / "model"
     t0 = time.perf_counter()
     if not stamps.done("water", key, model, args.out / "water.json"):
