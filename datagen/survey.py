@@ -1,12 +1,18 @@
 """The survey a surveyor hands over, made from a rendered dataset: the training photos as JPEGs with their
 focal length in EXIF (`survey/images/`), the camera centres as an RTK drone records them, with seeded noise
-(`survey/positions.csv`), the water level as measured at the edge, with noise (`survey/water_level.txt`),
+(`survey/positions.csv`, and the same positions in the photos' EXIF GPS and DJI-style XMP, RtkFlag 50, through
+a geographic origin of the scene, `GeoOrigin`; the same photos again in `survey/images-gps/` with a consumer
+drone's GPS instead: a bias per flight line and scatter, metres, no RTK flag), the water level as measured at the edge, with noise (`survey/water_level.txt`),
 points on the water's edge along both banks as a surveyor measures them with RTK (`survey/water_edge.csv`,
 header x,y,z, with noise on z) and ground control on the banks with the targets' pixels (`survey/gcp.csv`,
 `survey/gcp_pixels.csv`). On a sloping surface water_level.txt holds one level at the mean of the edge
 points' heights: what a tool that takes one flat water level would be given. No poses: recovering them is
 `ragsplat survey`'s job; the dataset's transforms.json stays the truth that scores it. numpy only (JPEG
-through Pillow)."""
+through Pillow, geodesy through pyproj).
+
+The scene's frame is a UTM grid's, shifted: x, y, z = easting - E0, northing - N0, height - h0, where
+(E0, N0) is `GeoOrigin`'s position in its UTM zone and h0 its height (WGS 84 ellipsoidal), all recorded in
+survey.json ("geo"); scene.json, transforms.json and gt/ do not change."""
 
 from __future__ import annotations
 
@@ -21,6 +27,31 @@ from ragsplat_core.outputs import write_bytes, write_json
 
 EDGE_POINTS = 15  # edge points measured along each bank
 _EDGE_STREAM = 4  # the edge points' noise: a random stream apart from the survey's and the conditions' (1-3)
+_GPS_STREAM = 5  # consumer GPS: each flight line's bias and each photo's scatter
+_ANGLE_STREAM = 6  # the gimbal angles' noise
+TAKEOFF_ABOVE_WATER = 1.0  # the drone takes off from the bank this far above the water (RelativeAltitude's zero)
+
+
+@dataclass(frozen=True)
+class GeoOrigin:
+    """Where the synthetic scene's origin is on Earth: the Soca near Kobarid, Slovenia, a clear gravel-bed
+    river (the UTM zone 33N, 1.4 degrees west of its central meridian)."""
+
+    lat: float = 46.2470  # degrees north
+    lon: float = 13.5830  # degrees east
+    height: float = 247.0  # WGS 84 ellipsoidal height of the scene's z = 0 (m): about 200 m above sea level
+
+
+@dataclass(frozen=True)
+class ConsumerGPS:
+    """A consumer drone's GPS (metres, no RTK): what `survey/images-gps/` carries."""
+
+    line_bias: tuple[float, float] = (1.0, 1.5)  # each flight line's horizontal offset: its length, uniform (m)
+    line_bias_z: float = 0.5  # each flight line's vertical offset, standard deviation (m)
+    jitter: float = 0.5  # each photo's own scatter about its line's offset, each axis (m)
+
+
+GIMBAL_NOISE_DEG = (2.0, 0.5, 0.5)  # the recorded gimbal yaw (a compass), pitch and roll, standard deviation
 
 
 @dataclass(frozen=True)
@@ -37,7 +68,8 @@ class SurveyNoise:
 
 def write_survey(root: Path, poses, water, seed: int = 0, noise: SurveyNoise = SurveyNoise(),
                  banks: np.ndarray | None = None, targets: np.ndarray | None = None,
-                 waterline: list[np.ndarray] | None = None, region: dict | None = None) -> bool:
+                 waterline: list[np.ndarray] | None = None, region: dict | None = None,
+                 origin: GeoOrigin = GeoOrigin(), gps: ConsumerGPS = ConsumerGPS()) -> bool:
     """Writes ROOT/survey/ from the dataset ROOT's wet training views `poses` (`flight.plan`: name, camera,
     split) and the true water surface `water` (`WaterSpec`: level, slope; see the module docstring); with
     the banks' ground truth points `banks` [B, 3], also ground control: `noise.gcp_count` points on the
@@ -45,9 +77,10 @@ def write_survey(root: Path, poses, water, seed: int = 0, noise: SurveyNoise = S
     them (`gcp_pixels.csv`, with `noise.gcp_pixel`), as a surveyor who picked the targets' centres would
     give them; where the scene has checkerboard `targets` [T, 3] rendered (field conditions), those are the
     ground control. With the `waterline` polylines [K, >= 2] (a reach), also the edge points
-    (`edge_points`, along the evaluated `region`'s x-range). Returns False when a survey made with the same
-    seed and noise is already there (nothing written but a missing water_edge.csv, which older surveys
-    lack)."""
+    (`edge_points`, along the evaluated `region`'s x-range). The photos are geotagged through `origin`, those
+    of images-gps/ with the consumer GPS `gps` (`write_geotags`). Returns False when a survey made with the same
+    seed and noise is already there (nothing written but what older surveys lack: water_edge.csv, the photos'
+    geotags and images-gps/, `write_geotags`)."""
     root = Path(root)
     record = {"seed": seed, "noise": asdict(noise), "views": "the training views, wet"}
     path = root / layout.SURVEY_RECORD
@@ -55,19 +88,20 @@ def write_survey(root: Path, poses, water, seed: int = 0, noise: SurveyNoise = S
     if waterline is not None:
         xy = edge_points(waterline, *((region["xmin"], region["xmax"]) if region else (-np.inf, np.inf)))
         edge = np.column_stack([xy, water.height(xy)])  # on the surface: the waterline's true heights
-    if path.is_file() and json.loads(path.read_text()) == record:
-        if edge is not None and not (root / layout.SURVEY_EDGE).is_file():
-            _write_edge(root, edge, seed, noise)
-        return False
-    rng = np.random.default_rng(seed)
     train = [p for p in poses if p.split == "train"]
     names = [f"{p.name}.jpg" for p in train]
-    for p, name in zip(train, names):
-        image = layout.read_png(layout.output_path(root, "wet", p.name))
-        layout.write_jpeg(root / layout.SURVEY_IMAGES / name, image, p.camera.fx)
+    old = json.loads(path.read_text()) if path.is_file() else None
+    if old is not None and {k: old.get(k) for k in record} == record:
+        if edge is not None and not (root / layout.SURVEY_EDGE).is_file():
+            _write_edge(root, edge, seed, noise)
+        if old.get("geo") != geo_record(train, names, water, seed, noise, origin, gps):  # older: no geotags
+            write_json(path, {**old, "geo": write_geotags(root, train, names, water, seed, noise, origin, gps)})
+        return False
+    rng = np.random.default_rng(seed)
     sigma = np.array([noise.horizontal, noise.horizontal, noise.vertical])
     centres = np.array([p.camera.camera_center for p in train])
     layout.write_positions(root / layout.SURVEY_POSITIONS, names, centres + rng.normal(size=centres.shape) * sigma)
+    record["geo"] = write_geotags(root, train, names, water, seed, noise, origin, gps)
     level = float(edge[:, 2].mean()) if water.sloping and edge is not None else water.level  # one level
     write_bytes(root / layout.SURVEY_LEVEL, f"{level + rng.normal() * noise.level:.4f}\n".encode())
     if edge is not None:
@@ -87,6 +121,106 @@ def write_survey(root: Path, poses, water, seed: int = 0, noise: SurveyNoise = S
         layout.write_gcp_pixels(root / layout.SURVEY_GCP_PIXELS, rows)
     write_json(path, record)  # last: its presence marks a finished survey
     return True
+
+
+def geo_record(train, names: list[str], water, seed: int, noise: SurveyNoise,
+               origin: GeoOrigin = GeoOrigin(), gps: ConsumerGPS = ConsumerGPS()) -> dict:
+    """survey.json's "geo": the origin, its UTM zone and the scene's frame in it, and how the two folders of
+    geotagged photos were made (each flight line's consumer-GPS bias)."""
+    from ragsplat_core.survey import exif
+
+    epsg = exif.utm_epsg(origin.lat, origin.lon)
+    e0, n0, _ = exif.to_metric(origin.lat, origin.lon, origin.height, f"EPSG:{epsg}")[0]
+    lines = flight_lines(train)
+    bias = _line_bias(len(set(lines)), seed, gps)
+    return {"origin": asdict(origin), "crs": f"EPSG:{epsg}", "origin_metric": [float(e0), float(n0), origin.height],
+            "frame": "scene x, y, z = easting - E0, northing - N0, height - h0 (the UTM grid; heights WGS 84 "
+                     "ellipsoidal, as the photos' GPSAltitude and AbsoluteAltitude hold them)",
+            "takeoff_z": water.level + TAKEOFF_ABOVE_WATER, "gimbal_noise_deg": list(GIMBAL_NOISE_DEG),
+            layout.SURVEY_IMAGES: {"positions": layout.SURVEY_POSITIONS, "rtk_flag": exif.RTK_FIXED,
+                                   "rtk_std_m": [noise.horizontal, noise.horizontal, noise.vertical]},
+            layout.SURVEY_IMAGES_GPS: {"noise": asdict(gps), "lines": [
+                {"photos": [n for n, k in zip(names, lines) if k == line], "bias_m": bias[line].round(4).tolist()}
+                for line in range(len(bias))]}}
+
+
+def write_geotags(root: Path, train, names: list[str], water, seed: int, noise: SurveyNoise,
+                  origin: GeoOrigin = GeoOrigin(), gps: ConsumerGPS = ConsumerGPS()) -> dict:
+    """The training photos (`train`: poses, `names`: their JPEG names) written again into `survey/images/`
+    with the positions.csv centres as EXIF GPS and DJI-style XMP (AbsoluteAltitude, RelativeAltitude, gimbal
+    and flight angles, RtkFlag 50 with RtkStdLon / RtkStdLat / RtkStdHgt), and into `survey/images-gps/`
+    with a consumer drone's GPS instead (the true centres plus a bias per flight line and scatter, `gps`;
+    no RTK tags). Returns survey.json's "geo" (`geo_record`)."""
+    from ragsplat_core.survey import exif
+
+    record = geo_record(train, names, water, seed, noise, origin, gps)
+    crs, shift = record["crs"], np.array(record["origin_metric"])
+    rtk = layout.read_positions(root / layout.SURVEY_POSITIONS)
+    rtk = np.array([rtk[n] for n in names])
+    lines = flight_lines(train)
+    scatter = np.random.default_rng([seed, _GPS_STREAM]).normal(size=(len(train), 3)) * gps.jitter
+    consumer = np.array([p.camera.camera_center for p in train]) + _line_bias(len(set(lines)), seed, gps)[lines]
+    consumer += scatter
+    angles = gimbal_angles([p.camera for p in train], shift, crs)
+    angles += np.random.default_rng([seed, _ANGLE_STREAM]).normal(size=angles.shape) * GIMBAL_NOISE_DEG
+    angles[:, 0] = (angles[:, 0] + 180) % 360 - 180
+    angles[:, 1] = np.clip(angles[:, 1], -90, 30)  # a gimbal's range
+    for folder, xyz, tags in ((layout.SURVEY_IMAGES, rtk, {"RtkFlag": exif.RTK_FIXED, "RtkStdLon": noise.horizontal,
+                                                          "RtkStdLat": noise.horizontal, "RtkStdHgt": noise.vertical}),
+                              (layout.SURVEY_IMAGES_GPS, consumer, {})):
+        geographic = exif.to_geographic(xyz + shift, crs)
+        for p, name, (lat, lon, h), z, (yaw, pitch, roll) in zip(train, names, geographic, xyz[:, 2], angles):
+            xmp = {"AbsoluteAltitude": round(h, 3), "RelativeAltitude": round(z - record["takeoff_z"], 3),
+                   "GimbalRollDegree": round(roll, 2), "GimbalYawDegree": round(yaw, 2),
+                   "GimbalPitchDegree": round(pitch, 2), "FlightRollDegree": 0.0, "FlightYawDegree": round(yaw, 2),
+                   "FlightPitchDegree": 0.0, **tags}
+            image = layout.read_png(layout.output_path(root, "wet", p.name))
+            layout.write_jpeg(root / folder / name, image, p.camera.fx, gps=(lat, lon, h), xmp=xmp)
+    return record
+
+
+def flight_lines(train) -> np.ndarray:
+    """[V] the flight line of each training pose: the nadirs by grid row (one y), each oblique ring one."""
+    keys = [(p.kind, round(float(p.camera.camera_center[1]), 2) if p.kind == "nadir" else None) for p in train]
+    order = list(dict.fromkeys(keys))
+    return np.array([order.index(k) for k in keys], dtype=int)
+
+
+def _line_bias(count: int, seed: int, gps: ConsumerGPS) -> np.ndarray:
+    """[count, 3] each flight line's consumer-GPS offset: a horizontal length in gps.line_bias in a random
+    direction, a vertical one with gps.line_bias_z (its own random stream, drawn before the scatter)."""
+    rng = np.random.default_rng([seed, _GPS_STREAM, 1])
+    turn = rng.uniform(0, 2 * np.pi, count)
+    length = rng.uniform(*gps.line_bias, count)
+    return np.column_stack([length * np.cos(turn), length * np.sin(turn), rng.normal(size=count) * gps.line_bias_z])
+
+
+def gimbal_angles(cameras, shift: np.ndarray, crs: str) -> np.ndarray:
+    """[V, 3] each camera's gimbal yaw, pitch, roll as DJI records them (degrees): yaw the heading of the
+    view (the optical axis, or for a nadir the image's top) clockwise from true north, pitch the optical
+    axis above the horizon (-90: straight down), roll about the optical axis, positive with the image's
+    right side down (0 for a nadir, whose turn about its axis is its yaw). The scene
+    frame is the UTM grid shifted by `shift` (its grid north is not true north: the heading is measured on
+    the ellipsoid)."""
+    from pyproj import Geod
+
+    from ragsplat_core.survey import exif
+
+    R = np.array([c.R for c in cameras])  # rows: right, down, forward in the world
+    forward, up, right = R[:, 2], -R[:, 1], R[:, 0]
+    level = np.linalg.norm(forward[:, :2], axis=1) > 1e-6  # not straight down (or up)
+    ahead = np.where(level[:, None], forward[:, :2], up[:, :2])  # a nadir's heading: its image's top
+    ahead /= np.linalg.norm(ahead, axis=1, keepdims=True)
+    flat = np.cross(forward, [0.0, 0.0, 1.0])  # the image's right at no roll (horizontal)
+    flat /= np.maximum(np.linalg.norm(flat, axis=1, keepdims=True), 1e-12)
+    lifted = np.cross(flat, forward)  # the image's top at no roll
+    roll = np.where(level, np.degrees(np.arctan2(-(right * lifted).sum(1), (right * flat).sum(1))), 0.0)
+    centre = np.array([c.camera_center for c in cameras]) + shift
+    a = exif.to_geographic(centre, crs)
+    b = exif.to_geographic(centre + np.column_stack([10 * ahead, np.zeros(len(ahead))]), crs)
+    yaw = Geod(ellps="WGS84").inv(a[:, 1], a[:, 0], b[:, 1], b[:, 0])[0]
+    pitch = np.degrees(np.arcsin(np.clip(forward[:, 2], -1, 1)))
+    return np.column_stack([yaw, pitch, roll])
 
 
 def edge_points(lines: list[np.ndarray], xmin: float, xmax: float, count: int = EDGE_POINTS) -> np.ndarray:

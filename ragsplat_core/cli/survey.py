@@ -1,6 +1,9 @@
-"""`ragsplat survey IMAGES --positions positions.csv | --gcp gcp.csv --gcp-pixels pixels.csv
+"""`ragsplat survey IMAGES [--positions positions.csv | --gcp gcp.csv --gcp-pixels pixels.csv]
 --water-level Z | --water-surface EDGE.csv --out RUN [--crs EPSG:N] [--masks DIR]`:
 from the drone's photos to a DEM, every stage cached in RUN and skipped by a rerun whose inputs are the same.
+Without --positions or --gcp the camera positions come from the photos' own metadata (`survey.exif`: EXIF
+GPS, DJI's XMP with its RTK flag and accuracies), converted to the UTM zone of their mean position (or
+--crs), in which the products are then written; their accuracy follows their source (RTK fixed or not).
 
 1. structure from motion (`survey.sfm`: pycolmap SIFT, exhaustive matching, incremental mapping) -> RUN/sfm/;
 2. georeferencing: the similarity that takes the model's camera centres to the RTK positions, or the ground
@@ -35,19 +38,22 @@ from ragsplat_core.cli.args import (
 )
 
 STAGES = ("sfm", "georef", "water", "train", "export")
+RTK_SIGMA = (0.02, 0.03)  # an RTK drone's camera centre, horizontal and vertical (m)
 PRODUCTS = ("dem.tif", "bed.laz", "depth.png")
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from eval.ablation import INIT
+    from ragsplat_core.survey.exif import CONSUMER_SIGMA
     from ragsplat_core.train.config import PRESETS, VARIANTS
 
     parser.add_argument("images", type=Path, metavar="IMAGES", help="the folder of the survey's photos (JPEG/PNG)")
-    frame = parser.add_mutually_exclusive_group(required=True)
+    frame = parser.add_mutually_exclusive_group()
     frame.add_argument("--positions", type=Path, metavar="CSV",
                        help="camera centres as the drone's RTK recorded them: CSV with header name,x,y,z "
-                            "(image file name; metres, z up, the frame of the water level and the products)")
+                            "(image file name; metres, z up, the frame of the water level and the products); "
+                            "without --positions or --gcp the positions come from the photos' EXIF GPS and DJI XMP")
     frame.add_argument("--gcp", type=Path, metavar="CSV",
                        help="ground control points instead: CSV with header name,x,y,z (as surveyed), with "
                             "--gcp-pixels")
@@ -64,14 +70,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                               "x,y,z, the positions' frame; a river's sloping surface is fitted to them")
     parser.add_argument("--out", required=True, type=out_dir, help="run directory (a rerun resumes)")
     parser.add_argument("--n", type=refractive_index, default=1.33, help="refractive index of the water (1.33)")
-    parser.add_argument("--crs", metavar="CRS", help="the positions' CRS for the products, e.g. EPSG:32633")
+    parser.add_argument("--crs", metavar="CRS",
+                        help="the positions' CRS for the products, e.g. EPSG:32633; with positions from the photos "
+                             "the projected CRS (metres) they are converted to (default: the UTM zone of their "
+                             "mean position)")
     parser.add_argument("--masks", type=Path, metavar="DIR",
                         help="masks named <image name>.png, zero where pixels are left out of training")
     parser.add_argument("--no-water-adjustment", action="store_true",
                         help="keep the pinhole structure-from-motion poses (only for comparison: through water "
                              "they are tilted and the bed comes out too deep)")
-    parser.add_argument("--rtk-sigma", type=positive_float, nargs=2, default=(0.02, 0.03), metavar=("H", "V"),
-                        help="RTK position accuracy, horizontal and vertical (m; default 0.02 0.03)")
+    parser.add_argument("--rtk-sigma", type=positive_float, nargs=2, metavar=("H", "V"),
+                        help="RTK position accuracy, horizontal and vertical (m; default 0.02 0.03, or with "
+                             "positions from the photos each RTK-fixed photo's own reported accuracy)")
+    parser.add_argument("--gps-sigma", type=positive_float, nargs=2, default=CONSUMER_SIGMA, metavar=("H", "V"),
+                        help="accuracy of positions from the photos without RTK fix (consumer GPS), horizontal "
+                             "and vertical (m; default %(default)s)")
     parser.add_argument("--variant", default="2dgs+full", choices=list(VARIANTS), help="(default: 2dgs+full)")
     parser.add_argument("--init", default=INIT, choices=["triangulated", "refracted"], help=f"(default: {INIT})")
     parser.add_argument("--preset", default="small", choices=list(PRESETS), help="training preset (small)")
@@ -134,9 +147,26 @@ def run(args: argparse.Namespace) -> int:
     if len(photos) < 3:
         raise DatasetError(f"{args.images}: {len(photos)} photos (JPEG, PNG or TIFF); at least 3 are needed")
     names = [p.name for p in photos]
+    rtk_sigma, tagged, sigma = args.rtk_sigma or RTK_SIGMA, None, None
     if args.positions is not None:
         positions, control = layout.read_positions(args.positions), None
         known, source = positions, args.positions
+    elif args.gcp is None:  # the positions from the photos' EXIF GPS and DJI XMP
+        from ragsplat_core.survey import exif
+
+        if args.gcp_pixels is not None:
+            raise ConfigError("--gcp-pixels needs --gcp (the targets' surveyed positions)")
+
+        tagged = exif.read_photos(photos)
+        positions, crs = exif.positions(tagged, args.crs)
+        args.crs = args.crs or exif.crs_label(crs)
+        sigma = dict(zip(names, exif.sigmas(tagged, args.rtk_sigma, tuple(args.gps_sigma))))
+        control, known, source = None, positions, args.images
+        fixed = sum(p.rtk_fixed for p in tagged)
+        heights = sorted({p.altitude_source for p in tagged})
+        _say("check", f"positions from the photos: {len(tagged)} of {len(photos)} have GPS ({fixed} RTK fixed, "
+             f"{len(tagged) - fixed} consumer GPS), in {exif.describe_crs(crs)}; heights as the photos give them "
+             f"({', '.join(heights)})")
     else:
         if args.gcp_pixels is None:
             raise ConfigError("--gcp needs --gcp-pixels (where each target is in the photos)")
@@ -188,8 +218,9 @@ def run(args: argparse.Namespace) -> int:
         return 0
 
     # 2. georeferencing: to the RTK positions, or to the ground control points seen in the photos
-    key = _digest(key, layout.file_digest(source), None if control is None else layout.file_digest(args.gcp),
-                  origin.tolist())
+    given = layout.file_digest(source) if tagged is None else _digest(
+        {n: positions[n].tolist() for n in names}, {n: sigma[n].tolist() for n in names}, args.crs)
+    key = _digest(key, given, None if control is None else layout.file_digest(args.gcp), origin.tolist())
     trk = sfm.tracks(rec)
     if control is None:
         have = [k for k, n in enumerate(trk.names) if n in positions]
@@ -197,7 +228,17 @@ def run(args: argparse.Namespace) -> int:
             raise DatasetError(f"{args.positions}: only {len(have)} registered photos have a position; 3 are needed")
         src = trk.C[have].numpy()
         dst = np.array([positions[trk.names[k]] for k in have]) - origin
-        what, labels, tol = f"{len(have)} RTK positions", [trk.names[k] for k in have], 10 * args.rtk_sigma[1]
+        labels = [trk.names[k] for k in have]
+        if tagged is None:
+            what, tol = f"{len(have)} RTK positions", 10 * rtk_sigma[1]
+            noise = {"model": "RTK", "sigma_m": list(rtk_sigma)}
+        else:  # the threshold follows each position's source: consumer GPS scatter is no outlier
+            ours = np.array([sigma[n] for n in labels])
+            is_fixed = {p.name: p.rtk_fixed for p in tagged}
+            rtk = np.array([is_fixed[n] for n in labels])
+            what, tol = (f"{len(have)} positions from the photos ({int(rtk.sum())} RTK fixed, "
+                         f"{int((~rtk).sum())} consumer GPS)"), 10 * ours[:, 1]
+            noise = _noise_model(tagged, sigma, labels)
     else:
         gcp = sfm.control_points(rec, trk, pixels)  # name -> (model xyz, observations)
         usable = [n for n, (xyz, obs) in gcp.items() if np.isfinite(xyz).all()]
@@ -208,7 +249,9 @@ def run(args: argparse.Namespace) -> int:
         src = np.array([gcp[n][0] for n in usable])
         dst = np.array([control[n] for n in usable]) - origin
         what, labels, tol = f"{len(usable)} ground control points", usable, 10 * args.gcp_sigma
-    sim, inliers = georef.ransac_similarity(src, dst, threshold=max(0.2, tol))
+        noise = {"model": "ground control", "sigma_m": args.gcp_sigma}
+    threshold = np.maximum(0.2, tol)  # 10 sigma, at least 20 cm: only gross errors are left out
+    sim, inliers = georef.ransac_similarity(src, dst, threshold=threshold)
     res = sim.apply(src) - dst
     looks = (trk.R[:, 2, :].numpy() @ sim.R.T)[:, 2]  # the optical axes' z in the positions' frame
     if np.median(looks) > -0.2:
@@ -218,16 +261,29 @@ def run(args: argparse.Namespace) -> int:
     report = {"to": what, "scale": sim.scale, "R": sim.R.tolist(), "t": (sim.t + origin).tolist(),
               "origin": origin.tolist(), "inliers": int(inliers.sum()), "count": len(labels),
               "residual_m": {name: r.tolist() for name, r in zip(labels, res)},
-              "rms_m": float(np.sqrt((res[inliers] ** 2).sum(1).mean()))}
+              "rms_m": float(np.sqrt((res[inliers] ** 2).sum(1).mean())),
+              "positions": {"source": "the photos' EXIF GPS and DJI XMP" if tagged is not None else str(source),
+                            "crs": args.crs},
+              "noise": {**noise, "threshold_m": _rounded(threshold), "fit": "similarity (7 parameters), RANSAC "
+                        "on 3 correspondences then refitted to the inliers; a correspondence whose residual "
+                        "exceeds the threshold is an outlier"}}
+    if tagged is not None:
+        report["positions"] |= {"heights": sorted({p.altitude_source for p in tagged}), "photos": {
+            p.name: {"lat": p.lat, "lon": p.lon, "altitude": p.altitude, "rtk_flag": p.rtk_flag,
+                     "sigma_m": sigma[p.name].tolist(), "gimbal_ypr_deg": p.gimbal} for p in tagged}}
+        report["noise"]["rms_m_by_source"] = {
+            kind: float(np.sqrt((res[inliers & pick] ** 2).sum(1).mean())) if (inliers & pick).any() else None
+            for kind, pick in (("rtk_fixed", rtk), ("consumer_gps", ~rtk))}
     write_json(args.out / "georef.json", report)
-    _say("georef", f"similarity to {what}: scale {sim.scale:.4g}, {int(inliers.sum())} inliers, "
+    _say("georef", f"similarity to {what}: scale {sim.scale:.4g}, {int(inliers.sum())} of {len(labels)} inliers, "
          f"rms {100 * report['rms_m']:.1f} cm (each one's: {args.out / 'georef.json'})")
     stamps.mark("georef", key)
     if args.stop_after == "georef":
         return 0
 
     # 3. the water: bundle adjustment through it, cameras held at their RTK positions or targets at theirs
-    key = _digest(key, layout.water_json(water), args.no_water_adjustment, list(args.rtk_sigma), args.gcp_sigma)
+    held_by = list(rtk_sigma) if sigma is None else given  # the positions' accuracy, one or per camera
+    key = _digest(key, layout.water_json(water), args.no_water_adjustment, held_by, args.gcp_sigma)
     model = args.out / "model"
     t0 = time.perf_counter()
     if not stamps.done("water", key, model, args.out / "water.json"):
@@ -238,7 +294,12 @@ def run(args: argparse.Namespace) -> int:
         if control is None:
             prior = torch.full_like(C, float("nan"))
             prior[have] = torch.as_tensor(dst)
-            held = {"prior_C": prior, "prior_sigma": (args.rtk_sigma[0],) * 2 + (args.rtk_sigma[1],)}
+            if sigma is None:
+                held = {"prior_C": prior, "prior_sigma": (rtk_sigma[0],) * 2 + (rtk_sigma[1],)}
+            else:  # each camera held as its source allows (RTK centimetres, consumer GPS metres)
+                each = torch.ones_like(C)
+                each[have] = torch.as_tensor(np.array([sigma[trk.names[k]][[0, 0, 1]] for k in have]))
+                held = {"prior_C": prior, "prior_sigma": each}
         else:  # the targets join the points, held at their surveyed positions
             gcp_rows = torch.arange(len(P), len(P) + len(usable))
             obs = [(row, k, uv) for row, n in zip(gcp_rows.tolist(), usable) for k, uv in gcp[n][1]]
@@ -302,6 +363,39 @@ def run(args: argparse.Namespace) -> int:
     for name in PRODUCTS:
         print(args.out / name)
     return 0
+
+
+def _noise_model(tagged, sigma: dict, labels: list[str]) -> dict:
+    """georef.json's account of the noise model of positions from the photos (`survey.exif.sigmas`)."""
+    import numpy as np
+
+    used = set(labels)
+    fixed = [p.name for p in tagged if p.name in used and p.rtk_fixed]
+    other = [p.name for p in tagged if p.name in used and not p.rtk_fixed]
+    out = {"model": "by source: RTK fixed (DJI RtkFlag 50) to centimetres, anything else (no RTK flag, or a "
+                    "single-point or float solution) as consumer GPS to metres"}
+    if fixed:
+        own = [p.std_horizontal is not None for p in tagged if p.name in fixed]
+        out["rtk_fixed"] = {"count": len(fixed), "sigma_m_median": np.median([sigma[n] for n in fixed], 0).tolist(),
+                            "from": f"the photos' RtkStdLon / RtkStdLat / RtkStdHgt ({sum(own)} of {len(fixed)})"
+                                    if any(own) else "--rtk-sigma (or its 2 / 3 cm default)"}
+    if other:
+        out["consumer_gps"] = {
+            "count": len(other), "sigma_m": sigma[other[0]].tolist(),
+            "bias": "consumer GPS drifts by metres and each flight line can be 1-1.5 m off the others; no "
+                    "per-line bias is estimated: the similarity is fitted to every position within the "
+                    "threshold (10 sigma), so their scatter leaves no camera out, and a line's bias shows in "
+                    "residual_m as residuals of one sign along it; the adjustment holds these cameras only "
+                    "to metres (--gps-sigma), the photos decide their relative positions"}
+    return out
+
+
+def _rounded(threshold):
+    """A threshold (one or per correspondence) for georef.json: one number when all are the same."""
+    import numpy as np
+
+    values = np.atleast_1d(np.asarray(threshold, float))
+    return float(values[0]) if np.ptp(values) == 0 else [round(float(v), 4) for v in values]
 
 
 def _describe(water) -> str:

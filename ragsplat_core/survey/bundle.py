@@ -64,16 +64,17 @@ def _huber(s: torch.Tensor, delta: float) -> tuple[torch.Tensor, torch.Tensor]: 
 
 def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: torch.Tensor,
            point: torch.Tensor, image: torch.Tensor, pixels: torch.Tensor, water: WaterSurface | None,
-           prior_C: torch.Tensor | None = None, prior_sigma: tuple[float, float, float] = (0.02, 0.02, 0.03),
+           prior_C: torch.Tensor | None = None,
+           prior_sigma: tuple[float, float, float] | torch.Tensor = (0.02, 0.02, 0.03),
            prior_points: tuple[torch.Tensor, torch.Tensor] | None = None, point_sigma: float = 0.01,
            pixel_sigma: float = 1.0, huber: float = 2.0, iterations: int = 30, tol: float = 1e-9) -> Bundle:
     """Levenberg-Marquardt on the cameras (R [I, 3, 3], C [I, 3]) and points [P, 3] given the observations
     pixels [M, 2] of point [M] in image [M], the intrinsics [I, 4] held fixed. Cost: sum of Huber(|r| /
     pixel_sigma) over the observations plus, with `prior_C` [I, 3], sum of ((C - prior_C) / prior_sigma)^2
-    (metres; x, y, z; rows of NaN: no prior), which also fixes the frame; with `prior_points` (indices [G],
-    positions [G, 3]: ground control points among the points) sum of ((P - position) / point_sigma)^2, which
-    fixes it too; without either the frame floats (damped only).
-    Stops after `iterations` or when an accepted step lowers the cost by less than `tol` relative."""
+    (metres; x, y, z, the same for every camera or one row [I, 3] each; rows of NaN: no prior), which also
+    fixes the frame; with `prior_points` (indices [G], positions [G, 3]: ground control points among the
+    points) sum of ((P - position) / point_sigma)^2, which fixes it too; without either the frame floats
+    (damped only). Stops after `iterations` or when an accepted step lowers the cost by less than `tol` relative."""
     dt = torch.float64
     R, C, points, intrinsics, pixels = (x.to(dt) for x in (R, C, points, intrinsics, pixels))
     n_img, n_pts = len(C), len(points)
@@ -132,7 +133,7 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
         gc = torch.zeros(n_img, 6, dtype=dt, device=C.device).index_add_(0, image, (Jc.mT @ (w * r[:, :, None]))[..., 0])
         gp = torch.zeros(n_pts, 3, dtype=dt, device=C.device).index_add_(0, point, (Jp.mT @ (w * r[:, :, None]))[..., 0])
         if sig is not None:
-            U[:, 3:, 3:] += held[:, :, None] * torch.diag(1 / sig**2)
+            U[:, 3:, 3:] += held[:, :, None] * torch.diag_embed((1 / sig**2).expand(n_img, 3))
             gc[:, 3:] += held * (C - prior_C) / sig**2
         if gcp is not None:
             V[gcp] += eye3 / point_sigma**2

@@ -1,0 +1,293 @@
+"""Camera positions from the photos' own metadata (`survey.exif`): EXIF GPS and DJI's XMP written by
+`layout.write_jpeg` and read back, the conversion to UTM against the projection's definition, the zone
+chosen, a photo without GPS refused in one line, and `ragsplat survey PHOTOS` with no positions file on a
+small synthetic survey geotagged by the generator (`datagen.survey.write_survey`): RTK-fixed photos, and the
+same photos with consumer GPS (a bias per flight line), every camera kept."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from datagen.flight import Pose
+from datagen.spec import WaterSpec
+from datagen.survey import ConsumerGPS, GeoOrigin, SurveyNoise, flight_lines, gimbal_angles, write_survey
+from ragsplat_core.bench.synthetic import bed_scene, render_views, write_dataset
+from ragsplat_core.camera import Camera
+from ragsplat_core.cli.main import main
+from ragsplat_core.dataset import layout
+from ragsplat_core.errors import ConfigError, DatasetError
+from ragsplat_core.refraction import WaterSurface
+from ragsplat_core.survey import exif
+
+IMAGE = (np.random.default_rng(0).random((36, 48, 3)) * 255).astype(np.uint8)
+
+
+def test_gps_and_dji_xmp_round_trip(tmp_path):
+    path = tmp_path / "DJI_0001.JPG"
+    xmp = {"AbsoluteAltitude": 241.337, "RelativeAltitude": 38.5, "GimbalRollDegree": 0.0,
+           "GimbalYawDegree": -153.2, "GimbalPitchDegree": -89.9, "FlightRollDegree": 1.5,
+           "FlightYawDegree": -150.0, "FlightPitchDegree": -2.0, "RtkFlag": 50, "RtkStdLon": 0.011,
+           "RtkStdLat": 0.014, "RtkStdHgt": 0.023}
+    layout.write_jpeg(path, IMAGE, 40.0, gps=(-33.912345678, -70.123456789, 241.3371), xmp=xmp)
+    p = exif.read_photo(path)
+    assert p.name == "DJI_0001.JPG" and p.source == "EXIF GPS" and p.altitude_source == "DJI XMP AbsoluteAltitude"
+    assert abs(p.lat + 33.912345678) < 1e-9 and abs(p.lon + 70.123456789) < 1e-9  # 1e-6 arc seconds
+    assert p.altitude == pytest.approx(241.337, abs=1e-6) and p.relative_altitude == 38.5
+    assert p.rtk_flag == 50 and p.rtk_fixed and p.std_horizontal == 0.014 and p.std_vertical == 0.023
+    assert p.gimbal == (-153.2, -89.9, 0.0) and p.flight == (-150.0, -2.0, 1.5)
+    from PIL import Image
+
+    with Image.open(path) as im:  # still a plain JPEG with its focal length
+        assert im.size == (48, 36) and float(im.getexif().get_ifd(0x8769)[0x920A]) == pytest.approx(0.4)
+
+
+def test_exif_gps_alone_and_xmp_as_elements(tmp_path):
+    """No XMP: the height is the EXIF GPSAltitude (below sea level here), no RTK; DJI properties written as
+    elements rather than attributes are read too."""
+    path = tmp_path / "a.jpg"
+    layout.write_jpeg(path, IMAGE, 40.0, gps=(46.5, 13.25, -3.25))
+    p = exif.read_photo(path)
+    assert (p.lat, p.lon, p.altitude) == (pytest.approx(46.5), pytest.approx(13.25), pytest.approx(-3.25))
+    assert p.altitude_source == "EXIF GPSAltitude" and p.rtk_flag is None and not p.rtk_fixed and p.gimbal is None
+    packet = (b'<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+              b'<rdf:Description xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/"><drone-dji:RtkFlag>34'
+              b'</drone-dji:RtkFlag><drone-dji:GpsLatitude>+1.5</drone-dji:GpsLatitude></rdf:Description>'
+              b'</rdf:RDF></x:xmpmeta>')
+    assert exif.dji_tags(exif.xmp_packet(b"junk" + packet + b"junk")) == {"RtkFlag": "34", "GpsLatitude": "+1.5"}
+    assert exif.dji_tags(b"<x:xmpmeta not xml") == {}
+
+
+def test_a_photo_without_gps_is_one_line_naming_it(tmp_path, capsys):
+    for k in range(3):
+        layout.write_jpeg(tmp_path / "images" / f"IMG_{k}.JPG", IMAGE, 40.0,
+                          gps=None if k == 1 else (46.0, 13.0, 200.0))
+    with pytest.raises(DatasetError) as err:
+        exif.read_photos(sorted((tmp_path / "images").iterdir()))
+    assert "IMG_1.JPG: no GPS position in its metadata" in str(err.value) and "\n" not in str(err.value)
+    argv = ["survey", str(tmp_path / "images"), "--water-level", "0", "--out", str(tmp_path / "run")]
+    assert main(argv) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "IMG_1.JPG: no GPS position" in lines[0] and "--positions" in lines[0]
+    assert not (tmp_path / "run").exists()
+    assert main([*argv, "--gcp-pixels", str(tmp_path / "pixels.csv")]) == 2  # no --gcp: not the photos' GPS
+    assert "--gcp-pixels needs --gcp" in capsys.readouterr().err
+
+
+def meridian_arc(lat_deg: float) -> float:
+    """Length (m) of the WGS 84 meridian from the equator to lat_deg: the integral of the meridian's radius of
+    curvature a (1 - e^2) / (1 - e^2 sin^2 phi)^(3/2), by Simpson's rule (independent of pyproj)."""
+    a, f = 6378137.0, 1 / 298.257223563
+    e2 = f * (2 - f)
+    phi = np.linspace(0, math.radians(lat_deg), 2001)
+    m = a * (1 - e2) / (1 - e2 * np.sin(phi) ** 2) ** 1.5
+    h = phi[1] - phi[0]
+    return float(h / 3 * (m[0] + m[-1] + 4 * m[1:-1:2].sum() + 2 * m[2:-1:2].sum()))
+
+
+def test_utm_against_its_definition_and_back():
+    """On a zone's central meridian UTM is easting 500 000 m and northing 0.9996 times the meridian arc
+    (plus 10 000 km south of the equator); anywhere, back to degrees within a millimetre."""
+    xyz = exif.to_metric([45.0, 0.0, -30.0], [15.0, 15.0, 15.0], [1.0, 2.0, 3.0], "EPSG:32633")
+    np.testing.assert_allclose(xyz[:2], [[500000.0, 0.9996 * meridian_arc(45.0), 1.0], [500000.0, 0.0, 2.0]],
+                               atol=1e-3)
+    south = exif.to_metric(-30.0, 15.0, 3.0, "EPSG:32733")[0]
+    assert south == pytest.approx([500000.0, 1e7 - 0.9996 * meridian_arc(30.0), 3.0], abs=1e-3)
+    assert meridian_arc(45.0) == pytest.approx(4984944.38, abs=0.01)  # the textbook value
+    points = np.array([[46.2470, 13.5830, 247.0], [46.3, 12.1, 0.0], [45.9, 17.9, -5.0]])
+    metric = exif.to_metric(points[:, 0], points[:, 1], points[:, 2], "EPSG:32633")
+    back = exif.to_geographic(metric, "EPSG:32633")
+    np.testing.assert_allclose(back[:, 2], points[:, 2])
+    lat_m = np.radians(points[:, 0])
+    assert np.abs(back[:, 0] - points[:, 0]).max() * 111_000 < 1e-3
+    assert (np.abs(back[:, 1] - points[:, 1]) * 111_000 * np.cos(lat_m)).max() < 1e-3
+
+
+@pytest.mark.parametrize("lat, lon, epsg", [
+    (46.247, 13.583, 32633),  # the generator's river, Slovenia
+    (-33.92, 18.42, 32734),  # Cape Town: south
+    (40.69, -74.04, 32618),  # New York: west
+    (0.0, 179.99, 32660), (-0.01, -180.0, 32701),  # the zones' ends
+    (60.39, 5.32, 32632),  # Bergen: zone 32V, not 31
+    (78.22, 15.65, 32633),  # Longyearbyen, Svalbard: zone 33X
+])
+def test_utm_zone_choice(lat, lon, epsg):
+    assert exif.utm_epsg(lat, lon) == epsg
+
+
+def photo(name, lat, lon, flag=None):
+    return exif.PhotoPosition(name, lat, lon, 100.0, "EXIF GPS", "EXIF GPSAltitude", rtk_flag=flag)
+
+
+def test_positions_in_the_zone_of_their_mean_or_the_chosen_crs():
+    photos = [photo("a", 46.0, 11.99), photo("b", 46.0, 12.03), photo("c", 46.0, 12.02)]  # mean east of 12
+    xyz, crs = exif.positions(photos)
+    assert exif.crs_label(crs) == "EPSG:32633" and set(xyz) == {"a", "b", "c"}
+    assert xyz["a"][0] < xyz["b"][0] and xyz["a"][2] == 100.0
+    xyz, crs = exif.positions(photos, "EPSG:32632")
+    assert exif.crs_label(crs) == "EPSG:32632" and xyz["a"][0] > 700000  # east of zone 32's meridian
+    with pytest.raises(ConfigError, match="not a projected CRS in metres"):
+        exif.positions(photos, "EPSG:4326")
+
+
+def test_the_noise_follows_the_source():
+    fixed = exif.PhotoPosition("f", 46.0, 13.0, 1.0, "EXIF GPS", "x", rtk_flag=50, std_horizontal=0.012,
+                               std_vertical=0.001)
+    s = exif.sigmas([fixed, photo("r", 46.0, 13.0, 50), photo("g", 46.0, 13.0), photo("fl", 46.0, 13.0, 34)], None)
+    np.testing.assert_allclose(s, [[0.012, exif.MIN_STD], [0.02, 0.03], [2.0, 3.0], [2.0, 3.0]])
+    np.testing.assert_allclose(exif.sigmas([fixed], (0.05, 0.06)), [[0.05, 0.06]])  # --rtk-sigma wins
+
+
+def test_gimbal_angles_are_true_north_headings():
+    """West of zone 33's central meridian grid north is (15 - lon) sin(lat) degrees west of true north: a
+    north-up nadir's heading is about -1.02 deg, a view tilted 30 deg towards grid east's about 88.98; a
+    level view to grid north rolled 0.1 rad has that roll."""
+    origin = exif.to_metric(ORIGIN.lat, ORIGIN.lon, ORIGIN.height, "EPSG:32633")[0]
+    cams = [Camera.look_at([0, 0, 10], [0, 0, 0], 64, 64, 60.0),
+            Camera.look_at([0, 0, 10], [10 * math.tan(math.radians(30)), 0, 0], 64, 64, 60.0, up=(0, 0, 1)),
+            Camera.look_at([0, 0, 10], [0, 10, 10], 64, 64, 60.0, up=(math.sin(0.1), 0, math.cos(0.1)))]
+    yaw, pitch, roll = gimbal_angles(cams, origin, "EPSG:32633").T
+    convergence = (ORIGIN.lon - 15) * math.sin(math.radians(ORIGIN.lat))
+    np.testing.assert_allclose(yaw, [convergence, 90 + convergence, convergence], atol=0.02)
+    np.testing.assert_allclose(pitch, [-90, -60, 0], atol=1e-9)
+    np.testing.assert_allclose(roll, [0, 0, math.degrees(0.1)], atol=1e-9)  # looking north, right side down
+
+
+ORIGIN = GeoOrigin()
+CONSUMER = ConsumerGPS(line_bias=(0.4, 0.6), line_bias_z=0.2, jitter=0.2)  # to the 4 m flight's scale
+
+
+@pytest.fixture(scope="session")
+def geotagged(tmp_path_factory):
+    """A gravel bed 0.8 m under water seen by 12 nadir (three flight lines) and 6 oblique photos from 4 m,
+    made into a survey by the generator: survey/images/ (RTK, 5 / 8 mm) and survey/images-gps/ (consumer GPS
+    at this flight's scale: lines 0.4-0.6 m off, 0.2 m scatter)."""
+    root = tmp_path_factory.mktemp("geotagged")
+    water = WaterSurface(0.0, 1.33)
+    scene = bed_scene(30000, half=3.0, depth=0.8, seed=0)
+    scene["colors"] = torch.rand(30000, 3, generator=torch.Generator().manual_seed(1))
+    cams = [Camera.look_at([x, y, 4.0], [x, y, 0.0], 240, 180, 60.0) for y in np.linspace(-1.0, 1.0, 3)
+            for x in np.linspace(-1.2, 1.2, 4)]
+    cams += [Camera.look_at([2.2 * math.cos(a), 2.2 * math.sin(a), 4.0], [0, 0, -0.8], 240, 180, 60.0,
+                            up=(0.0, 0.0, 1.0)) for a in np.arange(6) * math.pi / 3]
+    views = render_views(scene, cams, water)
+    write_dataset(root, views, water)
+    poses = [Pose(f"{i:04d}", "nadir" if i < 12 else "oblique30", "train", c) for i, c in enumerate(cams)]
+    assert flight_lines(poses).tolist() == [0] * 4 + [1] * 4 + [2] * 4 + [3] * 6
+    assert write_survey(root, poses, WaterSpec(), noise=SurveyNoise(horizontal=0.005, vertical=0.008),
+                        origin=ORIGIN, gps=CONSUMER)
+    return root, cams
+
+
+def test_the_generator_geotags_its_photos(geotagged):
+    root, cams = geotagged
+    record = json.loads((root / layout.SURVEY_RECORD).read_text())["geo"]
+    assert record["crs"] == "EPSG:32633" and record["origin"]["lat"] == ORIGIN.lat
+    shift = np.array(record["origin_metric"])
+    truth = np.array([c.camera_center for c in cams])
+    rtk = layout.read_positions(root / layout.SURVEY_POSITIONS)
+    for folder, tolerance in ((layout.SURVEY_IMAGES, 1e-3), (layout.SURVEY_IMAGES_GPS, None)):
+        photos = exif.read_photos(sorted((root / folder).iterdir()))
+        xyz, crs = exif.positions(photos)
+        assert exif.crs_label(crs) == "EPSG:32633"
+        got = np.array([xyz[p.name] for p in photos]) - shift
+        if tolerance:  # the positions.csv centres, to the millimetre
+            np.testing.assert_allclose(got, [rtk[p.name] for p in photos], atol=tolerance)
+            assert all(p.rtk_fixed and p.std_vertical == 0.008 for p in photos)
+            assert photos[0].relative_altitude == pytest.approx(4.0 - 1.0, abs=0.05)  # above the take-off point
+        else:  # each line off by its bias, plus scatter
+            assert all(p.rtk_flag is None for p in photos)
+            off = np.linalg.norm((got - truth)[:, :2], axis=1)
+            assert 0.1 < np.median(off) < 1.0
+        nadir = np.array([p.gimbal for p in photos[:12]])
+        assert np.abs(nadir[:, 1] + 90).max() < 2 and np.abs(nadir[:, 0]).max() < 8  # north-up, 2 deg noise
+    record_bytes = (root / layout.SURVEY_RECORD).read_bytes()
+    jpegs = {p: p.read_bytes() for folder in (layout.SURVEY_IMAGES, layout.SURVEY_IMAGES_GPS)
+             for p in (root / folder).iterdir()}
+    others = {p: p.read_bytes() for p in (root / "survey").iterdir() if p.is_file() and p.suffix != ".json"}
+    poses = [Pose(f"{i:04d}", "nadir" if i < 12 else "oblique30", "train", c) for i, c in enumerate(cams)]
+    again = {"noise": SurveyNoise(horizontal=0.005, vertical=0.008), "origin": ORIGIN, "gps": CONSUMER}
+    assert not write_survey(root, poses, WaterSpec(), **again)
+    assert (root / layout.SURVEY_RECORD).read_bytes() == record_bytes  # nothing written again
+    # a survey made before the photos were geotagged gets them, and nothing else changes
+    old = json.loads(record_bytes)
+    del old["geo"]
+    (root / layout.SURVEY_RECORD).write_text(json.dumps(old))
+    for path in (root / layout.SURVEY_IMAGES_GPS).iterdir():
+        path.unlink()
+    layout.write_jpeg(root / layout.SURVEY_IMAGES / "0000.jpg", IMAGE, 40.0)  # no GPS
+    assert not write_survey(root, poses, WaterSpec(), **again)
+    assert json.loads((root / layout.SURVEY_RECORD).read_text()) == json.loads(record_bytes)
+    assert {p: p.read_bytes() for p in jpegs} == jpegs
+    assert {p: p.read_bytes() for p in others} == others
+
+
+def survey_args(root, folder, out, *extra):
+    level = json.loads((root / layout.SURVEY_RECORD).read_text())["geo"]["origin_metric"][2]  # z = 0 in heights
+    return ["survey", str(root / folder), "--water-level", str(level), "--out", str(out), "--stop-after", "georef",
+            "--no-progress", *extra]
+
+
+def test_photos_alone_with_rtk_positions(geotagged, tmp_path, capsys):
+    root, cams = geotagged
+    assert main(survey_args(root, layout.SURVEY_IMAGES, tmp_path / "run")) == 0
+    err = capsys.readouterr().err
+    assert ("positions from the photos: 18 of 18 have GPS (18 RTK fixed, 0 consumer GPS), in EPSG:32633, WGS 84 / "
+            "UTM zone 33N; heights as the photos give them (DJI XMP AbsoluteAltitude)") in err
+    report = json.loads((tmp_path / "run" / "georef.json").read_text())
+    assert report["inliers"] == report["count"] == 18 and report["rms_m"] < 0.05  # the pinhole SfM's, through water
+    assert report["positions"]["crs"] == "EPSG:32633" and "EXIF GPS" in report["positions"]["source"]
+    assert report["noise"]["rtk_fixed"]["count"] == 18 and "consumer_gps" not in report["noise"]
+    assert report["noise"]["rtk_fixed"]["sigma_m_median"] == [0.005, 0.008] and report["noise"]["threshold_m"] == 0.2
+    assert set(report["positions"]["photos"]) == {f"{i:04d}.jpg" for i in range(18)}
+    # the model's cameras where the truth is, in UTM
+    shift = np.array(json.loads((root / layout.SURVEY_RECORD).read_text())["geo"]["origin_metric"])
+    truth = np.array([c.camera_center for c in cams]) + shift
+    used = np.array([exif.to_metric(p["lat"], p["lon"], p["altitude"], "EPSG:32633")[0]
+                     for p in report["positions"]["photos"].values()])
+    residual = np.array(list(report["residual_m"].values()))
+    assert np.abs(used - truth).max() < 0.05 and np.sqrt((residual ** 2).sum(1).mean()) < 0.05
+
+
+def test_photos_alone_with_consumer_gps_keep_every_camera(geotagged, tmp_path, capsys):
+    root, _ = geotagged
+    out = tmp_path / "run"
+    assert main(survey_args(root, layout.SURVEY_IMAGES_GPS, out)) == 0
+    assert "(0 RTK fixed, 18 consumer GPS)" in capsys.readouterr().err
+    report = json.loads((out / "georef.json").read_text())
+    assert report["inliers"] == report["count"] == 18
+    noise = report["noise"]
+    assert noise["consumer_gps"]["count"] == 18 and noise["consumer_gps"]["sigma_m"] == [2.0, 3.0]
+    assert noise["threshold_m"] == 30.0 and "per-line bias" in noise["consumer_gps"]["bias"]
+    assert 0.05 < report["rms_m"] < 1.0 and noise["rms_m_by_source"]["rtk_fixed"] is None
+    # held to centimetres as if they were RTK, the same photos lose cameras as "outliers": issue 48's point 3
+    assert main(survey_args(root, layout.SURVEY_IMAGES_GPS, out, "--gps-sigma", "0.02", "0.03")) == 0
+    assert json.loads((out / "georef.json").read_text())["inliers"] < 18
+
+
+def test_the_adjustment_holds_each_camera_to_its_own_accuracy():
+    """A per-camera prior (RTK and consumer GPS in one flight): the same as the tuple when every row is the
+    same; a camera held to metres goes where its photos put it, away from a position 0.5 m off."""
+    from ragsplat_core.survey import bundle
+
+    rng = np.random.default_rng(0)
+    cams = [Camera.look_at([x, y, 5.0], [x, y, 0.0], 120, 90, 60.0) for x in (-1.0, 0.0, 1.0) for y in (-0.5, 0.5)]
+    R = torch.tensor(np.array([c.R for c in cams]))
+    C = torch.tensor(np.array([c.camera_center for c in cams]))
+    K = torch.tensor([[c.fx, c.fy, c.cx, c.cy] for c in cams])
+    P = torch.tensor(np.column_stack([rng.uniform(-2, 2, (60, 2)), rng.uniform(-0.3, 0.3, 60)]))
+    point, image = torch.arange(60).repeat(len(cams)), torch.arange(len(cams)).repeat_interleave(60)
+    pixels = bundle.project(R[image], C[image], K[image], P[point], None)
+    inside = ((pixels >= 0) & (pixels < torch.tensor([120.0, 90.0]))).all(1)
+    point, image, pixels = point[inside], image[inside], pixels[inside]
+    prior = C.clone()
+    prior[0, 0] += 0.5  # one camera's GPS 0.5 m off
+    same = bundle.adjust(R, C, K, P, point, image, pixels, None, prior_C=prior, prior_sigma=(0.02, 0.02, 0.03))
+    rows = bundle.adjust(R, C, K, P, point, image, pixels, None, prior_C=prior,
+                         prior_sigma=torch.tensor([[0.02, 0.02, 0.03]] * len(cams)))
+    torch.testing.assert_close(rows.C, same.C)
+    each = torch.tensor([[2.0, 2.0, 3.0]] + [[0.02, 0.02, 0.03]] * (len(cams) - 1))
+    loose = bundle.adjust(R, C, K, P, point, image, pixels, None, prior_C=prior, prior_sigma=each)
+    assert (loose.C - C).norm(dim=1).max() < 0.02 < (same.C - C).norm(dim=1).max()
