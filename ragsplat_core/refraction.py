@@ -67,11 +67,8 @@ def opacity_factor(means, water: WaterSurface):
     """[N] rendered / true opacity of Gaussians centred at means [N, 3] under `water` (RA-GS's 1 / n^2,
     blended at the water line as in `refract_gaussians`; 1 above the level). Pruning and opacity resets
     apply their thresholds to what is rendered through it."""
-    if water.curved:  # the depth along the tangent plane's normal above each, as the transform blends
-        R, p0 = _tangent_frames(water, means)
-        return _fade(waterline_weight(-torch.einsum("nj,nj->n", R[:, 2], means - p0)), water.n)
-    if water.tilted:  # the depth along the plane's normal, as the transform blends
-        return _fade(waterline_weight(-_to_plane(means, *_plane_frame(water, means))[:, 2]), water.n)
+    if water.tilted or water.curved:  # the depth along the surface's normal (its frames'), as the transform blends
+        return _fade(waterline_weight(-_into(*_frames(water, means), means)[:, 2]), water.n)
     level = torch.as_tensor(water.level, dtype=means.dtype, device=means.device)
     return _fade(waterline_weight(level - means[:, 2]), water.n)
 
@@ -226,7 +223,6 @@ class WaterSurface:
                             None if self.profile is None else self.profile.shifted((ox, oy)))
 
 
-
 def _plane_frame(water: WaterSurface, like):
     """(R [3, 3], p0 [3]) of a tilted surface's own frame: q = R (p - p0) puts the surface at q_z = 0 with
     its normal along +z. R is the smallest rotation taking the normal to +z (Rodrigues), p0 the surface
@@ -249,12 +245,26 @@ def _rotations(sx, sy):
     return eye + vx + vx @ vx / (1 + nz)[..., None, None]
 
 
-def _to_plane(points, R, p0):  # [N, 3] -> [N, 3] in the plane's frame
-    return (points - p0) @ R.T
+def _tangent_frames(water: WaterSurface, points):
+    """(R [N, 3, 3], p0 [N, 3]): the frame of the tangent plane of a curved surface above each of points
+    [N, 3] (p0 the surface point straight above, R its normal to +z)."""
+    xy = points[:, :2]
+    g = water.gradient(xy)
+    return _rotations(g[:, 0], g[:, 1]), torch.cat([xy, water.height(xy)[:, None]], -1)
 
 
-def _from_plane(points, R, p0):
-    return points @ R + p0
+def _frames(water: WaterSurface, points):
+    """(R, p0) of a tilted or curved surface's own frame: one plane's (R [3, 3], p0 [3]), or the tangent plane's
+    above each of points [N, 3] (R [N, 3, 3], p0 [N, 3]). In it the flat transform applies (`_into`)."""
+    return _tangent_frames(water, points) if water.curved else _plane_frame(water, points)
+
+
+def _into(R, p0, x):  # [..., 3] world -> the frame(s): R (x - p0); R [3, 3] or one per row
+    return (R @ (x - p0)[..., None])[..., 0]
+
+
+def _out_of(R, p0, q):  # the frame(s) -> world: R^T q + p0
+    return (R.transpose(-1, -2) @ q[..., None])[..., 0] + p0
 
 
 def _value(x) -> float:
@@ -362,19 +372,21 @@ def apparent_points(points, camera_center, water: WaterSurface, steps: int | Non
     _check_camera(camera_center, water)
     if water.is_identity:
         return points.clone()
-    if water.curved:  # through the tangent plane above each point
-        return _refract_curved(points, points, None, points[:, 0], points, camera_center, water, True, "none",
-                               False, False, steps, None).means
-    if water.tilted:  # the flat transform in the plane's frame; points above it stay exactly as they are
-        R, p0 = _plane_frame(water, points)
-        local = _to_plane(points, R, p0)
-        moved = apparent_points(local, _to_plane(torch.as_tensor(camera_center, dtype=points.dtype,
-                                                                 device=points.device)[None], R, p0)[0],
-                                _flat_in_plane(water), steps)
-        return torch.where((local[:, 2] < 0)[:, None], _from_plane(moved, R, p0), points)
+    if water.tilted or water.curved:
+        return _apparent_in_frames(points, torch.as_tensor(camera_center, dtype=points.dtype, device=points.device),
+                                   water, steps)
     wet = _submerged(points, water)
     loc = _local(points[wet], camera_center, water)
     return points.index_put((wet,), _place(loc, *apparent_offsets(loc.r2, loc.d, loc.H, loc.n, steps)))
+
+
+def _apparent_in_frames(points, centers, water: WaterSurface, steps):
+    """Apparent points [N, 3] under a tilted or curved surface: the flat transform in its frame(s) (`_frames`),
+    each point seen from centers [3] or its own [N, 3]; points above the surface stay exactly as they are."""
+    R, p0 = _frames(water, points)
+    local = _into(R, p0, points)
+    moved = apparent_points_each(local, _into(R, p0, centers).expand_as(local), _flat_in_plane(water), steps)
+    return torch.where((local[:, 2] < 0)[:, None], _out_of(R, p0, moved), points)
 
 
 def apparent_points_each(points, centers, water: WaterSurface, steps: int | None = None):
@@ -382,17 +394,8 @@ def apparent_points_each(points, centers, water: WaterSurface, steps: int | None
     bundle adjustment's observations); points above the surface are returned unchanged."""
     if water.is_identity:
         return points.clone()
-    if water.curved:  # each point through the tangent plane above it
-        R, p0 = _tangent_frames(water, points)
-        local = torch.einsum("nij,nj->ni", R, points - p0)
-        moved = apparent_points_each(local, torch.einsum("nij,nj->ni", R, centers - p0), _flat_in_plane(water),
-                                     steps)
-        return torch.where((local[:, 2] < 0)[:, None], torch.einsum("nji,nj->ni", R, moved) + p0, points)
-    if water.tilted:
-        R, p0 = _plane_frame(water, points)
-        local = _to_plane(points, R, p0)
-        moved = apparent_points_each(local, _to_plane(centers, R, p0), _flat_in_plane(water), steps)
-        return torch.where((local[:, 2] < 0)[:, None], _from_plane(moved, R, p0), points)
+    if water.tilted or water.curved:
+        return _apparent_in_frames(points, centers, water, steps)
     level = torch.as_tensor(water.level, dtype=points.dtype, device=points.device)
     wet = points[:, 2] < level
     C = centers[wet]
@@ -451,16 +454,13 @@ def apparent_jacobian(points, camera_center, water: WaterSurface, steps: int | N
     J = torch.eye(3, dtype=points.dtype, device=points.device).expand(N, 3, 3).clone()
     if water.is_identity:
         return J
-    if water.curved:  # the tangent planes' (see `_refract_curved`)
-        eye = torch.eye(3, dtype=points.dtype, device=points.device)
-        return _refract_curved(points, points, None, points[:, 0], points, camera_center, water, False,
-                               "anisotropic", False, False, steps, None).jacobians.clone() if len(points) else eye[:0]
-    if water.tilted:  # J_world = R^T J_plane R
-        R, p0 = _plane_frame(water, points)
-        C = _to_plane(torch.as_tensor(camera_center, dtype=points.dtype, device=points.device)[None], R, p0)[0]
-        return R.T @ apparent_jacobian(_to_plane(points, R, p0), C, _flat_in_plane(water), steps) @ R
+    if water.tilted or water.curved:  # J_world = R^T J_frame R (a curved surface: its tangent planes')
+        R, p0 = _frames(water, points)
+        C = _into(R, p0, torch.as_tensor(camera_center, dtype=points.dtype, device=points.device))
+        return R.transpose(-1, -2) @ apparent_jacobian(_into(R, p0, points), C, _flat_in_plane(water), steps) @ R
     wet = _submerged(points, water)
-    loc = _local(points[wet], camera_center, water)
+    per_row = torch.is_tensor(camera_center) and camera_center.dim() == 2  # a curved surface's frames
+    loc = _local(points[wet], camera_center[wet] if per_row else camera_center, water)
     return J.index_put((wet,), _jacobian(loc, _derivatives(loc, steps)))
 
 
@@ -515,12 +515,9 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
         jacobians = torch.eye(3, dtype=means.dtype, device=means.device).expand(len(means), 3, 3)
     if water.is_identity or not (position or opacity or color or scale != "none"):
         return ApparentGaussians(means, scales, quats, opacities, colors, covars, jacobians)
-    if water.curved:
-        return _refract_curved(means, scales, quats, opacities, colors, camera_center, water, position, scale,
-                               opacity, color, steps, covars)
-    if water.tilted:
-        return _refract_tilted(means, scales, quats, opacities, colors, camera_center, water, position, scale,
-                               opacity, color, steps, covars)
+    if water.tilted or water.curved:
+        return _refract_in_frames(*_frames(water, means), means, scales, quats, opacities, colors, camera_center,
+                                  water, position, scale, opacity, color, steps, covars)
     wet = _submerged(means, water)
     rows = _wet_rows(wet)  # found once: a boolean index searches every time
     all_wet = rows is None
@@ -534,7 +531,7 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
     level = torch.as_tensor(water.level, dtype=means.dtype, device=means.device)
     w = waterline_weight(level - take(means)[:, 2])  # [M]
     if position or scale != "none":
-        per_row = torch.is_tensor(camera_center) and camera_center.dim() == 2  # `_refract_curved`'s frames
+        per_row = torch.is_tensor(camera_center) and camera_center.dim() == 2  # a curved surface's frames
         loc = _local(take(means), take(camera_center) if per_row else camera_center, water)
         der = _derivatives(loc, steps) if scale != "none" else None
         if position:
@@ -558,54 +555,26 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
     return ApparentGaussians(means, scales, quats, opacities, colors, covars, jacobians)
 
 
-def _refract_tilted(means, scales, quats, opacities, colors, camera_center, water, position, scale, opacity,
-                    color, steps, covars) -> ApparentGaussians:
-    """`refract_gaussians` under a tilted surface: the flat transform in the plane's frame, its positions and
-    Jacobians rotated back (J_world = R^T J_plane R; covariances J Sigma J^T in the world). The isotropic
-    and determinant scale factors are the plane frame's (the determinant is the same in any frame)."""
-    R, p0 = _plane_frame(water, means)
-    local = _to_plane(means, R, p0)
-    C = _to_plane(torch.as_tensor(camera_center, dtype=means.dtype, device=means.device)[None], R, p0)[0]
+def _refract_in_frames(R, p0, means, scales, quats, opacities, colors, camera_center, water, position, scale,
+                       opacity, color, steps, covars) -> ApparentGaussians:
+    """`refract_gaussians` under a tilted or curved surface, in its frame(s) (`_frames`): the flat transform
+    there, positions and Jacobians rotated back (J_world = R^T J_frame R; covariances J Sigma J^T in the world).
+    The isotropic and determinant scale factors are the frame's (the determinant is the same in any frame).
+
+    A tilted plane is exact. A curved surface (a profile along the reach) refracts each Gaussian through the
+    tangent plane above it: the light path meets the surface off the point's vertical (by up to d tan(theta_w)
+    + the air leg's share), where the surface departs from that tangent plane by about curvature x offset^2 / 2
+    (tests/test_water_surface.py measures it against a ray trace by Fermat's principle). Its Jacobians are the
+    planes' (the plane's own motion with the point is left out of them, not of the gradients)."""
+    local = _into(R, p0, means)
+    C = _into(R, p0, torch.as_tensor(camera_center, dtype=means.dtype, device=means.device))
     out = refract_gaussians(local, scales, quats, opacities, colors, C, _flat_in_plane(water), position, scale,
                             opacity, color, steps, covariances=False)
     if position:  # rows above the surface keep their coordinates exactly, not rotated there and back
-        means = torch.where((local[:, 2] < 0)[:, None], _from_plane(out.means, R, p0), means)
+        means = torch.where((local[:, 2] < 0)[:, None], _out_of(R, p0, out.means), means)
     jacobians = None
     if scale == "anisotropic":
-        jacobians = R.T @ out.jacobians @ R
-        if covars is not None:
-            covars = jacobians @ covars @ jacobians.transpose(1, 2)
-    return ApparentGaussians(means, out.scales, quats, out.opacities, out.colors, covars, jacobians)
-
-
-def _tangent_frames(water: WaterSurface, points):
-    """(R [N, 3, 3], p0 [N, 3]): the frame of the tangent plane of a curved surface above each of points
-    [N, 3] (p0 the surface point straight above, R its normal to +z)."""
-    xy = points[:, :2]
-    g = water.gradient(xy)
-    return _rotations(g[:, 0], g[:, 1]), torch.cat([xy, water.height(xy)[:, None]], -1)
-
-
-def _refract_curved(means, scales, quats, opacities, colors, camera_center, water, position, scale, opacity,
-                    color, steps, covars) -> ApparentGaussians:
-    """`refract_gaussians` under a curved surface (a profile along the reach): each Gaussian through the tangent
-    plane above it, exactly as `_refract_tilted` does for one plane, the planes' frames one per row. The
-    approximation: the light path meets the surface off the point's vertical (by up to d tan(theta_w) + the
-    air leg's share), where the surface departs from that tangent plane by about curvature x offset^2 / 2
-    (tests/test_water_surface.py measures it against a ray trace by Fermat's principle). The Jacobians are
-    the planes' (R^T J R): the plane's own motion with the point is left out of them, not of the gradients."""
-    R, p0 = _tangent_frames(water, means)
-    local = torch.einsum("nij,nj->ni", R, means - p0)
-    C = torch.as_tensor(camera_center, dtype=means.dtype, device=means.device)
-    C_local = torch.einsum("nij,nj->ni", R, C[None] - p0)
-    out = refract_gaussians(local, scales, quats, opacities, colors, C_local, _flat_in_plane(water), position,
-                            scale, opacity, color, steps, covariances=False)
-    if position:
-        back = torch.einsum("nji,nj->ni", R, out.means) + p0
-        means = torch.where((local[:, 2] < 0)[:, None], back, means)
-    jacobians = None
-    if scale == "anisotropic":
-        jacobians = R.transpose(1, 2) @ out.jacobians @ R
+        jacobians = R.transpose(-1, -2) @ out.jacobians @ R
         if covars is not None:
             covars = jacobians @ covars @ jacobians.transpose(1, 2)
     return ApparentGaussians(means, out.scales, quats, out.opacities, out.colors, covars, jacobians)
