@@ -2,6 +2,7 @@
 
 Tests that start Blender carry the `blender` marker (`pytest -m "not blender"` skips them)."""
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -14,6 +15,18 @@ from ragsplat_core.dataset import layout
 from ragsplat_core.refraction import WaterSurface
 
 WATER = WaterSurface(0.0, 1.33)
+
+
+def survey_cameras(lines_along_x: bool = False):
+    """The synthetic surveys' flight: 12 nadir photos from 4 m over a 4 x 3 grid (flight lines along y, or
+    along x), then 6 obliques on a 2.2 m ring aimed at the bed 0.8 m down; 240 x 180 px, 60 degrees."""
+    from ragsplat_core.camera import Camera
+
+    xs, ys = np.linspace(-1.2, 1.2, 4), np.linspace(-1.0, 1.0, 3)
+    grid = [(x, y) for y in ys for x in xs] if lines_along_x else [(x, y) for x in xs for y in ys]
+    cams = [Camera.look_at([x, y, 4.0], [x, y, 0.0], 240, 180, 60.0) for x, y in grid]
+    return cams + [Camera.look_at([2.2 * math.cos(a), 2.2 * math.sin(a), 4.0], [0, 0, -0.8], 240, 180, 60.0,
+                                  up=(0.0, 0.0, 1.0)) for a in np.arange(6) * math.pi / 3]
 
 
 def tiny_smoke(mp: pytest.MonkeyPatch, folder) -> None:

@@ -3,16 +3,15 @@ rasterizer, JPEG with the focal length in EXIF, RTK positions with noise; no pos
 and one clear line for each error a surveyor will meet."""
 
 import json
-import math
 import shutil
 
 import numpy as np
 import pytest
 import torch
+from conftest import survey_cameras
 
 from eval.poses import pose_errors
 from ragsplat_core.bench.synthetic import bed_scene, render_views, write_dataset
-from ragsplat_core.camera import Camera
 from ragsplat_core.cli.main import main
 from ragsplat_core.dataset import layout
 from ragsplat_core.refraction import WaterSurface
@@ -27,10 +26,7 @@ def survey(tmp_path_factory):
     root = tmp_path_factory.mktemp("survey")
     scene = bed_scene(30000, half=3.0, depth=0.8, seed=0)
     scene["colors"] = torch.rand(30000, 3, generator=torch.Generator().manual_seed(1))  # speckled, like gravel
-    cams = [Camera.look_at([x, y, 4.0], [x, y, 0.0], 240, 180, 60.0) for x in np.linspace(-1.2, 1.2, 4)
-            for y in np.linspace(-1.0, 1.0, 3)]
-    cams += [Camera.look_at([2.2 * math.cos(a), 2.2 * math.sin(a), 4.0], [0, 0, -0.8], 240, 180, 60.0,
-                            up=(0.0, 0.0, 1.0)) for a in np.arange(6) * math.pi / 3]
+    cams = survey_cameras()
     views = render_views(scene, cams, WATER)
     for v in views:
         v["split"] = "train"
@@ -173,10 +169,7 @@ def test_a_sloping_surface_from_the_edge_points(tmp_path, capsys):
     scene = bed_scene(30000, half=3.0, depth=0.8, seed=2)
     scene["means"][:, 2] += water.height(scene["means"][:, :2].double()).float()  # the bed falls with it
     scene["colors"] = torch.rand(30000, 3, generator=torch.Generator().manual_seed(3))
-    cams = [Camera.look_at([x, y, 4.0], [x, y, 0.0], 240, 180, 60.0) for x in np.linspace(-1.2, 1.2, 4)
-            for y in np.linspace(-1.0, 1.0, 3)]
-    cams += [Camera.look_at([2.2 * math.cos(a), 2.2 * math.sin(a), 4.0], [0, 0, -0.8], 240, 180, 60.0,
-                            up=(0.0, 0.0, 1.0)) for a in np.arange(6) * math.pi / 3]
+    cams = survey_cameras()
     views = render_views(scene, cams, water)
     names = [f"{i:04d}.jpg" for i in range(len(views))]
     for name, v in zip(names, views):

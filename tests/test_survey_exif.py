@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import survey_cameras
 
 from datagen.flight import Pose
 from datagen.spec import WaterSpec
@@ -168,10 +169,7 @@ def geotagged(tmp_path_factory):
     water = WaterSurface(0.0, 1.33)
     scene = bed_scene(30000, half=3.0, depth=0.8, seed=0)
     scene["colors"] = torch.rand(30000, 3, generator=torch.Generator().manual_seed(1))
-    cams = [Camera.look_at([x, y, 4.0], [x, y, 0.0], 240, 180, 60.0) for y in np.linspace(-1.0, 1.0, 3)
-            for x in np.linspace(-1.2, 1.2, 4)]
-    cams += [Camera.look_at([2.2 * math.cos(a), 2.2 * math.sin(a), 4.0], [0, 0, -0.8], 240, 180, 60.0,
-                            up=(0.0, 0.0, 1.0)) for a in np.arange(6) * math.pi / 3]
+    cams = survey_cameras(lines_along_x=True)
     views = render_views(scene, cams, water)
     write_dataset(root, views, water)
     poses = [Pose(f"{i:04d}", "nadir" if i < 12 else "oblique30", "train", c) for i, c in enumerate(cams)]
