@@ -185,9 +185,10 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         _say("check", f"{len(unknown)} names in {source} are not photos in {args.images} (ignored), "
              f"e.g. {unknown[0]}")
-    edge = None
+    edge = edge_points = None
     if args.water_surface is not None:
-        edge = water_fit.fit_edge(layout.read_points(args.water_surface))
+        edge_points = layout.read_points(args.water_surface)
+        edge = water_fit.fit_edge(edge_points)
         surface = WaterSurface(edge.level, args.n, edge.slope, edge.profile)
         _say("check", f"water surface from {len(edge.residuals)} edge points: {_describe(surface)}, rms "
              f"{100 * edge.report()['rms_m']:.1f} cm, {int((~edge.inliers).sum())} left out")
@@ -323,8 +324,7 @@ def run(args: argparse.Namespace) -> int:
         above = z[z >= 0]
         check = {"surface": layout.water_json(surface), "described": _describe(surface),
                  **({} if edge is None else {"edge_fit": edge.report(), "along_the_reach": water_fit.profile(
-                     P.numpy(), water.height(P.numpy()[:, :2]), layout.read_points(args.water_surface)
-                     - origin)}),
+                     P.numpy(), water.height(P.numpy()[:, :2]), edge_points - origin)}),
                  "points_above": int((z >= 0).sum()),
                  "points_below": int((z < 0).sum()),
                  "lowest_above_m": float(np.percentile(above, 1)) if len(above) else None,
