@@ -27,7 +27,7 @@ A file whose bed covers fewer than `MIN_COVER` of the truth's wet nodes is refus
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -80,6 +80,18 @@ def crs_name(crs) -> str | None:
 
 def _label(crs) -> str:  # a CRS in a message
     return "no CRS" if crs is None else crs_name(crs) if _geodetic(crs) else "a local frame"
+
+
+def survey_geotags(data: Path):
+    """The frame a synthetic survey's photos were geotagged in: `layout.Georef` of survey.json's "geo" (the
+    scene's x, y, z are its CRS's coordinates less `origin_metric`), or None (no such record)."""
+    import json
+
+    from ragsplat_core.dataset import layout
+
+    path = Path(data) / layout.SURVEY_RECORD
+    geo = json.loads(path.read_text()).get("geo") if path.is_file() else None
+    return None if geo is None else layout.Georef(tuple(geo["origin_metric"]), geo["crs"])
 
 
 def frames(crs, georef) -> list[Frame]:
@@ -229,11 +241,13 @@ def points_grid(xyz: np.ndarray, nodes: np.ndarray, despike: bool) -> tuple[np.n
 
 
 def read_bed(path: Path, truth, georef, band: int = 1, depth: bool = False, despike: bool = True,
-             crs: str | None = None) -> tuple[np.ndarray, dict]:
+             crs: str | None = None, geotags=None) -> tuple[np.ndarray, dict]:
     """([G', 3] the file's bed heights at the ground truth's nodes in the dataset's local frame, a record of
     what was read) for `truth` (`dataset.load.GroundTruth`) of a dataset with `georef` (`layout.Georef`).
     `band`: a DEM's; `depth`: its values (a DEM's band, the points' z) are water depths; `despike`: points
-    through the outlier filter; `crs`: the file's CRS where it names none or a wrong one. Raises ConfigError
+    through the outlier filter; `crs`: the file's CRS where it names none or a wrong one; `geotags`: the frame
+    a synthetic survey's photos were geotagged in (`survey_geotags`), a candidate for a file in a CRS (a survey
+    run from the photos' EXIF writes its products there). Raises ConfigError
     (unknown kind, no such band, unusable `crs`), DatasetError (unreadable, or not over the ground truth:
     fewer than `MIN_COVER` of its wet nodes covered)."""
     from rasterio.crs import CRS
@@ -261,7 +275,11 @@ def read_bed(path: Path, truth, georef, band: int = 1, depth: bool = False, desp
         raise ConfigError(f"--crs {crs!r} is not usable: {err}") from None
     nodes, wet = truth.nodes, cKDTree(truth.grid[:, :2])
     best = None
-    for frame in frames(file_crs, georef):
+    candidates = frames(file_crs, georef)
+    if geotags is not None and _geodetic(file_crs):
+        candidates += [replace(f, label=f"{f.label.replace('dataset', 'survey geotags')} (survey.json's geo)")
+                       for f in frames(file_crs, geotags)]
+    for frame in candidates:
         if kind == "DEM":
             z, read = dem_at(values, transform, frame.to_file(nodes[:, :2]))
             grid, near = np.column_stack([nodes[read, :2], z[read]]), count
@@ -305,7 +323,7 @@ def score_file(path: Path, data: Path, references: bool = False,
 
     ds = load_dataset(data, splits=(), ground_truth=True)
     truth = ds.ground_truth
-    grid, record = read_bed(path, truth, ds.georef, **read)
+    grid, record = read_bed(path, truth, ds.georef, geotags=survey_geotags(data), **read)
     rows = oracle_grids(truth)
     if references:
         from eval.ablation import TrainEval

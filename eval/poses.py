@@ -21,16 +21,23 @@ def pose_errors(model: Path, truth: Path, similarity: dict | None = None) -> dic
 
     from ragsplat_core.dataset.load import load_dataset
 
+    from eval.bed_file import survey_geotags
+
     views = load_dataset(truth, splits=("train", "test"), load_dry=False)
     cams = {Path(v.file_path).stem: v.camera for v in [*views.train, *views.test]}
     rec = pycolmap.Reconstruction(str(model))
+    # a survey run from the synthetic photos' geotags is in their CRS: the scene's frame plus origin_metric
+    geotags = survey_geotags(truth)
+    centres = np.array([rec.images[i].projection_center() for i in rec.reg_image_ids()]).reshape(-1, 3)
+    far = geotags is not None and similarity is None and len(centres) and np.abs(centres[:, :2]).min() > 1e4
+    offset = np.asarray(geotags.offset) if far else np.zeros(3)
     per = {}
     for i in rec.reg_image_ids():
         im = rec.images[i]
         cam = cams.get(Path(im.name).stem)
         if cam is None:
             continue
-        R, C = im.cam_from_world().rotation.matrix(), im.projection_center()
+        R, C = im.cam_from_world().rotation.matrix(), im.projection_center() - offset
         if similarity is not None:
             S = np.asarray(similarity["R"])
             R, C = R @ S.T, similarity["scale"] * S @ C + np.asarray(similarity["t"])

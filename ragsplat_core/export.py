@@ -29,7 +29,7 @@ from ragsplat_core.outputs import atomic_path, claim
 from ragsplat_core.ply import load_ply
 from ragsplat_core.rasterize import choose_backend
 from ragsplat_core.refraction import WaterSurface
-from ragsplat_core.surface import ExtractConfig, extract_surface
+from ragsplat_core.surface import ExtractConfig, extract_surface, extract_surface_blocks
 from ragsplat_core.train.config import TrainConfig
 from ragsplat_core.train.trainer import PLY, fades_opacity, median_depth, render_splats
 
@@ -40,7 +40,10 @@ LAS_SCALE = 0.001  # metres per integer step of the LAS coordinates
 # so that at the evaluation's 5 cm a run exports the bed `ragsplat eval` scores (on a reach its grid counts the
 # wet nodes only; the export cannot know which are wet before extracting and counts them all).
 SAMPLES_PER_CELL = 16
-MAX_SAMPLES = 20_000_000  # about 4 GB while sampling (200 bytes each): a finer resolution is a typo
+# A bed whose samples exceed this is extracted in blocks (`surface.extract_surface_blocks`), each of about this
+# many: memory is bounded by a block, not the area (about 200 bytes per sample while filtering).
+BLOCK_SAMPLES = 4_000_000
+MAX_CELLS = 50_000_000  # the DEM's nodes (the grid and its rasters: about 40 bytes each); more is a typo
 # The noise filter's neighbourhood (`ExtractConfig.filter_radius`, 10 cm = 2 cells of the evaluation's 5 cm)
 # grows with a coarser DEM cell to stay 2 cells wide: the samples thin out with the cells (16 per cell of
 # 50 cm leave about 2 within 10 cm, and the filter, which wants 6, would drop the whole bed).
@@ -73,7 +76,7 @@ class Bed:
 
 
 def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None = None, ply: Path | None = None,
-               png: Path | None = None, data: Path | None = None, **extract) -> Bed:
+               png: Path | None = None, data: Path | None = None, on_block=None, **extract) -> Bed:
     """Extract the bed of a finished run (`load_run`, `extract_bed`, `extract`: its `ExtractConfig` fields to
     change) and write the DEM and each other product given a path, in the dataset's georeference (an
     imported survey's CRS and offset), depths below the water the run ended with (`run_water`). Returns the
@@ -81,7 +84,7 @@ def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None 
     meta, ds, splats, seed = _read_run(Path(run), data, splits=())
     water = run_water(meta, ds)
     bed = extract_bed(activated_dict(splats), resolution, water, ds.eval_region,
-                      ds.georef, seed, ds.gsd, **extract)
+                      ds.georef, seed, ds.gsd, on_block, **extract)
     write_dem(dem, bed)
     for path, write in ((las, write_las), (ply, write_ply), (png, write_png)):
         if path is not None:
@@ -278,20 +281,16 @@ def sample_count(lo, hi, resolution: float, georef: Georef | None = None, gaussi
     """The extraction's sample count for a DEM of `resolution` m over the box [lo, hi] from a model of
     `gaussians` Gaussians: `SAMPLES_PER_CELL` per cell of its grid there (at least one cell), and at least
     `SAMPLES_PER_GAUSSIAN` per Gaussian. Cheap: callers check a survey's size with it before any work.
-    Raises ConfigError above `MAX_SAMPLES`."""
+    Raises ConfigError above `MAX_CELLS` cells."""
     cells = max(grid_cells(lo, hi, resolution, georef), 1)
-    n = max(SAMPLES_PER_CELL * cells, SAMPLES_PER_GAUSSIAN * gaussians)
-    if SAMPLES_PER_GAUSSIAN * gaussians > MAX_SAMPLES:
-        raise ConfigError(f"{gaussians:.3g} Gaussians need {n:.3g} samples (at most {MAX_SAMPLES:.0e}, "
-                          f"{SAMPLES_PER_GAUSSIAN} each); train a smaller model or export parts of it")
-    if n > MAX_SAMPLES:
+    if cells > MAX_CELLS:
         area = float(np.prod(np.asarray(hi, float) - np.asarray(lo, float)))
-        need = 1.01 * resolution * math.sqrt(n / MAX_SAMPLES)  # the count goes as 1 / resolution^2
+        need = 1.01 * resolution * math.sqrt(cells / MAX_CELLS)  # the count goes as 1 / resolution^2
         step = 10.0 ** (math.floor(math.log10(need)) - 1)
-        raise ConfigError(f"resolution {resolution:g} m over {area:.4g} m^2 is {cells:.3g} cells, {n:.3g} samples "
-                          f"(at most {MAX_SAMPLES:.0e}, {SAMPLES_PER_CELL} per cell); choose a coarser resolution, "
-                          f"{math.ceil(need / step) * step:.2g} m or more")
-    return n
+        raise ConfigError(f"resolution {resolution:g} m over {area:.4g} m^2 is {cells:.3g} cells (at most "
+                          f"{MAX_CELLS:.0e}); choose a coarser resolution, {math.ceil(need / step) * step:.2g} m "
+                          "or more")
+    return max(SAMPLES_PER_CELL * cells, SAMPLES_PER_GAUSSIAN * gaussians)
 
 
 def export_box(gaussians: dict, region: dict | None, min_opacity: float) -> tuple[np.ndarray, np.ndarray]:
@@ -305,14 +304,16 @@ def export_box(gaussians: dict, region: dict | None, min_opacity: float) -> tupl
 
 
 def extract_bed(gaussians: dict, resolution: float, water: WaterSurface | None, region: dict | None = None,
-                georef: Georef | None = None, seed: int = 0, gsd: float | None = None, **extract) -> Bed:
+                georef: Georef | None = None, seed: int = 0, gsd: float | None = None, on_block=None,
+                **extract) -> Bed:
     """The bed of activated Gaussians (means [N, 3], scales [N, 3], quats [N, 4], opacities [N]) on a grid
     of `resolution` metres whose nodes lie on multiples of it in the CRS (`grid_origin`), inside `region`
     {xmin, xmax, ymin, ymax} when given, by `surface.extract_surface` with the evaluation's settings
     (`ExtractConfig`; `sample_count` samples, the noise filter `FILTER_RADIUS_CELLS` wide at cells coarser
     than the evaluation's) except the fields in `extract` (e.g. min_opacity, max_scale_gsd in ground sample
-    distances `gsd`, `Dataset.gsd`). Raises ConfigError (too many samples: before any work), OutputError
-    (nothing found)."""
+    distances `gsd`, `Dataset.gsd`). A bed of more than `BLOCK_SAMPLES` samples is extracted in blocks
+    (`surface.extract_surface_blocks`, `on_block(done, total)` after each). Raises ConfigError (too many cells:
+    before any work), OutputError (nothing found)."""
     georef = georef or Georef()  # default: the local frame
     cfg = ExtractConfig(gsd=gsd, cell=resolution, seed=seed, **extract)
     n = sample_count(*export_box(gaussians, region, cfg.min_opacity), resolution, georef,
@@ -320,8 +321,12 @@ def extract_bed(gaussians: dict, resolution: float, water: WaterSurface | None, 
     if "filter_radius" not in extract:
         cfg = replace(cfg, filter_radius=max(cfg.filter_radius, FILTER_RADIUS_CELLS * resolution))
     cfg = replace(cfg, n_samples=n)
-    grid, _ = extract_surface(gaussians["means"], gaussians["scales"], gaussians["quats"],
-                              gaussians["opacities"], cfg, region, grid_origin(resolution, georef))
+    g = (gaussians["means"], gaussians["scales"], gaussians["quats"], gaussians["opacities"])
+    if n <= BLOCK_SAMPLES:
+        grid, _ = extract_surface(*g, cfg, region, grid_origin(resolution, georef))
+    else:  # blocks of about BLOCK_SAMPLES samples each
+        side = math.isqrt(BLOCK_SAMPLES // SAMPLES_PER_CELL)
+        grid, _ = extract_surface_blocks(*g, cfg, side, grid_origin(resolution, georef), region, on_block)
     if not len(grid):
         raise OutputError(f"no bed surface: no Gaussian is opaque enough (>= {cfg.min_opacity}) and small enough "
                           f"(<= {cfg.max_scale_gsd:g} ground sample distances), or the noise filter removed every "

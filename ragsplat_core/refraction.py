@@ -26,7 +26,7 @@ reach the points, the camera, the water level and n.
 
 A river's surface slopes: `WaterSurface.slope` makes it the tilted plane z = level + sx x + sy y. Refraction
 depends on the interface's normal alone, so the tilted transform is the flat one in the plane's own frame,
-exactly: rotate the world so that the normal is +z, transform, rotate back (`_plane_frame`). Gradients reach
+exactly: rotate the world so that the normal is +z, transform, rotate back (`plane_frame`). Gradients reach
 the slope through the rotation as they reach the level.
 """
 
@@ -223,7 +223,7 @@ class WaterSurface:
                             None if self.profile is None else self.profile.shifted((ox, oy)))
 
 
-def _plane_frame(water: WaterSurface, like):
+def plane_frame(water: WaterSurface, like):
     """(R [3, 3], p0 [3]) of a tilted surface's own frame: q = R (p - p0) puts the surface at q_z = 0 with
     its normal along +z. R is the smallest rotation taking the normal to +z (Rodrigues), p0 the surface
     point above the origin; both carry gradients to level and slope. `like`: a tensor for dtype and device."""
@@ -256,7 +256,7 @@ def _tangent_frames(water: WaterSurface, points):
 def _frames(water: WaterSurface, points):
     """(R, p0) of a tilted or curved surface's own frame: one plane's (R [3, 3], p0 [3]), or the tangent plane's
     above each of points [N, 3] (R [N, 3, 3], p0 [N, 3]). In it the flat transform applies (`_into`)."""
-    return _tangent_frames(water, points) if water.curved else _plane_frame(water, points)
+    return _tangent_frames(water, points) if water.curved else plane_frame(water, points)
 
 
 def _into(R, p0, x):  # [..., 3] world -> the frame(s): R (x - p0); R [3, 3] or one per row

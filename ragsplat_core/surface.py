@@ -32,7 +32,7 @@ The evaluation scores the grid with `ragsplat_core.scoring.geometry_metrics` (`e
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import torch
@@ -179,16 +179,25 @@ def max_scale(cfg: ExtractConfig) -> float:
     return cfg.max_scale_gsd * cfg.gsd
 
 
-def sample_gaussians(means, scales, quats, opacities, cfg: ExtractConfig, region: dict | None = None):
-    """Steps 1-2: points [M, 3] (M = cfg.n_samples unless nothing survives culling) and the kept mask [N]."""
-    means, scales, quats, opac = _np(means), _np(scales), _np(quats), _np(opacities).reshape(-1)
-    keep = (opac >= cfg.min_opacity) & (scales.max(1) <= max_scale(cfg))
+def culled(scales: np.ndarray, opacities: np.ndarray, means: np.ndarray, cfg: ExtractConfig,
+           region: dict | None) -> np.ndarray:
+    """Step 1: bool mask [N] of the Gaussians sampled."""
+    keep = (opacities >= cfg.min_opacity) & (scales.max(1) <= max_scale(cfg))
     if region is not None:
         keep &= in_region(means, region, tol=cfg.region_margin)
+    return keep
+
+
+def sample_gaussians(means, scales, quats, opacities, cfg: ExtractConfig, region: dict | None = None,
+                     rng: np.random.Generator | None = None):
+    """Steps 1-2: points [M, 3] (M = cfg.n_samples unless nothing survives culling) and the kept mask [N];
+    drawn with `rng` (default: one seeded with cfg.seed)."""
+    means, scales, quats, opac = _np(means), _np(scales), _np(quats), _np(opacities).reshape(-1)
+    keep = culled(scales, opac, means, cfg, region)
     idx = np.flatnonzero(keep)
     counts = largest_remainder(np.prod(scales[idx], axis=1), cfg.n_samples)
     owner = np.repeat(idx, counts)  # [M]
-    rng = np.random.default_rng(cfg.seed)
+    rng = np.random.default_rng(cfg.seed) if rng is None else rng
     z = truncated_normal(len(owner), cfg.sigma_cut, rng) * scales[owner]  # [M, 3] in local axes
     rot = quat_to_rotmat(torch.from_numpy(quats[owner])).numpy()  # [M, 3, 3]
     return means[owner] + np.einsum("mij,mj->mi", rot, z), keep
@@ -208,7 +217,7 @@ def plane_filter(points: np.ndarray, cfg: ExtractConfig, chunk: int = 20_000, fa
     keep = np.zeros(len(points), dtype=bool)
     for s in range(0, len(points), chunk):
         p = points[s: s + chunk]  # [C, 3]
-        dist, nb = tree.query(p, k=k, distance_upper_bound=cfg.filter_radius)
+        dist, nb = tree.query(p, k=k, distance_upper_bound=cfg.filter_radius, workers=-1)
         dist, nb = dist.reshape(len(p), k)[:, 1:], nb.reshape(len(p), k)[:, 1:]  # drop the point itself
         valid = np.isfinite(dist)  # [C, K]; a missing neighbour has index len(points)
         test = _plane_keep if fast else _plane_keep_numpy
@@ -354,6 +363,64 @@ def extract_surface(means, scales, quats, opacities, cfg: ExtractConfig = Extrac
              "samples_after_filter": int(mask.sum()), "grid_spikes": spikes, "grid_filled": len(grid) - extracted,
              "grid_points": len(grid),
              "config": cfg.to_dict(), "grid_origin": list(origin)}
+    return grid, stats
+
+
+def extract_surface_blocks(means, scales, quats, opacities, cfg: ExtractConfig, block_cells: int,
+                           origin: tuple[float, float], region: dict | None = None, on_block=None
+                           ) -> tuple[np.ndarray, dict]:
+    """`extract_surface` of a bed too large to sample at once, in square blocks of `block_cells` x
+    `block_cells` grid nodes over the region (without one, over the sampled Gaussians' reach, as one pass
+    covers): the same steps in each, so that memory is
+    bounded by a block's samples whatever the area. Each block samples the Gaussians that can reach it or
+    its margin, at the density of the whole (cfg.n_samples over the volume of every Gaussian kept), filters
+    and grids the samples of the block and its margin (as wide as the noise filter's and the despiking's
+    neighbourhoods, and a hole's fill), and keeps its own nodes. A block's own random stream (cfg.seed and its
+    index), so the result does not depend on the order the blocks are done in; it is not the one-pass
+    result's draw, and the holes are filled within each block's margin. `on_block(done, total)` after each."""
+    means, scales, quats, opac = _np(means), _np(scales), _np(quats), _np(opacities).reshape(-1)
+    keep = culled(scales, opac, means, cfg, region)
+    idx = np.flatnonzero(keep)
+    volume = np.prod(scales[idx], axis=1)
+    density = cfg.n_samples / max(volume.sum(), 1e-300)  # samples per unit volume, as in one pass
+    reach = cfg.sigma_cut * (scales[idx].max() if len(idx) else 0.0)  # how far a kept Gaussian's draws go
+    margin = cfg.filter_radius + cfg.despike_radius + (cfg.fill_gap_cells + 2) * cfg.cell
+    origin = np.asarray(origin, float)
+    if region is not None:
+        box = np.array([region["xmin"], region["ymin"]]), np.array([region["xmax"], region["ymax"]])
+    else:
+        box = (means[idx, :2].min(0) - reach, means[idx, :2].max(0) + reach) if len(idx) else (origin, origin)
+    first = np.ceil((box[0] - origin) / cfg.cell - 1e-6).astype(np.int64)  # the nodes [2] in the box
+    last = np.floor((box[1] - origin) / cfg.cell + 1e-6).astype(np.int64)
+    grids, samples, kept_samples = [], 0, 0
+    corners = [(bi, bj) for bi in range(first[0], last[0] + 1, block_cells)
+               for bj in range(first[1], last[1] + 1, block_cells)]
+    for done, (bi, bj) in enumerate(corners, 1):
+        own_lo = np.array([bi, bj])  # the block's nodes: own_lo <= index < own_hi
+        own_hi = np.minimum(own_lo + block_cells, last + 1)
+        lo, hi = origin + (own_lo - 0.5) * cfg.cell - margin, origin + (own_hi - 0.5) * cfg.cell + margin
+        near = idx[((means[idx, :2] >= lo - reach) & (means[idx, :2] <= hi + reach)).all(1)]
+        n = round(density * np.prod(scales[near], axis=1).sum())
+        rng = np.random.default_rng([cfg.seed, int(bi - first[0]), int(bj - first[1])])
+        pts, _ = sample_gaussians(means[near], scales[near], quats[near], opac[near], replace(cfg, n_samples=n),
+                                  rng=rng)
+        pts = pts[((pts[:, :2] >= lo) & (pts[:, :2] <= hi)).all(1)]
+        samples += len(pts)
+        pts = pts[plane_filter(pts, cfg)]
+        kept_samples += len(pts)
+        grid = grid_median(pts, cfg.cell, tuple(origin))
+        grid = grid[despike(grid, cfg.cell, cfg.despike_radius, cfg.despike_tol, cfg.despike_min_neighbours)]
+        if region is not None:
+            grid = grid[in_region(grid, region, tol=1e-6 * cfg.cell)]
+        grid = fill_holes(grid, cfg.cell, tuple(origin), cfg.fill_gap_cells)
+        ij = np.rint((grid[:, :2] - origin) / cfg.cell).astype(np.int64)
+        grids.append(grid[((ij >= own_lo) & (ij < own_hi)).all(1)])
+        if on_block is not None:
+            on_block(done, len(corners))
+    grid = np.vstack(grids) if grids else np.zeros((0, 3))
+    stats = {"gaussians": len(keep), "gaussians_sampled": len(idx), "samples": samples,
+             "samples_after_filter": kept_samples, "grid_points": len(grid), "blocks": len(corners),
+             "block_cells": block_cells, "config": cfg.to_dict(), "grid_origin": origin.tolist()}
     return grid, stats
 
 

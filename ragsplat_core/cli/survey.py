@@ -37,9 +37,28 @@ from ragsplat_core.cli.args import (
     refractive_index,
 )
 
+AUTO = "auto"
+
+
+def level_or_auto(text: str) -> float | str:
+    return AUTO if text.strip().lower() == AUTO else finite_float(text)
+
 STAGES = ("sfm", "georef", "water", "train", "export")
 RTK_SIGMA = (0.02, 0.03)  # an RTK drone's camera centre, horizontal and vertical (m)
 PRODUCTS = ("dem.tif", "bed.laz", "depth.png")
+# The training's Gaussian budget grows with the survey's area in ground sample distances (GSD^2): 0.17 per
+# GSD^2 is the `small` preset's 40 000 on the synthetic survey's 127 m^2 (its points' 1-99 % box) at 2.33 cm;
+# a smaller survey keeps the preset's budget. MAX_GAUSSIANS bounds memory (about 1 kB each while training).
+GAUSSIANS_PER_GSD2 = 0.17
+MAX_GAUSSIANS = 3_000_000
+IMAGE_MEMORY = 0.4  # the training's images (uint8) may take this share of the machine's memory
+# With the level free, points that cross it as it moves make the cost slightly rough: on `small` (seed 7) it
+# settles within 0.01 mm in 6-9 iterations and then creeps on by 1e-7 relative per step, so stop at 1e-7.
+LEVEL_TOL = 1e-7
+# An estimated level less certain than this is said to be poorly determined: on a flat bed with no dry ground
+# (a synthetic survey of 18 photos from 4 m) the level could move 0.5 m for 0.2 % of the cost while its
+# linearised uncertainty read 6.6 cm; on `small`, with banks and pools, it read 0.44 cm and was 0.3 cm off.
+LEVEL_WARN = 0.02
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 
 
@@ -62,9 +81,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "image's top-left corner at 0,0)")
     parser.add_argument("--gcp-sigma", type=positive_float, default=0.01, metavar="M",
                         help="ground control accuracy, each axis (m; default 0.01)")
-    surface = parser.add_mutually_exclusive_group(required=True)
-    surface.add_argument("--water-level", type=finite_float, metavar="Z",
-                         help="height of the calm, flat water surface in the positions' frame (m)")
+    surface = parser.add_mutually_exclusive_group()
+    surface.add_argument("--water-level", type=level_or_auto, default="auto", metavar="Z|auto",
+                         help="height of the calm, flat water surface in the positions' frame (m), or auto "
+                              "(the default without --water-surface): the level estimated from the photos, in "
+                              "the adjustment through the water")
     surface.add_argument("--water-surface", type=Path, metavar="CSV",
                          help="points on the water's edge as measured along both banks (RTK): CSV with header "
                               "x,y,z, the positions' frame; a river's sloping surface is fitted to them")
@@ -130,10 +151,14 @@ def _say(stage: str, text: str, since: float | None = None) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import math
+    from dataclasses import replace
+
     import numpy as np
     import pycolmap
     import torch
 
+    from ragsplat_core.cli.progress import bar
     from ragsplat_core.dataset import layout
     from ragsplat_core.errors import ConfigError, DatasetError
     from ragsplat_core.outputs import claim, write_json
@@ -147,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
     if len(photos) < 3:
         raise DatasetError(f"{args.images}: {len(photos)} photos (JPEG, PNG or TIFF); at least 3 are needed")
     names = [p.name for p in photos]
-    rtk_sigma, tagged, sigma = args.rtk_sigma or RTK_SIGMA, None, None
+    rtk_sigma, tagged, sigma, fixed = args.rtk_sigma or RTK_SIGMA, None, None, 0
     if args.positions is not None:
         positions, control = layout.read_positions(args.positions), None
         known, source = positions, args.positions
@@ -192,15 +217,22 @@ def run(args: argparse.Namespace) -> int:
         surface = WaterSurface(edge.level, args.n, edge.slope, edge.profile)
         _say("check", f"water surface from {len(edge.residuals)} edge points: {_describe(surface)}, rms "
              f"{100 * edge.report()['rms_m']:.1f} cm, {int((~edge.inliers).sum())} left out")
+    elif args.water_level == AUTO:  # estimated in the adjustment through the water (stage 3)
+        if args.no_water_adjustment:
+            raise ConfigError("--no-water-adjustment needs a water level or surface: without one it is estimated "
+                              "in that adjustment (give --water-level Z or --water-surface EDGE.csv)")
+        surface = None
     else:
         surface = WaterSurface(args.water_level, args.n)
-    if positions is not None:
+    if positions is not None and surface is not None:
         _check_above(surface, np.array([positions[n] for n in located]))
+    _check_sizes(args, photos, np.array([(positions or control)[n] for n in (located if positions else control)]),
+                 surface)
     claim(args.out, "survey run")
     stamps = Stamps(args.out)
     # a local origin (whole metres): UTM-sized coordinates keep millimetres in every float64 step
     origin = np.round(np.mean(list((positions or control).values()), axis=0))
-    water = surface.shifted(origin)  # in the local frame
+    water = None if surface is None else surface.shifted(origin)  # in the local frame
 
     # 1. structure from motion
     key = _digest({p.name: layout.file_digest(p) for p in photos}, sfm.CAMERA_MODEL)
@@ -209,7 +241,8 @@ def run(args: argparse.Namespace) -> int:
     if not stamps.done("sfm", key, work / "model"):
         _say("sfm", f"structure from motion of {len(photos)} photos (pycolmap SIFT, exhaustive matching, "
              "incremental mapping; CPU) ...")
-        rec = sfm.reconstruct(args.images, names, work)
+        rec = sfm.reconstruct(args.images, names, work, progress=lambda desc, total, unit: bar(
+            total, f"[sfm] {desc}", unit, disable=args.no_progress))
         rec.write_text(str(_fresh(work / "model")))
         stamps.mark("sfm", key)
     rec = pycolmap.Reconstruction(str(work / "model"))
@@ -258,7 +291,8 @@ def run(args: argparse.Namespace) -> int:
     if np.median(looks) > -0.2:
         raise DatasetError(f"{source}: after alignment the cameras do not look down (median optical "
                            f"axis z {np.median(looks):+.2f}): are the coordinates metres with z up?")
-    _check_above(water, sim.apply(trk.C.numpy()))
+    if water is not None:
+        _check_above(water, sim.apply(trk.C.numpy()))
     report = {"to": what, "scale": sim.scale, "R": sim.R.tolist(), "t": (sim.t + origin).tolist(),
               "origin": origin.tolist(), "inliers": int(inliers.sum()), "count": len(labels),
               "residual_m": {name: r.tolist() for name, r in zip(labels, res)},
@@ -284,14 +318,15 @@ def run(args: argparse.Namespace) -> int:
 
     # 3. the water: bundle adjustment through it, cameras held at their RTK positions or targets at theirs
     held_by = list(rtk_sigma) if sigma is None else given  # the positions' accuracy, one or per camera
-    key = _digest(key, layout.water_json(water), args.no_water_adjustment, held_by, args.gcp_sigma)
+    key = _digest(key, layout.water_json(water) if water is not None else [AUTO, args.n], args.no_water_adjustment,
+                  held_by, args.gcp_sigma)
     model = args.out / "model"
     t0 = time.perf_counter()
     if not stamps.done("water", key, model, args.out / "water.json"):
         R = trk.R @ torch.as_tensor(sim.R.T)  # world = s R x + t: cam_from_world' = cam_from_world R^T
         C = torch.as_tensor(sim.apply(trk.C.numpy()))
         P = torch.as_tensor(sim.apply(trk.points.numpy()))
-        point, image, pix, held, gcp_rows = trk.point, trk.image, trk.pixels, {}, None
+        point, image, pix, held, gcp_rows, estimated = trk.point, trk.image, trk.pixels, {}, None, None
         if control is None:
             prior = torch.full_like(C, float("nan"))
             prior[have] = torch.as_tensor(dst)
@@ -314,7 +349,29 @@ def run(args: argparse.Namespace) -> int:
         else:
             _say("water", f"bundle adjustment through the water ({len(point)} observations of {len(P)} points, "
                  f"{len(C)} cameras) ...")
-            adj = bundle.adjust(R, C, trk.intrinsics, P, point, image, pix, water, **held)
+            with bar(30, "[water] adjustment", "iteration", disable=args.no_progress) as b:
+                def step(cost):
+                    b.update(1)
+                    b.set_postfix(cost=f"{cost:.4g}", refresh=False)
+
+                if water is None:  # the level too, from a start among the model's points
+                    start = water_fit.start_level(P[: len(trk.points)].numpy())
+                    # positions that fix no tilt (consumer GPS): the water's slope too, then the frame levelled by it
+                    free = ("level", "slope") if tagged is not None and not fixed else ("level",)
+                    adj = bundle.adjust(R, C, trk.intrinsics, P, point, image, pix, WaterSurface(start, args.n),
+                                        free=free, tol=LEVEL_TOL, on_iteration=step, **held)
+                    estimated = {"free": list(free), "start_m": start + origin[2], "sigma_m": adj.water_sigma}
+                    water = adj.water
+                    if water.tilted:
+                        level = georef.levelling(water)
+                        adj = replace(adj, R=adj.R @ torch.as_tensor(level.R.T), C=torch.as_tensor(level.apply(adj.C)),
+                                      points=torch.as_tensor(level.apply(adj.points)))
+                        estimated["levelled_deg"] = math.degrees(math.atan(math.hypot(*water.slope)))
+                        estimated["slope_before_levelling"] = list(water.slope)
+                        water = WaterSurface(water.level, args.n)
+                    surface = water.shifted(-origin)
+                else:
+                    adj = bundle.adjust(R, C, trk.intrinsics, P, point, image, pix, water, on_iteration=step, **held)
             R, C, P = adj.R, adj.C, adj.points
         if gcp_rows is not None:
             gcp_residual = {n: (P[r] - torch.as_tensor(dst[k])).tolist() for k, (n, r) in
@@ -323,8 +380,10 @@ def run(args: argparse.Namespace) -> int:
         z = -water.depth(P.numpy())  # height above the surface
         above = z[z >= 0]
         check = {"surface": layout.water_json(surface), "described": _describe(surface),
+                 **({} if estimated is None else {"estimated": estimated}),
                  **({} if edge is None else {"edge_fit": edge.report(), "along_the_reach": water_fit.profile(
                      P.numpy(), water.height(P.numpy()[:, :2]), edge_points - origin)}),
+                 "extent_m": (np.percentile(P.numpy()[:, :2], [1, 99], axis=0) + origin[:2]).tolist(),
                  "points_above": int((z >= 0).sum()),
                  "points_below": int((z < 0).sum()),
                  "lowest_above_m": float(np.percentile(above, 1)) if len(above) else None,
@@ -339,6 +398,14 @@ def run(args: argparse.Namespace) -> int:
             shutil.rmtree(args.out / stale, ignore_errors=True)
         stamps.mark("water", key)
     check = json.loads((args.out / "water.json").read_text())
+    surface = WaterSurface(**{**check["surface"], "n": args.n})  # as given, or as estimated
+    if "estimated" in check:
+        sigma = check["estimated"]["sigma_m"]["level"]
+        _say("water", f"the level estimated from the photos: {surface.level:.3f} m +- {100 * sigma:.1f} cm (1 sigma)"
+             + ("" if "levelled_deg" not in check["estimated"] else
+                f"; the frame levelled by the water's plane, {check['estimated']['levelled_deg']:.2f} degrees")
+             + ("" if sigma <= LEVEL_WARN else "; poorly determined (a flat bed, little depth variation or no "
+                "oblique views hide it): measure it and give --water-level, or --water-surface EDGE.csv"))
     lowest = check["lowest_above_m"]
     _say("water", f"{check['described']}: {check['points_below']} points below it, {check['points_above']} "
          f"above" + ("" if lowest is None else f" (the lowest 1 % within {100 * lowest:.1f} cm of it)")
@@ -347,17 +414,26 @@ def run(args: argparse.Namespace) -> int:
 
     if args.stop_after == "water":
         return 0
+    from ragsplat_core.export import sample_count
+
+    lo, hi = np.asarray(check["extent_m"])
+    sample_count(lo, hi, args.resolution)  # the DEM's size over the model's points, before training
 
     # 4. training and the products
     run_train = args.out / "train"
-    _train(args, model, run_train, surface)
+    _train(args, model, run_train, surface, float(np.prod(hi - lo)))
     key = _digest(key, (run_train / "point_cloud.ply").stat().st_mtime_ns, args.resolution)
     t0 = time.perf_counter()
     if not stamps.done("export", key, *(args.out / n for n in PRODUCTS)):
         from ragsplat_core.export import export_run
 
         dem, las, png = (args.out / n for n in PRODUCTS)
-        bed = export_run(run_train, dem, args.resolution, las, None, png)
+        with bar(1, "[export] bed", "block", disable=args.no_progress) as b:
+            def block(done, total):
+                b.total = total
+                b.update(done - b.n)
+
+            bed = export_run(run_train, dem, args.resolution, las, None, png, on_block=block)
         stamps.mark("export", key)
         _say("export", f"{len(bed.grid)} cells of {args.resolution:g} m", t0)
     for name in PRODUCTS:
@@ -421,14 +497,66 @@ def _check_above(water, centres) -> None:
                           "there)")
 
 
+def _check_sizes(args: argparse.Namespace, photos: list[Path], centres, surface) -> None:
+    """Every size refusal before any work, each in one line with advice that works: the training's images
+    must fit `IMAGE_MEMORY` of this machine's memory (without --max-size, the largest that fits is chosen
+    and said), and the DEM's grid over the cameras' footprints must pass `export.sample_count` at
+    --resolution (the area is known only after structure from motion; here its lower bound: the cameras'
+    extent, grown by each one's nadir footprint where the water level is given)."""
+    import os
+
+    import numpy as np
+    from PIL import Image
+
+    from ragsplat_core.errors import ConfigError
+    from ragsplat_core.export import sample_count
+
+    sizes = []
+    for p in photos:
+        with Image.open(p) as im:
+            sizes.append(im.size)
+    sizes = np.array(sizes, dtype=np.float64)  # [N, 2] width, height
+    longest = sizes.max(1)
+
+    def image_bytes(max_size):
+        scale = np.minimum(1.0, max_size / longest) if max_size else 1.0
+        return float((3 * np.prod(sizes, 1) * scale * scale).sum())
+
+    budget = IMAGE_MEMORY * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    if image_bytes(args.max_size) > budget:
+        fits = int(longest.max() * (budget / image_bytes(None)) ** 0.5) // 16 * 16  # bytes go as size^2
+        while fits > 16 and image_bytes(fits) > budget:
+            fits -= 16
+        if args.max_size is not None:
+            raise ConfigError(f"{len(photos)} photos at --max-size {args.max_size} take {image_bytes(args.max_size) / 1e9:.1f} "
+                              f"GB in training, over {budget / 1e9:.1f} GB ({IMAGE_MEMORY:.0%} of this machine's "
+                              f"memory); give --max-size {fits} or less")
+        args.max_size = fits
+        _say("check", f"{len(photos)} photos of {int(longest.max())} px take {image_bytes(None) / 1e9:.1f} GB: "
+             f"training on them downscaled to at most {fits} px ({image_bytes(fits) / 1e9:.1f} GB; --max-size "
+             "to choose)")
+    lo, hi = centres[:, :2].min(0), centres[:, :2].max(0)
+    if surface is not None:  # the nadir footprint's half width: height over the water x half the sensor / focal
+        from ragsplat_core.survey.exif import focal_pixels
+
+        focal = focal_pixels(photos[0])
+        if focal:
+            reach = float(np.median(-surface.depth(centres))) * 0.5 * sizes[0].max() / focal
+            lo, hi = lo - max(reach, 0.0), hi + max(reach, 0.0)
+    sample_count(lo, hi, args.resolution)  # ConfigError with the resolution that passes
+
+
 def _fresh(folder: Path) -> Path:
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
     return folder
 
 
-def _train(args: argparse.Namespace, model: Path, out: Path, surface) -> None:
-    """The survey imported into RUN/data (`dataset.colmap`), then trained in RUN/train (resumes)."""
+def _train(args: argparse.Namespace, model: Path, out: Path, surface, area: float) -> None:
+    """The survey imported into RUN/data (`dataset.colmap`), then trained in RUN/train (resumes), with a
+    Gaussian budget for its `area` (m^2) at its ground sample distance (`GAUSSIANS_PER_GSD2`)."""
+    from dataclasses import replace
+
     from ragsplat_core.cli.progress import deferred_interrupts, training_bar
     from ragsplat_core.dataset import layout
     from ragsplat_core.dataset.colmap import import_colmap
@@ -443,6 +571,10 @@ def _train(args: argparse.Namespace, model: Path, out: Path, surface) -> None:
         overrides["iterations"] = args.iterations
     cfg = preset_config(args.preset, **overrides)
     ds = load_dataset(done.root, splits=("train",), load_dry=False)
+    budget = min(max(round(GAUSSIANS_PER_GSD2 * area / ds.gsd**2), cfg.densify.max_gaussians), MAX_GAUSSIANS)
+    cfg = replace(cfg, densify=replace(cfg.densify, max_gaussians=budget))
+    _say("train", f"at most {budget} Gaussians for {area:.0f} m^2 at a ground sample distance of {100 * ds.gsd:.2f} "
+         f"cm ({GAUSSIANS_PER_GSD2} per GSD^2, at least the {args.preset} preset's, at most {MAX_GAUSSIANS})")
     t0 = time.perf_counter()
     trainer = Trainer(cfg, ds, out)  # the start (the refracted tracks: triangulated once, cached in RUN/data)
     if trainer.step >= cfg.iterations:

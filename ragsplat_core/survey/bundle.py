@@ -11,7 +11,14 @@ inside OpenSfM).
 
 The solver is Levenberg-Marquardt on all poses and points at once, in float64: the Jacobian blocks of every
 observation (it depends on one camera and one point) by autograd, the points eliminated by the Schur
-complement (a dense 6I x 6I system for I cameras), Huber weights against wrong matches. Intrinsics are held fixed. Tensors in, tensors out, float64, CPU or CUDA.
+complement (a dense 6I x 6I system for I cameras), Huber weights against wrong matches. Intrinsics are held fixed.
+Tensors in, tensors out, float64, CPU or CUDA.
+
+The water surface itself may be adjusted with them (`free`: its level, or its level and slope), as
+multimedia photogrammetry estimates an interface in the bundle (Mulsow, 2010): a level error moves a
+submerged point's apparent position differently at different incidence angles, so tracks seen from nadir and
+oblique views fix it. Only near nadir is it lost (there the apparent depth is d / n at every angle, and a
+level and the points' depths trade against each other).
 """
 
 from __future__ import annotations
@@ -51,6 +58,8 @@ class Bundle:
     residuals: torch.Tensor  # [M] reprojection error (pixels) of every observation
     iterations: int
     cost: float  # robust cost at the end (pixels^2 units, priors included)
+    water: WaterSurface | None = None  # the surface, adjusted where `free` asked
+    water_sigma: dict[str, float] | None = None  # standard deviation of each free parameter (m; slope: m/m)
 
 
 def _rotate(R: torch.Tensor, w: torch.Tensor) -> torch.Tensor:  # R [N, 3, 3] turned by w [N, 3] (radians)
@@ -67,14 +76,18 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
            prior_C: torch.Tensor | None = None,
            prior_sigma: tuple[float, float, float] | torch.Tensor = (0.02, 0.02, 0.03),
            prior_points: tuple[torch.Tensor, torch.Tensor] | None = None, point_sigma: float = 0.01,
-           pixel_sigma: float = 1.0, huber: float = 2.0, iterations: int = 30, tol: float = 1e-9) -> Bundle:
+           pixel_sigma: float = 1.0, huber: float = 2.0, iterations: int = 30, tol: float = 1e-9,
+           free: tuple[str, ...] = (), on_iteration=None) -> Bundle:
     """Levenberg-Marquardt on the cameras (R [I, 3, 3], C [I, 3]) and points [P, 3] given the observations
     pixels [M, 2] of point [M] in image [M], the intrinsics [I, 4] held fixed. Cost: sum of Huber(|r| /
     pixel_sigma) over the observations plus, with `prior_C` [I, 3], sum of ((C - prior_C) / prior_sigma)^2
     (metres; x, y, z, the same for every camera or one row [I, 3] each; rows of NaN: no prior), which also
     fixes the frame; with `prior_points` (indices [G], positions [G, 3]: ground control points among the
     points) sum of ((P - position) / point_sigma)^2, which fixes it too; without either the frame floats
-    (damped only). Stops after `iterations` or when an accepted step lowers the cost by less than `tol` relative."""
+    (damped only). `free` ("level", "slope"): the water's parameters adjusted too (a flat or tilted plane;
+    their Jacobian columns by central differences), their standard deviations from the final normal
+    equations scaled by the residuals' variance. Stops after `iterations` or when an accepted step lowers the
+    cost by less than `tol` relative; `on_iteration(cost)` after each."""
     dt = torch.float64
     R, C, points, intrinsics, pixels = (x.to(dt) for x in (R, C, points, intrinsics, pixels))
     n_img, n_pts = len(C), len(points)
@@ -95,14 +108,23 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
 
     K = intrinsics[image]
     eye3 = torch.eye(3, dtype=dt, device=C.device)
+    index = _free_index(free, water)  # which of (level, slope x, slope y) are adjusted
+    theta = torch.tensor([0.0, 0.0, 0.0] if water is None else [_value(water.level), *map(_value, water.slope)],
+                         dtype=dt)
+    fd_step = torch.tensor(FD_STEP, dtype=dt)
 
-    def residual(R_, C_, P_):  # [M, 2] in units of pixel_sigma
-        return (project(R_[image], C_[image], K, P_[point], water) - pixels) / pixel_sigma
+    def surface(th: torch.Tensor) -> WaterSurface | None:
+        if not index:
+            return water
+        return WaterSurface(float(th[0]), water.n, (float(th[1]), float(th[2])))
+
+    def residual(R_, C_, P_, th):  # [M, 2] in units of pixel_sigma
+        return (project(R_[image], C_[image], K, P_[point], surface(th)) - pixels) / pixel_sigma
 
     gcp, gcp_xyz = (None, None) if prior_points is None else (prior_points[0], prior_points[1].to(dt))
 
-    def total(R_, C_, P_) -> tuple[float, torch.Tensor]:
-        r = residual(R_, C_, P_)
+    def total(R_, C_, P_, th) -> tuple[float, torch.Tensor]:
+        r = residual(R_, C_, P_, th)
         cost = _huber(r.norm(dim=-1), huber)[0].sum()
         if sig is not None:
             cost = cost + ((held * (C_ - prior_C) / sig) ** 2).sum()
@@ -110,60 +132,122 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
             cost = cost + (((P_[gcp] - gcp_xyz) / point_sigma) ** 2).sum()
         return float(cost), r
 
-    def jacobians(R_, C_, P_) -> tuple[torch.Tensor, torch.Tensor]:
-        """[M, 2, 6] and [M, 2, 3]: each observation's residual w.r.t. its camera (turn, centre) and its
-        point, by autograd (exact; the water's through its implicit gradients): one backward per pixel axis,
-        the parameters repeated per observation so that the gradient of the sum is each one's own row."""
+    def jacobians(R_, C_, P_, th) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """[M, 2, 6], [M, 2, 3] and [M, 2, G]: each observation's residual w.r.t. its camera (turn, centre),
+        its point and the free water parameters. The first two by autograd (exact; the water's through its
+        implicit gradients): one backward per pixel axis, the parameters repeated per observation so that the
+        gradient of the sum is each one's own row; the water's, shared by all, by central differences."""
         with torch.enable_grad():
             turn = torch.zeros(len(point), 3, dtype=dt, device=C.device, requires_grad=True)
             Cm = C_[image].detach().requires_grad_(True)
             X = P_[point].detach().requires_grad_(True)
-            r_ = (project(R_[image] @ (eye3 + skew(turn)), Cm, K, X, water) - pixels) / pixel_sigma
+            r_ = (project(R_[image] @ (eye3 + skew(turn)), Cm, K, X, surface(th)) - pixels) / pixel_sigma
             rows = [torch.autograd.grad(r_[:, a].sum(), (turn, Cm, X), retain_graph=a == 0) for a in range(2)]
-        return (torch.stack([torch.cat(g[:2], -1) for g in rows], 1), torch.stack([g[2] for g in rows], 1))
+        Jg = [(residual(R_, C_, P_, th + e) - residual(R_, C_, P_, th - e)) / (2 * fd_step[j])
+              for j in index for e in [fd_step[j] * (torch.arange(3) == j)]]
+        Jg = torch.stack(Jg, -1) if Jg else torch.zeros(len(point), 2, 0, dtype=dt, device=C.device)
+        return (torch.stack([torch.cat(g[:2], -1) for g in rows], 1), torch.stack([g[2] for g in rows], 1), Jg)
 
-    cost, r = total(R, C, points)
-    lam, it = 1e-3, 0
-    for it in range(1, iterations + 1):
-        Jc, Jp = jacobians(R, C, points)
+    def normal_equations(R_, C_, P_, th, r):
+        """The Gauss-Newton blocks at the current state, with the Huber weights of its residuals r."""
+        Jc, Jp, Jg = jacobians(R_, C_, P_, th)
         w = _huber(r.norm(dim=-1), huber)[1][:, None, None]  # [M, 1, 1]
+        wr = w * r[:, :, None]
         U = torch.zeros(n_img, 6, 6, dtype=dt, device=C.device).index_add_(0, image, Jc.mT @ (w * Jc))
         V = torch.zeros(n_pts, 3, 3, dtype=dt, device=C.device).index_add_(0, point, Jp.mT @ (w * Jp))
-        W = Jc.mT @ (w * Jp)  # [M, 6, 3]
-        gc = torch.zeros(n_img, 6, dtype=dt, device=C.device).index_add_(0, image, (Jc.mT @ (w * r[:, :, None]))[..., 0])
-        gp = torch.zeros(n_pts, 3, dtype=dt, device=C.device).index_add_(0, point, (Jp.mT @ (w * r[:, :, None]))[..., 0])
+        gc = torch.zeros(n_img, 6, dtype=dt, device=C.device).index_add_(0, image, (Jc.mT @ wr)[..., 0])
+        gp = torch.zeros(n_pts, 3, dtype=dt, device=C.device).index_add_(0, point, (Jp.mT @ wr)[..., 0])
         if sig is not None:
             U[:, 3:, 3:] += held[:, :, None] * torch.diag_embed((1 / sig**2).expand(n_img, 3))
-            gc[:, 3:] += held * (C - prior_C) / sig**2
+            gc[:, 3:] += held * (C_ - prior_C) / sig**2
         if gcp is not None:
             V[gcp] += eye3 / point_sigma**2
-            gp[gcp] += (points[gcp] - gcp_xyz) / point_sigma**2
+            gp[gcp] += (P_[gcp] - gcp_xyz) / point_sigma**2
+        G = Jg.shape[-1]
+        Ucg = torch.zeros(n_img, 6, G, dtype=dt, device=C.device).index_add_(0, image, Jc.mT @ (w * Jg))
+        Wg = torch.zeros(n_pts, G, 3, dtype=dt, device=C.device).index_add_(0, point, Jg.mT @ (w * Jp))
+        return {"U": U, "V": V, "W": Jc.mT @ (w * Jp), "gc": gc, "gp": gp, "Ugg": (Jg.mT @ (w * Jg)).sum(0),
+                "Ucg": Ucg, "Wg": Wg, "gg": (Jg.mT @ wr)[..., 0].sum(0)}
+
+    def reduced(eq: dict, lam: float):
+        """The damped system in the cameras and the water's parameters, the points eliminated (Schur
+        complement): (matrix [6I + G, 6I + G], right-hand side, the points' inverse blocks [P, 3, 3])."""
+        U, V, W, Ugg = eq["U"], eq["V"], eq["W"], eq["Ugg"]
+        Ud = U + lam * torch.diag_embed(torch.diagonal(U, dim1=-2, dim2=-1) + 1e-9)
+        Vd = V + lam * torch.diag_embed(torch.diagonal(V, dim1=-2, dim2=-1)) + 1e-12 * eye3
+        Vi = torch.linalg.inv(Vd)  # [P, 3, 3]
+        Y = W @ Vi[point]  # [M, 6, 3]
+        S = torch.zeros(n_img, n_img, 6, 6, dtype=dt, device=C.device)
+        S.index_put_((image[pair_a], image[pair_b]), -(Y[pair_a] @ W[pair_b].mT), accumulate=True)
+        S[torch.arange(n_img), torch.arange(n_img)] += Ud
+        rhs = -eq["gc"] + torch.zeros(n_img, 6, dtype=dt, device=C.device).index_add_(
+            0, image, (Y @ eq["gp"][point][:, :, None])[..., 0])
+        S, rhs = S.permute(0, 2, 1, 3).reshape(6 * n_img, 6 * n_img), rhs.reshape(-1)
+        if len(index):  # the water's parameters: one more row and column each
+            Wg, Z = eq["Wg"], eq["Wg"] @ Vi  # [P, G, 3]
+            Scg = eq["Ucg"] - torch.zeros_like(eq["Ucg"]).index_add_(0, image, Y @ Wg[point].mT)
+            Sgg = Ugg + lam * torch.diag_embed(torch.diagonal(Ugg) + 1e-9) - (Z @ Wg.mT).sum(0)
+            Scg = Scg.reshape(6 * n_img, -1)
+            S = torch.cat([torch.cat([S, Scg], 1), torch.cat([Scg.T, Sgg], 1)], 0)
+            rhs = torch.cat([rhs, -eq["gg"] + (Z @ eq["gp"][:, :, None])[..., 0].sum(0)])
+        return S, rhs, Vi
+
+    cost, r = total(R, C, points, theta)
+    lam, it = 1e-3, 0
+    for it in range(1, iterations + 1):
+        eq = normal_equations(R, C, points, theta, r)
         while True:
-            Ud = U + lam * torch.diag_embed(torch.diagonal(U, dim1=-2, dim2=-1) + 1e-9)
-            Vd = V + lam * torch.diag_embed(torch.diagonal(V, dim1=-2, dim2=-1)) + 1e-12 * eye3
-            Vi = torch.linalg.inv(Vd)  # [P, 3, 3]
-            Y = W @ Vi[point]  # [M, 6, 3]
-            S = torch.zeros(n_img, n_img, 6, 6, dtype=dt, device=C.device)
-            S.index_put_((image[pair_a], image[pair_b]), -(Y[pair_a] @ W[pair_b].mT), accumulate=True)
-            S[torch.arange(n_img), torch.arange(n_img)] += Ud
-            rhs = -gc + torch.zeros(n_img, 6, dtype=dt, device=C.device).index_add_(
-                0, image, (Y @ gp[point][:, :, None])[..., 0])
-            dc = torch.linalg.solve(S.permute(0, 2, 1, 3).reshape(6 * n_img, 6 * n_img), rhs.reshape(-1))
-            dc = dc.reshape(n_img, 6)
-            wtdc = torch.zeros(n_pts, 3, dtype=dt, device=C.device).index_add_(
-                0, point, (W.mT @ dc[image][:, :, None])[..., 0])
-            dp = -(Vi @ (gp + wtdc)[:, :, None])[..., 0]
+            S, rhs, Vi = reduced(eq, lam)
+            x = torch.linalg.solve(S, rhs)
+            dc, dg = x[: 6 * n_img].reshape(n_img, 6), x[6 * n_img:]
+            back = torch.zeros(n_pts, 3, dtype=dt, device=C.device).index_add_(
+                0, point, (eq["W"].mT @ dc[image][:, :, None])[..., 0])
+            if len(index):
+                back = back + (eq["Wg"].mT @ dg)
+            dp = -(Vi @ (eq["gp"] + back)[:, :, None])[..., 0]
+            th1 = theta.clone()
+            th1[index] += dg
             R1, C1, P1 = _rotate(R, dc[:, :3]), C + dc[:, 3:], points + dp
-            new, r1 = total(R1, C1, P1)
+            new, r1 = total(R1, C1, P1, th1)
             if new < cost:
                 done = cost - new < tol * cost
-                R, C, points, cost, r = R1, C1, P1, new, r1
+                R, C, points, theta, cost, r = R1, C1, P1, th1, new, r1
                 lam = max(lam / 3, 1e-12)
                 break
             lam *= 4
             if lam > 1e12:
                 done = True
                 break
+        if on_iteration is not None:
+            on_iteration(cost)
         if done:
             break
-    return Bundle(R, C, points, (r * pixel_sigma).norm(dim=-1), it, cost)
+    sigma = None
+    if len(index):  # the free parameters' covariance: the undamped reduced system's inverse, scaled
+        S, _, _ = reduced(normal_equations(R, C, points, theta, r), 0.0)
+        w = _huber(r.norm(dim=-1), huber)[1]
+        dof = max(r.numel() - 6 * n_img - 3 * n_pts - len(index), 1)
+        scale = float((w * (r * r).sum(-1)).sum()) / dof
+        var = torch.linalg.inv(S)[6 * n_img:, 6 * n_img:].diagonal() * scale
+        names = [("level", "slope_x", "slope_y")[j] for j in index]
+        sigma = {n: float(v.clamp(min=0).sqrt()) for n, v in zip(names, var)}
+    return Bundle(R, C, points, (r * pixel_sigma).norm(dim=-1), it, cost, surface(theta), sigma)
+
+
+FREE = ("level", "slope")
+FD_STEP = (1e-5, 1e-7, 1e-7)  # central differences for the level (m) and slope (m/m): float64, smooth
+
+
+def _value(x) -> float:
+    return float(x.detach()) if torch.is_tensor(x) else float(x)
+
+
+def _free_index(free: tuple[str, ...], water: WaterSurface | None) -> list[int]:
+    """Indices into (level, slope x, slope y) of the `free` parameters; ValueError for a name not in `FREE`,
+    or free parameters without a plane to adjust."""
+    strange = set(free) - set(FREE)
+    if strange:
+        raise ValueError(f"free water parameters are {FREE}, got {sorted(strange)}")
+    if free and (water is None or water.curved):
+        raise ValueError("only a plane water surface (no profile) can be adjusted")
+    return ([0] if "level" in free else []) + ([1, 2] if "slope" in free else [])

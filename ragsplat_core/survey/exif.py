@@ -264,3 +264,23 @@ def sigmas(photos: list[PhotoPosition], rtk: tuple[float, float] | None,
             out[k] = [max(MIN_STD, s) if s is not None else d
                       for s, d in ((p.std_horizontal, 0.02), (p.std_vertical, 0.03))]
     return out
+
+
+MM_PER_UNIT = {2: 25.4, 3: 10.0, 4: 1.0, 5: 1e-3}  # EXIF FocalPlaneResolutionUnit: inch, cm, mm, um
+
+
+def focal_pixels(path: Path) -> float | None:
+    """A photo's focal length in pixels from its EXIF: FocalLength (mm) x FocalPlaneXResolution (pixels per
+    unit), else FocalLengthIn35mmFilm x the longer side / 36 mm; None without either (or unreadable)."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            tags, longest = dict(im.getexif().get_ifd(0x8769)), max(im.size)
+    except (OSError, UnidentifiedImageError, SyntaxError):
+        return None
+    focal, per_unit, unit = (_rational(tags.get(k)) for k in (0x920A, 0xA20E, 0xA210))
+    if focal and per_unit and unit in MM_PER_UNIT:
+        return focal * per_unit * MM_PER_UNIT[int(unit)]
+    f35 = _rational(tags.get(0xA405))
+    return f35 * longest / 36.0 if f35 else None

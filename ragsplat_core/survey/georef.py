@@ -62,3 +62,16 @@ def ransac_similarity(src: np.ndarray, dst: np.ndarray, threshold: float, iterat
             break
         best = inl
     return sim, best
+
+
+def levelling(water) -> Similarity:
+    """The rotation about the surface point above the origin that makes a tilted water plane (`WaterSurface`,
+    no profile) level: x' = Q (x - p0) + p0, the plane then z = p0_z. For a survey whose positions fix no
+    tilt (consumer GPS: a few metres of scatter over a short baseline tilted a test flight 12 degrees), the
+    water fixes it: a calm surface is level to within a river's fall (under 1 %)."""
+    import torch
+
+    from ragsplat_core.refraction import plane_frame
+
+    Q, p0 = (t.numpy() for t in plane_frame(water, torch.zeros((), dtype=torch.float64)))
+    return Similarity(1.0, Q, p0 - Q @ p0)

@@ -11,7 +11,10 @@ an arbitrary frame and scale: `georef` fixes both.
 
 from __future__ import annotations
 
+import contextlib
 import shutil
+import sqlite3
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,10 +27,12 @@ CAMERA_MODEL = "SIMPLE_PINHOLE"  # one focal length, the principal point at the 
 
 
 def reconstruct(images: Path, names: list[str], work: Path, camera_model: str = CAMERA_MODEL,
-                threads: int = -1):
+                threads: int = -1, progress=None):
     """The largest pycolmap Reconstruction of the photos `names` in `images`; `work` holds the feature
-    database and the mapper's models (made anew). Raises DatasetError when fewer than half of the photos
-    (or fewer than 3) are registered."""
+    database and the mapper's models (made anew). `progress(desc, total, unit)`, when given, makes a bar
+    (`update(n)`, `close()`) for each stage: the photos with features, the pairs matched (both counted in
+    the database as pycolmap fills it), the photos registered. Raises DatasetError when fewer than half of
+    the photos (or fewer than 3) are registered."""
     import pycolmap
 
     work = Path(work)
@@ -40,19 +45,62 @@ def reconstruct(images: Path, names: list[str], work: Path, camera_model: str = 
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
     db = work / "database.db"
-    pycolmap.extract_features(db, images, names, camera_mode=pycolmap.CameraMode.AUTO, reader_options=reader,
-                              extraction_options=extraction, device=pycolmap.Device.cpu)
-    pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+    pairs = len(names) * (len(names) - 1) // 2
+    with _counted(progress, "features", len(names), "photo", db, "descriptors"):
+        pycolmap.extract_features(db, images, names, camera_mode=pycolmap.CameraMode.AUTO, reader_options=reader,
+                                  extraction_options=extraction, device=pycolmap.Device.cpu)
+    with _counted(progress, "matching (exhaustive)", pairs, "pair", db, "two_view_geometries"):
+        pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads, options.random_seed = threads, 0
     options.ba_refine_focal_length = options.ba_refine_principal_point = options.ba_refine_extra_params = False
-    models = pycolmap.incremental_mapping(db, images, work / "sparse", options=options)
+    bar = None if progress is None else progress("mapping", len(names), "photo")
+    try:
+        models = pycolmap.incremental_mapping(
+            db, images, work / "sparse", options=options,
+            initial_image_pair_callback=None if bar is None else (lambda: bar.update(2)),
+            next_image_callback=None if bar is None else (lambda: bar.update(1)))
+    finally:
+        if bar is not None:
+            bar.close()
     rec = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
     registered = 0 if rec is None else rec.num_reg_images()
     if registered < max(3, len(names) / 2):
         raise DatasetError(f"{images}: structure from motion registered only {registered} of {len(names)} "
                            "photos (too little overlap or texture, or photos of different places?)")
     return rec
+
+
+@contextlib.contextmanager
+def _counted(progress, desc: str, total: int, unit: str, db: Path, table: str):
+    """A bar (`progress`) of the rows of `table` in the database while pycolmap fills it, polled twice a
+    second from a thread (pycolmap's extraction and matching take no callback); nothing without `progress`."""
+    if progress is None:
+        yield
+        return
+    bar, stop, seen = progress(desc, total, unit), threading.Event(), [0]
+
+    def poll():
+        while not stop.wait(0.5):
+            try:
+                with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=0.1)) as con:
+                    rows = con.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0]
+            except sqlite3.Error:  # not made yet, or locked by the writer: next time
+                continue
+            if rows > seen[0]:
+                bar.update(min(rows, total) - seen[0])
+                seen[0] = min(rows, total)
+
+    thread = threading.Thread(target=poll, daemon=True)
+    thread.start()
+    try:
+        yield
+        stop.set()
+        thread.join()
+        bar.update(total - seen[0])
+    finally:
+        stop.set()
+        bar.close()
 
 
 @dataclass(frozen=True)
