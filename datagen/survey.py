@@ -2,7 +2,9 @@
 focal length in EXIF (`survey/images/`), the camera centres as an RTK drone records them, with seeded noise
 (`survey/positions.csv`, and the same positions in the photos' EXIF GPS and DJI-style XMP, RtkFlag 50, through
 a geographic origin of the scene, `GeoOrigin`; the same photos again in `survey/images-gps/` with a consumer
-drone's GPS instead: a bias per flight line and scatter, metres, no RTK flag), the water level as measured at the edge, with noise (`survey/water_level.txt`),
+drone's GPS instead: a bias per flight line and scatter, metres, no RTK flag; and in `survey/images-lens/`
+through a lens with radial distortion, `LENS`), the water level as measured at the edge, with noise
+(`survey/water_level.txt`),
 points on the water's edge along both banks as a surveyor measures them with RTK (`survey/water_edge.csv`,
 header x,y,z, with noise on z) and ground control on the banks with the targets' pixels (`survey/gcp.csv`,
 `survey/gcp_pixels.csv`). On a sloping surface water_level.txt holds one level at the mean of the edge
@@ -141,7 +143,11 @@ def geo_record(train, names: list[str], water, seed: int, noise: SurveyNoise,
                                    "rtk_std_m": [noise.horizontal, noise.horizontal, noise.vertical]},
             layout.SURVEY_IMAGES_GPS: {"noise": asdict(gps), "lines": [
                 {"photos": [n for n, k in zip(names, lines) if k == line], "bias_m": bias[line].round(4).tolist()}
-                for line in range(len(bias))]}}
+                for line in range(len(bias))]},
+            layout.SURVEY_IMAGES_LENS: {"geotags": layout.SURVEY_IMAGES, "lens": {
+                "model": "COLMAP RADIAL / OpenCV k1, k2 (no tangential terms): x_d = x (1 + k1 r^2 + k2 r^4) in "
+                         "normalised coordinates, the focal length and principal point unchanged",
+                "k1": LENS[0], "k2": LENS[1]}}}
 
 
 def write_geotags(root: Path, train, names: list[str], water, seed: int, noise: SurveyNoise,
@@ -150,7 +156,8 @@ def write_geotags(root: Path, train, names: list[str], water, seed: int, noise: 
     with the positions.csv centres as EXIF GPS and DJI-style XMP (AbsoluteAltitude, RelativeAltitude, gimbal
     and flight angles, RtkFlag 50 with RtkStdLon / RtkStdLat / RtkStdHgt), and into `survey/images-gps/`
     with a consumer drone's GPS instead (the true centres plus a bias per flight line and scatter, `gps`;
-    no RTK tags). Returns survey.json's "geo" (`geo_record`)."""
+    no RTK tags), and into `survey/images-lens/` with the RTK tags through a lens with radial distortion
+    (`LENS`, `distorted`). Returns survey.json's "geo" (`geo_record`)."""
     from ragsplat_core.survey import exif
 
     record = geo_record(train, names, water, seed, noise, origin, gps)
@@ -165,9 +172,10 @@ def write_geotags(root: Path, train, names: list[str], water, seed: int, noise: 
     angles += np.random.default_rng([seed, _ANGLE_STREAM]).normal(size=angles.shape) * GIMBAL_NOISE_DEG
     angles[:, 0] = (angles[:, 0] + 180) % 360 - 180
     angles[:, 1] = np.clip(angles[:, 1], -90, 30)  # a gimbal's range
-    for folder, xyz, tags in ((layout.SURVEY_IMAGES, rtk, {"RtkFlag": exif.RTK_FIXED, "RtkStdLon": noise.horizontal,
-                                                          "RtkStdLat": noise.horizontal, "RtkStdHgt": noise.vertical}),
-                              (layout.SURVEY_IMAGES_GPS, consumer, {})):
+    rtk_tags = {"RtkFlag": exif.RTK_FIXED, "RtkStdLon": noise.horizontal, "RtkStdLat": noise.horizontal,
+                "RtkStdHgt": noise.vertical}
+    for folder, xyz, tags in ((layout.SURVEY_IMAGES, rtk, rtk_tags), (layout.SURVEY_IMAGES_GPS, consumer, {}),
+                              (layout.SURVEY_IMAGES_LENS, rtk, rtk_tags)):
         geographic = exif.to_geographic(xyz + shift, crs)
         for p, name, (lat, lon, h), z, (yaw, pitch, roll) in zip(train, names, geographic, xyz[:, 2], angles):
             xmp = {"AbsoluteAltitude": round(h, 3), "RelativeAltitude": round(z - record["takeoff_z"], 3),
@@ -175,8 +183,40 @@ def write_geotags(root: Path, train, names: list[str], water, seed: int, noise: 
                    "GimbalPitchDegree": round(pitch, 2), "FlightRollDegree": 0.0, "FlightYawDegree": round(yaw, 2),
                    "FlightPitchDegree": 0.0, **tags}
             image = layout.read_png(layout.output_path(root, "wet", p.name))
+            if folder == layout.SURVEY_IMAGES_LENS:
+                image = distorted(image, p.camera, *LENS)
             layout.write_jpeg(root / folder / name, image, p.camera.fx, gps=(lat, lon, h), xmp=xmp)
     return record
+
+
+def distorted(image: np.ndarray, camera, k1: float, k2: float) -> np.ndarray:
+    """[H, W, 3] uint8 `image` (a pinhole render of `camera`) as a lens with radial distortion k1, k2 takes
+    it: each output pixel centre (u + 0.5, v + 0.5) is a distorted normalised point x_d; the undistorted x
+    with x_d = x (1 + k1 r^2 + k2 r^4) (fixed-point iterations) is read from the render, bilinear; where it
+    falls outside the render, black (a wider lens would have seen something there)."""
+    h, w = image.shape[:2]
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    xd, yd = (u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy
+    x, y = xd.copy(), yd.copy()
+    for _ in range(20):
+        r2 = x * x + y * y
+        f = 1 + k1 * r2 + k2 * r2 * r2
+        x, y = xd / f, yd / f
+    src_u, src_v = camera.fx * x + camera.cx - 0.5, camera.fy * y + camera.cy - 0.5  # array indices
+    u0, v0 = np.floor(src_u).astype(int), np.floor(src_v).astype(int)
+    fu, fv = (src_u - u0)[..., None], (src_v - v0)[..., None]
+    out = np.zeros(image.shape, dtype=np.float64)
+    inside = (u0 >= 0) & (v0 >= 0) & (u0 + 1 < w) & (v0 + 1 < h)
+    a, b = np.clip(u0, 0, w - 2), np.clip(v0, 0, h - 2)
+    img = image.astype(np.float64)
+    out = ((1 - fu) * (1 - fv) * img[b, a] + fu * (1 - fv) * img[b, a + 1] + (1 - fu) * fv * img[b + 1, a]
+           + fu * fv * img[b + 1, a + 1])
+    return np.where(inside[..., None], np.clip(out + 0.5, 0, 255), 0).astype(np.uint8)
+
+
+# survey/images-lens/'s radial distortion: barrel, as a drone's wide lens (about 6 % at the corners of a
+# 70-degree view), in normalised coordinates
+LENS = (-0.08, 0.02)
 
 
 def flight_lines(train) -> np.ndarray:

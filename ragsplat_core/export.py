@@ -42,7 +42,7 @@ LAS_SCALE = 0.001  # metres per integer step of the LAS coordinates
 SAMPLES_PER_CELL = 16
 # A bed whose samples exceed this is extracted in blocks (`surface.extract_surface_blocks`), each of about this
 # many: memory is bounded by a block, not the area (about 200 bytes per sample while filtering).
-BLOCK_SAMPLES = 4_000_000
+BLOCK_SAMPLES = 2_000_000
 MAX_CELLS = 50_000_000  # the DEM's nodes (the grid and its rasters: about 40 bytes each); more is a typo
 # The noise filter's neighbourhood (`ExtractConfig.filter_radius`, 10 cm = 2 cells of the evaluation's 5 cm)
 # grows with a coarser DEM cell to stay 2 cells wide: the samples thin out with the cells (16 per cell of
@@ -324,6 +324,8 @@ def extract_bed(gaussians: dict, resolution: float, water: WaterSurface | None, 
     g = (gaussians["means"], gaussians["scales"], gaussians["quats"], gaussians["opacities"])
     if n <= BLOCK_SAMPLES:
         grid, _ = extract_surface(*g, cfg, region, grid_origin(resolution, georef))
+        if on_block is not None:
+            on_block(1, 1)
     else:  # blocks of about BLOCK_SAMPLES samples each
         side = math.isqrt(BLOCK_SAMPLES // SAMPLES_PER_CELL)
         grid, _ = extract_surface_blocks(*g, cfg, side, grid_origin(resolution, georef), region, on_block)

@@ -29,6 +29,21 @@ def survey_cameras(lines_along_x: bool = False):
                                   up=(0.0, 0.0, 1.0)) for a in np.arange(6) * math.pi / 3]
 
 
+def channel_scene(seed: int) -> dict:
+    """A channel 0.5 m deep at its centre between banks 0.3 m above the water (z = 0) beyond |y| = 1.5 m:
+    `bed_scene`'s Gaussians raised onto it, speckled like gravel. A surveyed river's geometry in small:
+    what fixes an unmeasured level is the depth varying and the waterline on both banks."""
+    import torch
+
+    from ragsplat_core.bench.synthetic import bed_scene
+
+    scene = bed_scene(30000, half=3.0, depth=0.8, seed=seed)
+    y = scene["means"][:, 1]
+    scene["means"][:, 2] += 0.3 + 0.8 - 0.8 * torch.exp(-(y / 1.5) ** 2)
+    scene["colors"] = torch.rand(30000, 3, generator=torch.Generator().manual_seed(seed + 1))
+    return scene
+
+
 def tiny_smoke(mp: pytest.MonkeyPatch, folder) -> None:
     """An ablation row in seconds: the smoke preset at 6 iterations of the torch rasterizer, opaque from the
     start and with no opacity reset (so the median depth, T <= 0.5, has a surface to fuse; the stretched

@@ -8,7 +8,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from conftest import survey_cameras
+from conftest import channel_scene, survey_cameras
 
 from eval.poses import pose_errors
 from ragsplat_core.bench.synthetic import bed_scene, render_views, write_dataset
@@ -102,6 +102,26 @@ def test_a_level_above_every_camera_is_refused(survey, tmp_path, capsys):
     assert "(level 12.5 m) is not below any camera" in capsys.readouterr().err
 
 
+def test_sizes_are_refused_before_any_work(survey, finished, tmp_path, capsys, monkeypatch):
+    """A DEM grid too fine for the flight's extent, and training images over the memory share, are refused in
+    one line naming what passes, before the run folder is made; without --max-size the size that fits is
+    chosen and said."""
+    from ragsplat_core.cli import survey as command
+
+    out = tmp_path / "run"
+    assert main(args(survey, out, "--resolution", "0.0002")) == 2
+    err = capsys.readouterr().err
+    assert "cells (at most 5e+07); choose a coarser resolution" in err and not out.exists()
+    coarser = err.split("resolution, ")[1].split(" m")[0]
+    monkeypatch.setattr(command, "IMAGE_MEMORY", 2e-6)  # about 50 kB here: 18 photos of 240 x 180 are 2.3 MB
+    assert main(args(survey, out, "--max-size", "200")) == 2
+    err = capsys.readouterr().err
+    assert "GB in training, over" in err and "give --max-size" in err and not out.exists()
+    reuse_sfm(finished, out)
+    assert main(args(survey, out, "--resolution", coarser, "--stop-after", "sfm")) == 0
+    assert "training on them downscaled to at most" in capsys.readouterr().err
+
+
 def test_too_few_photos_registered(tmp_path, capsys):
     rng = np.random.default_rng(0)
     for k in range(4):  # noise: nothing matches
@@ -154,12 +174,8 @@ def test_an_unmeasured_level_comes_from_the_photos(tmp_path, capsys):
     """No level given (the default, auto): a channel 0.5 m deep between dry banks, seen by nadir and oblique
     photos; the adjustment through the water estimates the level from the submerged tracks, starting from
     the model's points, and reports its uncertainty. Without the adjustment there is no level to use."""
-    scene = bed_scene(30000, half=3.0, depth=0.8, seed=4)
-    y = scene["means"][:, 1]
-    scene["means"][:, 2] += 0.3 + 0.8 - 0.8 * torch.exp(-(y / 1.5) ** 2)  # banks 0.3 m above the water beyond 1.5 m
-    scene["colors"] = torch.rand(30000, 3, generator=torch.Generator().manual_seed(5))
     cams = survey_cameras()
-    views = render_views(scene, cams, WATER)
+    views = render_views(channel_scene(4), cams, WATER)
     names = [f"{i:04d}.jpg" for i in range(len(views))]
     for name, v in zip(names, views):
         layout.write_jpeg(tmp_path / "images" / name, (np.clip(v["image"].numpy(), 0, 1) * 255 + 0.5).astype(np.uint8),

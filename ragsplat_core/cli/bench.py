@@ -3,7 +3,8 @@
 Targets: `refraction` (Snell solvers: error against run time; the cost of refract_gaussians), `raster`
 (rasterizer forward+backward time and peak memory per backend), `surfel` (the surfel rasterizer's
 forward+backward time next to the 3DGS one's), `train-step` (median time per training iteration,
-refraction overhead full / 3dgs). The measuring code lives in `ragsplat_core.bench`.
+refraction overhead full / 3dgs), `export` (a large bed's export: time and peak memory). The measuring code
+lives in `ragsplat_core.bench`.
 """
 
 from __future__ import annotations
@@ -128,6 +129,34 @@ def _train_step(args: argparse.Namespace) -> int:
     return 0
 
 
+def _export_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--side", type=positive_float, default=100.0, help="the bed's side (m; default 100)")
+    parser.add_argument("--spacing", type=positive_float, default=0.05,
+                        help="the model's Gaussian spacing (m; default 0.05: 4 million over 100 x 100 m)")
+    parser.add_argument("--resolution", type=positive_float, default=0.05, help="DEM cell (m; default 0.05)")
+    parser.add_argument("--out", type=out_file, default=Path("runs/bench/export.json"), help="JSON output path")
+
+
+def _export(args: argparse.Namespace) -> int:
+    from ragsplat_core.bench.export import bench_export
+    from ragsplat_core.cli.progress import bar
+
+    with bar(1, "export", "block") as b:
+        def block(done, total):
+            b.total = total
+            b.update(done - b.n)
+
+        row = bench_export(args.side, args.spacing, args.resolution, block)
+    print(f"export of a {row['side_m']:g} x {row['side_m']:g} m bed at {row['resolution_m']:g} m from {row['gaussians']} "
+          f"Gaussians: {row['cells']} cells in {row['blocks']} blocks of {row['block_samples']} samples, "
+          f"{row['seconds']:.0f} s, peak memory {row['peak_rss_gb']:.2f} GB ({row['peak_rss_gb_before']:.2f} before "
+          f"the export), height error median {1000 * row['height_error_m']['median']:.1f} mm, p99 "
+          f"{1000 * row['height_error_m']['p99']:.1f} mm")
+    write_json(args.out, row, indent=1)
+    print(f"wrote {args.out}", file=sys.stderr)
+    return 0
+
+
 # target -> (one-line help, add arguments, run)
 TARGETS = {
     "refraction": ("Snell solvers: error against run time; refract_gaussians cost", _refraction_arguments,
@@ -137,6 +166,7 @@ TARGETS = {
                _surfel_arguments, _surfel),
     "train-step": ("median time per training iteration; refraction overhead full/3dgs", _train_step_arguments,
                    _train_step),
+    "export": ("the export of a large synthetic bed: time and peak memory", _export_arguments, _export),
 }
 
 

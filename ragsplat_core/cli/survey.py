@@ -97,6 +97,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "mean position)")
     parser.add_argument("--masks", type=Path, metavar="DIR",
                         help="masks named <image name>.png, zero where pixels are left out of training")
+    parser.add_argument("--lens", choices=["radial", "pinhole"], default="radial",
+                        help="radial (default): the lens's radial distortion k1, k2 estimated in the adjustment "
+                             "through the water (one lens for all photos) and the photos undistorted for "
+                             "training; pinhole: none (photos already undistorted)")
     parser.add_argument("--no-water-adjustment", action="store_true",
                         help="keep the pinhole structure-from-motion poses (only for comparison: through water "
                              "they are tilted and the bed comes out too deep)")
@@ -241,8 +245,8 @@ def run(args: argparse.Namespace) -> int:
     if not stamps.done("sfm", key, work / "model"):
         _say("sfm", f"structure from motion of {len(photos)} photos (pycolmap SIFT, exhaustive matching, "
              "incremental mapping; CPU) ...")
-        rec = sfm.reconstruct(args.images, names, work, progress=lambda desc, total, unit: bar(
-            total, f"[sfm] {desc}", unit, disable=args.no_progress))
+        rec = sfm.reconstruct(args.images, names, work, progress=None if args.no_progress else (
+            lambda desc, total, unit: bar(total, f"[sfm] {desc}", unit)))
         rec.write_text(str(_fresh(work / "model")))
         stamps.mark("sfm", key)
     rec = pycolmap.Reconstruction(str(work / "model"))
@@ -319,7 +323,7 @@ def run(args: argparse.Namespace) -> int:
     # 3. the water: bundle adjustment through it, cameras held at their RTK positions or targets at theirs
     held_by = list(rtk_sigma) if sigma is None else given  # the positions' accuracy, one or per camera
     key = _digest(key, layout.water_json(water) if water is not None else [AUTO, args.n], args.no_water_adjustment,
-                  held_by, args.gcp_sigma)
+                  held_by, args.gcp_sigma, args.lens)
     model = args.out / "model"
     t0 = time.perf_counter()
     if not stamps.done("water", key, model, args.out / "water.json"):
@@ -327,6 +331,7 @@ def run(args: argparse.Namespace) -> int:
         C = torch.as_tensor(sim.apply(trk.C.numpy()))
         P = torch.as_tensor(sim.apply(trk.points.numpy()))
         point, image, pix, held, gcp_rows, estimated = trk.point, trk.image, trk.pixels, {}, None, None
+        lens_record = None
         if control is None:
             prior = torch.full_like(C, float("nan"))
             prior[have] = torch.as_tensor(dst)
@@ -354,13 +359,18 @@ def run(args: argparse.Namespace) -> int:
                     b.update(1)
                     b.set_postfix(cost=f"{cost:.4g}", refresh=False)
 
+                lens = ("lens",) if args.lens == "radial" else ()
                 if water is None:  # the level too, from a start among the model's points
                     start = water_fit.start_level(P[: len(trk.points)].numpy())
                     # positions that fix no tilt (consumer GPS): the water's slope too, then the frame levelled by it
                     free = ("level", "slope") if tagged is not None and not fixed else ("level",)
                     adj = bundle.adjust(R, C, trk.intrinsics, P, point, image, pix, WaterSurface(start, args.n),
-                                        free=free, tol=LEVEL_TOL, on_iteration=step, **held)
-                    estimated = {"free": list(free), "start_m": start + origin[2], "sigma_m": adj.water_sigma}
+                                        free=free + lens, tol=LEVEL_TOL, on_iteration=step, **held)
+                    estimated = {"free": list(free), "start_m": start + origin[2],
+                                 "sigma_m": {k: adj.sigma[k] for k in adj.sigma if k not in ("k1", "k2")},
+                                 "sigma_given_cameras_m": {k: adj.sigma_given_cameras[k] for k in adj.sigma
+                                                           if k not in ("k1", "k2")},
+                                 "frame": "consumer GPS (metres)" if "slope" in free else "held by the positions"}
                     water = adj.water
                     if water.tilted:
                         level = georef.levelling(water)
@@ -371,7 +381,12 @@ def run(args: argparse.Namespace) -> int:
                         water = WaterSurface(water.level, args.n)
                     surface = water.shifted(-origin)
                 else:
-                    adj = bundle.adjust(R, C, trk.intrinsics, P, point, image, pix, water, on_iteration=step, **held)
+                    adj = bundle.adjust(R, C, trk.intrinsics, P, point, image, pix, water, free=lens,
+                                        tol=LEVEL_TOL if lens else 1e-9, on_iteration=step, **held)
+                if lens:
+                    lens_record = {"model": "RADIAL (COLMAP): x (1 + k1 r^2 + k2 r^4), normalised coordinates",
+                                   "k1": adj.lens[0], "k2": adj.lens[1],
+                                   "sigma": {k: adj.sigma[k] for k in ("k1", "k2")}}
             R, C, P = adj.R, adj.C, adj.points
         if gcp_rows is not None:
             gcp_residual = {n: (P[r] - torch.as_tensor(dst[k])).tolist() for k, (n, r) in
@@ -381,6 +396,7 @@ def run(args: argparse.Namespace) -> int:
         above = z[z >= 0]
         check = {"surface": layout.water_json(surface), "described": _describe(surface),
                  **({} if estimated is None else {"estimated": estimated}),
+                 **({} if lens_record is None else {"lens": lens_record}),
                  **({} if edge is None else {"edge_fit": edge.report(), "along_the_reach": water_fit.profile(
                      P.numpy(), water.height(P.numpy()[:, :2]), edge_points - origin)}),
                  "extent_m": (np.percentile(P.numpy()[:, :2], [1, 99], axis=0) + origin[:2]).tolist(),
@@ -391,7 +407,8 @@ def run(args: argparse.Namespace) -> int:
                  "rms_px": None if adj is None else float(adj.residuals.pow(2).mean().sqrt()),
                  "iterations": None if adj is None else adj.iterations,
                  **({} if gcp_rows is None else {"gcp_residual_m": gcp_residual})}
-        sfm.set_poses(rec, trk, R, C + torch.as_tensor(origin), P + torch.as_tensor(origin))
+        sfm.set_poses(rec, trk, R, C + torch.as_tensor(origin), P + torch.as_tensor(origin),
+                      None if lens_record is None else adj.lens)
         rec.write_text(str(_fresh(model)))
         write_json(args.out / "water.json", check)
         for stale in ("data", "train"):  # made from the previous poses
@@ -399,18 +416,22 @@ def run(args: argparse.Namespace) -> int:
         stamps.mark("water", key)
     check = json.loads((args.out / "water.json").read_text())
     surface = WaterSurface(**{**check["surface"], "n": args.n})  # as given, or as estimated
-    if "estimated" in check:
-        sigma = check["estimated"]["sigma_m"]["level"]
-        _say("water", f"the level estimated from the photos: {surface.level:.3f} m +- {100 * sigma:.1f} cm (1 sigma)"
-             + ("" if "levelled_deg" not in check["estimated"] else
-                f"; the frame levelled by the water's plane, {check['estimated']['levelled_deg']:.2f} degrees")
+    if "estimated" in check:  # in a frame held only to metres, its uncertainty relative to the model matters
+        est = check["estimated"]
+        sigma = est["sigma_given_cameras_m" if "slope" in est["free"] else "sigma_m"]["level"]
+        _say("water", f"the level estimated from the photos: {surface.level:.3f} m +- {100 * sigma:.1f} cm (1 sigma"
+             + ("" if "slope" not in est["free"] else ", relative to the model; the frame's height is the GPS's")
+             + ")"
+             + ("" if "levelled_deg" not in est else
+                f"; the frame levelled by the water's plane, {est['levelled_deg']:.2f} degrees")
              + ("" if sigma <= LEVEL_WARN else "; poorly determined (a flat bed, little depth variation or no "
                 "oblique views hide it): measure it and give --water-level, or --water-surface EDGE.csv"))
     lowest = check["lowest_above_m"]
     _say("water", f"{check['described']}: {check['points_below']} points below it, {check['points_above']} "
          f"above" + ("" if lowest is None else f" (the lowest 1 % within {100 * lowest:.1f} cm of it)")
-         + ("" if check["rms_px"] is None else f"; reprojection error {check['rms_px']:.2f} px after the adjustment"),
-         t0)
+         + ("" if check["rms_px"] is None else f"; reprojection error {check['rms_px']:.2f} px after the adjustment")
+         + ("" if "lens" not in check else f"; the lens's distortion k1 {check['lens']['k1']:+.4f}, k2 "
+            f"{check['lens']['k2']:+.4f}"), t0)
 
     if args.stop_after == "water":
         return 0

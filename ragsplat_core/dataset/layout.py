@@ -62,6 +62,7 @@ NODATA = -9999.0  # raster cells without a value
 # and the water level; no poses. `ragsplat survey` reads only these.
 SURVEY_IMAGES = "survey/images"  # with EXIF GPS and DJI-style XMP: the positions.csv centres, RTK fixed
 SURVEY_IMAGES_GPS = "survey/images-gps"  # the same photos geotagged by consumer GPS (metres, no RTK flag)
+SURVEY_IMAGES_LENS = "survey/images-lens"  # the RTK-tagged photos through a lens with radial distortion
 SURVEY_POSITIONS = "survey/positions.csv"  # header name,x,y,z: image file name, metres, z up
 SURVEY_LEVEL = "survey/water_level.txt"  # one number: the water surface height, same frame
 SURVEY_EDGE = "survey/water_edge.csv"  # header x,y,z: points on the water's edge along both banks, same frame

@@ -37,15 +37,20 @@ def skew(w: torch.Tensor) -> torch.Tensor:  # [N, 3] -> [N, 3, 3]
 
 
 def project(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, X: torch.Tensor,
-            water: WaterSurface | None) -> torch.Tensor:
+            water: WaterSurface | None, lens: tuple[float, float] = (0.0, 0.0)) -> torch.Tensor:
     """[M, 2] pixel positions (centres at i + 0.5) of points X [M, 3] seen by cameras R [M, 3, 3] (world ->
-    camera), centres C [M, 3], intrinsics [M, 4] (fx, fy, cx, cy), one camera per point; a point below
-    the water surface is seen at its apparent position through the water."""
+    camera), centres C [M, 3], intrinsics [M, 4] (fx, fy, cx, cy), one camera per point, through a lens
+    with radial distortion `lens` = (k1, k2) (COLMAP's RADIAL: x (1 + k1 r^2 + k2 r^4) in normalised
+    coordinates); a point below the water surface is seen at its apparent position through the water."""
     if water is not None:
         X = apparent_points_each(X, C, water)
     xc = (R @ (X - C)[:, :, None])[:, :, 0]  # [M, 3]
+    xy = xc[:, :2] / xc[:, 2:]
+    if any(lens):
+        r2 = (xy * xy).sum(-1, keepdim=True)
+        xy = xy * (1 + lens[0] * r2 + lens[1] * r2 * r2)
     k = intrinsics
-    return torch.stack([k[:, 0] * xc[:, 0] / xc[:, 2] + k[:, 2], k[:, 1] * xc[:, 1] / xc[:, 2] + k[:, 3]], -1)
+    return torch.stack([k[:, 0] * xy[:, 0] + k[:, 2], k[:, 1] * xy[:, 1] + k[:, 3]], -1)
 
 
 @dataclass(frozen=True)
@@ -59,7 +64,11 @@ class Bundle:
     iterations: int
     cost: float  # robust cost at the end (pixels^2 units, priors included)
     water: WaterSurface | None = None  # the surface, adjusted where `free` asked
-    water_sigma: dict[str, float] | None = None  # standard deviation of each free parameter (m; slope: m/m)
+    sigma: dict[str, float] | None = None  # standard deviation of each free parameter (m; slope: m/m)
+    # the same with the cameras held where they are: the surface relative to the model, what depths depend on
+    # (where the positions fix the frame only to metres, `sigma` is mostly the frame's own uncertainty)
+    sigma_given_cameras: dict[str, float] | None = None
+    lens: tuple[float, float] = (0.0, 0.0)  # (k1, k2): adjusted where `free` asked
 
 
 def _rotate(R: torch.Tensor, w: torch.Tensor) -> torch.Tensor:  # R [N, 3, 3] turned by w [N, 3] (radians)
@@ -77,16 +86,17 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
            prior_sigma: tuple[float, float, float] | torch.Tensor = (0.02, 0.02, 0.03),
            prior_points: tuple[torch.Tensor, torch.Tensor] | None = None, point_sigma: float = 0.01,
            pixel_sigma: float = 1.0, huber: float = 2.0, iterations: int = 30, tol: float = 1e-9,
-           free: tuple[str, ...] = (), on_iteration=None) -> Bundle:
+           free: tuple[str, ...] = (), lens: tuple[float, float] = (0.0, 0.0), on_iteration=None) -> Bundle:
     """Levenberg-Marquardt on the cameras (R [I, 3, 3], C [I, 3]) and points [P, 3] given the observations
     pixels [M, 2] of point [M] in image [M], the intrinsics [I, 4] held fixed. Cost: sum of Huber(|r| /
     pixel_sigma) over the observations plus, with `prior_C` [I, 3], sum of ((C - prior_C) / prior_sigma)^2
     (metres; x, y, z, the same for every camera or one row [I, 3] each; rows of NaN: no prior), which also
     fixes the frame; with `prior_points` (indices [G], positions [G, 3]: ground control points among the
     points) sum of ((P - position) / point_sigma)^2, which fixes it too; without either the frame floats
-    (damped only). `free` ("level", "slope"): the water's parameters adjusted too (a flat or tilted plane;
-    their Jacobian columns by central differences), their standard deviations from the final normal
-    equations scaled by the residuals' variance. Stops after `iterations` or when an accepted step lowers the
+    (damped only). `lens`: every camera's radial distortion (k1, k2; `project`). `free` ("level", "slope",
+    "lens"): the water's parameters (a flat or tilted plane) or the lens's adjusted too, shared by all
+    observations (their Jacobian columns by central differences), their standard deviations from the final normal
+    equations scaled by the residuals' variance (and with the cameras held). Stops after `iterations` or when an accepted step lowers the
     cost by less than `tol` relative; `on_iteration(cost)` after each."""
     dt = torch.float64
     R, C, points, intrinsics, pixels = (x.to(dt) for x in (R, C, points, intrinsics, pixels))
@@ -108,18 +118,22 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
 
     K = intrinsics[image]
     eye3 = torch.eye(3, dtype=dt, device=C.device)
-    index = _free_index(free, water)  # which of (level, slope x, slope y) are adjusted
+    index = _free_index(free, water)  # which of (level, slope x, slope y, k1, k2) are adjusted
     theta = torch.tensor([0.0, 0.0, 0.0] if water is None else [_value(water.level), *map(_value, water.slope)],
                          dtype=dt)
+    theta = torch.cat([theta, torch.tensor([float(v) for v in lens], dtype=dt)])
     fd_step = torch.tensor(FD_STEP, dtype=dt)
 
     def surface(th: torch.Tensor) -> WaterSurface | None:
-        if not index:
+        if not any(j < 3 for j in index):
             return water
         return WaterSurface(float(th[0]), water.n, (float(th[1]), float(th[2])))
 
+    def distortion(th: torch.Tensor) -> tuple[float, float]:
+        return float(th[3]), float(th[4])
+
     def residual(R_, C_, P_, th):  # [M, 2] in units of pixel_sigma
-        return (project(R_[image], C_[image], K, P_[point], surface(th)) - pixels) / pixel_sigma
+        return (project(R_[image], C_[image], K, P_[point], surface(th), distortion(th)) - pixels) / pixel_sigma
 
     gcp, gcp_xyz = (None, None) if prior_points is None else (prior_points[0], prior_points[1].to(dt))
 
@@ -141,10 +155,10 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
             turn = torch.zeros(len(point), 3, dtype=dt, device=C.device, requires_grad=True)
             Cm = C_[image].detach().requires_grad_(True)
             X = P_[point].detach().requires_grad_(True)
-            r_ = (project(R_[image] @ (eye3 + skew(turn)), Cm, K, X, surface(th)) - pixels) / pixel_sigma
+            r_ = (project(R_[image] @ (eye3 + skew(turn)), Cm, K, X, surface(th), distortion(th)) - pixels) / pixel_sigma
             rows = [torch.autograd.grad(r_[:, a].sum(), (turn, Cm, X), retain_graph=a == 0) for a in range(2)]
         Jg = [(residual(R_, C_, P_, th + e) - residual(R_, C_, P_, th - e)) / (2 * fd_step[j])
-              for j in index for e in [fd_step[j] * (torch.arange(3) == j)]]
+              for j in index for e in [fd_step[j] * (torch.arange(len(th)) == j)]]
         Jg = torch.stack(Jg, -1) if Jg else torch.zeros(len(point), 2, 0, dtype=dt, device=C.device)
         return (torch.stack([torch.cat(g[:2], -1) for g in rows], 1), torch.stack([g[2] for g in rows], 1), Jg)
 
@@ -228,14 +242,19 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
         w = _huber(r.norm(dim=-1), huber)[1]
         dof = max(r.numel() - 6 * n_img - 3 * n_pts - len(index), 1)
         scale = float((w * (r * r).sum(-1)).sum()) / dof
-        var = torch.linalg.inv(S)[6 * n_img:, 6 * n_img:].diagonal() * scale
-        names = [("level", "slope_x", "slope_y")[j] for j in index]
-        sigma = {n: float(v.clamp(min=0).sqrt()) for n, v in zip(names, var)}
-    return Bundle(R, C, points, (r * pixel_sigma).norm(dim=-1), it, cost, surface(theta), sigma)
+        g = slice(6 * n_img, None)
+        names = [PARAMETERS[j] for j in index]
+        sigma = {n: float(v.clamp(min=0).sqrt())
+                 for n, v in zip(names, torch.linalg.inv(S)[g, g].diagonal() * scale)}
+        held = {n: float(v.clamp(min=0).sqrt())
+                for n, v in zip(names, torch.linalg.inv(S[g, g]).diagonal() * scale)}
+    return Bundle(R, C, points, (r * pixel_sigma).norm(dim=-1), it, cost, surface(theta), sigma,
+                  held if len(index) else None, distortion(theta))
 
 
-FREE = ("level", "slope")
-FD_STEP = (1e-5, 1e-7, 1e-7)  # central differences for the level (m) and slope (m/m): float64, smooth
+FREE = ("level", "slope", "lens")
+PARAMETERS = ("level", "slope_x", "slope_y", "k1", "k2")  # the shared parameters `free` can adjust
+FD_STEP = (1e-5, 1e-7, 1e-7, 1e-7, 1e-7)  # central differences (m, m/m, and the lens's): float64, smooth
 
 
 def _value(x) -> float:
@@ -243,11 +262,11 @@ def _value(x) -> float:
 
 
 def _free_index(free: tuple[str, ...], water: WaterSurface | None) -> list[int]:
-    """Indices into (level, slope x, slope y) of the `free` parameters; ValueError for a name not in `FREE`,
-    or free parameters without a plane to adjust."""
+    """Indices into `PARAMETERS` of the `free` ones; ValueError for a name not in `FREE`, or the water's
+    without a plane to adjust."""
     strange = set(free) - set(FREE)
     if strange:
-        raise ValueError(f"free water parameters are {FREE}, got {sorted(strange)}")
-    if free and (water is None or water.curved):
+        raise ValueError(f"free parameters are {FREE}, got {sorted(strange)}")
+    if {"level", "slope"} & set(free) and (water is None or water.curved):
         raise ValueError("only a plane water surface (no profile) can be adjusted")
-    return ([0] if "level" in free else []) + ([1, 2] if "slope" in free else [])
+    return ([0] if "level" in free else []) + ([1, 2] if "slope" in free else []) + ([3, 4] if "lens" in free else [])

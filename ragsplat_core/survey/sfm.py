@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import contextlib
 import shutil
-import sqlite3
+import subprocess
+import sys
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -60,46 +61,61 @@ def reconstruct(images: Path, names: list[str], work: Path, camera_model: str = 
             db, images, work / "sparse", options=options,
             initial_image_pair_callback=None if bar is None else (lambda: bar.update(2)),
             next_image_callback=None if bar is None else (lambda: bar.update(1)))
+        rec = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
+        registered = 0 if rec is None else rec.num_reg_images()
+        if bar is not None:  # the callbacks count every model's images; the largest model's is what is kept
+            bar.n = registered
+            bar.refresh()
     finally:
         if bar is not None:
             bar.close()
-    rec = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
-    registered = 0 if rec is None else rec.num_reg_images()
     if registered < max(3, len(names) / 2):
         raise DatasetError(f"{images}: structure from motion registered only {registered} of {len(names)} "
                            "photos (too little overlap or texture, or photos of different places?)")
     return rec
 
 
+# Counts a table's rows twice a second, printing each count. It runs in another process: SQLite's locks hold
+# between processes, not between two copies of SQLite in one (pycolmap links its own; reading its database
+# from Python's sqlite3 in the same process crashed the matcher's writes with SIGBUS).
+_POLL = """import sqlite3, sys, time
+while True:
+    try:
+        with sqlite3.connect(sys.argv[1], uri=True, timeout=1) as con:
+            print(con.execute("SELECT COUNT(*) FROM " + sys.argv[2]).fetchone()[0], flush=True)
+    except sqlite3.Error:
+        pass
+    time.sleep(0.5)
+"""
+
+
 @contextlib.contextmanager
 def _counted(progress, desc: str, total: int, unit: str, db: Path, table: str):
-    """A bar (`progress`) of the rows of `table` in the database while pycolmap fills it, polled twice a
-    second from a thread (pycolmap's extraction and matching take no callback); nothing without `progress`."""
+    """A bar (`progress`) of the rows of `table` in the database while pycolmap fills it (its extraction and
+    matching take no callback), read by `_POLL` in a child process; nothing without `progress`."""
     if progress is None:
         yield
         return
-    bar, stop, seen = progress(desc, total, unit), threading.Event(), [0]
+    bar, seen = progress(desc, total, unit), [0]
+    child = subprocess.Popen([sys.executable, "-c", _POLL, f"file:{db}?mode=ro", table], stdout=subprocess.PIPE,
+                             stderr=subprocess.DEVNULL, text=True)
 
-    def poll():
-        while not stop.wait(0.5):
-            try:
-                with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=0.1)) as con:
-                    rows = con.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0]
-            except sqlite3.Error:  # not made yet, or locked by the writer: next time
-                continue
+    def follow():
+        for line in child.stdout:
+            rows = min(int(line), total)
             if rows > seen[0]:
-                bar.update(min(rows, total) - seen[0])
-                seen[0] = min(rows, total)
+                bar.update(rows - seen[0])
+                seen[0] = rows
 
-    thread = threading.Thread(target=poll, daemon=True)
+    thread = threading.Thread(target=follow, daemon=True)
     thread.start()
     try:
         yield
-        stop.set()
+    finally:
+        child.kill()
+        child.wait()
         thread.join()
         bar.update(total - seen[0])
-    finally:
-        stop.set()
         bar.close()
 
 
@@ -150,9 +166,18 @@ def tracks(rec) -> Tracks:
                   t(image, torch.int64), t(pixels))
 
 
-def set_poses(rec, trk: Tracks, R: torch.Tensor, C: torch.Tensor, points: torch.Tensor) -> None:
-    """Writes poses R [I, 3, 3], C [I, 3] and points [P, 3] (in `trk`'s order) into the model `rec`."""
+def set_poses(rec, trk: Tracks, R: torch.Tensor, C: torch.Tensor, points: torch.Tensor,
+              lens: tuple[float, float] | None = None) -> None:
+    """Writes poses R [I, 3, 3], C [I, 3] and points [P, 3] (in `trk`'s order) into the model `rec`, and with
+    `lens` (k1, k2) makes every camera COLMAP's RADIAL with that distortion (its focal length and principal
+    point kept): what an import then undistorts the photos by."""
     import pycolmap
+
+    if lens is not None:
+        for cam in rec.cameras.values():
+            f, cx, cy = cam.focal_length, cam.principal_point_x, cam.principal_point_y
+            cam.model = pycolmap.CameraModelId.RADIAL
+            cam.params = [f, cx, cy, float(lens[0]), float(lens[1])]
 
     for i, Ri, Ci in zip(trk.image_ids, R.double().numpy(), C.double().numpy()):
         rec.frames[rec.images[i].frame_id].rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(Ri), -Ri @ Ci)
