@@ -189,9 +189,10 @@ def culled(scales: np.ndarray, opacities: np.ndarray, means: np.ndarray, cfg: Ex
 
 
 def sample_gaussians(means, scales, quats, opacities, cfg: ExtractConfig, region: dict | None = None,
-                     rng: np.random.Generator | None = None):
+                     rng: np.random.Generator | None = None, chunk: int = 262_144):
     """Steps 1-2: points [M, 3] (M = cfg.n_samples unless nothing survives culling) and the kept mask [N];
-    drawn with `rng` (default: one seeded with cfg.seed)."""
+    drawn with `rng` (default: one seeded with cfg.seed). The samples are turned by their Gaussians'
+    rotations `chunk` at a time (the same arithmetic row by row; [chunk, 3, 3] at once, not [M, 3, 3])."""
     means, scales, quats, opac = _np(means), _np(scales), _np(quats), _np(opacities).reshape(-1)
     keep = culled(scales, opac, means, cfg, region)
     idx = np.flatnonzero(keep)
@@ -199,8 +200,11 @@ def sample_gaussians(means, scales, quats, opacities, cfg: ExtractConfig, region
     owner = np.repeat(idx, counts)  # [M]
     rng = np.random.default_rng(cfg.seed) if rng is None else rng
     z = truncated_normal(len(owner), cfg.sigma_cut, rng) * scales[owner]  # [M, 3] in local axes
-    rot = quat_to_rotmat(torch.from_numpy(quats[owner])).numpy()  # [M, 3, 3]
-    return means[owner] + np.einsum("mij,mj->mi", rot, z), keep
+    points = means[owner]
+    for s in range(0, len(owner), chunk):
+        rot = quat_to_rotmat(torch.from_numpy(quats[owner[s: s + chunk]])).numpy()  # [chunk, 3, 3]
+        points[s: s + chunk] += np.einsum("mij,mj->mi", rot, z[s: s + chunk])
+    return points, keep
 
 
 def plane_filter(points: np.ndarray, cfg: ExtractConfig, chunk: int = 20_000, fast: bool = True) -> np.ndarray:
