@@ -146,7 +146,8 @@ def geo_record(train, names: list[str], water, seed: int, noise: SurveyNoise,
                 for line in range(len(bias))]},
             layout.SURVEY_IMAGES_LENS: {"geotags": layout.SURVEY_IMAGES, "lens": {
                 "model": "COLMAP RADIAL / OpenCV k1, k2 (no tangential terms): x_d = x (1 + k1 r^2 + k2 r^4) in "
-                         "normalised coordinates, the focal length and principal point unchanged",
+                         "normalised coordinates, the principal point unchanged, the focal length lengthened so "
+                         "that the corners stay inside the render (`lens_focal`, in the photos' EXIF)",
                 "k1": LENS[0], "k2": LENS[1]}}}
 
 
@@ -183,20 +184,39 @@ def write_geotags(root: Path, train, names: list[str], water, seed: int, noise: 
                    "GimbalPitchDegree": round(pitch, 2), "FlightRollDegree": 0.0, "FlightYawDegree": round(yaw, 2),
                    "FlightPitchDegree": 0.0, **tags}
             image = layout.read_png(layout.output_path(root, "wet", p.name))
+            focal = p.camera.fx
             if folder == layout.SURVEY_IMAGES_LENS:
-                image = distorted(image, p.camera, *LENS)
-            layout.write_jpeg(root / folder / name, image, p.camera.fx, gps=(lat, lon, h), xmp=xmp)
+                image, focal = distorted(image, p.camera, *LENS), lens_focal(p.camera, *LENS)
+            layout.write_jpeg(root / folder / name, image, focal, gps=(lat, lon, h), xmp=xmp)
     return record
 
 
+def lens_focal(camera, k1: float, k2: float) -> float:
+    """The focal length (pixels) of the lens photo made from a render of `camera` (`distorted`): the render's,
+    lengthened just enough that a barrel lens's corners still fall inside the render (a real sensor sees
+    something there; a black corner would be content that is not in the scene)."""
+    if k1 == k2 == 0:
+        return camera.fx
+    corner = np.hypot(camera.width - camera.cx, camera.height - camera.cy)  # pixels from the principal point
+    scale = 1.0
+    for _ in range(50):  # the corner's undistorted radius in the render must stay inside it
+        xd = corner / (camera.fx * scale)
+        x = xd
+        for _ in range(20):
+            x = xd / (1 + k1 * x * x + k2 * x**4)
+        scale = max(scale, x * camera.fx / (corner - 1.0))
+    return camera.fx * scale
+
+
 def distorted(image: np.ndarray, camera, k1: float, k2: float) -> np.ndarray:
-    """[H, W, 3] uint8 `image` (a pinhole render of `camera`) as a lens with radial distortion k1, k2 takes
-    it: each output pixel centre (u + 0.5, v + 0.5) is a distorted normalised point x_d; the undistorted x
-    with x_d = x (1 + k1 r^2 + k2 r^4) (fixed-point iterations) is read from the render, bilinear; where it
-    falls outside the render, black (a wider lens would have seen something there)."""
+    """[H, W, 3] uint8 `image` (a pinhole render of `camera`) as a lens with radial distortion k1, k2 and the
+    focal length `lens_focal` takes it: each output pixel centre (u + 0.5, v + 0.5) is a distorted
+    normalised point x_d; the undistorted x with x_d = x (1 + k1 r^2 + k2 r^4) (fixed-point iterations) is
+    read from the render at the render's focal length, bilinear (black, should it fall outside)."""
     h, w = image.shape[:2]
     u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    xd, yd = (u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy
+    f = lens_focal(camera, k1, k2) * np.array([1.0, camera.fy / camera.fx])
+    xd, yd = (u - camera.cx) / f[0], (v - camera.cy) / f[1]
     x, y = xd.copy(), yd.copy()
     for _ in range(20):
         r2 = x * x + y * y

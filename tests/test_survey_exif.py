@@ -349,8 +349,9 @@ def test_consumer_gps_is_levelled_by_the_water(channel_geotagged, tmp_path, caps
 
 def test_the_generators_lens_puts_each_point_where_the_distortion_model_does():
     """`datagen.survey.distorted`: a bright dot rendered at an undistorted pixel appears in the distorted
-    photo where COLMAP's RADIAL model sends it (x_d = x (1 + k1 r^2 + k2 r^4)); with k = 0 nothing moves."""
-    from datagen.survey import LENS, distorted
+    photo where COLMAP's RADIAL model with the lens's focal length sends it (x_d = x (1 + k1 r^2 + k2 r^4)),
+    no pixel of the photo is black (the corners still inside the render); with k = 0 nothing moves."""
+    from datagen.survey import LENS, distorted, lens_focal
 
     cam = Camera(240, 180, 150.0, 150.0, 120.0, 90.0, np.eye(3), np.zeros(3))
     for u, v in ((200.5, 150.5), (30.5, 40.5), (120.5, 90.5)):
@@ -363,8 +364,10 @@ def test_the_generators_lens_puts_each_point_where_the_distortion_model_does():
         rows, cols = np.nonzero(out)
         w = out[rows, cols]
         found = np.array([(cols + 0.5) @ w, (rows + 0.5) @ w]) / w.sum()  # the dot's centroid
-        np.testing.assert_allclose(found, [cam.fx * x * f + cam.cx, cam.fy * y * f + cam.cy], atol=0.15)
-    assert (distorted(image, cam, 0.0, 0.0) == image).all()
+        focal = lens_focal(cam, *LENS)
+        np.testing.assert_allclose(found, [focal * x * f + cam.cx, focal * y * f + cam.cy], atol=0.15)
+    assert focal > cam.fx and (distorted(np.full((180, 240, 3), 9, np.uint8), cam, *LENS) > 0).all()
+    assert lens_focal(cam, 0.0, 0.0) == cam.fx and (distorted(image, cam, 0.0, 0.0) == image).all()
 
 
 def test_a_lens_distortion_is_estimated_from_the_photos(geotagged, tmp_path, capsys):
