@@ -343,14 +343,19 @@ def in_region(points: np.ndarray, region: dict, tol: float = 0.0) -> np.ndarray:
 
 
 def extract_surface(means, scales, quats, opacities, cfg: ExtractConfig = ExtractConfig(),
-                    region: dict | None = None, origin: tuple[float, float] | None = None
+                    region: dict | None = None, origin: tuple[float, float] | None = None,
+                    rng: np.random.Generator | None = None, window: tuple | None = None
                     ) -> tuple[np.ndarray, dict]:
     """Gaussians (means [N,3], scales [N,3] linear, quats [N,4] wxyz, opacities [N] in [0,1]; tensors or
     arrays) -> height-grid points [G, 3] (inside `region` when given) and counts of every stage.
 
     `origin` is a node of the output grid: pass one of the GT grid (default: region (xmin, ymin), else 0).
+    `rng`: the samples' draw (`sample_gaussians`); `window` (lo [2], hi [2]): only the samples inside it are
+    kept (a block of `extract_surface_blocks` with its margin).
     """
-    pts, kept = sample_gaussians(means, scales, quats, opacities, cfg, region)
+    pts, kept = sample_gaussians(means, scales, quats, opacities, cfg, region, rng=rng)
+    if window is not None:
+        pts = pts[((pts[:, :2] >= window[0]) & (pts[:, :2] <= window[1])).all(1)]
     mask = plane_filter(pts, cfg)
     if origin is None:
         origin = (region["xmin"], region["ymin"]) if region is not None else (0.0, 0.0)
@@ -406,17 +411,10 @@ def extract_surface_blocks(means, scales, quats, opacities, cfg: ExtractConfig, 
         near = idx[((means[idx, :2] >= lo - reach) & (means[idx, :2] <= hi + reach)).all(1)]
         n = round(density * np.prod(scales[near], axis=1).sum())
         rng = np.random.default_rng([cfg.seed, int(bi - first[0]), int(bj - first[1])])
-        pts, _ = sample_gaussians(means[near], scales[near], quats[near], opac[near], replace(cfg, n_samples=n),
-                                  rng=rng)
-        pts = pts[((pts[:, :2] >= lo) & (pts[:, :2] <= hi)).all(1)]
-        samples += len(pts)
-        pts = pts[plane_filter(pts, cfg)]
-        kept_samples += len(pts)
-        grid = grid_median(pts, cfg.cell, tuple(origin))
-        grid = grid[despike(grid, cfg.cell, cfg.despike_radius, cfg.despike_tol, cfg.despike_min_neighbours)]
-        if region is not None:
-            grid = grid[in_region(grid, region, tol=1e-6 * cfg.cell)]
-        grid = fill_holes(grid, cfg.cell, tuple(origin), cfg.fill_gap_cells)
+        grid, counts = extract_surface(means[near], scales[near], quats[near], opac[near], replace(cfg, n_samples=n),
+                                       region, tuple(origin), rng=rng, window=(lo, hi))
+        samples += counts["samples"]
+        kept_samples += counts["samples_after_filter"]
         ij = np.rint((grid[:, :2] - origin) / cfg.cell).astype(np.int64)
         grids.append(grid[((ij >= own_lo) & (ij < own_hi)).all(1)])
         if on_block is not None:
