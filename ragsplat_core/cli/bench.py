@@ -139,14 +139,11 @@ def _export_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _export(args: argparse.Namespace) -> int:
     from ragsplat_core.bench.export import bench_export
-    from ragsplat_core.cli.progress import bar
+    from ragsplat_core.cli.progress import count_bar
 
-    with bar(1, "export", "block") as b:
-        def block(done, total):
-            b.total = total
-            b.update(done - b.n)
-
-        row = bench_export(args.side, args.spacing, args.resolution, block)
+    b, on_block = count_bar("export", "block")
+    with b:
+        row = bench_export(args.side, args.spacing, args.resolution, on_block)
     print(f"export of a {row['side_m']:g} x {row['side_m']:g} m bed at {row['resolution_m']:g} m from {row['gaussians']} "
           f"Gaussians: {row['cells']} cells in {row['blocks']} blocks of {row['block_samples']} samples, "
           f"{row['seconds']:.0f} s, peak memory {row['peak_rss_gb']:.2f} GB ({row['peak_rss_gb_before']:.2f} before "

@@ -14,6 +14,18 @@ def bar(total: int, desc: str, unit: str = "it", initial: int = 0, disable: bool
                 dynamic_ncols=True)
 
 
+def count_bar(desc: str, unit: str, disable: bool = False):
+    """(bar, on_count): `on_count(done, total)` (e.g. `export.extract_bed`'s `on_block`) sets the bar to done
+    of total; close the bar when done."""
+    b = bar(1, desc, unit, disable=disable)
+
+    def on_count(done: int, total: int) -> None:
+        b.total = total
+        b.update(done - b.n)
+
+    return b, on_count
+
+
 def training_bar(total: int, desc: str, initial: int = 0, disable: bool = False, leave: bool = True,
                  check=None):
     """(bar, on_step): `on_step(trainer)` advances the bar and shows loss, PSNR on the training view and

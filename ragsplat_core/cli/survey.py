@@ -162,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
     import pycolmap
     import torch
 
-    from ragsplat_core.cli.progress import bar
+    from ragsplat_core.cli.progress import bar, count_bar
     from ragsplat_core.dataset import layout
     from ragsplat_core.errors import ConfigError, DatasetError
     from ragsplat_core.outputs import claim, write_json
@@ -366,10 +366,11 @@ def run(args: argparse.Namespace) -> int:
                     free = ("level", "slope") if tagged is not None and not fixed else ("level",)
                     adj = bundle.adjust(R, C, trk.intrinsics, P, point, image, pix, WaterSurface(start, args.n),
                                         free=free + lens, tol=LEVEL_TOL, on_iteration=step, **held)
-                    estimated = {"free": list(free), "start_m": start + origin[2],
-                                 "sigma_m": {k: adj.sigma[k] for k in adj.sigma if k not in ("k1", "k2")},
-                                 "sigma_given_cameras_m": {k: adj.sigma_given_cameras[k] for k in adj.sigma
-                                                           if k not in ("k1", "k2")},
+                    def of_water(sigma):  # the water's parameters' (the lens's go to "lens")
+                        return {k: v for k, v in sigma.items() if k not in ("k1", "k2")}
+
+                    estimated = {"free": list(free), "start_m": start + origin[2], "sigma_m": of_water(adj.sigma),
+                                 "sigma_given_cameras_m": of_water(adj.sigma_given_cameras),
                                  "frame": "consumer GPS (metres)" if "slope" in free else "held by the positions"}
                     water = adj.water
                     if water.tilted:
@@ -449,12 +450,9 @@ def run(args: argparse.Namespace) -> int:
         from ragsplat_core.export import export_run
 
         dem, las, png = (args.out / n for n in PRODUCTS)
-        with bar(1, "[export] bed", "block", disable=args.no_progress) as b:
-            def block(done, total):
-                b.total = total
-                b.update(done - b.n)
-
-            bed = export_run(run_train, dem, args.resolution, las, None, png, on_block=block)
+        b, on_block = count_bar("[export] bed", "block", args.no_progress)
+        with b:
+            bed = export_run(run_train, dem, args.resolution, las, None, png, on_block=on_block)
         stamps.mark("export", key)
         _say("export", f"{len(bed.grid)} cells of {args.resolution:g} m", t0)
     for name in PRODUCTS:
