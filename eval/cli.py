@@ -98,8 +98,17 @@ def last_line(log: Path) -> str:
 
 def prepare(args: argparse.Namespace, fingerprint: str) -> None:
     """What every row reads and nothing but one process should make, made here once before the processes
-    start: the dataset's triangulated tracks (cached in it) and the LPIPS weights (downloaded to the cache)."""
+    start: the dataset's triangulated tracks (cached in it), the LPIPS weights (downloaded to the cache) and,
+    for training on CUDA, gsplat's CUDA extension (`rasterize.build_gsplat`)."""
+    import torch
+
     from eval import metrics
+    from ragsplat_core import rasterize
+
+    cuda = str(args.device).startswith("cuda") or (args.device in (None, "auto") and torch.cuda.is_available())
+    if cuda and rasterize.gsplat_available():
+        print("gsplat's CUDA extension (built once, here, before the processes start) ...", flush=True)
+        rasterize.build_gsplat()
 
     # a bad path is refused; the weights are not loaded here, only found or fetched
     path, _, reason = metrics.vgg16_weights(args.vgg16, download=not args.no_download, log=print)

@@ -98,6 +98,14 @@ def gsplat_available() -> bool:
     return importlib.util.find_spec("gsplat") is not None
 
 
+def build_gsplat() -> None:
+    """Build gsplat's CUDA extension (JIT, a minute or more the first time on a machine) or load it, in this
+    process. A process that finds no built library deletes the build folder before building, so processes
+    that first use gsplat at once delete each other's build (gsplat 1.5.3; seen with six on an H100): a
+    parent builds it before it starts them."""
+    importlib.import_module("gsplat.cuda._backend")
+
+
 def choose_backend(backend: str, device: torch.device) -> str:
     """The backend that `backend` ("auto" or a name) means for tensors on `device`; ConfigError if it
     cannot run there."""

@@ -352,3 +352,39 @@ def test_default_jobs_and_the_gpus_they_share(monkeypatch):
     assert ablation.visible_gpus("cuda:1") == ablation.visible_gpus("cpu") == []
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,3")
     assert ablation.visible_gpus(None) == ["2", "3"]
+
+
+def test_gsplat_is_built_once_before_the_processes_on_cuda(monkeypatch, tmp_path):
+    # gsplat's JIT start deletes a build folder without a library, so six processes building it at once deleted
+    # each other's build (an H100, 2026-11-26): the parent builds it first when the rows train on CUDA
+    import sys
+    from argparse import Namespace
+
+    from eval import cli
+    from ragsplat_core import rasterize
+
+    # build_gsplat imports gsplat's backend module (here a stand-in that counts its imports)
+    pkg = tmp_path / "gsplat" / "cuda"
+    pkg.mkdir(parents=True)
+    (tmp_path / "gsplat" / "__init__.py").write_text("")
+    (pkg / "__init__.py").write_text("")
+    (pkg / "_backend.py").write_text("import builtins\nbuiltins._gsplat_builds = getattr(builtins, "
+                                     "'_gsplat_builds', 0) + 1\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for name in [m for m in sys.modules if m == "gsplat" or m.startswith("gsplat.")]:
+        monkeypatch.delitem(sys.modules, name)
+    import builtins
+
+    monkeypatch.setattr(builtins, "_gsplat_builds", 0, raising=False)
+    assert rasterize.gsplat_available()
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    for device, builds in (("cpu", 0), ("cuda", 1), ("cuda:1", 1), (None, 1)):
+        for name in [m for m in sys.modules if m == "gsplat" or m.startswith("gsplat.")]:
+            monkeypatch.delitem(sys.modules, name)
+        builtins._gsplat_builds = 0
+        cli.prepare(Namespace(vgg16=None, no_download=True, init="grid", device=device), "fingerprint")
+        assert builtins._gsplat_builds == builds, device
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    builtins._gsplat_builds = 0
+    cli.prepare(Namespace(vgg16=None, no_download=True, init="grid", device=None), "fingerprint")
+    assert builtins._gsplat_builds == 0  # "auto" without CUDA trains on the CPU
