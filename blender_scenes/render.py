@@ -4,7 +4,8 @@ All geometry comes ready-made from datagen (one .npz); this module only builds B
 then renders the job's tasks in order in ONE process (persistent data: the scene is synced once).
 
 Job (JSON): {"geometry": npz path, "objects": [{"name", "material": {...}}], "water": object name or null,
-"light": {...} or null, "render": {...}, "camera": {"width", "height", "fx", "fy", "cx", "cy"},
+"light": {...} or null, "render": {...}, "camera": {"width", "height", "fx", "fy", "cx", "cy", optional
+"fisheye_polynomial": [k0..k4] (Cycles' polynomial lens: a lens with distortion, datagen.survey.lens_polynomial)},
 "tasks": [{"pass": "wet"|"dry"|"depth", "name", "c2w_gl": 4x4, "out": path}]}.
 Materials: {"kind": "texture", "image": png} (diffuse albedo, repeating), {"kind": "emission", "strength"},
 {"kind": "diffuse", "color"}, {"kind": "refraction", "ior", "color", "reflect": optional bool} (the water
@@ -221,6 +222,11 @@ def _setup(job: dict) -> tuple[bpy.types.Scene, bpy.types.Object, list[bpy.types
     cd.sensor_fit, cd.sensor_width = "HORIZONTAL" if cam["width"] >= cam["height"] else "VERTICAL", 36.0
     cd.sensor_height = 36.0
     cd.lens = cam["fx"] * 36.0 / size  # focal length in sensor millimetres along the fitted (larger) side
+    if cam.get("fisheye_polynomial"):  # a lens with distortion: the sensor's millimetres per pixel as above
+        cd.type, cd.panorama_type = "PANO", "FISHEYE_LENS_POLYNOMIAL"
+        cd.sensor_width, cd.sensor_height = 36.0 * cam["width"] / size, 36.0 * cam["height"] / size
+        for k, value in enumerate(cam["fisheye_polynomial"]):
+            setattr(cd, f"fisheye_polynomial_k{k}", value)
     cd.clip_start, cd.clip_end = 0.01, 1e5
     camera = bpy.data.objects.new("camera", cd)
     scene.collection.objects.link(camera)

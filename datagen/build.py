@@ -24,7 +24,7 @@ from blender_scenes.protocol import PROTOCOL
 from datagen import conditions, flight
 from datagen.bed import Bed, ground_truth, height_at, make_bed, mesh, shear, world_surface, world_waterline
 from datagen.spec import SceneSpec, validate
-from datagen.survey import write_survey
+from datagen.survey import LENS, lens_polynomial, write_survey
 from ragsplat_core.camera import Camera
 from ragsplat_core.dataset import layout
 from ragsplat_core.errors import OutputError, RagsplatError
@@ -43,8 +43,19 @@ class RenderStats:
     events: list[dict] = field(default_factory=list)
 
 
+    def add(self, other: RenderStats) -> RenderStats:
+        """Two renders' stats as one (two Blender start-ups; the device the first's)."""
+        return RenderStats(self.images + other.images, self.build_s + other.build_s, self.render_s + other.render_s,
+                           self.device or other.device, self.events + other.events)
+
+
 def passes_for(spec: SceneSpec) -> tuple[str, ...]:
     return layout.PASSES if spec.water is not None else ("dry", "depth")
+
+
+def surveyed(spec: SceneSpec) -> bool:
+    """Whether the dataset gets a survey (`datagen.survey`): wet photos of water."""
+    return spec.water is not None and "wet" in passes_for(spec)
 
 
 def radiance_factor(spec: SceneSpec) -> float:
@@ -236,7 +247,9 @@ def run_blender(job: dict, workdir: Path, progress: Callable[[dict], None] | Non
     return stats
 
 
-def _job(spec: SceneSpec, out: Path, cam: Camera, tasks: list[dict]) -> dict:
+def _job(spec: SceneSpec, out: Path, cam: Camera, tasks: list[dict], lens: tuple[float, float] | None = None) -> dict:
+    """The renderer's job (`blender_scenes.render`) for `tasks` seen by `cam`, through a lens with radial
+    distortion `lens` (k1, k2) when given."""
     texture = {"kind": "texture", "image": str(out / "scene" / "albedo.png")}
     objects = [{"name": "bed", "material": texture}, {"name": "floor", "material": texture}]
     c = spec.conditions
@@ -269,7 +282,7 @@ def _job(spec: SceneSpec, out: Path, cam: Camera, tasks: list[dict]) -> dict:
         "render": {"samples": r.samples, "device": r.device, "threads": r.threads, "seed": spec.seed,
                    "filter_width": r.filter_width, "depth_filter": r.depth_filter, "exposure": r.exposure},
         "camera": {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
-                   "cy": cam.cy},
+                   "cy": cam.cy, **({"fisheye_polynomial": lens_polynomial(cam, *lens)} if lens else {})},
         "tasks": tasks,
     }
 
@@ -365,7 +378,7 @@ def _merge(spec: SceneSpec, out: Path, poses) -> None:
         tiff = layout.depth_tiff(out, p.name)
         if not tiff.is_file():
             layout.write_depth_tiff(tiff, layout.read_depth(layout.output_path(out, "depth", p.name)))
-    if spec.water is not None and "wet" in kinds:  # what a surveyor would hand over (`ragsplat survey`)
+    if surveyed(spec):  # what a surveyor would hand over (`ragsplat survey`)
         banks = np.load(out / layout.GT_BANKS) if (out / layout.GT_BANKS).is_file() else None
         targets = np.load(out / layout.GT_TARGETS) if (out / layout.GT_TARGETS).is_file() else None
         edges = None
@@ -405,19 +418,29 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
               "out": str(layout.output_path(out, kind, p.name)), **_surface(spec, kind, p.name)}
              for kind in kinds for p in mine
              if not layout.output_path(out, kind, p.name).exists() or layout.relative_path(kind, p.name) in damaged]
+    # the survey's photos through a lens (`LENS`): the training views' wet pass again, through Cycles'
+    # polynomial lens; outside the manifest and the fingerprint, as the survey is
+    lens = [{**task, "out": str(layout.output_path(out, "lens", task["name"]))} for task in
+            ({"pass": "wet", "name": p.name, "c2w_gl": p.camera.c2w_gl.tolist(), **_surface(spec, "wet", p.name)}
+             for p in mine if p.split == "train" and surveyed(spec))
+            if not layout.intact(layout.output_path(out, "lens", task["name"]), None)]
     stats = RenderStats()
-    if tasks:
+    if tasks or lens:
         if progress is not None:
-            progress({"event": "plan", "images": len(tasks), "views": len(mine), "passes": len(kinds)})
+            progress({"event": "plan", "images": len(tasks) + len(lens), "views": len(mine),
+                      "passes": len(kinds) + bool(lens)})
         try:
-            stats = run_blender(_job(spec, out, poses[0].camera, tasks), out / "scene", progress)
+            for job in ([_job(spec, out, poses[0].camera, tasks)] if tasks else []) + \
+                    ([_job(spec, out, poses[0].camera, lens, LENS)] if lens else []):
+                stats = stats.add(run_blender(job, out / "scene", progress))
         except RendererCrashed as crash:
             if retries <= 0:
                 raise
             if progress is not None:
                 progress({"event": "retry", "signal": crash.signum, "log": str(crash.log)})
             return generate(spec, out, shard, progress, retries - 1)
-    complete = all(layout.output_path(out, k, p.name).exists() for k in kinds for p in poses)
+    complete = all(layout.output_path(out, k, p.name).exists() for k in kinds for p in poses) and \
+        all(layout.output_path(out, "lens", p.name).exists() for p in poses if p.split == "train" and surveyed(spec))
     if complete:
         _merge(spec, out, poses)
     summary = {"rendered": stats.images, "skipped": len(mine) * len(kinds) - len(tasks), "damaged": damaged,

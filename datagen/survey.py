@@ -3,7 +3,7 @@ focal length in EXIF (`survey/images/`), the camera centres as an RTK drone reco
 (`survey/positions.csv`, and the same positions in the photos' EXIF GPS and DJI-style XMP, RtkFlag 50, through
 a geographic origin of the scene, `GeoOrigin`; the same photos again in `survey/images-gps/` with a consumer
 drone's GPS instead: a bias per flight line and scatter, metres, no RTK flag; and in `survey/images-lens/`
-through a lens with radial distortion, `LENS`), the water level as measured at the edge, with noise
+the photos the renderer took through a lens with radial distortion, `LENS`), the water level as measured at the edge, with noise
 (`survey/water_level.txt`),
 points on the water's edge along both banks as a surveyor measures them with RTK (`survey/water_edge.csv`,
 header x,y,z, with noise on z) and ground control on the banks with the targets' pixels (`survey/gcp.csv`,
@@ -92,18 +92,20 @@ def write_survey(root: Path, poses, water, seed: int = 0, noise: SurveyNoise = S
         edge = np.column_stack([xy, water.height(xy)])  # on the surface: the waterline's true heights
     train = [p for p in poses if p.split == "train"]
     names = [f"{p.name}.jpg" for p in train]
+    lens = all(layout.output_path(root, "lens", p.name).is_file() for p in train)  # rendered through `LENS`
     old = json.loads(path.read_text()) if path.is_file() else None
     if old is not None and {k: old.get(k) for k in record} == record:
         if edge is not None and not (root / layout.SURVEY_EDGE).is_file():
             _write_edge(root, edge, seed, noise)
-        if old.get("geo") != geo_record(train, names, water, seed, noise, origin, gps):  # older: no geotags
-            write_json(path, {**old, "geo": write_geotags(root, train, names, water, seed, noise, origin, gps)})
+        if old.get("geo") != geo_record(train, names, water, seed, noise, origin, gps, lens):  # older photos
+            write_json(path, {**old, "geo": write_geotags(root, train, names, water, seed, noise, origin, gps,
+                                                          lens)})
         return False
     rng = np.random.default_rng(seed)
     sigma = np.array([noise.horizontal, noise.horizontal, noise.vertical])
     centres = np.array([p.camera.camera_center for p in train])
     layout.write_positions(root / layout.SURVEY_POSITIONS, names, centres + rng.normal(size=centres.shape) * sigma)
-    record["geo"] = write_geotags(root, train, names, water, seed, noise, origin, gps)
+    record["geo"] = write_geotags(root, train, names, water, seed, noise, origin, gps, lens)
     level = float(edge[:, 2].mean()) if water.sloping and edge is not None else water.level  # one level
     write_bytes(root / layout.SURVEY_LEVEL, f"{level + rng.normal() * noise.level:.4f}\n".encode())
     if edge is not None:
@@ -126,9 +128,9 @@ def write_survey(root: Path, poses, water, seed: int = 0, noise: SurveyNoise = S
 
 
 def geo_record(train, names: list[str], water, seed: int, noise: SurveyNoise,
-               origin: GeoOrigin = GeoOrigin(), gps: ConsumerGPS = ConsumerGPS()) -> dict:
-    """survey.json's "geo": the origin, its UTM zone and the scene's frame in it, and how the two folders of
-    geotagged photos were made (each flight line's consumer-GPS bias)."""
+               origin: GeoOrigin = GeoOrigin(), gps: ConsumerGPS = ConsumerGPS(), lens: bool = True) -> dict:
+    """survey.json's "geo": the origin, its UTM zone and the scene's frame in it, and how the folders of
+    geotagged photos were made (each flight line's consumer-GPS bias; with `lens`, the lens photos')."""
     from ragsplat_core.survey import exif
 
     epsg = exif.utm_epsg(origin.lat, origin.lon)
@@ -144,24 +146,25 @@ def geo_record(train, names: list[str], water, seed: int, noise: SurveyNoise,
             layout.SURVEY_IMAGES_GPS: {"noise": asdict(gps), "lines": [
                 {"photos": [n for n, k in zip(names, lines) if k == line], "bias_m": bias[line].round(4).tolist()}
                 for line in range(len(bias))]},
-            layout.SURVEY_IMAGES_LENS: {"geotags": layout.SURVEY_IMAGES, "lens": {
+            **({layout.SURVEY_IMAGES_LENS: {"geotags": layout.SURVEY_IMAGES, "lens": {
                 "model": "COLMAP RADIAL / OpenCV k1, k2 (no tangential terms): x_d = x (1 + k1 r^2 + k2 r^4) in "
-                         "normalised coordinates, the principal point unchanged, the focal length lengthened so "
-                         "that the corners stay inside the render (`lens_focal`, in the photos' EXIF)",
-                "k1": LENS[0], "k2": LENS[1]}}}
+                         "normalised coordinates, the principal point and the focal length the pinhole photos'; "
+                         "rendered through it (Cycles' polynomial lens, `lens_polynomial`)",
+                "k1": LENS[0], "k2": LENS[1]}}} if lens else {})}
 
 
 def write_geotags(root: Path, train, names: list[str], water, seed: int, noise: SurveyNoise,
-                  origin: GeoOrigin = GeoOrigin(), gps: ConsumerGPS = ConsumerGPS()) -> dict:
+                  origin: GeoOrigin = GeoOrigin(), gps: ConsumerGPS = ConsumerGPS(), lens: bool = True) -> dict:
     """The training photos (`train`: poses, `names`: their JPEG names) written again into `survey/images/`
     with the positions.csv centres as EXIF GPS and DJI-style XMP (AbsoluteAltitude, RelativeAltitude, gimbal
     and flight angles, RtkFlag 50 with RtkStdLon / RtkStdLat / RtkStdHgt), and into `survey/images-gps/`
     with a consumer drone's GPS instead (the true centres plus a bias per flight line and scatter, `gps`;
-    no RTK tags), and into `survey/images-lens/` with the RTK tags through a lens with radial distortion
-    (`LENS`, `distorted`). Returns survey.json's "geo" (`geo_record`)."""
+    no RTK tags), and with `lens` into `survey/images-lens/`: the photos rendered through a lens with radial
+    distortion (`LENS`; the dataset's images/lens/), with the RTK tags. Returns survey.json's "geo"
+    (`geo_record`)."""
     from ragsplat_core.survey import exif
 
-    record = geo_record(train, names, water, seed, noise, origin, gps)
+    record = geo_record(train, names, water, seed, noise, origin, gps, lens)
     crs, shift = record["crs"], np.array(record["origin_metric"])
     rtk = layout.read_positions(root / layout.SURVEY_POSITIONS)
     rtk = np.array([rtk[n] for n in names])
@@ -175,68 +178,43 @@ def write_geotags(root: Path, train, names: list[str], water, seed: int, noise: 
     angles[:, 1] = np.clip(angles[:, 1], -90, 30)  # a gimbal's range
     rtk_tags = {"RtkFlag": exif.RTK_FIXED, "RtkStdLon": noise.horizontal, "RtkStdLat": noise.horizontal,
                 "RtkStdHgt": noise.vertical}
-    for folder, xyz, tags in ((layout.SURVEY_IMAGES, rtk, rtk_tags), (layout.SURVEY_IMAGES_GPS, consumer, {}),
-                              (layout.SURVEY_IMAGES_LENS, rtk, rtk_tags)):
+    folders = [(layout.SURVEY_IMAGES, rtk, rtk_tags), (layout.SURVEY_IMAGES_GPS, consumer, {})]
+    for folder, xyz, tags in folders + ([(layout.SURVEY_IMAGES_LENS, rtk, rtk_tags)] if lens else []):
         geographic = exif.to_geographic(xyz + shift, crs)
         for p, name, (lat, lon, h), z, (yaw, pitch, roll) in zip(train, names, geographic, xyz[:, 2], angles):
             xmp = {"AbsoluteAltitude": round(h, 3), "RelativeAltitude": round(z - record["takeoff_z"], 3),
                    "GimbalRollDegree": round(roll, 2), "GimbalYawDegree": round(yaw, 2),
                    "GimbalPitchDegree": round(pitch, 2), "FlightRollDegree": 0.0, "FlightYawDegree": round(yaw, 2),
                    "FlightPitchDegree": 0.0, **tags}
-            image = layout.read_png(layout.output_path(root, "wet", p.name))
-            focal = p.camera.fx
-            if folder == layout.SURVEY_IMAGES_LENS:
-                image, focal = distorted(image, p.camera, *LENS), lens_focal(p.camera, *LENS)
-            layout.write_jpeg(root / folder / name, image, focal, gps=(lat, lon, h), xmp=xmp)
+            kind = "lens" if folder == layout.SURVEY_IMAGES_LENS else "wet"
+            image = layout.read_png(layout.output_path(root, kind, p.name))
+            layout.write_jpeg(root / folder / name, image, p.camera.fx, gps=(lat, lon, h), xmp=xmp)
     return record
-
-
-def lens_focal(camera, k1: float, k2: float) -> float:
-    """The focal length (pixels) of the lens photo made from a render of `camera` (`distorted`): the render's,
-    lengthened just enough that a barrel lens's corners still fall inside the render (a real sensor sees
-    something there; a black corner would be content that is not in the scene)."""
-    if k1 == k2 == 0:
-        return camera.fx
-    corner = np.hypot(camera.width - camera.cx, camera.height - camera.cy)  # pixels from the principal point
-    scale = 1.0
-    for _ in range(50):  # the corner's undistorted radius in the render must stay inside it
-        xd = corner / (camera.fx * scale)
-        x = xd
-        for _ in range(20):
-            x = xd / (1 + k1 * x * x + k2 * x**4)
-        scale = max(scale, x * camera.fx / (corner - 1.0))
-    return camera.fx * scale
-
-
-def distorted(image: np.ndarray, camera, k1: float, k2: float) -> np.ndarray:
-    """[H, W, 3] uint8 `image` (a pinhole render of `camera`) as a lens with radial distortion k1, k2 and the
-    focal length `lens_focal` takes it: each output pixel centre (u + 0.5, v + 0.5) is a distorted
-    normalised point x_d; the undistorted x with x_d = x (1 + k1 r^2 + k2 r^4) (fixed-point iterations) is
-    read from the render at the render's focal length, bilinear (black, should it fall outside)."""
-    h, w = image.shape[:2]
-    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    f = lens_focal(camera, k1, k2) * np.array([1.0, camera.fy / camera.fx])
-    xd, yd = (u - camera.cx) / f[0], (v - camera.cy) / f[1]
-    x, y = xd.copy(), yd.copy()
-    for _ in range(20):
-        r2 = x * x + y * y
-        f = 1 + k1 * r2 + k2 * r2 * r2
-        x, y = xd / f, yd / f
-    src_u, src_v = camera.fx * x + camera.cx - 0.5, camera.fy * y + camera.cy - 0.5  # array indices
-    u0, v0 = np.floor(src_u).astype(int), np.floor(src_v).astype(int)
-    fu, fv = (src_u - u0)[..., None], (src_v - v0)[..., None]
-    out = np.zeros(image.shape, dtype=np.float64)
-    inside = (u0 >= 0) & (v0 >= 0) & (u0 + 1 < w) & (v0 + 1 < h)
-    a, b = np.clip(u0, 0, w - 2), np.clip(v0, 0, h - 2)
-    img = image.astype(np.float64)
-    out = ((1 - fu) * (1 - fv) * img[b, a] + fu * (1 - fv) * img[b, a + 1] + (1 - fu) * fv * img[b + 1, a]
-           + fu * fv * img[b + 1, a + 1])
-    return np.where(inside[..., None], np.clip(out + 0.5, 0, 255), 0).astype(np.uint8)
 
 
 # survey/images-lens/'s radial distortion: barrel, as a drone's wide lens (about 6 % at the corners of a
 # 70-degree view), in normalised coordinates
 LENS = (-0.08, 0.02)
+
+
+def lens_polynomial(camera, k1: float, k2: float, sensor_mm: float = 36.0) -> list[float]:
+    """Cycles' FISHEYE_LENS_POLYNOMIAL coefficients [k0, ..., k4] that render `camera` (square pixels, the
+    principal point centred) through a lens with radial distortion k1, k2 (COLMAP's RADIAL: a ray at
+    undistorted normalised radius r lands at r_d = r (1 + k1 r^2 + k2 r^4) focal lengths from the centre).
+    Cycles sends the sensor point r_s millimetres from the centre (`sensor_mm` over the larger side) along the
+    ray theta = -(k0 + k1 r_s + ... + k4 r_s^4) from the axis; theta(r_s) = atan(r) with r_d = r_s / (mm per
+    pixel) / f, fitted by least squares from the centre to past the corners (k0 = 0: the axis stays the
+    axis). The fit's error is under 0.05 px for `LENS` at small's 70-degree view (tests/test_survey_exif.py)."""
+    mm = sensor_mm / max(camera.width, camera.height)  # millimetres per pixel
+    corner = np.hypot(camera.width, camera.height) / 2 * mm * 1.02
+    r_s = np.linspace(0.0, corner, 400)
+    r_d = r_s / mm / camera.fx
+    r = r_d.copy()
+    for _ in range(50):  # the undistorted radius: fixed-point iterations, contracting for a gentle lens
+        r = r_d / (1 + k1 * r * r + k2 * r**4)
+    powers = np.stack([r_s**k for k in range(1, 5)], axis=1)  # [400, 4]
+    coeffs = np.linalg.lstsq(powers, np.arctan(r), rcond=None)[0]
+    return [0.0, *(-coeffs).tolist()]
 
 
 def flight_lines(train) -> np.ndarray:

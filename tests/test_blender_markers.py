@@ -1,7 +1,9 @@
 """Physical cross-check: emissive markers on the bed, rendered by Cycles through the water, land where the
 refraction model (`apparent_points`) projects them; the naive pinhole misses by pixels. Under a sloping
 surface (a plane tilted as a river's, steeper than one so that the tilt is worth a pixel) the tilted model
-lands them too, and the flat one at the same level misses."""
+lands them too, and the flat one at the same level misses. Through a lens with radial distortion (the survey's
+lens photos, Cycles' polynomial lens) they land where the refracted projection, distorted by COLMAP's RADIAL
+model, puts them."""
 
 import math
 
@@ -49,10 +51,15 @@ def centroids(image_srgb: np.ndarray) -> np.ndarray:
     return np.array([[col + 0.5, row + 0.5] for row, col in com])
 
 
-def render_markers(work, water: WaterSurface, far: float):
+def render_markers(work, water: WaterSurface, far: float, lens: tuple[float, float] | None = None,
+                   spread: float = 0.9):
     """(marker centres [16, 3], cameras, images): horizontal discs DEPTH below `water` (a bed that falls
-    with it), under the surface's plane out to +-far, rendered by Cycles from `views`."""
-    xs = np.array([-0.9, -0.3, 0.3, 0.9])
+    with it) in a 4 x 4 grid out to +-spread, under the surface's plane out to +-far, rendered by Cycles from
+    `views` (through a lens with radial distortion `lens`, k1 and k2, when given:
+    `datagen.survey.lens_polynomial`)."""
+    from datagen.survey import lens_polynomial
+
+    xs = spread * np.array([-1, -1 / 3, 1 / 3, 1])
     xy = np.array([[x, y] for x in xs for y in xs])
     centres = np.column_stack([xy, water.height(xy) - DEPTH])  # 16 markers on the bed plane
     parts = [disc(c, MARKER_RADIUS) for c in centres]
@@ -75,8 +82,8 @@ def render_markers(work, water: WaterSurface, far: float):
         "light": None,
         "render": {"samples": 64, "device": "CPU", "threads": 0, "seed": 0, "filter_width": 1.5,
                    "depth_filter": 0.01, "exposure": 0.0},
-        "camera": {k: getattr(cam, a) for k, a in (("width", "width"), ("height", "height"), ("fx", "fx"),
-                                                     ("fy", "fy"), ("cx", "cx"), ("cy", "cy"))},
+        "camera": {**{k: getattr(cam, k) for k in ("width", "height", "fx", "fy", "cx", "cy")},
+                   **({"fisheye_polynomial": lens_polynomial(cam, *lens)} if lens else {})},
         "tasks": tasks,
     }
     run_blender(job, work)
@@ -94,19 +101,37 @@ def rendered_sloping(tmp_path_factory):
     return render_markers(tmp_path_factory.mktemp("markers_sloping"), WaterSurface(0.0, N, SLOPE), far=30.0)
 
 
-def errors(rendered, name: str, water: WaterSurface, other: WaterSurface | None = None):
-    """Pixel distances from each predicted marker (the model with `water`; the naive pinhole, or the model
-    with `other`) to the nearest detected blob, over the markers well inside the image."""
+@pytest.fixture(scope="module")
+def rendered_lens(tmp_path_factory):
+    from datagen.survey import LENS
+
+    # out towards the corners, where the lens moves them most
+    return render_markers(tmp_path_factory.mktemp("markers_lens"), WaterSurface(0.0, N), far=100.0, lens=LENS,
+                          spread=2.4)
+
+
+def distort(cam: Camera, uv: np.ndarray, k1: float, k2: float) -> np.ndarray:
+    """Pixels [K, 2] of the pinhole `cam` as a lens with radial distortion k1, k2 (COLMAP's RADIAL) sees them."""
+    x = (uv - [cam.cx, cam.cy]) / [cam.fx, cam.fy]
+    r2 = (x * x).sum(1, keepdims=True)
+    return x * (1 + k1 * r2 + k2 * r2 * r2) * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+
+
+def errors(rendered, name: str, water: WaterSurface, other: WaterSurface | None = None,
+           lens: tuple[float, float] = (0.0, 0.0), other_lens: tuple[float, float] = (0.0, 0.0)):
+    """Pixel distances from each predicted marker (the model with `water` through `lens`; the naive pinhole,
+    or the model with `other`, through `other_lens`) to the nearest detected blob, over the markers well
+    inside the image."""
     centres, cams, images = rendered
     cam = cams[name]
     found = centroids(images[name])
 
-    def predict(surface):
+    def predict(surface, k):
         seen = centres if surface is None else apparent_points(
             torch.tensor(centres), torch.tensor(cam.camera_center), surface).numpy()
-        return cam.project(seen)[0]
+        return distort(cam, cam.project(seen)[0], *k)
 
-    expected, alternative = predict(water), predict(other)
+    expected, alternative = predict(water, lens), predict(other, other_lens)
     inside = np.all((expected > 4) & (expected < WIDTH - 4), axis=1)
     assert inside.sum() >= 8 and len(found) == inside.sum()
 
@@ -133,3 +158,15 @@ def test_markers_under_a_sloping_surface_land_on_the_tilted_projection(rendered_
           f"(mean {err_flat.mean():.2f})")
     assert err.max() <= 0.15
     assert err_flat.mean() > 0.5  # the tilt moves every marker: the check has teeth
+
+
+@pytest.mark.parametrize("name", ["nadir", "oblique40"])
+def test_markers_through_a_lens_land_on_the_distorted_refracted_projection(rendered_lens, name):
+    from datagen.survey import LENS
+
+    water = WaterSurface(0.0, N)
+    err, err_pinhole, count = errors(rendered_lens, name, water, water, LENS, (0.0, 0.0))
+    print(f"\n{name}, lens {LENS}: {count} markers, distorted refracted-model error max {err.max():.3f} px "
+          f"(mean {err.mean():.3f}); undistorted: max {err_pinhole.max():.2f} px (mean {err_pinhole.mean():.2f})")
+    assert err.max() <= 0.15
+    assert err_pinhole.max() > 1.5  # the lens moves the outer markers by pixels: the check has teeth

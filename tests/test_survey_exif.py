@@ -7,6 +7,7 @@ same photos with consumer GPS (a bias per flight line), every camera kept."""
 import json
 import math
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -15,7 +16,15 @@ from conftest import channel_scene, survey_cameras
 
 from datagen.flight import Pose
 from datagen.spec import WaterSpec
-from datagen.survey import ConsumerGPS, GeoOrigin, SurveyNoise, flight_lines, gimbal_angles, write_survey
+from datagen.survey import (
+    LENS,
+    ConsumerGPS,
+    GeoOrigin,
+    SurveyNoise,
+    flight_lines,
+    gimbal_angles,
+    write_survey,
+)
 from ragsplat_core.bench.synthetic import bed_scene, render_views, write_dataset
 from ragsplat_core.camera import Camera
 from ragsplat_core.cli.main import main
@@ -161,6 +170,31 @@ ORIGIN = GeoOrigin()
 CONSUMER = ConsumerGPS(line_bias=(0.4, 0.6), line_bias_z=0.2, jitter=0.2)  # to the 4 m flight's scale
 
 
+def lens_photo(scene: dict, cam: Camera, water: WaterSurface, k1: float, k2: float) -> np.ndarray:
+    """[H, W, 3] uint8: `scene` seen by `cam` through a lens with radial distortion k1, k2 (COLMAP's RADIAL),
+    resampled (bilinear) from a pinhole render of twice the size and a view wide enough for the corners."""
+    r_corner = math.hypot(cam.width / 2, cam.height / 2) / cam.fx  # distorted, normalised
+    r = r_corner
+    for _ in range(50):
+        r = r_corner / (1 + k1 * r * r + k2 * r**4)
+    scale = 2 * r_corner / r / 1.05  # the render's focal over cam's: twice the pixels, the corners inside
+    wide = replace(cam, width=2 * cam.width, height=2 * cam.height, fx=cam.fx * scale, fy=cam.fy * scale,
+                   cx=2 * cam.cx, cy=2 * cam.cy)
+    image = render_views(scene, [wide], water)[0]["image"].numpy()
+    u, v = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+    xd, yd = (u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy
+    x, y = xd, yd
+    for _ in range(50):
+        f = 1 + k1 * (x * x + y * y) + k2 * (x * x + y * y) ** 2
+        x, y = xd / f, yd / f
+    su, sv = wide.fx * x + wide.cx - 0.5, wide.fy * y + wide.cy - 0.5  # array indices in the render
+    u0, v0 = np.floor(su).astype(int), np.floor(sv).astype(int)
+    fu, fv = (su - u0)[..., None], (sv - v0)[..., None]
+    out = ((1 - fu) * (1 - fv) * image[v0, u0] + fu * (1 - fv) * image[v0, u0 + 1]
+           + (1 - fu) * fv * image[v0 + 1, u0] + fu * fv * image[v0 + 1, u0 + 1])
+    return (np.clip(out, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
 @pytest.fixture(scope="session")
 def geotagged(tmp_path_factory):
     """A gravel bed 0.8 m under water seen by 12 nadir (three flight lines) and 6 oblique photos from 4 m,
@@ -174,6 +208,8 @@ def geotagged(tmp_path_factory):
     views = render_views(scene, cams, water)
     write_dataset(root, views, water)
     poses = [Pose(f"{i:04d}", "nadir" if i < 12 else "oblique30", "train", c) for i, c in enumerate(cams)]
+    for p in poses:  # the generator renders these with Blender's polynomial lens (test_blender_markers.py)
+        layout.write_png(layout.output_path(root, "lens", p.name), lens_photo(scene, p.camera, water, *LENS))
     assert flight_lines(poses).tolist() == [0] * 4 + [1] * 4 + [2] * 4 + [3] * 6
     assert write_survey(root, poses, WaterSpec(), noise=SurveyNoise(horizontal=0.005, vertical=0.008),
                         origin=ORIGIN, gps=CONSUMER)
@@ -239,6 +275,7 @@ def test_photos_alone_with_rtk_positions(geotagged, tmp_path, capsys):
     assert report["inliers"] == report["count"] == 18 and report["rms_m"] < 0.05  # the pinhole SfM's, through water
     assert report["positions"]["crs"] == "EPSG:32633" and "EXIF GPS" in report["positions"]["source"]
     assert report["noise"]["rtk_fixed"]["count"] == 18 and "consumer_gps" not in report["noise"]
+    assert "scale_uncertainty" not in report and "scale comes from consumer GPS" not in err
     assert report["noise"]["rtk_fixed"]["sigma_m_median"] == [0.005, 0.008] and report["noise"]["threshold_m"] == 0.2
     assert set(report["positions"]["photos"]) == {f"{i:04d}.jpg" for i in range(18)}
     # the model's cameras where the truth is, in UTM
@@ -251,12 +288,28 @@ def test_photos_alone_with_rtk_positions(geotagged, tmp_path, capsys):
 
 
 def test_photos_alone_with_consumer_gps_keep_every_camera(geotagged, tmp_path, capsys):
-    root, _ = geotagged
+    root, cams = geotagged
     out = tmp_path / "run"
     assert main(survey_args(root, layout.SURVEY_IMAGES_GPS, out)) == 0
-    assert "(0 RTK fixed, 18 consumer GPS)" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "(0 RTK fixed, 18 consumer GPS)" in err
     report = json.loads((out / "georef.json").read_text())
     assert report["inliers"] == report["count"] == 18
+    # the scale is the GPS's: the user is told how far depths can be off, and that it covers the frame's
+    # scale error (a similarity of the model's camera centres to the true ones)
+    stated = report["scale_uncertainty"]
+    assert stated["relative"] == pytest.approx(report["rms_m"] / stated["extent_m"]) and stated["extent_m"] > 2
+    assert f"may be off by up to about {100 * stated['relative']:.0f} %" in err and "--gcp" in err
+    import pycolmap
+
+    from ragsplat_core.survey import georef
+
+    rec = pycolmap.Reconstruction(str(out / "sfm" / "model"))
+    model = {img.name: img.projection_center() for img in rec.images.values()}
+    names = sorted(model)
+    to_truth = georef.fit_similarity(np.array([model[n] for n in names]),
+                                 np.array([cams[int(n[:4])].camera_center for n in names]))
+    assert abs(report["scale"] / to_truth.scale - 1) < stated["relative"]
     noise = report["noise"]
     assert noise["consumer_gps"]["count"] == 18 and noise["consumer_gps"]["sigma_m"] == [2.0, 3.0]
     assert noise["threshold_m"] == 30.0 and "per-line bias" in noise["consumer_gps"]["bias"]
@@ -347,27 +400,23 @@ def test_consumer_gps_is_levelled_by_the_water(channel_geotagged, tmp_path, caps
     assert tilt["given"] > 0.5 and tilt["auto"] < tilt["given"] + 0.1, tilt
 
 
-def test_the_generators_lens_puts_each_point_where_the_distortion_model_does():
-    """`datagen.survey.distorted`: a bright dot rendered at an undistorted pixel appears in the distorted
-    photo where COLMAP's RADIAL model with the lens's focal length sends it (x_d = x (1 + k1 r^2 + k2 r^4)),
-    no pixel of the photo is black (the corners still inside the render); with k = 0 nothing moves."""
-    from datagen.survey import LENS, distorted, lens_focal
+def test_the_renderers_lens_polynomial_is_the_radial_model():
+    """`datagen.survey.lens_polynomial`: the ray Cycles' polynomial lens sends through each sensor point, out
+    to the corners, lands where COLMAP's RADIAL model with the pinhole's focal length puts it, within 0.05 px;
+    with k = 0 it is the pinhole. (Rendered markers land there too: tests/test_blender_markers.py.)"""
+    from datagen.survey import lens_polynomial
 
-    cam = Camera(240, 180, 150.0, 150.0, 120.0, 90.0, np.eye(3), np.zeros(3))
-    for u, v in ((200.5, 150.5), (30.5, 40.5), (120.5, 90.5)):
-        image = np.zeros((180, 240, 3), np.uint8)
-        image[int(v) - 1: int(v) + 2, int(u) - 1: int(u) + 2] = 255  # 3 x 3 px around (u, v)
-        x, y = (u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy
-        r2 = x * x + y * y
-        f = 1 + LENS[0] * r2 + LENS[1] * r2 * r2
-        out = distorted(image, cam, *LENS).astype(float)[..., 0]
-        rows, cols = np.nonzero(out)
-        w = out[rows, cols]
-        found = np.array([(cols + 0.5) @ w, (rows + 0.5) @ w]) / w.sum()  # the dot's centroid
-        focal = lens_focal(cam, *LENS)
-        np.testing.assert_allclose(found, [focal * x * f + cam.cx, focal * y * f + cam.cy], atol=0.15)
-    assert focal > cam.fx and (distorted(np.full((180, 240, 3), 9, np.uint8), cam, *LENS) > 0).all()
-    assert lens_focal(cam, 0.0, 0.0) == cam.fx and (distorted(image, cam, 0.0, 0.0) == image).all()
+    for cam in (Camera(256, 256, 182.8, 182.8, 128.0, 128.0, np.eye(3), np.zeros(3)),
+                Camera(240, 180, 150.0, 150.0, 120.0, 90.0, np.eye(3), np.zeros(3))):
+        mm = 36.0 / max(cam.width, cam.height)
+        r_s = np.linspace(0, math.hypot(cam.width, cam.height) / 2 * mm, 200)  # sensor mm, out to a corner
+        for k1, k2 in (LENS, (0.0, 0.0)):
+            k = lens_polynomial(cam, k1, k2)
+            assert len(k) == 5 and k[0] == 0.0
+            theta = -np.polyval(k[::-1], r_s)  # the ray's angle from the axis
+            r = np.tan(theta)  # undistorted, normalised
+            landed = cam.fx * r * (1 + k1 * r**2 + k2 * r**4)  # pixels from the centre, by the model
+            np.testing.assert_allclose(landed, r_s / mm, atol=0.05)
 
 
 def test_a_lens_distortion_is_estimated_from_the_photos(geotagged, tmp_path, capsys):
@@ -375,7 +424,6 @@ def test_a_lens_distortion_is_estimated_from_the_photos(geotagged, tmp_path, cap
     estimates the distortion to a fraction of a pixel across the photo (k1 and k2 trade against each other
     over this 60-degree view: -0.065 / 0.002 against -0.08 / 0.02 gives the same curve within 0.3 px), and
     the model's cameras carry it for the import to undistort by."""
-    from datagen.survey import LENS
 
     root, cams = geotagged
     out = tmp_path / "run"
@@ -384,9 +432,48 @@ def test_a_lens_distortion_is_estimated_from_the_photos(geotagged, tmp_path, cap
     assert main(argv) == 0, capsys.readouterr().err
     lens = json.loads((out / "water.json").read_text())["lens"]
     r = np.linspace(0, math.hypot(120, 90) / cams[0].fx, 50)  # out to the corners, normalised
-    shift = lambda k1, k2: cams[0].fx * r * (k1 * r**2 + k2 * r**4)  # noqa: E731  pixels from the pinhole
+    shift = lambda k1, k2: cams[0].fx * r * (k1 * r**2 + k2 * r**4)  # pixels from the pinhole
     assert np.abs(shift(lens["k1"], lens["k2"]) - shift(*LENS)).max() < 0.5 < np.abs(shift(*LENS)).max(), lens
     import pycolmap
 
     cams = pycolmap.Reconstruction(str(out / "model")).cameras.values()
     assert all(c.model == pycolmap.CameraModelId.RADIAL and c.params[3] == lens["k1"] for c in cams)
+
+
+def test_neighbour_pairs_each_photo_with_its_nearest():
+    from ragsplat_core.survey.sfm import neighbour_pairs
+
+    rng = np.random.default_rng(0)
+    centres = np.column_stack([rng.uniform(0, 200, 300), rng.uniform(0, 40, 300), rng.uniform(20, 21, 300)])
+    pairs = neighbour_pairs(centres, 10)
+    assert (pairs[:, 0] < pairs[:, 1]).all() and len(np.unique(pairs, axis=0)) == len(pairs)
+    assert 300 * 10 / 2 <= len(pairs) <= 300 * 10  # linear in the photos, not 44 850
+    d = np.linalg.norm(centres[:, None, :2] - centres[None, :, :2], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    nearest = np.argsort(d, axis=1)[:, :10]
+    listed = {tuple(p) for p in pairs.tolist()}
+    assert all((min(i, j), max(i, j)) in listed for i in range(300) for j in nearest[i])
+    far = d[pairs[:, 0], pairs[:, 1]]
+    assert far.max() < 30  # none reaches across the reach
+    assert len(neighbour_pairs(centres[:8], 10)) == 28  # a few photos: every pair
+
+
+def test_a_large_survey_matches_neighbours_not_every_pair(geotagged, tmp_path, capsys, monkeypatch):
+    """Above `EXHAUSTIVE_MAX` photos, each is matched with its nearest by the photos' positions (here the
+    limits lowered to this 18-photo survey): fewer pairs, every photo still registered; the pairs and each
+    stage's time reported."""
+    from ragsplat_core.survey import sfm
+
+    root, _ = geotagged
+    monkeypatch.setattr(sfm, "EXHAUSTIVE_MAX", 10)
+    monkeypatch.setattr(sfm, "NEIGHBOURS", 8)
+    out = tmp_path / "run"
+    argv = survey_args(root, layout.SURVEY_IMAGES, out)
+    argv[argv.index("--stop-after") + 1] = "sfm"
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    timings = json.loads((out / "sfm" / "timings.json").read_text())
+    assert "each photo matched with its 8 nearest" in err and f"{timings['pairs']} pairs matched" in err
+    assert 18 * 8 / 2 <= timings["pairs"] < 18 * 17 / 2
+    assert "18 of 18 photos registered" in err
+    assert (out / "sfm" / "pairs.txt").read_text().count("\n") == timings["pairs"]

@@ -146,6 +146,35 @@ def test_adjustment_through_the_water_recovers_tilted_cameras_and_the_bed():
     assert rotation_error_deg(bundle.adjust(R0, C0, K, P0, point, image, pixels, WATER, prior_C=rtk).R, R).median() < 0.1
 
 
+def test_the_sparse_camera_system_in_chunks_is_the_dense_one(monkeypatch):
+    """The reduced system gathered a few observation pairs at a time and solved sparse on the CPU (a river
+    survey's path) gives the dense path's adjustment to round-off, the free level's sigmas included; its
+    camera pairs are those that share a point."""
+    cams, pts, point, image, pixels = scene(points=300)
+    R, C, K = stack(cams)
+    rng = np.random.default_rng(3)
+    R0 = bundle._rotate(R, torch.tensor(rng.normal(0, math.radians(1.0), (len(cams), 3))))
+    C0 = C + torch.tensor(rng.normal(0, 0.05, C.shape))
+    P0 = pts + torch.tensor(rng.normal(0, 0.2, pts.shape))
+    rtk = C + torch.tensor(rng.normal(size=C.shape) * [0.02, 0.02, 0.03])
+    run = lambda sparse: bundle.adjust(R0, C0, K, P0, point, image, pixels, WaterSurface(0.2, 1.33),
+                                       prior_C=rtk, free=("level",), iterations=8, sparse=sparse)
+    dense = run(False)
+    monkeypatch.setattr(bundle, "PAIR_CHUNK", 97)  # many chunks, a point's pairs never split
+    couples = bundle._Couples(point, image, len(pts), len(cams))
+    assert len(couples.chunks) > 10
+    seen = {(int(a), int(b)) for p in range(len(pts)) for a in image[point == p] for b in image[point == p]}
+    assert {tuple(x) for x in couples.pairs.tolist()} == seen | {(i, i) for i in range(len(cams))}
+    chunked = run(True)
+    assert chunked.iterations == dense.iterations
+    for a, b in ((chunked.R, dense.R), (chunked.C, dense.C), (chunked.points, dense.points)):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-9)
+    assert chunked.water.level == pytest.approx(dense.water.level, abs=1e-8)  # round-off, via its differences
+    for name in ("level",):
+        assert chunked.sigma[name] == pytest.approx(dense.sigma[name], rel=1e-8)
+        assert chunked.sigma_given_cameras[name] == pytest.approx(dense.sigma_given_cameras[name], rel=1e-8)
+
+
 def test_the_adjustment_finds_an_unmeasured_water_surface():
     """The level (and a plane's slope) left free: from 30 cm above or below, the adjustment through the
     water comes to the true surface within its own reported uncertainty, which is a few centimetres for

@@ -243,11 +243,20 @@ def run(args: argparse.Namespace) -> int:
     work = args.out / "sfm"
     t0 = time.perf_counter()
     if not stamps.done("sfm", key, work / "model"):
-        _say("sfm", f"structure from motion of {len(photos)} photos (pycolmap SIFT, exhaustive matching, "
-             "incremental mapping; CPU) ...")
-        rec = sfm.reconstruct(args.images, names, work, progress=None if args.no_progress else (
-            lambda desc, total, unit: bar(total, f"[sfm] {desc}", unit)))
+        pairs = None
+        if len(names) > sfm.EXHAUSTIVE_MAX and (positions is not None and all(n in positions for n in names)):
+            pairs = sfm.neighbour_pairs(np.array([positions[n] for n in names]), sfm.NEIGHBOURS)
+        how = "every pair matched" if pairs is None else f"each photo matched with its {sfm.NEIGHBOURS} nearest"
+        _say("sfm", f"structure from motion of {len(photos)} photos (pycolmap SIFT, {how}, incremental "
+             "mapping; CPU) ...")
+        timings = {}
+        rec = sfm.reconstruct(args.images, names, work, pairs=pairs, timings=timings,
+                              progress=None if args.no_progress else (
+                                  lambda desc, total, unit: bar(total, f"[sfm] {desc}", unit)))
         rec.write_text(str(_fresh(work / "model")))
+        write_json(work / "timings.json", timings)
+        _say("sfm", f"features {timings['features_s']:.0f} s, {timings['pairs']} pairs matched in "
+             f"{timings['matching_s']:.0f} s, mapping {timings['mapping_s']:.0f} s")
         stamps.mark("sfm", key)
     rec = pycolmap.Reconstruction(str(work / "model"))
     _say("sfm", f"{rec.num_reg_images()} of {len(photos)} photos registered, {rec.num_points3D()} points, "
@@ -313,9 +322,21 @@ def run(args: argparse.Namespace) -> int:
         report["noise"]["rms_m_by_source"] = {
             kind: float(np.sqrt((res[inliers & pick] ** 2).sum(1).mean())) if (inliers & pick).any() else None
             for kind, pick in (("rtk_fixed", rtk), ("consumer_gps", ~rtk))}
+        if (inliers & rtk).sum() < 3:  # the scale is consumer GPS's: say how far depths can be off
+            extent = float(np.ptp(dst[inliers, :2], axis=0).max())
+            report["scale_uncertainty"] = {
+                "relative": report["rms_m"] / extent, "extent_m": extent,
+                "from": "the positions' rms residual over the flight's longest horizontal side: consumer GPS "
+                        "fixes the scale no better (its errors are shared along a flight line, so the fit's own "
+                        "standard error would understate them); depths and heights are scaled with it"}
     write_json(args.out / "georef.json", report)
     _say("georef", f"similarity to {what}: scale {sim.scale:.4g}, {int(inliers.sum())} of {len(labels)} inliers, "
          f"rms {100 * report['rms_m']:.1f} cm (each one's: {args.out / 'georef.json'})")
+    if "scale_uncertainty" in report:
+        _say("georef", f"the scale comes from consumer GPS: depths and heights may be off by up to about "
+             f"{100 * report['scale_uncertainty']['relative']:.0f} % (rms {report['rms_m']:.2f} m over the "
+             f"flight's {extent:.0f} m); for depths to 1 %, give ground control (--gcp, --gcp-pixels) or fly "
+             "with RTK")
     stamps.mark("georef", key)
     if args.stop_after == "georef":
         return 0

@@ -98,7 +98,8 @@ class Georef:
 
 
 def relative_path(kind: str, name: str) -> str:
-    """Where pass `kind` ("wet" | "dry" | "depth") of view `name` lives, relative to the dataset root."""
+    """Where pass `kind` ("wet" | "dry" | "depth", or "lens": the survey's photo through a lens) of view `name`
+    lives, relative to the dataset root."""
     return f"gt/depth/{name}.exr" if kind == "depth" else f"images/{kind}/{name}.png"
 
 

@@ -11,8 +11,12 @@ inside OpenSfM).
 
 The solver is Levenberg-Marquardt on all poses and points at once, in float64: the Jacobian blocks of every
 observation (it depends on one camera and one point) by autograd, the points eliminated by the Schur
-complement (a dense 6I x 6I system for I cameras), Huber weights against wrong matches. Intrinsics are held fixed.
-Tensors in, tensors out, float64, CPU or CUDA.
+complement, Huber weights against wrong matches. Intrinsics are held fixed. The reduced system in the cameras
+has a 6 x 6 block for each pair of cameras that see a common point; its blocks are gathered a bounded number
+of observation pairs at a time (`PAIR_CHUNK`), so memory grows with the observations and the camera pairs,
+not with the observation pairs (one per two observations of a point: a million on the `small` reach). Up to
+`DENSE_MAX` unknowns it is solved dense on the tensors' device; a larger survey's system, sparse as its
+flight's overlap, by SciPy's sparse LU on the CPU. Tensors in, tensors out, float64, CPU or CUDA.
 
 The water surface itself may be adjusted with them (`free`: its level, or its level and slope), as
 multimedia photogrammetry estimates an interface in the bundle (Mulsow, 2010): a level error moves a
@@ -23,6 +27,7 @@ level and the points' depths trade against each other).
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import torch
@@ -86,7 +91,8 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
            prior_sigma: tuple[float, float, float] | torch.Tensor = (0.02, 0.02, 0.03),
            prior_points: tuple[torch.Tensor, torch.Tensor] | None = None, point_sigma: float = 0.01,
            pixel_sigma: float = 1.0, huber: float = 2.0, iterations: int = 30, tol: float = 1e-9,
-           free: tuple[str, ...] = (), lens: tuple[float, float] = (0.0, 0.0), on_iteration=None) -> Bundle:
+           free: tuple[str, ...] = (), lens: tuple[float, float] = (0.0, 0.0), on_iteration=None,
+           sparse: bool | None = None) -> Bundle:
     """Levenberg-Marquardt on the cameras (R [I, 3, 3], C [I, 3]) and points [P, 3] given the observations
     pixels [M, 2] of point [M] in image [M], the intrinsics [I, 4] held fixed. Cost: sum of Huber(|r| /
     pixel_sigma) over the observations plus, with `prior_C` [I, 3], sum of ((C - prior_C) / prior_sigma)^2
@@ -97,28 +103,22 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
     "lens"): the water's parameters (a flat or tilted plane) or the lens's adjusted too, shared by all
     observations (their Jacobian columns by central differences), their standard deviations from the final normal
     equations scaled by the residuals' variance (and with the cameras held). Stops after `iterations` or when an accepted step lowers the
-    cost by less than `tol` relative; `on_iteration(cost)` after each."""
+    cost by less than `tol` relative; `on_iteration(cost)` after each. `sparse`: the reduced system solved
+    sparse on the CPU (True) or dense on the tensors' device (False); None: sparse above `DENSE_MAX` unknowns."""
     dt = torch.float64
     R, C, points, intrinsics, pixels = (x.to(dt) for x in (R, C, points, intrinsics, pixels))
     n_img, n_pts = len(C), len(points)
+    index = _free_index(free, water)  # which of (level, slope x, slope y, k1, k2) are adjusted
+    sparse = 6 * n_img + len(index) > DENSE_MAX if sparse is None else sparse
     sig = None if prior_C is None else torch.as_tensor(prior_sigma, dtype=dt, device=C.device)
     if prior_C is not None:  # a camera without a position (NaN) has no prior
         prior_C = prior_C.to(dt)
         held = torch.isfinite(prior_C).all(1)[:, None]
         prior_C = torch.where(held, prior_C, C)
-    # pairs of observations of the same point: where the Schur complement couples two cameras
-    order = torch.argsort(point, stable=True)
-    counts = torch.bincount(point, minlength=n_pts)
-    start = torch.cumsum(counts, 0) - counts
-    k = counts[point[order]]
-    rep = torch.repeat_interleave(order, k)  # each observation once per observation of its point
-    first = start[point[rep]]
-    within = torch.arange(len(rep), device=C.device) - torch.repeat_interleave(torch.cumsum(k, 0) - k, k)
-    pair_a, pair_b = rep, order[first + within]
+    couples = _Couples(point, image, n_pts, n_img)  # where the Schur complement couples two cameras
 
     K = intrinsics[image]
     eye3 = torch.eye(3, dtype=dt, device=C.device)
-    index = _free_index(free, water)  # which of (level, slope x, slope y, k1, k2) are adjusted
     theta = torch.tensor([0.0, 0.0, 0.0] if water is None else [_value(water.level), *map(_value, water.slope)],
                          dtype=dt)
     theta = torch.cat([theta, torch.tensor([float(v) for v in lens], dtype=dt)])
@@ -185,26 +185,25 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
 
     def reduced(eq: dict, lam: float):
         """The damped system in the cameras and the water's parameters, the points eliminated (Schur
-        complement): (matrix [6I + G, 6I + G], right-hand side, the points' inverse blocks [P, 3, 3])."""
+        complement): (`_System`, right-hand side [6I + G], the points' inverse blocks [P, 3, 3])."""
         U, V, W, Ugg = eq["U"], eq["V"], eq["W"], eq["Ugg"]
         Ud = U + lam * torch.diag_embed(torch.diagonal(U, dim1=-2, dim2=-1) + 1e-9)
         Vd = V + lam * torch.diag_embed(torch.diagonal(V, dim1=-2, dim2=-1)) + 1e-12 * eye3
         Vi = torch.linalg.inv(Vd)  # [P, 3, 3]
         Y = W @ Vi[point]  # [M, 6, 3]
-        S = torch.zeros(n_img, n_img, 6, 6, dtype=dt, device=C.device)
-        S.index_put_((image[pair_a], image[pair_b]), -(Y[pair_a] @ W[pair_b].mT), accumulate=True)
-        S[torch.arange(n_img), torch.arange(n_img)] += Ud
+        blocks = couples.gather(Y, W)  # [B, 6, 6]: -sum of Y_a W_b^T over the pairs of each camera pair
+        blocks[couples.diagonal] += Ud
         rhs = -eq["gc"] + torch.zeros(n_img, 6, dtype=dt, device=C.device).index_add_(
             0, image, (Y @ eq["gp"][point][:, :, None])[..., 0])
-        S, rhs = S.permute(0, 2, 1, 3).reshape(6 * n_img, 6 * n_img), rhs.reshape(-1)
+        rhs = rhs.reshape(-1)
+        Scg = Sgg = None
         if len(index):  # the water's parameters: one more row and column each
             Wg, Z = eq["Wg"], eq["Wg"] @ Vi  # [P, G, 3]
             Scg = eq["Ucg"] - torch.zeros_like(eq["Ucg"]).index_add_(0, image, Y @ Wg[point].mT)
             Sgg = Ugg + lam * torch.diag_embed(torch.diagonal(Ugg) + 1e-9) - (Z @ Wg.mT).sum(0)
             Scg = Scg.reshape(6 * n_img, -1)
-            S = torch.cat([torch.cat([S, Scg], 1), torch.cat([Scg.T, Sgg], 1)], 0)
             rhs = torch.cat([rhs, -eq["gg"] + (Z @ eq["gp"][:, :, None])[..., 0].sum(0)])
-        return S, rhs, Vi
+        return _System(couples, blocks, Scg, Sgg, sparse), rhs, Vi
 
     cost, r = total(R, C, points, theta)
     lam, it = 1e-3, 0
@@ -212,7 +211,7 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
         eq = normal_equations(R, C, points, theta, r)
         while True:
             S, rhs, Vi = reduced(eq, lam)
-            x = torch.linalg.solve(S, rhs)
+            x = S.solve(rhs)
             dc, dg = x[: 6 * n_img].reshape(n_img, 6), x[6 * n_img:]
             back = torch.zeros(n_pts, 3, dtype=dt, device=C.device).index_add_(
                 0, point, (eq["W"].mT @ dc[image][:, :, None])[..., 0])
@@ -242,14 +241,114 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
         w = _huber(r.norm(dim=-1), huber)[1]
         dof = max(r.numel() - 6 * n_img - 3 * n_pts - len(index), 1)
         scale = float((w * (r * r).sum(-1)).sum()) / dof
-        g = slice(6 * n_img, None)
         names = [PARAMETERS[j] for j in index]
-        sigma = {n: float(v.clamp(min=0).sqrt())
-                 for n, v in zip(names, torch.linalg.inv(S)[g, g].diagonal() * scale)}
+        sigma = {n: float(v.clamp(min=0).sqrt()) for n, v in zip(names, S.marginal().diagonal() * scale)}
         held = {n: float(v.clamp(min=0).sqrt())
-                for n, v in zip(names, torch.linalg.inv(S[g, g]).diagonal() * scale)}
+                for n, v in zip(names, torch.linalg.inv(S.Sgg).diagonal() * scale)}
     return Bundle(R, C, points, (r * pixel_sigma).norm(dim=-1), it, cost, surface(theta), sigma,
                   held if len(index) else None, distortion(theta))
+
+
+DENSE_MAX = 3000  # unknowns of the reduced system solved dense (500 cameras: a 72 MB matrix); more: sparse
+PAIR_CHUNK = 1 << 20  # observation pairs gathered at a time into the camera pairs' blocks (about 0.5 GB)
+
+
+class _Couples:
+    """The pairs of observations of a common point, gathered by camera pair a chunk of points at a time:
+    `gather(Y, W)` is, for each camera pair (a, b) in `pairs` [B, 2], minus the sum of Y_i W_j^T over the
+    observations i by a and j by b of one point. The observation pairs are listed again for each chunk (never
+    all at once); the camera pairs, each camera with itself among them (`diagonal` [I]), once."""
+
+    def __init__(self, point: torch.Tensor, image: torch.Tensor, n_pts: int, n_img: int):
+        self.point, self.image, self.n_img = point, image, n_img
+        self.order = torch.argsort(point, stable=True)  # the observations by point
+        counts = torch.bincount(point, minlength=n_pts)
+        self.start = torch.cumsum(counts, 0) - counts
+        self.counts = counts
+        # chunks of whole points, each with at most PAIR_CHUNK pairs (or one point)
+        work = torch.cumsum(counts * counts, 0)
+        total = int(work[-1]) if len(work) else 0
+        edges = torch.searchsorted(work, torch.arange(PAIR_CHUNK, max(total, PAIR_CHUNK), PAIR_CHUNK,
+                                                      device=work.device), right=True)
+        bounds = torch.unique(torch.cat([torch.zeros(1, dtype=edges.dtype, device=edges.device), edges,
+                                         torch.tensor([n_pts], device=edges.device)]))
+        self.chunks = [(int(a), int(b)) for a, b in itertools.pairwise(bounds) if b > a]
+        keys = [torch.arange(n_img, device=point.device) * (n_img + 1)]  # (i, i): every camera's own block
+        for a, b in self.chunks:
+            i, j = self._pairs(a, b)
+            keys.append(torch.unique(image[i] * n_img + image[j]))
+        self.keys = torch.unique(torch.cat(keys))  # sorted
+        self.pairs = torch.stack([self.keys // n_img, self.keys % n_img], 1)  # [B, 2]
+        self.diagonal = torch.searchsorted(self.keys, torch.arange(n_img, device=point.device) * (n_img + 1))
+
+    def _pairs(self, a: int, b: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The observation pairs (i, j) of points a..b-1: every ordered pair of one point's observations."""
+        obs = self.order[self.start[a]: self.start[b - 1] + self.counts[b - 1]]
+        k = self.counts[self.point[obs]]
+        rep = torch.repeat_interleave(obs, k)  # each observation once per observation of its point
+        first = self.start[self.point[rep]]
+        within = torch.arange(len(rep), device=obs.device) - torch.repeat_interleave(torch.cumsum(k, 0) - k, k)
+        return rep, self.order[first + within]
+
+    def gather(self, Y: torch.Tensor, W: torch.Tensor) -> torch.Tensor:  # [M, 6, 3] twice -> [B, 6, 6]
+        blocks = torch.zeros(len(self.keys), 6, 6, dtype=Y.dtype, device=Y.device)
+        for a, b in self.chunks:
+            i, j = self._pairs(a, b)
+            at = torch.searchsorted(self.keys, self.image[i] * self.n_img + self.image[j])
+            blocks.index_add_(0, at, -(Y[i] @ W[j].mT))
+        return blocks
+
+
+@dataclass
+class _System:
+    """The reduced system [[S_cc, S_cg], [S_cg^T, S_gg]]: the cameras' blocks (`_Couples`' pairs) and the
+    free parameters' dense rows (None without them)."""
+
+    couples: _Couples
+    blocks: torch.Tensor  # [B, 6, 6]
+    Scg: torch.Tensor | None  # [6I, G]
+    Sgg: torch.Tensor | None  # [G, G]
+    sparse: bool
+
+    def _cameras(self):
+        """S_cc: a dense [6I, 6I] tensor, or a SciPy CSC matrix."""
+        n, (a, b) = self.couples.n_img, self.couples.pairs.T
+        if not self.sparse:
+            S = torch.zeros(n, n, 6, 6, dtype=self.blocks.dtype, device=self.blocks.device)
+            S[a, b] = self.blocks
+            return S.permute(0, 2, 1, 3).reshape(6 * n, 6 * n)
+        import numpy as np
+        import scipy.sparse
+
+        six = np.arange(6)
+        rows = (6 * a.cpu().numpy())[:, None, None] + six[None, :, None]
+        cols = (6 * b.cpu().numpy())[:, None, None] + six[None, None, :]
+        values = self.blocks.detach().cpu().numpy()
+        shape = np.broadcast_shapes(rows.shape, cols.shape)
+        return scipy.sparse.csc_matrix((values.ravel(), (np.broadcast_to(rows, shape).ravel(),
+                                                         np.broadcast_to(cols, shape).ravel())), shape=(6 * n, 6 * n))
+
+    def _solve_cameras(self, S, rhs: torch.Tensor) -> torch.Tensor:  # S_cc^-1 rhs, rhs [6I] or [6I, G]
+        if not self.sparse:
+            return torch.linalg.solve(S, rhs)
+        import scipy.sparse.linalg
+
+        lu = scipy.sparse.linalg.splu(S)
+        return torch.as_tensor(lu.solve(rhs.detach().cpu().numpy()), dtype=rhs.dtype, device=rhs.device)
+
+    def solve(self, rhs: torch.Tensor) -> torch.Tensor:
+        """The system's solution for `rhs` [6I + G]: the cameras' part eliminated first (S_cg, G columns)."""
+        S = self._cameras()
+        n = S.shape[0]
+        if self.Scg is None:
+            return self._solve_cameras(S, rhs)
+        both = self._solve_cameras(S, torch.column_stack([rhs[:n], self.Scg]))  # S_cc^-1 [r_c, S_cg]
+        x_g = torch.linalg.solve(self.Sgg - self.Scg.T @ both[:, 1:], rhs[n:] - self.Scg.T @ both[:, 0])
+        return torch.cat([both[:, 0] - both[:, 1:] @ x_g, x_g])
+
+    def marginal(self) -> torch.Tensor:
+        """[G, G]: the free parameters' block of the system's inverse (their covariance up to the scale)."""
+        return torch.linalg.inv(self.Sgg - self.Scg.T @ self._solve_cameras(self._cameras(), self.Scg))
 
 
 FREE = ("level", "slope", "lens")
