@@ -211,33 +211,6 @@ def claim_out(out: Path) -> None:
     claim(out, "ablation", legacy=("results.json", "*/row.json", "*/seed*/row.json", "*/ckpt.pt"))
 
 
-def take(queue: Path, name: str) -> bool:
-    """Whether this process is the first to take the job `name` from `queue` (a marker file, created
-    atomically: exactly one of the processes sharing the folder gets True). The marker holds the taker's pid,
-    so that a process that dies can be named with the row it held (`held`)."""
-    queue.mkdir(parents=True, exist_ok=True)
-    try:
-        fd = os.open(queue / name, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-    except FileExistsError:
-        return False
-    with os.fdopen(fd, "w") as f:
-        f.write(str(os.getpid()))
-    return True
-
-
-def finish(queue: Path, name: str) -> None:
-    """Marks the job `name` that this process took as done."""
-    (queue / f"{name}.done").touch()
-
-
-def held(queue: Path, pid: int) -> list[str]:
-    """The jobs that process `pid` took from `queue` and did not finish."""
-    if not queue.is_dir():
-        return []
-    return sorted(m.name for m in queue.iterdir() if m.suffix != ".done" and not m.with_name(m.name + ".done").exists()
-                  and m.read_text().strip() == str(pid))
-
-
 def cached_row(folder: Path, key: dict, log: Callable[[str], None]) -> dict | None:
     """The finished row in `folder` when it was made under `key`, else None (a stale one is reported)."""
     path = folder / "row.json"
@@ -303,14 +276,13 @@ def save_row(folder: Path, row: dict, grid: np.ndarray, truth, fused: np.ndarray
 def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds: list[int], runner,
                  vgg16: str | None = None, download: bool = True,
                  log: Callable[[str], None] = lambda line: None, code: str | None = None,
-                 queue: Path | None = None) -> dict[str, list[dict]]:
+                 rows_only: bool = False) -> dict[str, list[dict]]:
     """Rows for `variants` x `seeds` and the reference rows, reused from `out` when their key matches, else
     computed with `runner` (a `TrainEval`, or anything with its `truth`, `fingerprint`, `dataset_seed`, `gsd`,
     `config`, `initial` and `train`); then all outputs. Returns {name: [row per seed]}.
     `download`: fetch missing LPIPS weights (`metrics.load_lpips`). `log(line)` receives progress lines and,
-    at the end, the tables. `queue`: a folder that several processes share; then this one trains only the rows
-    no process has taken yet (`take`), surfel rows first so that none idles while another has two long rows
-    left, and writes nothing else; a run without `queue` then reuses those rows and writes the rest.
+    at the end, the tables. `rows_only`: the trained rows and nothing else (a Dask task's part, `train_row`;
+    a run without it then reuses those rows and writes the rest).
     `code`: the source digest the command started with; ConfigError if the sources are no longer those (an
     edit during a long run would otherwise key its rows to two versions of the code).
     """
@@ -354,21 +326,16 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
                "timings": {**row.get("timings", {}), "row_total_s": time.perf_counter() - t0}}
         return save_row(folder, row, grid, truth, fused)
 
-    if queue is not None:  # one of several processes: whichever is free takes the next row, trained rows only
-        jobs = [(seed, variant) for seed in seeds for variant in variants]
-        for seed, variant in sorted(jobs, key=lambda job: job[1] not in SURFELS):  # the longest first
-            job = f"{slug(variant)}-seed{seed}"
-            if take(queue, job):
-                ecfg = extract_config(preset, len(truth.nodes), seed, runner.gsd)
-                rows.setdefault(variant, []).append(trained_row(seed, variant, ecfg))
-                finish(queue, job)
-        return rows
     for seed in seeds:
         ecfg = extract_config(preset, len(truth.nodes), seed, runner.gsd)
         for variant in variants:
             rows.setdefault(variant, []).append(trained_row(seed, variant, ecfg))
+        if rows_only:
+            continue
         for name, row in reference_rows(out, runner, preset, seed, ecfg, base, rows, log).items():
             rows.setdefault(name, []).append(row)
+    if rows_only:
+        return rows
     header = {"data": str(Path(data).resolve()), "dataset_fingerprint": runner.fingerprint,
               "dataset_seed": runner.dataset_seed, "dataset_seeds": DATASET_SEEDS,
               "dataset_role": dataset_role(runner.dataset_seed, preset), "tuning": TUNING,
@@ -438,6 +405,51 @@ def reference_rows(out: Path, runner, preset: str, seed: int, ecfg: ExtractConfi
 
 
 # ---------------------------------------------------------------- the trainer integration
+
+
+@dataclass(frozen=True)
+class RowJob:
+    """What a Dask worker needs to train rows of one `ragsplat ablation` command (`train_row`)."""
+
+    data: str
+    out: str
+    preset: str
+    init: str
+    one_level: bool
+    device: str | None
+    vgg16: str | None
+    code: str  # the sources' digest when the command started: rows keyed to the code it started with
+
+
+def row_order(variants: list[str], seeds: list[int]) -> list[tuple[str, int]]:
+    """The rows to train, (variant, seed), the surfel rows first: the longest start first, so that no worker
+    idles at the end while another has two long rows left."""
+    return sorted(((v, s) for s in seeds for v in variants), key=lambda row: row[0] not in SURFELS)
+
+
+def row_log(out: Path, variant: str, seed: int) -> Path:
+    """Where a worker's row writes its progress lines (`train_row`)."""
+    return Path(out) / "logs" / f"{slug(variant)}-seed{seed}.log"
+
+
+_RUNNERS: dict[tuple, TrainEval] = {}  # per worker process: each dataset loaded once for all its rows
+
+
+def train_row(job: RowJob, variant: str, seed: int) -> str:
+    """One trained row, in a Dask worker: `run_ablation` of that row alone (`rows_only`), resuming from its
+    checkpoint when an earlier try left one (a worker that died: Dask runs the task again elsewhere); its
+    lines go to `row_log`. Returns the log's path."""
+    spec = (job.data, job.device, job.init, job.one_level)
+    if spec not in _RUNNERS:
+        _RUNNERS[spec] = TrainEval(Path(job.data), job.device, None, job.init, job.one_level)
+    path = row_log(Path(job.out), variant, seed)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as f:
+        say = lambda line: print(line, file=f, flush=True)
+        say(f"[{variant} seed {seed}] worker process {os.getpid()}")
+        run_ablation(Path(job.data), Path(job.out), job.preset, [variant], [seed], _RUNNERS[spec], vgg16=job.vgg16,
+                     download=False, log=say, code=job.code, rows_only=True)
+    return str(path)
 
 
 class TrainEval:

@@ -6,25 +6,23 @@ Tables 1-3 printed (mean +- std over seeds) beside the paper's (`eval.ablation`,
 given one level, the mean height of the dataset's surveyed water edge (`eval.ablation.one_level_water`),
 while every row is still scored against the true surface and bed.
 
-`--jobs N` trains the rows in N processes with cores / N threads each, then reuses their rows in this one for
-the references and the tables: on the 2-core CPU two single-threaded trainings together did 1.7x the steps of
-one with both threads (measured on `small`), because much of a step is small operations that two threads do
-not share well. What the rows share (the triangulated tracks of a dataset) is built here once, before the
-processes start; a process that fails stops the others at their next checkpoint and the command names the row
-it held; the same command then resumes.
+`--jobs N` trains the rows as Dask tasks (`dask.distributed`) on a local cluster of N worker processes with
+cores / N threads each (on CUDA each worker sees one GPU), then reuses their rows in this one for the
+references and the tables: on the 2-core CPU two single-threaded trainings together did 1.7x the steps of one
+with both threads (measured on `small`), because much of a step is small operations that two threads do not
+share well. `--scheduler ADDRESS` sends the same tasks to an existing Dask cluster instead (its workers need
+this package and the paths of `--data` and `--out`). What the rows share (the triangulated tracks of a
+dataset, LPIPS's weights, gsplat's build) is made here once, before the tasks start. A worker that dies: Dask
+runs its row again on another, which resumes from the row's checkpoint; a row that fails ends the command,
+which names it and its log (`OUT/logs/`); the same command then resumes.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
-import shutil
-import signal
-import subprocess
-import sys
 import time
 from functools import partial
-from pathlib import Path
 
 from ragsplat_core.cli.args import count, dataset_dir, out_dir, positive_int
 from ragsplat_core.errors import RagsplatError
@@ -55,45 +53,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     lpips_arguments(parser)
     parser.add_argument("--device", default=None, help="torch device for training (default: the preset's)")
     parser.add_argument("--jobs", type=positive_int, default=None, metavar="N",
-                        help=f"train the rows in N processes at once, each with cores / N threads, shared out over "
-                             f"the GPUs on CUDA (default: {JOBS} on the CPU, {JOBS_PER_GPU} per GPU on CUDA)")
-    parser.add_argument("--code", default=None, help=argparse.SUPPRESS)  # the digest --jobs started with
-    parser.add_argument("--queue", type=Path, default=None, help=argparse.SUPPRESS)  # the rows --jobs' processes take
+                        help=f"train the rows on N local Dask workers at once, each with cores / N threads, shared "
+                             f"out over the GPUs on CUDA (default: {JOBS} on the CPU, {JOBS_PER_GPU} per GPU on "
+                             "CUDA; 1: in this process)")
+    parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                        help="train the rows on the Dask cluster whose scheduler is at ADDRESS (tcp://host:8786) "
+                             "instead of local workers")
 
 
 class JobFailed(RagsplatError):
-    """One of `--jobs`' processes failed."""
-
-
-def spawn(cmd: list[str], env: dict, log: Path) -> subprocess.Popen:
-    # A session of its own: a Ctrl-C at the terminal reaches only this process, which passes it on once (`stop`).
-    with open(log, "w") as f:
-        return subprocess.Popen(cmd, env=env, stdout=f, stderr=subprocess.STDOUT, start_new_session=True)
-
-
-def stop(procs: list) -> None:
-    """SIGTERM to every process still running (each writes a checkpoint of its finished steps and exits, as on
-    Ctrl-C), then wait for them; an interrupt while waiting passes a second SIGTERM on, which stops them at once."""
-    def terminate():
-        for proc in procs:
-            if proc.poll() is None:
-                proc.terminate()
-
-    terminate()
-    try:
-        for proc in procs:
-            proc.wait()
-    except KeyboardInterrupt:
-        terminate()
-        for proc in procs:
-            proc.wait()
-        raise
-
-
-def last_line(log: Path) -> str:
-    lines = [line.strip() for line in log.read_text(errors="replace").splitlines() if line.strip()] \
-        if log.is_file() else []
-    return lines[-1] if lines else ""
+    """A row's task failed."""
 
 
 def prepare(args: argparse.Namespace, fingerprint: str) -> None:
@@ -122,53 +91,76 @@ def prepare(args: argparse.Namespace, fingerprint: str) -> None:
         print(f"tracks: {triangulated_points(args.data, fingerprint)}", flush=True)
 
 
-def run_jobs(args: argparse.Namespace, fingerprint: str, check) -> None:
-    """The rows in `args.jobs` child processes, each logging to OUT/part-k-of-N.log, all
-    keyed to the sources as they were when the command started (`--code`), each taking the next row that
-    none has taken from a queue folder of this command's own (`--queue`, removed at the end). `check()`
-    raises KeyboardInterrupt once this process was interrupted; the processes are then stopped (`stop`)."""
-    from eval.ablation import claim_out, held, visible_gpus
+def run_rows(args: argparse.Namespace, fingerprint: str, code: str, check) -> None:
+    """The trained rows as Dask tasks (`eval.ablation.train_row`, one per row, the longest first) on a local
+    cluster of `args.jobs` worker processes or on the one at `args.scheduler`, with a bar of the rows done.
+    `check()` raises KeyboardInterrupt once this process was interrupted; the tasks are then cancelled (each row
+    keeps its last checkpoint). A task that fails raises JobFailed naming its row and log."""
+    import contextlib
+    import logging
 
-    claim_out(args.out)  # before the logs are written into it
+    from dask.distributed import Client, LocalCluster
+
+    from eval.ablation import RowJob, claim_out, row_log, row_order, train_row, visible_gpus
+    from ragsplat_core.cli.progress import bar
+
+    claim_out(args.out)
     prepare(args, fingerprint)
-    threads = str(max(1, (os.cpu_count() or 1) // args.jobs))
-    env = {**os.environ, "OMP_NUM_THREADS": threads, "MKL_NUM_THREADS": threads, "NUMBA_NUM_THREADS": threads}
-    gpus = visible_gpus(args.device)  # [] on the CPU
-    base = [sys.executable, "-m", "ragsplat_core.cli.main", "ablation", "--data", str(args.data), "--out",
-            str(args.out), "--preset", args.preset, "--variants", *args.variants, "--seeds",
-            *map(str, args.seeds), "--init", args.init, *(["--vgg16", args.vgg16] if args.vgg16 else []),
-            *(["--no-download"] if args.no_download else []), *(["--device", args.device] if args.device else []),
-            *(["--one-level"] if args.one_level else []), "--jobs", "1", "--code", args.code]
-    # this command's own folder: markers a killed run left in another one do not hold back this one's rows
-    queue = Path(args.out) / f".queue-{os.getpid()}-{time.time_ns()}"
-    base += ["--queue", str(queue)]
-    logs = [Path(args.out) / f"part-{k}-of-{args.jobs}.log" for k in range(args.jobs)]
-    print(f"training in {args.jobs} processes of {threads} thread(s); logs: {', '.join(map(str, logs))}",
-          flush=True)
-    procs = [spawn(base, {**env, **({"CUDA_VISIBLE_DEVICES": gpus[k % len(gpus)]} if gpus else {})}, log)
-             for k, log in enumerate(logs)]
-    try:  # until all have finished or one has failed
-        while any(proc.poll() is None for proc in procs) and not any(proc.poll() for proc in procs):
-            check()
-            time.sleep(0.2)
-    except KeyboardInterrupt:
-        stop(procs)
-        raise
-    dead = [k for k, proc in enumerate(procs) if proc.poll() not in (None, 0)]
-    if dead:
-        k = dead[0]
-        rc = procs[k].returncode
-        how = f"was killed by {signal.Signals(-rc).name}" if rc < 0 else f"exited with {rc}"
-        rows = ", ".join(name.replace("-seed", " seed ") for name in held(queue, procs[k].pid)) or "no row"
-        why = last_line(logs[k]) if rc > 0 else ""
-        print(f"process {k + 1} of {args.jobs} {how} while training {rows}; stopping the others at their next "
-              "checkpoint", flush=True)
-        stop(procs)
-        shutil.rmtree(queue, ignore_errors=True)
-        raise JobFailed(f"process {k + 1} of {args.jobs} {how} while training {rows} (log: {logs[k]}"
-                        f"{': ' + why if why else ''}); finished rows and checkpoints are kept, rerun the same "
-                        "command to resume")
-    shutil.rmtree(queue, ignore_errors=True)
+    job = RowJob(str(args.data), str(args.out), args.preset, args.init, args.one_level, args.device, args.vgg16,
+                 code)
+    rows = row_order(args.variants, args.seeds)
+    with contextlib.ExitStack() as stack:
+        if args.scheduler:
+            client = stack.enter_context(Client(args.scheduler))
+            where = f"the Dask cluster at {args.scheduler}"
+        else:
+            threads = str(max(1, (os.cpu_count() or 1) // args.jobs))
+            env = {"OMP_NUM_THREADS": threads, "MKL_NUM_THREADS": threads, "NUMBA_NUM_THREADS": threads}
+            cluster = stack.enter_context(LocalCluster(
+                n_workers=args.jobs, threads_per_worker=1, processes=True, env=env, dashboard_address=None,
+                silence_logs=logging.CRITICAL))  # a failed row is said once, below, with its log
+            client = stack.enter_context(Client(cluster))
+            gpus = visible_gpus(args.device)
+            if gpus:
+                client.register_plugin(OneGPU(gpus))
+            where = f"{args.jobs} local Dask workers of {threads} thread(s)"
+        print(f"training {len(rows)} rows on {where}; each row's log: {args.out / 'logs'}", flush=True)
+        tasks = {client.submit(train_row, job, variant, seed, key=f"row-{variant}-seed{seed}", pure=False):
+                 (variant, seed) for variant, seed in rows}
+        done = bar(len(tasks), "rows", "row")
+        pending = set(tasks)
+        try:
+            while pending:
+                check()
+                time.sleep(0.2)
+                for task in [t for t in pending if t.done()]:
+                    pending.discard(task)
+                    variant, seed = tasks[task]
+                    if task.status != "finished":
+                        raise JobFailed(f"training {variant} seed {seed} failed: {_reason(task)} (log: "
+                                        f"{row_log(args.out, variant, seed)}); finished rows and checkpoints are "
+                                        "kept, rerun the same command to resume")
+                    done.update(1)
+        except BaseException:
+            client.cancel(list(pending))
+            raise
+        finally:
+            done.close()
+
+
+def _reason(task) -> str:
+    err = task.exception()
+    return f"{type(err).__name__}: {err}" if err is not None else task.status
+
+
+class OneGPU:
+    """A Dask worker plugin: local worker k sees GPU k mod the GPUs as its only one ("cuda")."""
+
+    def __init__(self, gpus: list[str]):
+        self.gpus = gpus
+
+    def setup(self, worker) -> None:
+        os.environ["CUDA_VISIBLE_DEVICES"] = self.gpus[int(worker.name) % len(self.gpus)]
 
 
 def lpips_arguments(parser: argparse.ArgumentParser) -> None:
@@ -185,16 +177,15 @@ def run(args: argparse.Namespace) -> int:
     from ragsplat_core.cli.progress import deferred_interrupts, training_bar
     from ragsplat_core.outputs import source_digest
 
-    if args.code is None:
-        args.code = source_digest(*ROW_CODE)
+    code = source_digest(*ROW_CODE)  # every row keyed to the code the command started with
     if args.jobs is None:
         args.jobs = default_jobs(args.device)
     with deferred_interrupts() as check:  # Ctrl-C: the trainer checkpoints its finished steps, then stops
-        # the dataset and its ground truth are loaded and checked before any process starts
+        # the dataset and its ground truth are loaded and checked before any task starts
         train_eval = TrainEval(args.data, args.device, training_bar=partial(training_bar, leave=False, check=check),
                                init=args.init, one_level=args.one_level)
-        if args.jobs > 1 and args.queue is None:
-            run_jobs(args, train_eval.fingerprint, check)  # then every trained row is on disk, reused below
+        if args.jobs > 1 or args.scheduler:
+            run_rows(args, train_eval.fingerprint, code, check)  # then every trained row is on disk, reused below
         run_ablation(args.data, args.out, args.preset, args.variants, args.seeds, train_eval, vgg16=args.vgg16,
-                     download=not args.no_download, log=print, code=args.code, queue=args.queue)
+                     download=not args.no_download, log=print, code=code)
     return 0

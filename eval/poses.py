@@ -19,9 +19,8 @@ def pose_errors(model: Path, truth: Path, similarity: dict | None = None) -> dic
     `truth`; `similarity` ({"scale", "R", "t"}, georef.json) first maps a model that is not yet in the frame."""
     import pycolmap
 
-    from ragsplat_core.dataset.load import load_dataset
-
     from eval.bed_file import survey_geotags
+    from ragsplat_core.dataset.load import load_dataset
 
     views = load_dataset(truth, splits=("train", "test"), load_dry=False)
     cams = {Path(v.file_path).stem: v.camera for v in [*views.train, *views.test]}

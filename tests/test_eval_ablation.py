@@ -1,5 +1,4 @@
 import json
-import os
 from types import SimpleNamespace
 
 import numpy as np
@@ -108,26 +107,21 @@ class FakeRunner:
         return fake_row(list(VARIANTS).index(cfg.variant), cfg.seed), apparent, self.truth.grid + [0, 0, 0.01]
 
 
-def test_processes_share_a_queue_take_each_row_once_longest_first(tmp_path):
-    # what `ragsplat ablation --jobs 2` does: the processes share a queue folder; whoever is free takes the next
-    # row, surfel rows first, and writes nothing else; the last run reuses every row and writes the tables
+def test_rows_only_trains_each_row_and_the_tables_reuse_them(tmp_path):
+    # what a Dask task of `ragsplat ablation --jobs 2` does (`train_row`): its rows, trained, and nothing else;
+    # the surfel rows are handed out first; the last run reuses every row and writes the tables
     data, out, runner = tmp_path / "data", tmp_path / "out", FakeRunner()
     data.mkdir()
     quiet = {"log": lambda s: None, "download": False}
-    queue = out / ".queue-test"
-    first = run_ablation(data, out, "smoke", ["3dgs", "2dgs+full"], [0, 1], runner, queue=queue, **quiet)
-    assert runner.calls == [("2dgs+full", 0), ("2dgs+full", 1), ("3dgs", 0), ("3dgs", 1)]
-    assert list(first) == ["2dgs+full", "3dgs"]
+    order = ablation.row_order(["3dgs", "2dgs+full"], [0, 1])
+    assert order == [("2dgs+full", 0), ("2dgs+full", 1), ("3dgs", 0), ("3dgs", 1)]
+    for variant, seed in order:
+        got = run_ablation(data, out, "smoke", [variant], [seed], runner, rows_only=True, **quiet)
+        assert list(got) == [variant]
+    assert runner.calls == order
     assert not (out / "results.json").exists() and not (out / "init").exists()
-    run_ablation(data, out, "smoke", ["3dgs", "2dgs+full"], [0, 1], runner, queue=queue, **quiet)
-    assert len(runner.calls) == 4  # every row was taken already
-    taken = ["2dgs+full-seed0", "2dgs+full-seed1", "3dgs-seed0", "3dgs-seed1"]
-    assert sorted(p.name for p in queue.iterdir()) == sorted(taken + [f"{name}.done" for name in taken])
-    assert ablation.held(queue, os.getpid()) == []  # every row it took, it finished
-    assert ablation.take(queue, "x") and not ablation.take(queue, "x")
-    assert ablation.held(queue, os.getpid()) == ["x"] and ablation.held(queue, os.getpid() + 1) == []
-    ablation.finish(queue, "x")
-    assert ablation.held(queue, os.getpid()) == []
+    run_ablation(data, out, "smoke", ["3dgs", "2dgs+full"], [0, 1], runner, rows_only=True, **quiet)
+    assert len(runner.calls) == 4  # every row is there already
     rows = run_ablation(data, out, "smoke", ["3dgs", "2dgs+full"], [0, 1], runner, **quiet)
     assert len(runner.calls) == 4 and [r["seed"] for r in rows["2dgs+full"]] == [0, 1]
     assert list(rows) == ["3dgs", "2dgs+full", "init", "3dgs x n", "oracle plane", "oracle median plane"]

@@ -4,7 +4,6 @@ import json
 import os
 import shutil
 from dataclasses import replace
-from pathlib import Path
 
 import pytest
 from conftest import tiny_smoke
@@ -12,7 +11,6 @@ from conftest import tiny_smoke
 from eval import ablation, metrics
 from ragsplat_core import train
 from ragsplat_core.cli.main import main
-from ragsplat_core.outputs import source_digest
 
 
 def test_ablation_command(evaluable_dataset, tmp_path, monkeypatch, capsys):
@@ -115,54 +113,51 @@ def test_sigint_keeps_finished_rows_and_the_rerun_completes(evaluable_dataset, t
     assert set(json.loads((out / "results.json").read_text())["rows"]) >= {"3dgs", "position"}
 
 
-def test_jobs_train_every_row_once_and_the_tables_reuse_them(evaluable_dataset, tmp_path, monkeypatch, capsys):
-    # the child processes run in-process here (the shrunken presets are monkeypatched in this one)
-    import eval.cli
+def test_rows_on_a_dask_cluster_are_the_rows_of_one_process(evaluable_dataset, tmp_path, monkeypatch, capsys):
+    """`--scheduler` on a cluster the test starts (two workers in this process, so that the shrunken presets
+    reach them): each row is trained once, by a task, and the tables reuse them; the rows equal those of
+    `--jobs 1` to round-off. A task that fails ends the command in one line naming its row and log."""
+    from dask.distributed import LocalCluster
 
     smoke = train.PRESETS["smoke"]
     monkeypatch.setitem(train.PRESETS, "smoke", replace(smoke, iterations=4, init_count=100, backend="torch"))
     monkeypatch.setitem(ablation.PRESETS, "smoke", replace(ablation.PRESETS["smoke"], checkpoints=2))
     monkeypatch.setattr(metrics, "default_vgg16_path", lambda: tmp_path / "absent.pth")
-    children = []
+    argv = ["ablation", "--data", str(evaluable_dataset), "--preset", "smoke", "--variants", "3dgs", "full",
+            "--seeds", "0", "1", "--init", "grid", "--no-download"]
+    one, dask = tmp_path / "one", tmp_path / "dask"
+    assert main([*argv, "--out", str(one), "--jobs", "1"]) == 0
+    capsys.readouterr()
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        assert main([*argv, "--out", str(dask), "--scheduler", cluster.scheduler_address]) == 0
+        printed = capsys.readouterr().out
+        assert f"training 4 rows on the Dask cluster at {cluster.scheduler_address}" in printed
+        assert printed.count("reusing the finished row") == 4 and "training ..." not in printed
+        logs = sorted(p.name for p in (dask / "logs").iterdir())
+        assert logs == ["3dgs-seed0.log", "3dgs-seed1.log", "full-seed0.log", "full-seed1.log"]
+        assert all((dask / "logs" / name).read_text().count("training ...") == 1 for name in logs)
+        rows = {path: json.loads((dask / path).read_text()) for path in
+                ("3dgs/seed0/row.json", "full/seed1/row.json")}
+        for path, row in rows.items():
+            other = json.loads((one / path).read_text())
+            for threshold, f1 in row["geometry"]["f1"].items():
+                assert f1 == pytest.approx(other["geometry"]["f1"][threshold], abs=1e-9), (path, threshold)
+            assert row["key"] == other["key"]
+        # a task that fails: the command ends, naming the row and its log
+        def broken(*args, **kw):
+            raise RuntimeError("out of disk")
 
-    class Child:  # a finished process (the rows trained in this one, in order)
-        fail = False
-
-        def __init__(self, cmd, env, log):
-            assert cmd[1:3] == ["-m", "ragsplat_core.cli.main"] and env["OMP_NUM_THREADS"] == env["NUMBA_NUM_THREADS"]
-            children.append(cmd[3:])
-            self.pid, self.returncode = os.getpid(), 1 if self.fail else main(cmd[3:])
-
-        def poll(self):
-            return self.returncode
-
-        def wait(self):
-            return self.returncode
-
-    monkeypatch.setattr(eval.cli, "spawn", Child)
-    out = tmp_path / "runs"
-    argv = ["ablation", "--data", str(evaluable_dataset), "--out", str(out), "--preset", "smoke", "--variants",
-            "3dgs", "full", "--seeds", "0", "1", "--init", "grid", "--no-download"]
-    assert main([*argv, "--jobs", "2"]) == 0
-    assert children[0] == children[1] and children[0][:-6] == argv
-    assert children[0][-6:-2] == ["--jobs", "1", "--code", source_digest(*ablation.ROW_CODE)]  # keyed to the start
-    queue = Path(children[0][-1])  # one queue folder of this command's, shared, removed at the end
-    assert children[0][-2] == "--queue" and queue.parent == out
-    assert not queue.exists()
-    printed = capsys.readouterr().out
-    assert printed.count("training ...") == 4 and printed.count("reusing the finished row") == 4
-    assert list(json.loads((out / "results.json").read_text())["rows"]) == \
-        ["dietrich (3dgs)", "3dgs x n", "oracle plane", "oracle median plane", "init", "3dgs", "full"]
-    # a failed process fails the command, with the log to read
-    monkeypatch.setattr(Child, "fail", True)
-    assert main([*argv, "--jobs", "2"]) == 2
-    assert "process 1 of 2 exited with 1 while training no row (log: " in capsys.readouterr().err
+        monkeypatch.setattr(ablation.TrainEval, "train", broken)
+        assert main([*argv, "--out", str(tmp_path / "broken"), "--scheduler", cluster.scheduler_address]) == 2
+        err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("ragsplat")]
+        assert len(err) == 1 and "failed: RuntimeError: out of disk (log: " in err[0], err
+        assert "rerun the same command to resume" in err[0]
 
 
-def test_a_killed_process_is_named_with_its_row_and_the_rerun_finishes(evaluable_dataset, tmp_path):
-    """`--jobs 2` for real: a SIGKILL of one training process ends the command at once (exit 2, one line
-    naming the row that process held, the other process stopped at a checkpoint); the same command then
-    trains what is left and writes the tables."""
+def test_a_killed_worker_s_row_is_trained_again_and_the_command_finishes(evaluable_dataset, tmp_path):
+    """`--jobs 2` for real (a local cluster of two worker processes): a SIGKILL of the worker training a row
+    does not end the command: Dask runs the row again on a worker, which resumes it, and the tables are
+    written; the row's log shows both workers."""
     import signal
     import subprocess
     import sys
@@ -176,30 +171,22 @@ def test_a_killed_process_is_named_with_its_row_and_the_rerun_finishes(evaluable
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     victim, deadline = None, time.time() + 300
     while victim is None and time.time() < deadline and proc.poll() is None:
-        for marker in out.glob(".queue-*/*-seed0"):  # a row a process took: its pid inside
-            pid = marker.read_text().strip()
-            if pid and (out / marker.name.replace("-seed", "/seed") / "key.json").exists():
-                victim = (int(pid), marker)
+        for log in out.glob("logs/*-seed0.log"):  # a row a worker took: its pid in the first line
+            first = log.read_text().split("\n", 1)[0]
+            row = log.stem.replace("-seed", "/seed")
+            if first.endswith(tuple("0123456789")) and (out / row / "key.json").exists():
+                victim = (int(first.rsplit(" ", 1)[1]), log)
                 break
         time.sleep(0.01)
     assert victim is not None, proc.communicate()
-    pid, marker = victim
-    os.kill(pid, signal.SIGSTOP)  # frozen first: it cannot finish the row between the look and the kill
-    assert not marker.with_name(marker.name + ".done").exists()
+    pid, log = victim
     os.kill(pid, signal.SIGKILL)
-    printed, err = proc.communicate(timeout=300)
-    row = marker.name.replace("-seed", " seed ")
-    assert proc.returncode == 2, err
-    assert f"was killed by SIGKILL while training {row}; stopping the others" in printed
-    lines = [line for line in err.splitlines() if line.startswith("ragsplat")]
-    assert len(lines) == 1 and f"was killed by SIGKILL while training {row} (log: " in lines[0], err
-    assert "rerun the same command to resume" in lines[0]
-    assert not (out / "results.json").exists()
-    done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600,
-                          check=False)
-    assert done.returncode == 0, done.stderr
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err
     rows = json.loads((out / "results.json").read_text())["rows"]
     assert len(rows["3dgs"]) == 1 and len(rows["full"]) == 1
+    workers = [line for line in log.read_text().splitlines() if "worker process" in line]
+    assert len(workers) == 2 and workers[0] != workers[1], log.read_text()
 
 
 def test_one_level_trains_with_the_level_it_is_given_and_scores_against_the_surface(evaluable_dataset, tmp_path,

@@ -261,19 +261,24 @@ def test_the_command_refuses_one_level_without_edge_points_and_passes_it_to_its_
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "water_edge.csv: no such file" in err[0] and not out.exists()
+    from dask.distributed import LocalCluster
+
+    from eval import ablation
+
     parser = argparse.ArgumentParser()
     cli.add_arguments(parser)
-    args = parser.parse_args(argv[1:-4] + ["--jobs", "2", "--one-level"])
-    args.code, args.no_download = "0123", True
-    started = []
-
-    class Done:
-        returncode = 0
-
-        def poll(self):
-            return 0
-
+    args = parser.parse_args(argv[1:-4] + ["--variants", "3dgs", "full", "--seeds", "0", "--one-level"])
+    args.no_download = True
     monkeypatch.setattr(cli, "prepare", lambda args, fingerprint: None)
-    monkeypatch.setattr(cli, "spawn", lambda cmd, env, log: started.append(cmd) or Done())
-    cli.run_jobs(args, "aaaa", lambda: None)
-    assert len(started) == 2 and all("--one-level" in cmd for cmd in started)
+    given = tmp_path / "given.txt"  # what each task is given (the task runs on a copy of the function)
+
+    def task(job, variant, seed):
+        with open(given, "a") as f:
+            f.write(f"{job.one_level}\n")
+
+    monkeypatch.setattr(ablation, "train_row", task)
+    with LocalCluster(n_workers=1, processes=False, dashboard_address=None) as cluster:
+        args.scheduler = cluster.scheduler_address
+        cli.run_rows(args, "aaaa", "0123", lambda: None)
+    assert capsys.readouterr().out.count("training 2 rows on the Dask cluster") == 1
+    assert given.read_text() == "True\nTrue\n"

@@ -6,7 +6,6 @@ import time
 
 import numpy as np
 
-import eval.cli
 from ragsplat_core.cli.main import main
 from ragsplat_core.dataset import colmap
 
@@ -35,29 +34,29 @@ def test_two_processes_asking_at_once_triangulate_once(tmp_path, monkeypatch):
     assert len(calls) == 2  # another dataset content: made again
 
 
-def test_jobs_triangulate_before_the_processes_start(evaluable_dataset, tmp_path, monkeypatch, capsys):
+def test_jobs_triangulate_before_the_tasks_start(evaluable_dataset, tmp_path, monkeypatch, capsys):
+    from dask.distributed import LocalCluster
+
+    from eval import ablation
+
     order = []
     monkeypatch.setattr(colmap, "triangulated_points",
                         lambda root, fingerprint: order.append("tracks") or tmp_path / "tracks.npy")
 
-    class Child:  # a process that fails at once: the command stops after the shared inputs were made
-        pid, returncode = -1, 1
+    rows = tmp_path / "rows.txt"  # the task runs on a copy of this function: it says what it did in a file
 
-        def __init__(self, cmd, env, log):
-            order.append("process")
+    def fails(job, variant, seed):  # a row's task that fails at once: the command stops after the shared inputs
+        with open(rows, "a") as f:
+            f.write("row\n")
+        raise RuntimeError("no")
 
-        def poll(self):
-            return self.returncode
-
-        def wait(self):
-            return self.returncode
-
-    monkeypatch.setattr(eval.cli, "spawn", Child)
-    argv = ["ablation", "--data", str(evaluable_dataset), "--out", str(tmp_path / "runs"), "--preset", "smoke",
-            "--variants", "3dgs", "--seeds", "0", "--no-download"]  # the defaults: refracted start, 2 processes
-    assert main(argv) == 2
-    assert order == ["tracks", "process", "process"]
-    assert "exited with 1 while training no row" in capsys.readouterr().err
-    order.clear()
-    assert main([*argv, "--init", "grid"]) == 2
-    assert order == ["process", "process"]  # a start that needs no tracks makes none
+    monkeypatch.setattr(ablation, "train_row", fails)
+    with LocalCluster(n_workers=1, processes=False, dashboard_address=None) as cluster:
+        argv = ["ablation", "--data", str(evaluable_dataset), "--out", str(tmp_path / "runs"), "--preset", "smoke",
+                "--variants", "3dgs", "--seeds", "0", "--no-download", "--scheduler", cluster.scheduler_address]
+        assert main(argv) == 2  # the default start: the refracted tracks
+        assert order == ["tracks"] and rows.read_text() == "row\n"
+        assert "training 3dgs seed 0 failed: RuntimeError: no" in capsys.readouterr().err
+        order.clear()
+        assert main([*argv, "--init", "grid"]) == 2
+        assert order == [] and rows.read_text() == "row\nrow\n"  # a start that needs no tracks makes none
