@@ -125,14 +125,21 @@ def test_jacobians_match_finite_differences():
             np.testing.assert_allclose(g[:, j].numpy(), ((f[1] - f[0]) / (2 * h)).numpy(), rtol=1e-5, atol=1e-4)
 
 
-def test_adjustment_through_the_water_recovers_tilted_cameras_and_the_bed():
-    cams, pts, point, image, pixels = scene(points=700)
+def started(points: int):
+    """`scene`'s survey, its cameras as tensors, and where an adjustment starts: the cameras turned by a
+    degree (structure from motion's tilts) and moved 5 cm, the points 20 cm off, RTK positions 2 / 3 cm off."""
+    cams, pts, point, image, pixels = scene(points=points)
     R, C, K = stack(cams)
     rng = np.random.default_rng(3)
-    R0 = bundle._rotate(R, torch.tensor(rng.normal(0, math.radians(1.0), (len(cams), 3))))  # SfM's tilts
+    R0 = bundle._rotate(R, torch.tensor(rng.normal(0, math.radians(1.0), (len(cams), 3))))
     C0 = C + torch.tensor(rng.normal(0, 0.05, C.shape))
     P0 = pts + torch.tensor(rng.normal(0, 0.2, pts.shape))
     rtk = C + torch.tensor(rng.normal(size=C.shape) * [0.02, 0.02, 0.03])
+    return cams, pts, point, image, pixels, R, C, K, R0, C0, P0, rtk
+
+
+def test_adjustment_through_the_water_recovers_tilted_cameras_and_the_bed():
+    _cams, pts, point, image, pixels, R, C, K, R0, C0, P0, rtk = started(700)
     wet = pts[:, 2] < 0
     got = bundle.adjust(R0, C0, K, P0, point, image, pixels, WATER, prior_C=rtk)
     assert got.residuals.pow(2).mean().sqrt() < 0.5  # at the noise: 0.3 px per axis
@@ -150,13 +157,7 @@ def test_the_sparse_camera_system_in_chunks_is_the_dense_one(monkeypatch):
     """The reduced system gathered a few observation pairs at a time and solved sparse on the CPU (a river
     survey's path) gives the dense path's adjustment to round-off, the free level's sigmas included; its
     camera pairs are those that share a point."""
-    cams, pts, point, image, pixels = scene(points=300)
-    R, C, K = stack(cams)
-    rng = np.random.default_rng(3)
-    R0 = bundle._rotate(R, torch.tensor(rng.normal(0, math.radians(1.0), (len(cams), 3))))
-    C0 = C + torch.tensor(rng.normal(0, 0.05, C.shape))
-    P0 = pts + torch.tensor(rng.normal(0, 0.2, pts.shape))
-    rtk = C + torch.tensor(rng.normal(size=C.shape) * [0.02, 0.02, 0.03])
+    cams, pts, point, image, pixels, _R, _C, K, R0, C0, P0, rtk = started(300)
     run = lambda sparse: bundle.adjust(R0, C0, K, P0, point, image, pixels, WaterSurface(0.2, 1.33),
                                        prior_C=rtk, free=("level",), iterations=8, sparse=sparse)
     dense = run(False)
@@ -179,13 +180,7 @@ def test_the_adjustment_finds_an_unmeasured_water_surface():
     """The level (and a plane's slope) left free: from 30 cm above or below, the adjustment through the
     water comes to the true surface within its own reported uncertainty, which is a few centimetres for
     0.3 px of noise from 30 m."""
-    cams, pts, point, image, pixels = scene(points=700)
-    R, C, K = stack(cams)
-    rng = np.random.default_rng(3)
-    R0 = bundle._rotate(R, torch.tensor(rng.normal(0, math.radians(1.0), (len(cams), 3))))
-    C0 = C + torch.tensor(rng.normal(0, 0.05, C.shape))
-    P0 = pts + torch.tensor(rng.normal(0, 0.2, pts.shape))
-    rtk = C + torch.tensor(rng.normal(size=C.shape) * [0.02, 0.02, 0.03])
+    _cams, pts, point, image, pixels, _R, _C, K, R0, C0, P0, rtk = started(700)
     wet = pts[:, 2] < 0
     for start in (0.3, -0.3):
         got = bundle.adjust(R0, C0, K, P0, point, image, pixels, WaterSurface(start, 1.33), prior_C=rtk,
