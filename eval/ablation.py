@@ -419,6 +419,7 @@ class RowJob:
     device: str | None
     vgg16: str | None
     code: str  # the sources' digest when the command started: rows keyed to the code it started with
+    gpus: tuple[str, ...] = ()  # local workers' GPUs, shared out (`worker_gpu`); none: the worker's own
 
 
 def row_order(variants: list[str], seeds: list[int]) -> list[tuple[str, int]]:
@@ -432,6 +433,11 @@ def row_log(out: Path, variant: str, seed: int) -> Path:
     return Path(out) / "logs" / f"{slug(variant)}-seed{seed}.log"
 
 
+def worker_gpu(gpus: tuple[str, ...], worker) -> str:
+    """The one GPU local worker `worker` (its name: 0, 1, ...) sees: GPU k mod their count."""
+    return gpus[int(worker) % len(gpus)]
+
+
 _RUNNERS: dict[tuple, TrainEval] = {}  # per worker process: each dataset loaded once for all its rows
 
 
@@ -439,6 +445,10 @@ def train_row(job: RowJob, variant: str, seed: int) -> str:
     """One trained row, in a Dask worker: `run_ablation` of that row alone (`rows_only`), resuming from its
     checkpoint when an earlier try left one (a worker that died: Dask runs the task again elsewhere); its
     lines go to `row_log`. Returns the log's path."""
+    if job.gpus:  # before CUDA starts in this worker process
+        from distributed import get_worker
+
+        os.environ["CUDA_VISIBLE_DEVICES"] = worker_gpu(job.gpus, get_worker().name)
     spec = (job.data, job.device, job.init, job.one_level)
     if spec not in _RUNNERS:
         _RUNNERS[spec] = TrainEval(Path(job.data), job.device, None, job.init, job.one_level)

@@ -107,8 +107,10 @@ def run_rows(args: argparse.Namespace, fingerprint: str, code: str, check) -> No
 
     claim_out(args.out)
     prepare(args, fingerprint)
+    # local workers share out the GPUs, worker k on GPU k mod their count; a cluster's own workers keep theirs
+    gpus = () if args.scheduler else tuple(visible_gpus(args.device))
     job = RowJob(str(args.data), str(args.out), args.preset, args.init, args.one_level, args.device, args.vgg16,
-                 code)
+                 code, gpus)
     rows = row_order(args.variants, args.seeds)
     with contextlib.ExitStack() as stack:
         if args.scheduler:
@@ -126,9 +128,6 @@ def run_rows(args: argparse.Namespace, fingerprint: str, code: str, check) -> No
                 n_workers=args.jobs, threads_per_worker=1, processes=True, dashboard_address=None,
                 silence_logs=logging.CRITICAL))  # a failed row is said once, below, with its log
             client = stack.enter_context(Client(cluster))
-            gpus = visible_gpus(args.device)
-            if gpus:
-                client.register_plugin(OneGPU(gpus))
             where = f"{args.jobs} local Dask workers of {threads} thread(s)"
         print(f"training {len(rows)} rows on {where}; each row's log: {args.out / 'logs'}", flush=True)
         tasks = {client.submit(train_row, job, variant, seed, key=f"row-{variant}-seed{seed}", pure=False):
@@ -157,16 +156,6 @@ def run_rows(args: argparse.Namespace, fingerprint: str, code: str, check) -> No
 def _reason(task) -> str:
     err = task.exception()
     return f"{type(err).__name__}: {err}" if err is not None else task.status
-
-
-class OneGPU:
-    """A Dask worker plugin: local worker k sees GPU k mod the GPUs as its only one ("cuda")."""
-
-    def __init__(self, gpus: list[str]):
-        self.gpus = gpus
-
-    def setup(self, worker) -> None:
-        os.environ["CUDA_VISIBLE_DEVICES"] = self.gpus[int(worker.name) % len(self.gpus)]
 
 
 def lpips_arguments(parser: argparse.ArgumentParser) -> None:

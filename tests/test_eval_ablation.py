@@ -346,6 +346,8 @@ def test_default_jobs_and_the_gpus_they_share(monkeypatch):
     assert ablation.visible_gpus("cuda:1") == ablation.visible_gpus("cpu") == []
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,3")
     assert ablation.visible_gpus(None) == ["2", "3"]
+    # each local Dask worker takes one of them, round the list
+    assert [ablation.worker_gpu(("2", "3"), k) for k in range(5)] == ["2", "3", "2", "3", "2"]
 
 
 def test_gsplat_is_built_once_before_the_processes_on_cuda(monkeypatch, tmp_path):
