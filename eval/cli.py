@@ -129,7 +129,8 @@ def run_rows(args: argparse.Namespace, fingerprint: str, code: str, check) -> No
                 silence_logs=logging.CRITICAL))  # a failed row is said once, below, with its log
             client = stack.enter_context(Client(cluster))
             where = f"{args.jobs} local Dask workers of {threads} thread(s)"
-        print(f"training {len(rows)} rows on {where}; each row's log: {args.out / 'logs'}", flush=True)
+        print(f"training {len(rows)} row{'s' if len(rows) > 1 else ''} on {where}; each row's log: "
+              f"{args.out / 'logs'}", flush=True)
         tasks = {client.submit(train_row, job, variant, seed, key=f"row-{variant}-seed{seed}", pure=False):
                  (variant, seed) for variant, seed in rows}
         done = bar(len(tasks), "rows", "row")
