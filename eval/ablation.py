@@ -72,7 +72,7 @@ from ragsplat_core.fusion import FuseConfig, height_mesh
 from ragsplat_core.outputs import claim, source_digest, versions, write_json
 from ragsplat_core.refraction import WaterSurface
 from ragsplat_core.surface import EXTRACT_TUNING, ExtractConfig
-from ragsplat_core.train.config import FIELD_TUNING, SURFELS, TUNING, VARIANTS
+from ragsplat_core.train.config import FIELD_TUNING, INIT, SURFELS, TUNING, VARIANTS
 
 
 @dataclass(frozen=True)
@@ -102,13 +102,12 @@ ROW_CODE = ("ragsplat_core", "eval/ablation.py", "eval/evaluate.py", "eval/metri
 # "dataset_role").
 DATASET_SEEDS = {"development": 1, "evaluation": 0, "untouched": 7}
 # The main job's defaults, here only (`ragsplat ablation` takes them; the Makefile passes nothing unless told):
-# every row starts from the refracted tracks (F1@3% about 20 % from the paper's plane on the reach, which has no
-# single bed depth), three training seeds (tables: mean +- std), and on the CPU two processes of cores / 2
+# every row starts from the refracted tracks (`INIT`, the training's own default start, shared with `ragsplat
+# survey`), three training seeds (tables: mean +- std), and on the CPU two processes of cores / 2
 # threads (two single-threaded rows together did 1.7x the steps of one with both threads on the 2-core CPU).
 # On CUDA six processes per GPU: a `small` row leaves one H100 mostly idle (launch-bound), and six at once
 # trained all 27 rows of the 1 500-step preset of then in 6.7 min where one alone took 61 s for its longest
 # row (docs/performance.md; not measured at today's 3 000 steps).
-INIT = "refracted"
 SEEDS = (0, 1, 2)
 # The water's edge as a surveyor measures it (header x,y,z; the generator writes it into every reach dataset):
 # where one level (`--one-level`) is taken from.

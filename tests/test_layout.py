@@ -32,6 +32,14 @@ def test_library_imports_no_command_layer():
         assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"
 
 
+def test_the_core_imports_nothing_from_eval():
+    # the commands reach the `ablation` and `eval` commands by name (`cli/main.py`), never by import
+    core = [p for p in SOURCES if p.relative_to(ROOT).parts[0] == "ragsplat_core"]
+    bad = {p.relative_to(ROOT).as_posix() for p in core if any(m == "eval" or m.startswith("eval.")
+                                                             for m in imported_modules(p))}
+    assert not bad, f"{sorted(bad)} import eval"
+
+
 def test_only_the_renderer_imports_bpy():
     users = {p.relative_to(ROOT).as_posix() for p in SOURCES if {"bpy", "mathutils"} & imported_modules(p)}
     assert users == {"blender_scenes/render.py"}

@@ -63,9 +63,8 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from eval.ablation import INIT
     from ragsplat_core.survey.exif import CONSUMER_SIGMA
-    from ragsplat_core.train.config import PRESETS, VARIANTS
+    from ragsplat_core.train.config import INIT, PRESETS, VARIANTS
 
     parser.add_argument("images", type=Path, metavar="IMAGES", help="the folder of the survey's photos (JPEG/PNG)")
     frame = parser.add_mutually_exclusive_group()
