@@ -287,6 +287,12 @@ def _job(spec: SceneSpec, out: Path, cam: Camera, tasks: list[dict], lens: tuple
     }
 
 
+def _task(spec: SceneSpec, kind: str, pose, out: Path) -> dict:
+    """The renderer's task: pass `kind` of the view `pose`, written to `out`."""
+    return {"pass": kind, "name": pose.name, "c2w_gl": pose.camera.c2w_gl.tolist(), "out": str(out),
+            **_surface(spec, kind, pose.name)}
+
+
 def _surface(spec: SceneSpec, kind: str, name: str) -> dict:
     """A wet task's ripple phases (its own surface: the view's index seeds them), else nothing."""
     c = spec.conditions
@@ -414,16 +420,13 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
                if layout.output_path(out, kind, p.name).exists()
                and not layout.intact(layout.output_path(out, kind, p.name),
                                      manifest.get(layout.relative_path(kind, p.name)))]
-    tasks = [{"pass": kind, "name": p.name, "c2w_gl": p.camera.c2w_gl.tolist(),
-              "out": str(layout.output_path(out, kind, p.name)), **_surface(spec, kind, p.name)}
-             for kind in kinds for p in mine
+    tasks = [_task(spec, kind, p, layout.output_path(out, kind, p.name)) for kind in kinds for p in mine
              if not layout.output_path(out, kind, p.name).exists() or layout.relative_path(kind, p.name) in damaged]
     # the survey's photos through a lens (`LENS`): the training views' wet pass again, through Cycles'
     # polynomial lens; outside the manifest and the fingerprint, as the survey is
-    lens = [{**task, "out": str(layout.output_path(out, "lens", task["name"]))} for task in
-            ({"pass": "wet", "name": p.name, "c2w_gl": p.camera.c2w_gl.tolist(), **_surface(spec, "wet", p.name)}
-             for p in mine if p.split == "train" and surveyed(spec))
-            if not layout.intact(layout.output_path(out, "lens", task["name"]), None)]
+    survey = surveyed(spec)
+    lens = [_task(spec, "wet", p, layout.output_path(out, "lens", p.name)) for p in mine
+            if survey and p.split == "train" and not layout.intact(layout.output_path(out, "lens", p.name), None)]
     stats = RenderStats()
     if tasks or lens:
         if progress is not None:
@@ -440,7 +443,7 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
                 progress({"event": "retry", "signal": crash.signum, "log": str(crash.log)})
             return generate(spec, out, shard, progress, retries - 1)
     complete = all(layout.output_path(out, k, p.name).exists() for k in kinds for p in poses) and \
-        all(layout.output_path(out, "lens", p.name).exists() for p in poses if p.split == "train" and surveyed(spec))
+        all(layout.output_path(out, "lens", p.name).exists() for p in poses if survey and p.split == "train")
     if complete:
         _merge(spec, out, poses)
     summary = {"rendered": stats.images, "skipped": len(mine) * len(kinds) - len(tasks), "damaged": damaged,

@@ -128,13 +128,20 @@ def visible_gpus(device: str | None) -> list[str]:
     return listed.split(",") if listed else [str(k) for k in range(torch.cuda.device_count())]
 
 
+def trains_on_cuda(device: str | None) -> bool:
+    """Whether the rows train on CUDA: a "cuda" device, or the presets' "auto" (None) where CUDA is there."""
+    import torch
+
+    return str(device).startswith("cuda") or (device in (None, "auto") and torch.cuda.is_available())
+
+
 def default_jobs(device: str | None) -> int:
     """`--jobs`' default for training on `device`: JOBS_PER_GPU on each GPU it shares out over, or on the
     one GPU it names ("cuda:1", or "cuda" where none is visible), else JOBS."""
     gpus = visible_gpus(device)
     if gpus:
         return JOBS_PER_GPU * len(gpus)
-    return JOBS_PER_GPU if str(device).startswith("cuda") else JOBS
+    return JOBS_PER_GPU if trains_on_cuda(device) else JOBS
 
 
 def dataset_seed(data: Path) -> int | None:

@@ -69,13 +69,11 @@ def prepare(args: argparse.Namespace, fingerprint: str) -> None:
     """What every row reads and nothing but one process should make, made here once before the processes
     start: the dataset's triangulated tracks (cached in it), the LPIPS weights (downloaded to the cache) and,
     for training on CUDA, gsplat's CUDA extension (`rasterize.build_gsplat`)."""
-    import torch
-
     from eval import metrics
+    from eval.ablation import trains_on_cuda
     from ragsplat_core import rasterize
 
-    cuda = str(args.device).startswith("cuda") or (args.device in (None, "auto") and torch.cuda.is_available())
-    if cuda and rasterize.gsplat_available():
+    if trains_on_cuda(args.device) and rasterize.gsplat_available():
         print("gsplat's CUDA extension (built once, here, before the processes start) ...", flush=True)
         rasterize.build_gsplat()
 

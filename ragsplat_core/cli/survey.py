@@ -334,7 +334,7 @@ def run(args: argparse.Namespace) -> int:
     if "scale_uncertainty" in report:
         _say("georef", f"the scale comes from consumer GPS: depths and heights may be off by up to about "
              f"{100 * report['scale_uncertainty']['relative']:.0f} % (rms {report['rms_m']:.2f} m over the "
-             f"flight's {extent:.0f} m); for depths to 1 %, give ground control (--gcp, --gcp-pixels) or fly "
+             f"flight's {report['scale_uncertainty']['extent_m']:.0f} m); for depths to 1 %, give ground control (--gcp, --gcp-pixels) or fly "
              "with RTK")
     stamps.mark("georef", key)
     if args.stop_after == "georef":
