@@ -20,7 +20,6 @@ which names it and its log (`OUT/logs/`); the same command then resumes.
 from __future__ import annotations
 
 import argparse
-import os
 import time
 from functools import partial
 
@@ -94,13 +93,8 @@ def run_rows(args: argparse.Namespace, fingerprint: str, code: str, check) -> No
     cluster of `args.jobs` worker processes or on the one at `args.scheduler`, with a bar of the rows done.
     `check()` raises KeyboardInterrupt once this process was interrupted; the tasks are then cancelled (each row
     keeps its last checkpoint). A task that fails raises JobFailed naming its row and log."""
-    import contextlib
-    import logging
-
-    import dask
-    from dask.distributed import Client, LocalCluster
-
     from eval.ablation import RowJob, claim_out, row_log, row_order, train_row, visible_gpus
+    from ragsplat_core.cli.cluster import client as dask_client
     from ragsplat_core.cli.progress import bar
 
     claim_out(args.out)
@@ -110,23 +104,7 @@ def run_rows(args: argparse.Namespace, fingerprint: str, code: str, check) -> No
     job = RowJob(str(args.data), str(args.out), args.preset, args.init, args.one_level, args.device, args.vgg16,
                  code, gpus)
     rows = row_order(args.variants, args.seeds)
-    with contextlib.ExitStack() as stack:
-        if args.scheduler:
-            client = stack.enter_context(Client(args.scheduler))
-            where = f"the Dask cluster at {args.scheduler}"
-        else:
-            threads = str(max(1, (os.cpu_count() or 1) // args.jobs))
-            # the workers' environment from their start, instead of Dask's default, whose MALLOC_TRIM_THRESHOLD_
-            # of 64 KiB (memory handed back to the system at once) made a smoke ablation's rows spend a third
-            # of their time in the kernel: 1.63x the wall time of the same rows without Dask
-            stack.enter_context(dask.config.set({"distributed.nanny.pre-spawn-environ": {
-                name: threads for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS",
-                                           "OPENBLAS_NUM_THREADS")}}))
-            cluster = stack.enter_context(LocalCluster(
-                n_workers=args.jobs, threads_per_worker=1, processes=True, dashboard_address=None,
-                silence_logs=logging.CRITICAL))  # a failed row is said once, below, with its log
-            client = stack.enter_context(Client(cluster))
-            where = f"{args.jobs} local Dask workers of {threads} thread(s)"
+    with dask_client(args.jobs, args.scheduler) as (client, where):
         print(f"training {len(rows)} row{'s' if len(rows) > 1 else ''} on {where}; each row's log: "
               f"{args.out / 'logs'}", flush=True)
         tasks = {client.submit(train_row, job, variant, seed, key=f"row-{variant}-seed{seed}", pure=False):

@@ -76,15 +76,21 @@ class Bed:
 
 
 def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None = None, ply: Path | None = None,
-               png: Path | None = None, data: Path | None = None, on_block=None, **extract) -> Bed:
+               png: Path | None = None, data: Path | None = None, on_block=None, bounds=None, **extract) -> Bed:
     """Extract the bed of a finished run (`load_run`, `extract_bed`, `extract`: its `ExtractConfig` fields to
     change) and write the DEM and each other product given a path, in the dataset's georeference (an
-    imported survey's CRS and offset), depths below the water the run ended with (`run_water`). Returns the
-    bed."""
+    imported survey's CRS and offset), depths below the water the run ended with (`run_water`). `bounds`
+    (xmin, ymin, xmax, ymax in the CRS, +-inf where open: a survey's tile) cuts the bed to that box, within
+    what it would cover without. Returns the bed."""
     meta, ds, splats, seed = _read_run(Path(run), data, splits=())
     water = run_water(meta, ds)
-    bed = extract_bed(activated_dict(splats), resolution, water, ds.eval_region,
-                      ds.georef, seed, ds.gsd, on_block, **extract)
+    gaussians, region = activated_dict(splats), ds.eval_region
+    if bounds is not None:
+        lo, hi = export_box(gaussians, region, ExtractConfig(**extract).min_opacity)
+        off = ds.georef.offset
+        region = {"xmin": max(lo[0], bounds[0] - off[0]), "ymin": max(lo[1], bounds[1] - off[1]),
+                  "xmax": min(hi[0], bounds[2] - off[0]), "ymax": min(hi[1], bounds[3] - off[1])}
+    bed = extract_bed(gaussians, resolution, water, region, ds.georef, seed, ds.gsd, on_block, **extract)
     write_dem(dem, bed)
     for path, write in ((las, write_las), (ply, write_ply), (png, write_png)):
         if path is not None:

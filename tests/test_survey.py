@@ -106,14 +106,14 @@ def test_sizes_are_refused_before_any_work(survey, finished, tmp_path, capsys, m
     """A DEM grid too fine for the flight's extent, and training images over the memory share, are refused in
     one line naming what passes, before the run folder is made; without --max-size the size that fits is
     chosen and said."""
-    from ragsplat_core.cli import survey as command
+    from ragsplat_core.survey import pipeline
 
     out = tmp_path / "run"
     assert main(args(survey, out, "--resolution", "0.0002")) == 2
     err = capsys.readouterr().err
     assert "cells (at most 5e+07); choose a coarser resolution" in err and not out.exists()
     coarser = err.split("resolution, ")[1].split(" m")[0]
-    monkeypatch.setattr(command, "IMAGE_MEMORY", 2e-6)  # about 50 kB here: 18 photos of 240 x 180 are 2.3 MB
+    monkeypatch.setattr(pipeline, "IMAGE_MEMORY", 2e-6)  # about 50 kB here: 18 photos of 240 x 180 are 2.3 MB
     assert main(args(survey, out, "--max-size", "200")) == 2
     err = capsys.readouterr().err
     assert "GB in training, over" in err and "give --max-size" in err and not out.exists()

@@ -1,0 +1,794 @@
+"""`ragsplat survey`'s stages as library functions: from a survey's photos to its DEM, every stage cached in
+the run folder and skipped by a rerun whose inputs are the same (`run`; the command only parses arguments).
+
+1. structure from motion (`survey.sfm`: pycolmap SIFT, every pair matched, or each photo with its spatial
+   neighbours above `sfm.EXHAUSTIVE_MAX` photos, incremental mapping) -> RUN/sfm/;
+2. georeferencing: the similarity that takes the model's camera centres to the RTK positions (given, or from
+   the photos' EXIF GPS and DJI XMP, `survey.exif`), or the ground control points triangulated from their
+   pixels to their surveyed positions, robust to a few wrong ones (`survey.georef`) -> RUN/georef.json;
+3. the water: one level, or the surface fitted to the water's edge points (`survey.water`), or the level
+   estimated; bundle adjustment with the submerged tracks projected through it and the cameras held near
+   their positions, or the ground control points at theirs (`survey.bundle`) -> RUN/model/ (a COLMAP model),
+   RUN/water.json;
+4. training (the imported survey, the best variant and start as `make ablation` measures them) and the
+   products RUN/dem.tif, RUN/bed.laz, RUN/depth.png. A survey larger than a tile (`TILE_GSD` ground sample
+   distances, or `SurveyConfig.tile_size`) is split into overlapping tiles (`survey.tiles`), each imported,
+   trained and extracted on its own in RUN/tiles/K/ (a Dask task each where a client is given), and their
+   beds merged: each cell from the tile whose core holds it; the layout and the seams' agreement in
+   RUN/tiles.json. A survey of one tile trains in RUN/data and RUN/train, as it always has.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from ragsplat_core.survey.exif import CONSUMER_SIGMA
+from ragsplat_core.train.config import INIT
+
+AUTO = "auto"
+STAGES = ("sfm", "georef", "water", "train", "export")
+RTK_SIGMA = (0.02, 0.03)  # an RTK drone's camera centre, horizontal and vertical (m)
+PRODUCTS = ("dem.tif", "bed.laz", "depth.png")
+# The training's Gaussian budget grows with the survey's area in ground sample distances (GSD^2): 0.17 per
+# GSD^2 is the `small` preset's 40 000 on the synthetic survey's 127 m^2 (its points' 1-99 % box) at 2.33 cm;
+# a smaller survey keeps the preset's budget. MAX_GAUSSIANS bounds memory (about 1 kB each while training).
+GAUSSIANS_PER_GSD2 = 0.17
+MAX_GAUSSIANS = 3_000_000
+IMAGE_MEMORY = 0.4  # the training's images (uint8) may take this share of the machine's memory
+# With the level free, points that cross it as it moves make the cost slightly rough: on `small` (seed 7) it
+# settles within 0.01 mm in 6-9 iterations and then creeps on by 1e-7 relative per step, so stop at 1e-7.
+LEVEL_TOL = 1e-7
+# An estimated level less certain than this is said to be poorly determined: on a flat bed with no dry ground
+# (a synthetic survey of 18 photos from 4 m) the level could move 0.5 m for 0.2 % of the cost while its
+# linearised uncertainty read 6.6 cm; on `small`, with banks and pools, it read 0.44 cm and was 0.3 cm off.
+LEVEL_WARN = 0.02
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+# A tile's side in ground sample distances: 1 000 keeps `small` (470 of them) one tile, and a tile's budget
+# (GAUSSIANS_PER_GSD2) at 170 000 Gaussians; its overlap with each neighbour, a share of the side, gives the
+# cells near a seam a full view from both tiles.
+TILE_GSD = 1000
+TILE_OVERLAP = 0.1
+
+
+@dataclass(frozen=True)
+class SurveyConfig:
+    """A survey run's inputs and settings (`ragsplat survey --help` says each); written resolved to
+    RUN/survey.json."""
+
+    images: Path
+    out: Path
+    positions: Path | None = None
+    gcp: Path | None = None
+    gcp_pixels: Path | None = None
+    gcp_sigma: float = 0.01
+    water_level: float | str = AUTO
+    water_surface: Path | None = None
+    n: float = 1.33
+    crs: str | None = None
+    masks: Path | None = None
+    lens: str = "radial"
+    no_water_adjustment: bool = False
+    rtk_sigma: tuple[float, float] | None = None
+    gps_sigma: tuple[float, float] = CONSUMER_SIGMA
+    variant: str = "2dgs+full"
+    init: str = INIT
+    preset: str = "small"
+    iterations: int | None = None
+    seed: int = 0
+    resolution: float = 0.05
+    max_size: int | None = None
+    stop_after: str | None = None
+    tile_size: float | None = None  # m; None: TILE_GSD ground sample distances
+    tile_overlap: float | None = None  # m; None: TILE_OVERLAP of the side
+
+
+class Progress:
+    """What the pipeline tells its caller as it goes: this one says nothing; the command's prints lines and
+    bars. `bar` returns a context manager with tqdm's update / set_postfix / close."""
+
+    def say(self, stage: str, text: str, since: float | None = None) -> None:
+        """One line about `stage`; with `since` (a perf_counter start), the seconds it took."""
+
+    def bar(self, total: int, desc: str, unit: str):
+        return _Silent()
+
+    def count(self, desc: str, unit: str):
+        """(bar, on_count(done, total))."""
+        return _Silent(), lambda done, total: None
+
+    def training(self, total: int, desc: str, initial: int):
+        """(bar, on_step(trainer)) for `Trainer.train`."""
+        return _Silent(), lambda trainer: None
+
+
+class _Silent(contextlib.nullcontext):
+    def update(self, n: int = 1) -> None:
+        pass
+
+    def set_postfix(self, *args, **kwargs) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _digest(*parts) -> str:
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+class Stamps:
+    """RUN/stages.json: the key each finished stage was made with; a stage whose key is unchanged is skipped."""
+
+    def __init__(self, run: Path):
+        self.path = run / "stages.json"
+        self.keys = json.loads(self.path.read_text()) if self.path.is_file() else {}
+
+    def done(self, stage: str, key: str, *outputs: Path) -> bool:
+        """Whether `stage` was made with `key` and its `outputs` are still there."""
+        return self.keys.get(stage) == key and all(Path(o).exists() for o in outputs)
+
+    def mark(self, stage: str, key: str) -> None:
+        """Records `stage` as made with `key`; a new key makes every later stage stale."""
+        from ragsplat_core.outputs import write_json
+
+        if self.keys.get(stage) == key:
+            return
+        self.keys = {**{s: k for s, k in self.keys.items() if STAGES.index(s) < STAGES.index(stage)}, stage: key}
+        write_json(self.path, self.keys)
+
+
+def run(cfg: SurveyConfig, progress: Progress | None = None, cluster=None) -> list[Path]:
+    """The survey `cfg` from its photos to its products (`PRODUCTS` in `cfg.out`, their paths returned; none
+    when `cfg.stop_after` stops it early), every stage cached in `cfg.out`, the resolved config in
+    RUN/survey.json. `progress` hears of each stage (default: nothing). `cluster(tasks)`, a context manager
+    that opens a `dask.distributed.Client`, trains the tiles of a survey of several as Dask tasks; None: one
+    after another in this process. Raises DatasetError, ConfigError, OutputError."""
+    progress = progress or Progress()
+    import math
+    from dataclasses import replace
+
+    import numpy as np
+    import pycolmap
+    import torch
+
+    from ragsplat_core.dataset import layout
+    from ragsplat_core.errors import ConfigError, DatasetError
+    from ragsplat_core.outputs import claim, write_json
+    from ragsplat_core.refraction import WaterSurface
+    from ragsplat_core.survey import bundle, georef, sfm
+    from ragsplat_core.survey import water as water_fit
+
+    if not cfg.images.is_dir():
+        raise DatasetError(f"{cfg.images}: no such folder of photos")
+    photos = sorted(p for p in cfg.images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if len(photos) < 3:
+        raise DatasetError(f"{cfg.images}: {len(photos)} photos (JPEG, PNG or TIFF); at least 3 are needed")
+    names = [p.name for p in photos]
+    rtk_sigma, tagged, sigma, fixed = cfg.rtk_sigma or RTK_SIGMA, None, None, 0
+    if cfg.positions is not None:
+        positions, control = layout.read_positions(cfg.positions), None
+        known, source = positions, cfg.positions
+    elif cfg.gcp is None:  # the positions from the photos' EXIF GPS and DJI XMP
+        from ragsplat_core.survey import exif
+
+        if cfg.gcp_pixels is not None:
+            raise ConfigError("--gcp-pixels needs --gcp (the targets' surveyed positions)")
+
+        tagged = exif.read_photos(photos)
+        positions, crs = exif.positions(tagged, cfg.crs)
+        cfg = replace(cfg, crs=cfg.crs or exif.crs_label(crs))
+        sigma = dict(zip(names, exif.sigmas(tagged, cfg.rtk_sigma, tuple(cfg.gps_sigma))))
+        control, known, source = None, positions, cfg.images
+        fixed = sum(p.rtk_fixed for p in tagged)
+        heights = sorted({p.altitude_source for p in tagged})
+        progress.say("check", f"positions from the photos: {len(tagged)} of {len(photos)} have GPS ({fixed} RTK fixed, "
+             f"{len(tagged) - fixed} consumer GPS), in {exif.describe_crs(crs)}; heights as the photos give them "
+             f"({', '.join(heights)})")
+    else:
+        if cfg.gcp_pixels is None:
+            raise ConfigError("--gcp needs --gcp-pixels (where each target is in the photos)")
+        positions, control = None, layout.read_positions(cfg.gcp)
+        pixels = layout.read_gcp_pixels(cfg.gcp_pixels)
+        known, source = {image: None for image, _, _ in pixels}, cfg.gcp_pixels
+        strange = sorted({name for _, name, _ in pixels} - set(control))
+        if strange:
+            raise DatasetError(f"{cfg.gcp_pixels}: targets not in {cfg.gcp}: {', '.join(strange[:5])}")
+    unknown = sorted(set(known) - set(names))
+    located = [n for n in names if n in known]
+    if len(located) < (3 if control is None else 2):
+        raise DatasetError(f"{source}: {len(located)} of its names are photos in {cfg.images} "
+                           f"(e.g. {', '.join(sorted(known)[:3])} vs {', '.join(names[:3])}); at least "
+                           f"{3 if control is None else 2} are needed")
+    if unknown:
+        progress.say("check", f"{len(unknown)} names in {source} are not photos in {cfg.images} (ignored), "
+             f"e.g. {unknown[0]}")
+    edge = edge_points = None
+    if cfg.water_surface is not None:
+        edge_points = layout.read_points(cfg.water_surface)
+        edge = water_fit.fit_edge(edge_points)
+        surface = WaterSurface(edge.level, cfg.n, edge.slope, edge.profile)
+        progress.say("check", f"water surface from {len(edge.residuals)} edge points: {_describe(surface)}, rms "
+             f"{100 * edge.report()['rms_m']:.1f} cm, {int((~edge.inliers).sum())} left out")
+    elif cfg.water_level == AUTO:  # estimated in the adjustment through the water (stage 3)
+        if cfg.no_water_adjustment:
+            raise ConfigError("--no-water-adjustment needs a water level or surface: without one it is estimated "
+                              "in that adjustment (give --water-level Z or --water-surface EDGE.csv)")
+        surface = None
+    else:
+        surface = WaterSurface(cfg.water_level, cfg.n)
+    if positions is not None and surface is not None:
+        _check_above(surface, np.array([positions[n] for n in located]))
+    cfg = _check_sizes(cfg, progress, photos, np.array([(positions or control)[n] for n in (located if positions else control)]),
+                 surface)
+    claim(cfg.out, "survey run")
+    write_json(cfg.out / "survey.json", {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()})
+    stamps = Stamps(cfg.out)
+    # a local origin (whole metres): UTM-sized coordinates keep millimetres in every float64 step
+    origin = np.round(np.mean(list((positions or control).values()), axis=0))
+    water = None if surface is None else surface.shifted(origin)  # in the local frame
+
+    # 1. structure from motion
+    key = _digest({p.name: layout.file_digest(p) for p in photos}, sfm.CAMERA_MODEL)
+    work = cfg.out / "sfm"
+    t0 = time.perf_counter()
+    if not stamps.done("sfm", key, work / "model"):
+        pairs = None
+        if len(names) > sfm.EXHAUSTIVE_MAX and (positions is not None and all(n in positions for n in names)):
+            pairs = sfm.neighbour_pairs(np.array([positions[n] for n in names]), sfm.NEIGHBOURS)
+        how = "every pair matched" if pairs is None else f"each photo matched with its {sfm.NEIGHBOURS} nearest"
+        progress.say("sfm", f"structure from motion of {len(photos)} photos (pycolmap SIFT, {how}, incremental "
+             "mapping; CPU) ...")
+        timings = {}
+        rec = sfm.reconstruct(cfg.images, names, work, pairs=pairs, timings=timings,
+                              progress=lambda desc, total, unit: progress.bar(total, f"[sfm] {desc}", unit))
+        rec.write_text(str(_fresh(work / "model")))
+        write_json(work / "timings.json", timings)
+        progress.say("sfm", f"features {timings['features_s']:.0f} s, {timings['pairs']} pairs matched in "
+             f"{timings['matching_s']:.0f} s, mapping {timings['mapping_s']:.0f} s")
+        stamps.mark("sfm", key)
+    rec = pycolmap.Reconstruction(str(work / "model"))
+    progress.say("sfm", f"{rec.num_reg_images()} of {len(photos)} photos registered, {rec.num_points3D()} points, "
+         f"reprojection error {rec.compute_mean_reprojection_error():.2f} px", t0)
+    if cfg.stop_after == "sfm":
+        return []
+
+    # 2. georeferencing: to the RTK positions, or to the ground control points seen in the photos
+    given = layout.file_digest(source) if tagged is None else _digest(
+        {n: positions[n].tolist() for n in names}, {n: sigma[n].tolist() for n in names}, cfg.crs)
+    key = _digest(key, given, None if control is None else layout.file_digest(cfg.gcp), origin.tolist())
+    trk = sfm.tracks(rec)
+    if control is None:
+        have = [k for k, n in enumerate(trk.names) if n in positions]
+        if len(have) < 3:
+            raise DatasetError(f"{cfg.positions}: only {len(have)} registered photos have a position; 3 are needed")
+        src = trk.C[have].numpy()
+        dst = np.array([positions[trk.names[k]] for k in have]) - origin
+        labels = [trk.names[k] for k in have]
+        if tagged is None:
+            what, tol = f"{len(have)} RTK positions", 10 * rtk_sigma[1]
+            noise = {"model": "RTK", "sigma_m": list(rtk_sigma)}
+        else:  # the threshold follows each position's source: consumer GPS scatter is no outlier
+            ours = np.array([sigma[n] for n in labels])
+            is_fixed = {p.name: p.rtk_fixed for p in tagged}
+            rtk = np.array([is_fixed[n] for n in labels])
+            what, tol = (f"{len(have)} positions from the photos ({int(rtk.sum())} RTK fixed, "
+                         f"{int((~rtk).sum())} consumer GPS)"), 10 * ours[:, 1]
+            noise = _noise_model(tagged, sigma, labels)
+    else:
+        gcp = sfm.control_points(rec, trk, pixels)  # name -> (model xyz, observations)
+        usable = [n for n, (xyz, obs) in gcp.items() if np.isfinite(xyz).all()]
+        if len(usable) < 3:
+            seen = ", ".join(f"{n} ({len(gcp[n][1]) if n in gcp else 0} photos)" for n in sorted(control))
+            raise DatasetError(f"{cfg.gcp_pixels}: only {len(usable)} ground control points are seen in 2 or more "
+                               f"registered photos from different places; 3 are needed ({seen})")
+        src = np.array([gcp[n][0] for n in usable])
+        dst = np.array([control[n] for n in usable]) - origin
+        what, labels, tol = f"{len(usable)} ground control points", usable, 10 * cfg.gcp_sigma
+        noise = {"model": "ground control", "sigma_m": cfg.gcp_sigma}
+    threshold = np.maximum(0.2, tol)  # 10 sigma, at least 20 cm: only gross errors are left out
+    sim, inliers = georef.ransac_similarity(src, dst, threshold=threshold)
+    res = sim.apply(src) - dst
+    looks = (trk.R[:, 2, :].numpy() @ sim.R.T)[:, 2]  # the optical axes' z in the positions' frame
+    if np.median(looks) > -0.2:
+        raise DatasetError(f"{source}: after alignment the cameras do not look down (median optical "
+                           f"axis z {np.median(looks):+.2f}): are the coordinates metres with z up?")
+    if water is not None:
+        _check_above(water, sim.apply(trk.C.numpy()))
+    report = {"to": what, "scale": sim.scale, "R": sim.R.tolist(), "t": (sim.t + origin).tolist(),
+              "origin": origin.tolist(), "inliers": int(inliers.sum()), "count": len(labels),
+              "residual_m": {name: r.tolist() for name, r in zip(labels, res)},
+              "rms_m": float(np.sqrt((res[inliers] ** 2).sum(1).mean())),
+              "positions": {"source": "the photos' EXIF GPS and DJI XMP" if tagged is not None else str(source),
+                            "crs": cfg.crs},
+              "noise": {**noise, "threshold_m": _rounded(threshold), "fit": "similarity (7 parameters), RANSAC "
+                        "on 3 correspondences then refitted to the inliers; a correspondence whose residual "
+                        "exceeds the threshold is an outlier"}}
+    if tagged is not None:
+        report["positions"] |= {"heights": sorted({p.altitude_source for p in tagged}), "photos": {
+            p.name: {"lat": p.lat, "lon": p.lon, "altitude": p.altitude, "rtk_flag": p.rtk_flag,
+                     "sigma_m": sigma[p.name].tolist(), "gimbal_ypr_deg": p.gimbal} for p in tagged}}
+        report["noise"]["rms_m_by_source"] = {
+            kind: float(np.sqrt((res[inliers & pick] ** 2).sum(1).mean())) if (inliers & pick).any() else None
+            for kind, pick in (("rtk_fixed", rtk), ("consumer_gps", ~rtk))}
+        if (inliers & rtk).sum() < 3:  # the scale is consumer GPS's: say how far depths can be off
+            extent = float(np.ptp(dst[inliers, :2], axis=0).max())
+            report["scale_uncertainty"] = {
+                "relative": report["rms_m"] / extent, "extent_m": extent,
+                "from": "the positions' rms residual over the flight's longest horizontal side: consumer GPS "
+                        "fixes the scale no better (its errors are shared along a flight line, so the fit's own "
+                        "standard error would understate them); depths and heights are scaled with it"}
+    write_json(cfg.out / "georef.json", report)
+    progress.say("georef", f"similarity to {what}: scale {sim.scale:.4g}, {int(inliers.sum())} of {len(labels)} inliers, "
+         f"rms {100 * report['rms_m']:.1f} cm (each one's: {cfg.out / 'georef.json'})")
+    if "scale_uncertainty" in report:
+        progress.say("georef", f"the scale comes from consumer GPS: depths and heights may be off by up to about "
+             f"{100 * report['scale_uncertainty']['relative']:.0f} % (rms {report['rms_m']:.2f} m over the "
+             f"flight's {report['scale_uncertainty']['extent_m']:.0f} m); for depths to 1 %, give ground control (--gcp, --gcp-pixels) or fly "
+             "with RTK")
+    stamps.mark("georef", key)
+    if cfg.stop_after == "georef":
+        return []
+
+    # 3. the water: bundle adjustment through it, cameras held at their RTK positions or targets at theirs
+    held_by = list(rtk_sigma) if sigma is None else given  # the positions' accuracy, one or per camera
+    key = _digest(key, layout.water_json(water) if water is not None else [AUTO, cfg.n], cfg.no_water_adjustment,
+                  held_by, cfg.gcp_sigma, cfg.lens)
+    model = cfg.out / "model"
+    t0 = time.perf_counter()
+    if not stamps.done("water", key, model, cfg.out / "water.json"):
+        R = trk.R @ torch.as_tensor(sim.R.T)  # world = s R x + t: cam_from_world' = cam_from_world R^T
+        C = torch.as_tensor(sim.apply(trk.C.numpy()))
+        P = torch.as_tensor(sim.apply(trk.points.numpy()))
+        point, image, pix, held, gcp_rows, estimated = trk.point, trk.image, trk.pixels, {}, None, None
+        lens_record = None
+        if control is None:
+            prior = torch.full_like(C, float("nan"))
+            prior[have] = torch.as_tensor(dst)
+            if sigma is None:
+                held = {"prior_C": prior, "prior_sigma": (rtk_sigma[0],) * 2 + (rtk_sigma[1],)}
+            else:  # each camera held as its source allows (RTK centimetres, consumer GPS metres)
+                each = torch.ones_like(C)
+                each[have] = torch.as_tensor(np.array([sigma[trk.names[k]][[0, 0, 1]] for k in have]))
+                held = {"prior_C": prior, "prior_sigma": each}
+        else:  # the targets join the points, held at their surveyed positions
+            gcp_rows = torch.arange(len(P), len(P) + len(usable))
+            obs = [(row, k, uv) for row, n in zip(gcp_rows.tolist(), usable) for k, uv in gcp[n][1]]
+            point = torch.cat([point, torch.tensor([o[0] for o in obs])])
+            image = torch.cat([image, torch.tensor([o[1] for o in obs])])
+            pix = torch.cat([pix, torch.as_tensor(np.array([o[2] for o in obs]))])
+            P = torch.cat([P, torch.as_tensor(sim.apply(src))])
+            held = {"prior_points": (gcp_rows, torch.as_tensor(dst)), "point_sigma": cfg.gcp_sigma}
+        if cfg.no_water_adjustment:
+            adj = None
+        else:
+            progress.say("water", f"bundle adjustment through the water ({len(point)} observations of {len(P)} points, "
+                 f"{len(C)} cameras) ...")
+            with progress.bar(30, "[water] adjustment", "iteration") as b:
+                def step(cost):
+                    b.update(1)
+                    b.set_postfix(cost=f"{cost:.4g}", refresh=False)
+
+                lens = ("lens",) if cfg.lens == "radial" else ()
+                if water is None:  # the level too, from a start among the model's points
+                    start = water_fit.start_level(P[: len(trk.points)].numpy())
+                    # positions that fix no tilt (consumer GPS): the water's slope too, then the frame levelled by it
+                    free = ("level", "slope") if tagged is not None and not fixed else ("level",)
+                    adj = bundle.adjust(R, C, trk.intrinsics, P, point, image, pix, WaterSurface(start, cfg.n),
+                                        free=free + lens, tol=LEVEL_TOL, on_iteration=step, **held)
+                    def of_water(sigma):  # the water's parameters' (the lens's go to "lens")
+                        return {k: v for k, v in sigma.items() if k not in ("k1", "k2")}
+
+                    estimated = {"free": list(free), "start_m": start + origin[2], "sigma_m": of_water(adj.sigma),
+                                 "sigma_given_cameras_m": of_water(adj.sigma_given_cameras),
+                                 "frame": "consumer GPS (metres)" if "slope" in free else "held by the positions"}
+                    water = adj.water
+                    if water.tilted:
+                        level = georef.levelling(water)
+                        adj = replace(adj, R=adj.R @ torch.as_tensor(level.R.T), C=torch.as_tensor(level.apply(adj.C)),
+                                      points=torch.as_tensor(level.apply(adj.points)))
+                        estimated["levelled_deg"] = math.degrees(math.atan(math.hypot(*water.slope)))
+                        estimated["slope_before_levelling"] = list(water.slope)
+                        water = WaterSurface(water.level, cfg.n)
+                    surface = water.shifted(-origin)
+                else:
+                    adj = bundle.adjust(R, C, trk.intrinsics, P, point, image, pix, water, free=lens,
+                                        tol=LEVEL_TOL if lens else 1e-9, on_iteration=step, **held)
+                if lens:
+                    lens_record = {"model": "RADIAL (COLMAP): x (1 + k1 r^2 + k2 r^4), normalised coordinates",
+                                   "k1": adj.lens[0], "k2": adj.lens[1],
+                                   "sigma": {k: adj.sigma[k] for k in ("k1", "k2")}}
+            R, C, P = adj.R, adj.C, adj.points
+        if gcp_rows is not None:
+            gcp_residual = {n: (P[r] - torch.as_tensor(dst[k])).tolist() for k, (n, r) in
+                            enumerate(zip(usable, gcp_rows.tolist()))}
+            P = P[: len(trk.points)]
+        z = -water.depth(P.numpy())  # height above the surface
+        above = z[z >= 0]
+        check = {"surface": layout.water_json(surface), "described": _describe(surface),
+                 **({} if estimated is None else {"estimated": estimated}),
+                 **({} if lens_record is None else {"lens": lens_record}),
+                 **({} if edge is None else {"edge_fit": edge.report(), "along_the_reach": water_fit.profile(
+                     P.numpy(), water.height(P.numpy()[:, :2]), edge_points - origin)}),
+                 "extent_m": (np.percentile(P.numpy()[:, :2], [1, 99], axis=0) + origin[:2]).tolist(),
+                 "points_above": int((z >= 0).sum()),
+                 "points_below": int((z < 0).sum()),
+                 "lowest_above_m": float(np.percentile(above, 1)) if len(above) else None,
+                 "adjusted": adj is not None,
+                 "rms_px": None if adj is None else float(adj.residuals.pow(2).mean().sqrt()),
+                 "iterations": None if adj is None else adj.iterations,
+                 **({} if gcp_rows is None else {"gcp_residual_m": gcp_residual})}
+        sfm.set_poses(rec, trk, R, C + torch.as_tensor(origin), P + torch.as_tensor(origin),
+                      None if lens_record is None else adj.lens)
+        rec.write_text(str(_fresh(model)))
+        write_json(cfg.out / "water.json", check)
+        for stale in ("data", "train"):  # made from the previous poses
+            shutil.rmtree(cfg.out / stale, ignore_errors=True)
+        stamps.mark("water", key)
+    check = json.loads((cfg.out / "water.json").read_text())
+    surface = WaterSurface(**{**check["surface"], "n": cfg.n})  # as given, or as estimated
+    if "estimated" in check:  # in a frame held only to metres, its uncertainty relative to the model matters
+        est = check["estimated"]
+        sigma = est["sigma_given_cameras_m" if "slope" in est["free"] else "sigma_m"]["level"]
+        progress.say("water", f"the level estimated from the photos: {surface.level:.3f} m +- {100 * sigma:.1f} cm (1 sigma"
+             + ("" if "slope" not in est["free"] else ", relative to the model; the frame's height is the GPS's")
+             + ")"
+             + ("" if "levelled_deg" not in est else
+                f"; the frame levelled by the water's plane, {est['levelled_deg']:.2f} degrees")
+             + ("" if sigma <= LEVEL_WARN else "; poorly determined (a flat bed, little depth variation or no "
+                "oblique views hide it): measure it and give --water-level, or --water-surface EDGE.csv"))
+    lowest = check["lowest_above_m"]
+    progress.say("water", f"{check['described']}: {check['points_below']} points below it, {check['points_above']} "
+         f"above" + ("" if lowest is None else f" (the lowest 1 % within {100 * lowest:.1f} cm of it)")
+         + ("" if check["rms_px"] is None else f"; reprojection error {check['rms_px']:.2f} px after the adjustment")
+         + ("" if "lens" not in check else f"; the lens's distortion k1 {check['lens']['k1']:+.4f}, k2 "
+            f"{check['lens']['k2']:+.4f}"), t0)
+
+    if cfg.stop_after == "water":
+        return []
+    from ragsplat_core.export import sample_count
+
+    lo, hi = np.asarray(check["extent_m"])
+    sample_count(lo, hi, cfg.resolution)  # the DEM's size over the model's points, before training
+
+    # 4. training and the products: one tile here, as always, or several, merged
+    products = [cfg.out / name for name in PRODUCTS]
+    tiling, size, overlap = _tiles(cfg, model, surface, lo, hi)
+    if len(tiling) == 1:
+        run_train = cfg.out / "train"
+        _train(cfg, progress, model, cfg.out / "data", run_train, surface, float(np.prod(hi - lo)))
+        key = _digest(key, (run_train / "point_cloud.ply").stat().st_mtime_ns, cfg.resolution)
+        t0 = time.perf_counter()
+        if not stamps.done("export", key, *products):
+            from ragsplat_core.export import export_run
+
+            dem, las, png = products
+            b, on_block = progress.count("[export] bed", "block")
+            with b:
+                bed = export_run(run_train, dem, cfg.resolution, las, None, png, on_block=on_block)
+            stamps.mark("export", key)
+            progress.say("export", f"{len(bed.grid)} cells of {cfg.resolution:g} m", t0)
+        return products
+    key = _digest(key, cfg.variant, cfg.init, cfg.preset, cfg.iterations, cfg.seed, cfg.max_size, cfg.resolution,
+                  [t.to_json() for t in tiling])
+    if not stamps.done("export", key, *products, cfg.out / "tiles.json"):
+        t0 = time.perf_counter()
+        progress.say("tiles", f"{len(tiling)} tiles of at most {size:.1f} m, overlapping by {overlap:.1f} m, of "
+                     f"{', '.join(str(len(t.photos)) for t in tiling)} photos ...")
+        beds = _train_tiles(cfg, progress, cluster, model, surface, tiling, (lo, hi), key)
+        merged = _merge(cfg, surface, tiling, beds, products)
+        write_json(cfg.out / "tiles.json", {**merged, "tiles": [t.to_json() for t in tiling],
+                                            "seconds": time.perf_counter() - t0})
+        stamps.mark("export", key)
+        progress.say("export", f"{sum(merged['cells'].values())} cells of {cfg.resolution:g} m from {len(tiling)} "
+                     f"tiles; the overlaps agree to {_seams(merged)} (each tile's: {cfg.out / 'tiles.json'})", t0)
+    return products
+
+
+def _seams(merged: dict) -> str:
+    """The overlaps' agreement in words: the largest rms and p95 of the height difference over the pairs."""
+    pairs = merged["overlap"]
+    if not pairs:
+        return "nothing (no cell made by two tiles)"
+    return (f"{100 * max(p['rms_m'] for p in pairs):.1f} cm rms and {100 * max(p['p95_abs_m'] for p in pairs):.1f} "
+            f"cm p95 at worst")
+
+
+def _tiles(cfg: SurveyConfig, model: Path, surface, lo, hi) -> tuple[list, float, float]:
+    """(the survey's tiles (`survey.tiles.plan`) over the model's points' box [lo, hi] (CRS, m), from the
+    cameras' footprints on the water, their side, their overlap): the side `cfg.tile_size` or `TILE_GSD`
+    ground sample distances (the median camera's height above the water over its focal length)."""
+    import numpy as np
+    import pycolmap
+
+    from ragsplat_core.survey import sfm, tiles
+
+    rec = pycolmap.Reconstruction(str(model))
+    trk = sfm.tracks(rec)
+    R, C, K = trk.R.numpy(), trk.C.numpy(), trk.intrinsics.numpy()
+    sizes = np.array([[rec.images[i].camera.width, rec.images[i].camera.height] for i in trk.image_ids], float)
+    gsd = float(np.median(-surface.depth(C)) / np.median(K[:, 0]))
+    size = cfg.tile_size or TILE_GSD * gsd
+    overlap = TILE_OVERLAP * size if cfg.tile_overlap is None else cfg.tile_overlap
+    return tiles.plan(lo, hi, tiles.footprints(R, C, K, sizes, surface), trk.names, size, overlap), size, overlap
+
+
+@dataclass(frozen=True)
+class TileJob:
+    """One tile's training and bed, as a task (`train_tile`): picklable, paths as strings."""
+
+    cfg: SurveyConfig
+    folder: str  # RUN/tiles/K: model/ (the tile's photos only), data/, train/, log.txt, bed.npy, key.txt
+    water: dict  # the surface (`layout.water_json`) in the CRS
+    area: float  # m^2: the tile's share of the survey's points' box, for the Gaussian budget
+    bounds: tuple[float, float, float, float]  # the tile's outer box in the CRS (+-inf: open)
+    key: str
+
+
+def train_tile(job: TileJob) -> str:
+    """Imports, trains (resuming) and extracts one tile; returns the path of its bed (bed.npy: cell centres
+    and heights [G, 3] in the CRS, float64), written last and atomically, so a rerun of a finished tile (a
+    retried task, a rerun command) only reads it. Its progress goes to its log.txt."""
+    import numpy as np
+
+    from ragsplat_core.export import export_run
+    from ragsplat_core.outputs import atomic_path
+    from ragsplat_core.refraction import WaterSurface
+
+    folder = Path(job.folder)
+    bed_path, stamp = folder / "bed.npy", folder / "key.txt"
+    if bed_path.is_file() and stamp.is_file() and stamp.read_text() == job.key:
+        return str(bed_path)
+    surface = WaterSurface(**{**job.water, "n": job.cfg.n})
+    with open(folder / "log.txt", "a") as log:
+        progress = _Log(log)
+        _train(job.cfg, progress, folder / "model", folder / "data", folder / "train", surface, job.area)
+        bed = export_run(folder / "train", folder / "dem.tif", job.cfg.resolution, bounds=job.bounds)
+        progress.say("export", f"{len(bed.grid)} cells")
+    with atomic_path(bed_path) as tmp, open(tmp, "wb") as f:
+        np.save(f, bed.absolute())
+    stamp.write_text(job.key)
+    return str(bed_path)
+
+
+class _Log(Progress):
+    """A tile's progress as lines in its log (a task's bars would interleave on a shared terminal)."""
+
+    def __init__(self, file):
+        self.file = file
+
+    def say(self, stage: str, text: str, since: float | None = None) -> None:
+        took = "" if since is None else f" ({time.perf_counter() - since:.0f} s)"
+        print(f"[{stage}] {text}{took}", file=self.file, flush=True)
+
+    def training(self, total: int, desc: str, initial: int):
+        def on_step(trainer) -> None:
+            if trainer.step % 100 == 0 or trainer.step == total:
+                self.say("train", f"{desc}: step {trainer.step} of {total}, {trainer.num_gaussians} Gaussians")
+
+        return _Silent(), on_step
+
+
+def _train_tiles(cfg: SurveyConfig, progress: Progress, cluster, model: Path, surface, tiling: list, extent,
+                 key: str) -> list:
+    """Every tile's bed [G_t, 3] (CRS): the tiles' models written here, then `train_tile` for each, as Dask
+    tasks on the client `cluster(len(tiling))` opens, or one after another here without one. `extent`: the
+    survey's points' box (lo, hi), which bounds each tile's area for its Gaussian budget."""
+    import numpy as np
+    import pycolmap
+
+    from ragsplat_core.dataset import layout
+    from ragsplat_core.errors import OutputError
+
+    jobs = []
+    for tile in tiling:
+        folder = cfg.out / "tiles" / str(tile.index)
+        sub = folder / "model"
+        if not ((sub / "key.txt").is_file() and (sub / "key.txt").read_text() == key):
+            rec = pycolmap.Reconstruction(str(model))  # the survey's, the tile's other photos left out
+            keep = set(tile.photos)
+            for i in list(rec.reg_image_ids()):
+                if rec.images[i].name not in keep:
+                    rec.deregister_frame(rec.images[i].frame_id)
+            rec.write_text(str(_fresh(sub)))
+            (sub / "key.txt").write_text(key)
+        box = np.array(tile.outer, float)
+        lo, hi = np.maximum(box[:2], extent[0]), np.minimum(box[2:], extent[1])
+        area = float(np.prod(np.clip(hi - lo, 0, None)))
+        jobs.append(TileJob(cfg, str(folder), layout.water_json(surface), area, tile.outer, key))
+    beds = [None] * len(jobs)
+    with progress.bar(len(jobs), "[tiles] trained", "tile") as b:
+        if cluster is None:
+            for k, job in enumerate(jobs):
+                beds[k] = np.load(train_tile(job))
+                b.update(1)
+        else:
+            from dask.distributed import as_completed
+
+            with cluster(len(jobs)) as client:
+                futures = {client.submit(train_tile, job, key=f"tile-{k}-{key}", pure=False): k
+                           for k, job in enumerate(jobs)}
+                for future in as_completed(futures):
+                    k = futures[future]
+                    if future.status != "finished":
+                        err = future.exception()
+                        raise OutputError(f"tile {k} failed: {type(err).__name__}: {err} (log: "
+                                          f"{cfg.out / 'tiles' / str(k) / 'log.txt'}); finished tiles are kept, "
+                                          "rerun to resume")
+                    beds[k] = np.load(future.result())
+                    b.update(1)
+    return beds
+
+
+def _noise_model(tagged, sigma: dict, labels: list[str]) -> dict:
+    """georef.json's account of the noise model of positions from the photos (`survey.exif.sigmas`)."""
+    import numpy as np
+
+    used = set(labels)
+    fixed = [p.name for p in tagged if p.name in used and p.rtk_fixed]
+    other = [p.name for p in tagged if p.name in used and not p.rtk_fixed]
+    out = {"model": "by source: RTK fixed (DJI RtkFlag 50) to centimetres, anything else (no RTK flag, or a "
+                    "single-point or float solution) as consumer GPS to metres"}
+    if fixed:
+        own = [p.std_horizontal is not None for p in tagged if p.name in fixed]
+        out["rtk_fixed"] = {"count": len(fixed), "sigma_m_median": np.median([sigma[n] for n in fixed], 0).tolist(),
+                            "from": f"the photos' RtkStdLon / RtkStdLat / RtkStdHgt ({sum(own)} of {len(fixed)})"
+                                    if any(own) else "--rtk-sigma (or its 2 / 3 cm default)"}
+    if other:
+        out["consumer_gps"] = {
+            "count": len(other), "sigma_m": sigma[other[0]].tolist(),
+            "bias": "consumer GPS drifts by metres and each flight line can be 1-1.5 m off the others; no "
+                    "per-line bias is estimated: the similarity is fitted to every position within the "
+                    "threshold (10 sigma), so their scatter leaves no camera out, and a line's bias shows in "
+                    "residual_m as residuals of one sign along it; the adjustment holds these cameras only "
+                    "to metres (--gps-sigma), the photos decide their relative positions"}
+    return out
+
+
+def _rounded(threshold):
+    """A threshold (one or per correspondence) for georef.json: one number when all are the same."""
+    import numpy as np
+
+    values = np.atleast_1d(np.asarray(threshold, float))
+    return float(values[0]) if np.ptp(values) == 0 else [round(float(v), 4) for v in values]
+
+
+def _describe(water) -> str:
+    if not (water.tilted or water.curved):
+        return f"level {water.level:g} m"
+    if water.curved:
+        return (f"a plane falling {100 * (water.slope[0] ** 2 + water.slope[1] ** 2) ** 0.5:.2f} % with a profile "
+                f"of {len(water.profile.stations)} stations along the reach ({water.level:.3f} m at x = y = 0)")
+    return (f"a plane falling {100 * (water.slope[0] ** 2 + water.slope[1] ** 2) ** 0.5:.2f} % (slope "
+            f"{water.slope[0]:+.5f}, {water.slope[1]:+.5f}; {water.level:.3f} m at x = y = 0)")
+
+
+def _check_above(water, centres) -> None:
+    """ConfigError unless some camera of centres [V, 3] is above the water surface."""
+    import numpy as np
+
+    from ragsplat_core.errors import ConfigError
+
+    top = int(np.argmin(water.depth(centres)))
+    if not water.depth(centres[top]) < 0:
+        raise ConfigError(f"the water surface ({_describe(water)}) is not below any camera (the highest above it "
+                          f"is at {centres[top, 2]:g} m, the surface {float(water.height(centres[top, :2])):g} m "
+                          "there)")
+
+
+def _check_sizes(cfg: SurveyConfig, progress: Progress, photos: list[Path], centres, surface) -> SurveyConfig:
+    """Every size refusal before any work, each in one line with advice that works: the training's images
+    must fit `IMAGE_MEMORY` of this machine's memory (without --max-size, the largest that fits is chosen,
+    said and returned in the config), and the DEM's grid over the cameras' footprints must pass `export.sample_count` at
+    --resolution (the area is known only after structure from motion; here its lower bound: the cameras'
+    extent, grown by each one's nadir footprint where the water level is given)."""
+    import os
+    from dataclasses import replace
+
+    import numpy as np
+    from PIL import Image
+
+    from ragsplat_core.errors import ConfigError
+    from ragsplat_core.export import sample_count
+
+    sizes = []
+    for p in photos:
+        with Image.open(p) as im:
+            sizes.append(im.size)
+    sizes = np.array(sizes, dtype=np.float64)  # [N, 2] width, height
+    longest = sizes.max(1)
+
+    def image_bytes(max_size):
+        scale = np.minimum(1.0, max_size / longest) if max_size else 1.0
+        return float((3 * np.prod(sizes, 1) * scale * scale).sum())
+
+    budget = IMAGE_MEMORY * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    if image_bytes(cfg.max_size) > budget:
+        fits = int(longest.max() * (budget / image_bytes(None)) ** 0.5) // 16 * 16  # bytes go as size^2
+        while fits > 16 and image_bytes(fits) > budget:
+            fits -= 16
+        if cfg.max_size is not None:
+            raise ConfigError(f"{len(photos)} photos at --max-size {cfg.max_size} take {image_bytes(cfg.max_size) / 1e9:.1f} "
+                              f"GB in training, over {budget / 1e9:.1f} GB ({IMAGE_MEMORY:.0%} of this machine's "
+                              f"memory); give --max-size {fits} or less")
+        cfg = replace(cfg, max_size=fits)
+        progress.say("check", f"{len(photos)} photos of {int(longest.max())} px take {image_bytes(None) / 1e9:.1f} GB: "
+             f"training on them downscaled to at most {fits} px ({image_bytes(fits) / 1e9:.1f} GB; --max-size "
+             "to choose)")
+    lo, hi = centres[:, :2].min(0), centres[:, :2].max(0)
+    if surface is not None:  # the nadir footprint's half width: height over the water x half the sensor / focal
+        from ragsplat_core.survey.exif import focal_pixels
+
+        focal = focal_pixels(photos[0])
+        if focal:
+            reach = float(np.median(-surface.depth(centres))) * 0.5 * sizes[0].max() / focal
+            lo, hi = lo - max(reach, 0.0), hi + max(reach, 0.0)
+    sample_count(lo, hi, cfg.resolution)  # ConfigError with the resolution that passes
+    return cfg
+
+
+def _fresh(folder: Path) -> Path:
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    return folder
+
+
+def _train(cfg: SurveyConfig, progress: Progress, model: Path, data: Path, out: Path, surface,
+           area: float) -> None:
+    """The survey (or a tile's) model imported into `data` (`dataset.colmap`), then trained in `out` (resumes),
+    with a Gaussian budget for its `area` (m^2) at its ground sample distance (`GAUSSIANS_PER_GSD2`)."""
+    from dataclasses import replace
+
+    from ragsplat_core.dataset import layout
+    from ragsplat_core.dataset.colmap import import_colmap
+    from ragsplat_core.dataset.load import load_dataset
+    from ragsplat_core.train import Trainer, preset_config
+
+    done = import_colmap(model, cfg.images, data, surface, cfg.masks, cfg.crs or layout.LOCAL_CRS, cfg.max_size)
+    progress.say("train", f"{'reusing the' if done.reused else 'imported'} survey in {done.root}: {done.images} "
+                 "images")
+    overrides = {"variant": cfg.variant, "seed": cfg.seed, "init": cfg.init}
+    if cfg.iterations is not None:
+        overrides["iterations"] = cfg.iterations
+    train = preset_config(cfg.preset, **overrides)
+    ds = load_dataset(done.root, splits=("train",), load_dry=False)
+    budget = min(max(round(GAUSSIANS_PER_GSD2 * area / ds.gsd**2), train.densify.max_gaussians), MAX_GAUSSIANS)
+    train = replace(train, densify=replace(train.densify, max_gaussians=budget))
+    progress.say("train", f"at most {budget} Gaussians for {area:.0f} m^2 at a ground sample distance of "
+                 f"{100 * ds.gsd:.2f} cm ({GAUSSIANS_PER_GSD2} per GSD^2, at least the {cfg.preset} preset's, at "
+                 f"most {MAX_GAUSSIANS})")
+    t0 = time.perf_counter()
+    trainer = Trainer(train, ds, out)  # the start (the refracted tracks: triangulated once, cached in `data`)
+    if trainer.step >= train.iterations:
+        return
+    bar, on_step = progress.training(train.iterations, f"train {train.variant}", trainer.step)
+    try:
+        trainer.train(on_step=on_step)
+    finally:
+        bar.close()
+    progress.say("train", f"{train.variant}, {train.iterations} iterations from the {train.init} start, "
+                 f"{trainer.num_gaussians} Gaussians", t0)
+
+
+def _merge(cfg: SurveyConfig, surface, tiling: list, beds: list, products: list[Path]) -> dict:
+    """The tiles' beds merged (`survey.tiles.merge`) and written as the products, in the frame of the first
+    tile's import (its offset; the grid's nodes are on multiples of the resolution in the CRS, the same for
+    every tile); returns the merge's report."""
+    import numpy as np
+
+    from ragsplat_core.dataset.load import load_dataset
+    from ragsplat_core.export import Bed, write_dem, write_las, write_png
+    from ragsplat_core.survey import tiles
+
+    grid, _, report = tiles.merge(beds, tiling, cfg.resolution)
+    georef = load_dataset(cfg.out / "tiles" / "0" / "data", splits=()).georef
+    offset = np.asarray(georef.offset)
+    bed = Bed(grid - offset, cfg.resolution, surface.shifted(offset), georef)
+    for path, write in zip(products, (write_dem, write_las, write_png)):
+        write(path, bed)
+    return report

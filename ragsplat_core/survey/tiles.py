@@ -1,0 +1,129 @@
+"""A survey split into overlapping tiles, each trained on its own, and their beds merged into one.
+
+The tiles cut the survey's extent (its model points' 1-99 % box, horizontal, the survey's local frame) into
+a grid of equal cores no larger than the tile size; a tile's outer box is its core grown by the overlap on
+every side, and it holds the photos whose footprint on the water (`footprints`) has at least `MIN_SEEN` of its
+box inside the outer box. The outer cores reach to infinity, so every point of the plane lies in exactly one
+core (`owner`): the merged bed takes each cell from the tile whose core holds it, and the cells two tiles both
+made (the overlap) measure how well they agree at the seams (`merge`'s report). A survey whose extent fits in
+one tile is one tile (`plan` gives a single tile with no bounds): today's products, unchanged. numpy only.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+MIN_SEEN = 0.1  # a photo joins a tile when this share of its footprint's box lies in the tile's outer box
+# a ray closer to the horizon than this (its run over its drop) meets the water no farther than this many
+# flying heights away: an oblique's upper image edge would otherwise reach the horizon
+MAX_REACH = 3.0
+
+
+@dataclass(frozen=True)
+class Tile:
+    index: int
+    grid: tuple[int, int]  # (column along x, row along y)
+    core: tuple[float, float, float, float]  # xmin, ymin, xmax, ymax (m, local frame; +-inf at the survey's edge)
+    outer: tuple[float, float, float, float]  # the core grown by the overlap (the edge tiles' outside unbounded)
+    photos: tuple[str, ...]
+
+    def to_json(self, origin=(0.0, 0.0)) -> dict:
+        """The tile for a run's JSON, its boxes in the CRS (`origin`: the local frame's offset; None: open)."""
+        def box(b):
+            return [None if not math.isfinite(v) else v + origin[k % 2] for k, v in enumerate(b)]
+
+        return {"index": self.index, "grid": list(self.grid), "core": box(self.core), "outer": box(self.outer),
+                "photos": len(self.photos)}
+
+
+def footprints(R: np.ndarray, C: np.ndarray, intrinsics: np.ndarray, sizes: np.ndarray, water) -> np.ndarray:
+    """Each camera's footprint on the water surface as a box [V, 4] (xmin, ymin, xmax, ymax): the rays through
+    a 5 x 5 lattice of its image (R [V, 3, 3] world -> camera, centres C [V, 3], intrinsics [V, 4] fx, fy, cx,
+    cy, sizes [V, 2] width, height) met with the surface's height below the camera (a sloping surface's
+    change across one footprint is centimetres), each at most `MAX_REACH` flying heights away."""
+    t = np.linspace(0.0, 1.0, 5)
+    boxes = np.empty((len(C), 4))
+    for k in range(len(C)):
+        fx, fy, cx, cy = intrinsics[k]
+        u, v = np.meshgrid(t * sizes[k, 0], t * sizes[k, 1])
+        rays = np.stack([(u.ravel() - cx) / fx, (v.ravel() - cy) / fy, np.ones(u.size)], -1) @ R[k]  # [25, 3]
+        height = max(float(C[k, 2] - water.height(C[k, :2])), 1e-6)  # above the water
+        run = np.hypot(rays[:, 0], rays[:, 1])
+        reach = np.where(rays[:, 2] < 0, height * run / np.maximum(-rays[:, 2], 1e-12), np.inf)
+        reach = np.minimum(reach, MAX_REACH * height)
+        xy = C[k, :2] + rays[:, :2] / np.maximum(run, 1e-12)[:, None] * reach[:, None]
+        boxes[k] = [*xy.min(0), *xy.max(0)]
+    return boxes
+
+
+def plan(lo, hi, boxes: np.ndarray, names: list[str], size: float, overlap: float) -> list[Tile]:
+    """The tiles of a survey whose points span the box [lo, hi] ((x, y) each, m) with photos `names` [V]
+    whose footprints are `boxes` [V, 4]: nx x ny equal cores no larger than `size`, each grown by `overlap`.
+    One tile (no bounds, every photo) when the extent fits in `size` both ways."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    counts = [max(1, math.ceil((b - a) / size - 1e-9)) for a, b in zip(lo, hi)]
+    if counts == [1, 1]:
+        inf = (-math.inf, -math.inf, math.inf, math.inf)
+        return [Tile(0, (0, 0), inf, inf, tuple(names))]
+    tiles = []
+    for j in range(counts[1]):
+        for i in range(counts[0]):
+            core = [*_cut(lo, hi, counts, (i, j), 0), *_cut(lo, hi, counts, (i, j), 1)]
+            outer = [core[0] - overlap, core[1] - overlap, core[2] + overlap, core[3] + overlap]
+            seen = _share_inside(boxes, outer)
+            photos = tuple(n for n, s in zip(names, seen) if s >= MIN_SEEN)
+            open_edges = (i == 0, j == 0, i == counts[0] - 1, j == counts[1] - 1)
+            sign = (-1, -1, 1, 1)
+            core = [sign[e] * math.inf if open_edges[e] else core[e] for e in range(4)]
+            outer = [sign[e] * math.inf if open_edges[e] else outer[e] for e in range(4)]
+            tiles.append(Tile(len(tiles), (i, j), tuple(core), tuple(outer), photos))
+    return tiles
+
+
+def _cut(lo, hi, counts, ij, axis) -> tuple[float, float]:
+    """(start, end) of core `ij`'s along `axis` (an inner core's; the edge ones are opened by `plan`)."""
+    width = (hi[axis] - lo[axis]) / counts[axis]
+    return lo[axis] + ij[axis] * width, lo[axis] + (ij[axis] + 1) * width
+
+
+def _share_inside(boxes: np.ndarray, outer) -> np.ndarray:
+    """The share [V] of each box [V, 4]'s area inside the box `outer` (zero-area boxes: 0)."""
+    w = np.clip(np.minimum(boxes[:, 2], outer[2]) - np.maximum(boxes[:, 0], outer[0]), 0, None)
+    h = np.clip(np.minimum(boxes[:, 3], outer[3]) - np.maximum(boxes[:, 1], outer[1]), 0, None)
+    area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+    return np.where(area > 0, w * h / np.where(area > 0, area, 1.0), 0.0)
+
+
+def inside(xy: np.ndarray, box) -> np.ndarray:
+    """Whether each point xy [N, 2] lies in the half-open box [xmin, xmax) x [ymin, ymax): a point on a shared
+    edge belongs to one box only."""
+    return (xy[:, 0] >= box[0]) & (xy[:, 0] < box[2]) & (xy[:, 1] >= box[1]) & (xy[:, 1] < box[3])
+
+
+def merge(beds: list[np.ndarray], tiles: list[Tile], resolution: float) -> tuple[np.ndarray, np.ndarray, dict]:
+    """One bed from the tiles' beds (each [G_t, 3] cell centres and heights in the same frame, on one grid of
+    `resolution`): each cell from the tile whose core holds it. Returns (grid [G, 3], tile index [G], the
+    report: cells per tile, and for each pair of neighbouring tiles the cells both made and their height
+    difference's median, rms and p95 of its absolute value, in metres)."""
+    kept, owner, report, keys = [], [], {"cells": {}, "overlap": []}, []
+    for tile, bed in zip(tiles, beds):
+        mine = inside(bed[:, :2], tile.core)
+        kept.append(bed[mine])
+        owner.append(np.full(int(mine.sum()), tile.index))
+        report["cells"][str(tile.index)] = int(mine.sum())
+        ij = np.round(bed[:, :2] / resolution).astype(np.int64)  # the cell's integer index on the common grid
+        keys.append(((ij[:, 0] + 2**31) << 32) + (ij[:, 1] + 2**31))
+    for a in range(len(tiles)):
+        for b in range(a + 1, len(tiles)):
+            _, ia, ib = np.intersect1d(keys[a], keys[b], assume_unique=True, return_indices=True)
+            if not len(ia):
+                continue
+            dz = beds[a][ia, 2] - beds[b][ib, 2]
+            report["overlap"].append({"tiles": [a, b], "cells": len(ia), "median_m": float(np.median(dz)),
+                                      "rms_m": float(np.sqrt(np.mean(dz**2))),
+                                      "p95_abs_m": float(np.percentile(np.abs(dz), 95))})
+    grid = np.concatenate(kept) if kept else np.zeros((0, 3))
+    return grid, np.concatenate(owner) if owner else np.zeros(0, int), report
