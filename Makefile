@@ -9,8 +9,9 @@ ifndef OMP_WAIT_POLICY
 export GOMP_SPINCOUNT ?= 2000
 endif
 PRESET ?= small
-# The training preset of a dataset preset: small-bed -> small, paper-reach -> paper; small-field has its own.
-TRAIN_PRESET ?= $(if $(filter small-field,$(PRESET)),small-field,$(firstword $(subst -, ,$(PRESET))))
+# The training preset of a dataset preset: small-bed -> small, paper-reach -> paper, smoke-long -> smoke;
+# small-field has its own; long -> small (a survey's images, a few centimetres a pixel).
+TRAIN_PRESET ?= $(if $(filter small-field,$(PRESET)),small-field,$(firstword $(subst -, ,$(PRESET:long=small))))
 SEED ?= 0
 # The ablation's training seeds (e.g. SEEDS="0 1"), variants (VARIANTS="3dgs full"), start (INIT=grid |
 # triangulated | refracted), processes (JOBS=1) and training device (DEVICE=cuda | cpu): empty means

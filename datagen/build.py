@@ -422,11 +422,11 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
                                      manifest.get(layout.relative_path(kind, p.name)))]
     tasks = [_task(spec, kind, p, layout.output_path(out, kind, p.name)) for kind in kinds for p in mine
              if not layout.output_path(out, kind, p.name).exists() or layout.relative_path(kind, p.name) in damaged]
-    # the survey's photos through a lens (`LENS`): the training views' wet pass again, through Cycles'
-    # polynomial lens; outside the manifest and the fingerprint, as the survey is
-    survey = surveyed(spec)
-    lens = [_task(spec, "wet", p, layout.output_path(out, "lens", p.name)) for p in mine
-            if survey and p.split == "train" and not layout.intact(layout.output_path(out, "lens", p.name), None)]
+    # the survey's photos through a lens (`LENS`, where the spec asks for them): the training views' wet pass
+    # again, through Cycles' polynomial lens; outside the manifest and the fingerprint, as the survey is
+    lensed = surveyed(spec) and spec.render.lens
+    lens = [_task(spec, "wet", p, layout.output_path(out, "lens", p.name)) for p in mine if lensed
+            and p.split == "train" and not layout.intact(layout.output_path(out, "lens", p.name), None)]
     stats = RenderStats()
     if tasks or lens:
         if progress is not None:
@@ -443,7 +443,7 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
                 progress({"event": "retry", "signal": crash.signum, "log": str(crash.log)})
             return generate(spec, out, shard, progress, retries - 1)
     complete = all(layout.output_path(out, k, p.name).exists() for k in kinds for p in poses) and \
-        all(layout.output_path(out, "lens", p.name).exists() for p in poses if survey and p.split == "train")
+        all(layout.output_path(out, "lens", p.name).exists() for p in poses if lensed and p.split == "train")
     if complete:
         _merge(spec, out, poses)
     summary = {"rendered": stats.images, "skipped": len(mine) * len(kinds) - len(tasks), "damaged": damaged,

@@ -1,9 +1,11 @@
 """UAV flight plan: a pure function of the scene spec.
 
 Training views: a nadir grid whose spacing gives the spec's forward/side overlap of the footprints ON THE BED,
-plus oblique rings (one per tilt) at the spec's azimuth step, each aimed so that its refracted optical axis
-hits the scene centre on the mean bed plane. Held-out test views: nadirs between grid points and ring views
-at azimuths offset from the training ones.
+plus obliques at each tilt and the spec's azimuth step, each aimed so that its refracted optical axis hits
+the mean bed plane below its aim point: the scene centre (`rings`, one per tilt), or each of the `stations`
+along the reach's axis (`strips`: a long reach, where rings about its centre would miss its ends).
+Held-out test views: nadirs between grid points, and obliques at azimuths offset from the training ones
+(strips: one per tilt at each midpoint between stations, the azimuth turning from one to the next).
 
 Refraction shrinks the footprint on the bed (`ragsplat_core.snell.ground_offset`): the half-footprint is
 h tan(a) + d tan(asin(sin(a) / n)) instead of the dry (h + d) tan(a). Using the dry footprint would overstate
@@ -94,15 +96,29 @@ def _nadir(spec: SceneSpec, xy) -> Camera:
     return _camera(spec, [xy[0], xy[1], z], [xy[0], xy[1], z - 1.0], (0.0, 1.0, 0.0))
 
 
-def _oblique(spec: SceneSpec, tilt_deg: float, azimuth_deg: float) -> Camera:
-    """Camera on the ring of `tilt_deg` whose refracted optical axis hits (0, 0, level - depth)."""
-    h = spec.flight.altitude
+def stations(spec: SceneSpec, between: bool = False) -> np.ndarray:
+    """Horizontal aim points [S, 2] of the `strips` obliques on the reach's axis y = 0, evenly from the
+    first nadir column to the last (or the midpoints between them: the held-out obliques')."""
+    half = (spec.flight.grid[1] - 1) * spacing(spec) / 2
+    xs = np.linspace(-half, half, spec.flight.stations)
+    if between:
+        xs = (xs[:-1] + xs[1:]) / 2
+    return np.column_stack([xs, np.zeros_like(xs)])
+
+
+def _oblique(spec: SceneSpec, tilt_deg: float, azimuth_deg: float, aim=(0.0, 0.0)) -> Camera:
+    """Camera at the flight altitude, `tilt_deg` from the vertical and `azimuth_deg` from the horizontal
+    point `aim`, whose refracted optical axis hits the mean bed plane below `aim` (`bed.depth` under the
+    water surface there)."""
+    top = spec.level + spec.flight.altitude  # the drone holds its altitude over a sloping surface
+    surface = spec.level if spec.water is None else float(spec.water.height(np.asarray(aim)))
+    h = top - surface
     tilt, az = math.radians(tilt_deg), math.radians(azimuth_deg)
     radius = ground_offset(tilt, h, spec.bed.depth, spec.n)
     direction = np.array([math.cos(az), math.sin(az)])
-    eye = [*(radius * direction), spec.level + h]
-    # Aim at the point where the axis enters the water: h tan(tilt) from the camera, towards the centre.
-    target = [*((radius - h * math.tan(tilt)) * direction), spec.level]
+    eye = [*(aim + radius * direction), top]
+    # Aim at the point where the axis enters the water: h tan(tilt) from the camera, towards `aim`.
+    target = [*(aim + (radius - h * math.tan(tilt)) * direction), surface]
     return _camera(spec, eye, target, (0.0, 0.0, 1.0))
 
 
@@ -110,18 +126,24 @@ def _azimuths(step: float, offset: float) -> list[float]:
     return [offset + k * step for k in range(math.floor(360.0 / step + 1e-9))]
 
 
-def plan(spec: SceneSpec) -> list[Pose]:
-    """All poses, training first: nadir grid, oblique rings by tilt; then test nadirs and test rings."""
+def _obliques(spec: SceneSpec, split: str) -> list[tuple[str, str, Camera]]:
+    """The obliques of `split` by tilt: (kind, split, camera)."""
     f = spec.flight
-    views: list[tuple[str, str, Camera]] = []
-    for xy in nadir_positions(spec):
-        views.append(("nadir", "train", _nadir(spec, xy)))
-    for tilt in f.tilts:
-        for az in _azimuths(f.azimuth_step, 0.0):
-            views.append((f"oblique{tilt:g}", "train", _oblique(spec, tilt, az)))
-    for xy in nadir_positions(spec, between=True):
-        views.append(("nadir", "test", _nadir(spec, xy)))
-    for tilt in f.tilts:
-        for az in _azimuths(f.test_azimuth_step, f.test_azimuth_offset):
-            views.append((f"oblique{tilt:g}", "test", _oblique(spec, tilt, az)))
+    train = split == "train"
+    if f.pattern == "rings":
+        step, offset = (f.azimuth_step, 0.0) if train else (f.test_azimuth_step, f.test_azimuth_offset)
+        aims = [((0.0, 0.0), az) for az in _azimuths(step, offset)]
+    elif train:  # every azimuth at every station
+        aims = [(xy, az) for xy in stations(spec) for az in _azimuths(f.azimuth_step, 0.0)]
+    else:  # one azimuth at each midpoint, the next one's at the next: every held-out azimuth along the reach
+        held = _azimuths(f.test_azimuth_step, f.test_azimuth_offset)
+        aims = [(xy, held[k % len(held)]) for k, xy in enumerate(stations(spec, between=True))]
+    return [(f"oblique{tilt:g}", split, _oblique(spec, tilt, az, xy)) for tilt in f.tilts for xy, az in aims]
+
+
+def plan(spec: SceneSpec) -> list[Pose]:
+    """All poses, training first: nadir grid, obliques by tilt; then test nadirs and test obliques."""
+    views = [("nadir", "train", _nadir(spec, xy)) for xy in nadir_positions(spec)] + _obliques(spec, "train")
+    views += [("nadir", "test", _nadir(spec, xy)) for xy in nadir_positions(spec, between=True)]
+    views += _obliques(spec, "test")
     return [Pose(f"{i:04d}", kind, split, cam) for i, (kind, split, cam) in enumerate(views)]

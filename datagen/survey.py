@@ -19,6 +19,7 @@ survey.json ("geo"); scene.json, transforms.json and gt/ do not change."""
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -28,6 +29,7 @@ from ragsplat_core.dataset import layout
 from ragsplat_core.outputs import write_bytes, write_json
 
 EDGE_POINTS = 15  # edge points measured along each bank
+EDGE_SPACING = 2.0  # ... or one every this many metres of the evaluated reach's length where that is more (m)
 _EDGE_STREAM = 4  # the edge points' noise: a random stream apart from the survey's and the conditions' (1-3)
 _GPS_STREAM = 5  # consumer GPS: each flight line's bias and each photo's scatter
 _ANGLE_STREAM = 6  # the gimbal angles' noise
@@ -79,16 +81,17 @@ def write_survey(root: Path, poses, water, seed: int = 0, noise: SurveyNoise = S
     them (`gcp_pixels.csv`, with `noise.gcp_pixel`), as a surveyor who picked the targets' centres would
     give them; where the scene has checkerboard `targets` [T, 3] rendered (field conditions), those are the
     ground control. With the `waterline` polylines [K, >= 2] (a reach), also the edge points
-    (`edge_points`, along the evaluated `region`'s x-range). The photos are geotagged through `origin`, those
-    of images-gps/ with the consumer GPS `gps` (`write_geotags`). Returns False when a survey made with the same
-    seed and noise is already there (nothing written but what older surveys lack: water_edge.csv, the photos'
-    geotags and images-gps/, `write_geotags`)."""
+    (`edge_points`, `edge_count` a bank along the evaluated `region`'s x-range). The photos are geotagged
+    through `origin`, those of images-gps/ with the consumer GPS `gps` (`write_geotags`). Returns False when
+    a survey made with the same seed and noise is already there (nothing written but what older surveys
+    lack: water_edge.csv, the photos' geotags and images-gps/, `write_geotags`)."""
     root = Path(root)
     record = {"seed": seed, "noise": asdict(noise), "views": "the training views, wet"}
     path = root / layout.SURVEY_RECORD
     edge = None
     if waterline is not None:
-        xy = edge_points(waterline, *((region["xmin"], region["xmax"]) if region else (-np.inf, np.inf)))
+        xmin, xmax = (region["xmin"], region["xmax"]) if region else (-np.inf, np.inf)
+        xy = edge_points(waterline, xmin, xmax, edge_count(xmax - xmin) if region else EDGE_POINTS)
         edge = np.column_stack([xy, water.height(xy)])  # on the surface: the waterline's true heights
     train = [p for p in poses if p.split == "train"]
     names = [f"{p.name}.jpg" for p in train]
@@ -218,7 +221,8 @@ def lens_polynomial(camera, k1: float, k2: float, sensor_mm: float = 36.0) -> li
 
 
 def flight_lines(train) -> np.ndarray:
-    """[V] the flight line of each training pose: the nadirs by grid row (one y), each oblique ring one."""
+    """[V] the flight line of each training pose: the nadirs by grid row (one y), each oblique ring (or pass
+    along the reach, `strips`) one."""
     keys = [(p.kind, round(float(p.camera.camera_center[1]), 2) if p.kind == "nadir" else None) for p in train]
     order = list(dict.fromkeys(keys))
     return np.array([order.index(k) for k in keys], dtype=int)
@@ -259,6 +263,12 @@ def gimbal_angles(cameras, shift: np.ndarray, crs: str) -> np.ndarray:
     yaw = Geod(ellps="WGS84").inv(a[:, 1], a[:, 0], b[:, 1], b[:, 0])[0]
     pitch = np.degrees(np.arcsin(np.clip(forward[:, 2], -1, 1)))
     return np.column_stack([yaw, pitch, roll])
+
+
+def edge_count(length: float) -> int:
+    """Edge points measured along each bank of a reach `length` metres long: `EDGE_POINTS` on a short one,
+    one every `EDGE_SPACING` metres on a long one."""
+    return max(EDGE_POINTS, math.ceil(length / EDGE_SPACING))
 
 
 def edge_points(lines: list[np.ndarray], xmin: float, xmax: float, count: int = EDGE_POINTS) -> np.ndarray:

@@ -23,7 +23,8 @@ def trace_to_bed(cam, pixels, level, n, bed_z):
     return p + ((bed_z - p[:, 2]) / t[:, 2])[:, None] * t
 
 
-@pytest.mark.parametrize("name", ["smoke", "small", "paper-reach", "small-bed", "paper"])
+@pytest.mark.parametrize("name", ["smoke", "small", "paper-reach", "small-bed", "paper", "long",
+                                  "smoke-long"])
 def test_nadir_overlap_on_the_bed_through_water(name):
     spec = preset(name)
     validate(spec)
@@ -41,9 +42,10 @@ def test_nadir_overlap_on_the_bed_through_water(name):
         centres = np.array([p.camera.camera_center for p in poses])
         assert np.diff(np.unique(centres[:, 0].round(9))) == pytest.approx(step)
     assert 1 - step / side_x == pytest.approx(spec.flight.overlap, abs=1e-9)
-    # The dry footprint is wider: ignoring refraction would overstate the overlap.
+    # The dry footprint is wider: ignoring refraction would overstate the overlap (by 3.7 % for long's bed
+    # 1.5 m under 12 m of air, 9.5 % for small's).
     dry = trace_to_bed(cam, edge, spec.level, 1.0, bed_z)
-    assert dry[1, 0] - dry[0, 0] > side_x * 1.05
+    assert dry[1, 0] - dry[0, 0] > side_x * 1.03
 
 
 @pytest.mark.parametrize("name", ["smoke", "paper-reach", "paper"])
