@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import os
 import shutil
 import time
 from dataclasses import asdict, dataclass
@@ -547,6 +548,7 @@ def train_tile(job: TileJob) -> str:
     surface = WaterSurface(**{**job.water, "n": job.cfg.n})
     with open(folder / "log.txt", "a") as log:
         progress = _Log(log)
+        progress.say("tile", f"tile {folder.name} on worker process {os.getpid()}")
         _train(job.cfg, progress, folder / "model", folder / "data", folder / "train", surface, job.area)
         bed = export_run(folder / "train", folder / "dem.tif", job.cfg.resolution, bounds=job.bounds)
         progress.say("export", f"{len(bed.grid)} cells")

@@ -71,7 +71,8 @@ def plan(lo, hi, boxes: np.ndarray, names: list[str], size: float, overlap: floa
     tiles = []
     for j in range(counts[1]):
         for i in range(counts[0]):
-            core = [*_cut(lo, hi, counts, (i, j), 0), *_cut(lo, hi, counts, (i, j), 1)]
+            (x0, x1), (y0, y1) = (_cut(lo, hi, counts, (i, j), axis) for axis in (0, 1))
+            core = [x0, y0, x1, y1]
             outer = [core[0] - overlap, core[1] - overlap, core[2] + overlap, core[3] + overlap]
             seen = _share_inside(boxes, outer)
             photos = tuple(n for n, s in zip(names, seen) if s >= MIN_SEEN)
@@ -105,17 +106,25 @@ def inside(xy: np.ndarray, box) -> np.ndarray:
 
 def merge(beds: list[np.ndarray], tiles: list[Tile], resolution: float) -> tuple[np.ndarray, np.ndarray, dict]:
     """One bed from the tiles' beds (each [G_t, 3] cell centres and heights in the same frame, on one grid of
-    `resolution`): each cell from the tile whose core holds it. Returns (grid [G, 3], tile index [G], the
-    report: cells per tile, and for each pair of neighbouring tiles the cells both made and their height
-    difference's median, rms and p95 of its absolute value, in metres)."""
-    kept, owner, report, keys = [], [], {"cells": {}, "overlap": []}, []
-    for tile, bed in zip(tiles, beds):
-        mine = inside(bed[:, :2], tile.core)
-        kept.append(bed[mine])
-        owner.append(np.full(int(mine.sum()), tile.index))
-        report["cells"][str(tile.index)] = int(mine.sum())
+    `resolution`): each cell from the tile whose core holds it, or, where that tile left it empty, from the
+    first other tile that made it (the overlap fills a hole at a seam). Returns (grid [G, 3], the tile each
+    cell came from [G], the report: cells per tile, the holes filled, and for each pair of tiles that made
+    common cells their number and the height difference's median, rms and p95 of its absolute value, m)."""
+    keys = []  # each bed holds a cell once (one extracted point per cell)
+    for bed in beds:
         ij = np.round(bed[:, :2] / resolution).astype(np.int64)  # the cell's integer index on the common grid
         keys.append(((ij[:, 0] + 2**31) << 32) + (ij[:, 1] + 2**31))
+    mine = [inside(bed[:, :2], tile.core) for tile, bed in zip(tiles, beds)]
+    taken = np.unique(np.concatenate([k[m] for k, m in zip(keys, mine)])) if beds else np.zeros(0, np.int64)
+    kept, owner, report = [], [], {"cells": {}, "filled": 0, "overlap": []}
+    for tile, bed, key, m in zip(tiles, beds, keys, mine):
+        fill = ~m & ~np.isin(key, taken)
+        taken = np.union1d(taken, key[fill])
+        use = m | fill
+        kept.append(bed[use])
+        owner.append(np.full(int(use.sum()), tile.index))
+        report["cells"][str(tile.index)] = int(use.sum())
+        report["filled"] += int(fill.sum())
     for a in range(len(tiles)):
         for b in range(a + 1, len(tiles)):
             _, ia, ib = np.intersect1d(keys[a], keys[b], assume_unique=True, return_indices=True)

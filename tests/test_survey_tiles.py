@@ -1,0 +1,160 @@
+"""A survey split into tiles (`survey.tiles`): the footprints from physics, the layout's partition of the
+plane, the merge's one cell per tile and its seams, and `ragsplat survey --tile-size` end to end, in this
+process and as Dask tasks on a local cluster whose worker is killed mid-task."""
+
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+from test_survey import args, finished, survey  # noqa: F401 (fixtures)
+
+from ragsplat_core.camera import Camera
+from ragsplat_core.cli.main import main
+from ragsplat_core.refraction import WaterSurface
+from ragsplat_core.survey import tiles
+
+
+def test_a_nadir_footprint_is_the_field_of_view_at_the_water():
+    """A nadir camera h above the water sees h tan(fov / 2) either side; an oblique one's box lies ahead of it;
+    on a sloping surface the height is the surface's below the camera."""
+    cams = [Camera.look_at([1.0, 2.0, 5.0], [1.0, 2.0, 0.0], 200, 100, 60.0),
+            Camera.look_at([0.0, 0.0, 5.0], [5.0, 0.0, 0.0], 200, 100, 60.0, up=(0.0, 0.0, 1.0))]
+    R = np.stack([c.R for c in cams])
+    C = np.stack([c.camera_center for c in cams])
+    K = np.array([[c.fx, c.fy, c.cx, c.cy] for c in cams])
+    sizes = np.array([[200, 100]] * 2, float)
+    water = WaterSurface(1.0, 1.33)  # 4 m below the cameras
+    box = tiles.footprints(R, C, K, sizes, water)
+    half_x, half_y = 4.0 * 100 / cams[0].fx, 4.0 * 50 / cams[0].fy
+    np.testing.assert_allclose(box[0], [1 - half_x, 2 - half_y, 1 + half_x, 2 + half_y], atol=1e-9)
+    assert box[1][0] > 0 and box[1][2] > 4.0 and box[1][2] <= tiles.MAX_REACH * 4.0 + 1e-9
+    sloping = tiles.footprints(R[:1], C[:1], K[:1], sizes[:1], WaterSurface(1.0, 1.33, (0.1, 0.0)))
+    h = 5.0 - (1.0 + 0.1 * 1.0)  # the surface's height below the camera
+    np.testing.assert_allclose(sloping[0, 2] - sloping[0, 0], 2 * h * 100 / cams[0].fx, atol=1e-9)
+
+
+def test_the_tiles_partition_the_plane_and_hold_the_photos_that_see_them():
+    rng = np.random.default_rng(0)
+    centres = np.column_stack([np.linspace(0, 100, 60), rng.uniform(-5, 5, 60)])
+    boxes = np.column_stack([centres - 8.0, centres + 8.0])  # 16 m footprints along a 100 m reach
+    names = [f"{k:03d}.jpg" for k in range(60)]
+    one = tiles.plan([0, -10], [100, 10], boxes, names, 120.0, 5.0)
+    assert len(one) == 1 and one[0].photos == tuple(names) and not np.isfinite(one[0].core).any()
+    plan = tiles.plan([0, -10], [100, 10], boxes, names, 40.0, 4.0)
+    assert [t.grid for t in plan] == [(0, 0), (1, 0), (2, 0)]
+    points = rng.uniform([-50, -50], [150, 50], (10_000, 2))
+    owners = np.stack([tiles.inside(points, t.core) for t in plan])
+    assert (owners.sum(0) == 1).all()  # every point of the plane in exactly one core, the far field included
+    middle = plan[1]
+    assert middle.core[0] == pytest.approx(100 / 3) and middle.outer[0] == pytest.approx(100 / 3 - 4)
+    for t in plan:  # a photo joins when a tenth of its footprint lies in the outer box
+        share = tiles._share_inside(boxes, [max(v, -1e9) if k < 2 else min(v, 1e9) for k, v in enumerate(t.outer)])
+        assert set(t.photos) == {n for n, s in zip(names, share) if s >= tiles.MIN_SEEN}
+    assert set().union(*(t.photos for t in plan)) == set(names)
+
+
+def test_the_merge_takes_each_cell_from_its_core_and_measures_the_overlap():
+    plan = tiles.plan([0, 0], [2, 1], np.zeros((0, 4)), [], 1.0, 0.25)  # two tiles, x = 1 between them
+    step = 0.05
+    xs = np.arange(-10, 50) * step
+    left = np.array([(x, 0.5, 0.0) for x in xs if x < 1.25 + 1e-9])
+    right = np.array([(x, 0.5, 0.01) for x in xs if x > 0.75 - 1e-9])  # 1 cm higher
+    grid, owner, report = tiles.merge([left, right], plan, step)
+    assert len(grid) == len(xs) and len(np.unique(np.round(grid[:, 0] / step))) == len(xs)
+    np.testing.assert_array_equal(owner, (grid[:, 0] >= 1.0).astype(int))
+    assert grid[owner == 1, 2].min() == 0.01 and grid[owner == 0, 2].max() == 0.0 and report["filled"] == 0
+    (pair,) = report["overlap"]
+    assert pair["tiles"] == [0, 1] and pair["cells"] == 11
+    assert pair["median_m"] == pytest.approx(-0.01) and pair["rms_m"] == pytest.approx(0.01)
+    holed = left[np.abs(left[:, 0] - 0.5) > 1e-9]  # the left tile left x = 0.5 empty: nobody made it
+    right_hole = right[np.abs(right[:, 0] - 1.1) > 1e-9]  # the right tile left x = 1.1: the left one's is used
+    grid, owner, report = tiles.merge([holed, right_hole], plan, step)
+    assert len(grid) == len(xs) - 1 and report["filled"] == 1
+    assert owner[np.isclose(grid[:, 0], 1.1)].tolist() == [0]
+
+
+@pytest.fixture(scope="module")
+def tiled(survey, finished, tmp_path_factory):  # noqa: F811
+    """The synthetic survey again from the finished run's poses, in tiles of 3 m (2 x 2 over its 5.8 m)
+    trained here one after another, and what it printed."""
+    import contextlib
+    import io
+
+    out = tmp_path_factory.mktemp("tiled") / "run"
+    _reuse_poses(finished[0], out)
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        assert main(args(survey, out, "--tile-size", "3", "--jobs", "1")) == 0, err.getvalue()
+    return out, err.getvalue()
+
+
+def _reuse_poses(run, out):
+    """A run folder with `run`'s stages up to the water (its poses), so that only the training is new."""
+    out.mkdir(parents=True)
+    for name in ("sfm", "model"):
+        shutil.copytree(run / name, out / name)
+    for name in (".ragsplat", "stages.json", "georef.json", "water.json"):
+        shutil.copy(run / name, out / name)
+
+
+def test_a_tiled_survey_gives_one_cell_per_tile_and_seams_that_agree(survey, finished, tiled):  # noqa: F811
+    out, err = tiled
+    report = json.loads((out / "tiles.json").read_text())
+    assert len(report["tiles"]) == 4 and "4 tiles of at most 3.0 m" in err
+    assert all(t["photos"] >= 3 for t in report["tiles"])
+    import laspy
+
+    las = laspy.read(out / "bed.laz")
+    xy = np.column_stack([las.x, las.y])
+    assert len(np.unique(np.round(xy / 0.05), axis=0)) == len(xy)  # no cell twice
+    assert len(xy) == sum(report["cells"].values())
+    single = laspy.read(finished[0] / "bed.laz")
+    ours = {tuple(k): z for k, z in zip(np.round(xy / 0.05).astype(int), las.z)}
+    theirs = {tuple(k): z for k, z in zip(np.round(np.column_stack([single.x, single.y]) / 0.05).astype(int),
+                                          single.z)}
+    assert len(ours) > 0.9 * len(theirs)  # the tiles cover what one training covers
+    # each seam's overlap agrees as well as two trainings of the whole survey (tiled and not) agree
+    common = ours.keys() & theirs.keys()
+    dz = np.array([ours[k] - theirs[k] for k in common])
+    spread = math.sqrt(np.mean(dz**2))
+    assert report["overlap"] and all(p["rms_m"] < 2 * spread + 0.01 for p in report["overlap"])
+
+
+def test_tiles_on_dask_workers_one_killed_give_the_same_products(survey, tiled, tmp_path):  # noqa: F811
+    """`--jobs 2` for real (a local cluster of two worker processes): a SIGKILL of a worker training a tile
+    does not end the command: Dask runs the tile again on a worker, which resumes from its checkpoint; the
+    merged products are those of the tiles trained one after another in one process (to round-off: one
+    thread per worker there, two here)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import laspy
+
+    out = tmp_path / "run"
+    _reuse_poses(tiled[0], out)
+    argv = [sys.executable, "-m", "ragsplat_core.cli.main", *args(survey, out, "--tile-size", "3", "--jobs", "2")]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    victim, deadline = None, time.time() + 300
+    while victim is None and time.time() < deadline and proc.poll() is None:
+        for log in out.glob("tiles/*/log.txt"):  # a tile a worker is training: its pid in the first line
+            lines = log.read_text().splitlines()
+            if len(lines) > 2 and "step" in lines[-1]:
+                victim = (int(lines[0].rsplit(" ", 1)[1]), log)
+                break
+        time.sleep(0.01)
+    assert victim is not None, proc.communicate()
+    pid, log = victim
+    os.kill(pid, signal.SIGKILL)
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err
+    workers = {line for line in log.read_text().splitlines() if "worker process" in line}
+    assert len(workers) == 2, log.read_text()  # the tile began again on another worker
+    ours, theirs = laspy.read(out / "bed.laz"), laspy.read(tiled[0] / "bed.laz")
+    assert len(ours.x) == len(theirs.x)
+    np.testing.assert_allclose(np.column_stack([ours.x, ours.y]), np.column_stack([theirs.x, theirs.y]))
+    np.testing.assert_allclose(ours.z, theirs.z, atol=0.002)
