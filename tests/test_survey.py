@@ -259,3 +259,16 @@ def test_a_sloping_surface_from_the_edge_points(tmp_path, capsys):
     upstream, downstream = xy[:, 0] < -1, xy[:, 0] > 1
     assert np.median(np.abs(err)) < 0.08  # 4.2 cm after the smoke preset's 150 steps
     assert abs(np.median(err[upstream]) - np.median(err[downstream])) < 0.04
+
+
+def test_edge_points_in_another_frame_are_refused(survey, tmp_path, capsys):
+    """Edge points in a local frame beside positions in UTM (or the reverse) are refused in one line before any
+    work, not taken for a survey kilometres wide."""
+    edge = tmp_path / "edge.csv"
+    edge.write_text("x,y,z\n" + "".join(f"{500000 + x},{5100000 + y},0\n" for x, y in
+                                        [(-2, -2), (2, -2), (2, 2), (-2, 2), (0, 3)]))
+    argv = args(survey, tmp_path / "run")
+    argv[argv.index("--water-level"):argv.index("--water-level") + 2] = ["--water-surface", str(edge)]
+    assert main(argv) == 2
+    assert "m from the photos' positions: give them in the same frame" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()

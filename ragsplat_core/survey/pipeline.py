@@ -212,6 +212,9 @@ def run(cfg: SurveyConfig, progress: Progress | None = None, cluster=None) -> li
     edge = edge_points = None
     if cfg.water_surface is not None:
         edge_points = layout.read_points(cfg.water_surface)
+        frame = np.array(list((positions or control).values()), float)
+        _check_near(edge_points, frame, cfg.water_surface, "the photos' positions" if control is None else
+                    f"the ground control ({cfg.gcp})", cfg.crs)
         edge = water_fit.fit_edge(edge_points)
         surface = WaterSurface(edge.level, cfg.n, edge.slope, edge.profile)
         progress.say("check", f"water surface from {len(edge.residuals)} edge points: {_describe(surface)}, rms "
@@ -668,6 +671,22 @@ def _describe(water) -> str:
                 f"of {len(water.profile.stations)} stations along the reach ({water.level:.3f} m at x = y = 0)")
     return (f"a plane falling {100 * (water.slope[0] ** 2 + water.slope[1] ** 2) ** 0.5:.2f} % (slope "
             f"{water.slope[0]:+.5f}, {water.slope[1]:+.5f}; {water.level:.3f} m at x = y = 0)")
+
+
+def _check_near(points, frame, source: Path, what: str, crs: str | None) -> None:
+    """ConfigError when `points` [N, 3] lie far from the survey `frame` [M, 3] (the positions or targets): more
+    than a kilometre, and ten times the frame's extent, from its centre, they are in another frame (e.g. a
+    local one beside EXIF positions in UTM)."""
+    import numpy as np
+
+    from ragsplat_core.errors import ConfigError
+
+    centre = frame[:, :2].mean(0)
+    extent = float(np.ptp(frame[:, :2], axis=0).max()) if len(frame) > 1 else 0.0
+    far = float(np.linalg.norm(points[:, :2].mean(0) - centre))
+    if far > max(1000.0, 10 * extent):
+        raise ConfigError(f"{source}: its points lie {far:.0f} m from {what}: give them in the same frame"
+                          + (f" ({crs})" if crs else ""))
 
 
 def _check_above(water, centres) -> None:
