@@ -28,6 +28,12 @@ A river's surface slopes: `WaterSurface.slope` makes it the tilted plane z = lev
 depends on the interface's normal alone, so the tilted transform is the flat one in the plane's own frame,
 exactly: rotate the world so that the normal is +z, transform, rotate back (`plane_frame`). Gradients reach
 the slope through the rotation as they reach the level.
+
+Water absorbs along the light's path (issue 50): from P to the interface the bent ray runs L = d / cos(theta_w)
+in the water. With t = r alpha = tan(theta_a), sin(theta_w) = t / (n sqrt(1 + t^2)), so cos(theta_w) =
+D / (n sqrt(1 + t^2)) and L = d n sqrt(1 + t^2) / D (`water_paths`), the solve's alpha reused; at n = 1 it is
+the straight ray's share below the level, d sqrt(1 + t^2). `refract_gaussians(attenuation=c)` multiplies a
+submerged Gaussian's radiance by exp(-c L) per channel.
 """
 
 from __future__ import annotations
@@ -315,7 +321,10 @@ def solve_alpha(r2, d, H, n, steps: int | None = None):
 
 def apparent_offsets(r2, d, H, n, steps: int | None = None):
     """(rho = r'/r, apparent depth d') for broadcast r2 [N], d [N], H, n. See the module docstring."""
-    alpha = solve_alpha(r2, d, H, n, steps)
+    return _offsets(solve_alpha(r2, d, H, n, steps), r2, d, H, n)
+
+
+def _offsets(alpha, r2, d, H, n):  # (rho, d') [N] from the solved alpha [N]
     D = torch.sqrt(n * n + (n - 1) * (n + 1) * r2 * alpha * alpha)
     d_app = d * n * n / D**3
     return alpha * (H + d_app), d_app
@@ -337,6 +346,28 @@ def _local(points, camera_center, water) -> _Local:
     C = torch.as_tensor(camera_center, dtype=points.dtype, device=points.device)
     v = points[:, :2] - C[..., :2]  # C [3], or [M, 3]: a camera per point (the curved surface's own frames)
     return _Local(v, (v * v).sum(-1), level - points[:, 2], C[..., 2] - level, n, C[..., :2], level)
+
+
+def _path_lengths(loc: _Local, alpha):  # [M] in-water length of the bent ray, d / cos(theta_w) (module docstring)
+    t2 = loc.r2 * alpha * alpha  # tan^2(theta_a)
+    D = torch.sqrt(loc.n * loc.n + (loc.n - 1) * (loc.n + 1) * t2)
+    return loc.d * loc.n * torch.sqrt(1 + t2) / D
+
+
+def water_paths(points, camera_center, water: WaterSurface, steps: int | None = None):
+    """[N] length (m) of the light path inside the water from points [N, 3] to the surface, along the ray
+    that reaches camera_center [3] (refracted at the surface: d / cos(theta_w) under a flat one); 0 at or
+    above the surface. A tilted or curved surface: the flat length in its frame(s), as `apparent_points`.
+    Gradients reach the points, the camera and the water. Raises ValueError for a camera not above the water."""
+    _check_camera(camera_center, water)
+    C = torch.as_tensor(camera_center, dtype=points.dtype, device=points.device)
+    if water.tilted or water.curved:  # a length is the same in any frame
+        R, p0 = _frames(water, points)
+        points, C, water = _into(R, p0, points), _into(R, p0, C), _flat_in_plane(water)
+    wet = _submerged(points, water)
+    loc = _local(points[wet], C[wet] if C.dim() == 2 else C, water)  # C [N, 3]: a curved surface's frames
+    L = _path_lengths(loc, solve_alpha(loc.r2, loc.d, loc.H, loc.n, steps))
+    return torch.zeros_like(points[:, 0]).index_put((wet,), L)
 
 
 def _place(loc: _Local, rho, d_app):  # [M, 3] apparent points from r'/r and d'
@@ -406,8 +437,9 @@ def apparent_points_each(points, centers, water: WaterSurface, steps: int | None
 
 
 class _Derivatives(NamedTuple):
-    """rho, d' and their total derivatives w.r.t. r2 and d, for the submerged points [M]."""
+    """alpha, rho, d' and the total derivatives of rho and d' w.r.t. r2 and d, for the submerged points [M]."""
 
+    alpha: torch.Tensor
     rho: torch.Tensor
     d_app: torch.Tensor
     rho_r2: torch.Tensor
@@ -433,7 +465,7 @@ def _derivatives(loc: _Local, steps: int | None) -> _Derivatives:
     dapp_r2 = -3 * d_app / D * D_r2
     dapp_d = n2 / D3 - 3 * d_app / D * D_d
     rho = alpha * slope
-    return _Derivatives(rho, d_app, alpha_r2 * slope + alpha * dapp_r2, alpha_d * slope + alpha * dapp_d,
+    return _Derivatives(alpha, rho, d_app, alpha_r2 * slope + alpha * dapp_r2, alpha_d * slope + alpha * dapp_d,
                         dapp_r2, dapp_d)
 
 
@@ -495,7 +527,8 @@ class ApparentGaussians(NamedTuple):
 
 def refract_gaussians(means, scales, quats, opacities, colors, camera_center, water: WaterSurface,
                       position: bool = True, scale: str = "isotropic", opacity: bool = True,
-                      color: bool = False, steps: int | None = None, covariances: bool = True) -> ApparentGaussians:
+                      color: bool = False, steps: int | None = None, covariances: bool = True,
+                      attenuation: torch.Tensor | None = None) -> ApparentGaussians:
     """Map true Gaussians to the apparent ones one camera sees through the water (RA-GS, per view).
 
     means [N, 3], scales [N, 3] (linear), quats [N, 4] (wxyz), opacities [N] in [0, 1], colors [N, ...]
@@ -505,6 +538,9 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
     as given; `covariances=False`: the Jacobians alone, which is all a surfel's tangents need).
     Opacity: alpha' = alpha / n^2. Colour: radiance / n^2 in linear light, re-encoded to sRGB. Within
     `WATERLINE_BAND` of the level each factor (S, J, 1 / n^2) blends from 1 (`waterline_weight`).
+    `attenuation`: the water's attenuation coefficients c [3] (1/m, per channel of linear RGB) or None (nothing
+    computed): each submerged Gaussian's radiance times exp(-c L) in linear light, L its in-water path
+    (`water_paths`), which tends to 0 at the level and needs no blend; at n = 1 it alone applies.
     """
     if scale not in SCALE_MODES:
         raise ValueError(f"scale must be one of {SCALE_MODES}, got {scale!r}")
@@ -514,10 +550,12 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
         covars = covariance(quats, scales) if covariances else None
         jacobians = torch.eye(3, dtype=means.dtype, device=means.device).expand(len(means), 3, 3)
     if water.is_identity or not (position or opacity or color or scale != "none"):
-        return ApparentGaussians(means, scales, quats, opacities, colors, covars, jacobians)
+        if attenuation is None:
+            return ApparentGaussians(means, scales, quats, opacities, colors, covars, jacobians)
+        position, scale, opacity, color = False, "none", False, False  # the geometry is the identity: absorb only
     if water.tilted or water.curved:
         return _refract_in_frames(*_frames(water, means), means, scales, quats, opacities, colors, camera_center,
-                                  water, position, scale, opacity, color, steps, covars)
+                                  water, position, scale, opacity, color, steps, covars, attenuation)
     wet = _submerged(means, water)
     rows = _wet_rows(wet)  # found once: a boolean index searches every time
     all_wet = rows is None
@@ -530,12 +568,13 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
 
     level = torch.as_tensor(water.level, dtype=means.dtype, device=means.device)
     w = waterline_weight(level - take(means)[:, 2])  # [M]
-    if position or scale != "none":
+    if position or scale != "none" or attenuation is not None:
         per_row = torch.is_tensor(camera_center) and camera_center.dim() == 2  # a curved surface's frames
         loc = _local(take(means), take(camera_center) if per_row else camera_center, water)
         der = _derivatives(loc, steps) if scale != "none" else None
+        alpha = der.alpha if der else solve_alpha(loc.r2, loc.d, loc.H, loc.n, steps)  # one solve for all
         if position:
-            rho, d_app = (der.rho, der.d_app) if der else apparent_offsets(loc.r2, loc.d, loc.H, loc.n, steps)
+            rho, d_app = (der.rho, der.d_app) if der else _offsets(alpha, loc.r2, loc.d, loc.H, loc.n)
             means = put(means, _place(loc, rho, d_app))
         if scale in ("isotropic", "determinant"):
             factor = (_column_norms(loc, der).prod(-1) if scale == "isotropic" else _abs_det(loc, der)) ** (1 / 3)
@@ -549,14 +588,18 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
     fade = _fade(w, water.n)  # [M]
     if opacity:
         opacities = put(opacities, take(opacities) * fade)
-    if color:  # the interface scales radiance, so the factor applies in linear light
-        c = take(colors)
-        colors = put(colors, linear_to_srgb(srgb_to_linear(c) * fade.reshape(-1, *[1] * (c.dim() - 1))))
+    if color or attenuation is not None:  # the interface and the water scale radiance: factors in linear light
+        lin = srgb_to_linear(take(colors))
+        if color:
+            lin = lin * fade.reshape(-1, *[1] * (lin.dim() - 1))
+        if attenuation is not None:  # Beer-Lambert along the bent ray
+            lin = lin * torch.exp(-attenuation * _path_lengths(loc, alpha)[:, None])
+        colors = put(colors, linear_to_srgb(lin))
     return ApparentGaussians(means, scales, quats, opacities, colors, covars, jacobians)
 
 
 def _refract_in_frames(R, p0, means, scales, quats, opacities, colors, camera_center, water, position, scale,
-                       opacity, color, steps, covars) -> ApparentGaussians:
+                       opacity, color, steps, covars, attenuation) -> ApparentGaussians:
     """`refract_gaussians` under a tilted or curved surface, in its frame(s) (`_frames`): the flat transform
     there, positions and Jacobians rotated back (J_world = R^T J_frame R; covariances J Sigma J^T in the world).
     The isotropic and determinant scale factors are the frame's (the determinant is the same in any frame).
@@ -569,7 +612,7 @@ def _refract_in_frames(R, p0, means, scales, quats, opacities, colors, camera_ce
     local = _into(R, p0, means)
     C = _into(R, p0, torch.as_tensor(camera_center, dtype=means.dtype, device=means.device))
     out = refract_gaussians(local, scales, quats, opacities, colors, C, _flat_in_plane(water), position, scale,
-                            opacity, color, steps, covariances=False)
+                            opacity, color, steps, covariances=False, attenuation=attenuation)
     if position:  # rows above the surface keep their coordinates exactly, not rotated there and back
         means = torch.where((local[:, 2] < 0)[:, None], _out_of(R, p0, out.means), means)
     jacobians = None
