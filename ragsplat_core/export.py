@@ -153,6 +153,8 @@ class Model:
     water: WaterSurface | None
     device: torch.device
     backend: str
+    # the water's attenuation coefficients [3] (1/m) training ended with (config.json); None: not trained
+    attenuation: torch.Tensor | None = None
 
     def gaussians(self) -> dict:
         return activated_dict(self.splats)
@@ -165,7 +167,8 @@ class Model:
         with torch.no_grad():
             img, alpha, depth, _ = render_splats(
                 self.splats, camera, center, self.cfg.active_sh_degree(self.cfg.iterations), self.water,
-                self.flags if interface else None, self.cfg.surfels, background, self.backend)
+                self.flags if interface else None, self.cfg.surfels, background, self.backend,
+                attenuation=self.attenuation if interface else None)
         return img.clamp(0, 1), alpha, depth
 
     def median_depth(self, camera: Camera) -> torch.Tensor:  # [H, W], see `trainer.median_depth`
@@ -193,7 +196,9 @@ def load_model(run: Path, data: Path | None = None, splits: tuple[str, ...] = ()
     except ConfigError:  # e.g. trained with gsplat, rendered here without it: the same semantics
         backend = "auto"
     splats = {k: v.to(device) for k, v in splats.items()}
-    return Model(splats, cfg, flags, run_water(meta, ds), device, backend), ds
+    c = meta.get("attenuation_final")
+    attenuation = None if c is None else torch.tensor(c, dtype=torch.float32, device=device)
+    return Model(splats, cfg, flags, run_water(meta, ds), device, backend, attenuation), ds
 
 
 def run_water(meta: dict, ds: Dataset) -> WaterSurface | None:

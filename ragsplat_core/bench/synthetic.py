@@ -84,9 +84,10 @@ def bed_scene(count: int, half: float, depth: float, seed: int = 0, dtype=torch.
 
 
 def render_views(scene: dict[str, torch.Tensor], cameras: list[Camera], water: WaterSurface | None,
-                 backend: str = "auto", background=(0.0, 0.0, 0.0)) -> list[dict]:
+                 backend: str = "auto", background=(0.0, 0.0, 0.0), attenuation=None) -> list[dict]:
     """Render `scene` (from `bed_scene`) from each camera: `image` through the water with the full RA-GS
-    transform (position, isotropic scale, opacity), `dry` without it, and the dry expected `depth`."""
+    transform (position, isotropic scale, opacity; `attenuation`: the water's coefficients [3] in 1/m, or
+    None), `dry` without it, and the dry expected `depth`."""
     from ragsplat_core.rasterize import rasterize
     from ragsplat_core.refraction import refract_gaussians
 
@@ -99,7 +100,8 @@ def render_views(scene: dict[str, torch.Tensor], cameras: list[Camera], water: W
             wet = dry
             if water is not None:
                 c = torch.as_tensor(cam.camera_center, dtype=s["means"].dtype, device=s["means"].device)
-                a = refract_gaussians(s["means"], s["scales"], s["quats"], s["opacities"], s["colors"], c, water)
+                a = refract_gaussians(s["means"], s["scales"], s["quats"], s["opacities"], s["colors"], c, water,
+                                      attenuation=attenuation)
                 wet, _, _, _ = rasterize(a.means, a.quats, a.scales, a.opacities, a.colors, cam, background,
                                          backend=backend)
         out.append({"camera": cam, "image": wet.clamp(0, 1), "dry": dry.clamp(0, 1), "depth": depth})

@@ -25,8 +25,17 @@ VARIANTS: dict[str, dict | None] = {
     # vectors by the refraction Jacobian (t' = J t, the exact first-order map), hence scale="anisotropic".
     "2dgs": None,
     "2dgs+full": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
+    # 2dgs+full with the water's own optics on top (issue 50, `WATER_TERMS`)
+    "2dgs+full+attenuation": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
 }
-SURFELS = frozenset({"2dgs", "2dgs+full"})  # variants rendered as surfels (`rasterize_surfels`)
+SURFELS = frozenset({"2dgs", "2dgs+full", "2dgs+full+attenuation"})  # rendered as surfels (`rasterize_surfels`)
+# variant -> the terms of the water's optics it trains besides the refraction (issue 50); a variant not named
+# here computes none of them. "attenuation": each submerged Gaussian's radiance x exp(-c L) per channel of
+# linear RGB, L its path in the water along the bent ray (`refraction.water_paths`), c optimised per scene.
+WATER_TERMS: dict[str, tuple[str, ...]] = {"2dgs+full+attenuation": ("attenuation",)}
+# The attenuation coefficients' range (1/m), kept by a clamp: natural waters from clear ocean water's blue
+# (about 0.02) to a turbid river's red (a few per metre).
+ATTENUATION_RANGE = (0.01, 5.0)
 # Where the ablation's rows and a survey's training start by default: the training images' tracks, refracted
 # (F1@3% about 20 % from the paper's plane on the reach, which has no single bed depth; docs/evaluation.md)
 INIT = "refracted"
@@ -102,6 +111,12 @@ class TrainConfig:
     # half-built bed absorbs its depth errors (measured on the small reach with 0: a level 10 cm high rose
     # to 20 cm while the bed was still the initial plane, and ended 16 cm high).
     water_warmup: float = 0.5
+    # The attenuation coefficients (variants with "attenuation" in `WATER_TERMS`), trained as log c: the start
+    # (1/m, every channel; a clear river's order) and the Adam rate in log c. Adam moves log c by about its lr a
+    # step, so 1e-2 crosses the range's factor of 500 (6.2 in log) in a fifth of a 3 000-step run and ends
+    # within about 1 % a step of where the images put it.
+    attenuation_start: float = 0.1
+    lr_attenuation: float = 1e-2
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
@@ -140,6 +155,12 @@ class TrainConfig:
                 raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
         if not 0 <= self.water_warmup < 1:
             raise ConfigError(f"water_warmup is a fraction of the run in [0, 1), got {self.water_warmup}")
+        lo, hi = ATTENUATION_RANGE
+        if not lo <= self.attenuation_start <= hi:
+            raise ConfigError(f"attenuation_start is a coefficient in 1/m within [{lo:g}, {hi:g}], got "
+                              f"{self.attenuation_start}")
+        if not (math.isfinite(self.lr_attenuation) and self.lr_attenuation > 0):
+            raise ConfigError(f"lr_attenuation must be > 0, got {self.lr_attenuation}")
 
     @property
     def surfels(self) -> bool:
@@ -154,6 +175,11 @@ class TrainConfig:
     def water_params(self) -> tuple[str, ...]:
         """The WaterSurface fields calibrated in this run."""
         return WATER_PARAMS[self.optimize_water]
+
+    @property
+    def water_terms(self) -> tuple[str, ...]:
+        """The terms of the water's optics this run's variant trains (`WATER_TERMS`)."""
+        return WATER_TERMS.get(self.variant, ())
 
     @property
     def water_start(self) -> int:
@@ -177,6 +203,7 @@ class TrainConfig:
         d = asdict(self)
         d["background"] = list(self.background)
         d["refraction"] = VARIANTS[self.variant]
+        d["water_terms"] = list(self.water_terms)
         d["densify_scaled"] = asdict(self.schedule)
         d["sh_every_scaled"] = self.sh_every
         d["water_start_scaled"] = self.water_start

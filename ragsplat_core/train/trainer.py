@@ -17,8 +17,10 @@ and, once finished, at the end), `ckpt.pt` (latest checkpoint), `point_cloud.ply
 `train_stats.json` (time, Gaussian count, last loss, final water).
 
 The water is the dataset's unless the config overrides its level or n; `optimize_water` calibrates it (own
-Adam, frozen for the warm-up), and `trainer.water` is always the current one. A view with a mask trains on
-its used pixels only.
+Adam, frozen for the warm-up), and `trainer.water` is always the current one. A variant with water terms
+(`WATER_TERMS`, issue 50) also trains the water's attenuation coefficients (`trainer.attenuation`, own Adam on
+log c, clamped to `ATTENUATION_RANGE`), saved in the checkpoint and in config.json (`attenuation_final`, what
+`export.Model` renders with). A view with a mask trains on its used pixels only.
 """
 
 from __future__ import annotations
@@ -52,7 +54,7 @@ from ragsplat_core.refraction import (
 )
 from ragsplat_core.snell import footprint
 from ragsplat_core.ssim import psnr, ssim, ssim_map
-from ragsplat_core.train.config import RUN_ONLY, VARIANTS, TrainConfig
+from ragsplat_core.train.config import ATTENUATION_RANGE, RUN_ONLY, VARIANTS, TrainConfig
 from ragsplat_core.train.strategy import DefaultStrategy
 
 CHECKPOINT = "ckpt.pt"
@@ -67,28 +69,32 @@ SURFEL_THICKNESS = 1e-5  # metres
 
 def view_gaussians(splats, center: torch.Tensor, sh_degree: int, water: WaterSurface | None,
                    flags: dict | None, backend: str = "torch", surfels: bool = False,
-                   compiled: bool = False) -> ApparentGaussians:
+                   compiled: bool = False, attenuation: torch.Tensor | None = None) -> ApparentGaussians:
     """The Gaussians as the rasterizer takes them for the camera at `center` [3]: the true ones (`flags`
     None) or the apparent ones through `water` (RA-GS, `flags` of `refract_gaussians`). With the `cpu`
     backend (what "auto" means on CPU) the view colours come from its SH kernel. `surfels`: no apparent
     covariances (a surfel renders from its mapped tangents, `jacobians`). `compiled`: the transform through
-    `compiled_refract_gaussians` (the same values to round-off)."""
+    `compiled_refract_gaussians` (the same values to round-off). `attenuation`: the water's coefficients [3]
+    (1/m) or None, passed to the transform only when given (a variant without it calls it as before)."""
     scales, quats, opac = activated(splats)
     fast = choose_backend(backend, splats["means"].device) == "cpu"
     colors = colors_for_view(splats, center, sh_degree, fast)
     if flags is None:
         return ApparentGaussians(splats["means"], scales, quats, opac, colors, None, None)
     transform = compiled_refract_gaussians() if compiled else refract_gaussians
-    return transform(splats["means"], scales, quats, opac, colors, center, water, **flags, covariances=not surfels)
+    terms = {} if attenuation is None else {"attenuation": attenuation}
+    return transform(splats["means"], scales, quats, opac, colors, center, water, **flags, covariances=not surfels,
+                     **terms)
 
 
 def render_splats(splats, camera: Camera, center: torch.Tensor, sh_degree: int, water: WaterSurface | None,
-                  flags: dict | None, surfels: bool, background: torch.Tensor, backend: str, compiled: bool = False):
+                  flags: dict | None, surfels: bool, background: torch.Tensor, backend: str, compiled: bool = False,
+                  attenuation: torch.Tensor | None = None):
     """(image [H,W,3], alpha [H,W,1], depth [H,W,1], meta) of `camera` (centre `center` [3]) as training
     renders it (`view_gaussians`, then `rasterize_view`). The trainer and a finished run's renders
     (`export.Model`) share it."""
-    return rasterize_view(view_gaussians(splats, center, sh_degree, water, flags, backend, surfels, compiled), camera,
-                          surfels, background, backend)
+    return rasterize_view(view_gaussians(splats, center, sh_degree, water, flags, backend, surfels, compiled,
+                                         attenuation), camera, surfels, background, backend)
 
 
 def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, background: torch.Tensor, backend: str,
@@ -158,6 +164,14 @@ class Trainer:
         # run as an identity.
         self.flags = None if (flags is None or self._water0 is None or
                               (self._water0.n == 1 and "n" not in self.water_params)) else flags
+        # The water's attenuation, log c [3] (c > 0), only where the water is modelled: otherwise no parameter,
+        # no optimizer, not one op. A resumed run overwrites its values.
+        self.log_attenuation = None
+        if self.flags is not None and "attenuation" in cfg.water_terms:
+            self.log_attenuation = torch.nn.Parameter(torch.full((3,), math.log(cfg.attenuation_start),
+                                                                 device=self.device))
+        self.attenuation_opt = None if self.log_attenuation is None else \
+            torch.optim.Adam([self.log_attenuation], lr=cfg.lr_attenuation, eps=1e-15)
         self.targets = [v.image.to(self.device) for v in self.views]  # [H, W, 3] each
         self.masks = [None if v.mask is None else v.mask.to(self.device) for v in self.views]  # [H, W] bool
         self.centers = [torch.tensor(v.camera.camera_center, dtype=torch.float32, device=self.device)
@@ -307,6 +321,11 @@ class Trainer:
         return self.scene_scale * math.exp((1 - t) * math.log(c.lr_means) + t * math.log(c.lr_means_final))
 
     @property
+    def attenuation(self) -> torch.Tensor | None:
+        """The water's attenuation coefficients c [3] (1/m, linear RGB) as they stand now, None when not trained."""
+        return None if self.log_attenuation is None else self.log_attenuation.detach().exp()
+
+    @property
     def active_sh_degree(self) -> int:
         return self.cfg.active_sh_degree(self.step)
 
@@ -316,9 +335,10 @@ class Trainer:
 
     # ---- rendering ----------------------------------------------------------------------------------
     def _render(self, camera: Camera, center: torch.Tensor, interface: bool, water: WaterSurface | None):
+        attenuation = None if self.log_attenuation is None or not interface else self.log_attenuation.exp()
         return render_splats(self.splats, camera, center, self.active_sh_degree, water,
                              self.flags if interface else None, self.cfg.surfels, self.background, self.cfg.backend,
-                             self.cfg.compile_refraction)
+                             self.cfg.compile_refraction, attenuation)
 
     def render(self, camera: Camera, interface: bool = True):
         """(image [H,W,3], alpha [H,W,1], depth [H,W,1]) of `camera`, no gradients.
@@ -375,6 +395,8 @@ class Trainer:
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
+        if self.attenuation_opt is not None:
+            self._attenuation_step()
         if calibrate:
             self._water_step(step)
         bad = self._nonfinite_report()
@@ -411,8 +433,15 @@ class Trainer:
             loss = loss + c.lambda_normal * used(1 - (info["normals"] * from_depth).sum(-1)).mean()
         return loss
 
-    def _water_named(self):  # (name, parameter) of the calibrated water fields, named as in messages
-        return [(f"water {k}", p) for k, p in self.water_params.items()]
+    def _water_named(self):  # (name, parameter) of the trained water fields and terms, named as in messages
+        terms = [] if self.log_attenuation is None else [("water attenuation (log)", self.log_attenuation)]
+        return [(f"water {k}", p) for k, p in self.water_params.items()] + terms
+
+    def _attenuation_step(self) -> None:
+        self.attenuation_opt.step()
+        self.attenuation_opt.zero_grad(set_to_none=True)
+        with torch.no_grad():  # natural waters' range: no black water, none clearer than the clearest ocean
+            self.log_attenuation.clamp_(*(math.log(c) for c in ATTENUATION_RANGE))
 
     def _water_step(self, step: int) -> None:
         self.water_opt.step()
@@ -428,7 +457,7 @@ class Trainer:
                 count = int((~torch.isfinite(self.splats[name])).sum())
                 return f"non-finite values in parameter '{name}' ({count} of {self.splats[name].numel()})"
         for name, p in self._water_named():
-            if not torch.isfinite(p.detach()):
+            if not torch.isfinite(p.detach()).all():
                 return f"non-finite value of parameter '{name}'"
         return ""
 
@@ -487,10 +516,14 @@ class Trainer:
                 "train_seconds": self.elapsed, "train_cpu_seconds": self.cpu_elapsed,
                 "median_step_seconds": float(np.median(self.step_seconds)) if self.step_seconds else None,
                 "num_gaussians": self.num_gaussians, "refraction": self.flags, "water": self._water_dict(),
+                "attenuation": self._attenuation_list(),
                 **{f"last_{k}": v for k, v in self.last.items() if k != "n"}}
 
     def _water_dict(self) -> dict | None:  # the water as it stands now, as JSON
         return layout.water_json(self.water)
+
+    def _attenuation_list(self) -> list[float] | None:  # c (1/m, linear RGB) as it stands now, as JSON
+        return None if self.attenuation is None else [float(c) for c in self.attenuation]
 
     # ---- persistence -------------------------------------------------------------------------------------
     def _write_config(self) -> None:
@@ -498,6 +531,9 @@ class Trainer:
                 "dataset_fingerprint": self.ds.fingerprint, "scene_scale": self.scene_scale,
                 "water": layout.water_json(self._water0),
                 "water_final": self._water_dict() if self.step >= self.cfg.iterations else None,
+                # the attenuation coefficients (1/m) at the start and, once finished, at the end (renders use it)
+                "attenuation": None if self.attenuation is None else [self.cfg.attenuation_start] * 3,
+                "attenuation_final": self._attenuation_list() if self.step >= self.cfg.iterations else None,
                 "refraction_applied": self.flags,
                 "device": str(self.device),
                 "num_train_views": len(self.views), "versions": versions("torch")}
@@ -512,7 +548,9 @@ class Trainer:
                 "strategy": {k: (v.cpu() if torch.is_tensor(v) else v) for k, v in self.strat_state.items()},
                 "generator": self.gen.get_state(), "order": list(self._order), "last": self.last,
                 "water": {k: p.detach().cpu() for k, p in self.water_params.items()},
-                "water_optimizer": None if self.water_opt is None else self.water_opt.state_dict()}
+                "water_optimizer": None if self.water_opt is None else self.water_opt.state_dict(),
+                "attenuation": None if self.log_attenuation is None else self.log_attenuation.detach().cpu(),
+                "attenuation_optimizer": None if self.attenuation_opt is None else self.attenuation_opt.state_dict()}
         with atomic_path(path) as tmp:  # a kill never leaves a half-written checkpoint
             torch.save(data, tmp)
         return path
@@ -547,6 +585,10 @@ class Trainer:
                 p.copy_(data["water"][k])
         if self.water_opt is not None:
             self.water_opt.load_state_dict(data["water_optimizer"])
+        if self.log_attenuation is not None:  # the same variant: the same terms
+            with torch.no_grad():
+                self.log_attenuation.copy_(data["attenuation"])
+            self.attenuation_opt.load_state_dict(data["attenuation_optimizer"])
         self.strat_state = {k: (v.to(self.device) if torch.is_tensor(v) else v) for k, v in data["strategy"].items()}
         self.step, self.elapsed = int(data["step"]), float(data["elapsed"])
         self.cpu_elapsed = float(data.get("cpu_elapsed", 0.0))
