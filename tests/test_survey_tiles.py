@@ -103,7 +103,7 @@ def test_a_tiled_survey_gives_one_cell_per_tile_and_seams_that_agree(survey, fin
     out, err = tiled
     report = json.loads((out / "tiles.json").read_text())
     assert len(report["tiles"]) == 4 and "4 tiles of at most 3.0 m" in err
-    assert all(t["photos"] >= 3 for t in report["tiles"])
+    assert all(t["photos"] >= 3 and t["run"]["worker_peak_gib"] > 0 for t in report["tiles"])
     import laspy
 
     las = laspy.read(out / "bed.laz")

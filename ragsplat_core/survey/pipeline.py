@@ -486,7 +486,9 @@ def run(cfg: SurveyConfig, progress: Progress | None = None, cluster=None) -> li
                      f"{', '.join(str(len(t.photos)) for t in tiling)} photos ...")
         beds = _train_tiles(cfg, progress, cluster, model, surface, tiling, (lo, hi), key)
         merged = _merge(cfg, surface, tiling, beds, products)
-        write_json(cfg.out / "tiles.json", {**merged, "tiles": [t.to_json() for t in tiling],
+        runs = [json.loads((cfg.out / "tiles" / str(t.index) / "tile.json").read_text()) for t in tiling]
+        write_json(cfg.out / "tiles.json", {**merged, "tiles": [t.to_json() | {"run": r} for t, r in
+                                                                zip(tiling, runs)],
                                             "seconds": time.perf_counter() - t0})
         stamps.mark("export", key)
         progress.say("export", f"{sum(merged['cells'].values())} cells of {cfg.resolution:g} m from {len(tiling)} "
@@ -537,11 +539,14 @@ class TileJob:
 def train_tile(job: TileJob) -> str:
     """Imports, trains (resuming) and extracts one tile; returns the path of its bed (bed.npy: cell centres
     and heights [G, 3] in the CRS, float64), written last and atomically, so a rerun of a finished tile (a
-    retried task, a rerun command) only reads it. Its progress goes to its log.txt."""
+    retried task, a rerun command) only reads it. Its progress goes to its log.txt; its seconds and the
+    worker process's peak memory so far (the largest of the tiles it trained) to tile.json."""
+    import resource
+
     import numpy as np
 
     from ragsplat_core.export import export_run
-    from ragsplat_core.outputs import atomic_path
+    from ragsplat_core.outputs import atomic_path, write_json
     from ragsplat_core.refraction import WaterSurface
 
     folder = Path(job.folder)
@@ -549,12 +554,16 @@ def train_tile(job: TileJob) -> str:
     if bed_path.is_file() and stamp.is_file() and stamp.read_text() == job.key:
         return str(bed_path)
     surface = WaterSurface(**{**job.water, "n": job.cfg.n})
+    t0 = time.perf_counter()
     with open(folder / "log.txt", "a") as log:
         progress = _Log(log)
         progress.say("tile", f"tile {folder.name} on worker process {os.getpid()}")
         _train(job.cfg, progress, folder / "model", folder / "data", folder / "train", surface, job.area)
         bed = export_run(folder / "train", folder / "dem.tif", job.cfg.resolution, bounds=job.bounds)
-        progress.say("export", f"{len(bed.grid)} cells")
+        progress.say("export", f"{len(bed.grid)} cells", t0)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB on Linux -> GiB
+    write_json(folder / "tile.json", {"seconds": time.perf_counter() - t0, "worker_peak_gib": peak,
+                                      "cells": len(bed.grid), "pid": os.getpid()})
     with atomic_path(bed_path) as tmp, open(tmp, "wb") as f:
         np.save(f, bed.absolute())
     stamp.write_text(job.key)
