@@ -347,7 +347,9 @@ def test_water_rays_bend_by_snell_and_meet_at_the_true_point():
 
 
 @pytest.mark.parametrize("flags", [{"scale": "isotropic", "color": True},  # `full` (+ colour)
-                                   {"scale": "anisotropic", "covariances": False}])  # `2dgs+full`'s tangents
+                                   {"scale": "anisotropic", "covariances": False},  # `2dgs+full`'s tangents
+                                   {"scale": "anisotropic", "covariances": False,  # and the water's attenuation
+                                    "attenuation": torch.tensor([0.4, 0.1, 0.05])}])
 def test_compiled_transform_matches_eager_in_values_and_gradients(flags):
     # torch.compile fuses the ops and may reorder their arithmetic: the same values to float32 round-off, not
     # bit-equal. Gaussians above the level, in the waterline band and below, seen off nadir.
