@@ -12,9 +12,9 @@ and checkpoint writes, so error-against-time curves are not inflated by evaluati
 is the CPU time of the process (all threads) over the same steps, and `trainer.step_seconds` the wall
 time of each step (a shared machine moves the wall clock; CPU time and the median step much less).
 
-Outputs in out_dir: `config.json` (resolved config, seed, versions, variant flags, the water at the start
-and, once finished, at the end), `ckpt.pt` (latest checkpoint), `point_cloud.ply` (standard 3DGS PLY),
-`train_stats.json` (time, Gaussian count, last loss, final water).
+Outputs in out_dir: `config.json` (resolved config, seed, versions, variant flags, the water and a variant's
+attenuation at the start and, once finished, at the end), `ckpt.pt` (latest checkpoint), `point_cloud.ply` (standard 3DGS PLY),
+`train_stats.json` (time, Gaussian count, last loss, final water and attenuation).
 
 The water is the dataset's unless the config overrides its level or n; `optimize_water` calibrates it (own
 Adam, frozen for the warm-up), and `trainer.water` is always the current one. A variant with water terms
