@@ -17,6 +17,7 @@ from ragsplat_core.dataset.load import View
 from ragsplat_core.errors import ConfigError
 from ragsplat_core.export import load_model
 from ragsplat_core.refraction import (
+    Profile,
     WaterSurface,
     linear_to_srgb,
     plane_frame,
@@ -89,6 +90,24 @@ def test_tilted_plane_is_the_flat_case_in_its_frame():
     flat = water_paths((p - p0) @ R.T, R @ (CAM - p0), WaterSurface(0.0, 1.33))
     torch.testing.assert_close(water_paths(p, CAM, water), flat, rtol=1e-12, atol=1e-12)
     assert (flat > 0).all()
+
+
+def test_curved_surface_is_each_tangent_plane_and_a_flat_profile_the_plane():
+    g = torch.Generator().manual_seed(4)
+    p = torch.cat([(torch.rand(30, 2, generator=g, dtype=f64) - 0.5) * 40,
+                   -0.5 - 5 * torch.rand(30, 1, generator=g, dtype=f64)], 1)
+    plane = WaterSurface(0.3, 1.33, (-0.01, 0.0))
+    zero = WaterSurface(0.3, 1.33, (-0.01, 0.0), Profile((0.0, 0.0), (1.0, 0.0), (-30.0, 30.0), (0.0, 0.0)))
+    torch.testing.assert_close(water_paths(p, CAM, zero), water_paths(p, CAM, plane), rtol=1e-12, atol=0)
+    riffle = WaterSurface(0.3, 1.33, (-0.01, 0.0), Profile((0.0, 0.0), (1.0, 0.0), (-20, -4, 4, 20),
+                                                           (0.03, 0.03, -0.03, -0.03)))
+    L = water_paths(p, CAM, riffle)
+    for i in (0, 7, 19):  # the plane tangent to the surface above the point, through that surface point
+        xy = p[i:i + 1, :2]
+        sx, sy = (float(v) for v in riffle.gradient(xy)[0])
+        tangent = WaterSurface(float(riffle.height(xy)[0]) - sx * float(xy[0, 0]) - sy * float(xy[0, 1]), 1.33,
+                               (sx, sy))
+        assert float(L[i]) == pytest.approx(float(water_paths(p[i:i + 1], CAM, tangent)[0]), rel=1e-12)
 
 
 def test_gradients_match_finite_differences():
