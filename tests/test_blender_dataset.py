@@ -345,3 +345,23 @@ def test_a_rerun_that_renders_nothing_keeps_the_fingerprint(smoke, tmp_path, cap
     assert "nothing to render" in capsys.readouterr().out
     assert fingerprint(out) == before  # the rows keyed on it stay valid
     assert json.loads((out / "scene.json").read_text())["versions"]["git_commit"] == "an older commit"
+
+
+def test_smoke_long_renders_a_survey_along_the_reach(tmp_path):
+    """The strips flight over a sloping reach, without the lens photos (`RenderSpec.lens`): complete, and its
+    survey holds the training photos, the edge along both banks and no images-lens/ (about 20 s)."""
+    out = tmp_path / "smoke-long"
+    assert main(["dataset", "--preset", "smoke-long", "--out", str(out), "--quiet"]) == 0
+    tf = json.loads((out / "transforms.json").read_text())
+    scene = json.loads((out / "scene.json").read_text())
+    train = [f for f in tf["frames"] if f["split"] == "train"]
+    assert len(train) == scene["flight"]["train_views"] == 72 and tf["water"]["slope"] == [-0.003, 0.0]
+    x = np.array([np.linalg.inv(f["w2c"])[0, 3] for f in train])
+    r = scene["eval_region"]
+    assert x.min() < r["xmin"] / 2 and x.max() > r["xmax"] / 2  # photos along the whole reach
+    survey = out / "survey"
+    assert not (out / "images" / "lens").exists() and not (survey / "images-lens").exists()
+    assert len(list((survey / "images").glob("*.jpg"))) == len(list((survey / "images-gps").glob("*.jpg"))) == 72
+    assert "survey/images-lens" not in json.loads((survey / "survey.json").read_text())["geo"]
+    edge = np.loadtxt(survey / "water_edge.csv", delimiter=",", skiprows=1)
+    assert len(edge) == 30 and (edge[:, 1] < 0).sum() == 15  # 15 a bank
