@@ -34,6 +34,11 @@ in the water. With t = r alpha = tan(theta_a), sin(theta_w) = t / (n sqrt(1 + t^
 D / (n sqrt(1 + t^2)) and L = d n sqrt(1 + t^2) / D (`water_paths`), the solve's alpha reused; at n = 1 it is
 the straight ray's share below the level, d sqrt(1 + t^2). `refract_gaussians(attenuation=c)` multiplies a
 submerged Gaussian's radiance by exp(-c L) per channel.
+
+The water column in front of what a pixel renders adds a veil B_inf (1 - exp(-c_b L)) (backscatter, SeaThru's
+model), L the pixel's path in the water. The rendered depth gives the APPARENT point on the pixel's ray, and
+the apparent depth d' = d n^2 / D^3 inverts in closed form along that ray: L = d' (n^2 - 1 + cos^2 theta_a) /
+(n cos^3 theta_a) (`pixel_water_paths`, no second render); `add_backscatter` adds the veil in linear light.
 """
 
 from __future__ import annotations
@@ -368,6 +373,46 @@ def water_paths(points, camera_center, water: WaterSurface, steps: int | None = 
     loc = _local(points[wet], C[wet] if C.dim() == 2 else C, water)  # C [N, 3]: a curved surface's frames
     L = _path_lengths(loc, solve_alpha(loc.r2, loc.d, loc.H, loc.n, steps))
     return torch.zeros_like(points[:, 0]).index_put((wet,), L)
+
+
+def pixel_water_paths(rays, depth, camera_center, water: WaterSurface):
+    """[...] in-water length (m) of each pixel's light path to the point it renders, from the rendered depth.
+
+    rays [..., 3]: the pixels' world ray directions scaled to unit camera z, depth [...]: the rendered (alpha-
+    normalised) camera z-depth, so that P' = C + depth ray is the APPARENT point the pixel sees; camera_center
+    [3]. Inverting the RA-GS map along the ray (module docstring: d' = d n^2 / D^3 with the ray's own
+    t = tan(theta_a)) gives the true depth d = n d' (cos theta_w / cos theta_a)^3 and the bent path
+    L = d / cos theta_w = d' (n^2 - 1 + cos^2 theta_a) / (n cos^3 theta_a): n d' at nadir, the straight ray's
+    share below the level at n = 1, 0 where P' is at or above the surface (d' <= 0: banks, nothing rendered).
+    A tilted plane: d' and theta_a to its normal (exact, as the transform works in its frame); a curved one:
+    the tangent plane above P' (the transform's is above the true point, a few cm aside). Differentiable in
+    depth, the camera and the water; gradients are finite everywhere (0 where L = 0)."""
+    C = torch.as_tensor(camera_center, dtype=rays.dtype, device=rays.device)
+    p = C + depth[..., None] * rays  # [..., 3] the apparent point
+    if water.tilted or water.curved:
+        g = water.gradient(p[..., :2])  # [..., 2]
+        normal = torch.cat([-g, torch.ones_like(g[..., :1])], -1) / torch.sqrt(1 + (g * g).sum(-1, keepdim=True))
+        d_app = water.depth(p) * normal[..., 2]  # [...] to the (tangent) plane along its normal
+        down = -(rays * normal).sum(-1)
+    else:
+        d_app, down = water.depth(p), -rays[..., 2]
+    cos = down / torch.linalg.vector_norm(rays, dim=-1)  # [...] cos(theta_a) to the normal
+    wet = (d_app > 0) & (cos > 0)
+    cos = torch.where(wet, cos, torch.ones_like(cos))  # finite values and gradients where unused
+    n = torch.as_tensor(water.n, dtype=rays.dtype, device=rays.device)
+    return torch.where(wet, d_app, torch.zeros_like(d_app)) * ((n - 1) * (n + 1) + cos * cos) / (n * cos**3)
+
+
+def add_backscatter(image, alpha, paths, veil, coefficients):
+    """image [..., 3] (sRGB) + the water column's veil B_inf (1 - exp(-c_b L)) in linear light, re-encoded.
+
+    alpha [..., 1] the rendered coverage, paths [...] each pixel's in-water length L (`pixel_water_paths`),
+    veil B_inf [3] (linear radiance of infinitely deep water), coefficients c_b [3] (1/m). The veil is
+    weighted by alpha: a pixel's uncovered share shows the background (the model's stand-in for what it has
+    not built, e.g. random colours that punish holes), which the veil leaves as it is, so that a hole cannot
+    pass for deep water."""
+    lin = srgb_to_linear(image) - alpha * veil * torch.expm1(-coefficients * paths[..., None])
+    return linear_to_srgb(lin)
 
 
 def _place(loc: _Local, rho, d_app):  # [M, 3] apparent points from r'/r and d'
