@@ -31,7 +31,7 @@ from ragsplat_core.rasterize import choose_backend
 from ragsplat_core.refraction import WaterSurface
 from ragsplat_core.surface import ExtractConfig, extract_surface, extract_surface_blocks
 from ragsplat_core.train.config import TrainConfig
-from ragsplat_core.train.trainer import PLY, fades_opacity, median_depth, render_splats
+from ragsplat_core.train.trainer import PLY, backscatter_tensor, fades_opacity, median_depth, render_splats
 
 BATHYMETRIC, GROUND = 40, 2  # ASPRS classes (LAS 1.4 R15): submerged bed ("bathymetric point"), emerged
 LAS_SCALE = 0.001  # metres per integer step of the LAS coordinates
@@ -155,6 +155,8 @@ class Model:
     backend: str
     # the water's attenuation coefficients [3] (1/m) training ended with (config.json); None: not trained
     attenuation: torch.Tensor | None = None
+    # the water's backscatter [2, 3] (B_inf, c_b) training ended with (config.json); None: not trained
+    backscatter: torch.Tensor | None = None
 
     def gaussians(self) -> dict:
         return activated_dict(self.splats)
@@ -168,7 +170,8 @@ class Model:
             img, alpha, depth, _ = render_splats(
                 self.splats, camera, center, self.cfg.active_sh_degree(self.cfg.iterations), self.water,
                 self.flags if interface else None, self.cfg.surfels, background, self.backend,
-                attenuation=self.attenuation if interface else None)
+                attenuation=self.attenuation if interface else None,
+                backscatter=self.backscatter if interface else None)
         return img.clamp(0, 1), alpha, depth
 
     def median_depth(self, camera: Camera) -> torch.Tensor:  # [H, W], see `trainer.median_depth`
@@ -198,7 +201,9 @@ def load_model(run: Path, data: Path | None = None, splits: tuple[str, ...] = ()
     splats = {k: v.to(device) for k, v in splats.items()}
     c = meta.get("attenuation_final")
     attenuation = None if c is None else torch.tensor(c, dtype=torch.float32, device=device)
-    return Model(splats, cfg, flags, run_water(meta, ds), device, backend, attenuation), ds
+    b = meta.get("backscatter_final")
+    backscatter = None if b is None else backscatter_tensor(b, device)
+    return Model(splats, cfg, flags, run_water(meta, ds), device, backend, attenuation, backscatter), ds
 
 
 def run_water(meta: dict, ds: Dataset) -> WaterSurface | None:

@@ -84,12 +84,15 @@ def bed_scene(count: int, half: float, depth: float, seed: int = 0, dtype=torch.
 
 
 def render_views(scene: dict[str, torch.Tensor], cameras: list[Camera], water: WaterSurface | None,
-                 backend: str = "auto", background=(0.0, 0.0, 0.0), attenuation=None) -> list[dict]:
+                 backend: str = "auto", background=(0.0, 0.0, 0.0), attenuation=None,
+                 backscatter=None) -> list[dict]:
     """Render `scene` (from `bed_scene`) from each camera: `image` through the water with the full RA-GS
     transform (position, isotropic scale, opacity; `attenuation`: the water's coefficients [3] in 1/m, or
-    None), `dry` without it, and the dry expected `depth`."""
+    None; `backscatter`: [2, 3] its veil B_inf and coefficients c_b, added as the trainer does, or None),
+    `dry` without it, and the dry expected `depth`."""
     from ragsplat_core.rasterize import rasterize
-    from ragsplat_core.refraction import refract_gaussians
+    from ragsplat_core.refraction import add_backscatter, pixel_water_paths, refract_gaussians
+    from ragsplat_core.train.trainer import pixel_rays
 
     out = []
     for cam in cameras:
@@ -102,7 +105,10 @@ def render_views(scene: dict[str, torch.Tensor], cameras: list[Camera], water: W
                 c = torch.as_tensor(cam.camera_center, dtype=s["means"].dtype, device=s["means"].device)
                 a = refract_gaussians(s["means"], s["scales"], s["quats"], s["opacities"], s["colors"], c, water,
                                       attenuation=attenuation)
-                wet, _, _, _ = rasterize(a.means, a.quats, a.scales, a.opacities, a.colors, cam, background,
-                                         backend=backend)
+                wet, alpha, z, _ = rasterize(a.means, a.quats, a.scales, a.opacities, a.colors, cam, background,
+                                             backend=backend)
+                if backscatter is not None:
+                    paths = pixel_water_paths(pixel_rays(cam, z), z[..., 0], c, water)
+                    wet = add_backscatter(wet, alpha, paths, backscatter[0], backscatter[1])
         out.append({"camera": cam, "image": wet.clamp(0, 1), "dry": dry.clamp(0, 1), "depth": depth})
     return out

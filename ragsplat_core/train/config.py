@@ -27,15 +27,27 @@ VARIANTS: dict[str, dict | None] = {
     "2dgs+full": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
     # 2dgs+full with the water's own optics on top (issue 50, `WATER_TERMS`)
     "2dgs+full+attenuation": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
+    "2dgs+full+backscatter": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
+    "2dgs+full+water": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
 }
-SURFELS = frozenset({"2dgs", "2dgs+full", "2dgs+full+attenuation"})  # rendered as surfels (`rasterize_surfels`)
+# rendered as surfels (`rasterize_surfels`)
+SURFELS = frozenset({"2dgs", "2dgs+full", "2dgs+full+attenuation", "2dgs+full+backscatter", "2dgs+full+water"})
 # variant -> the terms of the water's optics it trains besides the refraction (issue 50); a variant not named
 # here computes none of them. "attenuation": each submerged Gaussian's radiance x exp(-c L) per channel of
 # linear RGB, L its path in the water along the bent ray (`refraction.water_paths`), c optimised per scene.
-WATER_TERMS: dict[str, tuple[str, ...]] = {"2dgs+full+attenuation": ("attenuation",)}
+# "backscatter": each pixel + the water column's veil B_inf (1 - exp(-c_b L)) in linear RGB, L its path in the
+# water to the point it renders (`refraction.pixel_water_paths`, from the rendered depth), B_inf and c_b
+# optimised per scene. "2dgs+full+water": both.
+WATER_TERMS: dict[str, tuple[str, ...]] = {"2dgs+full+attenuation": ("attenuation",),
+                                           "2dgs+full+backscatter": ("backscatter",),
+                                           "2dgs+full+water": ("attenuation", "backscatter")}
 # The attenuation coefficients' range (1/m), kept by a clamp: natural waters from clear ocean water's blue
 # (about 0.02) to a turbid river's red (a few per metre).
 ATTENUATION_RANGE = (0.01, 5.0)
+# The backscatter's ranges, kept by clamps: c_b (1/m) as the attenuation's, and B_inf (linear radiance, the
+# images' white = 1) from nearly black ocean water to a milky river's bright veil.
+BACKSCATTER_RANGE = (0.01, 5.0)
+VEIL_RANGE = (1e-3, 1.0)
 # Where the ablation's rows and a survey's training start by default: the training images' tracks, refracted
 # (F1@3% about 20 % from the paper's plane on the reach, which has no single bed depth; docs/evaluation.md)
 INIT = "refracted"
@@ -117,6 +129,12 @@ class TrainConfig:
     # within about 1 % a step of where the images put it.
     attenuation_start: float = 0.1
     lr_attenuation: float = 1e-2
+    # The backscatter (variants with "backscatter" in `WATER_TERMS`), trained as log B_inf and log c_b, every
+    # channel from the same start: a faint veil (0.05 linear, a dark river's; with 0.1 1/m, 0.006 at 1 m depth,
+    # under two 8-bit steps at the bed's mid-greys) that the images raise; the Adam rate as the attenuation's.
+    veil_start: float = 0.05
+    backscatter_start: float = 0.1
+    lr_backscatter: float = 1e-2
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
@@ -161,6 +179,11 @@ class TrainConfig:
                               f"{self.attenuation_start}")
         if not (math.isfinite(self.lr_attenuation) and self.lr_attenuation > 0):
             raise ConfigError(f"lr_attenuation must be > 0, got {self.lr_attenuation}")
+        for name, (lo, hi) in (("veil_start", VEIL_RANGE), ("backscatter_start", BACKSCATTER_RANGE)):
+            if not lo <= getattr(self, name) <= hi:
+                raise ConfigError(f"{name} must lie within [{lo:g}, {hi:g}], got {getattr(self, name)}")
+        if not (math.isfinite(self.lr_backscatter) and self.lr_backscatter > 0):
+            raise ConfigError(f"lr_backscatter must be > 0, got {self.lr_backscatter}")
 
     @property
     def surfels(self) -> bool:

@@ -13,14 +13,18 @@ is the CPU time of the process (all threads) over the same steps, and `trainer.s
 time of each step (a shared machine moves the wall clock; CPU time and the median step much less).
 
 Outputs in out_dir: `config.json` (resolved config, seed, versions, variant flags, the water and a variant's
-attenuation at the start and, once finished, at the end), `ckpt.pt` (latest checkpoint), `point_cloud.ply` (standard 3DGS PLY),
-`train_stats.json` (time, Gaussian count, last loss, final water and attenuation).
+attenuation and backscatter at the start and, once finished, at the end), `ckpt.pt` (latest checkpoint),
+`point_cloud.ply` (standard 3DGS PLY), `train_stats.json` (time, Gaussian count, last loss, final water,
+attenuation and backscatter).
 
 The water is the dataset's unless the config overrides its level or n; `optimize_water` calibrates it (own
 Adam, frozen for the warm-up), and `trainer.water` is always the current one. A variant with water terms
 (`WATER_TERMS`, issue 50) also trains the water's attenuation coefficients (`trainer.attenuation`, own Adam on
-log c, clamped to `ATTENUATION_RANGE`), saved in the checkpoint and in config.json (`attenuation_final`, what
-`export.Model` renders with). A view with a mask trains on its used pixels only.
+log c, clamped to `ATTENUATION_RANGE`) and the water column's backscatter (`trainer.backscatter`: B_inf and c_b,
+own Adam on their logs, clamped to `VEIL_RANGE` and `BACKSCATTER_RANGE`; the veil is added to the render,
+`render_splats`), each only where its variant has it, saved in the checkpoint and in config.json
+(`attenuation_final`, `backscatter_final`: what `export.Model` renders with). A view with a mask trains on its
+used pixels only.
 """
 
 from __future__ import annotations
@@ -48,13 +52,22 @@ from ragsplat_core.rasterize_surfels import depth_normals, rasterize_surfels
 from ragsplat_core.refraction import (
     ApparentGaussians,
     WaterSurface,
+    add_backscatter,
     compiled_refract_gaussians,
     opacity_factor,
+    pixel_water_paths,
     refract_gaussians,
 )
 from ragsplat_core.snell import footprint
 from ragsplat_core.ssim import psnr, ssim, ssim_map
-from ragsplat_core.train.config import ATTENUATION_RANGE, RUN_ONLY, VARIANTS, TrainConfig
+from ragsplat_core.train.config import (
+    ATTENUATION_RANGE,
+    BACKSCATTER_RANGE,
+    RUN_ONLY,
+    VARIANTS,
+    VEIL_RANGE,
+    TrainConfig,
+)
 from ragsplat_core.train.strategy import DefaultStrategy
 
 CHECKPOINT = "ckpt.pt"
@@ -89,12 +102,28 @@ def view_gaussians(splats, center: torch.Tensor, sh_degree: int, water: WaterSur
 
 def render_splats(splats, camera: Camera, center: torch.Tensor, sh_degree: int, water: WaterSurface | None,
                   flags: dict | None, surfels: bool, background: torch.Tensor, backend: str, compiled: bool = False,
-                  attenuation: torch.Tensor | None = None):
+                  attenuation: torch.Tensor | None = None, backscatter: torch.Tensor | None = None):
     """(image [H,W,3], alpha [H,W,1], depth [H,W,1], meta) of `camera` (centre `center` [3]) as training
-    renders it (`view_gaussians`, then `rasterize_view`). The trainer and a finished run's renders
-    (`export.Model`) share it."""
-    return rasterize_view(view_gaussians(splats, center, sh_degree, water, flags, backend, surfels, compiled,
-                                         attenuation), camera, surfels, background, backend)
+    renders it (`view_gaussians`, then `rasterize_view`). `backscatter`: [2, 3] the water's veil B_inf and its
+    coefficients c_b (1/m), or None (nothing computed): the veil along each pixel's path in `water` to the
+    point it renders is added to the image (`refraction.add_backscatter`). The trainer and a finished run's
+    renders (`export.Model`) share it."""
+    img, alpha, depth, meta = rasterize_view(view_gaussians(splats, center, sh_degree, water, flags, backend,
+                                                            surfels, compiled, attenuation),
+                                             camera, surfels, background, backend)
+    if backscatter is not None:
+        paths = pixel_water_paths(pixel_rays(camera, depth), depth[..., 0], center, water)  # [H, W]
+        img = add_backscatter(img, alpha, paths, backscatter[0], backscatter[1])
+    return img, alpha, depth, meta
+
+
+def pixel_rays(camera: Camera, like: torch.Tensor) -> torch.Tensor:
+    """[H, W, 3] world directions of the rays through the pixel centres, scaled to unit camera z (a rendered
+    z-depth times them reaches the point from the centre); `like` gives dtype and device."""
+    v, u = torch.meshgrid(torch.arange(camera.height, dtype=like.dtype, device=like.device) + 0.5,
+                          torch.arange(camera.width, dtype=like.dtype, device=like.device) + 0.5, indexing="ij")
+    center = torch.as_tensor(camera.camera_center, dtype=like.dtype, device=like.device)
+    return camera.unproject(torch.stack([u, v], -1), torch.ones_like(u)) - center
 
 
 def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, background: torch.Tensor, backend: str,
@@ -110,6 +139,15 @@ def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, backgrou
     tangents = None if g.jacobians is None else g.jacobians @ surfel_tangents(g.quats, g.scales[:, :2], fast)
     return rasterize_surfels(g.means, g.quats, g.scales[:, :2], g.opacities, g.colors, camera, background,
                              tangents=tangents, backend=backend)
+
+
+def backscatter_json(backscatter: torch.Tensor) -> dict:
+    """[2, 3] (B_inf, c_b) as config.json and train_stats.json write it (`backscatter_tensor` reads it)."""
+    return {"veil": [float(b) for b in backscatter[0]], "coefficients": [float(c) for c in backscatter[1]]}
+
+
+def backscatter_tensor(d: dict, device) -> torch.Tensor:  # [2, 3] float32 from `backscatter_json`'s dict
+    return torch.tensor([d["veil"], d["coefficients"]], dtype=torch.float32, device=device)
 
 
 def fades_opacity(flags: dict | None) -> bool:
@@ -172,6 +210,13 @@ class Trainer:
                                                                  device=self.device))
         self.attenuation_opt = None if self.log_attenuation is None else \
             torch.optim.Adam([self.log_attenuation], lr=cfg.lr_attenuation, eps=1e-15)
+        # The backscatter, log [B_inf, c_b] [2, 3] (both > 0), on the same terms.
+        self.log_backscatter = None
+        if self.flags is not None and "backscatter" in cfg.water_terms:
+            start = torch.tensor([[cfg.veil_start] * 3, [cfg.backscatter_start] * 3], device=self.device)
+            self.log_backscatter = torch.nn.Parameter(start.log())
+        self.backscatter_opt = None if self.log_backscatter is None else \
+            torch.optim.Adam([self.log_backscatter], lr=cfg.lr_backscatter, eps=1e-15)
         self.targets = [v.image.to(self.device) for v in self.views]  # [H, W, 3] each
         self.masks = [None if v.mask is None else v.mask.to(self.device) for v in self.views]  # [H, W] bool
         self.centers = [torch.tensor(v.camera.camera_center, dtype=torch.float32, device=self.device)
@@ -326,6 +371,12 @@ class Trainer:
         return None if self.log_attenuation is None else self.log_attenuation.detach().exp()
 
     @property
+    def backscatter(self) -> torch.Tensor | None:
+        """[2, 3] the water's veil B_inf (linear RGB) and its coefficients c_b (1/m) as they stand now, None when
+        not trained."""
+        return None if self.log_backscatter is None else self.log_backscatter.detach().exp()
+
+    @property
     def active_sh_degree(self) -> int:
         return self.cfg.active_sh_degree(self.step)
 
@@ -336,9 +387,10 @@ class Trainer:
     # ---- rendering ----------------------------------------------------------------------------------
     def _render(self, camera: Camera, center: torch.Tensor, interface: bool, water: WaterSurface | None):
         attenuation = None if self.log_attenuation is None or not interface else self.log_attenuation.exp()
+        backscatter = None if self.log_backscatter is None or not interface else self.log_backscatter.exp()
         return render_splats(self.splats, camera, center, self.active_sh_degree, water,
                              self.flags if interface else None, self.cfg.surfels, self.background, self.cfg.backend,
-                             self.cfg.compile_refraction, attenuation)
+                             self.cfg.compile_refraction, attenuation, backscatter)
 
     def render(self, camera: Camera, interface: bool = True):
         """(image [H,W,3], alpha [H,W,1], depth [H,W,1]) of `camera`, no gradients.
@@ -397,6 +449,8 @@ class Trainer:
             opt.zero_grad(set_to_none=True)
         if self.attenuation_opt is not None:
             self._attenuation_step()
+        if self.backscatter_opt is not None:
+            self._backscatter_step()
         if calibrate:
             self._water_step(step)
         bad = self._nonfinite_report()
@@ -435,6 +489,7 @@ class Trainer:
 
     def _water_named(self):  # (name, parameter) of the trained water fields and terms, named as in messages
         terms = [] if self.log_attenuation is None else [("water attenuation (log)", self.log_attenuation)]
+        terms += [] if self.log_backscatter is None else [("water backscatter (log)", self.log_backscatter)]
         return [(f"water {k}", p) for k, p in self.water_params.items()] + terms
 
     def _attenuation_step(self) -> None:
@@ -442,6 +497,13 @@ class Trainer:
         self.attenuation_opt.zero_grad(set_to_none=True)
         with torch.no_grad():  # natural waters' range: no black water, none clearer than the clearest ocean
             self.log_attenuation.clamp_(*(math.log(c) for c in ATTENUATION_RANGE))
+
+    def _backscatter_step(self) -> None:
+        self.backscatter_opt.step()
+        self.backscatter_opt.zero_grad(set_to_none=True)
+        with torch.no_grad():  # natural waters' ranges (config)
+            for row, bounds in enumerate((VEIL_RANGE, BACKSCATTER_RANGE)):
+                self.log_backscatter[row].clamp_(*(math.log(b) for b in bounds))
 
     def _water_step(self, step: int) -> None:
         self.water_opt.step()
@@ -516,7 +578,7 @@ class Trainer:
                 "train_seconds": self.elapsed, "train_cpu_seconds": self.cpu_elapsed,
                 "median_step_seconds": float(np.median(self.step_seconds)) if self.step_seconds else None,
                 "num_gaussians": self.num_gaussians, "refraction": self.flags, "water": self._water_dict(),
-                "attenuation": self._attenuation_list(),
+                "attenuation": self._attenuation_list(), "backscatter": self._backscatter_dict(),
                 **{f"last_{k}": v for k, v in self.last.items() if k != "n"}}
 
     def _water_dict(self) -> dict | None:  # the water as it stands now, as JSON
@@ -524,6 +586,9 @@ class Trainer:
 
     def _attenuation_list(self) -> list[float] | None:  # c (1/m, linear RGB) as it stands now, as JSON
         return None if self.attenuation is None else [float(c) for c in self.attenuation]
+
+    def _backscatter_dict(self) -> dict | None:  # B_inf (linear RGB) and c_b (1/m) as they stand now, as JSON
+        return None if self.backscatter is None else backscatter_json(self.backscatter)
 
     # ---- persistence -------------------------------------------------------------------------------------
     def _write_config(self) -> None:
@@ -534,6 +599,10 @@ class Trainer:
                 # the attenuation coefficients (1/m) at the start and, once finished, at the end (renders use it)
                 "attenuation": None if self.attenuation is None else [self.cfg.attenuation_start] * 3,
                 "attenuation_final": self._attenuation_list() if self.step >= self.cfg.iterations else None,
+                # the backscatter likewise
+                "backscatter": None if self.backscatter is None else {
+                    "veil": [self.cfg.veil_start] * 3, "coefficients": [self.cfg.backscatter_start] * 3},
+                "backscatter_final": self._backscatter_dict() if self.step >= self.cfg.iterations else None,
                 "refraction_applied": self.flags,
                 "device": str(self.device),
                 "num_train_views": len(self.views), "versions": versions("torch")}
@@ -550,7 +619,9 @@ class Trainer:
                 "water": {k: p.detach().cpu() for k, p in self.water_params.items()},
                 "water_optimizer": None if self.water_opt is None else self.water_opt.state_dict(),
                 "attenuation": None if self.log_attenuation is None else self.log_attenuation.detach().cpu(),
-                "attenuation_optimizer": None if self.attenuation_opt is None else self.attenuation_opt.state_dict()}
+                "attenuation_optimizer": None if self.attenuation_opt is None else self.attenuation_opt.state_dict(),
+                "backscatter": None if self.log_backscatter is None else self.log_backscatter.detach().cpu(),
+                "backscatter_optimizer": None if self.backscatter_opt is None else self.backscatter_opt.state_dict()}
         with atomic_path(path) as tmp:  # a kill never leaves a half-written checkpoint
             torch.save(data, tmp)
         return path
@@ -589,6 +660,10 @@ class Trainer:
             with torch.no_grad():
                 self.log_attenuation.copy_(data["attenuation"])
             self.attenuation_opt.load_state_dict(data["attenuation_optimizer"])
+        if self.log_backscatter is not None:
+            with torch.no_grad():
+                self.log_backscatter.copy_(data["backscatter"])
+            self.backscatter_opt.load_state_dict(data["backscatter_optimizer"])
         self.strat_state = {k: (v.to(self.device) if torch.is_tensor(v) else v) for k, v in data["strategy"].items()}
         self.step, self.elapsed = int(data["step"]), float(data["elapsed"])
         self.cpu_elapsed = float(data.get("cpu_elapsed", 0.0))
