@@ -375,6 +375,9 @@ def water_paths(points, camera_center, water: WaterSurface, steps: int | None = 
     return torch.zeros_like(points[:, 0]).index_put((wet,), L)
 
 
+GRAZING_COS = 1e-3  # `pixel_water_paths`' floor on cos(theta_a)
+
+
 def pixel_water_paths(rays, depth, camera_center, water: WaterSurface):
     """[...] in-water length (m) of each pixel's light path to the point it renders, from the rendered depth.
 
@@ -396,11 +399,11 @@ def pixel_water_paths(rays, depth, camera_center, water: WaterSurface):
         down = -(rays * normal).sum(-1)
     else:
         d_app, down = water.depth(p), -rays[..., 2]
-    cos = down / torch.linalg.vector_norm(rays, dim=-1)  # [...] cos(theta_a) to the normal
-    wet = (d_app > 0) & (cos > 0)
-    cos = torch.where(wet, cos, torch.ones_like(cos))  # finite values and gradients where unused
+    # [...] cos(theta_a) to the normal; the floor keeps a ray that never meets the water (d' < 0, also where
+    # nothing is rendered: P' = C) finite in value and gradient, and no bed is seen within 0.06 deg of grazing
+    cos = (down / torch.linalg.vector_norm(rays, dim=-1)).clamp(min=GRAZING_COS)
     n = torch.as_tensor(water.n, dtype=rays.dtype, device=rays.device)
-    return torch.where(wet, d_app, torch.zeros_like(d_app)) * ((n - 1) * (n + 1) + cos * cos) / (n * cos**3)
+    return d_app.clamp(min=0) * ((n - 1) * (n + 1) + cos * cos) / (n * cos**3)  # clamps, not wheres: fewer ops
 
 
 def add_backscatter(image, alpha, paths, veil, coefficients):

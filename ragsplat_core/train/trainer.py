@@ -119,11 +119,13 @@ def render_splats(splats, camera: Camera, center: torch.Tensor, sh_degree: int, 
 
 def pixel_rays(camera: Camera, like: torch.Tensor) -> torch.Tensor:
     """[H, W, 3] world directions of the rays through the pixel centres, scaled to unit camera z (a rendered
-    z-depth times them reaches the point from the centre); `like` gives dtype and device."""
-    v, u = torch.meshgrid(torch.arange(camera.height, dtype=like.dtype, device=like.device) + 0.5,
-                          torch.arange(camera.width, dtype=like.dtype, device=like.device) + 0.5, indexing="ij")
-    center = torch.as_tensor(camera.camera_center, dtype=like.dtype, device=like.device)
-    return camera.unproject(torch.stack([u, v], -1), torch.ones_like(u)) - center
+    z-depth times them reaches the point from the centre); `like` gives dtype and device. R^T (x, y, 1) as a
+    sum of R's rows: a [H W, 3] x [3, 3] product costs more here than the whole veil."""
+    kw = {"dtype": like.dtype, "device": like.device}
+    x = (torch.arange(camera.width, **kw) + 0.5 - camera.cx) / camera.fx  # [W]
+    y = (torch.arange(camera.height, **kw) + 0.5 - camera.cy) / camera.fy  # [H]
+    R = torch.tensor(camera.R, **kw)
+    return x[None, :, None] * R[0] + y[:, None, None] * R[1] + R[2]
 
 
 def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, background: torch.Tensor, backend: str,
