@@ -77,3 +77,23 @@ def evaluable_dataset(tmp_path_factory):
     (root / "gt").mkdir()
     layout.write_npy(root / layout.GT_GRID, np.column_stack([x.ravel(), y.ravel(), z.ravel()]))
     return root
+
+
+def kill_a_worker(argv: list[str], victim, env: dict | None = None, timeout: float = 300):
+    """Runs the command `argv`, SIGKILLs the worker process `victim()` names once it does ((pid, log) or
+    None, polled), and returns (that log, the command's stderr, its exit status) when the command ends."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    found, deadline = None, time.time() + timeout
+    while found is None and time.time() < deadline and proc.poll() is None:
+        found = victim()
+        time.sleep(0.01)
+    assert found is not None, proc.communicate()
+    os.kill(found[0], signal.SIGKILL)
+    _, err = proc.communicate(timeout=600)
+    return found[1], err, proc.returncode
+

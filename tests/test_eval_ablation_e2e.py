@@ -6,7 +6,7 @@ import shutil
 from dataclasses import replace
 
 import pytest
-from conftest import tiny_smoke
+from conftest import kill_a_worker, tiny_smoke
 
 from eval import ablation, metrics
 from ragsplat_core import train
@@ -158,31 +158,23 @@ def test_a_killed_worker_s_row_is_trained_again_and_the_command_finishes(evaluab
     """`--jobs 2` for real (a local cluster of two worker processes): a SIGKILL of the worker training a row
     does not end the command: Dask runs the row again on a worker, which resumes it, and the tables are
     written; the row's log shows both workers."""
-    import signal
-    import subprocess
     import sys
-    import time
 
     out = tmp_path / "runs"
     cmd = [sys.executable, "-m", "ragsplat_core.cli.main", "ablation", "--data", str(evaluable_dataset), "--out",
            str(out), "--preset", "smoke", "--variants", "3dgs", "full", "--seeds", "0", "--init", "grid",
            "--jobs", "2", "--no-download"]
     env = {**os.environ, "TORCH_HOME": str(tmp_path / "torch")}  # no LPIPS backbone there: LPIPS n/a
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    victim, deadline = None, time.time() + 300
-    while victim is None and time.time() < deadline and proc.poll() is None:
-        for log in out.glob("logs/*-seed0.log"):  # a row a worker took: its pid in the first line
+
+    def victim():  # a row a worker took: its pid in the first line
+        for log in out.glob("logs/*-seed0.log"):
             first = log.read_text().split("\n", 1)[0]
             row = log.stem.replace("-seed", "/seed")
             if first.endswith(tuple("0123456789")) and (out / row / "key.json").exists():
-                victim = (int(first.rsplit(" ", 1)[1]), log)
-                break
-        time.sleep(0.01)
-    assert victim is not None, proc.communicate()
-    pid, log = victim
-    os.kill(pid, signal.SIGKILL)
-    _, err = proc.communicate(timeout=600)
-    assert proc.returncode == 0, err
+                return int(first.rsplit(" ", 1)[1]), log
+
+    log, err, status = kill_a_worker(cmd, victim, env)
+    assert status == 0, err
     rows = json.loads((out / "results.json").read_text())["rows"]
     assert len(rows["3dgs"]) == 1 and len(rows["full"]) == 1
     workers = [line for line in log.read_text().splitlines() if "worker process" in line]

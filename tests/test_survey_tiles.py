@@ -8,6 +8,7 @@ import shutil
 
 import numpy as np
 import pytest
+from conftest import kill_a_worker
 from test_survey import args, finished, survey  # noqa: F401 (fixtures)
 
 from ragsplat_core.camera import Camera
@@ -127,31 +128,22 @@ def test_tiles_on_dask_workers_one_killed_give_the_same_products(survey, tiled, 
     does not end the command: Dask runs the tile again on a worker, which resumes from its checkpoint; the
     merged products are those of the tiles trained one after another in one process (to round-off: one
     thread per worker there, two here)."""
-    import os
-    import signal
-    import subprocess
     import sys
-    import time
 
     import laspy
 
     out = tmp_path / "run"
     _reuse_poses(tiled[0], out)
     argv = [sys.executable, "-m", "ragsplat_core.cli.main", *args(survey, out, "--tile-size", "3", "--jobs", "2")]
-    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    victim, deadline = None, time.time() + 300
-    while victim is None and time.time() < deadline and proc.poll() is None:
-        for log in out.glob("tiles/*/log.txt"):  # a tile a worker is training: its pid in the first line
+
+    def victim():  # a tile a worker is training: its pid in the log's first line
+        for log in out.glob("tiles/*/log.txt"):
             lines = log.read_text().splitlines()
             if len(lines) > 2 and "step" in lines[-1]:
-                victim = (int(lines[0].rsplit(" ", 1)[1]), log)
-                break
-        time.sleep(0.01)
-    assert victim is not None, proc.communicate()
-    pid, log = victim
-    os.kill(pid, signal.SIGKILL)
-    _, err = proc.communicate(timeout=600)
-    assert proc.returncode == 0, err
+                return int(lines[0].rsplit(" ", 1)[1]), log
+
+    log, err, status = kill_a_worker(argv, victim)
+    assert status == 0, err
     workers = {line for line in log.read_text().splitlines() if "worker process" in line}
     assert len(workers) == 2, log.read_text()  # the tile began again on another worker
     ours, theirs = laspy.read(out / "bed.laz"), laspy.read(tiled[0] / "bed.laz")
