@@ -97,3 +97,16 @@ def kill_a_worker(argv: list[str], victim, env: dict | None = None, timeout: flo
     _, err = proc.communicate(timeout=600)
     return found[1], err, proc.returncode
 
+
+def killed_and_resumed(cfg, dataset, folder, steps: int = 4):
+    """(a trainer killed after `steps` steps of `cfg`, checkpointing every `cfg.checkpoint_every`; a new
+    trainer on its folder, resumed from its last checkpoint, not yet trained on)."""
+    from ragsplat_core.train import Trainer
+
+    killed = Trainer(cfg, dataset, folder)
+    for _ in range(steps):
+        killed.train_step()
+        if killed.step % cfg.checkpoint_every == 0:
+            killed.save_checkpoint()
+    return killed, Trainer(cfg, dataset, folder)
+

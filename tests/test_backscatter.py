@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import tiny_smoke
+from conftest import killed_and_resumed, tiny_smoke
 
 from ragsplat_core.bench.synthetic import bed_scene, render_views, ring_cameras
 from ragsplat_core.cli.main import main
@@ -216,12 +216,7 @@ def test_backscatter_is_trained_and_resumed(turbid, tmp_path):
     meta = json.loads((tmp_path / "a/config.json").read_text())
     assert meta["backscatter"] == {"veil": [0.05] * 3, "coefficients": [0.1] * 3}
     assert meta["backscatter_final"] == want and meta["config"]["water_terms"] == ["backscatter"]
-    b = Trainer(cfg, turbid, tmp_path / "b")  # killed after 4 steps: resumes from the checkpoint at 3
-    for _ in range(4):
-        b.train_step()
-        if b.step % 3 == 0:
-            b.save_checkpoint()
-    c = Trainer(cfg, turbid, tmp_path / "b")
+    b, c = killed_and_resumed(cfg, turbid, tmp_path / "b")  # killed after 4 steps: resumes from step 3
     assert c.step == 3 and not torch.equal(c.backscatter, b.backscatter)
     c.train()
     assert torch.equal(c.backscatter, a.backscatter)  # the same steps from the same state (its Adam moments too)
