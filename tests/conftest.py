@@ -110,3 +110,37 @@ def killed_and_resumed(cfg, dataset, folder, steps: int = 4):
             killed.save_checkpoint()
     return killed, Trainer(cfg, dataset, folder)
 
+
+def water_bed(size: int = 24, count: int = 300, **optics):
+    """The water terms' tiny scene: a textured bed 1 m below a level at 0.2 m rendered through water with the
+    optics `optics` (`render_views`' attenuation= or backscatter=), seen by a nadir and six obliques 59
+    degrees off it in air (each Gaussian's path 1.3x its depth); returns (the dataset, the bed's points and
+    colours [N, 6]: a start that already has the geometry, so that the water's coefficients alone move)."""
+    from pathlib import Path
+
+    import torch
+
+    from ragsplat_core.dataset import BedInfo, Dataset
+    from ragsplat_core.dataset.load import View
+
+    level, depth = 0.2, 1.0
+    scene = bed_scene(count, 1.0, depth, seed=0)
+    scene["means"][:, 2] += level
+    water = WaterSurface(level, 1.33)
+    cams = ring_cameras(6, size, level + 1.5, 2.5, target=(0, 0, level - depth))
+    views = [View(f"{i:04d}", "train", "nadir", v["camera"], (v["image"] * 255).round().to(torch.uint8), None, "",
+                  None, None) for i, v in enumerate(render_views(scene, cams, water, **optics))]
+    return Dataset(Path("mem"), water, views, BedInfo(depth=depth, size=2.0)), \
+        np.concatenate([scene["means"].numpy(), scene["colors"].numpy()], 1)
+
+
+def water_bed_config(variant: str, **overrides):
+    """A smoke training config of `variant` for `water_bed`: sh degree 0, no densification, checkpoints off."""
+    from ragsplat_core.train import preset_config
+    from ragsplat_core.train.strategy import DensifyConfig
+
+    base = {"variant": variant, "iterations": 6, "init_depth": 1.0, "init_count": 300, "init_opacity": 0.9,
+            "checkpoint_every": 0, "sh_degree": 0,
+            "densify": DensifyConfig(refine_start_iter=10**6, refine_stop_iter=10**6, reset_every=10**6)}
+    return preset_config("smoke", **{**base, **overrides})
+

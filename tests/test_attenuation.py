@@ -8,12 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import killed_and_resumed, tiny_smoke
+from conftest import killed_and_resumed, tiny_smoke, water_bed, water_bed_config
 
-from ragsplat_core.bench.synthetic import bed_scene, render_views, ring_cameras
 from ragsplat_core.cli.main import main
-from ragsplat_core.dataset import BedInfo, Dataset, load_dataset
-from ragsplat_core.dataset.load import View
+from ragsplat_core.dataset import Dataset, load_dataset
 from ragsplat_core.errors import ConfigError
 from ragsplat_core.export import load_model
 from ragsplat_core.refraction import (
@@ -25,10 +23,9 @@ from ragsplat_core.refraction import (
     srgb_to_linear,
     water_paths,
 )
-from ragsplat_core.train import VARIANTS, TrainConfig, Trainer, preset_config
+from ragsplat_core.train import VARIANTS, TrainConfig, Trainer
 from ragsplat_core.train import trainer as train_mod
 from ragsplat_core.train.config import ATTENUATION_RANGE
-from ragsplat_core.train.strategy import DensifyConfig
 
 f64 = torch.float64
 CAM = torch.tensor([1.0, -2.0, 30.0], dtype=f64)
@@ -192,29 +189,15 @@ def test_gradients_reach_the_coefficients_and_the_gaussians():
 
 
 # ---- training ----------------------------------------------------------------------------------------------
-LEVEL, DEPTH = 0.2, 1.0
 VARIANT = "2dgs+full+attenuation"
 
 
-def _dataset(c, size=24, count=300):
-    """A textured bed DEPTH below LEVEL rendered through water that attenuates by c [3] (1/m), seen by a
-    nadir and six obliques 59 degrees off it in air (each Gaussian's path 1.3x its depth), and the bed's
-    points and colours (a start that already has the geometry: the coefficients alone have to move)."""
-    scene = bed_scene(count, 1.0, DEPTH, seed=0)
-    scene["means"][:, 2] += LEVEL
-    water = WaterSurface(LEVEL, 1.33)
-    cams = ring_cameras(6, size, LEVEL + 1.5, 2.5, target=(0, 0, LEVEL - DEPTH))
-    views = [View(f"{i:04d}", "train", "nadir", v["camera"], (v["image"] * 255).round().to(torch.uint8), None, "",
-                  None, None) for i, v in enumerate(render_views(scene, cams, water, attenuation=torch.tensor(c)))]
-    return Dataset(Path("mem"), water, views, BedInfo(depth=DEPTH, size=2.0)), \
-        np.concatenate([scene["means"].numpy(), scene["colors"].numpy()], 1)
+def _dataset(c):  # `water_bed` through the water's attenuation
+    return water_bed(attenuation=torch.tensor(c))
 
 
 def _cfg(**kw):
-    base = {"variant": VARIANT, "iterations": 6, "init_depth": DEPTH, "init_count": 300, "init_opacity": 0.9,
-            "checkpoint_every": 0, "sh_degree": 0,
-            "densify": DensifyConfig(refine_start_iter=10**6, refine_stop_iter=10**6, reset_every=10**6)}
-    return preset_config("smoke", **{**base, **kw})
+    return water_bed_config(**{"variant": VARIANT, **kw})
 
 
 @pytest.mark.parametrize("truth,up", [((0.6, 0.4, 0.3), True), ((0.02, 0.02, 0.02), False)],

@@ -9,12 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import killed_and_resumed, tiny_smoke
+from conftest import killed_and_resumed, tiny_smoke, water_bed, water_bed_config
 
-from ragsplat_core.bench.synthetic import bed_scene, render_views, ring_cameras
 from ragsplat_core.cli.main import main
-from ragsplat_core.dataset import BedInfo, Dataset, load_dataset
-from ragsplat_core.dataset.load import View
+from ragsplat_core.dataset import Dataset, load_dataset
 from ragsplat_core.errors import ConfigError
 from ragsplat_core.export import load_model
 from ragsplat_core.refraction import (
@@ -27,10 +25,9 @@ from ragsplat_core.refraction import (
     srgb_to_linear,
     water_paths,
 )
-from ragsplat_core.train import VARIANTS, TrainConfig, Trainer, preset_config
+from ragsplat_core.train import VARIANTS, TrainConfig, Trainer
 from ragsplat_core.train import trainer as train_mod
 from ragsplat_core.train.config import BACKSCATTER_RANGE, VEIL_RANGE
-from ragsplat_core.train.strategy import DensifyConfig
 
 f64 = torch.float64
 CAM = torch.tensor([1.0, -2.0, 30.0], dtype=f64)
@@ -155,30 +152,16 @@ def test_veil_gradients_match_finite_differences():
 
 
 # ---- training ----------------------------------------------------------------------------------------------
-LEVEL, DEPTH = 0.2, 1.0
 VARIANT = "2dgs+full+backscatter"
 START = torch.tensor([[0.05] * 3, [0.1] * 3])  # the config's veil_start and backscatter_start
 
 
-def _dataset(backscatter, size=24, count=300):
-    """A textured bed DEPTH below LEVEL seen through water with the veil `backscatter` [2, 3] (B_inf, c_b), by
-    a nadir and six obliques (as tests/test_attenuation.py), and the bed's points and colours."""
-    scene = bed_scene(count, 1.0, DEPTH, seed=0)
-    scene["means"][:, 2] += LEVEL
-    water = WaterSurface(LEVEL, 1.33)
-    cams = ring_cameras(6, size, LEVEL + 1.5, 2.5, target=(0, 0, LEVEL - DEPTH))
-    views = [View(f"{i:04d}", "train", "nadir", v["camera"], (v["image"] * 255).round().to(torch.uint8), None, "",
-                  None, None)
-             for i, v in enumerate(render_views(scene, cams, water, backscatter=torch.tensor(backscatter)))]
-    return Dataset(Path("mem"), water, views, BedInfo(depth=DEPTH, size=2.0)), \
-        np.concatenate([scene["means"].numpy(), scene["colors"].numpy()], 1)
+def _dataset(backscatter):  # `water_bed` through the water's backscatter
+    return water_bed(backscatter=torch.tensor(backscatter))
 
 
 def _cfg(**kw):
-    base = {"variant": VARIANT, "iterations": 6, "init_depth": DEPTH, "init_count": 300, "init_opacity": 0.9,
-            "checkpoint_every": 0, "sh_degree": 0,
-            "densify": DensifyConfig(refine_start_iter=10**6, refine_stop_iter=10**6, reset_every=10**6)}
-    return preset_config("smoke", **{**base, **kw})
+    return water_bed_config(**{"variant": VARIANT, **kw})
 
 
 @pytest.mark.parametrize("truth,start,up", [(((0.3, 0.35, 0.4), (0.8, 0.6, 0.5)), (0.05, 0.1), True),
