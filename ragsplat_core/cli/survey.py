@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import sys
-import time
 from pathlib import Path
 
 from ragsplat_core.cli.args import (
@@ -115,8 +114,9 @@ class _Printed:
         self.quiet, self.check = quiet, check
 
     def say(self, stage: str, text: str, since: float | None = None) -> None:
-        took = "" if since is None else f" ({time.perf_counter() - since:.0f} s)"
-        print(f"[{stage}] {text}{took}", file=sys.stderr, flush=True)
+        from ragsplat_core.survey.pipeline import line
+
+        print(line(stage, text, since), file=sys.stderr, flush=True)
 
     def bar(self, total: int, desc: str, unit: str):
         from ragsplat_core.cli.progress import bar

@@ -89,6 +89,12 @@ class SurveyConfig:
     tile_overlap: float | None = None  # m; None: TILE_OVERLAP of the side
 
 
+def line(stage: str, text: str, since: float | None = None) -> str:
+    """A progress line about `stage`; with `since` (a perf_counter start), the seconds it took."""
+    took = "" if since is None else f" ({time.perf_counter() - since:.0f} s)"
+    return f"[{stage}] {text}{took}"
+
+
 class Progress:
     """What the pipeline tells its caller as it goes: this one says nothing; the command's prints lines and
     bars. `bar` returns a context manager with tqdm's update / set_postfix / close."""
@@ -515,13 +521,12 @@ def _tiles(cfg: SurveyConfig, model: Path, surface, lo, hi) -> tuple[list, float
     from ragsplat_core.survey import sfm, tiles
 
     rec = pycolmap.Reconstruction(str(model))
-    trk = sfm.tracks(rec)
-    R, C, K = trk.R.numpy(), trk.C.numpy(), trk.intrinsics.numpy()
-    sizes = np.array([[rec.images[i].camera.width, rec.images[i].camera.height] for i in trk.image_ids], float)
+    ids, names, R, C, K = sfm.cameras(rec)
+    sizes = np.array([[rec.images[i].camera.width, rec.images[i].camera.height] for i in ids], float)
     gsd = float(np.median(-surface.depth(C)) / np.median(K[:, 0]))
     size = cfg.tile_size or TILE_GSD * gsd
     overlap = TILE_OVERLAP * size if cfg.tile_overlap is None else cfg.tile_overlap
-    return tiles.plan(lo, hi, tiles.footprints(R, C, K, sizes, surface), trk.names, size, overlap), size, overlap
+    return tiles.plan(lo, hi, tiles.footprints(R, C, K, sizes, surface), names, size, overlap), size, overlap
 
 
 @dataclass(frozen=True)
@@ -577,8 +582,7 @@ class _Log(Progress):
         self.file = file
 
     def say(self, stage: str, text: str, since: float | None = None) -> None:
-        took = "" if since is None else f" ({time.perf_counter() - since:.0f} s)"
-        print(f"[{stage}] {text}{took}", file=self.file, flush=True)
+        print(line(stage, text, since), file=self.file, flush=True)
 
     def training(self, total: int, desc: str, initial: int):
         def on_step(trainer) -> None:

@@ -174,15 +174,23 @@ class Tracks:
     pixels: torch.Tensor  # [M, 2] undistorted, centres at i + 0.5
 
 
-def tracks(rec) -> Tracks:
+def cameras(rec) -> tuple[list[int], list[str], np.ndarray, np.ndarray, np.ndarray]:
+    """(image ids, names, R [I, 3, 3] world -> camera, centres C [I, 3], pinhole intrinsics [I, 4] fx, fy, cx, cy)
+    of a model's registered images, by name."""
     ids = sorted(rec.reg_image_ids(), key=lambda i: rec.images[i].name)
-    index = {i: k for k, i in enumerate(ids)}
     R, C, K = [], [], []
     for i in ids:
         im, cam = rec.images[i], rec.images[i].camera
         R.append(im.cam_from_world().rotation.matrix())
         C.append(im.projection_center())
         K.append([cam.focal_length_x, cam.focal_length_y, cam.principal_point_x, cam.principal_point_y])
+    return ids, [rec.images[i].name for i in ids], np.array(R).reshape(-1, 3, 3), np.array(C).reshape(-1, 3), \
+        np.array(K, float).reshape(-1, 4)
+
+
+def tracks(rec) -> Tracks:
+    ids, names, R, C, K = cameras(rec)
+    index = {i: k for k, i in enumerate(ids)}
     pids = sorted(rec.point3D_ids())
     pts = np.array([rec.points3D[p].xyz for p in pids]).reshape(-1, 3)
     point, image, xy = [], [], []
@@ -200,7 +208,7 @@ def tracks(rec) -> Tracks:
         uv = np.asarray(cam.cam_from_img(xy[rows]), float)[:, :2]
         pixels[rows] = np.column_stack([fx * uv[:, 0] + cx, fy * uv[:, 1] + cy])
     t = lambda a, dt=torch.float64: torch.as_tensor(np.asarray(a), dtype=dt)
-    return Tracks([rec.images[i].name for i in ids], ids, t(R), t(C), t(K), pids, t(pts), t(point, torch.int64),
+    return Tracks(names, ids, t(R), t(C), t(K), pids, t(pts), t(point, torch.int64),
                   t(image, torch.int64), t(pixels))
 
 

@@ -30,10 +30,10 @@ class Tile:
     outer: tuple[float, float, float, float]  # the core grown by the overlap (the edge tiles' outside unbounded)
     photos: tuple[str, ...]
 
-    def to_json(self, origin=(0.0, 0.0)) -> dict:
-        """The tile for a run's JSON, its boxes in the CRS (`origin`: the local frame's offset; None: open)."""
+    def to_json(self) -> dict:
+        """The tile for a run's JSON (boxes in the frame they were planned in; None: open)."""
         def box(b):
-            return [None if not math.isfinite(v) else v + origin[k % 2] for k, v in enumerate(b)]
+            return [v if math.isfinite(v) else None for v in b]
 
         return {"index": self.index, "grid": list(self.grid), "core": box(self.core), "outer": box(self.outer),
                 "photos": len(self.photos)}
