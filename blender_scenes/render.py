@@ -1,26 +1,14 @@
 """Thin Cycles renderer: `python -m blender_scenes.render JOB.json` (the venv python with the bpy module).
 
-All geometry comes ready-made from datagen (one .npz); this module only builds Blender objects and materials,
+The job is a `datagen.job.RenderJob` (its schema and the meaning of each part are there). All geometry comes
+ready-made from datagen (one .npz); this module only builds Blender objects and materials, one per job part,
 then renders the job's tasks in order in ONE process (persistent data: the scene is synced once).
 
-Job (JSON): {"geometry": npz path, "objects": [{"name", "material": {...}}], "water": object name or null,
-"light": {...} or null, "render": {...}, "camera": {"width", "height", "fx", "fy", "cx", "cy", optional
-"fisheye_polynomial": [k0..k4] (Cycles' polynomial lens: a lens with distortion, datagen.survey.lens_polynomial)},
-"tasks": [{"pass": "wet"|"dry"|"depth", "name", "c2w_gl": 4x4, "out": path}]}.
-Materials: {"kind": "texture", "image": png} (diffuse albedo, repeating), {"kind": "emission", "strength"},
-{"kind": "diffuse", "color"}, {"kind": "refraction", "ior", "color", "reflect": optional bool} (the water
-surface: visible to camera rays only; with "reflect", Fresnel reflection of sky and sun), {"kind": "volume",
-"absorption", "scattering"} (the water body). An object with "wet_only": true is hidden in the dry and depth
-passes, as the water surface is. Field conditions add "glossy_bounces" (1 for a reflecting surface) and
-"ripples": {"k", "amplitude", "level", "slope": optional [dz/dx, dz/dy]} with "phases" in each wet task: the
-water mesh (its vertices and "water_weight" in the npz) is moved to that photo's surface before it renders:
-the mean surface level + sx x + sy y plus the weighted ripples (`datagen.conditions.ripple_height`).
-
-Passes: "wet" renders with the water object, "dry" without; both 8-bit sRGB PNG, 'Standard' view transform.
-"depth" renders without water at 1 sample with a 0.01 px pixel filter (exact surface at the pixel centre)
-and stores Cycles' z-depth via ragsplat_core.dataset.layout.write_depth. Every file is written to a temporary name and
-renamed, so a killed run never leaves a partial file. One line per finished task on stdout, prefixed
-PROTOCOL, carries the timings (`blender_scenes.protocol`).
+Passes: "wet" renders with the water object and the wet-only objects, "dry" without; both 8-bit sRGB PNG,
+'Standard' view transform. "depth" renders without water at 1 sample with a 0.01 px pixel filter (exact
+surface at the pixel centre) and stores Cycles' z-depth via ragsplat_core.dataset.layout.write_depth. Every
+file is written to a temporary name and renamed, so a killed run never leaves a partial file. The scene
+built, and each finished task, print one event line (`datagen.job.Ready`, `Done`) on stdout.
 """
 
 from __future__ import annotations
@@ -36,13 +24,28 @@ import bpy
 import numpy as np
 from mathutils import Matrix, Vector
 
-from blender_scenes.protocol import PROTOCOL
+from datagen.job import (
+    Diffuse,
+    Done,
+    Emission,
+    Event,
+    Material,
+    Ready,
+    Refraction,
+    RenderJob,
+    RenderSettings,
+    Ripples,
+    Texture,
+    Volume,
+    event_line,
+)
+from datagen.spec import LightSpec
 from ragsplat_core.dataset.layout import NO_HIT, write_depth
 from ragsplat_core.outputs import temp_path, write_bytes
 
 
-def _say(**event) -> None:
-    print(PROTOCOL + json.dumps(event), flush=True)
+def _say(event: Event) -> None:
+    print(event_line(event), flush=True)
 
 
 def _mesh_object(name: str, verts: np.ndarray, tris: np.ndarray, uv: np.ndarray | None) -> bpy.types.Object:
@@ -63,63 +66,63 @@ def _mesh_object(name: str, verts: np.ndarray, tris: np.ndarray, uv: np.ndarray 
     return obj
 
 
-def _material(spec: dict) -> bpy.types.Material:
-    mat = bpy.data.materials.new(spec["kind"])
+def _material(m: Material) -> bpy.types.Material:
+    mat = bpy.data.materials.new(m.kind)
     nodes, links = mat.node_tree.nodes, mat.node_tree.links
     nodes.clear()
     out = nodes.new("ShaderNodeOutputMaterial")
-    if spec["kind"] == "texture":
-        tex = nodes.new("ShaderNodeTexImage")
-        tex.image = bpy.data.images.load(spec["image"])
-        tex.image.colorspace_settings.name = "sRGB"
-        tex.extension = "REPEAT"  # the floor repeats the (periodic) border texture
-        tex.interpolation = "Linear"
-        bsdf = nodes.new("ShaderNodeBsdfDiffuse")
-        bsdf.inputs["Roughness"].default_value = 0.0
-        links.new(tex.outputs["Color"], bsdf.inputs["Color"])
-        links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
-    elif spec["kind"] == "emission":
-        em = nodes.new("ShaderNodeEmission")
-        em.inputs["Strength"].default_value = spec["strength"]
-        links.new(em.outputs["Emission"], out.inputs["Surface"])
-    elif spec["kind"] == "refraction":
-        # Pure refraction, no Fresnel reflection (Glass/Principled would add it). The colour carries the
-        # 1/n^2 radiance drop that Cycles does not apply itself (or 1 when the spec switches it off).
-        bsdf = nodes.new("ShaderNodeBsdfRefraction")
-        bsdf.inputs["IOR"].default_value = spec["ior"]
-        bsdf.inputs["Roughness"].default_value = 0.0
-        bsdf.inputs["Color"].default_value = (*([spec["color"]] * 3), 1.0)
-        surface = bsdf.outputs["BSDF"]
-        if spec.get("reflect"):
-            # A water surface: Fresnel's share R of the light is the mirror image of sky and sun (glint), the
-            # rest 1 - R is refracted (with the radiance drop above).
-            mirror = nodes.new("ShaderNodeBsdfGlossy")
-            mirror.inputs["Roughness"].default_value = 0.0
-            fresnel = nodes.new("ShaderNodeFresnel")
-            fresnel.inputs["IOR"].default_value = spec["ior"]
-            mix = nodes.new("ShaderNodeMixShader")
-            links.new(fresnel.outputs["Fac"], mix.inputs["Factor"])
-            links.new(bsdf.outputs["BSDF"], mix.inputs[1])
-            links.new(mirror.outputs["BSDF"], mix.inputs[2])
-            surface = mix.outputs["Shader"]
-        links.new(surface, out.inputs["Surface"])
-    elif spec["kind"] == "diffuse":
-        bsdf = nodes.new("ShaderNodeBsdfDiffuse")
-        bsdf.inputs["Color"].default_value = (*([spec["color"]] * 3), 1.0)
-        links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
-    elif spec["kind"] == "volume":
-        # The water body: homogeneous absorption and scattering (1/m per channel) and no surface, so rays
-        # cross its boundary unbent; camera, shadow and bounce rays alike are attenuated (Beer-Lambert).
-        vol = nodes.new("ShaderNodeVolumeCoefficients")
-        vol.inputs["Absorption Coefficients"].default_value = spec["absorption"]
-        vol.inputs["Scatter Coefficients"].default_value = spec["scattering"]
-        links.new(vol.outputs[0], out.inputs["Volume"])
-    else:
-        raise ValueError(f"unknown material kind {spec['kind']!r}")
+    match m:
+        case Texture():
+            tex = nodes.new("ShaderNodeTexImage")
+            tex.image = bpy.data.images.load(m.image)
+            tex.image.colorspace_settings.name = "sRGB"
+            tex.extension = "REPEAT"  # the floor repeats the (periodic) border texture
+            tex.interpolation = "Linear"
+            bsdf = nodes.new("ShaderNodeBsdfDiffuse")
+            bsdf.inputs["Roughness"].default_value = 0.0
+            links.new(tex.outputs["Color"], bsdf.inputs["Color"])
+            links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+        case Emission():
+            em = nodes.new("ShaderNodeEmission")
+            em.inputs["Strength"].default_value = m.strength
+            links.new(em.outputs["Emission"], out.inputs["Surface"])
+        case Refraction():
+            # Pure refraction, no Fresnel reflection (Glass/Principled would add it). The colour carries the
+            # 1/n^2 radiance drop that Cycles does not apply itself (or 1 when the spec switches it off).
+            bsdf = nodes.new("ShaderNodeBsdfRefraction")
+            bsdf.inputs["IOR"].default_value = m.ior
+            bsdf.inputs["Roughness"].default_value = 0.0
+            bsdf.inputs["Color"].default_value = (*([m.color] * 3), 1.0)
+            surface = bsdf.outputs["BSDF"]
+            if m.reflect:
+                # A water surface: Fresnel's share R of the light is the mirror image of sky and sun (glint),
+                # the rest 1 - R is refracted (with the radiance drop above).
+                mirror = nodes.new("ShaderNodeBsdfGlossy")
+                mirror.inputs["Roughness"].default_value = 0.0
+                fresnel = nodes.new("ShaderNodeFresnel")
+                fresnel.inputs["IOR"].default_value = m.ior
+                mix = nodes.new("ShaderNodeMixShader")
+                links.new(fresnel.outputs["Fac"], mix.inputs["Factor"])
+                links.new(bsdf.outputs["BSDF"], mix.inputs[1])
+                links.new(mirror.outputs["BSDF"], mix.inputs[2])
+                surface = mix.outputs["Shader"]
+            links.new(surface, out.inputs["Surface"])
+        case Diffuse():
+            bsdf = nodes.new("ShaderNodeBsdfDiffuse")
+            bsdf.inputs["Color"].default_value = (*([m.color] * 3), 1.0)
+            links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+        case Volume():
+            # The water body: homogeneous absorption and scattering (1/m per channel) and no surface, so
+            # rays cross its boundary unbent; camera, shadow and bounce rays alike are attenuated
+            # (Beer-Lambert).
+            vol = nodes.new("ShaderNodeVolumeCoefficients")
+            vol.inputs["Absorption Coefficients"].default_value = m.absorption
+            vol.inputs["Scatter Coefficients"].default_value = m.scattering
+            links.new(vol.outputs[0], out.inputs["Volume"])
     return mat
 
 
-def _world(light: dict | None) -> None:
+def _world(light: LightSpec | None) -> None:
     world = bpy.data.worlds.new("world")
     bpy.context.scene.world = world
     nodes, links = world.node_tree.nodes, world.node_tree.links
@@ -129,14 +132,14 @@ def _world(light: dict | None) -> None:
         return
     sky = nodes.new("ShaderNodeTexSky")
     sky.sky_type = "PREETHAM"
-    elevation, azimuth = math.radians(light["sun_elevation"]), math.radians(light["sun_azimuth"])
+    elevation, azimuth = math.radians(light.sun_elevation), math.radians(light.sun_azimuth)
     sky.sun_direction = (math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth),
                          math.sin(elevation))
     links.new(sky.outputs["Color"], bg.inputs["Color"])
-    bg.inputs["Strength"].default_value = light["sky_strength"]
+    bg.inputs["Strength"].default_value = light.sky_strength
     sun = bpy.data.lights.new("sun", "SUN")
-    sun.energy = light["sun_strength"]
-    sun.angle = math.radians(light["sun_angle"])
+    sun.energy = light.sun_strength
+    sun.angle = math.radians(light.sun_angle)
     obj = bpy.data.objects.new("sun", sun)
     obj.rotation_euler = Vector(sky.sun_direction).to_track_quat("Z", "Y").to_euler()  # light shines down -Z
     bpy.context.scene.collection.objects.link(obj)
@@ -164,12 +167,13 @@ def _device(scene, wanted: str) -> str:
     return "CPU"
 
 
-def _setup(job: dict) -> tuple[bpy.types.Scene, bpy.types.Object, list[bpy.types.Object], dict]:
+def _setup(job: RenderJob) -> tuple[bpy.types.Scene, bpy.types.Object, list[bpy.types.Object], dict, str]:
+    """(scene, camera, the objects hidden outside the wet pass, the geometry's arrays, the device used)."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
-    r, cam, rs = scene.render, job["camera"], job["render"]
+    r, cam, rs = scene.render, job.camera, job.render
     r.engine = "CYCLES"
-    r.resolution_x, r.resolution_y, r.resolution_percentage = cam["width"], cam["height"], 100
+    r.resolution_x, r.resolution_y, r.resolution_percentage = cam.width, cam.height, 100
     r.use_persistent_data = True  # sync the (large) bed once, not once per render
     r.use_file_extension = False
     r.film_transparent = False
@@ -177,87 +181,87 @@ def _setup(job: dict) -> tuple[bpy.types.Scene, bpy.types.Object, list[bpy.types
     for prop in r.bl_rna.properties:  # no time or host stamps in the metadata: identical bytes per seed
         if prop.identifier.startswith("use_stamp"):
             setattr(r, prop.identifier, False)
-    if rs["threads"]:
-        r.threads_mode, r.threads = "FIXED", rs["threads"]
+    if rs.threads:
+        r.threads_mode, r.threads = "FIXED", rs.threads
     scene.view_settings.view_transform = "Standard"
     scene.view_settings.look = "None"
-    scene.view_settings.exposure = rs["exposure"]
+    scene.view_settings.exposure = rs.exposure
     scene.view_settings.gamma = 1.0
     c = scene.cycles
     c.use_adaptive_sampling = False
     c.use_denoising = False
-    c.seed, c.use_animated_seed = rs["seed"], False
+    c.seed, c.use_animated_seed = rs.seed, False
     c.pixel_filter_type = "BLACKMAN_HARRIS"
     # One interreflection between stones; a reflecting water surface needs its one mirror bounce.
-    c.max_bounces, c.diffuse_bounces, c.glossy_bounces = 4, 1, job.get("glossy_bounces", 0)
+    c.max_bounces, c.diffuse_bounces, c.glossy_bounces = 4, 1, job.glossy_bounces
     c.transmission_bounces, c.transparent_max_bounces, c.volume_bounces = 2, 2, 0
     c.caustics_reflective = c.caustics_refractive = False
     c.sample_clamp_direct = c.sample_clamp_indirect = 0.0
     scene.view_layers[0].use_pass_z = True
-    job["device_used"] = _device(scene, rs["device"])
+    device = _device(scene, rs.device)
 
-    geo = dict(np.load(job["geometry"]))  # decompressed once: the ripples read the water mesh per photo
+    geo = dict(np.load(job.geometry))  # decompressed once: the ripples read the water mesh per photo
     wet = []
-    for o in job["objects"]:
-        name = o["name"]
+    for o in job.objects:
+        name = o.name
         obj = _mesh_object(name, geo[f"{name}_verts"], geo[f"{name}_tris"], geo.get(f"{name}_uv"))
-        obj.data.materials.append(_material(o["material"]))
-        if name == job["water"]:
+        obj.data.materials.append(_material(o.material))
+        if name == job.water:
             wet.append(obj)
             # Camera rays only: the bed is lit identically with and without water, no caustic paths.
             obj.visible_shadow = obj.visible_diffuse = obj.visible_glossy = False
             obj.visible_transmission = obj.visible_volume_scatter = False
-            if "ripples" in job:
+            if job.ripples is not None:
                 obj.data.shade_smooth()  # the rippled surface's normals vary smoothly
         else:
-            if o.get("wet_only"):
+            if o.wet_only:
                 wet.append(obj)
             obj.data.shade_smooth()
-    _world(job["light"])
+    _world(job.light)
 
     cd = bpy.data.cameras.new("camera")
-    if cam["fx"] != cam["fy"] or (cam["cx"], cam["cy"]) != (cam["width"] / 2, cam["height"] / 2):
+    if cam.fx != cam.fy or (cam.cx, cam.cy) != (cam.width / 2, cam.height / 2):
         raise ValueError("only square pixels (fx == fy) and a centred principal point are supported")
-    size = max(cam["width"], cam["height"])
-    cd.sensor_fit, cd.sensor_width = "HORIZONTAL" if cam["width"] >= cam["height"] else "VERTICAL", 36.0
+    size = max(cam.width, cam.height)
+    cd.sensor_fit, cd.sensor_width = "HORIZONTAL" if cam.width >= cam.height else "VERTICAL", 36.0
     cd.sensor_height = 36.0
-    cd.lens = cam["fx"] * 36.0 / size  # focal length in sensor millimetres along the fitted (larger) side
-    if cam.get("fisheye_polynomial"):  # a lens with distortion: the sensor's millimetres per pixel as above
+    cd.lens = cam.fx * 36.0 / size  # focal length in sensor millimetres along the fitted (larger) side
+    if cam.fisheye_polynomial:  # a lens with distortion: the sensor's millimetres per pixel as above
         cd.type, cd.panorama_type = "PANO", "FISHEYE_LENS_POLYNOMIAL"
-        cd.sensor_width, cd.sensor_height = 36.0 * cam["width"] / size, 36.0 * cam["height"] / size
-        for k, value in enumerate(cam["fisheye_polynomial"]):
+        cd.sensor_width, cd.sensor_height = 36.0 * cam.width / size, 36.0 * cam.height / size
+        for k, value in enumerate(cam.fisheye_polynomial):
             setattr(cd, f"fisheye_polynomial_k{k}", value)
     cd.clip_start, cd.clip_end = 0.01, 1e5
     camera = bpy.data.objects.new("camera", cd)
     scene.collection.objects.link(camera)
     scene.camera = camera
-    return scene, camera, wet, geo
+    return scene, camera, wet, geo, device
 
 
-def _ripple(water: bpy.types.Object, geo, ripples: dict, phases: list[float]) -> None:
+def _ripple(water: bpy.types.Object, geo, ripples: Ripples, phases: tuple[float, ...]) -> None:
     """Set the water mesh to this photo's surface: z = level (+ sx x + sy y) + weight * ripple height."""
     from datagen.conditions import ripple_height
 
     verts = geo["water_verts"]
-    z = ripples["level"] + geo["water_weight"] * ripple_height(
-        verts[:, :2], np.array(ripples["k"]), np.array(ripples["amplitude"]), np.array(phases))
-    if "slope" in ripples:  # the mean surface of a sloping river
-        z = z + verts[:, :2] @ np.array(ripples["slope"], np.float64)
+    z = ripples.level + geo["water_weight"] * ripple_height(
+        verts[:, :2], np.array(ripples.k), np.array(ripples.amplitude), np.array(phases))
+    if ripples.slope is not None:  # the mean surface of a sloping river
+        z = z + verts[:, :2] @ np.array(ripples.slope, np.float64)
     co = np.column_stack([verts[:, :2], z]).astype(np.float32)
     water.data.vertices.foreach_set("co", co.ravel())
     water.data.update()
 
 
-def _configure(scene, wet, kind: str, rs: dict) -> None:
+def _configure(scene, wet, kind: str, rs: RenderSettings) -> None:
     for obj in wet:
         obj.hide_render = kind != "wet"
     s = scene.render.image_settings
     if kind == "depth":
-        scene.cycles.samples, scene.cycles.filter_width = 1, rs["depth_filter"]
+        scene.cycles.samples, scene.cycles.filter_width = 1, rs.depth_filter
         s.media_type = "MULTI_LAYER_IMAGE"
         s.file_format, s.color_depth, s.exr_codec = "OPEN_EXR_MULTILAYER", "32", "ZIP"
     else:
-        scene.cycles.samples, scene.cycles.filter_width = rs["samples"], rs["filter_width"]
+        scene.cycles.samples, scene.cycles.filter_width = rs.samples, rs.filter_width
         s.media_type = "IMAGE"
         s.file_format, s.color_mode, s.color_depth, s.compression = "PNG", "RGB", "8", 15
 
@@ -298,19 +302,19 @@ def _seconds(stamp: str) -> float:
 
 def main(argv: list[str]) -> int:
     t0 = time.perf_counter()
-    job = json.loads(Path(argv[0]).read_text())
-    scene, camera, wet, geo = _setup(job)
-    _say(event="ready", build_s=time.perf_counter() - t0, device=job["device_used"])
+    job = RenderJob.from_json(json.loads(Path(argv[0]).read_text()))
+    scene, camera, wet, geo, device = _setup(job)
+    _say(Ready(build_s=time.perf_counter() - t0, device=device))
     current = None
-    for task in job["tasks"]:
+    for task in job.tasks:
         t_start = time.perf_counter()
-        if task["pass"] != current:
-            current = task["pass"]
-            _configure(scene, wet, current, job["render"])
-        if "phases" in task:
-            _ripple(bpy.data.objects[job["water"]], geo, job["ripples"], task["phases"])
-        camera.matrix_world = Matrix(task["c2w_gl"])
-        out = Path(task["out"])
+        if task.kind != current:
+            current = task.kind
+            _configure(scene, wet, current, job.render)
+        if task.phases is not None:
+            _ripple(bpy.data.objects[job.water], geo, job.ripples, task.phases)
+        camera.matrix_world = Matrix(task.c2w_gl)
+        out = Path(task.out)
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = temp_path(out).with_suffix(".render")  # Blender's own file; the result is written atomically
         scene.render.filepath = str(tmp)
@@ -327,8 +331,8 @@ def main(argv: list[str]) -> int:
             write_bytes(out, png)
         tmp.unlink()
         t_end = time.perf_counter()
-        _say(event="done", name=task["name"], kind=current, render_s=t_saved - t_render, cycles_s=cycles_s,
-             total_s=t_end - t_start)
+        _say(Done(name=task.name, kind=current, render_s=t_saved - t_render, cycles_s=cycles_s,
+                  total_s=t_end - t_start))
     return 0
 
 

@@ -20,9 +20,24 @@ from pathlib import Path
 
 import numpy as np
 
-from blender_scenes.protocol import PROTOCOL
 from datagen import conditions, flight
 from datagen.bed import Bed, ground_truth, height_at, make_bed, mesh, shear, world_surface, world_waterline
+from datagen.job import (
+    Diffuse,
+    Done,
+    Intrinsics,
+    Ready,
+    Refraction,
+    RenderJob,
+    RenderSettings,
+    Ripples,
+    SceneObject,
+    Task,
+    Texture,
+    Volume,
+    event_json,
+    parse_event,
+)
 from datagen.spec import SceneSpec, validate
 from datagen.survey import LENS, lens_polynomial, write_survey
 from ragsplat_core.camera import Camera
@@ -40,13 +55,12 @@ class RenderStats:
     build_s: float = 0.0  # Blender start-up to scene ready (bed mesh, materials, device)
     render_s: float = 0.0  # inside bpy.ops.render.render: Cycles sync + path tracing + Blender's file write
     device: str = ""
-    events: list[dict] = field(default_factory=list)
-
+    done: list[Done] = field(default_factory=list)  # one per finished image
 
     def add(self, other: RenderStats) -> RenderStats:
         """Two renders' stats as one (two Blender start-ups; the device the first's)."""
         return RenderStats(self.images + other.images, self.build_s + other.build_s, self.render_s + other.render_s,
-                           self.device or other.device, self.events + other.events)
+                           self.device or other.device, self.done + other.done)
 
 
 def passes_for(spec: SceneSpec) -> tuple[str, ...]:
@@ -208,10 +222,11 @@ class RendererCrashed(RagsplatError):
         self.signum, self.log = signum, log
 
 
-def run_blender(job: dict, workdir: Path, progress: Callable[[dict], None] | None = None) -> RenderStats:
-    """Render `job` in one Blender (bpy) process; `progress(event)` is called after each finished image."""
+def run_blender(job: RenderJob, workdir: Path, progress: Callable[[dict], None] | None = None) -> RenderStats:
+    """Render `job` in one Blender (bpy) process; `progress(event)` is called after each finished image with
+    the `Done` event as a dict (`datagen.job.event_json`)."""
     jobfile = workdir / f"job.{os.getpid()}.json"
-    write_json(jobfile, job)
+    write_json(jobfile, job.to_json())
     stats = RenderStats()
     log_path = workdir / "blender.log"
     with open(log_path, "a") as log:
@@ -219,18 +234,17 @@ def run_blender(job: dict, workdir: Path, progress: Callable[[dict], None] | Non
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
         try:
             for line in proc.stdout:
-                if not line.startswith(PROTOCOL):
+                event = parse_event(line)
+                if event is None:
                     log.write(line)
-                    continue
-                event = json.loads(line.removeprefix(PROTOCOL))
-                stats.events.append(event)
-                if event["event"] == "ready":
-                    stats.device, stats.build_s = event["device"], event["build_s"]
+                elif isinstance(event, Ready):
+                    stats.device, stats.build_s = event.device, event.build_s
                 else:
+                    stats.done.append(event)
                     stats.images += 1
-                    stats.render_s += event["render_s"]
+                    stats.render_s += event.render_s
                     if progress is not None:
-                        progress(event)
+                        progress(event_json(event))
             code = proc.wait()
         finally:  # interrupted: stop the renderer too (its finished images are complete files) and tidy up
             if proc.poll() is None:
@@ -247,58 +261,46 @@ def run_blender(job: dict, workdir: Path, progress: Callable[[dict], None] | Non
     return stats
 
 
-def _job(spec: SceneSpec, out: Path, cam: Camera, tasks: list[dict], lens: tuple[float, float] | None = None) -> dict:
-    """The renderer's job (`blender_scenes.render`) for `tasks` seen by `cam`, through a lens with radial
-    distortion `lens` (k1, k2) when given."""
-    texture = {"kind": "texture", "image": str(out / "scene" / "albedo.png")}
-    objects = [{"name": "bed", "material": texture}, {"name": "floor", "material": texture}]
+def render_job(spec: SceneSpec, out: Path, cam: Camera, tasks: list[Task],
+               lens: tuple[float, float] | None = None) -> RenderJob:
+    """The renderer's job for `tasks` seen by `cam`, through a lens with radial distortion `lens` (k1, k2)
+    when given."""
+    texture = Texture(str(out / "scene" / "albedo.png"))
+    objects = [SceneObject("bed", texture), SceneObject("floor", texture)]
     c = spec.conditions
     if spec.water is not None:
-        water = {"kind": "refraction", "ior": spec.water.n, "color": radiance_factor(spec)}
-        if c is not None and c.reflection:
-            water["reflect"] = True
-        objects.append({"name": "water", "material": water})
-    field_job = {}
+        reflect = c is not None and c.reflection
+        objects.append(SceneObject("water", Refraction(spec.water.n, radiance_factor(spec), reflect)))
+    ripples = None
     if c is not None:
         if c.turbid:
-            absorption, scattering = conditions.attenuation(c)
-            objects.append({"name": "volume", "wet_only": True, "material": {
-                "kind": "volume", "absorption": absorption.tolist(), "scattering": scattering.tolist()}})
+            objects.append(SceneObject("volume", Volume(*conditions.attenuation(c)), wet_only=True))
         if c.targets:
-            objects += [{"name": "target_black", "material": {"kind": "diffuse", "color": conditions.TARGET_ALBEDO[0]}},
-                        {"name": "target_white", "material": {"kind": "diffuse", "color": conditions.TARGET_ALBEDO[1]}}]
+            objects += [SceneObject(f"target_{colour}", Diffuse(albedo))
+                        for colour, albedo in zip(("black", "white"), conditions.TARGET_ALBEDO)]
         if c.rippled:
             k, amplitude = conditions.ripple_waves(c, spec.seed)
-            field_job["ripples"] = {"k": k.tolist(), "amplitude": amplitude.tolist(), "level": spec.level}
-            if spec.water.sloping:  # the mean surface the ripples ride on: level + sx x + sy y
-                field_job["ripples"]["slope"] = list(spec.water.slope)
-        field_job["glossy_bounces"] = 1 if c.reflection else 0  # the mirror ray that sees sky and sun
+            # the mean surface the ripples ride on: level + sx x + sy y
+            ripples = Ripples(k, amplitude, spec.level, spec.water.slope if spec.water.sloping else None)
     r = spec.render
-    return {**field_job,
-        "geometry": str(out / "scene" / "geometry.npz"),
-        "objects": objects,
-        "water": "water" if spec.water is not None else None,
-        "light": vars(spec.light),
-        "render": {"samples": r.samples, "device": r.device, "threads": r.threads, "seed": spec.seed,
-                   "filter_width": r.filter_width, "depth_filter": r.depth_filter, "exposure": r.exposure},
-        "camera": {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
-                   "cy": cam.cy, **({"fisheye_polynomial": lens_polynomial(cam, *lens)} if lens else {})},
-        "tasks": tasks,
-    }
+    return RenderJob(
+        geometry=str(out / "scene" / "geometry.npz"), objects=tuple(objects),
+        water="water" if spec.water is not None else None, light=spec.light,
+        render=RenderSettings(r.samples, r.device, r.threads, spec.seed, r.filter_width, r.depth_filter,
+                              r.exposure),
+        camera=Intrinsics(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
+                          lens_polynomial(cam, *lens) if lens else None),
+        tasks=tuple(tasks), ripples=ripples,
+        glossy_bounces=1 if c is not None and c.reflection else 0)  # the mirror ray that sees sky and sun
 
 
-def _task(spec: SceneSpec, kind: str, pose, out: Path) -> dict:
-    """The renderer's task: pass `kind` of the view `pose`, written to `out`."""
-    return {"pass": kind, "name": pose.name, "c2w_gl": pose.camera.c2w_gl.tolist(), "out": str(out),
-            **_surface(spec, kind, pose.name)}
-
-
-def _surface(spec: SceneSpec, kind: str, name: str) -> dict:
-    """A wet task's ripple phases (its own surface: the view's index seeds them), else nothing."""
+def _task(spec: SceneSpec, kind: str, pose, out: Path) -> Task:
+    """The renderer's task: pass `kind` of the view `pose`, written to `out`; a wet task of a rippled scene
+    with its ripple phases (its own surface: the view's index seeds them)."""
     c = spec.conditions
-    if kind != "wet" or c is None or not c.rippled:
-        return {}
-    return {"phases": conditions.ripple_phases(c, spec.seed, int(name)).tolist()}
+    rippled = kind == "wet" and c is not None and c.rippled
+    return Task(kind, pose.name, pose.camera.c2w_gl, str(out),
+                conditions.ripple_phases(c, spec.seed, int(pose.name)) if rippled else None)
 
 
 def max_depth(spec: SceneSpec) -> float:
@@ -433,8 +435,8 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
             progress({"event": "plan", "images": len(tasks) + len(lens), "views": len(mine),
                       "passes": len(kinds) + bool(lens)})
         try:
-            for job in ([_job(spec, out, poses[0].camera, tasks)] if tasks else []) + \
-                    ([_job(spec, out, poses[0].camera, lens, LENS)] if lens else []):
+            for job in ([render_job(spec, out, poses[0].camera, tasks)] if tasks else []) + \
+                    ([render_job(spec, out, poses[0].camera, lens, LENS)] if lens else []):
                 stats = stats.add(run_blender(job, out / "scene", progress))
         except RendererCrashed as crash:
             if retries <= 0:
@@ -454,7 +456,7 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
         runs = out / "scene" / f"timing-{index}-{count}.json"  # one file per shard: no write races
         history = json.loads(runs.read_text()) if runs.exists() else []
         history.append({**summary, "shard": f"{index}/{count}",
-                        "per_image": [e for e in stats.events if e["event"] == "done"]})
+                        "per_image": [event_json(e) for e in stats.done]})
         write_json(runs, history)
     return summary
 

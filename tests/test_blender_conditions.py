@@ -9,11 +9,12 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
-from test_blender_markers import centroids, disc
+from test_blender_markers import CPU_64, centroids, disc
 
 from datagen import conditions
 from datagen.build import generate, run_blender
-from datagen.spec import preset, with_conditions
+from datagen.job import Diffuse, Emission, Intrinsics, Refraction, RenderJob, Ripples, SceneObject, Task
+from datagen.spec import LightSpec, preset, with_conditions
 from ragsplat_core.camera import Camera
 from ragsplat_core.dataset import layout
 
@@ -86,22 +87,19 @@ def test_sky_reflection_grows_towards_oblique_views_and_the_glint_falls_where_th
             # Looking away from the sun, 50 degrees down: the view rays meet the water at 15 to 85 degrees.
             "away": Camera.look_at([0, 0, height], [height * np.tan(np.radians(50)), 0, 0], width, width, 70.0,
                                    up=(0, 0, 1))}
-    light = {"sun_elevation": SUN_ELEVATION, "sun_azimuth": SUN_AZIMUTH, "sun_strength": 3.0, "sun_angle": 1.0,
-             "sky_strength": 0.3}
+    light = LightSpec(sun_elevation=SUN_ELEVATION, sun_azimuth=SUN_AZIMUTH, sun_strength=3.0, sun_angle=1.0,
+                      sky_strength=0.3)
     images = {}
     for reflect in (False, True):
-        water = {"kind": "refraction", "ior": 1.33, "color": 1 / 1.33**2, **({"reflect": True} if reflect else {})}
-        tasks = [{"pass": "wet", "name": name, "c2w_gl": c.c2w_gl.tolist(), "out": str(tmp_path / f"{name}{reflect}.png")}
-                 for name, c in cams.items()]
-        run_blender({"geometry": str(tmp_path / "geometry.npz"),
-                     "objects": [{"name": "bed", "material": {"kind": "diffuse", "color": 0.05}},
-                                 {"name": "water", "material": water}],
-                     "water": "water", "light": light, "glossy_bounces": 1,
-                     "render": {"samples": 512, "device": "CPU", "threads": 0, "seed": 0, "filter_width": 1.5,
-                                "depth_filter": 0.01, "exposure": 0.0},
-                     "camera": {"width": width, "height": width, "fx": cams["nadir"].fx, "fy": cams["nadir"].fy,
-                                "cx": width / 2, "cy": width / 2},
-                     "tasks": tasks}, tmp_path)
+        tasks = tuple(Task("wet", name, c.c2w_gl, str(tmp_path / f"{name}{reflect}.png"))
+                      for name, c in cams.items())
+        run_blender(RenderJob(
+            geometry=str(tmp_path / "geometry.npz"),
+            objects=(SceneObject("bed", Diffuse(0.05)),
+                     SceneObject("water", Refraction(1.33, 1 / 1.33**2, reflect))),
+            water="water", light=light, glossy_bounces=1, render=replace(CPU_64, samples=512),
+            camera=Intrinsics(width, width, cams["nadir"].fx, cams["nadir"].fy, width / 2, width / 2),
+            tasks=tasks), tmp_path)
         images[reflect] = {name: linear(tmp_path / f"{name}{reflect}.png") for name in cams}
     glint = {name: images[True][name].min(-1) > 0.95 for name in cams}
     added = {name: (images[True][name] - images[False][name])[~glint[name]].mean() for name in cams}
@@ -135,18 +133,13 @@ def test_ripples_give_every_photo_its_own_surface(tmp_path):
              water_verts=water_verts, water_tris=water_tris, water_weight=weight)
     cam = Camera.look_at([0.05, -0.03, 3.0], [0.05, -0.03, 0.0], 160, 160, 70.0)
     k, amplitude = conditions.ripple_waves(c, spec.seed)
-    tasks = [{"pass": "wet", "name": f"{i}", "c2w_gl": cam.c2w_gl.tolist(), "out": str(tmp_path / f"{i}.png"),
-              "phases": conditions.ripple_phases(c, spec.seed, view).tolist()} for i, view in enumerate((0, 1, 0))]
-    job = {"geometry": str(tmp_path / "geometry.npz"),
-           "objects": [{"name": "markers", "material": {"kind": "emission", "strength": 0.6}},
-                       {"name": "water", "material": {"kind": "refraction", "ior": 1.33, "color": 1.0}}],
-           "water": "water", "light": None,
-           "ripples": {"k": k.tolist(), "amplitude": amplitude.tolist(), "level": 0.0},
-           "render": {"samples": 64, "device": "CPU", "threads": 0, "seed": 0, "filter_width": 1.5,
-                      "depth_filter": 0.01, "exposure": 0.0},
-           "camera": {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
-                      "cy": cam.cy},
-           "tasks": tasks}
+    tasks = tuple(Task("wet", f"{i}", cam.c2w_gl, str(tmp_path / f"{i}.png"),
+                       conditions.ripple_phases(c, spec.seed, view)) for i, view in enumerate((0, 1, 0)))
+    job = RenderJob(geometry=str(tmp_path / "geometry.npz"),
+                    objects=(SceneObject("markers", Emission(0.6)),
+                             SceneObject("water", Refraction(1.33, 1.0))),
+                    water="water", light=None, ripples=Ripples(k, amplitude, 0.0), render=CPU_64,
+                    camera=Intrinsics(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy), tasks=tasks)
     run_blender(job, tmp_path)
     found = [centroids(cv2.imread(str(tmp_path / f"{i}.png"))[..., ::-1]) for i in range(3)]
     assert len(found[0]) == len(found[1]) == len(found[2]) == len(parts)

@@ -14,6 +14,7 @@ import torch
 from scipy import ndimage
 
 from datagen.build import run_blender
+from datagen.job import Emission, Intrinsics, Refraction, RenderJob, RenderSettings, SceneObject, Task
 from ragsplat_core.camera import Camera
 from ragsplat_core.refraction import WaterSurface, apparent_points
 
@@ -22,6 +23,8 @@ pytestmark = pytest.mark.blender
 WIDTH, FOV, ALTITUDE, DEPTH, N = 160, 70.0, 3.0, 2.0, 1.33
 MARKER_RADIUS = 0.06  # m: about 3 px across at this scale
 SLOPE = (-0.08, 0.04)  # dz/dx, dz/dy of the tilted surface: the flat model misses by about a pixel
+CPU_64 = RenderSettings(samples=64, device="CPU", threads=0, seed=0, filter_width=1.5, depth_filter=0.01,
+                        exposure=0.0)
 
 
 def disc(centre, radius, segments=32):
@@ -72,20 +75,13 @@ def render_markers(work, water: WaterSurface, far: float, lens: tuple[float, flo
              water_tris=np.array([[0, 1, 2], [0, 2, 3]]))
     cams = views()
     cam = cams["nadir"]
-    tasks = [{"pass": "wet", "name": name, "c2w_gl": c.c2w_gl.tolist(), "out": str(work / f"{name}.png")}
-             for name, c in cams.items()]
-    job = {
-        "geometry": str(work / "geometry.npz"),
-        "objects": [{"name": "markers", "material": {"kind": "emission", "strength": 0.6}},
-                    {"name": "water", "material": {"kind": "refraction", "ior": water.n, "color": 1.0}}],
-        "water": "water",
-        "light": None,
-        "render": {"samples": 64, "device": "CPU", "threads": 0, "seed": 0, "filter_width": 1.5,
-                   "depth_filter": 0.01, "exposure": 0.0},
-        "camera": {**{k: getattr(cam, k) for k in ("width", "height", "fx", "fy", "cx", "cy")},
-                   **({"fisheye_polynomial": lens_polynomial(cam, *lens)} if lens else {})},
-        "tasks": tasks,
-    }
+    job = RenderJob(
+        geometry=str(work / "geometry.npz"),
+        objects=(SceneObject("markers", Emission(0.6)), SceneObject("water", Refraction(water.n, 1.0))),
+        water="water", light=None, render=CPU_64,
+        camera=Intrinsics(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
+                          lens_polynomial(cam, *lens) if lens else None),
+        tasks=tuple(Task("wet", name, c.c2w_gl, str(work / f"{name}.png")) for name, c in cams.items()))
     run_blender(job, work)
     return centres, cams, {name: cv2.imread(str(work / f"{name}.png"))[..., ::-1] for name in cams}
 

@@ -10,7 +10,7 @@ import pytest
 
 from datagen import conditions, flight
 from datagen.bed import ground_truth, height_at, make_bed
-from datagen.build import FAR, _geometry, _job, scene_metadata
+from datagen.build import FAR, _geometry, render_job, scene_metadata
 from datagen.spec import CLEAR_RIVER, PRESETS, SceneSpec, preset, validate, with_conditions
 from ragsplat_core.camera import Camera
 from ragsplat_core.errors import SpecError
@@ -100,10 +100,10 @@ def test_ideal_presets_carry_no_trace_of_the_conditions(name, tmp_path):
     spec = preset(name)
     assert "conditions" not in spec.to_dict()
     cam = Camera.look_at([0, 0, 5], [0, 0, 0], 64, 64, 70.0)
-    job = _job(spec, tmp_path, cam, [])
-    assert not {"ripples", "glossy_bounces"} & set(job)
-    assert all("reflect" not in o["material"] and not o.get("wet_only") for o in job["objects"])
-    assert [o["name"] for o in job["objects"]] == ["bed", "floor"] + (["water"] if spec.water else [])
+    job = render_job(spec, tmp_path, cam, [])
+    assert job.ripples is None and job.glossy_bounces == 0
+    assert not any(getattr(o.material, "reflect", False) or o.wet_only for o in job.objects)
+    assert [o.name for o in job.objects] == ["bed", "floor"] + (["water"] if spec.water else [])
     if name == "smoke":
         geo = _geometry(spec, make_bed(spec))
         assert set(geo) == {"bed_verts", "bed_tris", "bed_uv", "floor_verts", "floor_tris", "floor_uv",
@@ -116,12 +116,12 @@ def test_ideal_presets_carry_no_trace_of_the_conditions(name, tmp_path):
 def test_field_preset_job_and_record(tmp_path):
     spec = preset("smoke-field")
     cam = Camera.look_at([0, 0, 5], [0, 0, 0], 64, 64, 70.0)
-    job = _job(spec, tmp_path, cam, [])
-    names = [o["name"] for o in job["objects"]]
+    job = render_job(spec, tmp_path, cam, [])
+    names = [o.name for o in job.objects]
     assert names == ["bed", "floor", "water", "volume", "target_black", "target_white"]
-    assert job["objects"][2]["material"]["reflect"] and job["objects"][3]["wet_only"]
-    assert job["glossy_bounces"] == 1 and len(job["ripples"]["k"]) == spec.conditions.ripple_waves
-    absorption = job["objects"][3]["material"]["absorption"]
+    assert job.objects[2].material.reflect and job.objects[3].wet_only
+    assert job.glossy_bounces == 1 and len(job.ripples.k) == spec.conditions.ripple_waves
+    absorption = job.objects[3].material.absorption
     assert absorption[0] > absorption[1]  # red is absorbed most
     poses = flight.plan(spec)
     record = scene_metadata(spec, poses, np.zeros((4, 3)) + [0, 0, -1])["conditions"]

@@ -10,11 +10,12 @@ import math
 import numpy as np
 import pytest
 
-from datagen import cli, flight
+from datagen import flight
 from datagen.bed import make_bed, world_waterline
-from datagen.build import _job, _write_bed_assets, null_models
+from datagen.build import _write_bed_assets, null_models, render_job
 from datagen.spec import PRESETS, SceneSpec, preset, validate, with_slope
 from datagen.survey import EDGE_POINTS, SurveyNoise, _write_edge, edge_points
+from ragsplat_core.cli import dataset as cli
 from ragsplat_core.dataset import layout
 from ragsplat_core.errors import SpecError
 
@@ -171,8 +172,8 @@ def test_water_edge_points_lie_on_the_surface_along_both_banks(built, tmp_path):
 
 def test_ripples_ride_on_the_sloping_mean_surface_and_flat_jobs_stay_as_they_were(tmp_path):
     field = preset("smoke-field")
-    job = _job(field, tmp_path, flight.plan(field)[0].camera, [])
-    assert set(job["ripples"]) == {"k", "amplitude", "level"}
+    job = render_job(field, tmp_path, flight.plan(field)[0].camera, [])
+    assert job.ripples.slope is None
     sloping = with_slope(field, 0.01)
-    job = _job(sloping, tmp_path, flight.plan(sloping)[0].camera, [])
-    assert job["ripples"]["slope"] == [-0.01, 0.0] and job["ripples"]["level"] == 0.0
+    job = render_job(sloping, tmp_path, flight.plan(sloping)[0].camera, [])
+    assert job.ripples.slope == (-0.01, 0.0) and job.ripples.level == 0.0
