@@ -1,9 +1,12 @@
 """The architecture the README describes, checked on the source tree: commands import the library, never
-the reverse; the data contract imports without torch; each shared fact has exactly one definition."""
+the reverse; every command is a module of `ragsplat_core/cli`, every operational script is in `tools/`; the
+data contract imports without torch; each shared fact has exactly one definition."""
 
 import ast
+import fnmatch
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -12,7 +15,9 @@ from ragsplat_core.cli.main import COMMANDS, main
 
 ROOT = Path(__file__).resolve().parent.parent
 LIBRARY = [p for p in (ROOT / "ragsplat_core").rglob("*.py") if "cli" not in p.relative_to(ROOT).parts[1:2]]
-SOURCES = [p for d in ("ragsplat_core", "datagen", "eval", "blender_scenes") for p in (ROOT / d).rglob("*.py")]
+PACKAGES = ("ragsplat_core", "datagen", "eval", "blender_scenes")  # what the wheel installs
+SOURCES = [p for d in (*PACKAGES, "tools") for p in (ROOT / d).rglob("*.py")]
+COMMAND_LAYER = ROOT / "ragsplat_core" / "cli"
 
 
 def imported_modules(path: Path) -> set[str]:
@@ -32,12 +37,59 @@ def test_library_imports_no_command_layer():
         assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"
 
 
-def test_the_core_imports_nothing_from_eval():
-    # the commands reach the `ablation` and `eval` commands by name (`cli/main.py`), never by import
-    core = [p for p in SOURCES if p.relative_to(ROOT).parts[0] == "ragsplat_core"]
-    bad = {p.relative_to(ROOT).as_posix() for p in core if any(m == "eval" or m.startswith("eval.")
-                                                             for m in imported_modules(p))}
-    assert not bad, f"{sorted(bad)} import eval"
+def test_nothing_outside_the_command_layer_imports_it():
+    # the command layer is the top of the import graph: the library, the generator, the harness and the tools
+    # never import it (the tests do)
+    outside = [p for p in SOURCES if COMMAND_LAYER not in p.parents]
+    bad = {p.relative_to(ROOT).as_posix() for p in outside
+           if any(m == "ragsplat_core.cli" or m.startswith("ragsplat_core.cli.") for m in imported_modules(p))}
+    assert not bad, f"{sorted(bad)} import ragsplat_core.cli"
+
+
+def test_the_installed_packages_import_no_tool():
+    bad = {p.relative_to(ROOT).as_posix() for p in SOURCES if p.relative_to(ROOT).parts[0] != "tools"
+           and any(m.split(".")[0] == "tools" for m in imported_modules(p))}
+    assert not bad, f"{sorted(bad)} import tools"
+
+
+def test_every_command_is_one_module_of_the_command_layer():
+    helpers = {"__init__", "main", "args", "progress", "cluster"}  # the entry point and what commands share
+    modules = {name: module for name, (module, _) in COMMANDS.items()}
+    assert all(m.startswith("ragsplat_core.cli.") for m in modules.values()), modules
+    assert len(set(modules.values())) == len(modules)  # one module per subcommand
+    for name, module in modules.items():
+        tree = ast.parse((COMMAND_LAYER / f"{module.rsplit('.', 1)[1]}.py").read_text())
+        defined = {node.name for node in tree.body if isinstance(node, ast.FunctionDef)}
+        assert {"add_arguments", "run"} <= defined, f"ragsplat {name}: {module} lacks {{add_arguments, run}}"
+    files = {p.stem for p in COMMAND_LAYER.glob("*.py")}
+    assert files - helpers == {m.rsplit(".", 1)[1] for m in modules.values()}, "a command module not in COMMANDS"
+
+
+def runs_as_script(path: Path) -> bool:
+    """Whether the module has an `if __name__ == "__main__":` block."""
+    return any(isinstance(node, ast.If) and isinstance(node.test, ast.Compare)
+               and isinstance(node.test.left, ast.Name) and node.test.left.id == "__name__"
+               for node in ast.parse(path.read_text()).body)
+
+
+def test_scripts_are_commands_or_tools():
+    # an operational script (`python -m tools.NAME`) lives in tools/; in the installed packages only the entry
+    # point and the renderer (the Blender process's own script) run as scripts, and only commands parse
+    # arguments
+    scripts = {p.relative_to(ROOT).as_posix() for p in SOURCES
+               if p.relative_to(ROOT).parts[0] != "tools" and runs_as_script(p)}
+    assert scripts == {"ragsplat_core/cli/main.py", "blender_scenes/render.py"}
+    parsers = {p.relative_to(ROOT).as_posix() for p in SOURCES if p.relative_to(ROOT).parts[0] != "tools"
+               and COMMAND_LAYER not in p.parents and "argparse" in imported_modules(p)}
+    assert not parsers, f"{sorted(parsers)} parse arguments outside the command layer"
+    assert not [p for d in PACKAGES for p in (ROOT / d).rglob("*.sh")], "a shell script outside tools/"
+
+
+def test_the_tools_are_not_installed():
+    found = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]
+    assert not any(fnmatch.fnmatch(name, pattern) for pattern in found["include"]
+                   for name in ("tools", "tools.slim")), found
+    assert all(any(fnmatch.fnmatch(name, pattern) for pattern in found["include"]) for name in PACKAGES)
 
 
 def test_only_the_renderer_imports_bpy():
@@ -45,8 +97,17 @@ def test_only_the_renderer_imports_bpy():
     assert users == {"blender_scenes/render.py"}
 
 
+def test_the_generator_imports_nothing_from_the_renderer():
+    # the renderer reads datagen's job (`datagen.job`) and runs as its own process; datagen never imports it
+    datagen = [p for p in SOURCES if p.relative_to(ROOT).parts[0] == "datagen"]
+    bad = {p.relative_to(ROOT).as_posix() for p in datagen
+           if any(m.split(".")[0] == "blender_scenes" for m in imported_modules(p))}
+    assert not bad, f"{sorted(bad)} import blender_scenes"
+
+
 def test_data_contract_and_generator_import_without_torch():
-    code = ("import sys; import datagen.build, datagen.cli, ragsplat_core.dataset.layout, blender_scenes.protocol; "
+    code = ("import sys; import datagen.build, ragsplat_core.cli.dataset, ragsplat_core.dataset.layout, "
+            "datagen.job; "
             "import ragsplat_core; ragsplat_core.dataset; "
             "assert 'torch' not in sys.modules, 'torch was imported'")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
