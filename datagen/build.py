@@ -51,16 +51,22 @@ FAR = 2000.0  # half-size (m) of the floor and water planes: beyond every view's
 
 @dataclass
 class RenderStats:
-    images: int = 0
     build_s: float = 0.0  # Blender start-up to scene ready (bed mesh, materials, device)
-    render_s: float = 0.0  # inside bpy.ops.render.render: Cycles sync + path tracing + Blender's file write
     device: str = ""
     done: list[Done] = field(default_factory=list)  # one per finished image
 
+    @property
+    def images(self) -> int:
+        return len(self.done)
+
+    @property
+    def render_s(self) -> float:
+        """Inside bpy.ops.render.render: Cycles sync + path tracing + Blender's file write."""
+        return sum(e.render_s for e in self.done)
+
     def add(self, other: RenderStats) -> RenderStats:
         """Two renders' stats as one (two Blender start-ups; the device the first's)."""
-        return RenderStats(self.images + other.images, self.build_s + other.build_s, self.render_s + other.render_s,
-                           self.device or other.device, self.done + other.done)
+        return RenderStats(self.build_s + other.build_s, self.device or other.device, self.done + other.done)
 
 
 def passes_for(spec: SceneSpec) -> tuple[str, ...]:
@@ -241,8 +247,6 @@ def run_blender(job: RenderJob, workdir: Path, progress: Callable[[dict], None] 
                     stats.device, stats.build_s = event.device, event.build_s
                 else:
                     stats.done.append(event)
-                    stats.images += 1
-                    stats.render_s += event.render_s
                     if progress is not None:
                         progress(event_json(event))
             code = proc.wait()

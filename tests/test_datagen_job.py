@@ -2,12 +2,13 @@
 and the renderer's event lines parse back into the events it printed."""
 
 import json
+import sys
 from pathlib import Path
 
 import pytest
 
 from datagen import flight
-from datagen.build import _task, passes_for, render_job
+from datagen.build import _task, passes_for, render_job, run_blender
 from datagen.job import Done, Ready, RenderJob, Texture, event_line, material_from_json, parse_event
 from datagen.spec import preset, with_slope
 from datagen.survey import LENS
@@ -68,3 +69,35 @@ def test_events_read_back_from_their_lines():
     for bad in ("@@ragsplat {", '@@ragsplat {"event": "paused"}', '@@ragsplat {"event": "ready"}'):
         with pytest.raises(RagsplatError, match="renderer event not understood"):
             parse_event(bad)
+
+
+FAKE_RENDERER = """
+import json, sys
+from pathlib import Path
+from datagen.job import Done, Ready, RenderJob, event_line
+job = RenderJob.from_json(json.loads(Path(sys.argv[-1]).read_text()))  # as blender_scenes.render reads it
+print("Blender 5.0.1 (a line of its own log)")
+print(event_line(Ready(build_s=0.25, device="CPU")))
+for t in job.tasks:
+    print(event_line(Done(name=t.name, kind=t.kind, render_s=1.0, cycles_s=None, total_s=1.5)))
+"""
+
+
+def test_run_blender_hands_the_job_over_and_reads_the_events_back(tmp_path, monkeypatch):
+    """`run_blender` with a stand-in for the Blender process (no bpy): the job it writes reads back as the
+    renderer reads it, the events come back typed, and Blender's own lines go to the log."""
+    fake = tmp_path / "fake_renderer.py"
+    fake.write_text(FAKE_RENDERER)
+    python = tmp_path / "python"  # run_blender starts `python -m blender_scenes.render JOB`
+    python.write_text(f'#!/bin/sh\nexec {sys.executable} {fake} "$@"\n')
+    python.chmod(0o755)
+    monkeypatch.setattr(sys, "executable", str(python))
+    job = preset_job(preset("smoke"), tmp_path)
+    seen = []
+    stats = run_blender(job, tmp_path, seen.append)
+    assert stats.images == len(job.tasks) and stats.render_s == len(job.tasks) and stats.device == "CPU"
+    assert [(e.name, e.kind) for e in stats.done] == [(t.name, t.kind) for t in job.tasks]
+    assert seen[0] == {"event": "done", "name": job.tasks[0].name, "kind": "wet", "render_s": 1.0,
+                       "cycles_s": None, "total_s": 1.5}
+    assert "a line of its own log" in (tmp_path / "blender.log").read_text()
+    assert not list(tmp_path.glob("job.*.json"))  # the job file is tidied up
