@@ -18,7 +18,7 @@ computes it (`ROW_CODE`: ragsplat_core and the harness's training and scoring; a
 settings and `eval/references.py`), so a change to the tables or the references alone retrains nothing. A
 killed row resumes from its checkpoint only under the same key (`key.json`, written before training starts);
 otherwise it starts over. Then `eval.report` (re)writes `OUT/results.json`, the tables and `error_vs_time.png`
-from the rows of this run's variants and seeds only. The command is `eval.cli`.
+from the rows of this run's variants and seeds only. The command is `ragsplat_core.cli.ablation`.
 
 The water. Every row is scored against the ground truth's own surface (`GroundTruth.water`, a river's sloping
 plane included: depths below it). What the method and the references are given is the dataset's surface, or,
@@ -73,6 +73,7 @@ from ragsplat_core.outputs import claim, source_digest, versions, write_json
 from ragsplat_core.refraction import WaterSurface
 from ragsplat_core.surface import EXTRACT_TUNING, ExtractConfig
 from ragsplat_core.train.config import FIELD_TUNING, INIT, SURFELS, TUNING, VARIANTS
+from ragsplat_core.train.defaults import JOBS
 
 
 @dataclass(frozen=True)
@@ -103,8 +104,8 @@ ROW_CODE = ("ragsplat_core", "eval/ablation.py", "eval/evaluate.py", "eval/metri
 DATASET_SEEDS = {"development": 1, "evaluation": 0, "untouched": 7}
 # The main job's defaults, here only (`ragsplat ablation` takes them; the Makefile passes nothing unless told):
 # every row starts from the refracted tracks (`INIT`, the training's own default start, shared with `ragsplat
-# survey`), three training seeds (tables: mean +- std), and on the CPU two processes of cores / 2
-# threads (two single-threaded rows together did 1.7x the steps of one with both threads on the 2-core CPU).
+# survey`), the clear-water variants (`CLEAR_VARIANTS`), three training seeds (tables: mean +- std), and on the
+# CPU `JOBS` processes of cores / JOBS threads (`train.defaults`, shared with the survey's tiles).
 # On CUDA six processes per GPU: a `small` row leaves one H100 mostly idle (launch-bound), and six at once
 # trained all 27 rows of the 1 500-step preset of then in 6.7 min where one alone took 61 s for its longest
 # row (docs/performance.md; not measured at today's 3 000 steps).
@@ -112,7 +113,6 @@ SEEDS = (0, 1, 2)
 # The water's edge as a surveyor measures it (header x,y,z; the generator writes it into every reach dataset):
 # where one level (`--one-level`) is taken from.
 EDGE_POINTS = layout.SURVEY_EDGE
-JOBS = 2
 JOBS_PER_GPU = 6
 
 

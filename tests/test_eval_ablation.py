@@ -314,8 +314,8 @@ def test_published_rows_are_the_papers_variants():
 
 
 def test_tune_sets_nested_and_top_level_parameters():
-    from eval.tune import PARAMS, with_value
     from ragsplat_core.train import preset_config
+    from tools.tune import PARAMS, with_value
 
     cfg = preset_config("small")
     capped = with_value(cfg, "densify.max_gaussians", 20000.0)
@@ -356,8 +356,8 @@ def test_gsplat_is_built_once_before_the_processes_on_cuda(monkeypatch, tmp_path
     import sys
     from argparse import Namespace
 
-    from eval import cli
     from ragsplat_core import rasterize
+    from ragsplat_core.cli import ablation as cli
 
     # build_gsplat imports gsplat's backend module (here a stand-in that counts its imports)
     pkg = tmp_path / "gsplat" / "cuda"

@@ -1,4 +1,4 @@
-"""Where a bed gains or loses (`eval.density`): the views that see a submerged point through the water (the
+"""Where a bed gains or loses (`tools.density`): the views that see a submerged point through the water (the
 refracted field of view, narrower under water than the straight one), the relief of a bump on a plane, and
 binned summaries that partition the cells."""
 
@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from eval.density import BINS, breakdown, in_bin, relief, summary, views_seeing
 from ragsplat_core.camera import Camera
 from ragsplat_core.refraction import WaterSurface
+from tools.density import BINS, breakdown, in_bin, relief, summary, views_seeing
 
 N, H, D = 1.33, 10.0, 2.0  # index, camera height over the level, depth of the test points
 

@@ -15,11 +15,11 @@ import pytest
 import torch
 from test_eval_ablation import FakeRunner
 
-from eval import cli
 from eval.ablation import EDGE_POINTS, TrainEval, one_level_water, run_ablation
 from eval.bed_file import read_bed
 from eval.evaluate import score_grid
 from eval.references import depth_times_n, dietrich, dietrich_grid
+from ragsplat_core.cli import ablation as cli
 from ragsplat_core.cli.main import main
 from ragsplat_core.dataset import layout
 from ragsplat_core.dataset.load import GroundTruth, load_dataset

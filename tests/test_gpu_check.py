@@ -1,4 +1,4 @@
-"""`eval/gpu_check.sh all`: the control flow of the one GPU command, with a stand-in for PYTHON that
+"""`tools/gpu_check.sh all`: the control flow of the one GPU command, with a stand-in for PYTHON that
 records what it is asked (a lent GPU gets one try at it, so the time sharing and the exit codes are
 tested here): the ablation gets what LIMIT_S leaves after the tests, a failed test cancels neither the
 bench nor the ablation, and too little time left starts no ablation."""
@@ -33,7 +33,7 @@ def gpu_check(tmp_path, stage, **env):
     py.chmod(0o755)
     calls = tmp_path / "calls"
     run = subprocess.run(
-        ["bash", str(ROOT / "eval/gpu_check.sh"), stage, str(tmp_path / "out"), str(tmp_path / "data")],
+        ["bash", str(ROOT / "tools/gpu_check.sh"), stage, str(tmp_path / "out"), str(tmp_path / "data")],
         env={**os.environ, "PYTHON": str(py), "CALLS": str(calls), **env}, capture_output=True, text=True,
         check=False)
     return run, calls.read_text().splitlines() if calls.exists() else []

@@ -123,7 +123,7 @@ def test_gridded_applies_the_outlier_filter_it_is_given():
 
 
 def test_tune_references_rule_prefers_1pct_within_half_a_point_at_3pct():
-    from eval.tune_references import choose
+    from tools.tune_references import choose
 
     rows = [{"f1_1pct": 0.70, "f1_3pct": 0.960}, {"f1_1pct": 0.72, "f1_3pct": 0.956},
             {"f1_1pct": 0.80, "f1_3pct": 0.950}]

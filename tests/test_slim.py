@@ -1,4 +1,4 @@
-"""`python -m eval.slim`: a dataset copy with only what the ablation reads scores a row exactly as the whole
+"""`python -m tools.slim`: a dataset copy with only what the ablation reads scores a row exactly as the whole
 dataset does and never triangulates again; the rasterio stand-in serves what the ablation calls and refuses
 to read a raster."""
 
@@ -12,11 +12,12 @@ from pathlib import Path
 import numpy as np
 from conftest import tiny_smoke
 
-from eval import ablation, slim
+from eval import ablation
 from eval.references import SEEDLESS
 from ragsplat_core.cli.main import main
 from ragsplat_core.dataset import colmap, layout
 from ragsplat_core.dataset.load import load_dataset
+from tools import slim
 
 ROOT = Path(__file__).resolve().parents[1]
 

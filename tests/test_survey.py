@@ -10,11 +10,11 @@ import pytest
 import torch
 from conftest import channel_scene, survey_cameras
 
-from eval.poses import pose_errors
 from ragsplat_core.bench.synthetic import bed_scene, render_views, write_dataset
 from ragsplat_core.cli.main import main
 from ragsplat_core.dataset import layout
 from ragsplat_core.refraction import WaterSurface
+from tools.poses import pose_errors
 
 WATER = WaterSurface(0.0, 1.33)
 

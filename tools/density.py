@@ -5,9 +5,9 @@ the DEM and of the refracted tracks' TIN (the best reference row) in every bin:
 - `views`: training views whose image holds the cell's apparent point (seen through the water);
 - `relief`: the true bed above the median of the true bed within 0.3 m (a stone's top; 0 on a flat bed).
 
-`python -m eval.density DEM.tif DATA [RADIUS]`: the DEM (`ragsplat export` / `ragsplat survey`) of a run on the
-synthetic dataset DATA, against DATA's ground truth; RADIUS (metres, default 0.5) is the disc the tracks are
-counted in. Prints one Markdown table per binning."""
+`python -m tools.density DEM.tif DATA [RADIUS]`: the DEM (`ragsplat export` / `ragsplat survey`) of a run on
+the synthetic dataset DATA, against DATA's ground truth; RADIUS (metres, default 0.5) is the disc the tracks
+are counted in. Prints one Markdown table per binning."""
 
 from __future__ import annotations
 

@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
 # The GPU figures of docs/performance.md ("On a GPU"), in stages that end inside 10 minutes on one H100
 # (a lent machine's limit for one command); what they print also goes to OUT/STAGE.log.
-#   bash eval/gpu_check.sh tests OUT          the CUDA and gsplat tests, then `ragsplat bench train-step`
+#   bash tools/gpu_check.sh tests OUT         the CUDA and gsplat tests, then `ragsplat bench train-step`
 #                                             with the compiled transform (OUT/train_step.json)
-#   bash eval/gpu_check.sh ablation OUT DATA  `ragsplat ablation` on DATA (the dataset or its slim copy,
-#                                             `python -m eval.slim`), its small files in OUT/rows.tar.gz
-#   bash eval/gpu_check.sh all OUT DATA       both in one command (one machine start, one gsplat compile):
+#   bash tools/gpu_check.sh ablation OUT DATA `ragsplat ablation` on DATA (the dataset or its slim copy,
+#                                             `python -m tools.slim`), its small files in OUT/rows.tar.gz
+#   bash tools/gpu_check.sh all OUT DATA      both in one command (one machine start, one gsplat compile):
 #                                             the ablation gets what is left of LIMIT_S after the tests
 # Needs a CUDA torch and gsplat where PYTHON runs. Settings (environment): PYTHON (python3), DEVICE (cuda),
 # BACKENDS (gsplat:cuda), PRESET (small), VARIANTS ("full 2dgs+full"), SEEDS ("0 1 2"), RUNS (OUT/runs:

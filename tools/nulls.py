@@ -1,4 +1,4 @@
-"""The null-model table of the README: `python -m datagen.nulls [PRESET:SEEDS ...]` (e.g. small:0,1,2).
+"""The null-model table of the README: `python -m tools.nulls [PRESET:SEEDS ...]` (e.g. small:0,1,2).
 
 The same scores `ragsplat dataset` writes into scene.json (`build.null_models`), computed from the
 heightfield alone, without rendering: a flat plane at the median height of the submerged ground truth

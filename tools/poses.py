@@ -68,7 +68,7 @@ def summary(errors: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """`python -m eval.poses MODEL TRUTH [GEOREF.json]`: the pose errors of a COLMAP model, one line, and
+    """`python -m tools.poses MODEL TRUTH [GEOREF.json]`: the pose errors of a COLMAP model, one line, and
     per tilt band."""
     import json
     import sys

@@ -1,4 +1,5 @@
-"""What each field condition costs the renderer: `python -m datagen.render_cost [--preset small] [--views 4]`.
+"""What each field condition costs the renderer: `python -m tools.render_cost [--preset small]
+[--views 4]`.
 
 Renders the same few views (every k-th of the flight plan, all three passes) of the ideal preset, of each
 effect alone and of all of them (the preset's `-field` conditions), one after the other in one run, and
@@ -32,7 +33,7 @@ def variants(name: str) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m datagen.render_cost", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m tools.render_cost", description=__doc__.split("\n\n")[0])
     parser.add_argument("--preset", default="small", help="an ideal preset that has a -field twin (default small)")
     parser.add_argument("--views", type=int, default=4, help="views rendered per variant (default 4)")
     args = parser.parse_args(argv)

@@ -1,7 +1,7 @@
 """A slim copy of a dataset: what `ragsplat ablation` reads and nothing else, for a machine that cannot take
 the whole of it (the `small` reach is 228 MB; a lent GPU takes 64 MiB, its wheels included).
 
-`python -m eval.slim DATA OUT [--stand-ins DIR]` copies `transforms.json`, `scene.json`, `manifest.json`,
+`python -m tools.slim DATA OUT [--stand-ins DIR]` copies `transforms.json`, `scene.json`, `manifest.json`,
 every frame's wet and dry image (and mask), the COLMAP text model, the cached tracks and the ground truth the
 scores read (`bed_grid.npy`, `bank_grid.npy`, `bed_surface.npz`, `waterline.json`; not the mesh, the depth
 EXRs or the elevation GeoTIFF). Every score of a row made from the copy equals the row made from the whole
@@ -13,10 +13,10 @@ is not bit-reproducible from one process to the next (docs/method.md), could sta
 points. The stamp may be carried over because the tracks are made from the wet images and the cameras alone,
 which the copy keeps byte for byte.
 
-`--stand-ins DIR` also writes a package `rasterio` into DIR for a machine without GDAL (rasterio's wheel is
-39 MB): put DIR first on PYTHONPATH there. It parses no CRS (returns the text it is given) and its GeoTIFF
-writer writes an empty file, so each row's `bed.tif` is empty there; no score reads one (`--dem` does, and is
-refused). Never install it beside a real rasterio."""
+`--stand-ins DIR` also copies a package `rasterio` (`tools/stand_ins/rasterio/`) into DIR for a machine
+without GDAL (rasterio's wheel is 39 MB): put DIR first on PYTHONPATH there. It parses no CRS (returns the
+text it is given) and its GeoTIFF writer writes an empty file, so each row's `bed.tif` is empty there; no
+score reads one (`--dem` does, and is refused). Never install it beside a real rasterio."""
 
 from __future__ import annotations
 
@@ -62,71 +62,23 @@ def slim_copy(src: Path, dst: Path) -> dict:
             "fingerprint": record["fingerprint"], "points": record["points"]}
 
 
-# The rasterio a slim copy needs where rasterio is absent: what `layout.Georef.wkt` and `layout.write_raster`
-# call; reading a raster is refused (`eval.score.dem_points` then raises DatasetError).
-STAND_IN = {
-    "__init__.py": '''"""A stand-in for rasterio written by `python -m eval.slim --stand-ins` (see there):
-it parses no CRS and writes empty GeoTIFFs. Only for scoring an ablation on a machine without GDAL."""
-import builtins
-
-from rasterio import crs, errors, transform  # noqa: F401 (the submodules the project imports)
-
-
-class _EmptyTiff:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-    def write(self, image, band):
-        pass
-
-    def set_band_description(self, band, text):
-        pass
-
-
-def open(path, mode="r", **kwargs):  # noqa: A001 (rasterio's own name)
-    if mode != "w":
-        raise errors.RasterioIOError(f"{path}: the rasterio stand-in reads no raster")
-    builtins.open(path, "wb").close()
-    return _EmptyTiff()
-''',
-    "crs.py": '''class CRS:
-    def __init__(self, text):
-        self.text = text
-
-    @classmethod
-    def from_user_input(cls, text):
-        return cls(text)
-
-    def to_wkt(self):
-        return self.text
-''',
-    "errors.py": '''class CRSError(ValueError):
-    pass
-
-
-class RasterioIOError(OSError):
-    pass
-''',
-    "transform.py": '''def Affine(*coefficients):  # noqa: N802 (rasterio's own name)
-    return tuple(coefficients)
-''',
-}
+# The rasterio a slim copy needs where rasterio is absent (`stand_ins/rasterio/`): what `layout.Georef.wkt`
+# and `layout.write_raster` call; reading a raster is refused (`eval.score.dem_points` then raises
+# DatasetError).
+STAND_IN = Path(__file__).resolve().parent / "stand_ins" / "rasterio"
 
 
 def write_stand_ins(folder: Path) -> Path:
-    """Write the rasterio stand-in (`STAND_IN`) as a package in `folder`; returns the package's path."""
+    """Copy the rasterio stand-in (`STAND_IN`) as a package into `folder`; returns the package's path."""
     package = Path(folder) / "rasterio"
     package.mkdir(parents=True, exist_ok=True)
-    for name, text in STAND_IN.items():
-        (package / name).write_text(text)
+    for source in sorted(STAND_IN.glob("*.py")):
+        shutil.copyfile(source, package / source.name)
     return package
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m eval.slim", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m tools.slim", description=__doc__.split("\n\n")[0])
     parser.add_argument("data", type=Path, help="the dataset (its tracks are made there first if missing)")
     parser.add_argument("out", type=Path, help="a new folder for the copy")
     parser.add_argument("--stand-ins", type=Path, metavar="DIR",

@@ -1,6 +1,7 @@
 """Choose a training hyperparameter on a development dataset (never the evaluation one):
-`python -m eval.tune --data DEV_DIR --out DIR [--preset small] [--param lr_means | densify.max_gaussians | ...]
-[--values ...] [--variants full] [--seed 0] [--set PARAM=VALUE ...]` trains each variant at each value (the
+`python -m tools.tune --data DEV_DIR --out DIR [--preset small]
+[--param lr_means | densify.max_gaussians | ...] [--values ...] [--variants full] [--seed 0]
+[--set PARAM=VALUE ...]` trains each variant at each value (the
 `--set` parameters held fixed), scores the bed like the ablation and prints F1 at 1 % / 3 % of depth, wet RMSE,
 p95 and cover and the training time per value, and the value with the best mean F1 at 3 % over the variants.
 The choice is recorded by hand in `ragsplat_core.train.config.TUNING` (with the dataset seed), which every
@@ -34,7 +35,7 @@ def with_value(cfg: TrainConfig | DensifyConfig, param: str, value: float) -> Tr
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m eval.tune", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m tools.tune", description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--preset", default="small")

@@ -9,7 +9,7 @@ best F1 at 3 %), so that the field's practice gets the care the method got:
 3. with `--bed BED.npy` (the development reach's `3dgs` row's volume bed, `ragsplat ablation --data
    data/small-dev --variants 3dgs --seeds 0`), the same two on `dietrich (3dgs)`, the rule on a dense cloud.
 
-`python -m eval.tune_references DATA [OUT.json] [--bed BED.npy]`: DATA is the development reach
+`python -m tools.tune_references DATA [OUT.json] [--bed BED.npy]`: DATA is the development reach
 (`data/small-dev`, dataset seed 1); prints one Markdown table per step with the chosen row marked, and writes
 every figure as JSON. The chosen values go into `eval.references` (`TIN_FILTER`, `DIETRICH_TRACKS`,
 `DIETRICH_MAX_ANGLE`, `DIETRICH_DENSE_REDUCE`) by hand, with the tables in docs/evaluation.md.
@@ -92,7 +92,7 @@ def main(argv: list[str]) -> int:
         k = argv.index("--bed")
         bed, argv = Path(argv[k + 1]), argv[:k] + argv[k + 2:]
     if len(argv) not in (1, 2):
-        print("usage: python -m eval.tune_references DATA [OUT.json] [--bed BED.npy]", file=sys.stderr)
+        print("usage: python -m tools.tune_references DATA [OUT.json] [--bed BED.npy]", file=sys.stderr)
         return 2
     from eval.report import jsonable
     from ragsplat_core.outputs import write_json

@@ -1,6 +1,7 @@
 """`ragsplat ablation --data DIR --out DIR [--preset smoke|small|paper] [--variants ...] [--seeds S ...]
-[--init ...] [--jobs N] [--one-level]`: every variant trained and evaluated per seed, the reference rows scored,
-Tables 1-3 printed (mean +- std over seeds) beside the paper's (`eval.ablation`, which also holds the defaults).
+[--init ...] [--jobs N] [--one-level]`: every variant trained and evaluated per seed, the reference rows
+scored, Tables 1-3 printed (mean +- std over seeds) beside the paper's (`eval.ablation`, which also holds its
+own defaults; those it shares with `ragsplat survey` are `ragsplat_core.train.defaults`').
 
 `--one-level` measures what a flat-water tool does on a sloping river: the method and every reference are
 given one level, the mean height of the dataset's surveyed water edge (`eval.ablation.one_level_water`),
@@ -23,21 +24,20 @@ import argparse
 import time
 from functools import partial
 
-from ragsplat_core.cli.args import count, dataset_dir, out_dir, positive_int
+from ragsplat_core.cli.args import count, dataset_dir, lpips_arguments, out_dir, positive_int
 from ragsplat_core.errors import RagsplatError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from eval.ablation import EDGE_POINTS, INIT, JOBS, JOBS_PER_GPU, PRESETS, SEEDS
-    from ragsplat_core.train.config import VARIANTS, WATER_TERMS
+    from eval.ablation import EDGE_POINTS, JOBS_PER_GPU, PRESETS, SEEDS
+    from ragsplat_core.train.config import INIT, VARIANTS, WATER_TERMS
+    from ragsplat_core.train.defaults import CLEAR_VARIANTS, JOBS
 
     parser.add_argument("--data", required=True, type=dataset_dir, help="dataset directory (transforms.json, gt/)")
     parser.add_argument("--out", required=True, type=out_dir, help="output directory (reused rows live here)")
     parser.add_argument("--preset", default="small", choices=list(PRESETS), help="training/eval size")
-    # by default the clear-water variants (the paper's and 2DGS's): the water's optics are for scenes that need
-    # them (`WATER_TERMS`, e.g. `small-field`), asked for by name
-    clear = [v for v in VARIANTS if v not in WATER_TERMS]
-    parser.add_argument("--variants", nargs="+", default=clear, choices=list(VARIANTS), metavar="VARIANT",
+    parser.add_argument("--variants", nargs="+", default=list(CLEAR_VARIANTS), choices=list(VARIANTS),
+                        metavar="VARIANT",
                         help=f"subset of {', '.join(VARIANTS)} (default: all but {', '.join(WATER_TERMS)})")
     parser.add_argument("--seeds", type=count, nargs="+", default=list(SEEDS), metavar="SEED",
                         help="training (and extraction) seeds; tables show mean +- std over them "
@@ -136,15 +136,6 @@ def run_rows(args: argparse.Namespace, fingerprint: str, code: str, check) -> No
 def _reason(task) -> str:
     err = task.exception()
     return f"{type(err).__name__}: {err}" if err is not None else task.status
-
-
-def lpips_arguments(parser: argparse.ArgumentParser) -> None:
-    """--vgg16 and --no-download: where LPIPS's weights come from (`eval.metrics.load_lpips`)."""
-    parser.add_argument("--vgg16", default=None, metavar="PATH",
-                        help="torchvision's vgg16-397923af.pth for LPIPS (default: torch hub cache, downloaded "
-                             "there with its hash check when missing)")
-    parser.add_argument("--no-download", action="store_true",
-                        help="never download the LPIPS weights (offline: LPIPS prints n/a with the reason)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -129,3 +129,11 @@ def cull_overrides(args: argparse.Namespace) -> dict:
     """The culls given on the command line, as `ExtractConfig` fields."""
     return {name: getattr(args, name) for name in CULLS if getattr(args, name) is not None}
 
+
+def lpips_arguments(parser: argparse.ArgumentParser) -> None:
+    """--vgg16 and --no-download: where LPIPS's weights come from (`eval.metrics.load_lpips`)."""
+    parser.add_argument("--vgg16", default=None, metavar="PATH",
+                        help="torchvision's vgg16-397923af.pth for LPIPS (default: torch hub cache, downloaded "
+                             "there with its hash check when missing)")
+    parser.add_argument("--no-download", action="store_true",
+                        help="never download the LPIPS weights (offline: LPIPS prints n/a with the reason)")

@@ -15,16 +15,21 @@ import os
 import signal
 import sys
 
-# name -> (module, one-line help), in workflow order: make data, train, look at and score a run, the
-# ablation, export; then the diagnostics.
+# name -> (its module, one line of help), in workflow order: make data, train, look at and score a run, the
+# ablation, export; then the diagnostics. Every command is a module of this package (`cli/__init__.py`).
 COMMANDS: dict[str, tuple[str, str]] = {
-    "dataset": ("datagen.cli", "render the synthetic riverbed dataset (Blender Cycles, resumable, shardable)"),
+    "dataset": ("ragsplat_core.cli.dataset",
+                "render the synthetic riverbed dataset (Blender Cycles, resumable, shardable)"),
     "train": ("ragsplat_core.cli.train", "train one RA-GS variant on a dataset directory (resumable)"),
     "render": ("ragsplat_core.cli.render", "render a trained run at its dataset's views: wet, dry or z-depth"),
-    "eval": ("eval.cli_score", "score a trained run against the ground truth, beside the reference answers"),
-    "score": ("eval.cli_bed", "score any bed (DEM, LAS/LAZ, PLY, CSV) against a dataset's ground truth"),
-    "ablation": ("eval.cli", "train every variant, evaluate, and print Tables 1 and 2 beside the paper's"),
-    "export": ("ragsplat_core.cli.export", "a trained run's bed as survey products: DEM GeoTIFF, LAS/LAZ, PLY, PNG"),
+    "eval": ("ragsplat_core.cli.score_run",
+             "score a trained run against the ground truth, beside the reference answers"),
+    "score": ("ragsplat_core.cli.score",
+              "score any bed (DEM, LAS/LAZ, PLY, CSV) against a dataset's ground truth"),
+    "ablation": ("ragsplat_core.cli.ablation",
+                 "train every variant, evaluate, and print Tables 1 and 2 beside the paper's"),
+    "export": ("ragsplat_core.cli.export",
+               "a trained run's bed as survey products: DEM GeoTIFF, LAS/LAZ, PLY, PNG"),
     "survey": ("ragsplat_core.cli.survey", "from a survey's photos, RTK positions and water level to a DEM"),
     "stability": ("ragsplat_core.cli.stability", "numerical stability report of the refraction transform"),
     "bench": ("ragsplat_core.cli.bench", "benchmarks: refraction solvers, rasterizer, training step"),

@@ -8,8 +8,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from eval.cli import lpips_arguments
-from ragsplat_core.cli.args import cull_arguments, cull_overrides, dataset_dir, out_file_ending
+from ragsplat_core.cli.args import (
+    cull_arguments,
+    cull_overrides,
+    dataset_dir,
+    lpips_arguments,
+    out_file_ending,
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

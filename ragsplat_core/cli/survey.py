@@ -25,8 +25,6 @@ from ragsplat_core.cli.args import (
     refractive_index,
 )
 
-JOBS = 2  # tiles trained at once on this machine: two single-threaded trainings beat one of two threads
-
 
 def level_or_auto(text: str) -> float | str:
     from ragsplat_core.survey.pipeline import AUTO
@@ -38,6 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ragsplat_core.survey.exif import CONSUMER_SIGMA
     from ragsplat_core.survey.pipeline import STAGES
     from ragsplat_core.train.config import INIT, PRESETS, VARIANTS
+    from ragsplat_core.train.defaults import JOBS
 
     parser.add_argument("images", type=Path, metavar="IMAGES", help="the folder of the survey's photos (JPEG/PNG)")
     frame = parser.add_mutually_exclusive_group()

@@ -1,0 +1,6 @@
+class CRSError(ValueError):
+    pass
+
+
+class RasterioIOError(OSError):
+    pass

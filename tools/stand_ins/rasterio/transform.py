@@ -1,0 +1,2 @@
+def Affine(*coefficients):
+    return tuple(coefficients)
