@@ -147,6 +147,18 @@ def test_a_level_error_moves_the_bed_by_n_minus_1_times_it():
             assert (z_n - p[2]) / 0.01 == pytest.approx(slope_n, rel=0.02)
 
 
+def test_oblique_views_move_the_bed_more_and_the_first_order_slopes_still_hold():
+    # views 30-50 degrees off nadir: a level error moves the bed by more than (n - 1) times it
+    point = np.array([0.1, 0.0, -1.5])
+    cams = ring(point, 4.0, 5.0, 6)
+    geo = view_geometry(point[None], cams, WATER)
+    observed = [cam.project(apparent_points(torch.tensor(point[None]), torch.tensor(cam.camera_center),
+                                            WATER).numpy())[0][0] for cam in cams]
+    z_level = retriangulate(point, cams, observed, replace(WATER, level=0.01))[2]
+    assert (z_level - point[2]) / 0.01 == pytest.approx(geo.dz_dlevel[0], rel=0.02)
+    assert geo.dz_dlevel[0] < -1.2 * (WATER.n - 1)
+
+
 def test_the_systematic_term_adds_in_quadrature():
     cams = grid_of_cameras()
     points = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, -3.0]])
