@@ -15,7 +15,9 @@ TRAIN_PRESET ?= $(if $(filter small-field,$(PRESET)),small-field,$(firstword $(s
 SEED ?= 0
 # The ablation's training seeds (e.g. SEEDS="0 1"), variants (VARIANTS="3dgs full"), start (INIT=grid |
 # triangulated | refracted), processes (JOBS=1) and training device (DEVICE=cuda | cpu): empty means
-# `ragsplat ablation`'s own defaults, defined once in eval/ablation.py (`ragsplat ablation --help` prints them).
+# `ragsplat ablation`'s own defaults, defined once in the library (the start in ragsplat_core/train/config.py,
+# the variants and jobs in train/defaults.py, the seeds in eval/ablation.py; `ragsplat ablation --help` prints
+# them).
 SEEDS ?=
 VARIANTS ?=
 INIT ?=
