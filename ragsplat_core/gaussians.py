@@ -1,4 +1,7 @@
-"""Gaussian scene parameters, their initialisation, rotation and covariance, and spherical-harmonics colour.
+"""Gaussian scene parameters, their initialisation, rotation, covariance and surfel tangents, and
+spherical-harmonics colour, in plain PyTorch (autograd, any device). The `cpu` backend's numba kernels are
+twins of `covariance`, `surfel_tangents` and `colors_for_view` (`raster/cpu/`, chosen in `raster/backends.py`);
+this module imports nothing of the rasterizer.
 
 Parameters live in a `torch.nn.ParameterDict` (the layout gsplat uses), keyed by
 - `means`     [N, 3]  world position (metres; the TRUE position for underwater Gaussians)
@@ -12,13 +15,10 @@ Parameters live in a `torch.nn.ParameterDict` (the layout gsplat uses), keyed by
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 import torch
-
-if TYPE_CHECKING:  # refraction imports `covariance` from here
-    from ragsplat_core.refraction import WaterSurface
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -27,6 +27,15 @@ SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.092548
 SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
          -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
 PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
+
+
+class Water(Protocol):
+    """What `init_points` reads of a `refraction.WaterSurface` (named by its shape, because refraction
+    imports this module)."""
+
+    n: float
+
+    def depth(self, points: torch.Tensor) -> torch.Tensor: ...
 
 
 def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
@@ -39,15 +48,17 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     ], -1).reshape(-1, 3, 3)
 
 
-def covariance(quats: torch.Tensor, scales: torch.Tensor, fast: bool = False) -> torch.Tensor:
-    """World covariance R S S R^T [N, 3, 3] from quaternions [N, 4] and linear scales [N, 3]. `fast` (CPU
-    tensors): the same in one numba kernel (`raster.rotation_cpu`); this function is its twin."""
-    if fast:
-        from ragsplat_core.raster.rotation_cpu import covariance_cpu
-
-        return covariance_cpu(quats, scales)
+def covariance(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+    """World covariance R S S R^T [N, 3, 3] from quaternions [N, 4] and linear scales [N, 3]."""
     M = quat_to_rotmat(quats) * scales[:, None, :]  # R diag(s)
     return M @ M.transpose(1, 2)
+
+
+def surfel_tangents(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+    """Scaled world tangents [N, 3, 2] (columns s_u t_u, s_v t_v) of surfels from quaternions [N, 4]
+    (w, x, y, z) and linear scales [N, 2]: the first two columns of the rotation (2DGS; the third is the
+    normal)."""
+    return quat_to_rotmat(quats)[:, :, :2] * scales[:, None, :]
 
 
 def num_sh_bases(degree: int) -> int:
@@ -91,10 +102,8 @@ def eval_sh(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tens
     return torch.einsum("nk,nkc->nc", sh_basis(degree, dirs), coeffs[:, :num_sh_bases(degree)])
 
 
-def colors_for_view(splats: torch.nn.ParameterDict, camera_center: torch.Tensor, degree: int,
-                    fast: bool = False) -> torch.Tensor:
+def colors_for_view(splats: torch.nn.ParameterDict, camera_center: torch.Tensor, degree: int) -> torch.Tensor:
     """RGB [N, 3] seen from `camera_center` [3], using SH up to `degree` (the active degree), clamped >= 0.
-    `fast` (CPU tensors): the same in one numba kernel (`raster.sh_cpu`); this function is its twin.
 
     The direction is from the camera to the TRUE mean, evaluated before the refraction transform (the
     refraction contract takes per-view RGB). Under water the ray that actually leaves the Gaussian is the
@@ -103,10 +112,6 @@ def colors_for_view(splats: torch.nn.ParameterDict, camera_center: torch.Tensor,
     """
     if degree == 0 or "shN" not in splats:
         return (SH_C0 * splats["sh0"][:, 0] + 0.5).clamp_min(0.0)
-    if fast:
-        from ragsplat_core.raster.sh_cpu import view_colors
-
-        return view_colors(splats["sh0"], splats["shN"], splats["means"], camera_center, degree)
     coeffs = torch.cat([splats["sh0"], splats["shN"]], 1)  # [N, K, 3]
     dirs = torch.nn.functional.normalize(splats["means"] - camera_center, dim=-1)  # [N, 3]
     return (eval_sh(degree, coeffs, dirs) + 0.5).clamp_min(0.0)
@@ -152,7 +157,7 @@ def init_grid(xmin: float, xmax: float, ymin: float, ymax: float, z: float, spac
     return _make(means, log_scales, torch.full_like(means, rgb), opacity, degree)
 
 
-def init_points(points: torch.Tensor, rgb: torch.Tensor, water: WaterSurface | None, degree: int = 3,
+def init_points(points: torch.Tensor, rgb: torch.Tensor, water: Water | None, degree: int = 3,
                 opacity: float = 0.1, depth_scale: float | None = None) -> torch.nn.ParameterDict:
     """Gaussians at the points [N, 3] of a point cloud with colours [N, 3] in [0, 1].
 

@@ -2,7 +2,7 @@
 
 `rasterize_surfels(means, quats, scales, opacities, colors, camera, background, tangents=None,
 backend="auto")` renders surfels with the ray-splat intersection and low-pass filter of 2DGS (see
-`raster/surfel_project.py`) and the compositing of `rasterize` (alpha = min(0.99, o G), skipped below 1/255,
+`raster/reference/surfel_project.py`) and the compositing of `rasterize` (alpha = min(0.99, o G), skipped below 1/255,
 front to back by centre depth, a pixel stops before the surfel that would take its transmittance below
 1e-4; 16 px tiles; surfels whose centre has camera z < 0.01 culled). Outputs:
 - image [H, W, 3] = sum_i w_i c_i + T background, with w_i = alpha_i T_i;
@@ -23,10 +23,11 @@ front to back by centre depth, a pixel stops before the surfel that would take i
 not necessarily orthogonal) and replace quats and scales (which may then be None): RA-GS passes refracted
 surfels as t' = J t, J = refraction.apparent_jacobian(...). The normal is then t'_u x t'_v normalised.
 
-Backends: "torch" (plain PyTorch, autograd, any device: the reference), "cpu" (numba kernels with a
-hand-written backward, float32 compositing, CPU tensors), "gsplat" (gsplat's CUDA 2DGS rasterization stage
-fed with this module's projection, so tangents too; optional, CUDA tensors; see `raster/surfel_gsplat.py`
-for where it differs: alpha clamp 0.999, depths at the surfels' centres), "auto" (as `rasterize`).
+Backends (`raster/backends.py`): "torch" (plain PyTorch, autograd, any device: the reference), "cpu" (numba
+kernels with a hand-written backward, float32 compositing, CPU tensors), "gsplat" (gsplat's CUDA 2DGS
+rasterization stage fed with this module's projection, so tangents too; optional, CUDA tensors; see
+`raster/cuda/surfel_composite.py` for where it differs: alpha clamp 0.999, depths at the surfels' centres),
+"auto" (as `rasterize`).
 Gradients flow to means, quats, scales (or tangents), opacities, colors and background, through every output.
 """
 
@@ -35,9 +36,9 @@ from __future__ import annotations
 import torch
 
 from ragsplat_core.camera import Camera
-from ragsplat_core.raster.project import bin_tiles
-from ragsplat_core.raster.surfel_project import project_surfels, surfel_tangents
-from ragsplat_core.rasterize import check_shapes, choose_backend, resolve
+from ragsplat_core.raster.backends import choose_backend
+from ragsplat_core.raster.reference.surfel_project import project_surfels
+from ragsplat_core.rasterize import check_shapes, resolve
 
 
 def rasterize_surfels(means, quats, scales, opacities, colors, camera: Camera, background, tangents=None,
@@ -49,30 +50,26 @@ def rasterize_surfels(means, quats, scales, opacities, colors, camera: Camera, b
     """
     _check(means, quats, scales, opacities, colors, tangents, means.shape[0])
     background = torch.as_tensor(background, dtype=colors.dtype, device=colors.device).reshape(3)
-    backend = choose_backend(backend, means.device)
+    b = choose_backend(backend, means.device)
     if tangents is None:
-        tangents = surfel_tangents(quats, scales, fast=backend == "cpu")  # [N, 3, 2]
-    proj = project_surfels(means, tangents, opacities, camera, transforms=backend == "gsplat")
+        tangents = b.tangents(quats, scales)  # [N, 3, 2]
+    fused = b.bin_tiles is None  # gsplat: its own tiles, from the ray transforms
+    proj = project_surfels(means, tangents, opacities, camera, transforms=fused)
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
     meta = {"means2d": means2d, "radii": proj.radii, "depths": proj.depths, "visible": proj.visible,
-            "backend": backend, "width": camera.width, "height": camera.height}
-    if backend == "gsplat":
-        from ragsplat_core.raster.surfel_gsplat import composite as composite_gsplat
-
+            "backend": b.name, "width": camera.width, "height": camera.height}
+    if fused:
         dtype = colors.dtype
-        image, alpha, depth, normals, distortion, median, tiles = composite_gsplat(
+        image, alpha, depth, normals, distortion, median, tiles = b.surfel_composite(
             proj, opacities, colors, background, camera.width, camera.height)
         meta.update(normals=normals.to(dtype), median_depth=median[..., None].to(dtype),
                     distortion=distortion[..., None].to(dtype), tiles_touched=tiles)
         return image.to(dtype), alpha[..., None].to(dtype), depth[..., None].to(dtype), meta
-    bins = bin_tiles(proj, camera.width, camera.height, fast=backend == "cpu")
-    if backend == "torch":
-        from ragsplat_core.raster.surfel_torch import composite
-    else:
-        from ragsplat_core.raster.surfel_cpu import composite
-    sums, trans, distortion, median = composite(proj, opacities, colors, bins, camera.width, camera.height)
+    bins = b.bin_tiles(proj, camera.width, camera.height)
+    sums, trans, distortion, median = b.surfel_composite(proj, opacities, colors, bins, camera.width,
+                                                         camera.height)
     image, alpha, depth = resolve(sums[..., :3], trans, sums[..., 6], background)
     meta.update(normals=sums[..., 3:6], median_depth=median[..., None], distortion=distortion[..., None],
                 tiles_touched=bins.tiles_touched)

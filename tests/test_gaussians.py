@@ -6,7 +6,6 @@ import torch
 from ragsplat_core.gaussians import (
     activated,
     colors_for_view,
-    covariance,
     eval_sh,
     init_grid,
     init_points,
@@ -14,6 +13,7 @@ from ragsplat_core.gaussians import (
     rgb_to_sh,
     sh_degree,
 )
+from ragsplat_core.raster.backends import backend
 from ragsplat_core.refraction import WaterSurface
 
 
@@ -120,7 +120,7 @@ def test_sh_kernel_matches_its_twin(degree, dtype, tol):
     out, grads = {}, {}
     for fast in (False, True):
         leaves = {k: v.to(dtype).clone().requires_grad_() for k, v in splats.items()}  # own grads
-        colors = colors_for_view(leaves, center.to(dtype), degree, fast=fast)
+        colors = backend("cpu" if fast else "torch").colors(leaves, center.to(dtype), degree)
         weights = torch.randn(n, 3, generator=torch.Generator().manual_seed(7), dtype=torch.float64).to(dtype)
         (colors * weights).sum().backward()
         out[fast], grads[fast] = colors.detach(), {k: v.grad for k, v in leaves.items()}
@@ -134,7 +134,7 @@ def test_sh_kernel_matches_its_twin(degree, dtype, tol):
 
 def test_sh_kernel_gradient_matches_finite_differences():
     # the means' gradient (through the view direction) from first principles, in float64
-    from ragsplat_core.raster.sh_cpu import view_colors
+    from ragsplat_core.raster.cpu.sh import view_colors
 
     gen = torch.Generator().manual_seed(3)
     means = torch.randn(20, 3, generator=gen, dtype=torch.float64).requires_grad_()
@@ -148,17 +148,15 @@ def test_sh_kernel_gradient_matches_finite_differences():
 def test_shape_kernels_match_their_twins(dtype, tol):
     # numba covariance R S S^T R^T and surfel tangents R[:, :2] diag(s) against the PyTorch ones: values and
     # the gradients to the (unnormalised) quaternions and the scales
-    from ragsplat_core.raster.surfel_project import surfel_tangents
-
     gen = torch.Generator().manual_seed(5)
     quats = (torch.randn(400, 4, generator=gen, dtype=torch.float64) * 2).to(dtype)
     scales = (torch.rand(400, 3, generator=gen, dtype=torch.float64) + 0.05).to(dtype)
-    for twin, cols in ((covariance, 3), (surfel_tangents, 2)):
+    for shape, cols in (("covariance", 3), ("tangents", 2)):
         weights = torch.randn(400, 3, cols, generator=gen, dtype=torch.float64).to(dtype)
         res = []
-        for fast in (False, True):
+        for name in ("torch", "cpu"):
             q, s = quats.clone().requires_grad_(), scales[:, :cols].clone().requires_grad_()
-            out = twin(q, s, fast=fast)
+            out = getattr(backend(name), shape)(q, s)
             (out * weights).sum().backward()
             res.append((out.detach(), q.grad, s.grad))
         for got, want in zip(res[1], res[0]):
@@ -166,8 +164,8 @@ def test_shape_kernels_match_their_twins(dtype, tol):
 
 
 def test_shape_kernels_gradients_match_finite_differences():
-    from ragsplat_core.raster.rotation_cpu import covariance_cpu as cov_fast
-    from ragsplat_core.raster.rotation_cpu import tangents_cpu as tangents
+    from ragsplat_core.raster.cpu.rotation import covariance_cpu as cov_fast
+    from ragsplat_core.raster.cpu.rotation import tangents_cpu as tangents
 
     gen = torch.Generator().manual_seed(6)
     quats = torch.randn(12, 4, generator=gen, dtype=torch.float64).requires_grad_()

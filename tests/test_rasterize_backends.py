@@ -6,7 +6,8 @@ import torch
 
 from ragsplat_core.camera import Camera
 from ragsplat_core.gaussians import covariance
-from ragsplat_core.raster import torch_backend
+from ragsplat_core.raster.backends import backend
+from ragsplat_core.raster.reference import composite as reference_composite
 from ragsplat_core.rasterize import gsplat_available, rasterize
 
 NAMES = ["means", "quats", "scales", "opacities", "colors", "background"]
@@ -82,7 +83,7 @@ def test_scene_exercises_early_stop_and_clamp(monkeypatch):
     ref = rasterize(means, quats, scales, opacities, colors, cam, bg, backend="torch")[0]
     for name, value in (("T_MIN", 0.0), ("ALPHA_MAX", 1.0)):
         with monkeypatch.context() as m:
-            m.setattr(torch_backend, name, value)
+            m.setattr(reference_composite, name, value)
             out = rasterize(means, quats, scales, opacities, colors, cam, bg, backend="torch")[0]
         assert float((out - ref).abs().max()) > 1e-4, name
 
@@ -133,14 +134,14 @@ def test_means2d_gradient_matches_between_backends():
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_tile_bins_kernel_matches_its_twin(dtype):
     # the crowded scene (partial edge tiles, Gaussians several tiles wide, some off screen) with tied depths
-    from ragsplat_core.raster.project import bin_tiles, project
+    from ragsplat_core.raster.reference.project import project
 
     cam, (means, quats, scales, opacities, _, _), _ = crowded_scene(dtype)
     means = torch.cat([means, means[:50], means[:5] + 40])  # 50 exact depth ties; 5 far off screen
     cov = covariance(torch.cat([quats, quats[:50], quats[:5]]), torch.cat([scales, scales[:50], scales[:5]]))
     proj = project(means, cov, torch.cat([opacities, opacities[:50], opacities[:5]]), cam)
     proj = proj._replace(depths=proj.depths.detach())
-    want, got = bin_tiles(proj, cam.width, cam.height), bin_tiles(proj, cam.width, cam.height, fast=True)
+    want, got = (backend(name).bin_tiles(proj, cam.width, cam.height) for name in ("torch", "cpu"))
     # exact: integer boxes and one depth order from the same `proj`, stable sorts on both sides
     assert torch.equal(got.gauss, want.gauss) and torch.equal(got.offsets, want.offsets)
     assert torch.equal(got.tiles_touched, want.tiles_touched) and (got.tiles_x, got.tiles_y) == (5, 4)

@@ -9,8 +9,7 @@ import torch
 
 from ragsplat_core.camera import Camera
 from ragsplat_core.errors import ConfigError
-from ragsplat_core.gaussians import quat_to_rotmat
-from ragsplat_core.raster.surfel_project import surfel_tangents
+from ragsplat_core.gaussians import quat_to_rotmat, surfel_tangents
 from ragsplat_core.rasterize import gsplat_available
 from ragsplat_core.rasterize_surfels import depth_normals, rasterize_surfels
 from ragsplat_core.refraction import WaterSurface, apparent_jacobian, apparent_points
@@ -422,7 +421,7 @@ def test_ray_transforms_meet_the_pixel_rays_where_the_kernels_do():
     kernel's formula, written out here) gives the (u, v) of the rays the torch and cpu kernels use, for
     oblique and refracted surfels; and the physics: a surfel facing a nadir camera at z metres, tangent
     length s, has u = dx z / (fx s) at dx pixels from its centre."""
-    from ragsplat_core.raster.surfel_project import project_surfels
+    from ragsplat_core.raster.reference.surfel_project import project_surfels
 
     def kernel_uv(T, px, py):  # gsplat 1.5 RasterizeToPixels2DGSFwd.cu: h_u = px T_2 - T_0, h_v = py T_2 - T_1
         h = torch.linalg.cross(px[..., None] * T[:, 2] - T[:, 0], py[..., None] * T[:, 2] - T[:, 1])

@@ -43,10 +43,9 @@ from ragsplat_core.camera import Camera
 from ragsplat_core.dataset import layout
 from ragsplat_core.dataset.load import Dataset
 from ragsplat_core.errors import ConfigError, DatasetError, OutputError, TrainingDiverged
-from ragsplat_core.gaussians import PARAM_NAMES, activated, colors_for_view, init_grid, init_points
+from ragsplat_core.gaussians import PARAM_NAMES, activated, init_grid, init_points
 from ragsplat_core.outputs import atomic_path, claim, versions, write_json
 from ragsplat_core.ply import save_ply
-from ragsplat_core.raster.surfel_project import surfel_tangents
 from ragsplat_core.rasterize import choose_backend, rasterize
 from ragsplat_core.rasterize_surfels import depth_normals, rasterize_surfels
 from ragsplat_core.refraction import (
@@ -90,8 +89,7 @@ def view_gaussians(splats, center: torch.Tensor, sh_degree: int, water: WaterSur
     `compiled_refract_gaussians` (the same values to round-off). `attenuation`: the water's coefficients [3]
     (1/m) or None, passed to the transform only when given (a variant without it calls it as before)."""
     scales, quats, opac = activated(splats)
-    fast = choose_backend(backend, splats["means"].device) == "cpu"
-    colors = colors_for_view(splats, center, sh_degree, fast)
+    colors = choose_backend(backend, splats["means"].device).colors(splats, center, sh_degree)
     if flags is None:
         return ApparentGaussians(splats["means"], scales, quats, opac, colors, None, None)
     transform = compiled_refract_gaussians() if compiled else refract_gaussians
@@ -137,8 +135,8 @@ def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, backgrou
         return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, camera, background, covars=g.covars,
                          backend=backend, median=median)
     # [N, 3, 2] t' = J t through the water; without it quats and scales
-    fast = g.jacobians is not None and choose_backend(backend, g.means.device) == "cpu"
-    tangents = None if g.jacobians is None else g.jacobians @ surfel_tangents(g.quats, g.scales[:, :2], fast)
+    tangents = None if g.jacobians is None else (
+        g.jacobians @ choose_backend(backend, g.means.device).tangents(g.quats, g.scales[:, :2]))
     return rasterize_surfels(g.means, g.quats, g.scales[:, :2], g.opacities, g.colors, camera, background,
                              tangents=tangents, backend=backend)
 

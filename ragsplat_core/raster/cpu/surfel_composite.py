@@ -1,10 +1,10 @@
 """Fast CPU surfel compositing: numba kernels, parallel over tiles, float32 maths, hand-written backward.
 
-Same semantics as the torch twin (`surfel_torch.py`), organised as the 3DGS kernels of `cpu_backend.py`
-(whose tile helpers it uses): the projection stays in PyTorch; per tile, surfels are visited front to
-back and each one only touches the pixels of the tile that can reach alpha >= 1/255, row by row: the span
-of the row inside the image of the surfel's disk (a quadratic in the pixel column, solved in float64)
-joined with the span inside the low-pass filter's disk. Forward and backward evaluate alpha with the same
+Same semantics as the torch twin (`reference/surfel_composite.py`), organised as the 3DGS kernels of
+`composite.py` (whose tile helpers it uses): the projection stays in PyTorch; per tile, surfels are visited
+front to back and each one only touches the pixels of the tile that can reach alpha >= 1/255, row by row:
+the span of the row inside the image of the surfel's disk (a quadratic in the pixel column, solved in
+float64) joined with the span inside the low-pass filter's disk. Forward and backward evaluate alpha with the same
 float32 code, so they skip the same (pixel, surfel) pairs.
 
 Backward (as 3DGS): per pixel, back to front from its last composited surfel, restoring the transmittance
@@ -23,9 +23,9 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from ragsplat_core.raster.cpu_backend import _chunks, _np32, _tile_box
-from ragsplat_core.raster.project import ALPHA_MAX, ALPHA_MIN, BOX_PAD, T_MIN, Bins
-from ragsplat_core.raster.surfel_project import SurfelsProjected
+from ragsplat_core.raster.cpu.composite import _chunks, _np32, _tile_box
+from ragsplat_core.raster.reference.project import ALPHA_MAX, ALPHA_MIN, BOX_PAD, T_MIN, Bins
+from ragsplat_core.raster.reference.surfel_project import SurfelsProjected
 
 _F = np.float32
 _HALF = _F(0.5)
@@ -80,7 +80,7 @@ def _row_span(mx, dy, al, be1, be0, ga2, ga1, ga0, full, r2, i0, i1):
 
 @njit(cache=True, inline="always")
 def _sample(q0, q1, q2, rho2, zc, c2):
-    """(rho, on_plane, z, 1 / q2, s, t) of one pixel and surfel (see `surfel_project.py`)."""
+    """(rho, on_plane, z, 1 / q2, s, t) of one pixel and surfel (see `reference/surfel_project.py`)."""
     if q2 == 0:
         return rho2, False, zc, _ZERO, _ZERO, _ZERO
     inv = _ONE / q2

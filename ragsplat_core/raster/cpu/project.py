@@ -1,7 +1,7 @@
-"""Fast CPU EWA projection: `project.project` (its twin) with the differentiable outputs (means2d, conics,
+"""Fast CPU EWA projection and tile lists: `reference/project.py` (its twin). The projection: `project` with the differentiable outputs (means2d, conics,
 depths) computed in one numba pass per Gaussian and a hand-written backward to the means and the world
 covariances. The boxes, visibility and radii (no gradient) are then derived exactly as the twin does, from
-the kernel's screen position and dilated 2D variances.
+the kernel's screen position and dilated 2D variances. The tile lists: `bin_tiles`, a counting sort.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import torch
 from numba import njit, prange
 
 from ragsplat_core.camera import Camera
-from ragsplat_core.raster.project import ALPHA_MIN, EPS2D, NEAR, Projected, screen_box
+from ragsplat_core.raster.reference.project import ALPHA_MIN, EPS2D, NEAR, TILE, Bins, Projected, screen_box
 
 _CHUNK = 1024  # Gaussians per parallel task
 
@@ -177,7 +177,43 @@ class _Project(torch.autograd.Function):
 
 
 def project(means: torch.Tensor, covars: torch.Tensor, opacities: torch.Tensor, camera: Camera) -> Projected:
-    """`project.project` for CPU tensors (the gradient flows to the means and the covariances)."""
+    """`reference/project.project` for CPU tensors (the gradient flows to the means and the covariances)."""
     means2d, conics, depths, ac, ok = _Project.apply(means, covars, opacities, camera)
     box, visible, radii = screen_box(means2d, ac[:, 0], ac[:, 1], ok, opacities, camera)
     return Projected(means2d, conics, depths, box, visible, radii)
+
+
+@njit(cache=True)
+def _bins(box, visible, order, tiles_x, tiles_y, tile):
+    """Counting sort of the (tile, Gaussian) pairs: per tile, the Gaussians in `order` (front to back)."""
+    n = box.shape[0]
+    count = np.zeros(n, np.int32)
+    offsets = np.zeros(tiles_x * tiles_y + 1, np.int64)  # the boxes are clipped to the image
+    for g in range(n):
+        if visible[g]:
+            tx0, tx1, ty0, ty1 = box[g, 0] // tile, box[g, 1] // tile, box[g, 2] // tile, box[g, 3] // tile
+            count[g] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+            for ty in range(ty0, ty1 + 1):
+                for tx in range(tx0, tx1 + 1):
+                    offsets[ty * tiles_x + tx + 1] += 1
+    offsets = np.cumsum(offsets)
+    cursor = offsets[:-1].copy()
+    gauss = np.empty(offsets[-1], np.int64)
+    for g in order:
+        if visible[g]:
+            for ty in range(box[g, 2] // tile, box[g, 3] // tile + 1):
+                for tx in range(box[g, 0] // tile, box[g, 1] // tile + 1):
+                    t = ty * tiles_x + tx
+                    gauss[cursor[t]] = g
+                    cursor[t] += 1
+    return gauss, offsets, count
+
+
+def bin_tiles(proj: Projected, width: int, height: int, tile: int = TILE) -> Bins:
+    """`reference/project.bin_tiles` (its twin) in O(N log N + pairs): the Gaussians sorted by depth once, then dealt
+    to their tiles in that order, instead of a sort of every (tile, Gaussian) pair."""
+    tiles_x, tiles_y = -(-width // tile), -(-height // tile)
+    order = np.argsort(proj.depths.detach().numpy(), kind="stable")  # ties by index, as torch's stable sort
+    gauss, offsets, count = _bins(np.ascontiguousarray(proj.box.numpy()), proj.visible.numpy(), order, tiles_x,
+                                  tiles_y, tile)
+    return Bins(torch.from_numpy(gauss), torch.from_numpy(offsets), torch.from_numpy(count), tiles_x, tiles_y)

@@ -7,7 +7,7 @@ each surfel as a ray transform T = K [a b p] (`project_surfels(..., transforms=T
 for the low-pass filter, an opacity, features and a normal. So the surfels are projected here, exactly as for
 the torch and cpu backends (same means2d, same per-axis pixel reach for the tiles), and gsplat composites.
 
-Semantics against the torch twin (`surfel_torch.py`), gsplat 1.5: alpha is clamped at 0.999 (not 0.99); a
+Semantics against the torch twin (`reference/surfel_composite.py`), gsplat 1.5: alpha is clamped at 0.999 (not 0.99); a
 sample's depth, and with it the depth, median depth and distortion, is its surfel's centre z (gsplat
 composites depth as a per-surfel feature), not the z of the pixel's ray-plane intersection; median depth is
 0 where the transmittance never reaches 0.5 (gsplat keeps the last surfel's there). Image, alpha and normals
@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import torch
 
-from ragsplat_core.raster.project import TILE
-from ragsplat_core.raster.surfel_project import SurfelsProjected
+from ragsplat_core.raster.reference.project import TILE
+from ragsplat_core.raster.reference.surfel_project import SurfelsProjected
 
 
 def composite(proj: SurfelsProjected, opacities: torch.Tensor, colors: torch.Tensor, background: torch.Tensor,

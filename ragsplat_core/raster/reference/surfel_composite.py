@@ -1,6 +1,6 @@
 """Reference surfel compositing in plain PyTorch: tile-based, autograd end to end, any device.
 
-The twin of `surfel_cpu.py`, organised like `torch_backend.py` (chunks of tiles with padded lists, each
+The twin of `cpu/surfel_composite.py`, organised like `composite.py` (chunks of tiles with padded lists, each
 chunk checkpointed, no sequential loop). Per pixel, front to back, for the surfels of its tile: the
 ray-splat intersection and low-pass filter of `surfel_project.py`, then 3DGS compositing
 (alpha = min(0.99, o G), skipped below 1/255, stop before the transmittance falls below 1e-4).
@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import torch
 
-from ragsplat_core.raster.project import ALPHA_MAX, ALPHA_MIN, TILE, Bins
-from ragsplat_core.raster.surfel_project import SurfelsProjected
-from ragsplat_core.raster.torch_backend import front_to_back, over_tiles
+from ragsplat_core.raster.reference.composite import front_to_back, over_tiles
+from ragsplat_core.raster.reference.project import ALPHA_MAX, ALPHA_MIN, TILE, Bins
+from ragsplat_core.raster.reference.surfel_project import SurfelsProjected
 
 _NOUT = 10  # per pixel: colour (3), normal (3), z sum, transmittance, distortion, median depth
 

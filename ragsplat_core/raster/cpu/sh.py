@@ -12,6 +12,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
+from ragsplat_core import gaussians
 from ragsplat_core.gaussians import SH_C0, SH_C1, SH_C2, SH_C3
 
 _C2 = np.array(SH_C2)
@@ -158,3 +159,10 @@ def view_colors(sh0: torch.Tensor, shN: torch.Tensor, means: torch.Tensor, cente
     if not 1 <= degree <= 3 or shN.shape[1] + 1 < (degree + 1) ** 2:
         raise ValueError(f"degree {degree} with {shN.shape[1] + 1} coefficients per channel")
     return _ViewColors.apply(sh0, shN, means, center, degree)
+
+
+def colors_for_view(splats, camera_center: torch.Tensor, degree: int) -> torch.Tensor:
+    """`gaussians.colors_for_view` (same arguments) for CPU tensors: the kernel from degree 1 on."""
+    if degree == 0 or "shN" not in splats:  # no direction: the twin's shortcut is all there is
+        return gaussians.colors_for_view(splats, camera_center, degree)
+    return view_colors(splats["sh0"], splats["shN"], splats["means"], camera_center, degree)

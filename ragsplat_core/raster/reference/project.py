@@ -1,4 +1,5 @@
-"""EWA projection of 3D Gaussians and their binning into screen tiles (shared by the torch and cpu backends).
+"""EWA projection of 3D Gaussians and their binning into screen tiles: the reference (plain PyTorch), and the
+rasterizer's constants and types, which every backend's kernels read from here.
 
 Semantics follow 3DGS / gsplat ("classic" mode):
 - camera-frame mean t = R mu + t_cam; Gaussians with z < NEAR (0.01) are culled;
@@ -78,7 +79,7 @@ def project(means: torch.Tensor, covars: torch.Tensor, opacities: torch.Tensor, 
 def screen_box(means2d, a, c, ok, opacities, camera: Camera):
     """(box [N, 4], visible [N], radii [N]) of `Projected` from the screen positions [N, 2], the dilated 2D
     variances a, c [N] and whether each Gaussian can be drawn at all `ok` [N] (in front, det > 0, opaque
-    enough). Shared by `project` and its CPU kernel."""
+    enough). Shared by `project` and its CPU kernel (`cpu/project.py`)."""
     W, H = camera.width, camera.height
     r2 = 2 * torch.log(torch.clamp(opacities.detach(), min=ALPHA_MIN) * 255.0)
     ex = torch.sqrt(r2 * torch.clamp(a.detach(), min=0)) + BOX_PAD
@@ -105,14 +106,9 @@ class Bins(NamedTuple):
     tiles_y: int
 
 
-def bin_tiles(proj: Projected, width: int, height: int, tile: int = TILE, fast: bool = False) -> Bins:
-    """Lists, per tile of `tile` x `tile` pixels, the visible Gaussians overlapping it, front to back.
-    `fast` (CPU tensors): the same lists from a counting sort in a numba kernel (`cpu_backend.bin_tiles_cpu`);
-    this function is its twin."""
-    if fast:
-        from ragsplat_core.raster.cpu_backend import bin_tiles_cpu
-
-        return bin_tiles_cpu(proj, width, height, tile)
+def bin_tiles(proj: Projected, width: int, height: int, tile: int = TILE) -> Bins:
+    """Lists, per tile of `tile` x `tile` pixels, the visible Gaussians overlapping it, front to back (also
+    for surfels: only `box`, `visible` and `depths` are read). Twin of `cpu/project.bin_tiles`."""
     device = proj.box.device
     tiles_x, tiles_y = -(-width // tile), -(-height // tile)
     box = proj.box

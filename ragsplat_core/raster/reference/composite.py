@@ -1,4 +1,5 @@
-"""Reference compositing in plain PyTorch: tile-based, autograd end to end, any device.
+"""Reference compositing of 3D Gaussians in plain PyTorch: tile-based, autograd end to end, any device.
+Twin of `cpu/composite.py`.
 
 Tiles are processed in chunks with their Gaussian lists padded to the chunk's longest list (tiles are
 grouped by list length so the padding stays small); each chunk is checkpointed, so memory does not grow
@@ -15,7 +16,7 @@ from __future__ import annotations
 import torch
 from torch.utils.checkpoint import checkpoint
 
-from ragsplat_core.raster.project import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE, Bins, Projected
+from ragsplat_core.raster.reference.project import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE, Bins, Projected
 
 # Elements of one [tiles, pixels, Gaussians] intermediate per chunk: bounds the reference's memory.
 CHUNK_ELEMENTS = 1 << 20

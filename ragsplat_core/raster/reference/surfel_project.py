@@ -1,4 +1,5 @@
-"""Projection of 2D Gaussian surfels (2DGS, Huang et al. 2024) for the torch and cpu surfel backends.
+"""Projection of 2D Gaussian surfels (2DGS, Huang et al. 2024), in PyTorch for every backend: the torch and
+cpu compositing read `rays`, gsplat's reads the ray `transforms`.
 
 A surfel is a centre mu and two scaled world tangents a = s_u t_u, b = s_v t_v: the points
 X(u, v) = mu + u a + v b carry the weight G = exp(-(u^2 + v^2) / 2). Any pair (a, b) is allowed, so an
@@ -44,8 +45,7 @@ from typing import NamedTuple
 import torch
 
 from ragsplat_core.camera import Camera
-from ragsplat_core.gaussians import quat_to_rotmat
-from ragsplat_core.raster.project import ALPHA_MIN, BOX_PAD, NEAR
+from ragsplat_core.raster.reference.project import ALPHA_MIN, BOX_PAD, NEAR
 
 
 class SurfelsProjected(NamedTuple):
@@ -58,17 +58,6 @@ class SurfelsProjected(NamedTuple):
     radii: torch.Tensor  # [N] int32 max distance (pixels) from means2d to the box edge, 0 = not visible
     reach: torch.Tensor  # [N, 2] int32 the same per axis (x, y): the box lies within means2d +- reach
     transforms: torch.Tensor | None  # [N, 3, 3] K [a b p], differentiable; only with transforms=True
-
-
-def surfel_tangents(quats: torch.Tensor, scales: torch.Tensor, fast: bool = False) -> torch.Tensor:
-    """Scaled world tangents [N, 3, 2] (columns s_u t_u, s_v t_v) from quaternions [N, 4] (w, x, y, z) and
-    linear scales [N, 2]: the first two columns of the rotation (2DGS; the third is the normal). `fast` (CPU
-    tensors): the same in one numba kernel (`raster.rotation_cpu`); this function is its twin."""
-    if fast:
-        from ragsplat_core.raster.rotation_cpu import tangents_cpu
-
-        return tangents_cpu(quats, scales)
-    return quat_to_rotmat(quats)[:, :, :2] * scales[:, None, :]
 
 
 def project_surfels(means: torch.Tensor, tangents: torch.Tensor, opacities: torch.Tensor,

@@ -1,9 +1,9 @@
-"""Fast CPU compositing: numba kernels, parallel over tiles, float32 maths, hand-written backward.
+"""Fast CPU compositing of 3D Gaussians: numba kernels, parallel over tiles, float32 maths, hand-written backward.
 
-Same semantics as the torch reference (`torch_backend.py`). The projection stays in PyTorch (O(N), autograd);
-only the O(pixels x Gaussians) compositing is here. Per tile, Gaussians are visited front to back and each
+Same semantics as the reference, its twin (`reference/composite.py`); the projection and the tile lists come
+from `cpu/project.py`. Per tile, Gaussians are visited front to back and each
 one only touches the pixels of the tile inside its alpha >= 1/255 ellipse (row by row, each row's span
-solved from the conic, within the opacity-aware box of `project.py`), so a Gaussian of a few pixels costs
+solved from the conic, within the opacity-aware box of `reference/project.py`), so a Gaussian of a few pixels costs
 a few pixels, not the tile's 256. A tile stops once every pixel in it is saturated (transmittance would
 drop below 1e-4). Forward and backward evaluate alpha with the same float32 code, so they skip the same
 (pixel, Gaussian) pairs. On request the forward also records the median depth: the camera z of the Gaussian
@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from ragsplat_core.raster.project import ALPHA_MAX, ALPHA_MIN, BOX_PAD, T_MIN, TILE, Bins, Projected
+from ragsplat_core.raster.reference.project import ALPHA_MAX, ALPHA_MIN, BOX_PAD, T_MIN, TILE, Bins, Projected
 
 _F = np.float32
 _HALF = _F(0.5)
@@ -192,42 +192,6 @@ def _backward(mean2d, conic, opac, feat, box, gauss, offsets, width, height, til
             out[k, 5] = go
             for c in range(_NF):
                 out[k, 6 + c] = gf[c]
-
-
-@njit(cache=True)
-def _bins(box, visible, order, tiles_x, tiles_y, tile):
-    """Counting sort of the (tile, Gaussian) pairs: per tile, the Gaussians in `order` (front to back)."""
-    n = box.shape[0]
-    count = np.zeros(n, np.int32)
-    offsets = np.zeros(tiles_x * tiles_y + 1, np.int64)  # the boxes are clipped to the image
-    for g in range(n):
-        if visible[g]:
-            tx0, tx1, ty0, ty1 = box[g, 0] // tile, box[g, 1] // tile, box[g, 2] // tile, box[g, 3] // tile
-            count[g] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
-            for ty in range(ty0, ty1 + 1):
-                for tx in range(tx0, tx1 + 1):
-                    offsets[ty * tiles_x + tx + 1] += 1
-    offsets = np.cumsum(offsets)
-    cursor = offsets[:-1].copy()
-    gauss = np.empty(offsets[-1], np.int64)
-    for g in order:
-        if visible[g]:
-            for ty in range(box[g, 2] // tile, box[g, 3] // tile + 1):
-                for tx in range(box[g, 0] // tile, box[g, 1] // tile + 1):
-                    t = ty * tiles_x + tx
-                    gauss[cursor[t]] = g
-                    cursor[t] += 1
-    return gauss, offsets, count
-
-
-def bin_tiles_cpu(proj: Projected, width: int, height: int, tile: int = TILE) -> Bins:
-    """`project.bin_tiles` (its twin) in O(N log N + pairs): the Gaussians sorted by depth once, then dealt
-    to their tiles in that order, instead of a sort of every (tile, Gaussian) pair."""
-    tiles_x, tiles_y = -(-width // tile), -(-height // tile)
-    order = np.argsort(proj.depths.detach().numpy(), kind="stable")  # ties by index, as torch's stable sort
-    gauss, offsets, count = _bins(np.ascontiguousarray(proj.box.numpy()), proj.visible.numpy(), order, tiles_x,
-                                  tiles_y, tile)
-    return Bins(torch.from_numpy(gauss), torch.from_numpy(offsets), torch.from_numpy(count), tiles_x, tiles_y)
 
 
 def _np32(x: torch.Tensor) -> np.ndarray:

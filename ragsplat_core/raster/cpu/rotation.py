@@ -2,7 +2,7 @@
 tangents R[:, :2] diag(s) [N, 3, 2] of a surfel, from quaternions (w, x, y, z, any non-zero norm) and linear
 scales, each in one numba pass with a hand-written backward to the quaternions and the scales.
 
-Twins: `gaussians.covariance` and `raster.surfel_project.surfel_tangents` (PyTorch autograd).
+Twins: `gaussians.covariance` and `gaussians.surfel_tangents` (PyTorch autograd).
 """
 
 from __future__ import annotations
@@ -120,5 +120,5 @@ def covariance_cpu(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
 
 
 def tangents_cpu(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
-    """[N, 3, 2] scaled tangents of CPU quaternions [N, 4] and linear scales [N, 2] (`surfel_tangents`)."""
+    """[N, 3, 2] scaled tangents of CPU quaternions [N, 4] and linear scales [N, 2] (`gaussians.surfel_tangents`)."""
     return _Shape.apply(quats, scales, 2)
