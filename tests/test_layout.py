@@ -92,6 +92,51 @@ def test_the_tools_are_not_installed():
     assert all(any(fnmatch.fnmatch(name, pattern) for pattern in found["include"]) for name in PACKAGES)
 
 
+def core_import_graph() -> dict[str, set[str]]:
+    """{module: the ragsplat_core modules it imports}, for every module of ragsplat_core. Every import
+    counts, the ones inside functions and under TYPE_CHECKING too: a lazy import is still an arrow."""
+    modules = {}
+    for path in (ROOT / "ragsplat_core").rglob("*.py"):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        modules[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    graph = {}
+    for name, path in modules.items():
+        targets = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                targets.update(a.name for a in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.module:  # `from pkg import module` names a module
+                targets.update(f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in modules else node.module
+                               for a in node.names)
+        graph[name] = {t for t in targets if t in modules and t != name}
+    return graph
+
+
+def test_no_import_circle_in_the_core():
+    graph = core_import_graph()
+    assert {"ragsplat_core.gaussians", "ragsplat_core.raster.backends"} <= set(graph)  # the walk found them
+    done, path = set(), []
+
+    def visit(module):  # depth first; a module met again on the current path closes a circle
+        if module in path:
+            pytest.fail("import circle: " + " -> ".join(path[path.index(module):] + [module]))
+        if module in done:
+            return
+        path.append(module)
+        for target in sorted(graph[module]):
+            visit(target)
+        path.pop()
+        done.add(module)
+
+    for module in sorted(graph):
+        visit(module)
+
+
+def test_the_model_imports_nothing_of_the_rasterizer():
+    # `gaussians` is the model; each backend's twins of its maths are chosen in raster/backends.py
+    assert not {m for m in core_import_graph()["ragsplat_core.gaussians"] if m.startswith("ragsplat_core.raster")}
+
+
 def test_only_the_renderer_imports_bpy():
     users = {p.relative_to(ROOT).as_posix() for p in SOURCES if {"bpy", "mathutils"} & imported_modules(p)}
     assert users == {"blender_scenes/render.py"}
