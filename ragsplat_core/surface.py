@@ -411,8 +411,8 @@ def cell_spread(points: np.ndarray, grid: np.ndarray, cell: float, origin: tuple
 
 
 def extract_surface_blocks(means, scales, quats, opacities, cfg: ExtractConfig, block_cells: int,
-                           origin: tuple[float, float], region: dict | None = None, on_block=None
-                           ) -> tuple[np.ndarray, dict]:
+                           origin: tuple[float, float], region: dict | None = None, on_block=None,
+                           cells: bool = False) -> tuple[np.ndarray, dict]:
     """`extract_surface` of a bed too large to sample at once, in square blocks of `block_cells` x
     `block_cells` grid nodes over the region (without one, over the sampled Gaussians' reach, as one pass
     covers): the same steps in each, so that memory is
@@ -421,7 +421,8 @@ def extract_surface_blocks(means, scales, quats, opacities, cfg: ExtractConfig, 
     and grids the samples of the block and its margin (as wide as the noise filter's and the despiking's
     neighbourhoods, and a hole's fill), and keeps its own nodes. A block's own random stream (cfg.seed and its
     index), so the result does not depend on the order the blocks are done in; it is not the one-pass
-    result's draw, and the holes are filled within each block's margin. `on_block(done, total)` after each."""
+    result's draw, and the holes are filled within each block's margin. `on_block(done, total)` after each.
+    `cells`: stats["cells"] as `extract_surface` records it, each block's for its own nodes."""
     means, scales, quats, opac = _np(means), _np(scales), _np(quats), _np(opacities).reshape(-1)
     keep = culled(scales, opac, means, cfg, region)
     idx = np.flatnonzero(keep)
@@ -436,7 +437,7 @@ def extract_surface_blocks(means, scales, quats, opacities, cfg: ExtractConfig, 
         box = (means[idx, :2].min(0) - reach, means[idx, :2].max(0) + reach) if len(idx) else (origin, origin)
     first = np.ceil((box[0] - origin) / cfg.cell - 1e-6).astype(np.int64)  # the nodes [2] in the box
     last = np.floor((box[1] - origin) / cfg.cell + 1e-6).astype(np.int64)
-    grids, samples, kept_samples = [], 0, 0
+    grids, samples, kept_samples, records = [], 0, 0, []
     corners = [(bi, bj) for bi in range(first[0], last[0] + 1, block_cells)
                for bj in range(first[1], last[1] + 1, block_cells)]
     for done, (bi, bj) in enumerate(corners, 1):
@@ -447,17 +448,23 @@ def extract_surface_blocks(means, scales, quats, opacities, cfg: ExtractConfig, 
         n = round(density * np.prod(scales[near], axis=1).sum())
         rng = np.random.default_rng([cfg.seed, int(bi - first[0]), int(bj - first[1])])
         grid, counts = extract_surface(means[near], scales[near], quats[near], opac[near], replace(cfg, n_samples=n),
-                                       region, tuple(origin), rng=rng, window=(lo, hi))
+                                       region, tuple(origin), rng=rng, window=(lo, hi), cells=cells)
         samples += counts["samples"]
         kept_samples += counts["samples_after_filter"]
         ij = np.rint((grid[:, :2] - origin) / cfg.cell).astype(np.int64)
-        grids.append(grid[((ij >= own_lo) & (ij < own_hi)).all(1)])
+        own = ((ij >= own_lo) & (ij < own_hi)).all(1)
+        grids.append(grid[own])
+        if cells:
+            records.append({k: v[own] for k, v in counts["cells"].items()})
         if on_block is not None:
             on_block(done, len(corners))
     grid = np.vstack(grids) if grids else np.zeros((0, 3))
     stats = {"gaussians": len(keep), "gaussians_sampled": len(idx), "samples": samples,
              "samples_after_filter": kept_samples, "grid_points": len(grid), "blocks": len(corners),
              "block_cells": block_cells, "config": cfg.to_dict(), "grid_origin": origin.tolist()}
+    if cells:
+        stats["cells"] = {k: np.concatenate([r[k] for r in records]) if records else np.zeros(0)
+                          for k in ("samples", "spread", "filled")}
     return grid, stats
 
 

@@ -117,19 +117,21 @@ def _view_geometry(pts: torch.Tensor, cameras, water: WaterSurface | None):
     rhs = {name: torch.zeros(G, 3, dtype=pts.dtype) for name, *_ in steps}  # sum_i J_i^T g_i
     for cam in cameras:
         center = torch.tensor(cam.camera_center, dtype=pts.dtype)
-        if water is None:
-            apparent, j_app = pts, torch.eye(3, dtype=pts.dtype).expand(G, 3, 3)
-        else:
-            apparent, j_app = apparent_points(pts, center, water), apparent_jacobian(pts, center, water)
-        pixels, z, j_proj = _project_jacobian(cam, apparent)
+        apparent = pts if water is None else apparent_points(pts, center, water)
+        pixels, z, _ = _project_jacobian(cam, apparent)
         seen = (z > 0) & (pixels[:, 0] >= 0) & (pixels[:, 0] <= cam.width) & (pixels[:, 1] >= 0) \
             & (pixels[:, 1] <= cam.height)
-        J = (j_proj @ j_app) * seen[:, None, None]  # [G, 2, 3], 0 where the view does not see the point
-        info += J.transpose(1, 2) @ J
-        views += seen
+        rows = seen.nonzero().squeeze(1)  # the rest of the work only where the view sees the point
+        if not len(rows):
+            continue
+        p = pts[rows]
+        j_app = torch.eye(3, dtype=pts.dtype) if water is None else apparent_jacobian(p, center, water)
+        J = _project_jacobian(cam, apparent[rows])[2] @ j_app  # [S, 2, 3]
+        info[rows] += J.transpose(1, 2) @ J
+        views[rows] += 1
         for name, up, down, h in steps:
-            g = (_pixels(cam, pts, up) - _pixels(cam, pts, down)) / h  # [G, 2] d pixel / d (level or n)
-            rhs[name] += (J.transpose(1, 2) @ torch.nan_to_num(g)[..., None])[..., 0]
+            g = (_pixels(cam, p, up) - _pixels(cam, p, down)) / h  # [S, 2] d pixel / d (level or n)
+            rhs[name][rows] += (J.transpose(1, 2) @ torch.nan_to_num(g)[..., None])[..., 0]
     # triangulated where two views see the point and the information is not singular to round-off
     eig = torch.linalg.eigvalsh(info)  # [G, 3] ascending
     ok = (views >= 2) & (eig[:, 0] > 1e-12 * eig[:, 2].clamp(min=1e-300))

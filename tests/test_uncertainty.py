@@ -10,7 +10,7 @@ import torch
 from ragsplat_core.camera import Camera
 from ragsplat_core.errors import ConfigError
 from ragsplat_core.refraction import WaterSurface, apparent_points
-from ragsplat_core.surface import ExtractConfig, extract_surface
+from ragsplat_core.surface import ExtractConfig, extract_surface, extract_surface_blocks
 from ragsplat_core.uncertainty import (
     GEOMETRY_CAP,
     Z95,
@@ -81,9 +81,10 @@ def test_at_n_1_it_is_a_pinhole_triangulation():
 def test_through_the_water_it_matches_differences_of_the_refraction_solve():
     cams = ring((0, 0, -2.0), 3.0, 10.0, 5) + grid_of_cameras()
     points = np.array([[0.1, 0.2, -2.0], [-0.4, 0.3, -0.7], [0.5, -0.5, -4.0]])
-    geo = view_geometry(points, cams, WATER)
-    for p, s in zip(points, geo.sigma_z):
-        assert s == pytest.approx(sigma_by_differences(p, cams, WATER), rel=1e-5)
+    for water in (WATER, WaterSurface(0.1, 1.34, (0.02, -0.01))):  # flat, and a sloping river's surface
+        geo = view_geometry(points, cams, water)
+        for p, s in zip(points, geo.sigma_z):
+            assert s == pytest.approx(sigma_by_differences(p, cams, water), rel=1e-5)
 
 
 def test_more_views_and_wider_baselines_are_more_precise_and_deeper_is_less():
@@ -190,6 +191,9 @@ def test_the_extraction_records_its_cells_without_changing_the_grid():
     assert (cells["samples"][~cells["filled"]] > 0).all()
     known = np.isfinite(cells["spread"])
     assert np.median(cells["spread"][known]) < 0.01  # thin discs: millimetres of height spread
+    blocks, by_block = extract_surface_blocks(*g, cfg, 8, (0.0, 0.0), region, cells=True)
+    np.testing.assert_array_equal(blocks, extract_surface_blocks(*g, cfg, 8, (0.0, 0.0), region)[0])
+    assert by_block["blocks"] > 1 and all(len(v) == len(blocks) for v in by_block["cells"].values())
     f = cell_features(grid, grid_of_cameras(3.0, 0.5), WATER, cells)
     assert np.isfinite(f.spread).all() and (f.filled == cells["filled"]).all()
     assert f.depth == pytest.approx(-grid[:, 2])
