@@ -31,7 +31,14 @@ from ragsplat_core.rasterize import choose_backend
 from ragsplat_core.refraction import WaterSurface
 from ragsplat_core.surface import ExtractConfig, extract_surface, extract_surface_blocks
 from ragsplat_core.train.config import TrainConfig
-from ragsplat_core.train.trainer import PLY, backscatter_tensor, fades_opacity, median_depth, render_splats
+from ragsplat_core.train.trainer import (
+    PLY,
+    backscatter_tensor,
+    fades_opacity,
+    median_depth,
+    reflection_tensor,
+    render_splats,
+)
 
 BATHYMETRIC, GROUND = 40, 2  # ASPRS classes (LAS 1.4 R15): submerged bed ("bathymetric point"), emerged
 LAS_SCALE = 0.001  # metres per integer step of the LAS coordinates
@@ -157,6 +164,9 @@ class Model:
     attenuation: torch.Tensor | None = None
     # the water's backscatter [2, 3] (B_inf, c_b) training ended with (config.json); None: not trained
     backscatter: torch.Tensor | None = None
+    # the sky map [S, S, 3] the surface mirrors (linear radiance) training ended with (config.json); None: not
+    # trained
+    reflection: torch.Tensor | None = None
 
     def gaussians(self) -> dict:
         return activated_dict(self.splats)
@@ -171,7 +181,8 @@ class Model:
                 self.splats, camera, center, self.cfg.active_sh_degree(self.cfg.iterations), self.water,
                 self.flags if interface else None, self.cfg.surfels, background, self.backend,
                 attenuation=self.attenuation if interface else None,
-                backscatter=self.backscatter if interface else None)
+                backscatter=self.backscatter if interface else None,
+                reflection=self.reflection if interface else None)
         return img.clamp(0, 1), alpha, depth
 
     def median_depth(self, camera: Camera) -> torch.Tensor:  # [H, W], see `trainer.median_depth`
@@ -203,7 +214,9 @@ def load_model(run: Path, data: Path | None = None, splits: tuple[str, ...] = ()
     attenuation = None if c is None else torch.tensor(c, dtype=torch.float32, device=device)
     b = meta.get("backscatter_final")
     backscatter = None if b is None else backscatter_tensor(b, device)
-    return Model(splats, cfg, flags, run_water(meta, ds), device, backend, attenuation, backscatter), ds
+    r = meta.get("reflection_final")
+    reflection = None if r is None else reflection_tensor(r, device)
+    return Model(splats, cfg, flags, run_water(meta, ds), device, backend, attenuation, backscatter, reflection), ds
 
 
 def run_water(meta: dict, ds: Dataset) -> WaterSurface | None:

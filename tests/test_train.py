@@ -45,7 +45,7 @@ def _cfg(**kw):
 def test_variants_and_config_errors():
     assert list(VARIANTS) == ["3dgs", "position", "position+scale", "position+opacity", "full",
                               "full+anisotropic", "full+color", "2dgs", "2dgs+full", "2dgs+full+attenuation",
-                              "2dgs+full+backscatter", "2dgs+full+water"]
+                              "2dgs+full+backscatter", "2dgs+full+reflection", "2dgs+full+water"]
     assert VARIANTS["2dgs"] is None and VARIANTS["2dgs+full"]["scale"] == "anisotropic"
     assert _cfg(variant="2dgs").surfels and not _cfg(variant="full").surfels
     assert VARIANTS["3dgs"] is None

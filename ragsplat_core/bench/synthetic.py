@@ -85,12 +85,14 @@ def bed_scene(count: int, half: float, depth: float, seed: int = 0, dtype=torch.
 
 def render_views(scene: dict[str, torch.Tensor], cameras: list[Camera], water: WaterSurface | None,
                  backend: str = "auto", background=(0.0, 0.0, 0.0), attenuation=None,
-                 backscatter=None) -> list[dict]:
+                 backscatter=None, reflection=None) -> list[dict]:
     """Render `scene` (from `bed_scene`) from each camera: `image` through the water with the full RA-GS
     transform (position, isotropic scale, opacity; `attenuation`: the water's coefficients [3] in 1/m, or
-    None; `backscatter`: [2, 3] its veil B_inf and coefficients c_b, added as the trainer does, or None),
-    `dry` without it, and the dry expected `depth`."""
+    None; `backscatter`: [2, 3] its veil B_inf and coefficients c_b, added as the trainer does, or None;
+    `reflection`: [S, S, 3] the sky map the surface mirrors, composited as the trainer does, or None), `dry`
+    without it, and the dry expected `depth`."""
     from ragsplat_core.rasterize import rasterize
+    from ragsplat_core.reflection import add_reflection, sky_radiance, surface_reflection
     from ragsplat_core.refraction import add_backscatter, pixel_water_paths, refract_gaussians
     from ragsplat_core.train.trainer import pixel_rays
 
@@ -110,5 +112,8 @@ def render_views(scene: dict[str, torch.Tensor], cameras: list[Camera], water: W
                 if backscatter is not None:
                     paths = pixel_water_paths(pixel_rays(cam, z), z[..., 0], c, water)
                     wet = add_backscatter(wet, alpha, paths, backscatter[0], backscatter[1])
+                if reflection is not None:
+                    R, mirrored = surface_reflection(pixel_rays(cam, z), z[..., 0], c, water)
+                    wet = add_reflection(wet, R, sky_radiance(reflection, mirrored))
         out.append({"camera": cam, "image": wet.clamp(0, 1), "dry": dry.clamp(0, 1), "depth": depth})
     return out

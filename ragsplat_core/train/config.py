@@ -28,19 +28,24 @@ VARIANTS: dict[str, dict | None] = {
     # 2dgs+full with the water's own optics on top (issue 50, `WATER_TERMS`)
     "2dgs+full+attenuation": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
     "2dgs+full+backscatter": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
+    "2dgs+full+reflection": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
     "2dgs+full+water": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
 }
 # rendered as surfels (`rasterize_surfels`)
-SURFELS = frozenset({"2dgs", "2dgs+full", "2dgs+full+attenuation", "2dgs+full+backscatter", "2dgs+full+water"})
+SURFELS = frozenset({"2dgs", "2dgs+full", "2dgs+full+attenuation", "2dgs+full+backscatter", "2dgs+full+reflection",
+                     "2dgs+full+water"})
 # variant -> the terms of the water's optics it trains besides the refraction (issue 50); a variant not named
 # here computes none of them. "attenuation": each submerged Gaussian's radiance x exp(-c L) per channel of
 # linear RGB, L its path in the water along the bent ray (`refraction.water_paths`), c optimised per scene.
 # "backscatter": each pixel + the water column's veil B_inf (1 - exp(-c_b L)) in linear RGB, L its path in the
 # water to the point it renders (`refraction.pixel_water_paths`, from the rendered depth), B_inf and c_b
-# optimised per scene. "2dgs+full+water": both.
+# optimised per scene. "reflection": each wet pixel (1 - R) x what the water shows + R x the sky mirrored by the
+# surface, R the Fresnel reflectance at its incidence (`reflection.surface_reflection`), the sky a small map of
+# linear radiance shared by all views (`reflection.sky_radiance`) optimised per scene. "2dgs+full+water": all three.
 WATER_TERMS: dict[str, tuple[str, ...]] = {"2dgs+full+attenuation": ("attenuation",),
                                            "2dgs+full+backscatter": ("backscatter",),
-                                           "2dgs+full+water": ("attenuation", "backscatter")}
+                                           "2dgs+full+reflection": ("reflection",),
+                                           "2dgs+full+water": ("attenuation", "backscatter", "reflection")}
 # The attenuation coefficients' range (1/m), kept by a clamp: natural waters from clear ocean water's blue
 # (about 0.02) to a turbid river's red (a few per metre).
 ATTENUATION_RANGE = (0.01, 5.0)
@@ -48,6 +53,9 @@ ATTENUATION_RANGE = (0.01, 5.0)
 # images' white = 1) from nearly black ocean water to a milky river's bright veil.
 BACKSCATTER_RANGE = (0.01, 5.0)
 VEIL_RANGE = (1e-3, 1.0)
+# The sky map's range (linear radiance, the images' white = 1), kept by a clamp: from a dark overcast sky to a
+# glint that still shows through R = 0.02 at nadir (R x 100 = 2: saturated), where the images clip.
+SKY_RANGE = (1e-3, 100.0)
 # Where the ablation's rows and a survey's training start by default: the training images' tracks, refracted
 # (F1@3% about 20 % from the paper's plane on the reach, which has no single bed depth; docs/evaluation.md)
 INIT = "refracted"
@@ -135,6 +143,12 @@ class TrainConfig:
     veil_start: float = 0.05
     backscatter_start: float = 0.1
     lr_backscatter: float = 1e-2
+    # The sky the surface mirrors (variants with "reflection" in `WATER_TERMS`), a map trained as log radiance,
+    # every texel from the same start: a grey sky of 0.3 (linear; the sky's order at the images' exposure), which
+    # R = 0.02 at nadir shows as 0.006, under two 8-bit steps at the bed's mid-greys, and the images move: the
+    # glint's texels up, by a factor of 100 in 460 steps where seen, at the Adam rate of the other terms.
+    sky_start: float = 0.3
+    lr_reflection: float = 1e-2
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
@@ -184,6 +198,11 @@ class TrainConfig:
                 raise ConfigError(f"{name} must lie within [{lo:g}, {hi:g}], got {getattr(self, name)}")
         if not (math.isfinite(self.lr_backscatter) and self.lr_backscatter > 0):
             raise ConfigError(f"lr_backscatter must be > 0, got {self.lr_backscatter}")
+        lo, hi = SKY_RANGE
+        if not lo <= self.sky_start <= hi:
+            raise ConfigError(f"sky_start is a linear radiance within [{lo:g}, {hi:g}], got {self.sky_start}")
+        if not (math.isfinite(self.lr_reflection) and self.lr_reflection > 0):
+            raise ConfigError(f"lr_reflection must be > 0, got {self.lr_reflection}")
 
     @property
     def surfels(self) -> bool:

@@ -13,18 +13,19 @@ is the CPU time of the process (all threads) over the same steps, and `trainer.s
 time of each step (a shared machine moves the wall clock; CPU time and the median step much less).
 
 Outputs in out_dir: `config.json` (resolved config, seed, versions, variant flags, the water and a variant's
-attenuation and backscatter at the start and, once finished, at the end), `ckpt.pt` (latest checkpoint),
+attenuation, backscatter and sky at the start and, once finished, at the end), `ckpt.pt` (latest checkpoint),
 `point_cloud.ply` (standard 3DGS PLY), `train_stats.json` (time, Gaussian count, last loss, final water,
-attenuation and backscatter).
+attenuation, backscatter and sky).
 
 The water is the dataset's unless the config overrides its level or n; `optimize_water` calibrates it (own
 Adam, frozen for the warm-up), and `trainer.water` is always the current one. A variant with water terms
 (`WATER_TERMS`, issue 50) also trains the water's attenuation coefficients (`trainer.attenuation`, own Adam on
 log c, clamped to `ATTENUATION_RANGE`) and the water column's backscatter (`trainer.backscatter`: B_inf and c_b,
 own Adam on their logs, clamped to `VEIL_RANGE` and `BACKSCATTER_RANGE`; the veil is added to the render,
-`render_splats`), each only where its variant has it, saved in the checkpoint and in config.json
-(`attenuation_final`, `backscatter_final`: what `export.Model` renders with). A view with a mask trains on its
-used pixels only.
+`render_splats`) and the sky the surface mirrors (`trainer.reflection`: a map of linear radiance, own Adam on
+its log, clamped to `SKY_RANGE`; Fresnel-weighted over the wet pixels, `render_splats`), each only where its
+variant has it, saved in the checkpoint and in config.json (`attenuation_final`, `backscatter_final`,
+`reflection_final`: what `export.Model` renders with). A view with a mask trains on its used pixels only.
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ from ragsplat_core.outputs import atomic_path, claim, versions, write_json
 from ragsplat_core.ply import save_ply
 from ragsplat_core.rasterize import choose_backend, rasterize
 from ragsplat_core.rasterize_surfels import depth_normals, rasterize_surfels
+from ragsplat_core.reflection import SKY_SIZE, add_reflection, sky_radiance, surface_reflection
 from ragsplat_core.refraction import (
     ApparentGaussians,
     WaterSurface,
@@ -63,6 +65,7 @@ from ragsplat_core.train.config import (
     ATTENUATION_RANGE,
     BACKSCATTER_RANGE,
     RUN_ONLY,
+    SKY_RANGE,
     VARIANTS,
     VEIL_RANGE,
     TrainConfig,
@@ -100,18 +103,26 @@ def view_gaussians(splats, center: torch.Tensor, sh_degree: int, water: WaterSur
 
 def render_splats(splats, camera: Camera, center: torch.Tensor, sh_degree: int, water: WaterSurface | None,
                   flags: dict | None, surfels: bool, background: torch.Tensor, backend: str, compiled: bool = False,
-                  attenuation: torch.Tensor | None = None, backscatter: torch.Tensor | None = None):
+                  attenuation: torch.Tensor | None = None, backscatter: torch.Tensor | None = None,
+                  reflection: torch.Tensor | None = None):
     """(image [H,W,3], alpha [H,W,1], depth [H,W,1], meta) of `camera` (centre `center` [3]) as training
     renders it (`view_gaussians`, then `rasterize_view`). `backscatter`: [2, 3] the water's veil B_inf and its
     coefficients c_b (1/m), or None (nothing computed): the veil along each pixel's path in `water` to the
-    point it renders is added to the image (`refraction.add_backscatter`). The trainer and a finished run's
-    renders (`export.Model`) share it."""
+    point it renders is added to the image (`refraction.add_backscatter`). `reflection`: [S, S, 3] the sky map
+    the surface mirrors (`reflection.sky_radiance`, linear radiance), or None (nothing computed): each wet
+    pixel becomes (1 - R) x the rest + R x the mirrored sky (`reflection.add_reflection`). The trainer and a
+    finished run's renders (`export.Model`) share it."""
     img, alpha, depth, meta = rasterize_view(view_gaussians(splats, center, sh_degree, water, flags, backend,
                                                             surfels, compiled, attenuation),
                                              camera, surfels, background, backend)
-    if backscatter is not None:
-        paths = pixel_water_paths(pixel_rays(camera, depth), depth[..., 0], center, water)  # [H, W]
-        img = add_backscatter(img, alpha, paths, backscatter[0], backscatter[1])
+    if backscatter is not None or reflection is not None:
+        rays = pixel_rays(camera, depth)  # [H, W, 3]
+        if backscatter is not None:  # under the surface: the transmitted share below includes it
+            paths = pixel_water_paths(rays, depth[..., 0], center, water)  # [H, W]
+            img = add_backscatter(img, alpha, paths, backscatter[0], backscatter[1])
+        if reflection is not None:
+            R, mirrored = surface_reflection(rays, depth[..., 0], center, water)  # [H, W], [H, W, 3]
+            img = add_reflection(img, R, sky_radiance(reflection, mirrored))
     return img, alpha, depth, meta
 
 
@@ -148,6 +159,16 @@ def backscatter_json(backscatter: torch.Tensor) -> dict:
 
 def backscatter_tensor(d: dict, device) -> torch.Tensor:  # [2, 3] float32 from `backscatter_json`'s dict
     return torch.tensor([d["veil"], d["coefficients"]], dtype=torch.float32, device=device)
+
+
+def reflection_json(sky: torch.Tensor) -> dict:
+    """The sky map [S, S, 3] as config.json and train_stats.json write it (`reflection_tensor` reads it): rows
+    of texels of linear RGB, exactly (a float32 is a double)."""
+    return {"sky": sky.tolist()}
+
+
+def reflection_tensor(d: dict, device) -> torch.Tensor:  # [S, S, 3] float32 from `reflection_json`'s dict
+    return torch.tensor(d["sky"], dtype=torch.float32, device=device)
 
 
 def fades_opacity(flags: dict | None) -> bool:
@@ -217,6 +238,13 @@ class Trainer:
             self.log_backscatter = torch.nn.Parameter(start.log())
         self.backscatter_opt = None if self.log_backscatter is None else \
             torch.optim.Adam([self.log_backscatter], lr=cfg.lr_backscatter, eps=1e-15)
+        # The sky the surface mirrors, log radiance [S, S, 3], on the same terms.
+        self.log_sky = None
+        if self.flags is not None and "reflection" in cfg.water_terms:
+            self.log_sky = torch.nn.Parameter(torch.full((SKY_SIZE, SKY_SIZE, 3), math.log(cfg.sky_start),
+                                                         device=self.device))
+        self.sky_opt = None if self.log_sky is None else \
+            torch.optim.Adam([self.log_sky], lr=cfg.lr_reflection, eps=1e-15)
         self.targets = [v.image.to(self.device) for v in self.views]  # [H, W, 3] each
         self.masks = [None if v.mask is None else v.mask.to(self.device) for v in self.views]  # [H, W] bool
         self.centers = [torch.tensor(v.camera.camera_center, dtype=torch.float32, device=self.device)
@@ -377,6 +405,11 @@ class Trainer:
         return None if self.log_backscatter is None else self.log_backscatter.detach().exp()
 
     @property
+    def reflection(self) -> torch.Tensor | None:
+        """[S, S, 3] the sky map the surface mirrors (linear radiance) as it stands now, None when not trained."""
+        return None if self.log_sky is None else self.log_sky.detach().exp()
+
+    @property
     def active_sh_degree(self) -> int:
         return self.cfg.active_sh_degree(self.step)
 
@@ -388,9 +421,10 @@ class Trainer:
     def _render(self, camera: Camera, center: torch.Tensor, interface: bool, water: WaterSurface | None):
         attenuation = None if self.log_attenuation is None or not interface else self.log_attenuation.exp()
         backscatter = None if self.log_backscatter is None or not interface else self.log_backscatter.exp()
+        sky = None if self.log_sky is None or not interface else self.log_sky.exp()
         return render_splats(self.splats, camera, center, self.active_sh_degree, water,
                              self.flags if interface else None, self.cfg.surfels, self.background, self.cfg.backend,
-                             self.cfg.compile_refraction, attenuation, backscatter)
+                             self.cfg.compile_refraction, attenuation, backscatter, sky)
 
     def render(self, camera: Camera, interface: bool = True):
         """(image [H,W,3], alpha [H,W,1], depth [H,W,1]) of `camera`, no gradients.
@@ -451,6 +485,8 @@ class Trainer:
             self._attenuation_step()
         if self.backscatter_opt is not None:
             self._backscatter_step()
+        if self.sky_opt is not None:
+            self._sky_step()
         if calibrate:
             self._water_step(step)
         bad = self._nonfinite_report()
@@ -490,6 +526,7 @@ class Trainer:
     def _water_named(self):  # (name, parameter) of the trained water fields and terms, named as in messages
         terms = [] if self.log_attenuation is None else [("water attenuation (log)", self.log_attenuation)]
         terms += [] if self.log_backscatter is None else [("water backscatter (log)", self.log_backscatter)]
+        terms += [] if self.log_sky is None else [("water reflection sky (log)", self.log_sky)]
         return [(f"water {k}", p) for k, p in self.water_params.items()] + terms
 
     def _attenuation_step(self) -> None:
@@ -504,6 +541,12 @@ class Trainer:
         with torch.no_grad():  # natural waters' ranges (config)
             for row, bounds in enumerate((VEIL_RANGE, BACKSCATTER_RANGE)):
                 self.log_backscatter[row].clamp_(*(math.log(b) for b in bounds))
+
+    def _sky_step(self) -> None:
+        self.sky_opt.step()
+        self.sky_opt.zero_grad(set_to_none=True)
+        with torch.no_grad():  # a sky's range (config)
+            self.log_sky.clamp_(*(math.log(b) for b in SKY_RANGE))
 
     def _water_step(self, step: int) -> None:
         self.water_opt.step()
@@ -579,6 +622,7 @@ class Trainer:
                 "median_step_seconds": float(np.median(self.step_seconds)) if self.step_seconds else None,
                 "num_gaussians": self.num_gaussians, "refraction": self.flags, "water": self._water_dict(),
                 "attenuation": self._attenuation_list(), "backscatter": self._backscatter_dict(),
+                "reflection": self._reflection_dict(),
                 **{f"last_{k}": v for k, v in self.last.items() if k != "n"}}
 
     def _water_dict(self) -> dict | None:  # the water as it stands now, as JSON
@@ -589,6 +633,9 @@ class Trainer:
 
     def _backscatter_dict(self) -> dict | None:  # B_inf (linear RGB) and c_b (1/m) as they stand now, as JSON
         return None if self.backscatter is None else backscatter_json(self.backscatter)
+
+    def _reflection_dict(self) -> dict | None:  # the sky map (linear RGB) as it stands now, as JSON
+        return None if self.reflection is None else reflection_json(self.reflection)
 
     # ---- persistence -------------------------------------------------------------------------------------
     def _write_config(self) -> None:
@@ -603,6 +650,9 @@ class Trainer:
                 "backscatter": None if self.backscatter is None else {
                     "veil": [self.cfg.veil_start] * 3, "coefficients": [self.cfg.backscatter_start] * 3},
                 "backscatter_final": self._backscatter_dict() if self.step >= self.cfg.iterations else None,
+                # the sky map: at the start every texel's radiance and the map's side, at the end the map
+                "reflection": None if self.reflection is None else {"sky": self.cfg.sky_start, "size": SKY_SIZE},
+                "reflection_final": self._reflection_dict() if self.step >= self.cfg.iterations else None,
                 "refraction_applied": self.flags,
                 "device": str(self.device),
                 "num_train_views": len(self.views), "versions": versions("torch")}
@@ -621,7 +671,9 @@ class Trainer:
                 "attenuation": None if self.log_attenuation is None else self.log_attenuation.detach().cpu(),
                 "attenuation_optimizer": None if self.attenuation_opt is None else self.attenuation_opt.state_dict(),
                 "backscatter": None if self.log_backscatter is None else self.log_backscatter.detach().cpu(),
-                "backscatter_optimizer": None if self.backscatter_opt is None else self.backscatter_opt.state_dict()}
+                "backscatter_optimizer": None if self.backscatter_opt is None else self.backscatter_opt.state_dict(),
+                "reflection": None if self.log_sky is None else self.log_sky.detach().cpu(),
+                "reflection_optimizer": None if self.sky_opt is None else self.sky_opt.state_dict()}
         with atomic_path(path) as tmp:  # a kill never leaves a half-written checkpoint
             torch.save(data, tmp)
         return path
@@ -664,6 +716,13 @@ class Trainer:
             with torch.no_grad():
                 self.log_backscatter.copy_(data["backscatter"])
             self.backscatter_opt.load_state_dict(data["backscatter_optimizer"])
+        if self.log_sky is not None:
+            if data.get("reflection") is None:  # 2dgs+full+water before it had the reflection
+                raise OutputError(f"{path}: checkpoint of {self.cfg.variant} without the surface's reflection "
+                                  "(written before the variant had it); use another output directory")
+            with torch.no_grad():
+                self.log_sky.copy_(data["reflection"])
+            self.sky_opt.load_state_dict(data["reflection_optimizer"])
         self.strat_state = {k: (v.to(self.device) if torch.is_tensor(v) else v) for k, v in data["strategy"].items()}
         self.step, self.elapsed = int(data["step"]), float(data["elapsed"])
         self.cpu_elapsed = float(data.get("cpu_elapsed", 0.0))
