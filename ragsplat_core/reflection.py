@@ -62,17 +62,20 @@ def surface_reflection(rays, depth, camera_center, water: WaterSurface):
     depth [...] the rendered camera z-depth along them, camera_center [3]. Differentiable in the rays, the
     camera and the water (n, level, slope); not in the depth, which only decides which pixels are wet."""
     C = torch.as_tensor(camera_center, dtype=rays.dtype, device=rays.device)
-    v = rays / torch.linalg.vector_norm(rays, dim=-1, keepdim=True)  # [..., 3] unit
-    p = C + depth[..., None] * rays  # [..., 3] the apparent point the pixel renders
     if water.tilted or water.curved:
+        v = rays / torch.linalg.vector_norm(rays, dim=-1, keepdim=True)  # [..., 3] unit
+        p = C + depth[..., None].detach() * rays.detach()  # [..., 3] the apparent point the pixel renders
         g = water.gradient(p[..., :2])  # [..., 2]
         normal = torch.cat([-g, torch.ones_like(g[..., :1])], -1) / torch.sqrt(1 + (g * g).sum(-1, keepdim=True))
         vn = (v * normal).sum(-1)  # [...] = -cos theta_i for a ray meeting the water
         mirrored = v - 2 * vn[..., None] * normal
-    else:  # the horizontal plane: N = e_z
-        vn = v[..., 2]
-        mirrored = torch.cat([v[..., :2], -v[..., 2:]], -1)
-    wet = water.depth(p.detach()) > 0  # [...] bool
+        wet = water.depth(p) > 0  # [...] bool
+    else:  # the horizontal plane, N = e_z: per pixel only what it needs (a [H, W] op costs a third of [H, W, 3])
+        inv = torch.rsqrt((rays * rays).sum(-1))  # [...] 1 / |ray|
+        vn = rays[..., 2] * inv
+        mirrored = torch.cat([rays[..., :2], -rays[..., 2:]], -1) * inv[..., None]
+        level = torch.as_tensor(water.level, dtype=rays.dtype, device=rays.device).detach()
+        wet = (C[2] + depth * rays[..., 2]).detach() < level  # the apparent point's height
     # the floor keeps a ray that never meets the water finite in value and gradient (its R is zeroed)
     R = reflectance((-vn).clamp(min=GRAZING_COS), water.n)
     return R * wet, mirrored

@@ -10,8 +10,10 @@ median(full) / median(3dgs) and median(2dgs+full) / median(full).
 The two do not rasterize the same work (the apparent Gaussians are smaller, fainter and closer to the
 axis), so the transform's own cost, forward + backward of `refract_gaussians`, is printed beside it
 (`refr`, and as a share of the 3dgs iteration). `--attenuation` also times `2dgs+full+attenuation` (the water's
-attenuation, issue 50) in the same loop, as a ratio to `2dgs+full`; `--backscatter` likewise
-`2dgs+full+backscatter` (the water column's veil) and `2dgs+full+water` (both terms).
+attenuation, issue 50) in the same loop, beside `2dgs+full` and as a ratio to it (of the medians, and the median
+of the step-by-step ratios, which a busy machine moves less); `--backscatter` likewise `2dgs+full+backscatter`
+(the water column's veil) and `2dgs+full+water` (all three terms); `--reflection` `2dgs+full+reflection` (the
+surface's reflection of the sky).
 """
 
 from __future__ import annotations
@@ -89,12 +91,13 @@ def _transform_time(tr, steps: int, device: str, transform) -> float:
 
 def bench_train_step(counts=(10_000, 40_000), pairs=None, steps: int = 10, warmup: int = 3, seed: int = 0,
                      log=print, compiled: bool = False, attenuation: bool = False,
-                     backscatter: bool = False) -> list[dict]:
+                     backscatter: bool = False, reflection: bool = False) -> list[dict]:
     """One row per (backend, device, N): median seconds per iteration for 3dgs, full and 2dgs+full, and the
     ratios full / 3dgs and 2dgs+full / full. `compiled`: also `full` and `2dgs+full` with the transform through
     torch.compile (`TrainConfig.compile_refraction`; the warm-up steps take the compile), in the same loop,
     and their ratios to the eager ones. `attenuation`: also 2dgs+full+attenuation, and its ratio to 2dgs+full;
-    `backscatter`: also 2dgs+full+backscatter and 2dgs+full+water, and theirs (row keys: the terms)."""
+    `backscatter`: also 2dgs+full+backscatter and 2dgs+full+water, and theirs; `reflection`: also
+    2dgs+full+reflection, and its (row keys: the terms; `paired_ratio`: the median of the step-by-step ratios)."""
     from ragsplat_core.refraction import compiled_refract_gaussians, refract_gaussians
     from ragsplat_core.train import Trainer, preset_config
 
@@ -107,6 +110,8 @@ def bench_train_step(counts=(10_000, 40_000), pairs=None, steps: int = 10, warmu
             terms = {"attenuation": "2dgs+full+attenuation"} if attenuation else {}
             if backscatter:
                 terms.update(backscatter="2dgs+full+backscatter", water="2dgs+full+water")
+            if reflection:
+                terms["reflection"] = "2dgs+full+reflection"
             runs = [("3dgs", False), ("full", False), ("2dgs+full", False)] + [(v, False) for v in terms.values()]
             for variant, fused in runs + ([("full", True), ("2dgs+full", True)] if compiled else []):
                 # paper schedule (30k): refinement starts at 500, after the timed steps; SH degree 3 at once
@@ -137,9 +142,12 @@ def bench_train_step(counts=(10_000, 40_000), pairs=None, steps: int = 10, warmu
                 f"{row['ratio_full_3dgs']:9.3f} {med['transform']:10.4f} {row['transform_share_of_3dgs']:9.3f} "
                 f"{med['2dgs+full']:10.4f} {row['ratio_2dgs_full_full']:9.3f}")
             for key, variant in terms.items():
-                t = med[variant]
-                row[key] = {"median_s": t, "ratio_2dgs_full": t / med["2dgs+full"], "all_s": times[variant]}
-                log(f"{'':>18} {variant} {t:.4f} s (x{t / med['2dgs+full']:.3f} of 2dgs+full)")
+                t, base = med[variant], med["2dgs+full"]
+                paired = statistics.median(a / b for a, b in zip(times[variant], times["2dgs+full"]))
+                row[key] = {"median_s": t, "ratio_2dgs_full": t / base, "paired_ratio": paired,
+                            "all_s": times[variant]}
+                log(f"{'':>18} {variant} {t:.4f} s, 2dgs+full {base:.4f} s: x{t / base:.3f} "
+                    f"(step by step x{paired:.3f})")
             if compiled:
                 med["transform compiled"] = _transform_time(trainers["full"], steps, device,
                                                             compiled_refract_gaussians())
