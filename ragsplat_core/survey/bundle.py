@@ -107,124 +107,184 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
     sparse on the CPU (True) or dense on the tensors' device (False); None: sparse above `DENSE_MAX` unknowns."""
     dt = torch.float64
     R, C, points, intrinsics, pixels = (x.to(dt) for x in (R, C, points, intrinsics, pixels))
-    n_img, n_pts = len(C), len(points)
     index = _free_index(free, water)  # which of (level, slope x, slope y, k1, k2) are adjusted
-    sparse = 6 * n_img + len(index) > DENSE_MAX if sparse is None else sparse
-    sig = None if prior_C is None else torch.as_tensor(prior_sigma, dtype=dt, device=C.device)
-    if prior_C is not None:  # a camera without a position (NaN) has no prior
-        prior_C = prior_C.to(dt)
-        held = torch.isfinite(prior_C).all(1)[:, None]
-        prior_C = torch.where(held, prior_C, C)
-    couples = _Couples(point, image, n_pts, n_img)  # where the Schur complement couples two cameras
-
-    K = intrinsics[image]
-    eye3 = torch.eye(3, dtype=dt, device=C.device)
-    theta = torch.tensor([0.0, 0.0, 0.0] if water is None else [_value(water.level), *map(_value, water.slope)],
-                         dtype=dt)
+    sparse = 6 * len(C) + len(index) > DENSE_MAX if sparse is None else sparse
+    problem = _Problem(C, intrinsics, len(points), point, image, pixels, water, index, prior_C, prior_sigma,
+                       prior_points, point_sigma, pixel_sigma, huber, sparse)
+    start = [0.0, 0.0, 0.0] if water is None else [_value(water.level), *map(_value, water.slope)]
+    theta = torch.tensor(start, dtype=dt)
     theta = torch.cat([theta, torch.tensor([float(v) for v in lens], dtype=dt)])
-    fd_step = torch.tensor(FD_STEP, dtype=dt)
+    fit = _levenberg_marquardt(problem, _State(R, C, points, theta), iterations, tol, on_iteration)
+    sigma, held = _sigmas(problem, fit) if len(index) else (None, None)
+    end = fit.state
+    return Bundle(end.R, end.C, end.points, (fit.r * pixel_sigma).norm(dim=-1), fit.iterations, fit.cost,
+                  problem.surface(end.theta), sigma, held, problem.distortion(end.theta))
 
-    def surface(th: torch.Tensor) -> WaterSurface | None:
-        if not any(j < 3 for j in index):
-            return water
-        return WaterSurface(float(th[0]), water.n, (float(th[1]), float(th[2])))
 
-    def distortion(th: torch.Tensor) -> tuple[float, float]:
+@dataclass(frozen=True)
+class _State:
+    """The unknowns: the cameras, the points and the shared parameters (`PARAMETERS`, all five)."""
+
+    R: torch.Tensor  # [I, 3, 3]
+    C: torch.Tensor  # [I, 3]
+    points: torch.Tensor  # [P, 3]
+    theta: torch.Tensor  # [5]
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """Where Levenberg-Marquardt stopped: the state, its cost and residuals, the iterations it took."""
+
+    state: _State
+    cost: float
+    r: torch.Tensor  # [M, 2] in units of pixel_sigma
+    iterations: int
+
+
+class _Problem:
+    """What stays fixed while `adjust` iterates (the observations, the priors, the free parameters, how the
+    reduced system is solved), and what it makes of a `_State`: the residuals, the robust cost, the Jacobians,
+    the normal equations, the reduced system and the damped step."""
+
+    def __init__(self, C: torch.Tensor, intrinsics: torch.Tensor, n_pts: int, point: torch.Tensor,
+                 image: torch.Tensor, pixels: torch.Tensor, water: WaterSurface | None, index: list[int],
+                 prior_C: torch.Tensor | None, prior_sigma, prior_points, point_sigma: float,
+                 pixel_sigma: float, huber: float, sparse: bool):
+        dt = self.dt = torch.float64
+        self.device = C.device
+        self.n_img, self.n_pts = len(C), n_pts
+        self.point, self.image, self.pixels, self.water, self.index = point, image, pixels, water, index
+        self.point_sigma, self.pixel_sigma, self.huber, self.sparse = point_sigma, pixel_sigma, huber, sparse
+        self.sig = None if prior_C is None else torch.as_tensor(prior_sigma, dtype=dt, device=C.device)
+        self.held = None  # [I, 1] bool: the cameras with a prior
+        if prior_C is not None:  # a camera without a position (NaN) has no prior
+            prior_C = prior_C.to(dt)
+            self.held = torch.isfinite(prior_C).all(1)[:, None]
+            prior_C = torch.where(self.held, prior_C, C)
+        self.prior_C = prior_C
+        self.couples = _Couples(point, image, n_pts, self.n_img)  # where the Schur complement couples cameras
+        self.K = intrinsics[image]
+        self.eye3 = torch.eye(3, dtype=dt, device=C.device)
+        self.fd_step = torch.tensor(FD_STEP, dtype=dt)
+        self.gcp, self.gcp_xyz = (None, None) if prior_points is None else (prior_points[0],
+                                                                             prior_points[1].to(dt))
+
+    def surface(self, th: torch.Tensor) -> WaterSurface | None:
+        if not any(j < 3 for j in self.index):
+            return self.water
+        return WaterSurface(float(th[0]), self.water.n, (float(th[1]), float(th[2])))
+
+    def distortion(self, th: torch.Tensor) -> tuple[float, float]:
         return float(th[3]), float(th[4])
 
-    def residual(R_, C_, P_, th):  # [M, 2] in units of pixel_sigma
-        return (project(R_[image], C_[image], K, P_[point], surface(th), distortion(th)) - pixels) / pixel_sigma
+    def residual(self, R_, C_, P_, th):  # [M, 2] in units of pixel_sigma
+        return (project(R_[self.image], C_[self.image], self.K, P_[self.point], self.surface(th),
+                        self.distortion(th)) - self.pixels) / self.pixel_sigma
 
-    gcp, gcp_xyz = (None, None) if prior_points is None else (prior_points[0], prior_points[1].to(dt))
-
-    def total(R_, C_, P_, th) -> tuple[float, torch.Tensor]:
-        r = residual(R_, C_, P_, th)
-        cost = _huber(r.norm(dim=-1), huber)[0].sum()
-        if sig is not None:
-            cost = cost + ((held * (C_ - prior_C) / sig) ** 2).sum()
-        if gcp is not None:
-            cost = cost + (((P_[gcp] - gcp_xyz) / point_sigma) ** 2).sum()
+    def total(self, s: _State) -> tuple[float, torch.Tensor]:
+        """(the robust cost with the priors, the residuals [M, 2]) at `s`."""
+        r = self.residual(s.R, s.C, s.points, s.theta)
+        cost = _huber(r.norm(dim=-1), self.huber)[0].sum()
+        if self.sig is not None:
+            cost = cost + ((self.held * (s.C - self.prior_C) / self.sig) ** 2).sum()
+        if self.gcp is not None:
+            cost = cost + (((s.points[self.gcp] - self.gcp_xyz) / self.point_sigma) ** 2).sum()
         return float(cost), r
 
-    def jacobians(R_, C_, P_, th) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def jacobians(self, s: _State) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """[M, 2, 6], [M, 2, 3] and [M, 2, G]: each observation's residual w.r.t. its camera (turn, centre),
         its point and the free water parameters. The first two by autograd (exact; the water's through its
         implicit gradients): one backward per pixel axis, the parameters repeated per observation so that the
         gradient of the sum is each one's own row; the water's, shared by all, by central differences."""
+        dt, point, image, th, fd_step = self.dt, self.point, self.image, s.theta, self.fd_step
         with torch.enable_grad():
-            turn = torch.zeros(len(point), 3, dtype=dt, device=C.device, requires_grad=True)
-            Cm = C_[image].detach().requires_grad_(True)
-            X = P_[point].detach().requires_grad_(True)
-            r_ = (project(R_[image] @ (eye3 + skew(turn)), Cm, K, X, surface(th), distortion(th)) - pixels) / pixel_sigma
+            turn = torch.zeros(len(point), 3, dtype=dt, device=self.device, requires_grad=True)
+            Cm = s.C[image].detach().requires_grad_(True)
+            X = s.points[point].detach().requires_grad_(True)
+            r_ = (project(s.R[image] @ (self.eye3 + skew(turn)), Cm, self.K, X, self.surface(th),
+                          self.distortion(th)) - self.pixels) / self.pixel_sigma
             rows = [torch.autograd.grad(r_[:, a].sum(), (turn, Cm, X), retain_graph=a == 0) for a in range(2)]
-        Jg = [(residual(R_, C_, P_, th + e) - residual(R_, C_, P_, th - e)) / (2 * fd_step[j])
-              for j in index for e in [fd_step[j] * (torch.arange(len(th)) == j)]]
-        Jg = torch.stack(Jg, -1) if Jg else torch.zeros(len(point), 2, 0, dtype=dt, device=C.device)
-        return (torch.stack([torch.cat(g[:2], -1) for g in rows], 1), torch.stack([g[2] for g in rows], 1), Jg)
+        Jg = [(self.residual(s.R, s.C, s.points, th + e) - self.residual(s.R, s.C, s.points, th - e))
+              / (2 * fd_step[j]) for j in self.index for e in [fd_step[j] * (torch.arange(len(th)) == j)]]
+        Jg = torch.stack(Jg, -1) if Jg else torch.zeros(len(point), 2, 0, dtype=dt, device=self.device)
+        return torch.stack([torch.cat(g[:2], -1) for g in rows], 1), torch.stack([g[2] for g in rows], 1), Jg
 
-    def normal_equations(R_, C_, P_, th, r):
-        """The Gauss-Newton blocks at the current state, with the Huber weights of its residuals r."""
-        Jc, Jp, Jg = jacobians(R_, C_, P_, th)
-        w = _huber(r.norm(dim=-1), huber)[1][:, None, None]  # [M, 1, 1]
+    def normal_equations(self, s: _State, r: torch.Tensor) -> dict:
+        """The Gauss-Newton blocks at `s`, with the Huber weights of its residuals r."""
+        dt, dev, point, image = self.dt, self.device, self.point, self.image
+        n_img, n_pts = self.n_img, self.n_pts
+        Jc, Jp, Jg = self.jacobians(s)
+        w = _huber(r.norm(dim=-1), self.huber)[1][:, None, None]  # [M, 1, 1]
         wr = w * r[:, :, None]
-        U = torch.zeros(n_img, 6, 6, dtype=dt, device=C.device).index_add_(0, image, Jc.mT @ (w * Jc))
-        V = torch.zeros(n_pts, 3, 3, dtype=dt, device=C.device).index_add_(0, point, Jp.mT @ (w * Jp))
-        gc = torch.zeros(n_img, 6, dtype=dt, device=C.device).index_add_(0, image, (Jc.mT @ wr)[..., 0])
-        gp = torch.zeros(n_pts, 3, dtype=dt, device=C.device).index_add_(0, point, (Jp.mT @ wr)[..., 0])
-        if sig is not None:
-            U[:, 3:, 3:] += held[:, :, None] * torch.diag_embed((1 / sig**2).expand(n_img, 3))
-            gc[:, 3:] += held * (C_ - prior_C) / sig**2
-        if gcp is not None:
-            V[gcp] += eye3 / point_sigma**2
-            gp[gcp] += (P_[gcp] - gcp_xyz) / point_sigma**2
+        U = torch.zeros(n_img, 6, 6, dtype=dt, device=dev).index_add_(0, image, Jc.mT @ (w * Jc))
+        V = torch.zeros(n_pts, 3, 3, dtype=dt, device=dev).index_add_(0, point, Jp.mT @ (w * Jp))
+        gc = torch.zeros(n_img, 6, dtype=dt, device=dev).index_add_(0, image, (Jc.mT @ wr)[..., 0])
+        gp = torch.zeros(n_pts, 3, dtype=dt, device=dev).index_add_(0, point, (Jp.mT @ wr)[..., 0])
+        if self.sig is not None:
+            U[:, 3:, 3:] += self.held[:, :, None] * torch.diag_embed((1 / self.sig**2).expand(n_img, 3))
+            gc[:, 3:] += self.held * (s.C - self.prior_C) / self.sig**2
+        if self.gcp is not None:
+            V[self.gcp] += self.eye3 / self.point_sigma**2
+            gp[self.gcp] += (s.points[self.gcp] - self.gcp_xyz) / self.point_sigma**2
         G = Jg.shape[-1]
-        Ucg = torch.zeros(n_img, 6, G, dtype=dt, device=C.device).index_add_(0, image, Jc.mT @ (w * Jg))
-        Wg = torch.zeros(n_pts, G, 3, dtype=dt, device=C.device).index_add_(0, point, Jg.mT @ (w * Jp))
+        Ucg = torch.zeros(n_img, 6, G, dtype=dt, device=dev).index_add_(0, image, Jc.mT @ (w * Jg))
+        Wg = torch.zeros(n_pts, G, 3, dtype=dt, device=dev).index_add_(0, point, Jg.mT @ (w * Jp))
         return {"U": U, "V": V, "W": Jc.mT @ (w * Jp), "gc": gc, "gp": gp, "Ugg": (Jg.mT @ (w * Jg)).sum(0),
                 "Ucg": Ucg, "Wg": Wg, "gg": (Jg.mT @ wr)[..., 0].sum(0)}
 
-    def reduced(eq: dict, lam: float):
+    def reduced(self, eq: dict, lam: float):
         """The damped system in the cameras and the water's parameters, the points eliminated (Schur
         complement): (`_System`, right-hand side [6I + G], the points' inverse blocks [P, 3, 3])."""
+        point, image, n_img = self.point, self.image, self.n_img
         U, V, W, Ugg = eq["U"], eq["V"], eq["W"], eq["Ugg"]
         Ud = U + lam * torch.diag_embed(torch.diagonal(U, dim1=-2, dim2=-1) + 1e-9)
-        Vd = V + lam * torch.diag_embed(torch.diagonal(V, dim1=-2, dim2=-1)) + 1e-12 * eye3
+        Vd = V + lam * torch.diag_embed(torch.diagonal(V, dim1=-2, dim2=-1)) + 1e-12 * self.eye3
         Vi = torch.linalg.inv(Vd)  # [P, 3, 3]
         Y = W @ Vi[point]  # [M, 6, 3]
-        blocks = couples.gather(Y, W)  # [B, 6, 6]: -sum of Y_a W_b^T over the pairs of each camera pair
-        blocks[couples.diagonal] += Ud
-        rhs = -eq["gc"] + torch.zeros(n_img, 6, dtype=dt, device=C.device).index_add_(
+        blocks = self.couples.gather(Y, W)  # [B, 6, 6]: -sum of Y_a W_b^T over the pairs of each camera pair
+        blocks[self.couples.diagonal] += Ud
+        rhs = -eq["gc"] + torch.zeros(n_img, 6, dtype=self.dt, device=self.device).index_add_(
             0, image, (Y @ eq["gp"][point][:, :, None])[..., 0])
         rhs = rhs.reshape(-1)
         Scg = Sgg = None
-        if len(index):  # the water's parameters: one more row and column each
+        if len(self.index):  # the water's parameters: one more row and column each
             Wg, Z = eq["Wg"], eq["Wg"] @ Vi  # [P, G, 3]
             Scg = eq["Ucg"] - torch.zeros_like(eq["Ucg"]).index_add_(0, image, Y @ Wg[point].mT)
             Sgg = Ugg + lam * torch.diag_embed(torch.diagonal(Ugg) + 1e-9) - (Z @ Wg.mT).sum(0)
             Scg = Scg.reshape(6 * n_img, -1)
             rhs = torch.cat([rhs, -eq["gg"] + (Z @ eq["gp"][:, :, None])[..., 0].sum(0)])
-        return _System(couples, blocks, Scg, Sgg, sparse), rhs, Vi
+        return _System(self.couples, blocks, Scg, Sgg, self.sparse), rhs, Vi
 
-    cost, r = total(R, C, points, theta)
+    def step(self, s: _State, eq: dict, lam: float) -> _State:
+        """The state after the damped Gauss-Newton step from `s` (normal equations `eq`, damping `lam`): the
+        cameras and the shared parameters solved, the points back-substituted."""
+        n_img = self.n_img
+        S, rhs, Vi = self.reduced(eq, lam)
+        x = S.solve(rhs)
+        dc, dg = x[: 6 * n_img].reshape(n_img, 6), x[6 * n_img:]
+        back = torch.zeros(self.n_pts, 3, dtype=self.dt, device=self.device).index_add_(
+            0, self.point, (eq["W"].mT @ dc[self.image][:, :, None])[..., 0])
+        if len(self.index):
+            back = back + (eq["Wg"].mT @ dg)
+        dp = -(Vi @ (eq["gp"] + back)[:, :, None])[..., 0]
+        th1 = s.theta.clone()
+        th1[self.index] += dg
+        return _State(_rotate(s.R, dc[:, :3]), s.C + dc[:, 3:], s.points + dp, th1)
+
+
+def _levenberg_marquardt(problem: _Problem, state: _State, iterations: int, tol: float, on_iteration) -> _Fit:
+    """Steps from `state` while they lower the cost (the damping down by 3 after an accepted step, up by 4
+    after a rejected one), until `iterations`, a relative decrease under `tol`, or a damping over 1e12."""
+    cost, r = problem.total(state)
     lam, it = 1e-3, 0
     for it in range(1, iterations + 1):
-        eq = normal_equations(R, C, points, theta, r)
+        eq = problem.normal_equations(state, r)
         while True:
-            S, rhs, Vi = reduced(eq, lam)
-            x = S.solve(rhs)
-            dc, dg = x[: 6 * n_img].reshape(n_img, 6), x[6 * n_img:]
-            back = torch.zeros(n_pts, 3, dtype=dt, device=C.device).index_add_(
-                0, point, (eq["W"].mT @ dc[image][:, :, None])[..., 0])
-            if len(index):
-                back = back + (eq["Wg"].mT @ dg)
-            dp = -(Vi @ (eq["gp"] + back)[:, :, None])[..., 0]
-            th1 = theta.clone()
-            th1[index] += dg
-            R1, C1, P1 = _rotate(R, dc[:, :3]), C + dc[:, 3:], points + dp
-            new, r1 = total(R1, C1, P1, th1)
+            trial = problem.step(state, eq, lam)
+            new, r1 = problem.total(trial)
             if new < cost:
                 done = cost - new < tol * cost
-                R, C, points, theta, cost, r = R1, C1, P1, th1, new, r1
+                state, cost, r = trial, new, r1
                 lam = max(lam / 3, 1e-12)
                 break
             lam *= 4
@@ -235,18 +295,21 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
             on_iteration(cost)
         if done:
             break
-    sigma = None
-    if len(index):  # the free parameters' covariance: the undamped reduced system's inverse, scaled
-        S, _, _ = reduced(normal_equations(R, C, points, theta, r), 0.0)
-        w = _huber(r.norm(dim=-1), huber)[1]
-        dof = max(r.numel() - 6 * n_img - 3 * n_pts - len(index), 1)
-        scale = float((w * (r * r).sum(-1)).sum()) / dof
-        names = [PARAMETERS[j] for j in index]
-        sigma = {n: float(v.clamp(min=0).sqrt()) for n, v in zip(names, S.marginal().diagonal() * scale)}
-        held = {n: float(v.clamp(min=0).sqrt())
-                for n, v in zip(names, torch.linalg.inv(S.Sgg).diagonal() * scale)}
-    return Bundle(R, C, points, (r * pixel_sigma).norm(dim=-1), it, cost, surface(theta), sigma,
-                  held if len(index) else None, distortion(theta))
+    return _Fit(state, cost, r, it)
+
+
+def _sigmas(problem: _Problem, fit: _Fit) -> tuple[dict[str, float], dict[str, float]]:
+    """The free parameters' standard deviations (`PARAMETERS`' names): from the undamped reduced system's
+    inverse, and with the cameras held (its S_gg block alone), both scaled by the residuals' variance."""
+    r = fit.r
+    S, _, _ = problem.reduced(problem.normal_equations(fit.state, r), 0.0)
+    w = _huber(r.norm(dim=-1), problem.huber)[1]
+    dof = max(r.numel() - 6 * problem.n_img - 3 * problem.n_pts - len(problem.index), 1)
+    scale = float((w * (r * r).sum(-1)).sum()) / dof
+    names = [PARAMETERS[j] for j in problem.index]
+    sigma = {n: float(v.clamp(min=0).sqrt()) for n, v in zip(names, S.marginal().diagonal() * scale)}
+    held = {n: float(v.clamp(min=0).sqrt()) for n, v in zip(names, torch.linalg.inv(S.Sgg).diagonal() * scale)}
+    return sigma, held
 
 
 DENSE_MAX = 3000  # unknowns of the reduced system solved dense (500 cameras: a 72 MB matrix); more: sparse
