@@ -66,11 +66,12 @@ def surface_reflection(rays, depth, camera_center, water: WaterSurface):
         v = rays / torch.linalg.vector_norm(rays, dim=-1, keepdim=True)  # [..., 3] unit
         p = C + depth[..., None].detach() * rays.detach()  # [..., 3] the apparent point the pixel renders
         g = water.gradient(p[..., :2])  # [..., 2]
-        normal = torch.cat([-g, torch.ones_like(g[..., :1])], -1) / torch.sqrt(1 + (g * g).sum(-1, keepdim=True))
+        normal = torch.cat([-g, torch.ones_like(g[..., :1])], -1)
+        normal = normal / torch.sqrt(1 + (g * g).sum(-1, keepdim=True))  # [..., 3] the upward unit normal
         vn = (v * normal).sum(-1)  # [...] = -cos theta_i for a ray meeting the water
         mirrored = v - 2 * vn[..., None] * normal
         wet = water.depth(p) > 0  # [...] bool
-    else:  # the horizontal plane, N = e_z: per pixel only what it needs (a [H, W] op costs a third of [H, W, 3])
+    else:  # the horizontal plane, N = e_z: [H, W] ops where they do (a third of an [H, W, 3] one's cost)
         inv = torch.rsqrt((rays * rays).sum(-1))  # [...] 1 / |ray|
         vn = rays[..., 2] * inv
         mirrored = torch.cat([rays[..., :2], -rays[..., 2:]], -1) * inv[..., None]
@@ -102,10 +103,14 @@ def sky_directions(size: int = SKY_SIZE, dtype=torch.float32, device=None):
     return torch.stack([x, y, torch.sqrt((1 - x * x - y * y).clamp(min=0))], -1)
 
 
+def reflect(lin, R, radiance):
+    """[..., 3] (1 - R) lin + R radiance, all in linear light: lin [..., 3] what the water shows, R [...] each
+    pixel's Fresnel reflectance (`surface_reflection`, 0 on dry pixels, which stay as they are), radiance
+    [..., 3] the mirrored sky's (`sky_radiance`). The 1 - R is the transmitted share of the light from under
+    the water; the radiance step 1 / n^2 of the refraction is a separate factor (`refract_gaussians`)."""
+    return lin + R[..., None] * (radiance - lin)
+
+
 def add_reflection(image, R, radiance):
-    """image [..., 3] (sRGB) -> (1 - R) image + R radiance in linear light, re-encoded: R [...] each pixel's
-    Fresnel reflectance (`surface_reflection`, 0 on dry pixels, which stay as they are), radiance [..., 3]
-    the mirrored sky's (`sky_radiance`). The 1 - R is the transmitted share of the light from under the
-    water; the radiance step 1 / n^2 of the refraction is a separate factor (`refract_gaussians`)."""
-    lin = srgb_to_linear(image)
-    return linear_to_srgb(lin + R[..., None] * (radiance - lin))
+    """image [..., 3] (sRGB) -> `reflect` in linear light, re-encoded."""
+    return linear_to_srgb(reflect(srgb_to_linear(image), R, radiance))

@@ -38,7 +38,8 @@ submerged Gaussian's radiance by exp(-c L) per channel.
 The water column in front of what a pixel renders adds a veil B_inf (1 - exp(-c_b L)) (backscatter, SeaThru's
 model), L the pixel's path in the water. The rendered depth gives the APPARENT point on the pixel's ray, and
 the apparent depth d' = d n^2 / D^3 inverts in closed form along that ray: L = d' (n^2 - 1 + cos^2 theta_a) /
-(n cos^3 theta_a) (`pixel_water_paths`, no second render); `add_backscatter` adds the veil in linear light.
+(n cos^3 theta_a) (`pixel_water_paths`, no second render); `add_backscatter` adds the veil in linear light
+(`backscatter_veil`).
 """
 
 from __future__ import annotations
@@ -406,16 +407,20 @@ def pixel_water_paths(rays, depth, camera_center, water: WaterSurface):
     return d_app.clamp(min=0) * ((n - 1) * (n + 1) + cos * cos) / (n * cos**3)  # clamps, not wheres: fewer ops
 
 
-def add_backscatter(image, alpha, paths, veil, coefficients):
-    """image [..., 3] (sRGB) + the water column's veil B_inf (1 - exp(-c_b L)) in linear light, re-encoded.
+def backscatter_veil(alpha, paths, veil, coefficients):
+    """[..., 3] the water column's veil B_inf (1 - exp(-c_b L)) in linear light, weighted by alpha.
 
     alpha [..., 1] the rendered coverage, paths [...] each pixel's in-water length L (`pixel_water_paths`),
     veil B_inf [3] (linear radiance of infinitely deep water), coefficients c_b [3] (1/m). The veil is
     weighted by alpha: a pixel's uncovered share shows the background (the model's stand-in for what it has
     not built, e.g. random colours that punish holes), which the veil leaves as it is, so that a hole cannot
     pass for deep water."""
-    lin = srgb_to_linear(image) - alpha * veil * torch.expm1(-coefficients * paths[..., None])
-    return linear_to_srgb(lin)
+    return -alpha * veil * torch.expm1(-coefficients * paths[..., None])
+
+
+def add_backscatter(image, alpha, paths, veil, coefficients):
+    """image [..., 3] (sRGB) + the water column's veil (`backscatter_veil`) in linear light, re-encoded."""
+    return linear_to_srgb(srgb_to_linear(image) + backscatter_veil(alpha, paths, veil, coefficients))
 
 
 def _place(loc: _Local, rho, d_app):  # [M, 3] apparent points from r'/r and d'

@@ -1,5 +1,5 @@
-"""The surface's reflection (issue 50): Fresnel's reflectance from physics, the mirrored direction, the sky map
-sampled and composited, and the sky trained, saved and restored by the trainer."""
+"""The surface's reflection (issue 50): Fresnel's reflectance from physics, the mirrored direction, the sky
+map sampled and composited, and the sky trained, saved and restored by the trainer."""
 
 import json
 import math
@@ -44,10 +44,11 @@ def test_normal_incidence_is_the_textbook_value(n):
 def test_brewster_grazing_and_the_angle_form():
     n = 1.33
     rs, rp = fresnel(torch.tensor([math.cos(math.atan(n))], dtype=f64), n)
-    assert float(rp[0]) < 1e-30 and float(rs[0]) > 0.05  # p-polarised light is not reflected at Brewster's angle
+    assert float(rp[0]) < 1e-30 and float(rs[0]) > 0.05  # no p-polarised light reflected at Brewster's angle
     theta = torch.linspace(0, 89.9, 500, dtype=f64) * math.pi / 180
     R = reflectance(torch.cos(theta), n)
-    assert bool((R[1:] >= R[:-1]).all()) and float(reflectance(torch.tensor([1e-7], dtype=f64), n)[0]) > 0.9999
+    assert bool((R[1:] >= R[:-1]).all())
+    assert float(reflectance(torch.tensor([1e-7], dtype=f64), n)[0]) > 0.9999  # grazing
     # the textbook's angle form: Rs = sin^2(i - t) / sin^2(i + t), Rp = tan^2(i - t) / tan^2(i + t)
     i = theta[1:]
     t = torch.asin(torch.sin(i) / n)
@@ -86,8 +87,8 @@ def test_flat_water_reflects_at_the_rays_incidence_into_the_mirror_direction():
 
 
 def test_dry_pixels_reflect_nothing():
-    rays = torch.tensor([[0.1, 0.0, -1.0], [0.1, 0.0, -1.0], [0.3, 0.2, -1.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.2]],
-                        dtype=f64, requires_grad=True)  # the last looks up
+    rays = torch.tensor([[0.1, 0.0, -1.0], [0.1, 0.0, -1.0], [0.3, 0.2, -1.0], [0.0, 0.0, -1.0],
+                         [1.0, 0.0, 0.2]], dtype=f64, requires_grad=True)  # the last looks up
     depth = torch.tensor([H - 3, H, H + 2, 0.0, 5.0], dtype=f64)  # a bank, the level, under water, empty, sky
     R, m = surface_reflection(rays, depth, CAM, WATER)
     assert R[0] == 0 and R[1] == 0 and R[2] > 0.02 and R[3] == 0 and R[4] == 0
@@ -101,8 +102,8 @@ def test_a_sloping_surface_tilts_the_mirror():
     frame."""
     s = 0.05
     water = WaterSurface(0.3, 1.33, (-s, 0.0))  # falling towards +x
-    R, m = surface_reflection(torch.tensor([[0.0, 0.0, -1.0]], dtype=f64), torch.tensor([H + 2], dtype=f64), CAM,
-                              water)
+    nadir = torch.tensor([[0.0, 0.0, -1.0]], dtype=f64)
+    R, m = surface_reflection(nadir, torch.tensor([H + 2], dtype=f64), CAM, water)
     assert float(R[0]) == pytest.approx(float(reflectance(torch.tensor([math.cos(math.atan(s))], dtype=f64),
                                                           1.33)[0]), rel=1e-14)
     assert math.degrees(math.acos(float(m[0, 2]))) == pytest.approx(2 * math.degrees(math.atan(s)), rel=1e-12)
@@ -120,13 +121,12 @@ def test_a_sloping_surface_tilts_the_mirror():
 def test_geometry_gradients_match_finite_differences():
     rays, depth = _rays(8, seed=2)
     for water in (WATER, WaterSurface(0.3, 1.33, (-0.02, 0.01))):
-        def f(r, c, n, slope, water=water):
-            R, m = surface_reflection(r, depth, c, WaterSurface(water.level, n, slope if water.tilted else (0, 0)))
-            return R, m
-        assert torch.autograd.gradcheck(f, (rays.clone().requires_grad_(), CAM.clone().requires_grad_(),
-                                            torch.tensor(1.33, dtype=f64, requires_grad=True),
-                                            torch.tensor(water.slope, dtype=f64, requires_grad=True)),
-                                        eps=1e-6, atol=1e-8, rtol=1e-6)
+        def f(r, c, n, slope, water=water):  # the slope's gradient where the surface has one
+            surface = WaterSurface(water.level, n, slope if water.tilted else (0, 0))
+            return surface_reflection(r, depth, c, surface)
+        inputs = [x.requires_grad_() for x in (rays.clone(), CAM.clone(), torch.tensor(1.33, dtype=f64),
+                                               torch.tensor(water.slope, dtype=f64))]
+        assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-8, rtol=1e-6)
 
 
 # ---- the sky map and the compositing ----------------------------------------------------------------------
@@ -183,10 +183,9 @@ def test_compositing_gradients_match_finite_differences():
         R, m = surface_reflection(r, depth, c, WaterSurface(WATER.level, n))
         return add_reflection(img, R, sky_radiance(s, m))
 
-    assert torch.autograd.gradcheck(layer, (image.requires_grad_(), sky.requires_grad_(), rays.requires_grad_(),
-                                            CAM.clone().requires_grad_(),
-                                            torch.tensor(1.33, dtype=f64, requires_grad=True)),
-                                    eps=1e-6, atol=1e-8, rtol=1e-6)
+    inputs = (image, sky, rays, CAM.clone(), torch.tensor(1.33, dtype=f64))
+    assert torch.autograd.gradcheck(layer, [x.requires_grad_() for x in inputs], eps=1e-6, atol=1e-8,
+                                    rtol=1e-6)
 
 
 # ---- training ----------------------------------------------------------------------------------------------
@@ -218,20 +217,22 @@ def skyward():
 def test_training_with_the_reflection_fits_a_reflecting_scene_better(skyward, tmp_path):
     """From the bed's own points, 100 steps each: the variant that models the reflection ends with a lower
     error over the views than 2dgs+full, which must explain the sky by the bed's colours (the same in every
-    view at SH degree 0), and the texels it moved turn blue, as the scene's sky is. (Measured: L1 0.023 against
-    0.031 at the sky's rate 0.05, 0.027 at the default 0.01. The sky itself is not recovered texel by texel:
-    seven 24 px views sample the glint's lobe too sparsely to pin four texels per pixel.)"""
+    view at SH degree 0), and the texels it moved turn blue, as the scene's sky is. (Measured: L1 0.023
+    against 0.031 at the sky's rate 0.05, 0.027 at the default 0.01. The sky itself is not recovered texel by
+    texel: seven 24 px views sample the glint's lobe too sparsely to pin four texels per pixel.)"""
     ds, points = skyward
     np.save(tmp_path / "bed.npy", points)
     errors = {}
     for variant in ("2dgs+full", VARIANT):
-        tr = Trainer(_cfg(variant=variant, iterations=100, init="points", init_points=str(tmp_path / "bed.npy"),
-                          lr_reflection=0.05), ds)
+        tr = Trainer(_cfg(variant=variant, iterations=100, init="points",
+                          init_points=str(tmp_path / "bed.npy"), lr_reflection=0.05), ds)
         tr.train()
-        errors[variant] = float(np.mean([float((tr.render(v.camera)[0] - v.image).abs().mean()) for v in ds.views]))
+        errors[variant] = float(np.mean([float((tr.render(v.camera)[0] - v.image).abs().mean())
+                                         for v in ds.views]))
     assert errors[VARIANT] < 0.85 * errors["2dgs+full"], errors
     moved = (tr.reflection - 0.3).abs().amax(-1) > 0.01  # [S, S] the texels the views reached
-    assert int(moved.sum()) > 50 and float((tr.reflection[..., 2] > tr.reflection[..., 0])[moved].double().mean()) > 0.7
+    bluer = (tr.reflection[..., 2] > tr.reflection[..., 0])[moved]
+    assert int(moved.sum()) > 50 and float(bluer.double().mean()) > 0.7
 
 
 @pytest.fixture(scope="module")
@@ -248,12 +249,13 @@ def test_sky_is_trained_and_resumed(skyward_views, tmp_path):
         a.reflection, torch.full((SKY_SIZE, SKY_SIZE, 3), 0.3))
     assert stats["attenuation"] is None and stats["backscatter"] is None  # this variant has the sky alone
     meta = json.loads((tmp_path / "a/config.json").read_text())
-    assert meta["reflection"] == {"sky": 0.3, "size": SKY_SIZE} and meta["reflection_final"] == stats["reflection"]
+    assert meta["reflection"] == {"sky": 0.3, "size": SKY_SIZE}
+    assert meta["reflection_final"] == stats["reflection"]
     assert meta["config"]["water_terms"] == ["reflection"]
     b, c = killed_and_resumed(cfg, skyward_views, tmp_path / "b")  # killed after 4 steps: resumes from step 3
     assert c.step == 3 and not torch.equal(c.reflection, b.reflection)
     c.train()
-    assert torch.equal(c.reflection, a.reflection)  # the same steps from the same state (its Adam moments too)
+    assert torch.equal(c.reflection, a.reflection)  # the same steps from the same state (Adam's moments too)
     assert torch.equal(c.splats["sh0"], a.splats["sh0"])
 
 
@@ -270,7 +272,8 @@ def test_variants_without_the_term_compute_no_reflection(skyward_views, monkeypa
     every.train()
     assert calls == [1] and None not in (every.log_attenuation, every.log_backscatter, every.log_sky)
     assert WATER_TERMS["2dgs+full+water"] == ("attenuation", "backscatter", "reflection")
-    assert VARIANTS[VARIANT] == VARIANTS["2dgs+full"] and _cfg().surfels and _cfg().water_terms == ("reflection",)
+    assert VARIANTS[VARIANT] == VARIANTS["2dgs+full"] and _cfg().surfels
+    assert _cfg().water_terms == ("reflection",)
     dry = Dataset(Path("mem"), None, skyward_views.views, skyward_views.bed)  # no water, nothing mirrored
     assert Trainer(_cfg(), dry).log_sky is None
 
@@ -294,7 +297,8 @@ def test_a_finished_run_renders_with_its_sky(evaluable_dataset, tmp_path):
     Trainer(cfg, load_dataset(evaluable_dataset), run).train()
     model, ds = load_model(run, splits=("test",))
     trainer = Trainer(cfg, load_dataset(evaluable_dataset), run)  # resumes the finished checkpoint
-    assert model.reflection.shape == (SKY_SIZE, SKY_SIZE, 3) and torch.equal(model.reflection, trainer.reflection)
+    assert model.reflection.shape == (SKY_SIZE, SKY_SIZE, 3)
+    assert torch.equal(model.reflection, trainer.reflection)
     for interface in (True, False):
         for ours, theirs in zip(model.render(ds.test[0].camera, interface),
                                 trainer.render(ds.test[0].camera, interface)):

@@ -9,11 +9,11 @@ surfels) iterations alternate in one loop so all see the same machine state; the
 median(full) / median(3dgs) and median(2dgs+full) / median(full).
 The two do not rasterize the same work (the apparent Gaussians are smaller, fainter and closer to the
 axis), so the transform's own cost, forward + backward of `refract_gaussians`, is printed beside it
-(`refr`, and as a share of the 3dgs iteration). `--attenuation` also times `2dgs+full+attenuation` (the water's
-attenuation, issue 50) in the same loop, beside `2dgs+full` and as a ratio to it (of the medians, and the median
-of the step-by-step ratios, which a busy machine moves less); `--backscatter` likewise `2dgs+full+backscatter`
-(the water column's veil) and `2dgs+full+water` (all three terms); `--reflection` `2dgs+full+reflection` (the
-surface's reflection of the sky).
+(`refr`, and as a share of the 3dgs iteration). `--attenuation` also times `2dgs+full+attenuation` (the
+water's attenuation, issue 50) in the same loop, beside `2dgs+full` and as a ratio to it (of the medians, and
+the median of the step-by-step ratios, which a busy machine moves less); `--backscatter` likewise
+`2dgs+full+backscatter` (the water column's veil) and `2dgs+full+water` (all three terms); `--reflection`
+`2dgs+full+reflection` (the surface's reflection of the sky).
 """
 
 from __future__ import annotations
@@ -97,7 +97,8 @@ def bench_train_step(counts=(10_000, 40_000), pairs=None, steps: int = 10, warmu
     torch.compile (`TrainConfig.compile_refraction`; the warm-up steps take the compile), in the same loop,
     and their ratios to the eager ones. `attenuation`: also 2dgs+full+attenuation, and its ratio to 2dgs+full;
     `backscatter`: also 2dgs+full+backscatter and 2dgs+full+water, and theirs; `reflection`: also
-    2dgs+full+reflection, and its (row keys: the terms; `paired_ratio`: the median of the step-by-step ratios)."""
+    2dgs+full+reflection, and its (row keys: the terms; `paired_ratio`: the median of the step-by-step
+    ratios)."""
     from ragsplat_core.refraction import compiled_refract_gaussians, refract_gaussians
     from ragsplat_core.train import Trainer, preset_config
 

@@ -104,10 +104,11 @@ def _train_step_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--attenuation", action="store_true",
                         help="also 2dgs+full+attenuation (the water's attenuation), timed in the same loop")
     parser.add_argument("--backscatter", action="store_true",
-                        help="also 2dgs+full+backscatter (the water column's veil) and 2dgs+full+water (attenuation, "
-                        "backscatter and reflection), timed in the same loop")
+                        help="also 2dgs+full+backscatter (the water column's veil) and 2dgs+full+water "
+                        "(attenuation, backscatter and reflection), timed in the same loop")
     parser.add_argument("--reflection", action="store_true",
-                        help="also 2dgs+full+reflection (the surface's reflection of the sky), timed in the same loop")
+                        help="also 2dgs+full+reflection (the surface's reflection of the sky), timed in the same "
+                        "loop")
     parser.add_argument("--out", type=out_file, default=Path("runs/bench/train_step.json"),
                         help="JSON output path (every timing of every row)")
 
@@ -131,7 +132,8 @@ def _train_step(args: argparse.Namespace) -> int:
     print(f"{'backend':>6} {'dev':>4} {'N':>6} {'3dgs (s)':>10} {'full (s)':>10} {'full/3dgs':>9} "
           f"{'refr (s)':>10} {'refr/3dgs':>9} {'2dgs+full':>10} {'/full':>9}")
     rows = bench_train_step(args.counts, pairs, args.steps, args.warmup, compiled=args.compile,
-                            attenuation=args.attenuation, backscatter=args.backscatter, reflection=args.reflection)
+                            attenuation=args.attenuation, backscatter=args.backscatter,
+                            reflection=args.reflection)
     write_json(args.out, {"rows": rows, "torch": torch.__version__, "threads": torch.get_num_threads(),
                           **openmp_wait()}, indent=1)
     print(f"wrote {args.out}", file=sys.stderr)

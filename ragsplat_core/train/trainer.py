@@ -49,15 +49,17 @@ from ragsplat_core.outputs import atomic_path, claim, versions, write_json
 from ragsplat_core.ply import save_ply
 from ragsplat_core.rasterize import choose_backend, rasterize
 from ragsplat_core.rasterize_surfels import depth_normals, rasterize_surfels
-from ragsplat_core.reflection import SKY_SIZE, add_reflection, sky_radiance, surface_reflection
+from ragsplat_core.reflection import SKY_SIZE, reflect, sky_radiance, surface_reflection
 from ragsplat_core.refraction import (
     ApparentGaussians,
     WaterSurface,
-    add_backscatter,
+    backscatter_veil,
     compiled_refract_gaussians,
+    linear_to_srgb,
     opacity_factor,
     pixel_water_paths,
     refract_gaussians,
+    srgb_to_linear,
 )
 from ragsplat_core.snell import footprint
 from ragsplat_core.ssim import psnr, ssim, ssim_map
@@ -108,21 +110,23 @@ def render_splats(splats, camera: Camera, center: torch.Tensor, sh_degree: int, 
     """(image [H,W,3], alpha [H,W,1], depth [H,W,1], meta) of `camera` (centre `center` [3]) as training
     renders it (`view_gaussians`, then `rasterize_view`). `backscatter`: [2, 3] the water's veil B_inf and its
     coefficients c_b (1/m), or None (nothing computed): the veil along each pixel's path in `water` to the
-    point it renders is added to the image (`refraction.add_backscatter`). `reflection`: [S, S, 3] the sky map
-    the surface mirrors (`reflection.sky_radiance`, linear radiance), or None (nothing computed): each wet
-    pixel becomes (1 - R) x the rest + R x the mirrored sky (`reflection.add_reflection`). The trainer and a
+    point it renders is added to the image (`refraction.backscatter_veil`). `reflection`: [S, S, 3] the sky
+    map the surface mirrors (`reflection.sky_radiance`, linear radiance), or None (nothing computed): each wet
+    pixel becomes (1 - R) x the rest + R x the mirrored sky (`reflection.reflect`). The trainer and a
     finished run's renders (`export.Model`) share it."""
     img, alpha, depth, meta = rasterize_view(view_gaussians(splats, center, sh_degree, water, flags, backend,
                                                             surfels, compiled, attenuation),
                                              camera, surfels, background, backend)
     if backscatter is not None or reflection is not None:
         rays = pixel_rays(camera, depth)  # [H, W, 3]
+        lin = srgb_to_linear(img)  # the terms add light in linear light: converted once (a pair costs ~7 ms)
         if backscatter is not None:  # under the surface: the transmitted share below includes it
             paths = pixel_water_paths(rays, depth[..., 0], center, water)  # [H, W]
-            img = add_backscatter(img, alpha, paths, backscatter[0], backscatter[1])
+            lin = lin + backscatter_veil(alpha, paths, backscatter[0], backscatter[1])
         if reflection is not None:
             R, mirrored = surface_reflection(rays, depth[..., 0], center, water)  # [H, W], [H, W, 3]
-            img = add_reflection(img, R, sky_radiance(reflection, mirrored))
+            lin = reflect(lin, R, sky_radiance(reflection, mirrored))
+        img = linear_to_srgb(lin)
     return img, alpha, depth, meta
 
 
