@@ -155,28 +155,16 @@ def import_colmap(model: Path, images: Path, out: Path, water, masks: Path | Non
     flat or sloping, in the model's frame, metres, z up). Splits from the model folder's train.txt / test.txt when present (image
     names, one per line), else every image trains. A second call with the same inputs reuses `out`; other
     inputs are refused. Raises DatasetError (model, images, frame), ConfigError (CRS)."""
-    import cv2
-
     model, images, out = Path(model), Path(images), Path(out)
     sources = sorted(p for p in model.iterdir() if p.is_file()) if model.is_dir() else []
     key = {"model": str(model.resolve()), "model_digest": _digest(sources), "images": str(images.resolve()),
            **layout.water_json(water), "masks": None if masks is None else str(Path(masks).resolve()), "crs": crs,
            "max_size": max_size}
     if (out / IMPORT).is_file():
-        done = json.loads((out / IMPORT).read_text())
-        if done.get("key") != key:
-            changed = [k for k in key if done.get("key", {}).get(k) != key[k]]
-            raise DatasetError(f"{out} holds an import of other inputs ({', '.join(changed)} changed); use another --out")
-        return Imported(out, done["images"], done["cameras"], done["points"], done["undistorted"],
-                        layout.Georef(tuple(done["georef"]["offset"]), done["georef"]["crs"]), True)
+        return _reuse(out, key)
     rec = read_model(model)
-    if not images.is_dir():
-        raise DatasetError(f"{images}: image directory does not exist")
-    regs = sorted((rec.images[i] for i in rec.reg_image_ids()), key=lambda im: im.name)
+    regs = _registered(rec, images)
     names = [im.name for im in regs]
-    missing = [nm for nm in names if not (images / nm).is_file()]
-    if missing:
-        raise DatasetError(f"{images}: {len(missing)} of the model's {len(names)} images are missing, e.g. {missing[0]}")
     centres = np.stack([im.projection_center() for im in regs])  # [V, 3]
     axes = np.stack([im.viewing_direction() for im in regs])  # [V, 3] unit optical axes
     _check_frame(names, centres, axes, water, model)
@@ -186,48 +174,14 @@ def import_colmap(model: Path, images: Path, out: Path, water, masks: Path | Non
 
     frames, first, maps, resampled = [], None, {}, 0
     for im in regs:
-        cam = rec.cameras[im.camera_id]
-        if not cam.is_perspective():
-            raise DatasetError(f"{model}: camera {im.camera_id} ({cam.model.name}) is not a perspective camera")
-        longest = max(cam.width, cam.height)
-        scale = min(1.0, max_size / longest) if max_size else 1.0
-        w, h, fx, fy, cx, cy = _pinhole(cam, scale)
-        pose = im.cam_from_world()
-        R = np.asarray(pose.rotation.matrix(), dtype=np.float64)
-        t = np.asarray(pose.translation, dtype=np.float64) + R @ shift  # x_cam = R (x_local + shift) + t
-        camera = Camera(w, h, fx, fy, cx, cy, R, t)
-        distorted = not cam.is_undistorted()
-        mask_src = None if masks is None else _mask_file(Path(masks), im.name)
-        rel = f"images/wet/{im.name}"
-        mask_rel = None
-        if not distorted and scale == 1.0 and mask_src is None:
-            dst = out / rel  # a pinhole image at its size is used as it is
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(images / im.name, dst)
-        else:
-            img = cv2.imread(str(images / im.name), cv2.IMREAD_COLOR)
-            if img is None or (img.shape[1], img.shape[0]) != (cam.width, cam.height):
-                raise DatasetError(f"{images / im.name}: " + ("not a readable image" if img is None else
-                            f"{img.shape[1]} x {img.shape[0]}, the model's camera is {cam.width} x {cam.height}"))
-            used = np.ones(img.shape[:2], bool)
-            if mask_src is not None:
-                m = cv2.imread(str(mask_src), cv2.IMREAD_GRAYSCALE)
-                if m is None or m.shape != used.shape:
-                    raise DatasetError(f"{mask_src}: " + ("not a readable image" if m is None else
-                                f"mask is {m.shape[1]} x {m.shape[0]}, the image {cam.width} x {cam.height}"))
-                used = m > 0
-            if distorted and im.camera_id not in maps:
-                maps[im.camera_id] = _undistort_maps(cam)
-            img, used = _resample(img, used, maps.get(im.camera_id) if distorted else None, (w, h))
-            rel = str(Path(rel).with_suffix(".png"))
-            _write(out / rel, img)
-            if not used.all():
-                mask_rel = f"masks/{im.name}.png"
-                _write(out / mask_rel, used.astype(np.uint8) * 255)
-            resampled += 1
-        first = first or camera
-        entry = layout.frame(im.name, camera, splits[im.name], "survey", rel, mask_path=mask_rel)
-        frames.append({**entry, "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": w, "h": h})
+        view = _import_view(rec, im, model, images, out, None if masks is None else Path(masks), max_size,
+                            shift, maps)
+        resampled += view.resampled
+        c = view.camera
+        first = first or c
+        entry = layout.frame(im.name, c, splits[im.name], "survey", view.image, mask_path=view.mask)
+        frames.append({**entry, "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy, "w": c.width,
+                       "h": c.height})
     local = water.shifted(georef.offset)
     write_json(out / layout.TRANSFORMS, layout.transforms_json(first, frames, local, georef), indent=1)
 
@@ -239,6 +193,100 @@ def import_colmap(model: Path, images: Path, out: Path, water, masks: Path | Non
                "georef": georef.to_json()}
     write_json(out / IMPORT, {"key": key, **summary}, indent=1)  # last: marks the import complete
     return Imported(out, len(regs), cameras, len(pts), resampled, georef, False)
+
+
+def _reuse(out: Path, key: dict) -> Imported:
+    """The import already in `out`, where it was made from the inputs `key`; DatasetError naming what
+    changed where it was not."""
+    done = json.loads((out / IMPORT).read_text())
+    if done.get("key") != key:
+        changed = [k for k in key if done.get("key", {}).get(k) != key[k]]
+        raise DatasetError(f"{out} holds an import of other inputs ({', '.join(changed)} changed); use another "
+                           "--out")
+    return Imported(out, done["images"], done["cameras"], done["points"], done["undistorted"],
+                    layout.Georef(tuple(done["georef"]["offset"]), done["georef"]["crs"]), True)
+
+
+def _registered(rec, images: Path) -> list:
+    """The model's registered images by name; DatasetError unless each is in the folder `images`."""
+    if not images.is_dir():
+        raise DatasetError(f"{images}: image directory does not exist")
+    regs = sorted((rec.images[i] for i in rec.reg_image_ids()), key=lambda im: im.name)
+    names = [im.name for im in regs]
+    missing = [nm for nm in names if not (images / nm).is_file()]
+    if missing:
+        raise DatasetError(f"{images}: {len(missing)} of the model's {len(names)} images are missing, e.g. "
+                           f"{missing[0]}")
+    return regs
+
+
+@dataclass(frozen=True)
+class _View:
+    """One imported image: its pinhole camera in the local frame, and its files in the dataset."""
+
+    camera: Camera
+    image: str  # relative to the dataset
+    mask: str | None  # relative to the dataset; None: every pixel is used
+    resampled: bool  # undistorted or downscaled (else copied as it is)
+
+
+def _import_view(rec, im, model: Path, images: Path, out: Path, masks: Path | None, max_size: int | None,
+                 shift: np.ndarray, maps: dict) -> _View:
+    """The image `im` of the model into `out`: its pinhole camera (scaled to `max_size`, posed in the frame
+    shifted by `shift`), the photo copied where it is that camera's already, else resampled
+    (`_write_resampled`; `maps` caches each camera's undistortion)."""
+    cam = rec.cameras[im.camera_id]
+    if not cam.is_perspective():
+        raise DatasetError(f"{model}: camera {im.camera_id} ({cam.model.name}) is not a perspective camera")
+    longest = max(cam.width, cam.height)
+    scale = min(1.0, max_size / longest) if max_size else 1.0
+    w, h, fx, fy, cx, cy = _pinhole(cam, scale)
+    pose = im.cam_from_world()
+    R = np.asarray(pose.rotation.matrix(), dtype=np.float64)
+    t = np.asarray(pose.translation, dtype=np.float64) + R @ shift  # x_cam = R (x_local + shift) + t
+    camera = Camera(w, h, fx, fy, cx, cy, R, t)
+    distorted = not cam.is_undistorted()
+    mask_src = None if masks is None else _mask_file(masks, im.name)
+    if not distorted and scale == 1.0 and mask_src is None:
+        rel = f"images/wet/{im.name}"
+        dst = out / rel  # a pinhole image at its size is used as it is
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(images / im.name, dst)
+        return _View(camera, rel, None, False)
+    rel, mask_rel = _write_resampled(cam, im, images, mask_src, maps if distorted else None, (w, h), out)
+    return _View(camera, rel, mask_rel, True)
+
+
+def _write_resampled(cam, im, images: Path, mask_src: Path | None, maps: dict | None, size: tuple[int, int],
+                     out: Path) -> tuple[str, str | None]:
+    """The photo of `im` in `images` (and its mask) undistorted to the pinhole (`maps`: each camera's
+    undistortion, made here where missing; None: not distorted) and scaled to `size` (`_resample`), written
+    as PNG in `out`, with a mask where some pixels are not to be used: (the image's path, the mask's or
+    None), relative to `out`."""
+    import cv2
+
+    source = images / im.name
+    img = cv2.imread(str(source), cv2.IMREAD_COLOR)
+    if img is None or (img.shape[1], img.shape[0]) != (cam.width, cam.height):
+        raise DatasetError(f"{source}: " + ("not a readable image" if img is None else
+                    f"{img.shape[1]} x {img.shape[0]}, the model's camera is {cam.width} x {cam.height}"))
+    used = np.ones(img.shape[:2], bool)
+    if mask_src is not None:
+        m = cv2.imread(str(mask_src), cv2.IMREAD_GRAYSCALE)
+        if m is None or m.shape != used.shape:
+            raise DatasetError(f"{mask_src}: " + ("not a readable image" if m is None else
+                        f"mask is {m.shape[1]} x {m.shape[0]}, the image {cam.width} x {cam.height}"))
+        used = m > 0
+    if maps is not None and im.camera_id not in maps:
+        maps[im.camera_id] = _undistort_maps(cam)
+    img, used = _resample(img, used, None if maps is None else maps[im.camera_id], size)
+    rel = str(Path(f"images/wet/{im.name}").with_suffix(".png"))
+    _write(out / rel, img)
+    mask_rel = None
+    if not used.all():
+        mask_rel = f"masks/{im.name}.png"
+        _write(out / mask_rel, used.astype(np.uint8) * 255)
+    return rel, mask_rel
 
 
 def _write(path: Path, image: np.ndarray) -> None:
