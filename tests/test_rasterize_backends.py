@@ -6,7 +6,7 @@ import torch
 
 from ragsplat_core.camera import Camera
 from ragsplat_core.gaussians import covariance
-from ragsplat_core.raster.backends import backend
+from ragsplat_core.raster.backends import BACKENDS, backend
 from ragsplat_core.raster.reference import composite as reference_composite
 from ragsplat_core.rasterize import gsplat_available, rasterize
 
@@ -86,6 +86,16 @@ def test_scene_exercises_early_stop_and_clamp(monkeypatch):
             m.setattr(reference_composite, name, value)
             out = rasterize(means, quats, scales, opacities, colors, cam, bg, backend="torch")[0]
         assert float((out - ref).abs().max()) > 1e-4, name
+
+
+def test_each_backend_runs_each_stage_once():
+    # a row of the table projects, bins and composites 3D Gaussians itself, or hands them to a fused renderer
+    # (gsplat, whose row is built here without gsplat: its modules import it when called)
+    for name in BACKENDS[1:]:
+        b = backend(name)
+        staged = (b.project, b.bin_tiles, b.composite)
+        assert all(staged) if b.render is None else not any(staged), name
+        assert all(callable(f) for f in (b.colors, b.covariance, b.tangents, b.surfel_composite)), name
 
 
 def test_cpu_accepts_float64_and_returns_its_dtype():

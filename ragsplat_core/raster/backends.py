@@ -43,9 +43,9 @@ class Backend:
     project: Callable | None  # (means, covars, opacities, camera) -> Projected
     bin_tiles: Callable | None  # (Projected or SurfelsProjected, width, height) -> Bins
     composite: Callable | None  # (proj, opacities, colors, bins, width, height, median) -> per-pixel sums
+    render: Callable | None  # fused 3DGS rasterization: `rasterize`'s arguments -> its outputs
     surfel_composite: Callable  # torch, cpu: (proj, opacities, colors, bins, width, height) -> sums;
     # gsplat (bins None): (proj, opacities, colors, background, width, height) -> outputs, background in
-    render: Callable | None  # fused 3DGS rasterization: `rasterize`'s arguments -> its outputs
 
 
 def _torch() -> Backend:
@@ -70,7 +70,7 @@ def _gsplat() -> Backend:
 
     return Backend("gsplat", colors=gaussians.colors_for_view, covariance=gaussians.covariance,
                    tangents=gaussians.surfel_tangents, project=None, bin_tiles=None, composite=None,
-                   surfel_composite=surfel_composite.composite, render=render.render)
+                   render=render.render, surfel_composite=surfel_composite.composite)
 
 
 _TABLE = {"torch": _torch, "cpu": _cpu, "gsplat": _gsplat}
