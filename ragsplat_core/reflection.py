@@ -33,7 +33,7 @@ from ragsplat_core.refraction import GRAZING_COS, WaterSurface, linear_to_srgb, 
 # surface tilts a few degrees and the mirror doubles it). Degree-3 SH resolves about 60 degrees: it would
 # smear that lobe over the sky and ring below zero around it, and the degree that resolves 20 degrees (about
 # 9, 100 basis functions a pixel) costs more than a 4-tap lookup. 16 texels over the hemisphere's disk are
-# 7.6 degrees apart at the zenith (9 at the sun's usual 35 degrees from it): a lobe spans 2-3 texels.
+# 7.7 degrees apart at the zenith (9.3 at the sun's usual 35 degrees from it): a lobe spans 2-3 texels.
 SKY_SIZE = 16
 
 

@@ -194,8 +194,8 @@ SUN = (math.radians(55.0), math.radians(30.0))  # elevation, azimuth: datagen's 
 
 
 def blue_sky(sun_radiance: float = 6.0):
-    """[S, S, 3] a known sky: blue at the zenith, pale at the horizon, and a glint lobe about 14 degrees wide
-    around the sun, as a sky map."""
+    """[S, S, 3] a known sky: blue at the zenith, pale at the horizon, and a glint lobe around the sun falling
+    to 1/e 14 degrees from it, as a sky map."""
     d = sky_directions(SKY_SIZE, dtype=torch.float32)
     el, az = SUN
     sun = torch.tensor([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
