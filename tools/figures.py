@@ -1,5 +1,5 @@
-"""README figures of a rendered dataset: one view with and without the water, and the ground-truth height
-map with its waterline and evaluated region. `python -m tools.figures DATA OUT_DIR [VIEW]`."""
+"""docs/benchmark.md's figures of a rendered dataset: one view with and without the water, and the ground-truth
+height map with its waterline and evaluated region. `python -m tools.figures DATA docs/figures [VIEW]`."""
 
 from __future__ import annotations
 
