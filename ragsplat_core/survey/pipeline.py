@@ -1,21 +1,24 @@
 """`ragsplat survey`'s stages as library functions: from a survey's photos to its DEM, every stage cached in
-the run folder and skipped by a rerun whose inputs are the same (`run`; the command only parses arguments).
+the run folder and skipped by a rerun whose inputs are the same (`run`, one call a stage; the command only
+parses arguments). Before any work, everything that can be refused is (`check_inputs`); then
 
-1. structure from motion (`survey.sfm`: pycolmap SIFT, every pair matched, or each photo with its spatial
-   neighbours above `sfm.EXHAUSTIVE_MAX` photos, incremental mapping) -> RUN/sfm/;
-2. georeferencing: the similarity that takes the model's camera centres to the RTK positions (given, or from
-   the photos' EXIF GPS and DJI XMP, `survey.exif`), or the ground control points triangulated from their
-   pixels to their surveyed positions, robust to a few wrong ones (`survey.georef`) -> RUN/georef.json;
-3. the water: one level, or the surface fitted to the water's edge points (`survey.water`), or the level
-   estimated; bundle adjustment with the submerged tracks projected through it and the cameras held near
-   their positions, or the ground control points at theirs (`survey.bundle`) -> RUN/model/ (a COLMAP model),
-   RUN/water.json;
-4. training (the imported survey, the best variant and start as `make ablation` measures them) and the
-   products RUN/dem.tif, RUN/bed.laz, RUN/depth.png. A survey larger than a tile (`TILE_GSD` ground sample
-   distances, or `SurveyConfig.tile_size`) is split into overlapping tiles (`survey.tiles`), each imported,
-   trained and extracted on its own in RUN/tiles/K/ (a Dask task each where a client is given), and their
-   beds merged: each cell from the tile whose core holds it; the layout and the seams' agreement in
-   RUN/tiles.json. A survey of one tile trains in RUN/data and RUN/train, as it always has.
+1. structure from motion (`structure_from_motion`, `survey.sfm`: pycolmap SIFT, every pair matched, or each
+   photo with its spatial neighbours above `sfm.EXHAUSTIVE_MAX` photos, incremental mapping) -> RUN/sfm/;
+2. georeferencing (`georeference`): the similarity that takes the model's camera centres to the RTK
+   positions (given, or from the photos' EXIF GPS and DJI XMP, `survey.exif`), or the ground control points
+   triangulated from their pixels to their surveyed positions, robust to a few wrong ones (`survey.georef`)
+   -> RUN/georef.json;
+3. the water (`adjust_through_water`): one level, or the surface fitted to the water's edge points
+   (`survey.water`), or the level estimated; bundle adjustment with the submerged tracks projected through
+   it and the cameras held near their positions, or the ground control points at theirs (`survey.bundle`)
+   -> RUN/model/ (a COLMAP model), RUN/water.json;
+4. training (`train_and_export`: the imported survey, the best variant and start as `make ablation`
+   measures them) and the products RUN/dem.tif, RUN/bed.laz, RUN/depth.png. A survey larger than a tile
+   (`TILE_GSD` ground sample distances, or `SurveyConfig.tile_size`) is split into overlapping tiles
+   (`survey.tiles`), each imported, trained and extracted on its own in RUN/tiles/K/ (a Dask task each where
+   a client is given), and their beds merged: each cell from the tile whose core holds it; the layout and
+   the seams' agreement in RUN/tiles.json. A survey of one tile trains in RUN/data and RUN/train, as it
+   always has.
 """
 
 from __future__ import annotations
@@ -28,9 +31,23 @@ import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ragsplat_core.survey.exif import CONSUMER_SIGMA
 from ragsplat_core.train.config import INIT
+
+if TYPE_CHECKING:
+    import numpy as np
+    import pycolmap
+    import torch
+
+    from ragsplat_core.refraction import WaterSurface
+    from ragsplat_core.survey.bundle import Bundle
+    from ragsplat_core.survey.exif import PhotoPosition
+    from ragsplat_core.survey.georef import Similarity
+    from ragsplat_core.survey.sfm import Tracks
+    from ragsplat_core.survey.tiles import Tile
+    from ragsplat_core.survey.water import EdgeFit
 
 AUTO = "auto"
 STAGES = ("sfm", "georef", "water", "train", "export")
@@ -157,27 +174,188 @@ def run(cfg: SurveyConfig, progress: Progress | None = None, cluster=None) -> li
     that opens a `dask.distributed.Client`, trains the tiles of a survey of several as Dask tasks; None: one
     after another in this process. Raises DatasetError, ConfigError, OutputError."""
     progress = progress or Progress()
-    import math
-    from dataclasses import replace
+    survey = check_inputs(cfg, progress)
+    stamps = Stamps(survey.cfg.out)
+    structure = structure_from_motion(survey, stamps, progress)
+    if survey.cfg.stop_after == "sfm":
+        return []
+    geo = georeference(survey, structure, stamps, progress)
+    if survey.cfg.stop_after == "georef":
+        return []
+    water = adjust_through_water(survey, structure, geo, stamps, progress)
+    if survey.cfg.stop_after == "water":
+        return []
+    return train_and_export(survey, water, stamps, progress, cluster)
 
+
+@dataclass(frozen=True)
+class Positions:
+    """What fixes the survey's frame: the cameras' positions (a file, or the photos' EXIF GPS and DJI XMP),
+    or ground control points and where the photos see them."""
+
+    source: Path  # the file (or, for EXIF, the photos' folder) that names the photos
+    located: list[str]  # the photos it names (with a position, or seeing a target)
+    positions: dict[str, np.ndarray] | None = None  # photo -> camera centre (CRS); None with ground control
+    control: dict[str, np.ndarray] | None = None  # target -> surveyed position (CRS)
+    pixels: list | None = None  # (photo, target, (u, v)): the targets in the photos
+    tagged: list[PhotoPosition] | None = None  # the photos' GPS records, where the positions came from them
+    sigma: dict[str, np.ndarray] | None = None  # photo -> (horizontal, vertical) sigma, from the photos
+
+    @property
+    def frame(self) -> dict[str, np.ndarray]:
+        """The known positions: the cameras', else the targets'."""
+        return self.positions or self.control
+
+    @property
+    def rtk_fixed(self) -> int:
+        """How many photos' GPS is RTK fixed (positions from the photos)."""
+        return sum(p.rtk_fixed for p in self.tagged)
+
+
+@dataclass(frozen=True)
+class GivenWater:
+    """The water as the user gives it: one level, a surface fitted to its edge points, or none (estimated)."""
+
+    surface: WaterSurface | None  # in the CRS; None: estimated in the adjustment through the water
+    edge: EdgeFit | None = None  # the fit to the edge points (--water-surface)
+    edge_points: np.ndarray | None = None  # [K, 3] those points (CRS)
+
+
+@dataclass(frozen=True)
+class Survey:
+    """A survey's inputs, read and checked before any work."""
+
+    cfg: SurveyConfig  # resolved: the CRS from the photos, the --max-size that fits
+    photos: list[Path]
+    where: Positions
+    given: GivenWater
+    origin: np.ndarray  # [3] the local frame's origin in the CRS (whole metres)
+    water: WaterSurface | None  # the given surface in the local frame
+
+    @property
+    def names(self) -> list[str]:
+        return [p.name for p in self.photos]
+
+    @property
+    def rtk_sigma(self) -> tuple[float, float]:
+        return self.cfg.rtk_sigma or RTK_SIGMA
+
+
+@dataclass(frozen=True)
+class Structure:
+    """Stage 1's model (RUN/sfm/model) and the key it was made with."""
+
+    key: str
+    rec: pycolmap.Reconstruction
+
+
+@dataclass(frozen=True)
+class Correspondences:
+    """The model's camera centres, or its triangulated targets, paired with their known positions."""
+
+    src: np.ndarray  # [K, 3] in the model's frame
+    dst: np.ndarray  # [K, 3] known, in the local frame
+    labels: list[str]  # the photos' or the targets' names
+    what: str  # in words
+    tol: float | np.ndarray  # 10 sigma of each position (one for all, or [K])
+    noise: dict  # georef.json's account of the positions' noise
+    have: list[int] | None = None  # the tracks' cameras with a position (positions)
+    rtk: np.ndarray | None = None  # [K] bool: RTK fixed (positions from the photos)
+    gcp: dict | None = None  # target -> (model xyz, observations) (ground control)
+    usable: list[str] | None = None  # the targets placed in the model (ground control)
+
+
+@dataclass(frozen=True)
+class Georeferenced:
+    """Stage 2: the similarity from the model to the local frame, and what it was fitted to."""
+
+    key: str
+    given: str  # the positions' fingerprint (with their accuracy, where each photo has its own)
+    tracks: Tracks
+    sim: Similarity
+    pairs: Correspondences
+
+
+@dataclass(frozen=True)
+class Problem:
+    """The adjustment through the water's unknowns and observations in the local frame: the georeferenced
+    cameras and points (the targets after the points, with ground control), and what holds the frame."""
+
+    R: torch.Tensor  # [I, 3, 3] world -> camera
+    C: torch.Tensor  # [I, 3]
+    points: torch.Tensor  # [P (+ G), 3]
+    point: torch.Tensor  # [M] index into points
+    image: torch.Tensor  # [M] index into the cameras
+    pixels: torch.Tensor  # [M, 2]
+    held: dict  # `bundle.adjust`'s priors: the cameras at their positions, or the targets at theirs
+    gcp_rows: torch.Tensor | None = None  # [G] the targets' rows in points
+
+
+@dataclass(frozen=True)
+class Adjusted:
+    """The cameras and points after the adjustment through the water (or as georeferenced, without it)."""
+
+    R: torch.Tensor
+    C: torch.Tensor
+    points: torch.Tensor  # [P, 3] the tracks' points (the targets' rows dropped)
+    water: WaterSurface  # in the local frame: as given, or as estimated (and levelled)
+    surface: WaterSurface  # the same in the CRS
+    bundle: Bundle | None  # None: --no-water-adjustment
+    estimated: dict | None = None  # water.json's account of the estimated water
+    lens: dict | None = None  # water.json's account of the lens's distortion (--lens radial)
+    gcp_residual: dict | None = None  # target -> adjusted minus surveyed position (m), with ground control
+
+
+@dataclass(frozen=True)
+class Water:
+    """Stage 3: the adjusted model (RUN/model), the water's surface (CRS) and the model's points' box."""
+
+    key: str
+    model: Path
+    surface: WaterSurface
+    extent: np.ndarray  # [2, 2] the points' 1 and 99 % in x, y (CRS)
+
+
+def check_inputs(cfg: SurveyConfig, progress: Progress) -> Survey:
+    """Everything that can be refused, refused before any work: the photos, what fixes their frame
+    (`locate`), the water as given, a camera above it, the sizes (`_check_sizes`); then the run folder
+    claimed and RUN/survey.json written with the config resolved."""
     import numpy as np
-    import pycolmap
-    import torch
 
-    from ragsplat_core.dataset import layout
-    from ragsplat_core.errors import ConfigError, DatasetError
+    from ragsplat_core.errors import DatasetError
     from ragsplat_core.outputs import claim, write_json
-    from ragsplat_core.refraction import WaterSurface
-    from ragsplat_core.survey import bundle, georef, sfm
-    from ragsplat_core.survey import water as water_fit
 
     if not cfg.images.is_dir():
         raise DatasetError(f"{cfg.images}: no such folder of photos")
     photos = sorted(p for p in cfg.images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if len(photos) < 3:
         raise DatasetError(f"{cfg.images}: {len(photos)} photos (JPEG, PNG or TIFF); at least 3 are needed")
+    cfg, where = locate(cfg, photos, progress)
+    given = water_as_given(cfg, where, progress)
+    if where.positions is not None and given.surface is not None:
+        _check_above(given.surface, np.array([where.positions[n] for n in where.located]))
+    sized = where.located if where.positions else where.control
+    cfg = _check_sizes(cfg, progress, photos, np.array([where.frame[n] for n in sized]), given.surface)
+    claim(cfg.out, "survey run")
+    write_json(cfg.out / "survey.json",
+               {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()})
+    # a local origin (whole metres): UTM-sized coordinates keep millimetres in every float64 step
+    origin = np.round(np.mean(list(where.frame.values()), axis=0))
+    water = None if given.surface is None else given.surface.shifted(origin)
+    return Survey(cfg, photos, where, given, origin, water)
+
+
+def locate(cfg: SurveyConfig, photos: list[Path], progress: Progress) -> tuple[SurveyConfig, Positions]:
+    """What will fix the photos' frame: the positions file, or the photos' EXIF GPS and DJI XMP (the CRS
+    they choose set in the returned config), or the ground control points with their pixels. ConfigError
+    for a half-given ground control, DatasetError unless enough of the names are photos."""
+    from dataclasses import replace
+
+    from ragsplat_core.dataset import layout
+    from ragsplat_core.errors import ConfigError, DatasetError
+
     names = [p.name for p in photos]
-    rtk_sigma, tagged, sigma, fixed = cfg.rtk_sigma or RTK_SIGMA, None, None, 0
+    tagged = sigma = pixels = None
     if cfg.positions is not None:
         positions, control = layout.read_positions(cfg.positions), None
         known, source = positions, cfg.positions
@@ -194,9 +372,9 @@ def run(cfg: SurveyConfig, progress: Progress | None = None, cluster=None) -> li
         control, known, source = None, positions, cfg.images
         fixed = sum(p.rtk_fixed for p in tagged)
         heights = sorted({p.altitude_source for p in tagged})
-        progress.say("check", f"positions from the photos: {len(tagged)} of {len(photos)} have GPS ({fixed} RTK fixed, "
-             f"{len(tagged) - fixed} consumer GPS), in {exif.describe_crs(crs)}; heights as the photos give them "
-             f"({', '.join(heights)})")
+        progress.say("check", f"positions from the photos: {len(tagged)} of {len(photos)} have GPS "
+                     f"({fixed} RTK fixed, {len(tagged) - fixed} consumer GPS), in {exif.describe_crs(crs)}; "
+                     f"heights as the photos give them ({', '.join(heights)})")
     else:
         if cfg.gcp_pixels is None:
             raise ConfigError("--gcp needs --gcp-pixels (where each target is in the photos)")
@@ -214,36 +392,52 @@ def run(cfg: SurveyConfig, progress: Progress | None = None, cluster=None) -> li
                            f"{3 if control is None else 2} are needed")
     if unknown:
         progress.say("check", f"{len(unknown)} names in {source} are not photos in {cfg.images} (ignored), "
-             f"e.g. {unknown[0]}")
-    edge = edge_points = None
+                     f"e.g. {unknown[0]}")
+    return cfg, Positions(source, located, positions, control, pixels, tagged, sigma)
+
+
+def water_as_given(cfg: SurveyConfig, where: Positions, progress: Progress) -> GivenWater:
+    """The water given: a surface fitted to the edge points (--water-surface, which must lie near the
+    positions), one level, or none: estimated in the adjustment through it (which --no-water-adjustment
+    refuses, a ConfigError)."""
+    import numpy as np
+
+    from ragsplat_core.dataset import layout
+    from ragsplat_core.errors import ConfigError
+    from ragsplat_core.refraction import WaterSurface
+    from ragsplat_core.survey import water as water_fit
+
     if cfg.water_surface is not None:
         edge_points = layout.read_points(cfg.water_surface)
-        frame = np.array(list((positions or control).values()), float)
-        _check_near(edge_points, frame, cfg.water_surface, "the photos' positions" if control is None else
-                    f"the ground control ({cfg.gcp})", cfg.crs)
+        frame = np.array(list(where.frame.values()), float)
+        _check_near(edge_points, frame, cfg.water_surface, "the photos' positions" if where.control is None
+                    else f"the ground control ({cfg.gcp})", cfg.crs)
         edge = water_fit.fit_edge(edge_points)
         surface = WaterSurface(edge.level, cfg.n, edge.slope, edge.profile)
-        progress.say("check", f"water surface from {len(edge.residuals)} edge points: {_describe(surface)}, rms "
-             f"{100 * edge.report()['rms_m']:.1f} cm, {int((~edge.inliers).sum())} left out")
-    elif cfg.water_level == AUTO:  # estimated in the adjustment through the water (stage 3)
+        progress.say("check", f"water surface from {len(edge.residuals)} edge points: {_describe(surface)}, "
+                     f"rms {100 * edge.report()['rms_m']:.1f} cm, {int((~edge.inliers).sum())} left out")
+        return GivenWater(surface, edge, edge_points)
+    if cfg.water_level == AUTO:  # estimated in the adjustment through the water (stage 3)
         if cfg.no_water_adjustment:
-            raise ConfigError("--no-water-adjustment needs a water level or surface: without one it is estimated "
-                              "in that adjustment (give --water-level Z or --water-surface EDGE.csv)")
-        surface = None
-    else:
-        surface = WaterSurface(cfg.water_level, cfg.n)
-    if positions is not None and surface is not None:
-        _check_above(surface, np.array([positions[n] for n in located]))
-    cfg = _check_sizes(cfg, progress, photos, np.array([(positions or control)[n] for n in (located if positions else control)]),
-                 surface)
-    claim(cfg.out, "survey run")
-    write_json(cfg.out / "survey.json", {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()})
-    stamps = Stamps(cfg.out)
-    # a local origin (whole metres): UTM-sized coordinates keep millimetres in every float64 step
-    origin = np.round(np.mean(list((positions or control).values()), axis=0))
-    water = None if surface is None else surface.shifted(origin)  # in the local frame
+            raise ConfigError("--no-water-adjustment needs a water level or surface: without one it is "
+                              "estimated in that adjustment (give --water-level Z or --water-surface "
+                              "EDGE.csv)")
+        return GivenWater(None)
+    return GivenWater(WaterSurface(cfg.water_level, cfg.n))
 
-    # 1. structure from motion
+
+def structure_from_motion(survey: Survey, stamps: Stamps, progress: Progress) -> Structure:
+    """Stage 1: the photos' model by pycolmap (`survey.sfm`) in RUN/sfm/, every pair matched, or each photo
+    with its nearest where the survey is large and every photo has a position; kept while the photos are the
+    same."""
+    import numpy as np
+    import pycolmap
+
+    from ragsplat_core.dataset import layout
+    from ragsplat_core.outputs import write_json
+    from ragsplat_core.survey import sfm
+
+    cfg, photos, names, positions = survey.cfg, survey.photos, survey.names, survey.where.positions
     key = _digest({p.name: layout.file_digest(p) for p in photos}, sfm.CAMERA_MODEL)
     work = cfg.out / "sfm"
     t0 = time.perf_counter()
@@ -251,75 +445,133 @@ def run(cfg: SurveyConfig, progress: Progress | None = None, cluster=None) -> li
         pairs = None
         if len(names) > sfm.EXHAUSTIVE_MAX and (positions is not None and all(n in positions for n in names)):
             pairs = sfm.neighbour_pairs(np.array([positions[n] for n in names]), sfm.NEIGHBOURS)
-        how = "every pair matched" if pairs is None else f"each photo matched with its {sfm.NEIGHBOURS} nearest"
-        progress.say("sfm", f"structure from motion of {len(photos)} photos (pycolmap SIFT, {how}, incremental "
-             "mapping; CPU) ...")
+        how = ("every pair matched" if pairs is None
+               else f"each photo matched with its {sfm.NEIGHBOURS} nearest")
+        progress.say("sfm", f"structure from motion of {len(photos)} photos (pycolmap SIFT, {how}, "
+                     "incremental mapping; CPU) ...")
         timings = {}
         rec = sfm.reconstruct(cfg.images, names, work, pairs=pairs, timings=timings,
                               progress=lambda desc, total, unit: progress.bar(total, f"[sfm] {desc}", unit))
         rec.write_text(str(_fresh(work / "model")))
         write_json(work / "timings.json", timings)
         progress.say("sfm", f"features {timings['features_s']:.0f} s, {timings['pairs']} pairs matched in "
-             f"{timings['matching_s']:.0f} s, mapping {timings['mapping_s']:.0f} s")
+                     f"{timings['matching_s']:.0f} s, mapping {timings['mapping_s']:.0f} s")
         stamps.mark("sfm", key)
     rec = pycolmap.Reconstruction(str(work / "model"))
-    progress.say("sfm", f"{rec.num_reg_images()} of {len(photos)} photos registered, {rec.num_points3D()} points, "
-         f"reprojection error {rec.compute_mean_reprojection_error():.2f} px", t0)
-    if cfg.stop_after == "sfm":
-        return []
+    progress.say("sfm", f"{rec.num_reg_images()} of {len(photos)} photos registered, {rec.num_points3D()} "
+                 f"points, reprojection error {rec.compute_mean_reprojection_error():.2f} px", t0)
+    return Structure(key, rec)
 
-    # 2. georeferencing: to the RTK positions, or to the ground control points seen in the photos
-    given = layout.file_digest(source) if tagged is None else _digest(
-        {n: positions[n].tolist() for n in names}, {n: sigma[n].tolist() for n in names}, cfg.crs)
-    key = _digest(key, given, None if control is None else layout.file_digest(cfg.gcp), origin.tolist())
-    trk = sfm.tracks(rec)
-    if control is None:
-        have = [k for k, n in enumerate(trk.names) if n in positions]
-        if len(have) < 3:
-            raise DatasetError(f"{cfg.positions}: only {len(have)} registered photos have a position; 3 are needed")
-        src = trk.C[have].numpy()
-        dst = np.array([positions[trk.names[k]] for k in have]) - origin
-        labels = [trk.names[k] for k in have]
-        if tagged is None:
-            what, tol = f"{len(have)} RTK positions", 10 * rtk_sigma[1]
-            noise = {"model": "RTK", "sigma_m": list(rtk_sigma)}
-        else:  # the threshold follows each position's source: consumer GPS scatter is no outlier
-            ours = np.array([sigma[n] for n in labels])
-            is_fixed = {p.name: p.rtk_fixed for p in tagged}
-            rtk = np.array([is_fixed[n] for n in labels])
-            what, tol = (f"{len(have)} positions from the photos ({int(rtk.sum())} RTK fixed, "
-                         f"{int((~rtk).sum())} consumer GPS)"), 10 * ours[:, 1]
-            noise = _noise_model(tagged, sigma, labels)
+
+def georeference(survey: Survey, structure: Structure, stamps: Stamps, progress: Progress) -> Georeferenced:
+    """Stage 2: the similarity (RANSAC, `survey.georef`) that takes the model's camera centres to their
+    positions, or its triangulated targets to their surveyed positions; its report in RUN/georef.json.
+    DatasetError where too few correspond, or the cameras then do not look down."""
+    import numpy as np
+
+    from ragsplat_core.dataset import layout
+    from ragsplat_core.errors import DatasetError
+    from ragsplat_core.outputs import write_json
+    from ragsplat_core.survey import georef, sfm
+
+    cfg, where, names = survey.cfg, survey.where, survey.names
+    given = layout.file_digest(where.source) if where.tagged is None else _digest(
+        {n: where.positions[n].tolist() for n in names}, {n: where.sigma[n].tolist() for n in names}, cfg.crs)
+    key = _digest(structure.key, given, None if where.control is None else layout.file_digest(cfg.gcp),
+                  survey.origin.tolist())
+    trk = sfm.tracks(structure.rec)
+    if where.control is None:
+        pairs = _camera_pairs(survey, trk)
     else:
-        gcp = sfm.control_points(rec, trk, pixels)  # name -> (model xyz, observations)
-        usable = [n for n, (xyz, obs) in gcp.items() if np.isfinite(xyz).all()]
-        if len(usable) < 3:
-            seen = ", ".join(f"{n} ({len(gcp[n][1]) if n in gcp else 0} photos)" for n in sorted(control))
-            raise DatasetError(f"{cfg.gcp_pixels}: only {len(usable)} ground control points are seen in 2 or more "
-                               f"registered photos from different places; 3 are needed ({seen})")
-        src = np.array([gcp[n][0] for n in usable])
-        dst = np.array([control[n] for n in usable]) - origin
-        what, labels, tol = f"{len(usable)} ground control points", usable, 10 * cfg.gcp_sigma
-        noise = {"model": "ground control", "sigma_m": cfg.gcp_sigma}
-    threshold = np.maximum(0.2, tol)  # 10 sigma, at least 20 cm: only gross errors are left out
-    sim, inliers = georef.ransac_similarity(src, dst, threshold=threshold)
-    res = sim.apply(src) - dst
+        pairs = _control_pairs(survey, structure.rec, trk)
+    threshold = np.maximum(0.2, pairs.tol)  # 10 sigma, at least 20 cm: only gross errors are left out
+    sim, inliers = georef.ransac_similarity(pairs.src, pairs.dst, threshold=threshold)
     looks = (trk.R[:, 2, :].numpy() @ sim.R.T)[:, 2]  # the optical axes' z in the positions' frame
     if np.median(looks) > -0.2:
-        raise DatasetError(f"{source}: after alignment the cameras do not look down (median optical "
+        raise DatasetError(f"{where.source}: after alignment the cameras do not look down (median optical "
                            f"axis z {np.median(looks):+.2f}): are the coordinates metres with z up?")
-    if water is not None:
-        _check_above(water, sim.apply(trk.C.numpy()))
-    report = {"to": what, "scale": sim.scale, "R": sim.R.tolist(), "t": (sim.t + origin).tolist(),
-              "origin": origin.tolist(), "inliers": int(inliers.sum()), "count": len(labels),
-              "residual_m": {name: r.tolist() for name, r in zip(labels, res)},
+    if survey.water is not None:
+        _check_above(survey.water, sim.apply(trk.C.numpy()))
+    report = _georef_report(survey, pairs, sim, inliers, threshold)
+    write_json(cfg.out / "georef.json", report)
+    progress.say("georef", f"similarity to {pairs.what}: scale {sim.scale:.4g}, {int(inliers.sum())} of "
+                 f"{len(pairs.labels)} inliers, rms {100 * report['rms_m']:.1f} cm (each one's: "
+                 f"{cfg.out / 'georef.json'})")
+    if "scale_uncertainty" in report:
+        scale = report["scale_uncertainty"]
+        progress.say("georef", "the scale comes from consumer GPS: depths and heights may be off by up to "
+                     f"about {100 * scale['relative']:.0f} % (rms {report['rms_m']:.2f} m over the flight's "
+                     f"{scale['extent_m']:.0f} m); for depths to 1 %, give ground control (--gcp, "
+                     "--gcp-pixels) or fly with RTK")
+    stamps.mark("georef", key)
+    return Georeferenced(key, given, trk, sim, pairs)
+
+
+def _camera_pairs(survey: Survey, trk: Tracks) -> Correspondences:
+    """The registered cameras' centres and their positions, each position's threshold from its source."""
+    import numpy as np
+
+    from ragsplat_core.errors import DatasetError
+
+    where = survey.where
+    have = [k for k, n in enumerate(trk.names) if n in where.positions]
+    if len(have) < 3:
+        raise DatasetError(f"{survey.cfg.positions}: only {len(have)} registered photos have a position; 3 "
+                           "are needed")
+    src = trk.C[have].numpy()
+    dst = np.array([where.positions[trk.names[k]] for k in have]) - survey.origin
+    labels = [trk.names[k] for k in have]
+    if where.tagged is None:
+        return Correspondences(src, dst, labels, f"{len(have)} RTK positions", 10 * survey.rtk_sigma[1],
+                               {"model": "RTK", "sigma_m": list(survey.rtk_sigma)}, have)
+    # the threshold follows each position's source: consumer GPS scatter is no outlier
+    ours = np.array([where.sigma[n] for n in labels])
+    is_fixed = {p.name: p.rtk_fixed for p in where.tagged}
+    rtk = np.array([is_fixed[n] for n in labels])
+    what = (f"{len(have)} positions from the photos ({int(rtk.sum())} RTK fixed, {int((~rtk).sum())} "
+            "consumer GPS)")
+    noise = _noise_model(where.tagged, where.sigma, labels)
+    return Correspondences(src, dst, labels, what, 10 * ours[:, 1], noise, have, rtk)
+
+
+def _control_pairs(survey: Survey, rec, trk: Tracks) -> Correspondences:
+    """The ground control points triangulated in the model from their pixels, and their surveyed positions."""
+    import numpy as np
+
+    from ragsplat_core.errors import DatasetError
+    from ragsplat_core.survey import sfm
+
+    cfg, control = survey.cfg, survey.where.control
+    gcp = sfm.control_points(rec, trk, survey.where.pixels)  # name -> (model xyz, observations)
+    usable = [n for n, (xyz, obs) in gcp.items() if np.isfinite(xyz).all()]
+    if len(usable) < 3:
+        seen = ", ".join(f"{n} ({len(gcp[n][1]) if n in gcp else 0} photos)" for n in sorted(control))
+        raise DatasetError(f"{cfg.gcp_pixels}: only {len(usable)} ground control points are seen in 2 or "
+                           f"more registered photos from different places; 3 are needed ({seen})")
+    src = np.array([gcp[n][0] for n in usable])
+    dst = np.array([control[n] for n in usable]) - survey.origin
+    return Correspondences(src, dst, usable, f"{len(usable)} ground control points", 10 * cfg.gcp_sigma,
+                           {"model": "ground control", "sigma_m": cfg.gcp_sigma}, gcp=gcp, usable=usable)
+
+
+def _georef_report(survey: Survey, pairs: Correspondences, sim: Similarity, inliers: np.ndarray,
+                   threshold) -> dict:
+    """RUN/georef.json: the similarity, each correspondence's residual, the positions and their noise."""
+    import numpy as np
+
+    cfg, origin, tagged, sigma = survey.cfg, survey.origin, survey.where.tagged, survey.where.sigma
+    res = sim.apply(pairs.src) - pairs.dst
+    report = {"to": pairs.what, "scale": sim.scale, "R": sim.R.tolist(), "t": (sim.t + origin).tolist(),
+              "origin": origin.tolist(), "inliers": int(inliers.sum()), "count": len(pairs.labels),
+              "residual_m": {name: r.tolist() for name, r in zip(pairs.labels, res)},
               "rms_m": float(np.sqrt((res[inliers] ** 2).sum(1).mean())),
-              "positions": {"source": "the photos' EXIF GPS and DJI XMP" if tagged is not None else str(source),
-                            "crs": cfg.crs},
-              "noise": {**noise, "threshold_m": _rounded(threshold), "fit": "similarity (7 parameters), RANSAC "
-                        "on 3 correspondences then refitted to the inliers; a correspondence whose residual "
-                        "exceeds the threshold is an outlier"}}
+              "positions": {"source": "the photos' EXIF GPS and DJI XMP" if tagged is not None
+                            else str(survey.where.source), "crs": cfg.crs},
+              "noise": {**pairs.noise, "threshold_m": _rounded(threshold),
+                        "fit": "similarity (7 parameters), RANSAC on 3 correspondences then refitted to the "
+                        "inliers; a correspondence whose residual exceeds the threshold is an outlier"}}
     if tagged is not None:
+        rtk = pairs.rtk
         report["positions"] |= {"heights": sorted({p.altitude_source for p in tagged}), "photos": {
             p.name: {"lat": p.lat, "lon": p.lon, "altitude": p.altitude, "rtk_flag": p.rtk_flag,
                      "sigma_m": sigma[p.name].tolist(), "gimbal_ypr_deg": p.gimbal} for p in tagged}}
@@ -327,179 +579,284 @@ def run(cfg: SurveyConfig, progress: Progress | None = None, cluster=None) -> li
             kind: float(np.sqrt((res[inliers & pick] ** 2).sum(1).mean())) if (inliers & pick).any() else None
             for kind, pick in (("rtk_fixed", rtk), ("consumer_gps", ~rtk))}
         if (inliers & rtk).sum() < 3:  # the scale is consumer GPS's: say how far depths can be off
-            extent = float(np.ptp(dst[inliers, :2], axis=0).max())
+            extent = float(np.ptp(pairs.dst[inliers, :2], axis=0).max())
             report["scale_uncertainty"] = {
                 "relative": report["rms_m"] / extent, "extent_m": extent,
-                "from": "the positions' rms residual over the flight's longest horizontal side: consumer GPS "
-                        "fixes the scale no better (its errors are shared along a flight line, so the fit's own "
-                        "standard error would understate them); depths and heights are scaled with it"}
-    write_json(cfg.out / "georef.json", report)
-    progress.say("georef", f"similarity to {what}: scale {sim.scale:.4g}, {int(inliers.sum())} of {len(labels)} inliers, "
-         f"rms {100 * report['rms_m']:.1f} cm (each one's: {cfg.out / 'georef.json'})")
-    if "scale_uncertainty" in report:
-        progress.say("georef", f"the scale comes from consumer GPS: depths and heights may be off by up to about "
-             f"{100 * report['scale_uncertainty']['relative']:.0f} % (rms {report['rms_m']:.2f} m over the "
-             f"flight's {report['scale_uncertainty']['extent_m']:.0f} m); for depths to 1 %, give ground control (--gcp, --gcp-pixels) or fly "
-             "with RTK")
-    stamps.mark("georef", key)
-    if cfg.stop_after == "georef":
-        return []
+                "from": "the positions' rms residual over the flight's longest horizontal side: consumer "
+                        "GPS fixes the scale no better (its errors are shared along a flight line, so the "
+                        "fit's own standard error would understate them); depths and heights are scaled with "
+                        "it"}
+    return report
 
-    # 3. the water: bundle adjustment through it, cameras held at their RTK positions or targets at theirs
-    held_by = list(rtk_sigma) if sigma is None else given  # the positions' accuracy, one or per camera
-    key = _digest(key, layout.water_json(water) if water is not None else [AUTO, cfg.n], cfg.no_water_adjustment,
-                  held_by, cfg.gcp_sigma, cfg.lens)
+
+def adjust_through_water(survey: Survey, structure: Structure, geo: Georeferenced, stamps: Stamps,
+                         progress: Progress) -> Water:
+    """Stage 3: the bundle adjustment through the water (`_adjust`), the cameras held at their positions or
+    the targets at theirs, the water estimated where not given; the adjusted model in RUN/model/, the
+    water's report in RUN/water.json (a new one makes the training's folders stale)."""
+    import numpy as np
+    import torch
+
+    from ragsplat_core.dataset import layout
+    from ragsplat_core.outputs import write_json
+    from ragsplat_core.refraction import WaterSurface
+    from ragsplat_core.survey import sfm
+
+    cfg, water = survey.cfg, survey.water
+    held_by = list(survey.rtk_sigma) if survey.where.sigma is None else geo.given  # one accuracy, or each's
+    key = _digest(geo.key, layout.water_json(water) if water is not None else [AUTO, cfg.n],
+                  cfg.no_water_adjustment, held_by, cfg.gcp_sigma, cfg.lens)
     model = cfg.out / "model"
     t0 = time.perf_counter()
     if not stamps.done("water", key, model, cfg.out / "water.json"):
-        R = trk.R @ torch.as_tensor(sim.R.T)  # world = s R x + t: cam_from_world' = cam_from_world R^T
-        C = torch.as_tensor(sim.apply(trk.C.numpy()))
-        P = torch.as_tensor(sim.apply(trk.points.numpy()))
-        point, image, pix, held, gcp_rows, estimated = trk.point, trk.image, trk.pixels, {}, None, None
-        lens_record = None
-        if control is None:
-            prior = torch.full_like(C, float("nan"))
-            prior[have] = torch.as_tensor(dst)
-            if sigma is None:
-                held = {"prior_C": prior, "prior_sigma": (rtk_sigma[0],) * 2 + (rtk_sigma[1],)}
-            else:  # each camera held as its source allows (RTK centimetres, consumer GPS metres)
-                each = torch.ones_like(C)
-                each[have] = torch.as_tensor(np.array([sigma[trk.names[k]][[0, 0, 1]] for k in have]))
-                held = {"prior_C": prior, "prior_sigma": each}
-        else:  # the targets join the points, held at their surveyed positions
-            gcp_rows = torch.arange(len(P), len(P) + len(usable))
-            obs = [(row, k, uv) for row, n in zip(gcp_rows.tolist(), usable) for k, uv in gcp[n][1]]
-            point = torch.cat([point, torch.tensor([o[0] for o in obs])])
-            image = torch.cat([image, torch.tensor([o[1] for o in obs])])
-            pix = torch.cat([pix, torch.as_tensor(np.array([o[2] for o in obs]))])
-            P = torch.cat([P, torch.as_tensor(sim.apply(src))])
-            held = {"prior_points": (gcp_rows, torch.as_tensor(dst)), "point_sigma": cfg.gcp_sigma}
-        if cfg.no_water_adjustment:
-            adj = None
-        else:
-            progress.say("water", f"bundle adjustment through the water ({len(point)} observations of {len(P)} points, "
-                 f"{len(C)} cameras) ...")
-            with progress.bar(30, "[water] adjustment", "iteration") as b:
-                def step(cost):
-                    b.update(1)
-                    b.set_postfix(cost=f"{cost:.4g}", refresh=False)
-
-                lens = ("lens",) if cfg.lens == "radial" else ()
-                if water is None:  # the level too, from a start among the model's points
-                    start = water_fit.start_level(P[: len(trk.points)].numpy())
-                    # positions that fix no tilt (consumer GPS): the water's slope too, then the frame levelled by it
-                    free = ("level", "slope") if tagged is not None and not fixed else ("level",)
-                    adj = bundle.adjust(R, C, trk.intrinsics, P, point, image, pix, WaterSurface(start, cfg.n),
-                                        free=free + lens, tol=LEVEL_TOL, on_iteration=step, **held)
-                    def of_water(sigma):  # the water's parameters' (the lens's go to "lens")
-                        return {k: v for k, v in sigma.items() if k not in ("k1", "k2")}
-
-                    estimated = {"free": list(free), "start_m": start + origin[2], "sigma_m": of_water(adj.sigma),
-                                 "sigma_given_cameras_m": of_water(adj.sigma_given_cameras),
-                                 "frame": "consumer GPS (metres)" if "slope" in free else "held by the positions"}
-                    water = adj.water
-                    if water.tilted:
-                        level = georef.levelling(water)
-                        adj = replace(adj, R=adj.R @ torch.as_tensor(level.R.T), C=torch.as_tensor(level.apply(adj.C)),
-                                      points=torch.as_tensor(level.apply(adj.points)))
-                        estimated["levelled_deg"] = math.degrees(math.atan(math.hypot(*water.slope)))
-                        estimated["slope_before_levelling"] = list(water.slope)
-                        water = WaterSurface(water.level, cfg.n)
-                    surface = water.shifted(-origin)
-                else:
-                    adj = bundle.adjust(R, C, trk.intrinsics, P, point, image, pix, water, free=lens,
-                                        tol=LEVEL_TOL if lens else 1e-9, on_iteration=step, **held)
-                if lens:
-                    lens_record = {"model": "RADIAL (COLMAP): x (1 + k1 r^2 + k2 r^4), normalised coordinates",
-                                   "k1": adj.lens[0], "k2": adj.lens[1],
-                                   "sigma": {k: adj.sigma[k] for k in ("k1", "k2")}}
-            R, C, P = adj.R, adj.C, adj.points
-        if gcp_rows is not None:
-            gcp_residual = {n: (P[r] - torch.as_tensor(dst[k])).tolist() for k, (n, r) in
-                            enumerate(zip(usable, gcp_rows.tolist()))}
-            P = P[: len(trk.points)]
-        z = -water.depth(P.numpy())  # height above the surface
-        above = z[z >= 0]
-        check = {"surface": layout.water_json(surface), "described": _describe(surface),
-                 **({} if estimated is None else {"estimated": estimated}),
-                 **({} if lens_record is None else {"lens": lens_record}),
-                 **({} if edge is None else {"edge_fit": edge.report(), "along_the_reach": water_fit.profile(
-                     P.numpy(), water.height(P.numpy()[:, :2]), edge_points - origin)}),
-                 "extent_m": (np.percentile(P.numpy()[:, :2], [1, 99], axis=0) + origin[:2]).tolist(),
-                 "points_above": int((z >= 0).sum()),
-                 "points_below": int((z < 0).sum()),
-                 "lowest_above_m": float(np.percentile(above, 1)) if len(above) else None,
-                 "adjusted": adj is not None,
-                 "rms_px": None if adj is None else float(adj.residuals.pow(2).mean().sqrt()),
-                 "iterations": None if adj is None else adj.iterations,
-                 **({} if gcp_rows is None else {"gcp_residual_m": gcp_residual})}
-        sfm.set_poses(rec, trk, R, C + torch.as_tensor(origin), P + torch.as_tensor(origin),
-                      None if lens_record is None else adj.lens)
-        rec.write_text(str(_fresh(model)))
+        fit = _adjust(survey, geo, _problem(survey, geo), progress)
+        check = _water_report(survey, fit)
+        origin = torch.as_tensor(survey.origin)
+        sfm.set_poses(structure.rec, geo.tracks, fit.R, fit.C + origin, fit.points + origin,
+                      None if fit.lens is None else fit.bundle.lens)
+        structure.rec.write_text(str(_fresh(model)))
         write_json(cfg.out / "water.json", check)
         for stale in ("data", "train"):  # made from the previous poses
             shutil.rmtree(cfg.out / stale, ignore_errors=True)
         stamps.mark("water", key)
     check = json.loads((cfg.out / "water.json").read_text())
     surface = WaterSurface(**{**check["surface"], "n": cfg.n})  # as given, or as estimated
+    _say_water(progress, surface, check, t0)
+    return Water(key, model, surface, np.asarray(check["extent_m"]))
+
+
+def _problem(survey: Survey, geo: Georeferenced) -> Problem:
+    """The tracks georeferenced, and held: each camera at its position (RTK centimetres, or as its source
+    allows), or the targets, joined to the points with their observations, at their surveyed positions."""
+    import numpy as np
+    import torch
+
+    trk, sim, pairs, where = geo.tracks, geo.sim, geo.pairs, survey.where
+    R = trk.R @ torch.as_tensor(sim.R.T)  # world = s R x + t: cam_from_world' = cam_from_world R^T
+    C = torch.as_tensor(sim.apply(trk.C.numpy()))
+    P = torch.as_tensor(sim.apply(trk.points.numpy()))
+    point, image, pix = trk.point, trk.image, trk.pixels
+    if where.control is None:
+        prior = torch.full_like(C, float("nan"))
+        prior[pairs.have] = torch.as_tensor(pairs.dst)
+        if where.sigma is None:
+            sigma = (survey.rtk_sigma[0],) * 2 + (survey.rtk_sigma[1],)
+            return Problem(R, C, P, point, image, pix, {"prior_C": prior, "prior_sigma": sigma})
+        # each camera held as its source allows (RTK centimetres, consumer GPS metres)
+        each = torch.ones_like(C)
+        each[pairs.have] = torch.as_tensor(np.array([where.sigma[trk.names[k]][[0, 0, 1]]
+                                                     for k in pairs.have]))
+        return Problem(R, C, P, point, image, pix, {"prior_C": prior, "prior_sigma": each})
+    gcp_rows = torch.arange(len(P), len(P) + len(pairs.usable))
+    obs = [(row, k, uv) for row, n in zip(gcp_rows.tolist(), pairs.usable) for k, uv in pairs.gcp[n][1]]
+    point = torch.cat([point, torch.tensor([o[0] for o in obs])])
+    image = torch.cat([image, torch.tensor([o[1] for o in obs])])
+    pix = torch.cat([pix, torch.as_tensor(np.array([o[2] for o in obs]))])
+    P = torch.cat([P, torch.as_tensor(sim.apply(pairs.src))])
+    held = {"prior_points": (gcp_rows, torch.as_tensor(pairs.dst)), "point_sigma": survey.cfg.gcp_sigma}
+    return Problem(R, C, P, point, image, pix, held, gcp_rows)
+
+
+def _adjust(survey: Survey, geo: Georeferenced, problem: Problem, progress: Progress) -> Adjusted:
+    """`problem` adjusted through the water (`survey.bundle`), with the lens's distortion (--lens radial) and,
+    where none is given, the water (`_estimate_water`); as it is with --no-water-adjustment."""
+    import torch
+
+    from ragsplat_core.survey import bundle
+
+    cfg, trk = survey.cfg, geo.tracks
+    water, surface, adj, estimated, lens_record = survey.water, survey.given.surface, None, None, None
+    R, C, P = problem.R, problem.C, problem.points
+    if not cfg.no_water_adjustment:
+        progress.say("water", f"bundle adjustment through the water ({len(problem.point)} observations of "
+                     f"{len(P)} points, {len(C)} cameras) ...")
+        with progress.bar(30, "[water] adjustment", "iteration") as b:
+            def step(cost):
+                b.update(1)
+                b.set_postfix(cost=f"{cost:.4g}", refresh=False)
+
+            lens = ("lens",) if cfg.lens == "radial" else ()
+            if water is None:  # the level too, from a start among the model's points
+                adj, water, estimated = _estimate_water(survey, geo, problem, lens, step)
+                surface = water.shifted(-survey.origin)
+            else:
+                adj = bundle.adjust(R, C, trk.intrinsics, P, problem.point, problem.image, problem.pixels,
+                                    water, free=lens, tol=LEVEL_TOL if lens else 1e-9, on_iteration=step,
+                                    **problem.held)
+            if lens:
+                lens_record = {"model": "RADIAL (COLMAP): x (1 + k1 r^2 + k2 r^4), normalised coordinates",
+                               "k1": adj.lens[0], "k2": adj.lens[1],
+                               "sigma": {k: adj.sigma[k] for k in ("k1", "k2")}}
+        R, C, P = adj.R, adj.C, adj.points
+    gcp_residual = None
+    if problem.gcp_rows is not None:
+        dst = geo.pairs.dst
+        gcp_residual = {n: (P[r] - torch.as_tensor(dst[k])).tolist() for k, (n, r) in
+                        enumerate(zip(geo.pairs.usable, problem.gcp_rows.tolist()))}
+        P = P[: len(trk.points)]
+    return Adjusted(R, C, P, water, surface, adj, estimated, lens_record, gcp_residual)
+
+
+def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: tuple[str, ...],
+                    step) -> tuple[Bundle, WaterSurface, dict]:
+    """(the adjustment, the water (local frame), water.json's account of it) with the level free, started
+    among the model's points; where the positions fix no tilt (consumer GPS) the slope too, and then the
+    frame levelled by the water's plane."""
+    import math
+    from dataclasses import replace
+
+    import torch
+
+    from ragsplat_core.refraction import WaterSurface
+    from ragsplat_core.survey import bundle, georef
+    from ragsplat_core.survey import water as water_fit
+
+    cfg, trk, origin, P = survey.cfg, geo.tracks, survey.origin, problem.points
+    start = water_fit.start_level(P[: len(trk.points)].numpy())
+    # positions that fix no tilt (consumer GPS): the water's slope too, then the frame levelled by it
+    free = ("level", "slope") if survey.where.tagged is not None and not survey.where.rtk_fixed \
+        else ("level",)
+    adj = bundle.adjust(problem.R, problem.C, trk.intrinsics, P, problem.point, problem.image, problem.pixels,
+                        WaterSurface(start, cfg.n), free=free + lens, tol=LEVEL_TOL, on_iteration=step,
+                        **problem.held)
+
+    def of_water(sigma):  # the water's parameters' (the lens's go to "lens")
+        return {k: v for k, v in sigma.items() if k not in ("k1", "k2")}
+
+    estimated = {"free": list(free), "start_m": start + origin[2], "sigma_m": of_water(adj.sigma),
+                 "sigma_given_cameras_m": of_water(adj.sigma_given_cameras),
+                 "frame": "consumer GPS (metres)" if "slope" in free else "held by the positions"}
+    water = adj.water
+    if water.tilted:
+        level = georef.levelling(water)
+        adj = replace(adj, R=adj.R @ torch.as_tensor(level.R.T), C=torch.as_tensor(level.apply(adj.C)),
+                      points=torch.as_tensor(level.apply(adj.points)))
+        estimated["levelled_deg"] = math.degrees(math.atan(math.hypot(*water.slope)))
+        estimated["slope_before_levelling"] = list(water.slope)
+        water = WaterSurface(water.level, cfg.n)
+    return adj, water, estimated
+
+
+def _water_report(survey: Survey, fit: Adjusted) -> dict:
+    """RUN/water.json: the surface, how the points lie around it, the adjustment's fit, and the estimated
+    water, lens and targets' residuals where there are."""
+    import numpy as np
+
+    from ragsplat_core.dataset import layout
+    from ragsplat_core.survey import water as water_fit
+
+    given, origin, adj, P = survey.given, survey.origin, fit.bundle, fit.points
+    z = -fit.water.depth(P.numpy())  # height above the surface
+    above = z[z >= 0]
+    return {"surface": layout.water_json(fit.surface), "described": _describe(fit.surface),
+            **({} if fit.estimated is None else {"estimated": fit.estimated}),
+            **({} if fit.lens is None else {"lens": fit.lens}),
+            **({} if given.edge is None else {
+                "edge_fit": given.edge.report(),
+                "along_the_reach": water_fit.profile(P.numpy(), fit.water.height(P.numpy()[:, :2]),
+                                                     given.edge_points - origin)}),
+            "extent_m": (np.percentile(P.numpy()[:, :2], [1, 99], axis=0) + origin[:2]).tolist(),
+            "points_above": int((z >= 0).sum()),
+            "points_below": int((z < 0).sum()),
+            "lowest_above_m": float(np.percentile(above, 1)) if len(above) else None,
+            "adjusted": adj is not None,
+            "rms_px": None if adj is None else float(adj.residuals.pow(2).mean().sqrt()),
+            "iterations": None if adj is None else adj.iterations,
+            **({} if fit.gcp_residual is None else {"gcp_residual_m": fit.gcp_residual})}
+
+
+def _say_water(progress: Progress, surface: WaterSurface, check: dict, t0: float) -> None:
+    """Stage 3's lines: the estimated level and its uncertainty, the points around the surface, the fit."""
     if "estimated" in check:  # in a frame held only to metres, its uncertainty relative to the model matters
         est = check["estimated"]
         sigma = est["sigma_given_cameras_m" if "slope" in est["free"] else "sigma_m"]["level"]
-        progress.say("water", f"the level estimated from the photos: {surface.level:.3f} m +- {100 * sigma:.1f} cm (1 sigma"
-             + ("" if "slope" not in est["free"] else ", relative to the model; the frame's height is the GPS's")
-             + ")"
-             + ("" if "levelled_deg" not in est else
-                f"; the frame levelled by the water's plane, {est['levelled_deg']:.2f} degrees")
-             + ("" if sigma <= LEVEL_WARN else "; poorly determined (a flat bed, little depth variation or no "
-                "oblique views hide it): measure it and give --water-level, or --water-surface EDGE.csv"))
+        progress.say("water", f"the level estimated from the photos: {surface.level:.3f} m +- "
+                     f"{100 * sigma:.1f} cm (1 sigma"
+                     + ("" if "slope" not in est["free"]
+                        else ", relative to the model; the frame's height is the GPS's")
+                     + ")"
+                     + ("" if "levelled_deg" not in est else
+                        f"; the frame levelled by the water's plane, {est['levelled_deg']:.2f} degrees")
+                     + ("" if sigma <= LEVEL_WARN else "; poorly determined (a flat bed, little depth "
+                        "variation or no oblique views hide it): measure it and give --water-level, or "
+                        "--water-surface EDGE.csv"))
     lowest = check["lowest_above_m"]
-    progress.say("water", f"{check['described']}: {check['points_below']} points below it, {check['points_above']} "
-         f"above" + ("" if lowest is None else f" (the lowest 1 % within {100 * lowest:.1f} cm of it)")
-         + ("" if check["rms_px"] is None else f"; reprojection error {check['rms_px']:.2f} px after the adjustment")
-         + ("" if "lens" not in check else f"; the lens's distortion k1 {check['lens']['k1']:+.4f}, k2 "
-            f"{check['lens']['k2']:+.4f}"), t0)
+    progress.say("water", f"{check['described']}: {check['points_below']} points below it, "
+                 f"{check['points_above']} above"
+                 + ("" if lowest is None else f" (the lowest 1 % within {100 * lowest:.1f} cm of it)")
+                 + ("" if check["rms_px"] is None
+                    else f"; reprojection error {check['rms_px']:.2f} px after the adjustment")
+                 + ("" if "lens" not in check else f"; the lens's distortion k1 {check['lens']['k1']:+.4f}, "
+                    f"k2 {check['lens']['k2']:+.4f}"), t0)
 
-    if cfg.stop_after == "water":
-        return []
+
+def train_and_export(survey: Survey, water: Water, stamps: Stamps, progress: Progress, cluster) -> list[Path]:
+    """Stage 4: the DEM's size checked over the model's points, then one training and its export
+    (`train_one`, `export`), or the tiles' (`train_tiles`) where the survey is larger than a tile."""
+    import numpy as np
+
     from ragsplat_core.export import sample_count
 
-    lo, hi = np.asarray(check["extent_m"])
+    cfg = survey.cfg
+    lo, hi = water.extent
     sample_count(lo, hi, cfg.resolution)  # the DEM's size over the model's points, before training
-
-    # 4. training and the products: one tile here, as always, or several, merged
     products = [cfg.out / name for name in PRODUCTS]
-    tiling, size, overlap = _tiles(cfg, model, surface, lo, hi)
+    tiling, size, overlap = _tiles(cfg, water.model, water.surface, lo, hi)
     if len(tiling) == 1:
-        run_train = cfg.out / "train"
-        _train(cfg, progress, model, cfg.out / "data", run_train, surface, float(np.prod(hi - lo)))
-        key = _digest(key, (run_train / "point_cloud.ply").stat().st_mtime_ns, cfg.resolution)
-        t0 = time.perf_counter()
-        if not stamps.done("export", key, *products):
-            from ragsplat_core.export import export_run
-
-            dem, las, png = products
-            b, on_block = progress.count("[export] bed", "block")
-            with b:
-                bed = export_run(run_train, dem, cfg.resolution, las, None, png, on_block=on_block)
-            stamps.mark("export", key)
-            progress.say("export", f"{len(bed.grid)} cells of {cfg.resolution:g} m", t0)
-        return products
-    key = _digest(key, cfg.variant, cfg.init, cfg.preset, cfg.iterations, cfg.seed, cfg.max_size, cfg.resolution,
-                  [t.to_json() for t in tiling])
-    if not stamps.done("export", key, *products, cfg.out / "tiles.json"):
-        t0 = time.perf_counter()
-        progress.say("tiles", f"{len(tiling)} tiles of at most {size:.1f} m, overlapping by {overlap:.1f} m, of "
-                     f"{', '.join(str(len(t.photos)) for t in tiling)} photos ...")
-        beds = _train_tiles(cfg, progress, cluster, model, surface, tiling, (lo, hi), key)
-        merged = _merge(cfg, surface, tiling, beds, products)
-        runs = [json.loads((cfg.out / "tiles" / str(t.index) / "tile.json").read_text()) for t in tiling]
-        write_json(cfg.out / "tiles.json", {**merged, "tiles": [t.to_json() | {"run": r} for t, r in
-                                                                zip(tiling, runs)],
-                                            "seconds": time.perf_counter() - t0})
-        stamps.mark("export", key)
-        progress.say("export", f"{sum(merged['cells'].values())} cells of {cfg.resolution:g} m from {len(tiling)} "
-                     f"tiles; the overlaps agree to {_seams(merged)} (each tile's: {cfg.out / 'tiles.json'})", t0)
+        trained = train_one(cfg, water, float(np.prod(hi - lo)), progress)
+        export(cfg, water, trained, products, stamps, progress)
+    else:
+        train_tiles(cfg, water, tiling, size, overlap, products, stamps, progress, cluster)
     return products
+
+
+def train_one(cfg: SurveyConfig, water: Water, area: float, progress: Progress) -> Path:
+    """A survey of one tile imported into RUN/data and trained (resuming) in RUN/train, returned."""
+    trained = cfg.out / "train"
+    _train(cfg, progress, water.model, cfg.out / "data", trained, water.surface, area)
+    return trained
+
+
+def export(cfg: SurveyConfig, water: Water, trained: Path, products: list[Path], stamps: Stamps,
+           progress: Progress) -> None:
+    """The products of the training in `trained` (`export.export_run`), kept while its checkpoint is."""
+    key = _digest(water.key, (trained / "point_cloud.ply").stat().st_mtime_ns, cfg.resolution)
+    t0 = time.perf_counter()
+    if not stamps.done("export", key, *products):
+        from ragsplat_core.export import export_run
+
+        dem, las, png = products
+        b, on_block = progress.count("[export] bed", "block")
+        with b:
+            bed = export_run(trained, dem, cfg.resolution, las, None, png, on_block=on_block)
+        stamps.mark("export", key)
+        progress.say("export", f"{len(bed.grid)} cells of {cfg.resolution:g} m", t0)
+
+
+def train_tiles(cfg: SurveyConfig, water: Water, tiling: list[Tile], size: float, overlap: float,
+                products: list[Path], stamps: Stamps, progress: Progress, cluster) -> None:
+    """A survey of several tiles: each trained and extracted on its own (`_tile_beds`), their beds merged into
+    the products (`_merge`), the layout and the seams' agreement in RUN/tiles.json; kept while the tiles and
+    the training's settings are the same."""
+    from ragsplat_core.outputs import write_json
+
+    key = _digest(water.key, cfg.variant, cfg.init, cfg.preset, cfg.iterations, cfg.seed, cfg.max_size,
+                  cfg.resolution, [t.to_json() for t in tiling])
+    if stamps.done("export", key, *products, cfg.out / "tiles.json"):
+        return
+    t0 = time.perf_counter()
+    progress.say("tiles", f"{len(tiling)} tiles of at most {size:.1f} m, overlapping by {overlap:.1f} m, of "
+                 f"{', '.join(str(len(t.photos)) for t in tiling)} photos ...")
+    beds = _tile_beds(cfg, progress, cluster, water.model, water.surface, tiling, water.extent, key)
+    merged = _merge(cfg, water.surface, tiling, beds, products)
+    runs = [json.loads((cfg.out / "tiles" / str(t.index) / "tile.json").read_text()) for t in tiling]
+    write_json(cfg.out / "tiles.json", {**merged,
+                                        "tiles": [t.to_json() | {"run": r} for t, r in zip(tiling, runs)],
+                                        "seconds": time.perf_counter() - t0})
+    stamps.mark("export", key)
+    progress.say("export", f"{sum(merged['cells'].values())} cells of {cfg.resolution:g} m from "
+                 f"{len(tiling)} tiles; the overlaps agree to {_seams(merged)} (each tile's: "
+                 f"{cfg.out / 'tiles.json'})", t0)
 
 
 def _seams(merged: dict) -> str:
@@ -592,8 +949,8 @@ class _Log(Progress):
         return _Silent(), on_step
 
 
-def _train_tiles(cfg: SurveyConfig, progress: Progress, cluster, model: Path, surface, tiling: list, extent,
-                 key: str) -> list:
+def _tile_beds(cfg: SurveyConfig, progress: Progress, cluster, model: Path, surface, tiling: list, extent,
+               key: str) -> list:
     """Every tile's bed [G_t, 3] (CRS): the tiles' models written here, then `train_tile` for each, as Dask
     tasks on the client `cluster(len(tiling))` opens, or one after another here without one. `extent`: the
     survey's points' box (lo, hi), which bounds each tile's area for its Gaussian budget."""
