@@ -150,3 +150,12 @@ def test_tiles_on_dask_workers_one_killed_give_the_same_products(survey, tiled, 
     assert len(ours.x) == len(theirs.x)
     np.testing.assert_allclose(np.column_stack([ours.x, ours.y]), np.column_stack([theirs.x, theirs.y]))
     np.testing.assert_allclose(ours.z, theirs.z, atol=0.002)
+
+
+def test_seam_distance_counts_only_edges_between_tiles():
+    """tools.seams: a point's distance is to its own core's finite edges; the survey's open outside is no seam."""
+    from tools.seams import border_distance
+
+    cores = [[None, None, 10.0, None], [10.0, None, None, None]]  # two tiles split at x = 10
+    xy = np.array([[9.0, -50.0], [10.5, 3.0], [-100.0, 0.0], [40.0, 1e6]])
+    np.testing.assert_allclose(border_distance(xy, cores), [1.0, 0.5, 110.0, 30.0])
