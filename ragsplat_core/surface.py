@@ -41,73 +41,22 @@ from scipy.spatial import cKDTree
 
 from ragsplat_core.errors import ConfigError
 from ragsplat_core.gaussians import quat_to_rotmat
+from ragsplat_core.tuning import record
 
-# Both culls were chosen on the development reach (dataset seed 1; evaluation: seed 0), 1 500 iterations.
-# The opacity cull first (`full` from a triangulated start, training seed 0): the paper's 0.1 keeps the faint,
-# large Gaussians that float above and below the bed, and the volume weighting lets them decide many cells.
-# Then both together (`full` seed 0, `2dgs+full` seeds 0 and 1, all from the refracted start): the few wide
-# Gaussians that stay opaque (metre-wide discs mostly hidden behind the bed in the renders, floaters in the air
-# seen by a few views) still decided whole patches of the grid. The size is in ground sample distances of the
-# views (2.33 cm on the reach), so that it means the same on a coarser preset or survey.
-EXTRACT_TUNING = {"dataset_preset": "small", "dataset_seed": 1,
-                  "chosen": {"min_opacity": 0.7, "max_scale_gsd": 6.0},
-                  "rule": "max F1@3% among settings that keep >= 85 % of the wet cells (a DEM with holes is not "
-                          "a survey); with several models, of their mean F1@3%, and >= 85 % for each",
-                  "min_opacity": {"variant": "full", "init": "triangulated", "training_seeds": [0],
-                                  "tried": {"0.1": [59.6, 99.1], "0.3": [59.8, 98.0], "0.5": [72.2, 91.7],
-                                            "0.6": [80.5, 90.2], "0.7": [85.6, 86.8], "0.8": [87.0, 78.6],
-                                            "0.9": [84.4, 63.7]},
-                                  "columns": ["F1 at 3 % of depth (%)", "wet cells with a height (%)"]},
-                  "both": {"models": ["full seed 0", "2dgs+full seed 0", "2dgs+full seed 1"], "init": "refracted",
-                           "gsd_m": 0.0233,
-                           "tried": {  # min_opacity -> max_scale_gsd -> [mean F1@3% (%), least wet cover (%)]
-                               "0.6": {"2": [88.2, 61.6], "3": [94.2, 81.1], "4": [95.7, 87.7], "5": [95.9, 90.9],
-                                       "6": [96.0, 91.9], "8": [95.4, 93.5], "none": [91.2, 92.5]},
-                               "0.7": {"2": [87.9, 58.2], "3": [94.2, 79.0], "4": [95.8, 85.8], "5": [96.1, 88.9],
-                                       "6": [96.2, 89.5], "8": [96.0, 90.8], "none": [93.3, 89.9]},
-                               "0.8": {"2": [87.3, 52.6], "3": [93.8, 72.4], "4": [95.5, 79.1], "5": [96.0, 82.4],
-                                       "6": [96.0, 83.2], "8": [95.8, 83.8], "none": [93.8, 81.2]}},
-                           "columns": ["mean F1 at 3 % of depth (%)", "least wet cells with a height (%)"]},
-                  # Step 5, on the same three models with the culls above (each model's figures are what
-                  # `ragsplat eval RUN --despike-radius R --despike-tol T` reports): radius (m) -> tol (m) ->
-                  # [mean F1@3% (%), least wet cover (%), mean wet RMSE (cm)]; without it 96.21 / 89.5 / 5.03.
-                  "despike": {"chosen": {"despike_radius": 1.0, "despike_tol": 0.3},
-                              "rule": "the least mean wet RMSE among settings whose mean F1@3% is within 0.5 points "
-                                      "and least wet cover within 1 point of no despiking (it is to remove "
-                                      "spikes, not bed)",
-                              "tried": {"0.25": {"0.1": [96.47, 87.1, 4.35], "0.2": [96.29, 89.1, 4.73],
-                                                 "0.3": [96.24, 89.4, 4.85], "0.5": [96.22, 89.5, 4.96],
-                                                 "1.0": [96.21, 89.5, 5.01]},
-                                        "0.5": {"0.1": [96.28, 85.0, 3.94], "0.2": [96.29, 88.6, 4.50],
-                                                "0.3": [96.26, 89.2, 4.73], "0.5": [96.22, 89.4, 4.91],
-                                                "1.0": [96.21, 89.5, 5.01]},
-                                        "1.0": {"0.1": [92.56, 75.4, 3.29], "0.2": [95.94, 86.7, 3.65],
-                                                "0.25": [96.14, 88.1, 3.78], "0.3": [96.19, 88.6, 3.88],
-                                                "0.4": [96.24, 89.0, 3.99], "0.5": [96.25, 89.2, 4.10],
-                                                "1.0": [96.22, 89.5, 4.40]},
-                                        "1.5": {"0.3": [95.19, 85.7, 3.84], "0.4": [96.11, 88.5, 3.92]},
-                                        "2.0": {"0.3": [90.55, 77.7, 3.83], "0.4": [93.79, 84.0, 3.94],
-                                                "0.5": [95.72, 87.8, 4.02]}}},
-                  # Step 6, later, with every setting above: `ragsplat eval RUN --fill-gap-cells K` of the
-                  # `2dgs+full` development runs of the `small-field` preset (dataset seed 1, training seeds 0
-                  # and 1) and of the `small` preset (dataset seed 1, training seed 0); docs/evaluation.md.
-                  "fill": {"chosen": {"fill_gap_cells": 1.0},
-                           "rule": "the highest F1@1% averaged over the three runs; within 0.1 point, the smaller K",
-                           "models": ["small-field 2dgs+full seed 0", "small-field 2dgs+full seed 1",
-                                      "small 2dgs+full seed 0"],
-                           "tried": {"0": [[66.9, 75.5], [66.4, 75.2], [77.7, 93.8]],
-                                     "1": [[68.5, 83.5], [67.9, 82.6], [78.0, 96.7]],
-                                     "2": [[68.4, 87.4], [67.8, 86.3], [77.9, 97.6]],
-                                     "3": [[68.0, 90.5], [67.4, 89.5], [77.9, 98.1]]},
-                           "columns": ["F1 at 1 % of depth (%)", "wet cells with a height (%)"]}}
+# The culls, despiking and fill were chosen on the development reach (dataset seed 1), each by a rule fixed
+# before its sweep: ragsplat_core/tuning/extract.json (docs/history.md, "The extraction's settings").
+EXTRACT_TUNING = record("extract")
 
 
 @dataclass(frozen=True)
 class ExtractConfig:
-    min_opacity: float = 0.7  # `EXTRACT_TUNING` (the paper: 0.1)
+    # the paper's 0.1 keeps faint Gaussians floating off the bed: 0.7, the best F1@3% that keeps 85 % of the
+    # wet cells (tuning/extract.json, "min_opacity" and "both")
+    min_opacity: float = 0.7
     # largest standard deviation, in ground sample distances: a Gaussian many pixels wide is not what the
     # views resolve and cannot place one cell's height, yet volume weighting gives it the most samples.
-    # `EXTRACT_TUNING` (the paper: no limit). In pixels, not cells: the DEM's cell is the user's choice.
+    # 6 as chosen with the opacity (tuning/extract.json, "both"; the paper: no limit). In pixels, not cells:
+    # the DEM's cell is the user's choice.
     max_scale_gsd: float = 6.0
     gsd: float | None = None  # metres per pixel (`Dataset.gsd`); needed when max_scale_gsd is finite
     n_samples: int = 200_000
@@ -119,12 +68,13 @@ class ExtractConfig:
     filter_k: float = 2.0
     filter_min_tol: float = 1e-3  # metres
     cell: float = 0.05
-    # `EXTRACT_TUNING["despike"]`; the disc needs `despike_min_neighbours` occupied cells to judge (a DEM
-    # cell of 1 m has only 4 within 1 m: nothing is dropped there). despike_tol = inf: no despiking.
+    # the least RMSE that takes spikes, not bed (tuning/extract.json, "despike"); the disc needs
+    # `despike_min_neighbours` occupied cells to judge (a DEM cell of 1 m has only 4 within 1 m: nothing is
+    # dropped there). despike_tol = inf: no despiking.
     despike_radius: float = 1.0  # metres
     despike_tol: float = 0.3  # metres
     despike_min_neighbours: int = 8
-    fill_gap_cells: float = 1.0  # step 6, `EXTRACT_TUNING["fill"]`; 0: off
+    fill_gap_cells: float = 1.0  # step 6: the best F1@1% (tuning/extract.json, "fill"); 0: off
     seed: int = 0
 
     def to_dict(self) -> dict:
