@@ -20,3 +20,20 @@ def test_a_record_is_a_new_dict_each_time():
     a = record("extract")
     a["chosen"]["min_opacity"] = 0.0
     assert record("extract")["chosen"]["min_opacity"] == 0.7
+
+
+def test_the_presets_hold_the_recorded_choices():
+    from ragsplat_core.train.config import FIELD_TUNING, PRESETS, TUNING
+
+    def value(cfg, name):
+        return getattr(cfg.densify, name.split(".", 1)[1]) if name.startswith("densify.") else getattr(cfg, name)
+
+    small, field = PRESETS["small"], PRESETS["small-field"]
+    for rec in (TUNING, *(TUNING[k] for k in ("surfel_terms", "ssim_lambda", "refine_stop", "length"))):
+        assert all(value(small, k) == v for k, v in rec["chosen"].items()), rec["chosen"]
+        assert rec["commit"] and "python -m tools.tune" in rec["command"]
+    assert all(value(field, k) == v for k, v in FIELD_TUNING["chosen"].items())
+    assert field.lambda_normal == FIELD_TUNING["lambda_normal"]["kept"]
+    assert field.ssim_lambda == FIELD_TUNING["ssim_lambda"]["kept"]
+    assert value(field, "densify.refine_stop_iter") == FIELD_TUNING["refine_stop"]["kept"]["densify.refine_stop_iter"]
+    assert TUNING["dataset_seed"] == FIELD_TUNING["dataset_seed"] == 1

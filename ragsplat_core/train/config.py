@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 
 from ragsplat_core.errors import ConfigError
 from ragsplat_core.train.strategy import PAPER_ITERATIONS, DensifyConfig
+from ragsplat_core.tuning import record
 
 # variant -> refract_gaussians flags (None: plain 3DGS, no refraction work at all)
 VARIANTS: dict[str, dict | None] = {
@@ -57,7 +58,7 @@ VEIL_RANGE = (1e-3, 1.0)
 # glint that still shows through R = 0.02 at nadir (R x 100 = 2: saturated), where the images clip.
 SKY_RANGE = (1e-3, 100.0)
 # Where the ablation's rows and a survey's training start by default: the training images' tracks, refracted
-# (F1@3% about 20 % from the paper's plane on the reach, which has no single bed depth; docs/evaluation.md)
+# (F1@3% about 20 % from the paper's plane on the reach, which has no single bed depth; docs/history.md)
 INIT = "refracted"
 # Settings of how a run executes, not of what it computes (the same steps, equal to round-off): a checkpoint
 # written under one value resumes under another.
@@ -261,179 +262,28 @@ class TrainConfig:
 
 
 # Presets: smoke (CI, seconds), small (the 2-core CPU default of `make ablation`), small-field (small for field
-# conditions, `FIELD_TUNING`), paper (30k, a GPU).
-# The short presets start the position rate higher than 3DGS's 1.6e-4: with the 30k schedule squeezed into
-# 1500 steps the default rate lets a Gaussian travel at most about 0.3 m (sum of the per-step rates x
-# extent), less than the refraction shift it must be free to follow (0.74 m at 3 m depth).
+# conditions), paper (30k, a GPU). `small` and `small-field` were tuned on their development reach (dataset seed
+# 1), never on a reach a table reports: each value below with its reason and its record in ragsplat_core/tuning/
+# (small.json, small_field.json: values tried, figures, rule, command, commit), which every results.json repeats.
+TUNING = record("small")
+FIELD_TUNING = record("small_field")
+# The short presets start the position rate higher than 3DGS's 1.6e-4: squeezed into 1 500 steps that rate lets
+# a Gaussian travel at most about 0.3 m, less than the refraction shift it must follow (0.74 m at 3 m depth).
 SHORT_LR_MEANS = 1.6e-3  # smoke (CI): a scale argument, not tuned
-# `small` was tuned on the development dataset in `TUNING`, never on the evaluation dataset (README,
-# "Protocol"): the `small` reach rendered with dataset seed 1 (evaluation: seed 0), full variant, training
-# seed 0, the value with the best F1 at 3 % of depth. results.json repeats this record.
-SMALL_LR_MEANS = 5e-3
-# 2DGS's normal consistency at 0.05 smooths the bed's stones at this resolution: a fifth of it (TUNING["surfel_terms"]).
+SMALL_LR_MEANS = 5e-3  # the best F1 at 3 % of depth of the three tried (small.json, top level)
+# 2DGS's normal consistency at 0.05 smooths the bed's stones at this resolution: a fifth of it (small.json,
+# "surfel_terms").
 SMALL_LAMBDA_NORMAL = 0.01
 # The photometric loss weighs (1 - SSIM) at 0.8, not 3DGS's 0.2: the bed's fine relief shows in the images'
-# structure more than in their mean colour (TUNING["ssim_lambda"]).
+# structure more than in their mean colour (small.json, "ssim_lambda").
 SMALL_SSIM_LAMBDA = 0.8
 # Densification stops at 30 % of the run, not 3DGS's half: the cap is reached early on this reach, and the
-# steps without cloning, pruning or opacity resets settle the bed (TUNING["refine_stop"]). At the 30k scale.
+# steps without cloning, pruning or opacity resets settle the bed (small.json, "refine_stop"). At the 30k scale.
 SMALL_REFINE_STOP = 9_000
-# 3 000 steps, not 1 500: the surfel bed keeps sharpening after 1 500 on the development reach, 1.3-2.2 points at
-# 1 % of depth on both seeds, for twice the training time, and 4 500 gain nothing more (TUNING["length"]); the
-# field preset already trains as long. Chosen for the best variant: `full` loses at 3 000 (4 points at 1 %, seed
-# 0), and keeps the same preset so that the rows differ by their model alone.
+# 3 000 steps, not 1 500: the surfel bed keeps sharpening, and 4 500 gain nothing more (small.json, "length").
+# Chosen for the best variant: `full` loses at 3 000, and keeps the same preset so that the rows differ by their
+# model alone.
 SMALL_ITERATIONS = 3000
-# What the later tuning records below score a bed by (`eval.tune`'s figures), and their two selection rules.
-BED_COLUMNS = ["F1@1% (%)", "F1@3% (%)", "wet RMSE (cm)", "wet p95 (cm)", "wet cover (%)"]
-RULE_1PCT = "max F1@1% (mean of the two seeds) among settings within 0.5 point of the best F1@3%"
-FIELD_RULE = "max F1@3% of 2dgs+full, on both seeds"
-TUNING = {"preset": "small", "dataset_preset": "small", "dataset_seed": 1, "training_seed": 0,
-          "chosen": {"lr_means": SMALL_LR_MEANS}, "tried": {"lr_means": [5e-4, 1.6e-3, 5e-3]},
-          "rule": "max F1@3% of the full variant",
-          "command": "python -m eval.tune --data data/small-dev --out runs/tune --values 5e-4 1.6e-3 5e-3",
-          # A smaller cap or a shorter run would make `make ablation` faster; both cost bed accuracy on the
-          # development reach (refracted start, one thread per run, two runs at a time), so neither was taken.
-          "speed": {"kept": {"densify.max_gaussians": 40_000, "iterations": 1500},
-                    "columns": ["F1@3% (%)", "F1@1% (%)", "wet RMSE (cm)", "wet cover (%)", "training (s)"],
-                    "tried": {"full seed 0": {"40k": [95.0, 71.3, 5.3, 90.5, 276], "20k": [94.5, 73.4, 4.6, 87.5, 190],
-                                              "20k, 1000 iterations": [92.5, 69.5, 4.4, 81.7, 110]},
-                              "full seed 1": {"40k": [95.6, 74.9, 5.9, 89.6, 221], "20k": [94.3, 74.0, 4.2, 86.3, 195]},
-                              "2dgs+full seed 0": {"40k": [97.0, 77.6, 4.1, 94.5, 410],
-                                                   "20k": [95.6, 76.4, 4.0, 91.0, 330]}},
-                    "rule": "the cheaper setting only if its F1@3% and wet cover are within the seed spread of 40k",
-                    "measured_with": "ragsplat ablation --preset small --data data/small-dev --init refracted "
-                                     "--jobs 1 --seeds S --variants V, the preset's cap and length set by a "
-                                     "driver script (not kept)",
-                    "same_configs": "python -m eval.tune --data data/small-dev --out runs/tune-cap "
-                                    "--param densify.max_gaussians --values 20000 40000 --variants full 2dgs+full"},
-          # Later, for the 1 % band (issue 26), the surfels' two geometry terms and a larger cap, 2dgs+full only
-          # (the terms act on surfels alone), the default extraction, training seed 0, then seed 1 as a check;
-          # each row is 2DGS's weights (normal 0.05, distortion 0.1) with the named ones changed:
-          "surfel_terms": {
-              "chosen": {"lambda_normal": SMALL_LAMBDA_NORMAL},
-              "rule": "max F1@1% among settings within 0.5 point of the best F1@3%, wet cover >= 85 %",
-              "columns": BED_COLUMNS,
-              "tried": {"seed 0": {"2DGS's": [78.0, 97.5, 3.7, 7.3, 96.7],
-                                   "lambda_normal 0.2": [66.8, 95.3, 5.3, 10.6, 96.6],
-                                   "lambda_normal 0.01": [81.3, 97.5, 3.2, 6.4, 95.7],
-                                   "lambda_normal 0": [81.1, 97.5, 3.1, 6.1, 94.7],
-                                   "lambda_distortion 0.01": [71.3, 96.1, 4.9, 10.0, 96.8],
-                                   "lambda_distortion 0.3, lambda_normal 0.01": [77.3, 97.7, 3.5, 7.2, 96.5],
-                                   "densify.max_gaussians 80000": [74.1, 97.6, 4.2, 8.4, 98.4]},
-                        "seed 1": {"2DGS's": [78.1, 97.7, 3.8, 7.2, 97.3],
-                                   "lambda_normal 0.01": [81.7, 97.7, 3.4, 6.3, 96.8]}},
-              "command": "python -m eval.tune --data data/small-dev --out DIR --param P --values V "
-                         "--variants 2dgs+full --seed S"},
-          # Then, with normal 0.01, the loss's SSIM weight, the position rate, densification's threshold and the
-          # SH degree (2dgs+full, each row the preset with the named one changed; the base row is seed 0's
-          # "lambda_normal 0.01" above and seed 1's below it):
-          "ssim_lambda": {
-              "chosen": {"ssim_lambda": SMALL_SSIM_LAMBDA},
-              "rule": RULE_1PCT,
-              "columns": BED_COLUMNS,
-              "tried": {"seed 0": {"ssim_lambda 0.2 (3DGS)": [81.3, 97.5, 3.2, 6.4, 95.7],
-                                   "ssim_lambda 0.1": [77.3, 97.1, 4.0, 8.1, 96.4],
-                                   "ssim_lambda 0.4": [82.4, 98.0, 3.2, 6.6, 97.1],
-                                   "ssim_lambda 0.6": [82.5, 98.1, 3.5, 6.2, 96.9],
-                                   "ssim_lambda 0.8": [82.9, 98.3, 3.4, 6.3, 97.4],
-                                   "ssim_lambda 1": [81.9, 97.9, 4.0, 7.0, 97.2],
-                                   "lr_means 2.5e-3": [80.3, 97.4, 3.6, 7.4, 96.7],
-                                   "lr_means 1e-2": [80.2, 97.9, 3.5, 6.9, 96.9],
-                                   "densify.grow_grad2d 1e-4": [79.9, 97.7, 3.7, 7.3, 97.3],
-                                   "densify.grow_grad2d 4e-4": [80.0, 97.4, 3.7, 6.9, 96.1],
-                                   "sh_degree 1": [81.9, 97.8, 3.1, 6.2, 96.0]},
-                        "seed 1": {"ssim_lambda 0.2 (3DGS)": [81.7, 97.7, 3.4, 6.3, 96.8],
-                                   "ssim_lambda 0.4": [82.7, 98.0, 3.2, 6.3, 97.1],
-                                   "ssim_lambda 0.6": [82.7, 98.3, 3.5, 6.5, 97.8],
-                                   "ssim_lambda 0.8": [82.4, 98.3, 3.6, 6.6, 97.6]}},
-              # the same loss for the 3DGS rows of the preset: `full`, seed 0, checked before it was kept
-              "full seed 0": {"ssim_lambda 0.2 (3DGS)": [70.4, 94.0, 5.3, 12.2, 95.6],
-                              "ssim_lambda 0.8": [75.6, 95.9, 4.8, 10.4, 96.5]},
-              "command": "python -m eval.tune --data data/small-dev --out DIR --param P --values V "
-                         "--variants 2dgs+full --seed S"},
-          # Then, with SSIM 0.8, where densification stops (3DGS: 15k of 30k, here 750 of 1500 steps), the
-          # base rows being the "ssim_lambda 0.8" ones above:
-          "refine_stop": {
-              "chosen": {"densify.refine_stop_iter": SMALL_REFINE_STOP},
-              "rule": RULE_1PCT,
-              "columns": BED_COLUMNS,
-              "tried": {"seed 0": {"15000 (3DGS)": [82.9, 98.3, 3.4, 6.3, 97.4],
-                                   "6000": [83.9, 98.2, 3.7, 6.3, 97.9], "9000": [83.9, 98.3, 3.5, 6.1, 97.8],
-                                   "22500": [81.7, 97.7, 3.5, 6.3, 95.6],
-                                   "densify.reset_every 6000": [82.9, 98.3, 3.0, 6.1, 97.1],
-                                   "densify.reset_every 30000 (no reset)": [83.0, 98.4, 3.4, 6.1, 97.7]},
-                        "seed 1": {"15000 (3DGS)": [82.4, 98.3, 3.6, 6.6, 97.6],
-                                   "6000": [83.1, 98.5, 3.5, 6.6, 98.5], "9000": [83.3, 98.7, 3.5, 6.7, 98.5]}},
-              "full seed 0": {"15000 (3DGS)": [75.6, 95.9, 4.8, 10.4, 96.5], "9000": [78.2, 96.6, 4.3, 9.3, 97.1]},
-              "command": "python -m eval.tune --data data/small-dev --out DIR --param densify.refine_stop_iter "
-                         "--values V --variants 2dgs+full --seed S"},
-          # Then, with that stop, a longer run and a larger cap (each row the preset at 1 500 steps with the named
-          # one changed):
-          "length": {"chosen": {"iterations": SMALL_ITERATIONS},
-                     "rule": RULE_1PCT,
-                     "columns": BED_COLUMNS,
-                     "tried": {"seed 0": {"iterations 1500": [83.9, 98.3, 3.5, 6.1, 97.8],
-                                          "iterations 2000": [84.8, 98.6, 3.6, 5.8, 98.4],
-                                          "iterations 3000": [85.2, 99.0, 3.4, 5.7, 98.9],
-                                          "iterations 4500": [85.0, 98.9, 3.1, 5.6, 98.7],
-                                          "densify.max_gaussians 60000": [83.1, 98.4, 3.8, 6.7, 98.6]},
-                               "seed 1": {"iterations 1500": [83.3, 98.7, 3.5, 6.7, 98.5],
-                                          "iterations 2000": [84.4, 98.9, 3.2, 6.0, 98.5],
-                                          "iterations 3000": [85.5, 99.1, 3.0, 5.6, 98.8],
-                                          "iterations 4500": [85.4, 98.9, 3.1, 5.8, 98.7]},
-                               "full seed 0": {"iterations 1500": [78.2, 96.6, 4.3, 9.3, 97.1],
-                                               "iterations 2000": [78.3, 97.1, 4.1, 8.7, 97.3],
-                                               "iterations 3000": [74.3, 95.1, 5.3, 12.3, 98.0]}},
-                     # 2dgs+full, one thread each, two runs at a time
-                     "training_s": {"1500": 470, "3000": 1000, "4500": 1450},
-                     "command": "python -m eval.tune --data data/small-dev --out DIR --param P --values V "
-                                "--variants V --seed S"}}
-# `small-field`: the `small` preset for photos under field conditions (turbid, reflecting, rippled water), tuned
-# on the development seed of the `small-field` dataset, never on its evaluation seed: the 2 x 2 of iterations and
-# the start's fill below (2dgs+full, refracted start, training seed 0, one thread per run, two runs at a time).
-FIELD_TUNING = {"preset": "small-field", "dataset_preset": "small-field", "dataset_seed": 1, "training_seed": 0,
-                "variant": "2dgs+full", "chosen": {"iterations": 3000, "init_fill": 0.2},
-                "rule": "max F1@3% of 2dgs+full",
-                "columns": BED_COLUMNS + ["training (s)"],
-                "tried": {"1500, no fill": [62.6, 87.7, 8.8, 13.7, 81.3, 487],
-                          "3000, no fill": [62.5, 88.1, 11.5, 9.1, 76.8, 951],
-                          "1500, fill 0.2 m": [66.0, 87.9, 6.1, 8.2, 76.3, 476],
-                          "3000, fill 0.2 m": [66.9, 89.1, 4.3, 7.3, 75.5, 895]},
-                "command": "python -m eval.tune --data data/small-field-s1 --out runs/tune-field-fillF --param "
-                           "iterations --values 3000 1500 --set init_fill=F --variants 2dgs+full (F = 0, 0.2)",
-                # Later, `small`'s weaker normal term (TUNING["surfel_terms"]) checked here before it was kept:
-                # 3 000 iterations, fill 0.2 m, the default extraction (one-cell fill), training seeds 0 and 1.
-                "lambda_normal": {"kept": SMALL_LAMBDA_NORMAL, "rule": FIELD_RULE,
-                                  "columns": BED_COLUMNS,
-                                  "tried": {"0.05 (2DGS)": {"seed 0": [68.5, 90.8, 4.7, 8.4, 83.5],
-                                                            "seed 1": [67.9, 89.8, 6.1, 8.8, 82.6]},
-                                            "0.01": {"seed 0": [71.3, 91.5, 6.8, 8.2, 85.0],
-                                                     "seed 1": [70.6, 90.9, 6.8, 8.4, 84.5]}},
-                                  "command": "python -m eval.tune --data data/small-field-s1 --out DIR --preset "
-                                             "small-field --param lambda_normal --values 0.01 --variants 2dgs+full "
-                                             "--seed S (0.05: the runs above, rescored by `ragsplat eval`)"},
-                # and `small`'s SSIM weight (TUNING["ssim_lambda"]), checked the same way with normal 0.01:
-                "ssim_lambda": {"kept": SMALL_SSIM_LAMBDA, "rule": FIELD_RULE,
-                                "columns": BED_COLUMNS,
-                                "tried": {"0.2 (3DGS)": {"seed 0": [71.3, 91.5, 6.8, 8.2, 85.0],
-                                                         "seed 1": [70.6, 90.9, 6.8, 8.4, 84.5]},
-                                          "0.8": {"seed 0": [73.4, 95.1, 5.2, 8.9, 93.7],
-                                                  "seed 1": [73.1, 94.7, 8.2, 9.7, 93.6]}},
-                                "command": "python -m eval.tune --data data/small-field-s1 --out DIR --preset "
-                                           "small-field --param ssim_lambda --values 0.8 --variants 2dgs+full "
-                                           "--seed S (0.2: the lambda_normal 0.01 runs above)"},
-                # and `small`'s earlier densification stop (TUNING["refine_stop"]), checked the same way with
-                # SSIM 0.8: no gain at 3 % on either seed, so the field keeps 3DGS's stop (half the run)
-                "refine_stop": {"kept": {"densify.refine_stop_iter": 15_000},
-                                "rule": FIELD_RULE,
-                                "columns": BED_COLUMNS,
-                                "tried": {"15000 (3DGS)": {"seed 0": [73.4, 95.1, 5.2, 8.9, 93.7],
-                                                           "seed 1": [73.1, 94.7, 8.2, 9.7, 93.6]},
-                                          "9000": {"seed 0": [72.7, 94.8, 5.1, 9.3, 93.4],
-                                                   "seed 1": [73.2, 94.6, 7.3, 9.9, 94.2]}},
-                                "command": "python -m eval.tune --data data/small-field-s1 --out DIR --preset "
-                                           "small-field --param densify.refine_stop_iter --values 9000 "
-                                           "--variants 2dgs+full --seed S (15000: the ssim_lambda 0.8 runs)"}}
 PRESETS: dict[str, TrainConfig] = {
     "smoke": TrainConfig(preset="smoke", iterations=150, init_count=1_500, sh_degree=1,
                          lr_means=SHORT_LR_MEANS, densify=DensifyConfig(max_gaussians=4_000)),
@@ -442,8 +292,8 @@ PRESETS: dict[str, TrainConfig] = {
                          densify=DensifyConfig(max_gaussians=40_000, refine_stop_iter=SMALL_REFINE_STOP)),
     "paper": TrainConfig(preset="paper", iterations=30_000, init_count=40_000),
 }
-# small-field keeps 3DGS's densification stop: `SMALL_REFINE_STOP` gained nothing on its development seed
-# (FIELD_TUNING["refine_stop"])
+# small-field: 3 000 steps and the start's gaps filled from the tracks' TIN (small_field.json, top level); it
+# keeps 3DGS's densification stop: `SMALL_REFINE_STOP` gained nothing on its development seed ("refine_stop")
 PRESETS["small-field"] = replace(PRESETS["small"], preset="small-field", init="refracted",
                                  densify=DensifyConfig(max_gaussians=40_000), **FIELD_TUNING["chosen"])
 # The `3dgs` row as its own field would train it (issue 46): `small`'s size and length, but 3DGS's loss (SSIM
