@@ -4,8 +4,8 @@
 [--set PARAM=VALUE ...]` trains each variant at each value (the
 `--set` parameters held fixed), scores the bed like the ablation and prints F1 at 1 % / 3 % of depth, wet RMSE,
 p95 and cover and the training time per value, and the value with the best mean F1 at 3 % over the variants.
-The choice is recorded by hand in `ragsplat_core.train.config.TUNING` (with the dataset seed), which every
-results.json repeats.
+The choice is recorded by hand in ragsplat_core/tuning/small.json (or small_field.json: the values, figures,
+command, commit and dataset seed), which every results.json repeats.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """The references' own settings chosen on the development reach by the rule the method's were chosen by
-(`ragsplat_core.train.config.RULE_1PCT`: the best F1 at 1 % of depth among the settings within 0.5 point of the
-best F1 at 3 %), so that the field's practice gets the care the method got:
+(the rule of ragsplat_core/tuning/small.json: the best F1 at 1 % of depth among the settings within 0.5
+point of the best F1 at 3 %), so that the field's practice gets the care the method got:
 
 1. the outlier filter of the tracks before their TIN (`tracks.track_filter`: radius, tolerance; or none),
    chosen on `triangulation (refracted)`, the best reference, and then used for every tracks' reference;
@@ -30,7 +30,7 @@ TIN_FILTERS = [None] + [{"radius": r, "tol": t, "min_neighbours": TRACK_MIN_NEIG
                         for r in (0.5, 1.0, 2.0) for t in (0.05, 0.1, 0.2, 0.3, 0.5)]
 DIETRICH_SETTINGS = [{"max_angle_deg": a, "reduce": r} for a in (None, 15.0, 20.0, 25.0, 30.0, 35.0, 40.0, 50.0)
                      for r in ("mean", "median")]
-MARGIN_3PCT = 0.005  # RULE_1PCT's 0.5 point
+MARGIN_3PCT = 0.005  # the rule's 0.5 point
 
 
 def figures(grid, truth) -> dict:
@@ -42,7 +42,7 @@ def figures(grid, truth) -> dict:
 
 
 def choose(rows: list[dict]) -> int:
-    """The index of RULE_1PCT's choice among rows with "f1_1pct" and "f1_3pct"."""
+    """The index of the rule's choice among rows with "f1_1pct" and "f1_3pct"."""
     best3 = max(r["f1_3pct"] for r in rows)
     near = [k for k, r in enumerate(rows) if r["f1_3pct"] >= best3 - MARGIN_3PCT]
     return max(near, key=lambda k: rows[k]["f1_1pct"])
