@@ -33,7 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ragsplat_core.train.config import INIT, VARIANTS, WATER_TERMS
     from ragsplat_core.train.defaults import CLEAR_VARIANTS, JOBS
 
-    parser.add_argument("--data", required=True, type=dataset_dir, help="dataset directory (transforms.json, gt/)")
+    parser.add_argument("--data", required=True, type=dataset_dir,
+                        help="dataset directory (transforms.json, gt/)")
     parser.add_argument("--out", required=True, type=out_dir, help="output directory (reused rows live here)")
     parser.add_argument("--preset", default="small", choices=list(PRESETS), help="training/eval size")
     parser.add_argument("--variants", nargs="+", default=list(CLEAR_VARIANTS), choices=list(VARIANTS),
@@ -44,23 +45,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"(default: {' '.join(map(str, SEEDS))})")
     parser.add_argument("--init", choices=["grid", "triangulated", "refracted"], default=INIT,
                         help="how every variant starts: the paper's plane at the bed depth (grid), or points "
-                             "triangulated from the training images with their known poses (no answer given): "
-                             "straight rays, depths x n (triangulated), or rays bent at the water (refracted) "
-                             f"(default: {INIT})")
+                             "triangulated from the training images with their known poses (no answer "
+                             "given): straight rays, depths x n (triangulated), or rays bent at the water "
+                             f"(refracted) (default: {INIT})")
     parser.add_argument("--one-level", action="store_true",
-                        help=f"give every variant and every reference one flat water level, the mean height of "
-                             f"the dataset's {EDGE_POINTS} (the water's edge as surveyed), instead of its "
-                             "surface: what a flat-water tool does on a sloping river; scored against the true "
-                             "surface and bed as always, its rows keyed apart from those without it")
+                        help="give every variant and every reference one flat water level, the mean height "
+                             f"of the dataset's {EDGE_POINTS} (the water's edge as surveyed), instead of its "
+                             "surface: what a flat-water tool does on a sloping river; scored against the "
+                             "true surface and bed as always, its rows keyed apart from those without it")
     lpips_arguments(parser)
     parser.add_argument("--device", default=None, help="torch device for training (default: the preset's)")
     parser.add_argument("--jobs", type=positive_int, default=None, metavar="N",
-                        help=f"train the rows on N local Dask workers at once, each with cores / N threads, shared "
-                             f"out over the GPUs on CUDA (default: {JOBS} on the CPU, {JOBS_PER_GPU} per GPU on "
-                             "CUDA; 1: in this process)")
+                        help="train the rows on N local Dask workers at once, each with cores / N threads, "
+                             f"shared out over the GPUs on CUDA (default: {JOBS} on the CPU, {JOBS_PER_GPU} "
+                             "per GPU on CUDA; 1: in this process)")
     parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                        help="train the rows on the Dask cluster whose scheduler is at ADDRESS (tcp://host:8786) "
-                             "instead of local workers")
+                        help="train the rows on the Dask cluster whose scheduler is at ADDRESS "
+                             "(tcp://host:8786) instead of local workers")
 
 
 class JobFailed(RagsplatError):
@@ -94,8 +95,8 @@ def prepare(args: argparse.Namespace, fingerprint: str) -> None:
 def run_rows(args: argparse.Namespace, fingerprint: str, code: str, check) -> None:
     """The trained rows as Dask tasks (`eval.ablation.train_row`, one per row, the longest first) on a local
     cluster of `args.jobs` worker processes or on the one at `args.scheduler`, with a bar of the rows done.
-    `check()` raises KeyboardInterrupt once this process was interrupted; the tasks are then cancelled (each row
-    keeps its last checkpoint). A task that fails raises JobFailed naming its row and log."""
+    `check()` raises KeyboardInterrupt once this process was interrupted; the tasks are then cancelled (each
+    row keeps its last checkpoint). A task that fails raises JobFailed naming its row and log."""
     from eval.ablation import RowJob, claim_out, row_log, row_order, train_row, visible_gpus
     from ragsplat_core.cli.cluster import client as dask_client
     from ragsplat_core.cli.progress import bar
@@ -104,8 +105,8 @@ def run_rows(args: argparse.Namespace, fingerprint: str, code: str, check) -> No
     prepare(args, fingerprint)
     # local workers share out the GPUs, worker k on GPU k mod their count; a cluster's own workers keep theirs
     gpus = () if args.scheduler else tuple(visible_gpus(args.device))
-    job = RowJob(str(args.data), str(args.out), args.preset, args.init, args.one_level, args.device, args.vgg16,
-                 code, gpus)
+    job = RowJob(str(args.data), str(args.out), args.preset, args.init, args.one_level, args.device,
+                 args.vgg16, code, gpus)
     rows = row_order(args.variants, args.seeds)
     with dask_client(args.jobs, args.scheduler) as (client, where):
         print(f"training {len(rows)} row{'s' if len(rows) > 1 else ''} on {where}; each row's log: "
@@ -123,8 +124,8 @@ def run_rows(args: argparse.Namespace, fingerprint: str, code: str, check) -> No
                     variant, seed = tasks[task]
                     if task.status != "finished":
                         raise JobFailed(f"training {variant} seed {seed} failed: {_reason(task)} (log: "
-                                        f"{row_log(args.out, variant, seed)}); finished rows and checkpoints are "
-                                        "kept, rerun the same command to resume")
+                                        f"{row_log(args.out, variant, seed)}); finished rows and checkpoints "
+                                        "are kept, rerun the same command to resume")
                     done.update(1)
         except BaseException:
             client.cancel(list(pending))
@@ -148,10 +149,12 @@ def run(args: argparse.Namespace) -> int:
         args.jobs = default_jobs(args.device)
     with deferred_interrupts() as check:  # Ctrl-C: the trainer checkpoints its finished steps, then stops
         # the dataset and its ground truth are loaded and checked before any task starts
-        train_eval = TrainEval(args.data, args.device, training_bar=partial(training_bar, leave=False, check=check),
+        train_eval = TrainEval(args.data, args.device,
+                               training_bar=partial(training_bar, leave=False, check=check),
                                init=args.init, one_level=args.one_level)
         if args.jobs > 1 or args.scheduler:
-            run_rows(args, train_eval.fingerprint, code, check)  # then every trained row is on disk, reused below
-        run_ablation(args.data, args.out, args.preset, args.variants, args.seeds, train_eval, vgg16=args.vgg16,
-                     download=not args.no_download, log=print, code=code)
+            # then every trained row is on disk, reused below
+            run_rows(args, train_eval.fingerprint, code, check)
+        run_ablation(args.data, args.out, args.preset, args.variants, args.seeds, train_eval,
+                     vgg16=args.vgg16, download=not args.no_download, log=print, code=code)
     return 0

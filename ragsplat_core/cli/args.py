@@ -70,7 +70,8 @@ def out_file(text: str) -> Path:
     """A file to write: not an existing directory."""
     path = Path(text)
     if path.is_dir():
-        raise argparse.ArgumentTypeError(f"{path} is a directory; give a file path (e.g. {path / 'report.json'})")
+        raise argparse.ArgumentTypeError(f"{path} is a directory; give a file path (e.g. "
+                                         f"{path / 'report.json'})")
     return path
 
 
@@ -108,21 +109,22 @@ def cull_arguments(parser: argparse.ArgumentParser) -> None:
     """--min-opacity, --max-scale-gsd, --despike-radius, --despike-tol and --fill-gap-cells: the volume
     bed's culls and hole filling (`ExtractConfig`); read them back with `cull_overrides`."""
     parser.add_argument("--min-opacity", type=positive_float, metavar="A",
-                        help="only Gaussians at least this opaque make the bed (default: the evaluation's, chosen on "
-                             "the development reach; lower it for a short or sparse run)")
+                        help="only Gaussians at least this opaque make the bed (default: the evaluation's, "
+                             "chosen on the development reach; lower it for a short or sparse run)")
     parser.add_argument("--max-scale-gsd", type=limit, metavar="K",
-                        help="only Gaussians whose largest standard deviation is at most K ground sample distances "
-                             "of the views (at the water surface) make the bed (default: the evaluation's, chosen on "
-                             "the development reach; inf: no limit, needed for a dry scene)")
+                        help="only Gaussians whose largest standard deviation is at most K ground sample "
+                             "distances of the views (at the water surface) make the bed (default: the "
+                             "evaluation's, chosen on the development reach; inf: no limit, needed for a dry "
+                             "scene)")
     parser.add_argument("--despike-radius", type=positive_float, metavar="M",
-                        help="a DEM cell is compared with the median of the cells within M metres (default: the "
-                             "evaluation's, chosen on the development reach)")
+                        help="a DEM cell is compared with the median of the cells within M metres (default: "
+                             "the evaluation's, chosen on the development reach)")
     parser.add_argument("--despike-tol", type=limit, metavar="M",
-                        help="and dropped when more than M metres from it (default: the evaluation's; inf: keep "
-                             "every cell)")
+                        help="and dropped when more than M metres from it (default: the evaluation's; inf: "
+                             "keep every cell)")
     parser.add_argument("--fill-gap-cells", type=non_negative_float, metavar="K",
-                        help="fill the holes: an empty cell at most K cells from a filled one gets the linear "
-                             "interpolation of the filled cells (default: the evaluation's, 0: none)")
+                        help="fill the holes: an empty cell at most K cells from a filled one gets the "
+                             "linear interpolation of the filled cells (default: the evaluation's, 0: none)")
 
 
 def cull_overrides(args: argparse.Namespace) -> dict:
@@ -133,7 +135,7 @@ def cull_overrides(args: argparse.Namespace) -> dict:
 def lpips_arguments(parser: argparse.ArgumentParser) -> None:
     """--vgg16 and --no-download: where LPIPS's weights come from (`eval.metrics.load_lpips`)."""
     parser.add_argument("--vgg16", default=None, metavar="PATH",
-                        help="torchvision's vgg16-397923af.pth for LPIPS (default: torch hub cache, downloaded "
-                             "there with its hash check when missing)")
+                        help="torchvision's vgg16-397923af.pth for LPIPS (default: torch hub cache, "
+                             "downloaded there with its hash check when missing)")
     parser.add_argument("--no-download", action="store_true",
                         help="never download the LPIPS weights (offline: LPIPS prints n/a with the reason)")

@@ -22,9 +22,11 @@ from ragsplat_core.outputs import write_json
 
 def _refraction_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cases", type=positive_int, default=200_000, help="cases per solver and dtype")
-    parser.add_argument("--repeats", type=positive_int, default=5, help="timed repetitions per solver (median reported)")
+    parser.add_argument("--repeats", type=positive_int, default=5,
+                        help="timed repetitions per solver (median reported)")
     parser.add_argument("--seed", type=count, default=0, help="random seed of the cases")
-    parser.add_argument("--out", type=out_file, default=Path("runs/bench/refraction.json"), help="JSON output path")
+    parser.add_argument("--out", type=out_file, default=Path("runs/bench/refraction.json"),
+                        help="JSON output path")
 
 
 def _refraction(args: argparse.Namespace) -> int:
@@ -52,7 +54,8 @@ def _raster_arguments(parser: argparse.ArgumentParser) -> None:
                         help="in-plane Gaussian size factors (1 = sigma 0.6-1.2x the mean spacing)")
     parser.add_argument("--threads", type=count, nargs="+", default=[0],
                         help="torch/numba threads per run (0 = one per core)")
-    parser.add_argument("--out", type=out_file, default=Path("runs/bench/raster.json"), help="JSON output path")
+    parser.add_argument("--out", type=out_file, default=Path("runs/bench/raster.json"),
+                        help="JSON output path")
 
 
 def _raster(args: argparse.Namespace) -> int:
@@ -62,7 +65,8 @@ def _raster(args: argparse.Namespace) -> int:
 
     unknown = [b for b in args.backends or () if b not in available_backends()]
     if unknown:
-        raise ConfigError(f"--backends {unknown[0]} is not available here; choose from {', '.join(available_backends())}")
+        raise ConfigError(f"--backends {unknown[0]} is not available here; choose from "
+                          f"{', '.join(available_backends())}")
     rows = bench_rasterizer(args.n, args.size, args.repeats, args.backends, args.footprint, args.threads)
     print(format_table(rows))
     write_json(args.out, {"rows": rows, "cpu_count": len(os.sched_getaffinity(0))})
@@ -71,13 +75,16 @@ def _raster(args: argparse.Namespace) -> int:
 
 
 def _surfel_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--n", type=positive_int, nargs="+", default=[40_000], help="surfel (Gaussian) counts")
+    parser.add_argument("--n", type=positive_int, nargs="+", default=[40_000],
+                        help="surfel (Gaussian) counts")
     parser.add_argument("--size", type=positive_int, default=256, help="image width = height in pixels")
     parser.add_argument("--repeats", type=positive_int, default=7, help="timed iterations (median reported)")
-    parser.add_argument("--backend", choices=["cpu", "torch"], default="cpu", help="backend of both rasterizers")
+    parser.add_argument("--backend", choices=["cpu", "torch"], default="cpu",
+                        help="backend of both rasterizers")
     parser.add_argument("--threads", type=count, nargs="+", default=[0],
                         help="torch/numba threads per run (0 = one per core)")
-    parser.add_argument("--out", type=out_file, default=Path("runs/bench/surfel.json"), help="JSON output path")
+    parser.add_argument("--out", type=out_file, default=Path("runs/bench/surfel.json"),
+                        help="JSON output path")
 
 
 def _surfel(args: argparse.Namespace) -> int:
@@ -93,22 +100,23 @@ def _surfel(args: argparse.Namespace) -> int:
 
 
 def _train_step_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--counts", type=positive_int, nargs="+", default=[10_000, 40_000], help="Gaussian counts")
+    parser.add_argument("--counts", type=positive_int, nargs="+", default=[10_000, 40_000],
+                        help="Gaussian counts")
     parser.add_argument("--backends", nargs="+", help="backend:device pairs, e.g. cpu:cpu torch:cuda "
                         "(default: all available)")
     parser.add_argument("--steps", type=positive_int, default=10, help="timed iterations per variant")
     parser.add_argument("--warmup", type=count, default=3, help="untimed iterations first (JIT, caches)")
     parser.add_argument("--compile", action="store_true",
-                        help="also full and 2dgs+full with the refraction transform through torch.compile (as "
-                        "`ragsplat train --compile-refraction`), timed in the same loop")
+                        help="also full and 2dgs+full with the refraction transform through torch.compile "
+                             "(as `ragsplat train --compile-refraction`), timed in the same loop")
     parser.add_argument("--attenuation", action="store_true",
                         help="also 2dgs+full+attenuation (the water's attenuation), timed in the same loop")
     parser.add_argument("--backscatter", action="store_true",
                         help="also 2dgs+full+backscatter (the water column's veil) and 2dgs+full+water "
                         "(attenuation, backscatter and reflection), timed in the same loop")
     parser.add_argument("--reflection", action="store_true",
-                        help="also 2dgs+full+reflection (the surface's reflection of the sky), timed in the same "
-                        "loop")
+                        help="also 2dgs+full+reflection (the surface's reflection of the sky), timed in the "
+                             "same loop")
     parser.add_argument("--out", type=out_file, default=Path("runs/bench/train_step.json"),
                         help="JSON output path (every timing of every row)")
 
@@ -127,8 +135,9 @@ def _train_step(args: argparse.Namespace) -> int:
         for p in pairs:
             if p not in backends_available():
                 raise ConfigError(f"backend {p[0]} on {p[1]} is not available here: {backends_available()}")
-    print(f"train-step benchmark: {SIZE}x{SIZE}, median of {args.steps} iterations after {args.warmup} warm-up; "
-          f"torch {torch.__version__}, {torch.get_num_threads()} threads, {platform.processor() or platform.machine()}")
+    print(f"train-step benchmark: {SIZE}x{SIZE}, median of {args.steps} iterations after {args.warmup} "
+          f"warm-up; torch {torch.__version__}, {torch.get_num_threads()} threads, "
+          f"{platform.processor() or platform.machine()}")
     print(f"{'backend':>6} {'dev':>4} {'N':>6} {'3dgs (s)':>10} {'full (s)':>10} {'full/3dgs':>9} "
           f"{'refr (s)':>10} {'refr/3dgs':>9} {'2dgs+full':>10} {'/full':>9}")
     rows = bench_train_step(args.counts, pairs, args.steps, args.warmup, compiled=args.compile,
@@ -145,7 +154,8 @@ def _export_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--spacing", type=positive_float, default=0.05,
                         help="the model's Gaussian spacing (m; default 0.05: 4 million over 100 x 100 m)")
     parser.add_argument("--resolution", type=positive_float, default=0.05, help="DEM cell (m; default 0.05)")
-    parser.add_argument("--out", type=out_file, default=Path("runs/bench/export.json"), help="JSON output path")
+    parser.add_argument("--out", type=out_file, default=Path("runs/bench/export.json"),
+                        help="JSON output path")
 
 
 def _export(args: argparse.Namespace) -> int:
@@ -155,10 +165,11 @@ def _export(args: argparse.Namespace) -> int:
     b, on_block = count_bar("export", "block")
     with b:
         row = bench_export(args.side, args.spacing, args.resolution, on_block)
-    print(f"export of a {row['side_m']:g} x {row['side_m']:g} m bed at {row['resolution_m']:g} m from {row['gaussians']} "
-          f"Gaussians: {row['cells']} cells in {row['blocks']} blocks of {row['block_samples']} samples, "
-          f"{row['seconds']:.0f} s, peak memory {row['peak_rss_gb']:.2f} GB ({row['peak_rss_gb_before']:.2f} before "
-          f"the export), height error median {1000 * row['height_error_m']['median']:.1f} mm, p99 "
+    print(f"export of a {row['side_m']:g} x {row['side_m']:g} m bed at {row['resolution_m']:g} m from "
+          f"{row['gaussians']} Gaussians: {row['cells']} cells in {row['blocks']} blocks of "
+          f"{row['block_samples']} samples, {row['seconds']:.0f} s, peak memory {row['peak_rss_gb']:.2f} GB "
+          f"({row['peak_rss_gb_before']:.2f} before the export), height error median "
+          f"{1000 * row['height_error_m']['median']:.1f} mm, p99 "
           f"{1000 * row['height_error_m']['p99']:.1f} mm")
     write_json(args.out, row, indent=1)
     print(f"wrote {args.out}", file=sys.stderr)
@@ -173,8 +184,10 @@ def _bundle_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--points", type=int, default=20000, help="bed points (default 20000)")
     parser.add_argument("--iterations", type=int, default=2, help="adjustment iterations timed (default 2)")
     parser.add_argument("--solver", choices=("auto", "dense", "sparse"), default="auto",
-                        help="the reduced system's solver (default auto: sparse above bundle.DENSE_MAX unknowns)")
-    parser.add_argument("--out", type=out_file, default=Path("runs/bench/bundle.json"), help="JSON output path")
+                        help="the reduced system's solver (default auto: sparse above bundle.DENSE_MAX "
+                             "unknowns)")
+    parser.add_argument("--out", type=out_file, default=Path("runs/bench/bundle.json"),
+                        help="JSON output path")
 
 
 def _bundle(args: argparse.Namespace) -> int:
@@ -182,10 +195,10 @@ def _bundle(args: argparse.Namespace) -> int:
 
     row = bench_bundle(*args.grid, args.spacing, args.points, args.iterations,
                        {"auto": None, "dense": False, "sparse": True}[args.solver])
-    print(f"adjustment through the water of {row['cameras']} photos, {row['points']} points, {row['observations']} "
-          f"observations ({row['observation_pairs']} pairs of observations of a point): "
-          f"{row['seconds_per_iteration']:.1f} s per iteration, peak memory {row['peak_rss_gb']:.2f} GB "
-          f"({row['peak_rss_gb_before']:.2f} before the adjustment), camera centres "
+    print(f"adjustment through the water of {row['cameras']} photos, {row['points']} points, "
+          f"{row['observations']} observations ({row['observation_pairs']} pairs of observations of a "
+          f"point): {row['seconds_per_iteration']:.1f} s per iteration, peak memory {row['peak_rss_gb']:.2f} "
+          f"GB ({row['peak_rss_gb_before']:.2f} before the adjustment), camera centres "
           f"{100 * row['centre_error_m_median']:.1f} cm off (median)")
     write_json(args.out, row, indent=1)
     print(f"wrote {args.out}", file=sys.stderr)
@@ -202,8 +215,8 @@ TARGETS = {
     "train-step": ("median time per training iteration; refraction overhead full/3dgs", _train_step_arguments,
                    _train_step),
     "export": ("the export of a large synthetic bed: time and peak memory", _export_arguments, _export),
-    "bundle": ("the adjustment through the water on a synthetic flight: time and peak memory", _bundle_arguments,
-               _bundle),
+    "bundle": ("the adjustment through the water on a synthetic flight: time and peak memory",
+               _bundle_arguments, _bundle),
 }
 
 

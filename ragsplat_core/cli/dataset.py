@@ -22,8 +22,10 @@ def shard(text: str) -> tuple[int, int]:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from datagen.spec import PRESETS
 
-    parser.add_argument("--preset", default="small", help=f"scene size: {', '.join(PRESETS)} (default: small)")
-    parser.add_argument("--out", required=True, type=out_dir, help="dataset directory (created; reruns resume)")
+    parser.add_argument("--preset", default="small",
+                        help=f"scene size: {', '.join(PRESETS)} (default: small)")
+    parser.add_argument("--out", required=True, type=out_dir,
+                        help="dataset directory (created; reruns resume)")
     parser.add_argument("--shard", default=(0, 1), type=shard, metavar="i/N",
                         help="render only views k with k mod N == i (0 <= i < N); merge when all are done")
     parser.add_argument("--seed", type=count, default=0, help="scene seed (default 0): same seed, same data")
@@ -34,15 +36,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-radiance-scale", action="store_true",
                         help="water refraction colour 1 instead of 1/n^2 (no radiance drop at the interface)")
     parser.add_argument("--turbidity", type=float, metavar="S",
-                        help="field conditions: the water body's absorption and scattering times S (clear river "
-                             "water, the small-field default, is 1; 0 is clear water)")
+                        help="field conditions: the water body's absorption and scattering times S (clear "
+                             "river water, the small-field default, is 1; 0 is clear water)")
     parser.add_argument("--reflection", action=argparse.BooleanOptionalAction, default=None,
-                        help="field conditions: Fresnel reflection of sky and sun (glint) at the water surface")
+                        help="field conditions: Fresnel reflection of sky and sun (glint) at the water "
+                             "surface")
     parser.add_argument("--ripple-amplitude", type=float, metavar="M",
-                        help="field conditions: rms height (m) of the ripples, a new surface in every photo; 0: flat")
-    parser.add_argument("--sun-elevation", type=float, metavar="DEG", help="sun elevation above the horizon (deg)")
+                        help="field conditions: rms height (m) of the ripples, a new surface in every photo; "
+                             "0: flat")
+    parser.add_argument("--sun-elevation", type=float, metavar="DEG",
+                        help="sun elevation above the horizon (deg)")
     parser.add_argument("--sun-azimuth", type=float, metavar="DEG",
-                        help="sun azimuth (deg, counter-clockwise from +x): with --sun-elevation, where the glint falls")
+                        help="sun azimuth (deg, counter-clockwise from +x): with --sun-elevation, where the "
+                             "glint falls")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -61,7 +67,8 @@ def run(args: argparse.Namespace) -> int:
         spec = replace(spec, water=None)
     if (args.turbidity, args.reflection, args.ripple_amplitude) != (None, None, None):
         spec = with_conditions(spec, args.turbidity, args.reflection, args.ripple_amplitude)
-    sun = {k: v for k, v in (("sun_elevation", args.sun_elevation), ("sun_azimuth", args.sun_azimuth)) if v is not None}
+    sun = {k: v for k, v in (("sun_elevation", args.sun_elevation), ("sun_azimuth", args.sun_azimuth))
+           if v is not None}
     spec = replace(spec, light=replace(spec.light, **sun))
     validate(spec)
     print(f"{spec.preset}: {len(flight.plan(spec))} views, {spec.flight.width} px, ground sample distance "
@@ -70,8 +77,8 @@ def run(args: argparse.Namespace) -> int:
 
     def progress(event: dict) -> None:
         if event["event"] == "plan":
-            bars.append(bar(event["images"], f"{spec.preset}: {event['views']} views x {event['passes']}", "img",
-                            disable=args.quiet))
+            bars.append(bar(event["images"], f"{spec.preset}: {event['views']} views x {event['passes']}",
+                            "img", disable=args.quiet))
         elif event["event"] == "retry":
             bars[-1].close()
             print(f"the renderer crashed (signal {event['signal']}, see {event['log']}); "
@@ -91,8 +98,8 @@ def run(args: argparse.Namespace) -> int:
         per = summary["render_s"] / summary["rendered"]
         print(f"rendered {summary['rendered']} images on {summary['device']} in {summary['wall_s']:.1f} s: "
               f"Cycles {summary['render_s']:.1f} s ({per:.2f} s/image), overhead "
-              f"{100 * overhead_fraction(summary):.1f} % of Cycles time (scene build {summary['build_s']:.1f} s); "
-              f"{summary['skipped']} already present")
+              f"{100 * overhead_fraction(summary):.1f} % of Cycles time (scene build "
+              f"{summary['build_s']:.1f} s); {summary['skipped']} already present")
     else:
         print(f"nothing to render: {summary['skipped']} images already present")
     state = "complete: metadata written" if summary["complete"] else "incomplete: other shards still missing"

@@ -1,4 +1,5 @@
-"""`ragsplat render RUN --view NAME|all [--wet|--dry|--depth] [--split train|test|all] [--out DIR] [--data DIR]`.
+"""`ragsplat render RUN --view NAME|all [--wet|--dry|--depth] [--split train|test|all] [--out DIR] [--data
+DIR]`.
 
 Renders a finished training run at the camera poses of its dataset, without retraining
 (`ragsplat_core.export.Model`): through the water as trained (`--wet`), the true Gaussians without the
@@ -24,11 +25,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     kind.add_argument("--dry", dest="kind", action="store_const", const="dry",
                       help="the true Gaussians without the interface: the bed as if drained")
     kind.add_argument("--depth", dest="kind", action="store_const", const="depth",
-                      help="z-depth (m) of the dry render: NAME.exr (float32, channel Y) and a colour NAME.png")
+                      help="z-depth (m) of the dry render: NAME.exr (float32, channel Y) and a colour "
+                           "NAME.png")
     parser.set_defaults(kind="wet")
     parser.add_argument("--split", choices=("train", "test", "all"), default="all",
                         help="the views --view chooses from (default: all)")
-    parser.add_argument("--out", type=out_dir, metavar="DIR", help="output directory (default: RUN/renders/KIND)")
+    parser.add_argument("--out", type=out_dir, metavar="DIR",
+                        help="output directory (default: RUN/renders/KIND)")
     parser.add_argument("--data", type=dataset_dir, metavar="DIR",
                         help="the run's dataset directory (default: the one RUN/config.json names)")
 

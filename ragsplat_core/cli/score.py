@@ -43,7 +43,8 @@ def table(result: dict) -> str:
     from eval.report import T2_COLUMNS, T3_COLUMNS, geometry_table
 
     rows = [([Path(result["file"]).name, "DEM" if result["kind"] == "DEM" else "TIN"], result["geometry"])]
-    rows += [([f"{name} (uses GT)" if name in result["uses_ground_truth"] else name, EXTRACTION.get(name, "-")],
+    rows += [([f"{name} (uses GT)" if name in result["uses_ground_truth"] else name,
+               EXTRACTION.get(name, "-")],
               geometry) for name, geometry in result["references"].items()]
     return geometry_table(["Row", "bed"], rows, T2_COLUMNS + T3_COLUMNS)
 
@@ -64,7 +65,8 @@ def run(args: argparse.Namespace) -> int:
           f"{result['wet_nodes_covered']} of the ground truth's {result['wet_nodes']} wet cells covered")
     print(table(result))
     print(f"\n- F1 at 10 / 30 cm and at 1 % / 3 % of the maximum depth ({result['max_depth_m']:g} m).")
-    print("\n".join(f"- {note}" for note in survey_notes({"max_depth_m": result["max_depth_m"], "water": result["water"]})))
+    print("\n".join(f"- {note}" for note in survey_notes({"max_depth_m": result["max_depth_m"],
+                                                          "water": result["water"]})))
     if not args.references:
         print("- the tracks' reference rows: add --references (triangulates the dataset if not cached, "
               "minutes)")

@@ -1,5 +1,5 @@
-"""`ragsplat eval RUN [--data DIR] [--out FILE.json] [--min-opacity A] [--max-scale-gsd K] [--despike-radius M]
-[--despike-tol M] [--fill-gap-cells K] [--vgg16 PATH] [--no-download]`: a finished training run
+"""`ragsplat eval RUN [--data DIR] [--out FILE.json] [--min-opacity A] [--max-scale-gsd K] [--despike-radius
+M] [--despike-tol M] [--fill-gap-cells K] [--vgg16 PATH] [--no-download]`: a finished training run
 scored against its dataset's ground truth with the ablation's measures, without retraining (`eval.score`);
 prints the bed's scores beside the reference answers and writes them all as JSON (default RUN/eval.json)."""
 
@@ -20,13 +20,14 @@ from ragsplat_core.cli.args import (
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run", type=Path, metavar="RUN", help="a finished `ragsplat train` output directory")
     parser.add_argument("--data", type=dataset_dir, metavar="DIR",
-                        help="the run's dataset directory, with its ground truth (default: the one RUN/config.json "
-                             "names)")
+                        help="the run's dataset directory, with its ground truth (default: the one "
+                             "RUN/config.json names)")
     parser.add_argument("--truth", type=dataset_dir, metavar="DIR",
-                        help="score against this dataset's ground truth and held-out views instead (same frame: e.g. "
-                             "the synthetic dataset whose COLMAP model a survey run imported)")
+                        help="score against this dataset's ground truth and held-out views instead (same "
+                             "frame: e.g. the synthetic dataset whose COLMAP model a survey run imported)")
     parser.add_argument("--dem", type=Path, metavar="FILE.tif",
-                        help="also score this DEM (`ragsplat export --dem`) and map its error (FILE_error.png)")
+                        help="also score this DEM (`ragsplat export --dem`) and map its error "
+                             "(FILE_error.png)")
     parser.add_argument("--out", type=out_file_ending(".json"), metavar="FILE.json",
                         help="the scores as JSON (default: RUN/eval.json)")
     cull_arguments(parser)  # of the volume bed

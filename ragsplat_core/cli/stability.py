@@ -17,8 +17,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--cases", type=positive_int, default=StabilityConfig.cases_per_regime,
                         help="cases per regime and dtype (8 regimes)")
-    parser.add_argument("--dtypes", nargs="+", default=list(StabilityConfig.dtypes), choices=["float64", "float32"],
-                        help="floating-point types to sweep (default: both)")
+    parser.add_argument("--dtypes", nargs="+", default=list(StabilityConfig.dtypes),
+                        choices=["float64", "float32"], help="floating-point types to sweep (default: both)")
     parser.add_argument("--seed", type=count, default=0, help="random seed of the cases")
     parser.add_argument("--out", type=out_file, default=Path("runs/stability.json"), help="JSON report path")
 

@@ -38,63 +38,70 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ragsplat_core.train.config import INIT, PRESETS, VARIANTS
     from ragsplat_core.train.defaults import JOBS
 
-    parser.add_argument("images", type=Path, metavar="IMAGES", help="the folder of the survey's photos (JPEG/PNG)")
+    parser.add_argument("images", type=Path, metavar="IMAGES",
+                        help="the folder of the survey's photos (JPEG/PNG)")
     frame = parser.add_mutually_exclusive_group()
     frame.add_argument("--positions", type=Path, metavar="CSV",
                        help="camera centres as the drone's RTK recorded them: CSV with header name,x,y,z "
                             "(image file name; metres, z up, the frame of the water level and the products); "
-                            "without --positions or --gcp the positions come from the photos' EXIF GPS and DJI XMP")
+                            "without --positions or --gcp the positions come from the photos' EXIF GPS and "
+                            "DJI XMP")
     frame.add_argument("--gcp", type=Path, metavar="CSV",
                        help="ground control points instead: CSV with header name,x,y,z (as surveyed), with "
                             "--gcp-pixels")
     parser.add_argument("--gcp-pixels", type=Path, metavar="CSV",
-                        help="where each target is in the photos: CSV with header image,name,u,v (pixels, the "
-                             "image's top-left corner at 0,0)")
+                        help="where each target is in the photos: CSV with header image,name,u,v (pixels, "
+                             "the image's top-left corner at 0,0)")
     parser.add_argument("--gcp-sigma", type=positive_float, default=0.01, metavar="M",
                         help="ground control accuracy, each axis (m; default 0.01)")
     surface = parser.add_mutually_exclusive_group()
     surface.add_argument("--water-level", type=level_or_auto, default="auto", metavar="Z|auto",
                          help="height of the calm, flat water surface in the positions' frame (m), or auto "
-                              "(the default without --water-surface): the level estimated from the photos, in "
-                              "the adjustment through the water")
+                              "(the default without --water-surface): the level estimated from the photos, "
+                              "in the adjustment through the water")
     surface.add_argument("--water-surface", type=Path, metavar="CSV",
-                         help="points on the water's edge as measured along both banks (RTK): CSV with header "
-                              "x,y,z, the positions' frame; a river's sloping surface is fitted to them")
+                         help="points on the water's edge as measured along both banks (RTK): CSV with "
+                              "header x,y,z, the positions' frame; a river's sloping surface is fitted to "
+                              "them")
     parser.add_argument("--out", required=True, type=out_dir, help="run directory (a rerun resumes)")
-    parser.add_argument("--n", type=refractive_index, default=1.33, help="refractive index of the water (1.33)")
+    parser.add_argument("--n", type=refractive_index, default=1.33,
+                        help="refractive index of the water (1.33)")
     parser.add_argument("--crs", metavar="CRS",
-                        help="the positions' CRS for the products, e.g. EPSG:32633; with positions from the photos "
-                             "the projected CRS (metres) they are converted to (default: the UTM zone of their "
-                             "mean position)")
+                        help="the positions' CRS for the products, e.g. EPSG:32633; with positions from the "
+                             "photos the projected CRS (metres) they are converted to (default: the UTM zone "
+                             "of their mean position)")
     parser.add_argument("--masks", type=Path, metavar="DIR",
                         help="masks named <image name>.png, zero where pixels are left out of training")
     parser.add_argument("--lens", choices=["radial", "pinhole"], default="radial",
-                        help="radial (default): the lens's radial distortion k1, k2 estimated in the adjustment "
-                             "through the water (one lens for all photos) and the photos undistorted for "
-                             "training; pinhole: none (photos already undistorted)")
+                        help="radial (default): the lens's radial distortion k1, k2 estimated in the "
+                             "adjustment through the water (one lens for all photos) and the photos "
+                             "undistorted for training; pinhole: none (photos already undistorted)")
     parser.add_argument("--no-water-adjustment", action="store_true",
-                        help="keep the pinhole structure-from-motion poses (only for comparison: through water "
-                             "they are tilted and the bed comes out too deep)")
+                        help="keep the pinhole structure-from-motion poses (only for comparison: through "
+                             "water they are tilted and the bed comes out too deep)")
     parser.add_argument("--rtk-sigma", type=positive_float, nargs=2, metavar=("H", "V"),
                         help="RTK position accuracy, horizontal and vertical (m; default 0.02 0.03, or with "
                              "positions from the photos each RTK-fixed photo's own reported accuracy)")
-    parser.add_argument("--gps-sigma", type=positive_float, nargs=2, default=CONSUMER_SIGMA, metavar=("H", "V"),
-                        help="accuracy of positions from the photos without RTK fix (consumer GPS), horizontal "
-                             "and vertical (m; default %(default)s)")
+    parser.add_argument("--gps-sigma", type=positive_float, nargs=2, default=CONSUMER_SIGMA,
+                        metavar=("H", "V"),
+                        help="accuracy of positions from the photos without RTK fix (consumer GPS), "
+                             "horizontal and vertical (m; default %(default)s)")
     parser.add_argument("--variant", default="2dgs+full", choices=list(VARIANTS), help="(default: 2dgs+full)")
-    parser.add_argument("--init", default=INIT, choices=["triangulated", "refracted"], help=f"(default: {INIT})")
+    parser.add_argument("--init", default=INIT, choices=["triangulated", "refracted"],
+                        help=f"(default: {INIT})")
     parser.add_argument("--preset", default="small", choices=list(PRESETS), help="training preset (small)")
     parser.add_argument("--iterations", type=positive_int, help="override the preset's iteration count")
     parser.add_argument("--seed", type=count, default=0, help="training seed (default 0)")
-    parser.add_argument("--resolution", type=positive_float, default=0.05, metavar="M", help="DEM cell (0.05 m)")
+    parser.add_argument("--resolution", type=positive_float, default=0.05, metavar="M",
+                        help="DEM cell (0.05 m)")
     parser.add_argument("--max-size", type=positive_int, metavar="PX",
                         help="downscale images for training so their longer side is at most PX pixels")
     parser.add_argument("--stop-after", choices=STAGES[:3], metavar="STAGE",
                         help="stop after this stage (sfm, georef or water: the poses without training)")
     parser.add_argument("--tile-size", type=positive_float, metavar="M",
-                        help="split a larger survey into tiles of at most M metres a side, each trained on its own "
-                             "and their DEMs merged (default: 1 000 ground sample distances; a survey that fits "
-                             "is one tile)")
+                        help="split a larger survey into tiles of at most M metres a side, each trained on "
+                             "its own and their DEMs merged (default: 1 000 ground sample distances; a "
+                             "survey that fits is one tile)")
     parser.add_argument("--tile-overlap", type=non_negative_float, metavar="M",
                         help="each tile's overlap with its neighbours (m; default: a tenth of the side)")
     parser.add_argument("--jobs", type=positive_int, default=JOBS, metavar="N",
@@ -146,8 +153,8 @@ def run(args: argparse.Namespace) -> int:
     @contextlib.contextmanager
     def cluster(tasks: int):
         with client(min(args.jobs, tasks), args.scheduler) as (c, where):
-            print(f"[tiles] on {where}; each tile's log: {args.out / 'tiles' / 'K' / 'log.txt'}", file=sys.stderr,
-                  flush=True)
+            print(f"[tiles] on {where}; each tile's log: {args.out / 'tiles' / 'K' / 'log.txt'}",
+                  file=sys.stderr, flush=True)
             yield c
 
     with deferred_interrupts() as check:  # Ctrl-C: the trainer checkpoints its finished steps, then stops

@@ -36,7 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     source.add_argument("--colmap", type=Path, metavar="MODEL",
                         help="a COLMAP model folder (cameras/images/points3D, .bin or .txt): your own survey")
     survey = parser.add_argument_group("survey import (with --colmap)")
-    survey.add_argument("--images", type=Path, metavar="DIR", help="the folder the model's image names refer to")
+    survey.add_argument("--images", type=Path, metavar="DIR",
+                        help="the folder the model's image names refer to")
     survey.add_argument("--masks", type=Path, metavar="DIR",
                         help="masks named <image name>.png, zero where pixels are left out (glint, people)")
     survey.add_argument("--crs", metavar="CRS", help="the model's CRS for the products, e.g. EPSG:32633")
@@ -48,15 +49,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="small", choices=list(PRESETS), help="training preset")
     parser.add_argument("--seed", type=count, default=0, help="random seed (written into config.json)")
     parser.add_argument("--iterations", type=positive_int, help="override the preset's iteration count")
-    parser.add_argument("--init", choices=list(INITS), help="initialisation (default: the preset's, grid; with "
-                        "--colmap: the model's points, else triangulated)")
+    parser.add_argument("--init", choices=list(INITS),
+                        help="initialisation (default: the preset's, grid; with --colmap: the model's "
+                             "points, else triangulated)")
     parser.add_argument("--init-depth", type=positive_float, help="grid depth below the water level (m); "
                         "default: scene.json spec.bed.depth")
     parser.add_argument("--init-count", type=positive_int, metavar="N",
-                        help="start from at most N points (a seeded random subset; default: the preset's cap)")
+                        help="start from at most N points (a seeded random subset; default: the preset's "
+                             "cap)")
     parser.add_argument("--init-fill", type=finite_float, metavar="M",
-                        help="fill the gaps of a point start from its TIN: grid nodes M metres apart with no point "
-                        "within M; 0: the points alone (default: the preset's)")
+                        help="fill the gaps of a point start from its TIN: grid nodes M metres apart with no "
+                             "point within M; 0: the points alone (default: the preset's)")
     parser.add_argument("--init-points", metavar="FILE.npy", help="point cloud [N, 3] or [N, 6] (xyz, rgb in "
                         "[0, 1]) for --init points; submerged depths are multiplied by n")
     parser.add_argument("--water-level", type=finite_float, metavar="Z",
@@ -66,15 +69,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="refractive index of the water (>= 1); default: the dataset's, else 1.33")
     parser.add_argument("--optimize-water", choices=["level", "level+n"],
                         help="calibrate the water level (and n) from the images, starting from the values "
-                        "above, once the first half of the run has settled the Gaussians (experimental: on the "
-                        "small reach it did not correct a level 10 cm off; see README)")
+                        "above, once the first half of the run has settled the Gaussians (experimental: on "
+                        "the small reach it did not correct a level 10 cm off; see README)")
     parser.add_argument("--checkpoint-every", type=count, metavar="N",
-                        help="write a checkpoint every N steps (default: every 10 %% of the run; 0: only at the end)")
+                        help="write a checkpoint every N steps (default: every 10 %% of the run; 0: only at "
+                             "the end)")
     parser.add_argument("--backend", choices=list(BACKENDS), help="rasterizer backend (default: auto)")
     parser.add_argument("--device", help="torch device (default: CUDA when available, else CPU)")
     parser.add_argument("--compile-refraction", action="store_true", default=None,
-                        help="fuse the refraction transform's small ops with torch.compile (for a GPU, where they "
-                        "are launch-bound; compiles first)")
+                        help="fuse the refraction transform's small ops with torch.compile (for a GPU, where "
+                             "they are launch-bound; compiles first)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -84,8 +88,8 @@ def run(args: argparse.Namespace) -> int:
     from ragsplat_core.train import Trainer, preset_config
 
     overrides = {"variant": args.variant, "seed": args.seed}
-    for key in ("iterations", "init", "init_depth", "init_count", "init_fill", "init_points", "water_level", "water_n", "optimize_water", "checkpoint_every",
-                "backend", "device", "compile_refraction"):
+    for key in ("iterations", "init", "init_depth", "init_count", "init_fill", "init_points", "water_level",
+                "water_n", "optimize_water", "checkpoint_every", "backend", "device", "compile_refraction"):
         if getattr(args, key) is not None:
             overrides[key] = getattr(args, key)
     data = args.data if args.colmap is None else _import(args, overrides)
@@ -120,7 +124,8 @@ def _import(args: argparse.Namespace, overrides: dict) -> Path:
     from ragsplat_core.refraction import WaterSurface
     from ragsplat_core.train.trainer import CHECKPOINT
 
-    missing = [flag for flag, value in (("--images", args.images), ("--water-level", args.water_level)) if value is None]
+    missing = [flag for flag, value in (("--images", args.images), ("--water-level", args.water_level))
+               if value is None]
     if missing:
         raise ConfigError(f"--colmap needs {' and '.join(missing)}")
     claim(args.out, "train run", legacy=(CHECKPOINT,))  # before the import writes into it
