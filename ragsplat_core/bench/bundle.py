@@ -24,19 +24,22 @@ def flight(columns: int, rows: int, spacing: float, points: int, seed: int = 0) 
     from ragsplat_core.survey import bundle
 
     rng = np.random.default_rng(seed)
-    cams = [Camera.look_at([i * spacing, j * spacing, HEIGHT], [i * spacing, j * spacing, 0.0], WIDTH, HEIGHT_PX, FOV)
+    cams = [Camera.look_at([i * spacing, j * spacing, HEIGHT], [i * spacing, j * spacing, 0.0], WIDTH,
+                           HEIGHT_PX, FOV)
             for j in range(rows) for i in range(columns)]
     R = torch.tensor(np.array([c.R for c in cams]))
     C = torch.tensor(np.array([c.camera_center for c in cams]))
     K = torch.tensor([[c.fx, c.fy, c.cx, c.cy] for c in cams])
     P = torch.tensor(np.column_stack([rng.uniform(0, (columns - 1) * spacing, points),
-                                      rng.uniform(0, (rows - 1) * spacing, points), rng.uniform(-1.5, -0.5, points)]))
+                                      rng.uniform(0, (rows - 1) * spacing, points),
+                                      rng.uniform(-1.5, -0.5, points)]))
     water = WaterSurface(0.0, 1.33)
     point, image, pixels = [], [], []
     for k in range(len(cams)):  # a camera at a time: who sees what
-        near = torch.nonzero(((P[:, :2] - C[k, :2]).abs() < HEIGHT * math.tan(math.radians(FOV / 2)) * 1.1).all(1))[:, 0]
-        uv = bundle.project(R[k].expand(len(near), 3, 3), C[k].expand(len(near), 3), K[k].expand(len(near), 4),
-                            P[near], water)
+        near = torch.nonzero(((P[:, :2] - C[k, :2]).abs()
+                              < HEIGHT * math.tan(math.radians(FOV / 2)) * 1.1).all(1))[:, 0]
+        uv = bundle.project(R[k].expand(len(near), 3, 3), C[k].expand(len(near), 3),
+                            K[k].expand(len(near), 4), P[near], water)
         inside = ((uv > 1) & (uv < torch.tensor([WIDTH - 1.0, HEIGHT_PX - 1.0]))).all(1)
         point.append(near[inside])
         image.append(torch.full((int(inside.sum()),), k))
@@ -67,5 +70,5 @@ def bench_bundle(columns: int, rows: int, spacing: float, points: int, iteration
     return {"cameras": len(f["C0"]), "points": len(f["P0"]), "observations": len(f["point"]),
             "observation_pairs": int((counts * counts).sum()), "iterations": got.iterations,
             "seconds_per_iteration": seconds / max(got.iterations, 1), "peak_rss_gb_before": before,
-            "peak_rss_gb": peak_rss_gb(), "centre_error_m_median": float((got.C - f["C"]).norm(dim=1).median()),
-            "sparse": sparse}
+            "peak_rss_gb": peak_rss_gb(),
+            "centre_error_m_median": float((got.C - f["C"]).norm(dim=1).median()), "sparse": sparse}

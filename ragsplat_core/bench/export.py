@@ -23,7 +23,8 @@ def disc_model(side: float, spacing: float) -> dict[str, torch.Tensor]:
     """Activated Gaussians: discs 0.6 spacing wide and 3 mm thick on a `spacing` lattice over a square of
     `side` metres centred on the origin, on `bed_height`, opacity 0.8."""
     half = side / 2
-    x, y = np.meshgrid(np.arange(-half, half + spacing / 2, spacing), np.arange(-half, half + spacing / 2, spacing))
+    x, y = np.meshgrid(np.arange(-half, half + spacing / 2, spacing),
+                       np.arange(-half, half + spacing / 2, spacing))
     xy = np.column_stack([x.ravel(), y.ravel()])
     n = len(xy)
     return {"means": torch.tensor(np.column_stack([xy, bed_height(xy)]), dtype=torch.float32),
@@ -44,7 +45,8 @@ def bench_export(side: float, spacing: float, resolution: float, on_block=None) 
                       on_block=lambda done, total: (blocks.append(total), on_block and on_block(done, total)))
     seconds = time.perf_counter() - t0
     err = np.abs(bed.grid[:, 2] - bed_height(bed.grid[:, :2]))
-    return {"side_m": side, "gaussians": len(model["means"]), "resolution_m": resolution, "cells": len(bed.grid),
+    return {"side_m": side, "gaussians": len(model["means"]), "resolution_m": resolution,
+            "cells": len(bed.grid),
             "blocks": blocks[-1] if blocks else 1, "block_samples": BLOCK_SAMPLES, "seconds": seconds,
             "peak_rss_gb_before": before, "peak_rss_gb": peak_rss_gb(),
             "height_error_m": {"median": float(np.median(err)), "p99": float(np.percentile(err, 99))}}

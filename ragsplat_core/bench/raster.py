@@ -126,8 +126,8 @@ def bench_rasterizer(sizes=(10_000, 40_000), size: int = 256, repeats: int = 7, 
         backend, device = _ON_CUDA.get(name, (name, "cpu"))
         kwargs = {"backend": backend, "n": n, "size": size, "repeats": repeats, "device": device,
                   "footprint": footprint, "threads": nthreads}
-        done = subprocess.run([sys.executable, "-c", _WORKER, json.dumps(kwargs)], capture_output=True, text=True,
-                              check=False)
+        done = subprocess.run([sys.executable, "-c", _WORKER, json.dumps(kwargs)], capture_output=True,
+                              text=True, check=False)
         if done.returncode != 0:
             raise RuntimeError(f"benchmark of {name} at N={n} failed: {done.stderr.strip()[-500:]}")
         rows.append(json.loads(done.stdout.strip().splitlines()[-1]))

@@ -52,7 +52,8 @@ def newton_alpha(r, d, H, n, steps):
     return _apparent_from_alpha(alpha, r2, d, H, n)
 
 
-def _bracket_s(r, d, H, n):  # -> lo, hi: closed-form bounds on the interface offset s, 0 <= lo <= s <= hi <= r
+# -> lo, hi: closed-form bounds on the interface offset s, 0 <= lo <= s <= hi <= r
+def _bracket_s(r, d, H, n):
     m2 = (n - 1) * (n + 1)  # n^2 - 1 without cancellation near n = 1
     rm, nH = r * torch.sqrt(m2), n * H
     paraxial = nH / (nH + d)  # tan(theta_w) <= tan(theta_a) / n
@@ -64,11 +65,13 @@ def _bracket_s(r, d, H, n):  # -> lo, hi: closed-form bounds on the interface of
 
 
 def newton_s(r, d, H, n, steps):
-    """Bracketed (safeguarded) Newton for the interface offset s; exactly `steps` iterations, no tolerance test.
+    """Bracketed (safeguarded) Newton for the interface offset s; exactly `steps` iterations, no tolerance
+    test.
 
     Unknown: s = H tan(theta_a), the horizontal distance from the camera nadir to the refraction point, in
     [0, r]. Snell's law sin(theta_a) = n sin(theta_w) with sin(theta_a) = s / sqrt(s^2 + H^2) and
-    sin(theta_w) = (r - s) / sqrt((r - s)^2 + d^2), squared, (r - s)^2 factored out and the positive root taken:
+    sin(theta_w) = (r - s) / sqrt((r - s)^2 + d^2), squared, (r - s)^2 factored out and the positive root
+    taken:
 
         f(s) = s d - (r - s) sqrt((n - 1)(n + 1) s^2 + n^2 H^2) = 0,
 
@@ -77,9 +80,9 @@ def newton_s(r, d, H, n, steps):
     1 - d / (r sqrt(n^2 - 1))) (paraxial and grazing bounds), hi = r S / (S + d) with
     S = sqrt(n^2 H^2 + (n^2 - 1) r^2) (chord bound). Start at lo. Each iteration evaluates f and f' once,
     moves lo or hi to s by the sign of f, and takes the Newton step; a step landing outside [lo, hi] by more
-    than 4 eps hi (rounding) is replaced by the midpoint (bisection), one inside that margin is clipped to [lo, hi].
-    r = 0 gives lo = hi = 0, so s = 0 (the vertical ray) exactly; n = 1 gives lo = hi = r H / (H + d) (the
-    straight line). Returns (r', d') from tan(theta_a) = s / H by `stability.apparent_from_tan_a`.
+    than 4 eps hi (rounding) is replaced by the midpoint (bisection), one inside that margin is clipped to
+    [lo, hi]. r = 0 gives lo = hi = 0, so s = 0 (the vertical ray) exactly; n = 1 gives lo = hi = r H / (H +
+    d) (the straight line). Returns (r', d') from tan(theta_a) = s / H by `stability.apparent_from_tan_a`.
     """
     lo, hi = _bracket_s(r, d, H, n)
     m2, nH2 = (n - 1) * (n + 1), (n * H) ** 2
@@ -98,16 +101,19 @@ def newton_s(r, d, H, n, steps):
 
 
 def _largest_cubic_root(a2, a1, a0):
-    """Largest real root of y^3 + a2 y^2 + a1 y + a0: Cardano (one real root) or Viete (three), y scaled first."""
+    """Largest real root of y^3 + a2 y^2 + a1 y + a0: Cardano (one real root) or Viete (three), y scaled
+    first."""
     scale = torch.maximum(torch.maximum(a2.abs(), a1.abs().sqrt()), a0.abs() ** (1 / 3))
-    scale = torch.where(scale > 0, scale, torch.ones_like(scale))  # y = scale * v, coefficients of v in [-1, 1]
+    # y = scale * v, coefficients of v in [-1, 1]
+    scale = torch.where(scale > 0, scale, torch.ones_like(scale))
     b2, b1, b0 = a2 / scale, a1 / scale**2, a0 / scale**3
     shift = b2 / 3  # v = u - shift: u^3 + p u + q = 0
     p = b1 - b2 * shift
     q = b0 - b1 * shift + 2 * shift**3
     disc = (q / 2) ** 2 + (p / 3) ** 3
     A = -torch.where(q >= 0, 1.0, -1.0).to(q.dtype) * (q.abs() / 2 + torch.sqrt(disc.clamp(min=0))) ** (1 / 3)
-    one = torch.where(A != 0, A - p / (3 * torch.where(A != 0, A, 1)), torch.zeros_like(A))  # no cancellation in A
+    # no cancellation in A
+    one = torch.where(A != 0, A - p / (3 * torch.where(A != 0, A, 1)), torch.zeros_like(A))
     m = torch.sqrt((-p / 3).clamp(min=0))
     three = 2 * m * torch.cos(torch.acos((-q / 2 / torch.where(m > 0, m**3, 1)).clamp(-1, 1)) / 3)
     return scale * (torch.where(disc >= 0, one, three) - shift)
@@ -120,25 +126,28 @@ def _quadratic_roots(p, q):  # x^2 + p x + q: both roots (NaN when complex), the
 
 
 def ferrari(r, d, H, n, steps=None):
-    """Ferrari's closed form for Snell's quartic in a scaled leg ratio; no iteration, no polish (`steps` unused).
+    """Ferrari's closed form for Snell's quartic in a scaled leg ratio; no iteration, no polish (`steps`
+    unused).
 
-    With a = d, b = n H, c = sqrt((n - 1)(n + 1)) r and w = s / (r - s) (air leg over water leg, horizontally),
-    the squared Snell equation of `newton_s` is a^2 w^2 (1 + w)^2 = c^2 w^2 + b^2 (1 + w)^2, with one root
-    w >= 0, and w <= 1 exactly when 4 a^2 >= c^2 + 4 b^2. The solve takes x = w there and x = 1/w otherwise, so
-    the wanted x is in [0, 1], and divides by a^2 (resp. b^2), which makes it dimensionless:
+    With a = d, b = n H, c = sqrt((n - 1)(n + 1)) r and w = s / (r - s) (air leg over water leg,
+    horizontally), the squared Snell equation of `newton_s` is a^2 w^2 (1 + w)^2 = c^2 w^2 + b^2 (1 + w)^2,
+    with one root w >= 0, and w <= 1 exactly when 4 a^2 >= c^2 + 4 b^2. The solve takes x = w there and x =
+    1/w otherwise, so the wanted x is in [0, 1], and divides by a^2 (resp. b^2), which makes it dimensionless:
 
-        x^4 + 2 x^3 + C x^2 - 2 k x - k = 0,  k = (b/a)^2, C = 1 - k - (c/a)^2  (resp. k = (a/b)^2, C = 1 - k + (c/b)^2).
+        x^4 + 2 x^3 + C x^2 - 2 k x - k = 0,  k = (b/a)^2, C = 1 - k - (c/a)^2
+        (resp. k = (a/b)^2, C = 1 - k + (c/b)^2).
 
     Ferrari: y is the largest real root of the resolvent y^3 - C y^2 - K = 0, K = 4 k (C + k - 1) written as
     -4 k (c/a)^2 (resp. +4 k (c/b)^2), by `_largest_cubic_root`; then the quartic is
     (x^2 + (1 - alpha) x + y/2 - beta)(x^2 + (1 + alpha) x + y/2 + beta) with
     beta = sign(y + 2k) sqrt(y^2/4 + k) and alpha = sqrt(1 + K/y^2) where that is >= 1/2, else
-    alpha = (y + 2k) / (2 beta) (so neither is the square root of a cancelled difference). Cancelling coefficients
-    are rewritten: 1 - alpha = -(K/y^2) / (1 + alpha) for alpha >= 1/2, and of the two constant terms the one
-    without cancellation is computed and the other from their product -k (Vieta). Each quadratic is solved in
-    the stable form; of the (up to four) real roots the one nearest to [0, 1] is kept, then s = r x / (1 + x)
-    (resp. r / (1 + x)). c = 0 (n = 1 or r = 0) makes the quartic degenerate: there s = r n H / (n H + d),
-    the straight line at n = 1 and s = 0 (the vertical ray) at r = 0. Returns (r', d') as `newton_s` does.
+    alpha = (y + 2k) / (2 beta) (so neither is the square root of a cancelled difference). Cancelling
+    coefficients are rewritten: 1 - alpha = -(K/y^2) / (1 + alpha) for alpha >= 1/2, and of the two constant
+    terms the one without cancellation is computed and the other from their product -k (Vieta). Each quadratic
+    is solved in the stable form; of the (up to four) real roots the one nearest to [0, 1] is kept, then s = r
+    x / (1 + x) (resp. r / (1 + x)). c = 0 (n = 1 or r = 0) makes the quartic degenerate: there s = r n H / (n
+    H + d), the straight line at n = 1 and s = 0 (the vertical ray) at r = 0. Returns (r', d') as `newton_s`
+    does.
     """
     a, b, c = d, n * H, torch.sqrt((n - 1) * (n + 1)) * r
     small = 4 * a * a >= c * c + 4 * b * b  # the root has w <= 1: solve in w, else in 1/w
@@ -169,7 +178,8 @@ def ferrari(r, d, H, n, steps=None):
 
 
 def bisection_alpha(r, d, H, n, steps):
-    """`steps` halvings of the bracket [0, 1/H] of alpha on the sign of g(alpha); the midpoint; returns (r', d')."""
+    """`steps` halvings of the bracket [0, 1/H] of alpha on the sign of g(alpha); the midpoint; returns (r',
+    d')."""
     lo, hi = torch.zeros_like(r), 1 / H  # bracket of alpha
     r2 = r * r
     for _ in range(steps):
@@ -222,14 +232,15 @@ def transform_table(sizes, repeats: int, seed: int) -> list[dict]:
     cam = torch.tensor([0.0, 0.0, 40.0])
     rows = []
     for size in sizes:
-        means = torch.cat([(torch.rand(size, 2, generator=gen) - 0.5) * 60, -10 - torch.rand(size, 1, generator=gen)], 1)
+        means = torch.cat([(torch.rand(size, 2, generator=gen) - 0.5) * 60,
+                           -10 - torch.rand(size, 1, generator=gen)], 1)
         scales = torch.rand(size, 3, generator=gen) * 0.05 + 0.01
         quats = torch.nn.functional.normalize(torch.randn(size, 4, generator=gen), dim=-1)
         opac = torch.rand(size, generator=gen)
         colors = torch.rand(size, 3, generator=gen)
         with torch.no_grad():
-            fwd = _median_time(functools.partial(refract_gaussians, means, scales, quats, opac, colors, cam, water),
-                               repeats)
+            fwd = _median_time(
+                functools.partial(refract_gaussians, means, scales, quats, opac, colors, cam, water), repeats)
         leaves = [t.clone().requires_grad_(True) for t in (means, scales, opac)]
 
         def fwd_bwd(leaves=leaves, quats=quats, colors=colors):
@@ -243,7 +254,8 @@ def transform_table(sizes, repeats: int, seed: int) -> list[dict]:
 
 
 def format_tables(solvers: list[dict], transform: list[dict]) -> str:
-    lines = [f"{'dtype':<8} {'solver':<18} {'steps':>5} {'max error':>10} {'non-finite':>10} {'M points/s':>10}"]
+    lines = [(f"{'dtype':<8} {'solver':<18} {'steps':>5} {'max error':>10} {'non-finite':>10} "
+              f"{'M points/s':>10}")]
     for row in solvers:
         steps = "-" if row["steps"] is None else row["steps"]
         lines.append(f"{row['dtype']:<8} {row['solver']:<18} {steps:>5} {row['max_error']:>10.2e} "
@@ -252,6 +264,7 @@ def format_tables(solvers: list[dict], transform: list[dict]) -> str:
                  f"(chosen solver: {SOLVER_STEPS[torch.float32]} Halley steps + 1 tracked Newton step)")
     lines.append(f"{'gaussians':>10} {'forward s':>10} {'M/s':>7} {'fwd+bwd s':>10} {'M/s':>7}")
     for row in transform:
-        lines.append(f"{row['gaussians']:>10} {row['forward_s']:>10.4f} {row['forward_mgaussians_per_s']:>7.2f} "
-                     f"{row['forward_backward_s']:>10.4f} {row['forward_backward_mgaussians_per_s']:>7.2f}")
+        lines.append(f"{row['gaussians']:>10} {row['forward_s']:>10.4f} "
+                     f"{row['forward_mgaussians_per_s']:>7.2f} {row['forward_backward_s']:>10.4f} "
+                     f"{row['forward_backward_mgaussians_per_s']:>7.2f}")
     return "\n".join(lines)

@@ -42,8 +42,8 @@ def write_dataset(root: str | Path, views: list[dict], water: WaterSurface | Non
         frames.append(layout.frame(name, cam, v.get("split", "train"), v.get("kind", "nadir"), image, dry))
     write_json(root / layout.TRANSFORMS, layout.transforms_json(cam0, frames, water), indent=1)
     spec = {"bed": bed} if bed is not None else {}
-    write_json(root / layout.SCENE, layout.scene_json(spec, eval_region, generator="ragsplat_core.bench.synthetic"),
-               indent=1)
+    write_json(root / layout.SCENE,
+               layout.scene_json(spec, eval_region, generator="ragsplat_core.bench.synthetic"), indent=1)
     return root
 
 
@@ -100,15 +100,15 @@ def render_views(scene: dict[str, torch.Tensor], cameras: list[Camera], water: W
     for cam in cameras:
         s = scene
         with torch.no_grad():
-            dry, _, depth, _ = rasterize(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"], cam,
-                                         background, backend=backend)
+            dry, _, depth, _ = rasterize(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"],
+                                         cam, background, backend=backend)
             wet = dry
             if water is not None:
                 c = torch.as_tensor(cam.camera_center, dtype=s["means"].dtype, device=s["means"].device)
-                a = refract_gaussians(s["means"], s["scales"], s["quats"], s["opacities"], s["colors"], c, water,
-                                      attenuation=attenuation)
-                wet, alpha, z, _ = rasterize(a.means, a.quats, a.scales, a.opacities, a.colors, cam, background,
-                                             backend=backend)
+                a = refract_gaussians(s["means"], s["scales"], s["quats"], s["opacities"], s["colors"], c,
+                                      water, attenuation=attenuation)
+                wet, alpha, z, _ = rasterize(a.means, a.quats, a.scales, a.opacities, a.colors, cam,
+                                             background, backend=backend)
                 if backscatter is not None:
                     paths = pixel_water_paths(pixel_rays(cam, z), z[..., 0], c, water)
                     wet = add_backscatter(wet, alpha, paths, backscatter[0], backscatter[1])

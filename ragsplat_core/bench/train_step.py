@@ -49,13 +49,14 @@ def backends_available() -> list[tuple[str, str]]:
 
 def _dataset(count: int, water: WaterSurface, device: str) -> Dataset:
     """Five views of a textured bed rendered through the water, kept in memory."""
-    half = (ALTITUDE + DEPTH / water.n) * math.tan(math.radians(35.0))  # nadir footprint on the bed (paraxial)
+    # nadir footprint on the bed (paraxial)
+    half = (ALTITUDE + DEPTH / water.n) * math.tan(math.radians(35.0))
     cams = [Camera.look_at([0.0, 0.0, ALTITUDE], [0.0, 0.0, -DEPTH], SIZE, SIZE, 70.0)]
     for k in range(4):
         a = k * math.pi / 2
         r = ALTITUDE * math.tan(math.radians(20.0))
-        cams.append(Camera.look_at([r * math.cos(a), r * math.sin(a), ALTITUDE], [0.0, 0.0, -DEPTH], SIZE, SIZE,
-                                   70.0, up=(0.0, 0.0, 1.0)))
+        cams.append(Camera.look_at([r * math.cos(a), r * math.sin(a), ALTITUDE], [0.0, 0.0, -DEPTH], SIZE,
+                                   SIZE, 70.0, up=(0.0, 0.0, 1.0)))
     scene = bed_scene(count, half, DEPTH, seed=1, device=device)
     views = []
     for i, v in enumerate(render_views(scene, cams, water)):
@@ -75,7 +76,8 @@ def _transform_time(tr, steps: int, device: str, transform) -> float:
     with torch.no_grad():
         scales, quats, opac = activated(tr.splats)
         colors = colors_for_view(tr.splats, tr.centers[0], tr.active_sh_degree)
-    leaves = [t.detach().clone().requires_grad_(True) for t in (tr.splats["means"], scales, quats, opac, colors)]
+    leaves = [t.detach().clone().requires_grad_(True)
+              for t in (tr.splats["means"], scales, quats, opac, colors)]
     out = []
     for i in range(steps + 1):
         center = tr.centers[i % len(tr.centers)]
@@ -93,10 +95,10 @@ def bench_train_step(counts=(10_000, 40_000), pairs=None, steps: int = 10, warmu
                      log=print, compiled: bool = False, attenuation: bool = False,
                      backscatter: bool = False, reflection: bool = False) -> list[dict]:
     """One row per (backend, device, N): median seconds per iteration for 3dgs, full and 2dgs+full, and the
-    ratios full / 3dgs and 2dgs+full / full. `compiled`: also `full` and `2dgs+full` with the transform through
-    torch.compile (`TrainConfig.compile_refraction`; the warm-up steps take the compile), in the same loop,
-    and their ratios to the eager ones. `attenuation`: also 2dgs+full+attenuation, and its ratio to 2dgs+full;
-    `backscatter`: also 2dgs+full+backscatter and 2dgs+full+water, and theirs; `reflection`: also
+    ratios full / 3dgs and 2dgs+full / full. `compiled`: also `full` and `2dgs+full` with the transform
+    through torch.compile (`TrainConfig.compile_refraction`; the warm-up steps take the compile), in the same
+    loop, and their ratios to the eager ones. `attenuation`: also 2dgs+full+attenuation, and its ratio to
+    2dgs+full; `backscatter`: also 2dgs+full+backscatter and 2dgs+full+water, and theirs; `reflection`: also
     2dgs+full+reflection, and its (row keys: the terms; `paired_ratio`: the median of the step-by-step
     ratios)."""
     from ragsplat_core.refraction import compiled_refract_gaussians, refract_gaussians
@@ -113,7 +115,8 @@ def bench_train_step(counts=(10_000, 40_000), pairs=None, steps: int = 10, warmu
                 terms.update(backscatter="2dgs+full+backscatter", water="2dgs+full+water")
             if reflection:
                 terms["reflection"] = "2dgs+full+reflection"
-            runs = [("3dgs", False), ("full", False), ("2dgs+full", False)] + [(v, False) for v in terms.values()]
+            runs = ([("3dgs", False), ("full", False), ("2dgs+full", False)]
+                    + [(v, False) for v in terms.values()])
             for variant, fused in runs + ([("full", True), ("2dgs+full", True)] if compiled else []):
                 # paper schedule (30k): refinement starts at 500, after the timed steps; SH degree 3 at once
                 cfg = preset_config("paper", variant=variant, seed=seed, backend=backend, device=device,
@@ -135,13 +138,16 @@ def bench_train_step(counts=(10_000, 40_000), pairs=None, steps: int = 10, warmu
                    "gaussians": trainers["full"].num_gaussians, "steps": steps,
                    "median_s_3dgs": med["3dgs"], "median_s_full": med["full"],
                    "ratio_full_3dgs": med["full"] / med["3dgs"], "median_s_2dgs_full": med["2dgs+full"],
-                   "ratio_2dgs_full_full": med["2dgs+full"] / med["full"], "median_s_transform": med["transform"],
+                   "ratio_2dgs_full_full": med["2dgs+full"] / med["full"],
+                   "median_s_transform": med["transform"],
                    "transform_share_of_3dgs": med["transform"] / med["3dgs"],
-                   "all_s_3dgs": times["3dgs"], "all_s_full": times["full"], "all_s_2dgs_full": times["2dgs+full"]}
+                   "all_s_3dgs": times["3dgs"], "all_s_full": times["full"],
+                   "all_s_2dgs_full": times["2dgs+full"]}
             rows.append(row)
             log(f"{backend:>6} {device:>4} {row['gaussians']:>6} {med['3dgs']:10.4f} {med['full']:10.4f} "
-                f"{row['ratio_full_3dgs']:9.3f} {med['transform']:10.4f} {row['transform_share_of_3dgs']:9.3f} "
-                f"{med['2dgs+full']:10.4f} {row['ratio_2dgs_full_full']:9.3f}")
+                f"{row['ratio_full_3dgs']:9.3f} {med['transform']:10.4f} "
+                f"{row['transform_share_of_3dgs']:9.3f} {med['2dgs+full']:10.4f} "
+                f"{row['ratio_2dgs_full_full']:9.3f}")
             for key, variant in terms.items():
                 t, base = med[variant], med["2dgs+full"]
                 paired = statistics.median(a / b for a, b in zip(times[variant], times["2dgs+full"]))
@@ -153,7 +159,8 @@ def bench_train_step(counts=(10_000, 40_000), pairs=None, steps: int = 10, warmu
                 med["transform compiled"] = _transform_time(trainers["full"], steps, device,
                                                             compiled_refract_gaussians())
                 ratio = {k: med[f"{k} compiled"] / med[k] for k in ("full", "2dgs+full", "transform")}
-                row["compiled"] = {k: {"median_s": med[f"{k} compiled"], "ratio_to_eager": r} for k, r in ratio.items()}
+                row["compiled"] = {k: {"median_s": med[f"{k} compiled"], "ratio_to_eager": r}
+                                   for k, r in ratio.items()}
                 row["compiled"]["all_s"] = {k: times[f"{k} compiled"] for k in ("full", "2dgs+full")}
                 log(f"{'':>18} compiled: full {med['full compiled']:.4f} s (x{ratio['full']:.3f} of eager), "
                     f"2dgs+full {med['2dgs+full compiled']:.4f} s (x{ratio['2dgs+full']:.3f}), "
