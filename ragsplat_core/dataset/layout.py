@@ -46,7 +46,8 @@ GT_GRID = "gt/bed_grid.npy"
 GT_BANKS = "gt/bank_grid.npy"
 GT_ELEVATION = "gt/bed_elevation.tif"
 GT_WATERLINE = "gt/waterline.json"
-GT_TARGETS = "gt/gcp_targets.npy"  # field conditions: the rendered ground control targets' centres [T, 3], exact
+# field conditions: the rendered ground control targets' centres [T, 3], exact
+GT_TARGETS = "gt/gcp_targets.npy"
 GT_GRID_STEP = 0.05  # metres between ground-truth grid points
 # Not colmap/sparse/0: nerfstudio's loader finds a model there and stops at an interactive question.
 COLMAP = "colmap"
@@ -57,9 +58,9 @@ NO_HIT = 1e10  # Cycles' depth where a ray escapes; far beyond any scene distanc
 LOCAL_CRS = ('LOCAL_CS["ragsplat scene (local metres, z up)",LOCAL_DATUM["scene origin",0],UNIT["metre",1],'
              'AXIS["X",EAST],AXIS["Y",NORTH]]')
 NODATA = -9999.0  # raster cells without a value
-# What a surveyor hands over, beside a rendered dataset (`datagen.survey`) or from the field: the photos as the
-# drone writes them (JPEG with the focal length in EXIF), the camera centres as its RTK receiver records them
-# and the water level; no poses. `ragsplat survey` reads only these.
+# What a surveyor hands over, beside a rendered dataset (`datagen.survey`) or from the field: the photos as
+# the drone writes them (JPEG with the focal length in EXIF), the camera centres as its RTK receiver records
+# them and the water level; no poses. `ragsplat survey` reads only these.
 SURVEY_IMAGES = "survey/images"  # with EXIF GPS and DJI-style XMP: the positions.csv centres, RTK fixed
 SURVEY_IMAGES_GPS = "survey/images-gps"  # the same photos geotagged by consumer GPS (metres, no RTK flag)
 SURVEY_IMAGES_LENS = "survey/images-lens"  # the RTK-tagged photos through a lens with radial distortion
@@ -98,8 +99,8 @@ class Georef:
 
 
 def relative_path(kind: str, name: str) -> str:
-    """Where pass `kind` ("wet" | "dry" | "depth", or "lens": the survey's photo through a lens) of view `name`
-    lives, relative to the dataset root."""
+    """Where pass `kind` ("wet" | "dry" | "depth", or "lens": the survey's photo through a lens) of view
+    `name` lives, relative to the dataset root."""
     return f"gt/depth/{name}.exr" if kind == "depth" else f"images/{kind}/{name}.png"
 
 
@@ -236,7 +237,8 @@ def _dms(degrees: float) -> tuple:
 
 
 def _dji_xmp(properties: dict[str, object]) -> bytes:
-    """An XMP packet with the `drone-dji` properties as attributes of one rdf:Description, as DJI writes it."""
+    """An XMP packet with the `drone-dji` properties as attributes of one rdf:Description, as DJI writes
+    it."""
     from xml.sax.saxutils import quoteattr
 
     def text(value) -> str:
@@ -271,12 +273,14 @@ def write_positions(path: Path, names: list[str], xyz: np.ndarray) -> None:
 
 def _read_csv(path: Path, columns: str) -> tuple[list[str], list[tuple[int, list[str]]]]:
     """(header, [(line number, cells)]) of a CSV whose header (its first non-blank line) holds every one of
-    `columns` ("a,b,c", any order); blank lines are skipped, line numbers are the file's. Raises DatasetError."""
+    `columns` ("a,b,c", any order); blank lines are skipped, line numbers are the file's. Raises
+    DatasetError."""
     import csv
 
     try:
         with open(path, newline="") as f:
-            lines = [(k, cells) for k, cells in enumerate(csv.reader(f), start=1) if any(c.strip() for c in cells)]
+            lines = [(k, cells) for k, cells in enumerate(csv.reader(f), start=1)
+                     if any(c.strip() for c in cells)]
     except OSError as err:
         raise DatasetError(f"{path}: {err.strerror}") from None
     header = [h.strip() for h in lines[0][1]] if lines else []
@@ -297,7 +301,8 @@ def read_positions(path: Path) -> dict[str, np.ndarray]:
         try:
             xyz = np.array([float(row[c]) for c in "xyz"])
         except ValueError:
-            raise DatasetError(f"{path}:{k}: x, y, z must be numbers, got {row['x']}, {row['y']}, {row['z']}") from None
+            raise DatasetError(f"{path}:{k}: x, y, z must be numbers, got {row['x']}, {row['y']}, "
+                               f"{row['z']}") from None
         if not np.isfinite(xyz).all() or not row["name"]:
             raise DatasetError(f"{path}:{k}: a name and three finite numbers are needed")
         if row["name"] in out:
@@ -389,7 +394,8 @@ class Surface:
         s, t = fx - i, fy - j
         h00, h10, h01, h11 = h[j, i], h[j, i + 1], h[j + 1, i], h[j + 1, i + 1]
         lower = s >= t  # triangle (00, 10, 11)
-        return np.where(lower, h00 + s * (h10 - h00) + t * (h11 - h10), h00 + t * (h01 - h00) + s * (h11 - h01))
+        return np.where(lower, h00 + s * (h10 - h00) + t * (h11 - h10),
+                        h00 + t * (h01 - h00) + s * (h11 - h01))
 
     def save(self, path: Path) -> None:
         with atomic_path(path) as tmp, open(tmp, "wb") as f:
@@ -404,7 +410,8 @@ class Surface:
 def write_elevation(path: Path, points: np.ndarray, step: float, nodata: float = NODATA) -> None:
     """Grid points [N, 3] on a regular `step` lattice -> single-band float32 GeoTIFF of their heights
     (`write_raster`)."""
-    write_raster(path, points[:, :2], [(points[:, 2], "bed elevation (m, z up, water plane at the scene's level)")],
+    write_raster(path, points[:, :2],
+                 [(points[:, 2], "bed elevation (m, z up, water plane at the scene's level)")],
                  step, nodata=nodata)
 
 
@@ -431,7 +438,8 @@ def write_raster(path: Path, xy: np.ndarray, bands: list[tuple[np.ndarray, str]]
     west, north = images[0][1]
     with atomic_path(path) as tmp, rasterio.open(
             tmp, "w", driver="GTiff", width=width, height=height, count=len(bands), dtype="float32",
-            crs=crs, transform=Affine(step, 0.0, west, 0.0, -step, north), nodata=nodata, compress="deflate") as r:
+            crs=crs, transform=Affine(step, 0.0, west, 0.0, -step, north), nodata=nodata,
+            compress="deflate") as r:
         for k, ((image, _), (_, description)) in enumerate(zip(images, bands), start=1):
             r.write(np.where(np.isnan(image), nodata, image).astype(np.float32), k)
             r.set_band_description(k, description)
@@ -440,7 +448,8 @@ def write_raster(path: Path, xy: np.ndarray, bands: list[tuple[np.ndarray, str]]
 def write_waterline(path: Path, lines: list[np.ndarray], level: float) -> None:
     """Polylines [K, 2] ([K, 3] under a sloping surface: the height too) where the bed crosses the water
     surface, as a GeoJSON MultiLineString (local metres)."""
-    write_json(path, {"type": "Feature", "properties": {"level": level, "crs": "local metres (see LOCAL_CRS)"},
+    write_json(path, {"type": "Feature",
+                      "properties": {"level": level, "crs": "local metres (see LOCAL_CRS)"},
                       "geometry": {"type": "MultiLineString",
                                    "coordinates": [np.round(line, 6).tolist() for line in lines]}})
 
@@ -527,7 +536,8 @@ def water_json(water) -> dict | None:
         out["slope"] = slope
     profile = getattr(water, "profile", None)
     if profile is not None:  # a surface curved along the reach: `refraction.Profile`
-        out["profile"] = {k: list(getattr(profile, k)) for k in ("origin", "direction", "stations", "offsets")}
+        out["profile"] = {k: list(getattr(profile, k))
+                          for k in ("origin", "direction", "stations", "offsets")}
     return out
 
 

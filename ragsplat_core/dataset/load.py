@@ -65,7 +65,8 @@ class View:
     file_path: str
     dry_file_path: str | None
     gt_depth_file_path: str | None  # dry z-depth EXR (metres), ground truth
-    mask: torch.Tensor | None = None  # [H, W] bool, True where the pixel counts in the loss; None: every pixel
+    # [H, W] bool, True where the pixel counts in the loss; None: every pixel
+    mask: torch.Tensor | None = None
 
     @property
     def image(self) -> torch.Tensor:  # [H, W, 3] float32 in [0, 1]
@@ -127,7 +128,8 @@ def _read_sized(path: Path, width: int, height: int, what: str) -> np.ndarray:
     except ValueError as err:
         raise DatasetError(str(err)) from None
     if (img.shape[1], img.shape[0]) != (width, height):
-        raise _fail(path, f"{what} is {img.shape[1]} x {img.shape[0]}, transforms.json says {width} x {height}")
+        raise _fail(path,
+                    f"{what} is {img.shape[1]} x {img.shape[0]}, transforms.json says {width} x {height}")
     return img
 
 
@@ -209,7 +211,8 @@ def _intrinsics(meta: dict, frame: dict, path: Path, where: str) -> tuple[tuple,
             raise _fail(path, f"lens distortion '{key}' = {src[key]} is not supported ({where})")
     missing = [k for k in ("fl_x", "fl_y", "cx", "cy", "w", "h") if k not in src]
     if missing:
-        raise _fail(path, f"'{missing[0]}' must be a finite number, given for the file or for {where}; got none")
+        raise _fail(path,
+                    f"'{missing[0]}' must be a finite number, given for the file or for {where}; got none")
     intr = tuple(_number(src, k, path) for k in ("fl_x", "fl_y", "cx", "cy"))
     w, h = _number(src, "w", path), _number(src, "h", path)
     if w != int(w) or h != int(h) or w < 1 or h < 1:
@@ -223,8 +226,8 @@ def _camera(frame: dict, intr: tuple, size: tuple[int, int], path: Path, where: 
     try:
         cams = []
         if "transform_matrix" in frame:
-            cams.append(Camera.from_c2w_gl(_matrix(frame["transform_matrix"], path, f"{where}.transform_matrix"),
-                                           w, h, intrinsics=intr))
+            cams.append(Camera.from_c2w_gl(
+                _matrix(frame["transform_matrix"], path, f"{where}.transform_matrix"), w, h, intrinsics=intr))
         if "w2c" in frame:
             m = _matrix(frame["w2c"], path, f"{where}.w2c")
             if np.abs(m[3] - [0, 0, 0, 1]).max() > _POSE_TOL:
@@ -281,9 +284,9 @@ def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: b
         intr, size = _intrinsics(meta, frame, tpath, where)
         camera = _camera(frame, intr, size, tpath, where)
         if water is not None and not water.depth(camera.camera_center) < 0:
-            raise _fail(tpath, f"{where} ({name}): camera centre z = {camera.camera_center[2]:g} is not above the "
-                               f"water surface ({water.height(camera.camera_center[:2]):g} there); refraction "
-                               f"needs the camera in air")
+            raise _fail(tpath, f"{where} ({name}): camera centre z = {camera.camera_center[2]:g} is not "
+                               f"above the water surface ({water.height(camera.camera_center[:2]):g} there); "
+                               f"refraction needs the camera in air")
         if split == "train":
             train_cameras.append(camera)
         if split not in splits:
@@ -316,7 +319,8 @@ def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: b
     # at the surface's height under the cameras' middle (a river's slope changes it by a few per mille)
     gsd = None if water is None else ground_sample_distance(train_cameras, float(water.height(
         np.median([c.camera_center[:2] for c in train_cameras], axis=0)))) if train_cameras else None
-    return Dataset(root, water, views, bed, region, truth, layout.fingerprint(root), _georef(meta, tpath), gsd)
+    return Dataset(root, water, views, bed, region, truth, layout.fingerprint(root), _georef(meta, tpath),
+                   gsd)
 
 
 def _georef(meta: dict, path: Path) -> layout.Georef:
@@ -334,7 +338,8 @@ def _georef(meta: dict, path: Path) -> layout.Georef:
 
 
 def _positive(value) -> float | None:
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+    ok = (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+          and value > 0)
     return float(value) if ok else None
 
 

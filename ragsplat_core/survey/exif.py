@@ -43,7 +43,8 @@ class PhotoPosition:
     rtk_flag: int | None = None  # DJI RtkFlag (50: fixed); None: no RTK
     std_horizontal: float | None = None  # DJI max(RtkStdLon, RtkStdLat) (m)
     std_vertical: float | None = None  # DJI RtkStdHgt (m)
-    gimbal: tuple[float, float, float] | None = None  # DJI gimbal yaw, pitch, roll (degrees; pitch -90: nadir)
+    # DJI gimbal yaw, pitch, roll (degrees; pitch -90: nadir)
+    gimbal: tuple[float, float, float] | None = None
     flight: tuple[float, float, float] | None = None  # DJI aircraft yaw, pitch, roll (degrees)
 
     @property
@@ -145,8 +146,9 @@ def read_photo(path: Path) -> PhotoPosition:
     if lat is None or lon is None or altitude is None or not (-90 <= lat <= 90 and -180 <= lon <= 180):
         missing = "latitude / longitude" if lat is None or lon is None else (
             "altitude" if altitude is None else f"a position on Earth (latitude {lat}, longitude {lon})")
-        raise DatasetError(f"{path}: no GPS position in its metadata ({missing} missing from the EXIF GPS block "
-                           "and DJI's XMP); give the camera positions with --positions or ground control with --gcp")
+        raise DatasetError(f"{path}: no GPS position in its metadata ({missing} missing from the EXIF GPS "
+                           "block and DJI's XMP); give the camera positions with --positions or ground "
+                           "control with --gcp")
     flag = _number(tags.get("RtkFlag"))
     std = [_number(tags.get(k)) for k in ("RtkStdLon", "RtkStdLat", "RtkStdHgt")]
     return PhotoPosition(
@@ -218,7 +220,8 @@ def to_metric(lat, lon, height, crs) -> np.ndarray:
 
 
 def to_geographic(xyz, crs) -> np.ndarray:
-    """[N, 3] (latitude, longitude, height) of (easting, northing, height) [N, 3] in `crs`; heights unchanged."""
+    """[N, 3] (latitude, longitude, height) of (easting, northing, height) [N, 3] in `crs`; heights
+    unchanged."""
     from pyproj import Transformer
 
     xyz = np.atleast_2d(np.asarray(xyz, float))
@@ -253,7 +256,8 @@ def sigmas(photos: list[PhotoPosition], rtk: tuple[float, float] | None,
     (RtkFlag 50): `rtk` when given, else the photo's own RtkStdLon / RtkStdLat / RtkStdHgt (at least
     MIN_STD), else 2 / 3 cm. Anything else (no RTK flag, or a single-point or float solution): `consumer`,
     metres: a consumer drone's single-point GNSS is good to 1-2 m horizontally within a flight and each
-    flight line can be 1-1.5 m off the others (the strip offsets of issue 48's Phantom 3), worse vertically."""
+    flight line can be 1-1.5 m off the others (the strip offsets of issue 48's Phantom 3), worse
+    vertically."""
     out = np.empty((len(photos), 2))
     for k, p in enumerate(photos):
         if not p.rtk_fixed:

@@ -3,8 +3,8 @@ bundle adjustment through the water (`bundle.adjust`) and back.
 
 SIFT features with the focal length from each photo's EXIF (one camera per size and EXIF, COLMAP's AUTO
 mode), matching (every pair up to `EXHAUSTIVE_MAX` photos; beyond, each photo with its `NEIGHBOURS` nearest
-by the positions, `neighbour_pairs`), incremental mapping. The intrinsics are held at the EXIF focal length, the
-image centre and no distortion: refined by a pinhole bundle adjustment they absorb part of the refraction
+by the positions, `neighbour_pairs`), incremental mapping. The intrinsics are held at the EXIF focal length,
+the image centre and no distortion: refined by a pinhole bundle adjustment they absorb part of the refraction
 (on a synthetic survey SIMPLE_RADIAL's k came out at 0.012 for a distortion-free camera, and the poses'
 tilt stayed 0.28 degrees after the adjustment through the water instead of under 0.1). The model comes out in
 an arbitrary frame and scale: `georef` fixes both.
@@ -27,9 +27,9 @@ import torch
 from ragsplat_core.errors import DatasetError
 
 CAMERA_MODEL = "SIMPLE_PINHOLE"  # one focal length, the principal point at the centre, no distortion
-# Every pair is matched up to this many photos (4 950 pairs, a few minutes on 2 cores); a larger survey matches
-# each photo with its NEIGHBOURS nearest, as COLMAP's spatial matcher does (its default: 50), so that the pairs
-# grow with the photos, not with their square (1 000 photos: about 20 000 pairs instead of 499 500).
+# Every pair is matched up to this many photos (4 950 pairs, a few minutes on 2 cores); a larger survey
+# matches each photo with its NEIGHBOURS nearest, as COLMAP's spatial matcher does (its default: 50), so that
+# the pairs grow with the photos, not with their square (1 000 photos: about 20 000 pairs instead of 499 500).
 EXHAUSTIVE_MAX = 100
 NEIGHBOURS = 30
 
@@ -51,7 +51,8 @@ def neighbour_pairs(centres: np.ndarray, k: int = NEIGHBOURS) -> np.ndarray:
 
 
 def reconstruct(images: Path, names: list[str], work: Path, camera_model: str = CAMERA_MODEL,
-                threads: int = -1, progress=None, pairs: np.ndarray | None = None, timings: dict | None = None):
+                threads: int = -1, progress=None, pairs: np.ndarray | None = None,
+                timings: dict | None = None):
     """The largest pycolmap Reconstruction of the photos `names` in `images`; `work` holds the feature
     database and the mapper's models (made anew). `pairs` [P, 2] (indices into `names`, `neighbour_pairs`)
     are the pairs matched; None: every pair. `progress(desc, total, unit)`, when given, makes a bar
@@ -74,12 +75,13 @@ def reconstruct(images: Path, names: list[str], work: Path, camera_model: str = 
     db = work / "database.db"
     t0 = time.perf_counter()
     with _counted(progress, "features", len(names), "photo", db, "descriptors"):
-        pycolmap.extract_features(db, images, names, camera_mode=pycolmap.CameraMode.AUTO, reader_options=reader,
+        pycolmap.extract_features(db, images, names, camera_mode=pycolmap.CameraMode.AUTO,
+                                  reader_options=reader,
                                   extraction_options=extraction, device=pycolmap.Device.cpu)
     t1 = time.perf_counter()
     count = len(names) * (len(names) - 1) // 2 if pairs is None else len(pairs)
-    with _counted(progress, "matching (every pair)" if pairs is None else "matching (neighbours)", count, "pair",
-                  db, "two_view_geometries"):
+    with _counted(progress, "matching (every pair)" if pairs is None else "matching (neighbours)", count,
+                  "pair", db, "two_view_geometries"):
         if pairs is None:
             pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
         else:
@@ -91,7 +93,8 @@ def reconstruct(images: Path, names: list[str], work: Path, camera_model: str = 
     timings.update(pairs=count, features_s=t1 - t0, matching_s=t2 - t1)
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads, options.random_seed = threads, 0
-    options.ba_refine_focal_length = options.ba_refine_principal_point = options.ba_refine_extra_params = False
+    options.ba_refine_focal_length = options.ba_refine_principal_point = False
+    options.ba_refine_extra_params = False
     bar = None if progress is None else progress("mapping", len(names), "photo")
     try:
         models = pycolmap.incremental_mapping(
@@ -135,8 +138,8 @@ def _counted(progress, desc: str, total: int, unit: str, db: Path, table: str):
         yield
         return
     bar, seen = progress(desc, total, unit), [0]
-    child = subprocess.Popen([sys.executable, "-c", _POLL, f"file:{db}?mode=ro", table], stdout=subprocess.PIPE,
-                             stderr=subprocess.DEVNULL, text=True)
+    child = subprocess.Popen([sys.executable, "-c", _POLL, f"file:{db}?mode=ro", table],
+                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
 
     def follow():
         for line in child.stdout:
@@ -175,8 +178,8 @@ class Tracks:
 
 
 def cameras(rec) -> tuple[list[int], list[str], np.ndarray, np.ndarray, np.ndarray]:
-    """(image ids, names, R [I, 3, 3] world -> camera, centres C [I, 3], pinhole intrinsics [I, 4] fx, fy, cx, cy)
-    of a model's registered images, by name."""
+    """(image ids, names, R [I, 3, 3] world -> camera, centres C [I, 3], pinhole intrinsics [I, 4] fx, fy, cx,
+    cy) of a model's registered images, by name."""
     ids = sorted(rec.reg_image_ids(), key=lambda i: rec.images[i].name)
     R, C, K = [], [], []
     for i in ids:
@@ -184,8 +187,8 @@ def cameras(rec) -> tuple[list[int], list[str], np.ndarray, np.ndarray, np.ndarr
         R.append(im.cam_from_world().rotation.matrix())
         C.append(im.projection_center())
         K.append([cam.focal_length_x, cam.focal_length_y, cam.principal_point_x, cam.principal_point_y])
-    return ids, [rec.images[i].name for i in ids], np.array(R).reshape(-1, 3, 3), np.array(C).reshape(-1, 3), \
-        np.array(K, float).reshape(-1, 4)
+    return ids, [rec.images[i].name for i in ids], np.array(R).reshape(-1, 3, 3), \
+        np.array(C).reshape(-1, 3), np.array(K, float).reshape(-1, 4)
 
 
 def tracks(rec) -> Tracks:
@@ -200,7 +203,8 @@ def tracks(rec) -> Tracks:
                 point.append(row)
                 image.append(index[el.image_id])
                 xy.append(rec.images[el.image_id].points2D[el.point2D_idx].xy)
-    point, image, xy = np.array(point, np.int64), np.array(image, np.int64), np.array(xy, float).reshape(-1, 2)
+    point, image, xy = (np.array(point, np.int64), np.array(image, np.int64),
+                        np.array(xy, float).reshape(-1, 2))
     pixels = np.zeros_like(xy)
     for k, i in enumerate(ids):  # undistort: the camera's normalised coordinates, then its pinhole
         rows = image == k
@@ -226,7 +230,8 @@ def set_poses(rec, trk: Tracks, R: torch.Tensor, C: torch.Tensor, points: torch.
             cam.params = [f, cx, cy, float(lens[0]), float(lens[1])]
 
     for i, Ri, Ci in zip(trk.image_ids, R.double().numpy(), C.double().numpy()):
-        rec.frames[rec.images[i].frame_id].rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(Ri), -Ri @ Ci)
+        rec.frames[rec.images[i].frame_id].rig_from_world = pycolmap.Rigid3d(
+            pycolmap.Rotation3d(Ri), -Ri @ Ci)
     for p, xyz in zip(trk.point_ids, points.double().numpy()):
         rec.points3D[p].xyz = xyz
 
@@ -255,6 +260,6 @@ def control_points(rec, trk: Tracks, pixels: list[tuple[str, str, np.ndarray]]) 
             origins.append(trk.C[k].numpy())
             dirs.append(d / np.linalg.norm(d))
             group.append(g)
-    xyz = closest_points(np.array(origins).reshape(-1, 3), np.array(dirs).reshape(-1, 3), np.array(group, int),
-                         len(names)) if names else np.zeros((0, 3))
+    xyz = closest_points(np.array(origins).reshape(-1, 3), np.array(dirs).reshape(-1, 3),
+                         np.array(group, int), len(names)) if names else np.zeros((0, 3))
     return {name: (xyz[g], [(k, uv) for k, uv, _ in seen[name]]) for g, name in enumerate(names)}

@@ -26,8 +26,10 @@ MAX_REACH = 3.0
 class Tile:
     index: int
     grid: tuple[int, int]  # (column along x, row along y)
-    core: tuple[float, float, float, float]  # xmin, ymin, xmax, ymax (m, local frame; +-inf at the survey's edge)
-    outer: tuple[float, float, float, float]  # the core grown by the overlap (the edge tiles' outside unbounded)
+    # xmin, ymin, xmax, ymax (m, local frame; +-inf at the survey's edge)
+    core: tuple[float, float, float, float]
+    # the core grown by the overlap (the edge tiles' outside unbounded)
+    outer: tuple[float, float, float, float]
     photos: tuple[str, ...]
 
     def to_json(self) -> dict:
@@ -35,8 +37,8 @@ class Tile:
         def box(b):
             return [v if math.isfinite(v) else None for v in b]
 
-        return {"index": self.index, "grid": list(self.grid), "core": box(self.core), "outer": box(self.outer),
-                "photos": len(self.photos)}
+        return {"index": self.index, "grid": list(self.grid), "core": box(self.core),
+                "outer": box(self.outer), "photos": len(self.photos)}
 
 
 def footprints(R: np.ndarray, C: np.ndarray, intrinsics: np.ndarray, sizes: np.ndarray, water) -> np.ndarray:
@@ -104,7 +106,8 @@ def inside(xy: np.ndarray, box) -> np.ndarray:
     return (xy[:, 0] >= box[0]) & (xy[:, 0] < box[2]) & (xy[:, 1] >= box[1]) & (xy[:, 1] < box[3])
 
 
-def merge(beds: list[np.ndarray], tiles: list[Tile], resolution: float) -> tuple[np.ndarray, np.ndarray, dict]:
+def merge(beds: list[np.ndarray], tiles: list[Tile],
+          resolution: float) -> tuple[np.ndarray, np.ndarray, dict]:
     """One bed from the tiles' beds (each [G_t, 3] cell centres and heights in the same frame, on one grid of
     `resolution`): each cell from the tile whose core holds it, or, where that tile left it empty, from the
     first other tile that made it (the overlap fills a hole at a seam). Returns (grid [G, 3], the tile each

@@ -117,7 +117,8 @@ def _profile(u: np.ndarray, residual: np.ndarray, keep: np.ndarray, origin, dire
     offsets = np.array([np.median(residual[keep][p]) for p in parts])
     if not np.all(np.diff(stations) > 0):
         return None
-    return Profile(tuple(origin), tuple(direction / np.linalg.norm(direction)), tuple(stations), tuple(offsets))
+    return Profile(tuple(origin), tuple(direction / np.linalg.norm(direction)), tuple(stations),
+                   tuple(offsets))
 
 
 def profile(points: np.ndarray, height: np.ndarray, axis_points: np.ndarray, bins: int = 5) -> list[dict]:
@@ -145,5 +146,6 @@ def start_level(points: np.ndarray) -> float:
     """Where the adjustment through the water starts looking for an unmeasured level: the 90th percentile of
     the heights of the aligned model's points [P, 3]. A pinhole model puts the submerged points at their
     apparent depths, between the bed and the surface, so most points lie below the level and the highest
-    tenth are mostly dry ground near it; the adjustment converged from 0.8 m below and 3.7 m above on `small`."""
+    tenth are mostly dry ground near it; the adjustment converged from 0.8 m below and 3.7 m above on
+    `small`."""
     return float(np.percentile(points[:, 2], 90))
