@@ -1,16 +1,16 @@
 """The rasterizer's backends in one table: what each one runs at each stage of `rasterize` (3DGS),
 `rasterize_surfels` (2DGS) and the trainer's per-view colours, and which one a `backend=` name means.
 
-| field            | torch (the reference)       | cpu (numba kernels)          | gsplat (CUDA)               |
-|------------------|-----------------------------|------------------------------|-----------------------------|
-| colors (SH)      | gaussians.colors_for_view   | cpu/sh.colors_for_view       | gaussians.colors_for_view   |
-| covariance       | gaussians.covariance        | cpu/rotation.covariance_cpu  | gaussians.covariance        |
-| tangents         | gaussians.surfel_tangents   | cpu/rotation.tangents_cpu    | gaussians.surfel_tangents   |
-| project          | reference/project.project   | cpu/project.project          | -                           |
-| bin_tiles        | reference/project.bin_tiles | cpu/project.bin_tiles        | -                           |
-| composite        | reference/composite         | cpu/composite                | -                           |
-| render           | -                           | -                            | cuda/render (fused 3DGS)    |
-| surfel_composite | reference/surfel_composite  | cpu/surfel_composite         | cuda/surfel_composite       |
+| field            | torch (the reference)       | cpu (numba kernels)          | gsplat (CUDA)              |
+|------------------|-----------------------------|------------------------------|----------------------------|
+| colors (SH)      | gaussians.colors_for_view   | cpu/sh.colors_for_view       | gaussians.colors_for_view  |
+| covariance       | gaussians.covariance        | cpu/rotation.covariance_cpu  | gaussians.covariance       |
+| tangents         | gaussians.surfel_tangents   | cpu/rotation.tangents_cpu    | gaussians.surfel_tangents  |
+| project          | reference/project.project   | cpu/project.project          | -                          |
+| bin_tiles        | reference/project.bin_tiles | cpu/project.bin_tiles        | -                          |
+| composite        | reference/composite         | cpu/composite                | -                          |
+| render           | -                           | -                            | cuda/render (fused 3DGS)   |
+| surfel_composite | reference/surfel_composite  | cpu/surfel_composite         | cuda/surfel_composite      |
 
 `rasterize` runs covariance, project, bin_tiles and composite, or render where the backend has it (gsplat
 takes the quaternions and scales itself). Every backend projects surfels with

@@ -1,10 +1,11 @@
-"""Fast CPU compositing of 3D Gaussians: numba kernels, parallel over tiles, float32 maths, hand-written backward.
+"""Fast CPU compositing of 3D Gaussians: numba kernels, parallel over tiles, float32 maths, hand-written
+backward.
 
 Same semantics as the reference, its twin (`reference/composite.py`); the projection and the tile lists come
 from `cpu/project.py`. Per tile, Gaussians are visited front to back and each
 one only touches the pixels of the tile inside its alpha >= 1/255 ellipse (row by row, each row's span
-solved from the conic, within the opacity-aware box of `reference/project.py`), so a Gaussian of a few pixels costs
-a few pixels, not the tile's 256. A tile stops once every pixel in it is saturated (transmittance would
+solved from the conic, within the opacity-aware box of `reference/project.py`), so a Gaussian of a few pixels
+costs a few pixels, not the tile's 256. A tile stops once every pixel in it is saturated (transmittance would
 drop below 1e-4). Forward and backward evaluate alpha with the same float32 code, so they skip the same
 (pixel, Gaussian) pairs. On request the forward also records the median depth: the camera z of the Gaussian
 that takes the pixel's transmittance from above 0.5 to at most 0.5 (no gradient). The request is a
@@ -200,7 +201,8 @@ def _np32(x: torch.Tensor) -> np.ndarray:
 
 class _Composite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, feats, box, gauss, offsets, width, height, tiles_x, want_median):
+    def forward(ctx, means2d, conics, opacities, feats, box, gauss, offsets, width, height, tiles_x,
+                want_median):
         args = (_np32(means2d), _np32(conics), _np32(opacities), _np32(feats),
                 np.ascontiguousarray(box.numpy()), np.ascontiguousarray(gauss.numpy()),
                 np.ascontiguousarray(offsets.numpy()), width, height, tiles_x)
@@ -245,7 +247,8 @@ class _chunks:
 
 
 def composite(proj: Projected, opacities: torch.Tensor, colors: torch.Tensor, bins: Bins, width: int,
-              height: int, median: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+              height: int, median: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor,
+                                                          torch.Tensor | None]:
     """(colour sum [H, W, 3] without background, final transmittance [H, W], weighted z sum [H, W], median
     z-depth [H, W] without gradient, 0 where the transmittance stays above 0.5; None unless `median`)."""
     feats = torch.cat([colors, proj.depths[:, None].to(colors.dtype)], -1)  # [N, 4]

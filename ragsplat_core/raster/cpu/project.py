@@ -1,7 +1,8 @@
-"""Fast CPU EWA projection and tile lists: `reference/project.py` (its twin). The projection: `project` with the differentiable outputs (means2d, conics,
-depths) computed in one numba pass per Gaussian and a hand-written backward to the means and the world
-covariances. The boxes, visibility and radii (no gradient) are then derived exactly as the twin does, from
-the kernel's screen position and dilated 2D variances. The tile lists: `bin_tiles`, a counting sort.
+"""Fast CPU EWA projection and tile lists: `reference/project.py` (its twin). The projection: `project` with
+the differentiable outputs (means2d, conics, depths) computed in one numba pass per Gaussian and a
+hand-written backward to the means and the world covariances. The boxes, visibility and radii (no gradient)
+are then derived exactly as the twin does, from the kernel's screen position and dilated 2D variances. The
+tile lists: `bin_tiles`, a counting sort.
 """
 
 from __future__ import annotations
@@ -154,8 +155,8 @@ class _Project(torch.autograd.Function):
                                        torch.empty(n, dtype=dtype), torch.empty(n, 2, dtype=dtype))
         ok = torch.empty(n, dtype=torch.bool)
         R, t, lim = _camera(camera, _arr(means).dtype)
-        _forward(_arr(means), _arr(covars), _arr(opacities), R, t, camera.fx, camera.fy, camera.cx, camera.cy, lim,
-                 means2d.numpy(), conics.numpy(), depths.numpy(), ac.numpy(), ok.numpy())
+        _forward(_arr(means), _arr(covars), _arr(opacities), R, t, camera.fx, camera.fy, camera.cx, camera.cy,
+                 lim, means2d.numpy(), conics.numpy(), depths.numpy(), ac.numpy(), ok.numpy())
         ctx.save_for_backward(means, covars, opacities)
         ctx.camera = camera
         ctx.mark_non_differentiable(ac, ok)
@@ -210,10 +211,10 @@ def _bins(box, visible, order, tiles_x, tiles_y, tile):
 
 
 def bin_tiles(proj: Projected, width: int, height: int, tile: int = TILE) -> Bins:
-    """`reference/project.bin_tiles` (its twin) in O(N log N + pairs): the Gaussians sorted by depth once, then dealt
-    to their tiles in that order, instead of a sort of every (tile, Gaussian) pair."""
+    """`reference/project.bin_tiles` (its twin) in O(N log N + pairs): the Gaussians sorted by depth once,
+    then dealt to their tiles in that order, instead of a sort of every (tile, Gaussian) pair."""
     tiles_x, tiles_y = -(-width // tile), -(-height // tile)
     order = np.argsort(proj.depths.detach().numpy(), kind="stable")  # ties by index, as torch's stable sort
-    gauss, offsets, count = _bins(np.ascontiguousarray(proj.box.numpy()), proj.visible.numpy(), order, tiles_x,
-                                  tiles_y, tile)
+    gauss, offsets, count = _bins(np.ascontiguousarray(proj.box.numpy()), proj.visible.numpy(), order,
+                                  tiles_x, tiles_y, tile)
     return Bins(torch.from_numpy(gauss), torch.from_numpy(offsets), torch.from_numpy(count), tiles_x, tiles_y)

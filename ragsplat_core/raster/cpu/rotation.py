@@ -115,10 +115,12 @@ class _Shape(torch.autograd.Function):
 
 
 def covariance_cpu(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
-    """[N, 3, 3] world covariances of CPU quaternions [N, 4] and linear scales [N, 3] (`gaussians.covariance`)."""
+    """[N, 3, 3] world covariances of CPU quaternions [N, 4] and linear scales [N, 3]
+    (`gaussians.covariance`)."""
     return _Shape.apply(quats, scales, 3)
 
 
 def tangents_cpu(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
-    """[N, 3, 2] scaled tangents of CPU quaternions [N, 4] and linear scales [N, 2] (`gaussians.surfel_tangents`)."""
+    """[N, 3, 2] scaled tangents of CPU quaternions [N, 4] and linear scales [N, 2]
+    (`gaussians.surfel_tangents`)."""
     return _Shape.apply(quats, scales, 2)

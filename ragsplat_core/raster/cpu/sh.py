@@ -62,7 +62,8 @@ def _basis_grad(x, y, z, degree, gb):
             dy += (_C3[0] * 3 * (xx - yy) * gb[9] + _C3[1] * x * z * gb[10]
                    + _C3[2] * (4 * zz - xx - 3 * yy) * gb[11] - _C3[3] * 6 * y * z * gb[12]
                    - _C3[4] * 2 * x * y * gb[13] - _C3[5] * 2 * y * z * gb[14] - _C3[6] * 6 * x * y * gb[15])
-            dz += (_C3[1] * x * y * gb[10] + _C3[2] * 8 * y * z * gb[11] + _C3[3] * (6 * zz - 3 * xx - 3 * yy) * gb[12]
+            dz += (_C3[1] * x * y * gb[10] + _C3[2] * 8 * y * z * gb[11]
+                   + _C3[3] * (6 * zz - 3 * xx - 3 * yy) * gb[12]
                    + _C3[4] * 8 * x * z * gb[13] + _C3[5] * (xx - yy) * gb[14])
     return dx, dy, dz
 

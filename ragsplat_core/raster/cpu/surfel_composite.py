@@ -4,8 +4,8 @@ Same semantics as the torch twin (`reference/surfel_composite.py`), organised as
 `composite.py` (whose tile helpers it uses): the projection stays in PyTorch; per tile, surfels are visited
 front to back and each one only touches the pixels of the tile that can reach alpha >= 1/255, row by row:
 the span of the row inside the image of the surfel's disk (a quadratic in the pixel column, solved in
-float64) joined with the span inside the low-pass filter's disk. Forward and backward evaluate alpha with the same
-float32 code, so they skip the same (pixel, surfel) pairs.
+float64) joined with the span inside the low-pass filter's disk. Forward and backward evaluate alpha with the
+same float32 code, so they skip the same (pixel, surfel) pairs.
 
 Backward (as 3DGS): per pixel, back to front from its last composited surfel, restoring the transmittance
 by division by (1 - alpha) and keeping running sums of what lies behind (features, and the distortion's

@@ -7,8 +7,8 @@ each surfel as a ray transform T = K [a b p] (`project_surfels(..., transforms=T
 for the low-pass filter, an opacity, features and a normal. So the surfels are projected here, exactly as for
 the torch and cpu backends (same means2d, same per-axis pixel reach for the tiles), and gsplat composites.
 
-Semantics against the torch twin (`reference/surfel_composite.py`), gsplat 1.5: alpha is clamped at 0.999 (not 0.99); a
-sample's depth, and with it the depth, median depth and distortion, is its surfel's centre z (gsplat
+Semantics against the torch twin (`reference/surfel_composite.py`), gsplat 1.5: alpha is clamped at 0.999 (not
+0.99); a sample's depth, and with it the depth, median depth and distortion, is its surfel's centre z (gsplat
 composites depth as a per-surfel feature), not the z of the pixel's ray-plane intersection; median depth is
 0 where the transmittance never reaches 0.5 (gsplat keeps the last surfel's there). Image, alpha and normals
 are the same up to float32 round-off.
@@ -42,6 +42,7 @@ def composite(proj: SurfelsProjected, opacities: torch.Tensor, colors: torch.Ten
         densify, width, height, TILE, offsets, flatten_ids, backgrounds=bg, distloss=True)
     out, alpha, normals = out[0], alpha[0, ..., 0], normals[0]
     hit = alpha > 0
-    depth = torch.where(hit, out[..., 3] / torch.where(hit, alpha, torch.ones_like(alpha)), torch.zeros_like(alpha))
+    depth = torch.where(hit, out[..., 3] / torch.where(hit, alpha, torch.ones_like(alpha)),
+                        torch.zeros_like(alpha))
     median = torch.where(alpha >= 0.5, median[0, ..., 0], torch.zeros_like(alpha))
     return out[..., :3], alpha, depth, normals, distortion[0, ..., 0], median, tiles[0]

@@ -71,7 +71,8 @@ def front_to_back(alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torc
 
 
 def composite(proj: Projected, opacities: torch.Tensor, colors: torch.Tensor, bins: Bins, width: int,
-              height: int, median: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+              height: int, median: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor,
+                                                          torch.Tensor | None]:
     """(colour sum [H, W, 3] without background, final transmittance [H, W], weighted z sum [H, W], median
     z-depth [H, W] without gradient, 0 where the transmittance stays above 0.5; None unless `median`)."""
     device = colors.device

@@ -107,7 +107,8 @@ def project_surfels(means: torch.Tensor, tangents: torch.Tensor, opacities: torc
 
 def _screen_box(a, b, p, u, v, opacities, front, camera: Camera):
     """Pixel box of each surfel (see the module notes), in float64 so every backend bins alike: (box [N, 4],
-    visible [N], reach [N, 2] int32 pixels from (u, v) to the box's farther edge per axis, 0 if not visible)."""
+    visible [N], reach [N, 2] int32 pixels from (u, v) to the box's farther edge per axis, 0 if not
+    visible)."""
     a, b, p, u, v = (x.double() for x in (a, b, p, u, v))
     W, H = camera.width, camera.height
     r2 = 2 * torch.log(torch.clamp(opacities.double(), min=ALPHA_MIN) * 255.0)  # [N]
