@@ -33,16 +33,17 @@ VARIANTS: dict[str, dict | None] = {
     "2dgs+full+water": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
 }
 # rendered as surfels (`rasterize_surfels`)
-SURFELS = frozenset({"2dgs", "2dgs+full", "2dgs+full+attenuation", "2dgs+full+backscatter", "2dgs+full+reflection",
-                     "2dgs+full+water"})
+SURFELS = frozenset({"2dgs", "2dgs+full", "2dgs+full+attenuation", "2dgs+full+backscatter",
+                     "2dgs+full+reflection", "2dgs+full+water"})
 # variant -> the terms of the water's optics it trains besides the refraction (issue 50); a variant not named
 # here computes none of them. "attenuation": each submerged Gaussian's radiance x exp(-c L) per channel of
 # linear RGB, L its path in the water along the bent ray (`refraction.water_paths`), c optimised per scene.
 # "backscatter": each pixel + the water column's veil B_inf (1 - exp(-c_b L)) in linear RGB, L its path in the
 # water to the point it renders (`refraction.pixel_water_paths`, from the rendered depth), B_inf and c_b
-# optimised per scene. "reflection": each wet pixel (1 - R) x what the water shows + R x the sky mirrored by the
-# surface, R the Fresnel reflectance at its incidence (`reflection.surface_reflection`), the sky a small map of
-# linear radiance shared by all views (`reflection.sky_radiance`) optimised per scene. "2dgs+full+water": all three.
+# optimised per scene. "reflection": each wet pixel (1 - R) x what the water shows + R x the sky mirrored by
+# the surface, R the Fresnel reflectance at its incidence (`reflection.surface_reflection`), the sky a small
+# map of linear radiance shared by all views (`reflection.sky_radiance`) optimised per scene.
+# "2dgs+full+water": all three.
 WATER_TERMS: dict[str, tuple[str, ...]] = {"2dgs+full+attenuation": ("attenuation",),
                                            "2dgs+full+backscatter": ("backscatter",),
                                            "2dgs+full+reflection": ("reflection",),
@@ -111,8 +112,9 @@ class TrainConfig:
     densify: DensifyConfig = field(default_factory=DensifyConfig)  # at 30k iterations; scaled to `iterations`
     backend: str = "auto"
     device: str = "auto"  # "auto": CUDA when available, else CPU
-    # The refraction transform through torch.compile (`compiled_refract_gaussians`): fewer kernel launches on a
-    # GPU, where the eager transform is launch-bound; a compile at the start. Not yet timed on a GPU (issue 29).
+    # The refraction transform through torch.compile (`compiled_refract_gaussians`): fewer kernel launches on
+    # a GPU, where the eager transform is launch-bound; a compile at the start. Not yet timed on a GPU (issue
+    # 29).
     compile_refraction: bool = False
     checkpoint_every: int | None = None  # None: every 10 % of the run; 0: only at the end (and on interrupt)
     # The water plane: the dataset's unless overridden (on a dataset without water, water_level adds one with
@@ -120,7 +122,8 @@ class TrainConfig:
     # own Adam step size (Adam moves a parameter by about its lr per step).
     water_level: float | None = None  # metres, the model's frame (a sloping surface's height at x = y = 0)
     water_n: float | None = None
-    # (dz/dx, dz/dy) of a sloping surface; (0, 0) makes a sloping dataset's water one level (a flat-water tool)
+    # (dz/dx, dz/dy) of a sloping surface; (0, 0) makes a sloping dataset's water one level
+    # (a flat-water tool)
     water_slope: tuple[float, float] | None = None
     optimize_water: str = "none"  # "none" | "level" | "level+n"
     # Absolute metres, not x camera extent as the means: how far the level is off is set by how it was
@@ -133,21 +136,23 @@ class TrainConfig:
     # to 20 cm while the bed was still the initial plane, and ended 16 cm high).
     water_warmup: float = 0.5
     # The attenuation coefficients (variants with "attenuation" in `WATER_TERMS`), trained as log c: the start
-    # (1/m, every channel; a clear river's order) and the Adam rate in log c. Adam moves log c by about its lr a
-    # step, so 1e-2 crosses the range's factor of 500 (6.2 in log) in a fifth of a 3 000-step run and ends
+    # (1/m, every channel; a clear river's order) and the Adam rate in log c. Adam moves log c by about its lr
+    # a step, so 1e-2 crosses the range's factor of 500 (6.2 in log) in a fifth of a 3 000-step run and ends
     # within about 1 % a step of where the images put it.
     attenuation_start: float = 0.1
     lr_attenuation: float = 1e-2
     # The backscatter (variants with "backscatter" in `WATER_TERMS`), trained as log B_inf and log c_b, every
-    # channel from the same start: a faint veil (0.05 linear, a dark river's; with 0.1 1/m, 0.006 at 1 m depth,
-    # under two 8-bit steps at the bed's mid-greys) that the images raise; the Adam rate as the attenuation's.
+    # channel from the same start: a faint veil (0.05 linear, a dark river's; with 0.1 1/m, 0.006 at 1 m
+    # depth, under two 8-bit steps at the bed's mid-greys) that the images raise; the Adam rate as the
+    # attenuation's.
     veil_start: float = 0.05
     backscatter_start: float = 0.1
     lr_backscatter: float = 1e-2
-    # The sky the surface mirrors (variants with "reflection" in `WATER_TERMS`), a map trained as log radiance,
-    # every texel from the same start: a grey sky of 0.3 (linear; the sky's order at the images' exposure), which
-    # R = 0.02 at nadir shows as 0.006, under two 8-bit steps at the bed's mid-greys, and the images move: the
-    # glint's texels up, by a factor of 100 in 460 steps where seen, at the Adam rate of the other terms.
+    # The sky the surface mirrors (variants with "reflection" in `WATER_TERMS`), a map trained as log
+    # radiance, every texel from the same start: a grey sky of 0.3 (linear; the sky's order at the images'
+    # exposure), which R = 0.02 at nadir shows as 0.006, under two 8-bit steps at the bed's mid-greys, and the
+    # images move: the glint's texels up, by a factor of 100 in 460 steps where seen, at the Adam rate of the
+    # other terms.
     sky_start: float = 0.3
     lr_reflection: float = 1e-2
 
@@ -170,19 +175,23 @@ class TrainConfig:
             raise ConfigError("init_fill fills the gaps between a start's points; init='grid' has none "
                               "(--init-fill 0)")
         if self.init_depth is not None and not self.init_depth > 0:
-            raise ConfigError(f"init_depth is a depth below the water level and must be > 0, got {self.init_depth}")
+            raise ConfigError("init_depth is a depth below the water level and must be > 0, got "
+                              f"{self.init_depth}")
         if self.water_level is not None and not math.isfinite(self.water_level):
             raise ConfigError(f"water_level must be finite, got {self.water_level}")
         if self.water_slope is not None and not (len(self.water_slope) == 2 and all(
                 math.isfinite(v) and abs(v) < 1 for v in self.water_slope)):
-            raise ConfigError(f"water_slope is (dz/dx, dz/dy), each finite and under 1, got {self.water_slope}")
+            raise ConfigError("water_slope is (dz/dx, dz/dy), each finite and under 1, got "
+                              f"{self.water_slope}")
         if self.water_n is not None and not (math.isfinite(self.water_n) and self.water_n >= 1):
-            raise ConfigError(f"water_n is a refractive index and must be finite and >= 1, got {self.water_n}")
+            raise ConfigError("water_n is a refractive index and must be finite and >= 1, got "
+                              f"{self.water_n}")
         if self.optimize_water not in WATER_PARAMS:
-            raise ConfigError(f"optimize_water must be one of {', '.join(WATER_PARAMS)}, got {self.optimize_water!r}")
+            raise ConfigError(f"optimize_water must be one of {', '.join(WATER_PARAMS)}, got "
+                              f"{self.optimize_water!r}")
         if self.optimize_water != "none" and VARIANTS[self.variant] is None:
-            raise ConfigError(f"optimize_water={self.optimize_water!r} needs a variant that models the water; "
-                              f"{self.variant!r} never refracts")
+            raise ConfigError(f"optimize_water={self.optimize_water!r} needs a variant that models the "
+                              f"water; {self.variant!r} never refracts")
         for name in ("lr_water_level", "lr_water_n"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
@@ -261,14 +270,16 @@ class TrainConfig:
         return cls(**kw)
 
 
-# Presets: smoke (CI, seconds), small (the 2-core CPU default of `make ablation`), small-field (small for field
-# conditions), paper (30k, a GPU). `small` and `small-field` were tuned on their development reach (dataset seed
-# 1), never on a reach a table reports: each value below with its reason and its record in ragsplat_core/tuning/
-# (small.json, small_field.json: values tried, figures, rule, command, commit), which every results.json repeats.
+# Presets: smoke (CI, seconds), small (the 2-core CPU default of `make ablation`), small-field (small for
+# field conditions), paper (30k, a GPU). `small` and `small-field` were tuned on their development reach
+# (dataset seed 1), never on a reach a table reports: each value below with its reason and its record in
+# ragsplat_core/tuning/ (small.json, small_field.json: values tried, figures, rule, command, commit), which
+# every results.json repeats.
 TUNING = record("small")
 FIELD_TUNING = record("small_field")
-# The short presets start the position rate higher than 3DGS's 1.6e-4: squeezed into 1 500 steps that rate lets
-# a Gaussian travel at most about 0.3 m, less than the refraction shift it must follow (0.74 m at 3 m depth).
+# The short presets start the position rate higher than 3DGS's 1.6e-4: squeezed into 1 500 steps that rate
+# lets a Gaussian travel at most about 0.3 m, less than the refraction shift it must follow (0.74 m at 3 m
+# depth).
 SHORT_LR_MEANS = 1.6e-3  # smoke (CI): a scale argument, not tuned
 SMALL_LR_MEANS = 5e-3  # the best F1 at 3 % of depth of the three tried (small.json, top level)
 # 2DGS's normal consistency at 0.05 smooths the bed's stones at this resolution: a fifth of it (small.json,
@@ -278,16 +289,18 @@ SMALL_LAMBDA_NORMAL = 0.01
 # structure more than in their mean colour (small.json, "ssim_lambda").
 SMALL_SSIM_LAMBDA = 0.8
 # Densification stops at 30 % of the run, not 3DGS's half: the cap is reached early on this reach, and the
-# steps without cloning, pruning or opacity resets settle the bed (small.json, "refine_stop"). At the 30k scale.
+# steps without cloning, pruning or opacity resets settle the bed (small.json, "refine_stop"). At the 30k
+# scale.
 SMALL_REFINE_STOP = 9_000
 # 3 000 steps, not 1 500: the surfel bed keeps sharpening, and 4 500 gain nothing more (small.json, "length").
-# Chosen for the best variant: `full` loses at 3 000, and keeps the same preset so that the rows differ by their
-# model alone.
+# Chosen for the best variant: `full` loses at 3 000, and keeps the same preset so that the rows differ by
+# their model alone.
 SMALL_ITERATIONS = 3000
 PRESETS: dict[str, TrainConfig] = {
     "smoke": TrainConfig(preset="smoke", iterations=150, init_count=1_500, sh_degree=1,
                          lr_means=SHORT_LR_MEANS, densify=DensifyConfig(max_gaussians=4_000)),
-    "small": TrainConfig(preset="small", iterations=SMALL_ITERATIONS, init_count=16_000, lr_means=SMALL_LR_MEANS,
+    "small": TrainConfig(preset="small", iterations=SMALL_ITERATIONS, init_count=16_000,
+                         lr_means=SMALL_LR_MEANS,
                          lambda_normal=SMALL_LAMBDA_NORMAL, ssim_lambda=SMALL_SSIM_LAMBDA,
                          densify=DensifyConfig(max_gaussians=40_000, refine_stop_iter=SMALL_REFINE_STOP)),
     "paper": TrainConfig(preset="paper", iterations=30_000, init_count=40_000),

@@ -54,8 +54,9 @@ class DensifyConfig:
         def s(it: int) -> int:
             return max(1, round(it * f))
 
-        return replace(self, refine_start_iter=s(self.refine_start_iter), refine_stop_iter=s(self.refine_stop_iter),
-                       reset_every=s(self.reset_every), refine_every=max(min_refine_every, s(self.refine_every)))
+        return replace(self, refine_start_iter=s(self.refine_start_iter),
+                       refine_stop_iter=s(self.refine_stop_iter), reset_every=s(self.reset_every),
+                       refine_every=max(min_refine_every, s(self.refine_every)))
 
 
 @torch.no_grad()
@@ -158,7 +159,8 @@ class DefaultStrategy:
         if missing:
             raise ValueError(f"parameters missing {missing}")
         if set(params.keys()) != set(optimizers.keys()):
-            raise ValueError(f"one optimiser per parameter needed: {sorted(params.keys())} vs {sorted(optimizers)}")
+            raise ValueError(f"one optimiser per parameter needed: {sorted(params.keys())} vs "
+                             f"{sorted(optimizers)}")
 
     def step_pre_backward(self, params, optimizers, state: dict, step: int, info: dict) -> None:
         # gsplat's backend hands a detached tensor whose .grad it fills itself; the others need retain_grad

@@ -20,8 +20,8 @@ attenuation, backscatter and sky).
 The water is the dataset's unless the config overrides its level or n; `optimize_water` calibrates it (own
 Adam, frozen for the warm-up), and `trainer.water` is always the current one. A variant with water terms
 (`WATER_TERMS`, issue 50) also trains the water's attenuation coefficients (`trainer.attenuation`, own Adam on
-log c, clamped to `ATTENUATION_RANGE`) and the water column's backscatter (`trainer.backscatter`: B_inf and c_b,
-own Adam on their logs, clamped to `VEIL_RANGE` and `BACKSCATTER_RANGE`; the veil is added to the render,
+log c, clamped to `ATTENUATION_RANGE`) and the water column's backscatter (`trainer.backscatter`: B_inf and
+c_b, own Adam on their logs, clamped to `VEIL_RANGE` and `BACKSCATTER_RANGE`; the veil is added to the render,
 `render_splats`) and the sky the surface mirrors (`trainer.reflection`: a map of linear radiance, own Adam on
 its log, clamped to `SKY_RANGE`; Fresnel-weighted over the wet pixels, `render_splats`), each only where its
 variant has it, saved in the checkpoint and in config.json (`attenuation_final`, `backscatter_final`,
@@ -99,12 +99,13 @@ def view_gaussians(splats, center: torch.Tensor, sh_degree: int, water: WaterSur
         return ApparentGaussians(splats["means"], scales, quats, opac, colors, None, None)
     transform = compiled_refract_gaussians() if compiled else refract_gaussians
     terms = {} if attenuation is None else {"attenuation": attenuation}
-    return transform(splats["means"], scales, quats, opac, colors, center, water, **flags, covariances=not surfels,
-                     **terms)
+    return transform(splats["means"], scales, quats, opac, colors, center, water, **flags,
+                     covariances=not surfels, **terms)
 
 
 def render_splats(splats, camera: Camera, center: torch.Tensor, sh_degree: int, water: WaterSurface | None,
-                  flags: dict | None, surfels: bool, background: torch.Tensor, backend: str, compiled: bool = False,
+                  flags: dict | None, surfels: bool, background: torch.Tensor, backend: str,
+                  compiled: bool = False,
                   attenuation: torch.Tensor | None = None, backscatter: torch.Tensor | None = None,
                   reflection: torch.Tensor | None = None):
     """(image [H,W,3], alpha [H,W,1], depth [H,W,1], meta) of `camera` (centre `center` [3]) as training
@@ -141,14 +142,14 @@ def pixel_rays(camera: Camera, like: torch.Tensor) -> torch.Tensor:
     return x[None, :, None] * R[0] + y[:, None, None] * R[1] + R[2]
 
 
-def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, background: torch.Tensor, backend: str,
-                   median: bool = False):
+def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, background: torch.Tensor,
+                   backend: str, median: bool = False):
     """`rasterize` the Gaussians `g`, or `rasterize_surfels` them as surfels (the first two scales span the
     disk; with `g.jacobians` the tangents are mapped through the water, t' = J t). `median`: also
     meta["median_depth"] (surfels always have it)."""
     if not surfels:
-        return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, camera, background, covars=g.covars,
-                         backend=backend, median=median)
+        return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, camera, background,
+                         covars=g.covars, backend=backend, median=median)
     # [N, 3, 2] t' = J t through the water; without it quats and scales
     tangents = None if g.jacobians is None else (
         g.jacobians @ choose_backend(backend, g.means.device).tangents(g.quats, g.scales[:, :2]))
@@ -181,7 +182,8 @@ def fades_opacity(flags: dict | None) -> bool:
     return flags is not None and flags["opacity"]
 
 
-def median_depth(splats, camera: Camera, surfels: bool, fade: WaterSurface | None, backend: str) -> torch.Tensor:
+def median_depth(splats, camera: Camera, surfels: bool, fade: WaterSurface | None,
+                 backend: str) -> torch.Tensor:
     """[H, W] median z-depth of the TRUE Gaussians (or surfels) seen by `camera` along straight rays, 0 where
     the transmittance stays above 0.5: the bed that depth fusion wants (rendered through the interface the
     depth would be the apparent bed's, and the z of a refracted ray is no distance to the true one). With
@@ -193,20 +195,22 @@ def median_depth(splats, camera: Camera, surfels: bool, fade: WaterSurface | Non
         g = view_gaussians(splats, center, 0, None, None)  # colours do not move the depth: degree 0
         if fade is not None:
             g = g._replace(opacities=g.opacities * opacity_factor(g.means, fade))
-        meta = rasterize_view(g, camera, surfels, torch.zeros(3, device=g.means.device), backend, median=True)[3]
+        meta = rasterize_view(g, camera, surfels, torch.zeros(3, device=g.means.device), backend,
+                              median=True)[3]
     return meta["median_depth"][..., 0]
 
 
 class Trainer:
     """Holds the Gaussians, their optimisers and the densification state for one run (one variant)."""
 
-    def __init__(self, cfg: TrainConfig, dataset: Dataset, out_dir: str | Path | None = None, resume: bool = True):
+    def __init__(self, cfg: TrainConfig, dataset: Dataset, out_dir: str | Path | None = None,
+                 resume: bool = True):
         self.cfg = cfg
         self.ds = dataset
         self.out = None if out_dir is None else Path(out_dir)
         try:
-            self.device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto"
-                                       else cfg.device)
+            self.device = torch.device(("cuda" if torch.cuda.is_available() else "cpu")
+                                       if cfg.device == "auto" else cfg.device)
         except RuntimeError:
             raise ConfigError(f"unknown torch device {cfg.device!r} (e.g. cpu, cuda, cuda:1)") from None
         if self.device.type == "cuda" and not torch.cuda.is_available():
@@ -227,8 +231,8 @@ class Trainer:
         # run as an identity.
         self.flags = None if (flags is None or self._water0 is None or
                               (self._water0.n == 1 and "n" not in self.water_params)) else flags
-        # The water's attenuation, log c [3] (c > 0), only where the water is modelled: otherwise no parameter,
-        # no optimizer, not one op. A resumed run overwrites its values.
+        # The water's attenuation, log c [3] (c > 0), only where the water is modelled: otherwise no
+        # parameter, no optimizer, not one op. A resumed run overwrites its values.
         self.log_attenuation = None
         if self.flags is not None and "attenuation" in cfg.water_terms:
             self.log_attenuation = torch.nn.Parameter(torch.full((3,), math.log(cfg.attenuation_start),
@@ -258,7 +262,8 @@ class Trainer:
         self.schedule = cfg.schedule
         self.gen = torch.Generator().manual_seed(cfg.seed)  # view order and split samples
         # pruning and resets test the opacity as rendered (through the water for a variant that fades it)
-        self.strategy = DefaultStrategy(self.schedule, self.gen, (lambda means: opacity_factor(means, self.water))
+        self.strategy = DefaultStrategy(self.schedule, self.gen,
+                                        (lambda means: opacity_factor(means, self.water))
                                         if fades_opacity(self.flags) else None)
         self.step = 0
         self.elapsed = 0.0
@@ -299,9 +304,9 @@ class Trainer:
         centres = np.array([v.camera.camera_center for v in self.views])
         i = int(np.argmax(water.depth(centres)))
         if not water.depth(centres[i]) < 0:
-            raise error(f"the water surface ({float(water.height(centres[i, :2])):g} m there) is not below every "
-                        f"training camera ({self.views[i].name} is at {centres[i, 2]:g} m): refraction needs "
-                        f"the cameras in air")
+            raise error(f"the water surface ({float(water.height(centres[i, :2])):g} m there) is not below "
+                        f"every training camera ({self.views[i].name} is at {centres[i, 2]:g} m): refraction "
+                        f"needs the cameras in air")
 
     @property
     def water(self) -> WaterSurface | None:
@@ -311,7 +316,8 @@ class Trainer:
     def _water(self, grad: bool) -> WaterSurface | None:
         if self._water0 is None:
             return None
-        return replace(self._water0, **{k: p if grad else float(p.detach()) for k, p in self.water_params.items()})
+        return replace(self._water0,
+                       **{k: p if grad else float(p.detach()) for k, p in self.water_params.items()})
 
     def _init_splats(self) -> torch.nn.ParameterDict:
         cfg = self.cfg
@@ -321,24 +327,27 @@ class Trainer:
 
             if cfg.init == "refracted":
                 if self.water is None:
-                    raise ConfigError("init='refracted' intersects rays through the water: the dataset has none")
-                arr = refracted_points(self.ds.root, self.ds.fingerprint, {v.file_path: v.camera for v in self.views},
-                                       self.water)
+                    raise ConfigError("init='refracted' intersects rays through the water: the dataset has "
+                                      "none")
+                arr = refracted_points(self.ds.root, self.ds.fingerprint,
+                                       {v.file_path: v.camera for v in self.views}, self.water)
             else:
-                source = triangulated_points(self.ds.root, self.ds.fingerprint) if cfg.init == "triangulated" \
-                    else Path(cfg.init_points)
+                source = triangulated_points(self.ds.root, self.ds.fingerprint) \
+                    if cfg.init == "triangulated" else Path(cfg.init_points)
                 if not source.is_file():
                     raise ConfigError(f"{source}: point cloud file is missing")
                 arr = np.load(source)
                 if arr.ndim != 2 or arr.shape[1] not in (3, 6):
                     raise ConfigError(f"{source}: expected an array [N, 3] or [N, 6], got {arr.shape}")
             if len(arr) > cfg.init_count:  # a survey's model can hold millions: a seeded random subset
-                arr = arr[np.sort(np.random.default_rng(cfg.seed).choice(len(arr), cfg.init_count, replace=False))]
+                arr = arr[np.sort(
+                    np.random.default_rng(cfg.seed).choice(len(arr), cfg.init_count, replace=False))]
             if cfg.init_fill > 0:  # after the cap: it fills the gaps of the points actually used
                 arr = np.concatenate([arr, fill_gaps(arr, cfg.init_fill)])
             pts = torch.from_numpy(arr[:, :3]).float()
             rgb = torch.from_numpy(arr[:, 3:]).float() if arr.shape[1] == 6 else torch.full_like(pts, 0.5)
-            # straight-ray points sit at apparent depths (x n, the field's correction); refracted ones are true
+            # straight-ray points sit at apparent depths (x n, the field's correction);
+            # refracted ones are true
             return init_points(pts, rgb, None if cfg.init == "refracted" else self.water, cfg.sh_degree,
                                cfg.init_opacity)
         bed = self.ds.bed
@@ -348,12 +357,14 @@ class Trainer:
                               "give init_depth (--init-depth)")
         water = self.water or WaterSurface(0.0, 1.0)
         centres = np.array([v.camera.camera_center for v in self.views])
-        z = float(water.height(np.median(centres[:, :2], axis=0))) - depth  # the plane's height under the flight
+        # the plane's height under the flight
+        z = float(water.height(np.median(centres[:, :2], axis=0))) - depth
         height = float(-water.depth(centres).max())
-        if depth > MAX_DEPTH_PER_HEIGHT * height:  # e.g. a depth given in mm: the grid would be kilometres wide
-            raise ConfigError(f"init depth {depth:g} m is more than {MAX_DEPTH_PER_HEIGHT}x the cameras' height "
-                              f"above the water ({height:.3g} m); give the bed depth in metres below the water "
-                              "level (--init-depth)")
+        # e.g. a depth given in mm: the grid would be kilometres wide
+        if depth > MAX_DEPTH_PER_HEIGHT * height:
+            raise ConfigError(f"init depth {depth:g} m is more than {MAX_DEPTH_PER_HEIGHT}x the cameras' "
+                              f"height above the water ({height:.3g} m); give the bed depth in metres below "
+                              "the water level (--init-depth)")
         # Everything the training views see of the plane (images are filled with bed to their edges, and
         # an uncovered part would render as background), clipped to the bed when its size is known.
         try:
@@ -399,18 +410,20 @@ class Trainer:
 
     @property
     def attenuation(self) -> torch.Tensor | None:
-        """The water's attenuation coefficients c [3] (1/m, linear RGB) as they stand now, None when not trained."""
+        """The water's attenuation coefficients c [3] (1/m, linear RGB) as they stand now, None when not
+        trained."""
         return None if self.log_attenuation is None else self.log_attenuation.detach().exp()
 
     @property
     def backscatter(self) -> torch.Tensor | None:
-        """[2, 3] the water's veil B_inf (linear RGB) and its coefficients c_b (1/m) as they stand now, None when
-        not trained."""
+        """[2, 3] the water's veil B_inf (linear RGB) and its coefficients c_b (1/m) as they stand now, None
+        when not trained."""
         return None if self.log_backscatter is None else self.log_backscatter.detach().exp()
 
     @property
     def reflection(self) -> torch.Tensor | None:
-        """[S, S, 3] the sky map the surface mirrors (linear radiance) as it stands now, None when not trained."""
+        """[S, S, 3] the sky map the surface mirrors (linear radiance) as it stands now, None when not
+        trained."""
         return None if self.log_sky is None else self.log_sky.detach().exp()
 
     @property
@@ -427,8 +440,8 @@ class Trainer:
         backscatter = None if self.log_backscatter is None or not interface else self.log_backscatter.exp()
         sky = None if self.log_sky is None or not interface else self.log_sky.exp()
         return render_splats(self.splats, camera, center, self.active_sh_degree, water,
-                             self.flags if interface else None, self.cfg.surfels, self.background, self.cfg.backend,
-                             self.cfg.compile_refraction, attenuation, backscatter, sky)
+                             self.flags if interface else None, self.cfg.surfels, self.background,
+                             self.cfg.backend, self.cfg.compile_refraction, attenuation, backscatter, sky)
 
     def render(self, camera: Camera, interface: bool = True):
         """(image [H,W,3], alpha [H,W,1], depth [H,W,1]) of `camera`, no gradients.
@@ -468,8 +481,8 @@ class Trainer:
         if self.cfg.surfels:
             loss = loss + self._surfel_loss(cam, depth, info, mask, step)
         if not torch.isfinite(loss):
-            raise TrainingDiverged(f"iteration {step}: loss is {float(loss.detach())} (view {self.views[i].name}); "
-                                   f"{self._nonfinite_report()}")
+            raise TrainingDiverged(f"iteration {step}: loss is {float(loss.detach())} (view "
+                                   f"{self.views[i].name}); {self._nonfinite_report()}")
         info.update(width=cam.width, height=cam.height)
         self.strategy.step_pre_backward(self.splats, self.optimizers, self.strat_state, step, info)
         loss.backward()
@@ -478,9 +491,10 @@ class Trainer:
         for name, p in (*self.splats.items(), *self._water_named()):
             if p.grad is not None and not torch.isfinite(p.grad.sum()):
                 cause = self._nonfinite_report()  # a bad parameter poisons the others' gradients: name it
-                raise TrainingDiverged(f"iteration {step}: " + (f"{cause} before the optimizer step" if cause else
-                                       f"non-finite gradient of parameter '{name}' "
-                                       f"({int((~torch.isfinite(p.grad)).sum())} values)"))
+                raise TrainingDiverged(f"iteration {step}: "
+                                       + (f"{cause} before the optimizer step" if cause else
+                                          f"non-finite gradient of parameter '{name}' "
+                                          f"({int((~torch.isfinite(p.grad)).sum())} values)"))
         self.optimizers["means"].param_groups[0]["lr"] = self.means_lr(step)
         for opt in self.optimizers.values():
             opt.step()
@@ -510,8 +524,8 @@ class Trainer:
                 self.splats["scales"][:, 2] = math.log(SURFEL_THICKNESS)
 
     def median_depth(self, camera: Camera) -> torch.Tensor:  # [H, W], see `median_depth`
-        return median_depth(self.splats, camera, self.cfg.surfels, self.water if fades_opacity(self.flags) else None,
-                            self.cfg.backend)
+        return median_depth(self.splats, camera, self.cfg.surfels,
+                            self.water if fades_opacity(self.flags) else None, self.cfg.backend)
 
     def _surfel_loss(self, cam: Camera, depth, info: dict, mask, step: int):
         """2DGS's geometry terms over the used pixels: depth distortion, and normal consistency between the
@@ -647,7 +661,8 @@ class Trainer:
                 "dataset_fingerprint": self.ds.fingerprint, "scene_scale": self.scene_scale,
                 "water": layout.water_json(self._water0),
                 "water_final": self._water_dict() if self.step >= self.cfg.iterations else None,
-                # the attenuation coefficients (1/m) at the start and, once finished, at the end (renders use it)
+                # the attenuation coefficients (1/m) at the start and, once finished, at the end
+                # (renders use it)
                 "attenuation": None if self.attenuation is None else [self.cfg.attenuation_start] * 3,
                 "attenuation_final": self._attenuation_list() if self.step >= self.cfg.iterations else None,
                 # the backscatter likewise
@@ -655,7 +670,8 @@ class Trainer:
                     "veil": [self.cfg.veil_start] * 3, "coefficients": [self.cfg.backscatter_start] * 3},
                 "backscatter_final": self._backscatter_dict() if self.step >= self.cfg.iterations else None,
                 # the sky map: at the start every texel's radiance and the map's side, at the end the map
-                "reflection": None if self.reflection is None else {"sky": self.cfg.sky_start, "size": SKY_SIZE},
+                "reflection": (None if self.reflection is None
+                               else {"sky": self.cfg.sky_start, "size": SKY_SIZE}),
                 "reflection_final": self._reflection_dict() if self.step >= self.cfg.iterations else None,
                 "refraction_applied": self.flags,
                 "device": str(self.device),
@@ -665,7 +681,8 @@ class Trainer:
     def save_checkpoint(self, path: str | Path | None = None) -> Path:
         path = Path(path) if path is not None else self.out / CHECKPOINT
         data = {"config": self.cfg.to_dict(), "dataset_fingerprint": self.ds.fingerprint, "step": self.step,
-                "elapsed": self.elapsed, "cpu_elapsed": self.cpu_elapsed, "step_seconds": list(self.step_seconds),
+                "elapsed": self.elapsed, "cpu_elapsed": self.cpu_elapsed,
+                "step_seconds": list(self.step_seconds),
                 "splats": {k: v.detach().cpu() for k, v in self.splats.items()},
                 "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
                 "strategy": {k: (v.cpu() if torch.is_tensor(v) else v) for k, v in self.strat_state.items()},
@@ -673,9 +690,11 @@ class Trainer:
                 "water": {k: p.detach().cpu() for k, p in self.water_params.items()},
                 "water_optimizer": None if self.water_opt is None else self.water_opt.state_dict(),
                 "attenuation": None if self.log_attenuation is None else self.log_attenuation.detach().cpu(),
-                "attenuation_optimizer": None if self.attenuation_opt is None else self.attenuation_opt.state_dict(),
+                "attenuation_optimizer": (None if self.attenuation_opt is None
+                                          else self.attenuation_opt.state_dict()),
                 "backscatter": None if self.log_backscatter is None else self.log_backscatter.detach().cpu(),
-                "backscatter_optimizer": None if self.backscatter_opt is None else self.backscatter_opt.state_dict(),
+                "backscatter_optimizer": (None if self.backscatter_opt is None
+                                          else self.backscatter_opt.state_dict()),
                 "reflection": None if self.log_sky is None else self.log_sky.detach().cpu(),
                 "reflection_optimizer": None if self.sky_opt is None else self.sky_opt.state_dict()}
         with atomic_path(path) as tmp:  # a kill never leaves a half-written checkpoint
@@ -685,13 +704,14 @@ class Trainer:
     def _load(self, path: Path) -> None:
         try:
             data = torch.load(path, map_location="cpu", weights_only=True)
-        except (RuntimeError, KeyError, EOFError, ValueError, pickle.UnpicklingError) as err:  # truncated, garbage
+        except (RuntimeError, KeyError, EOFError, ValueError,
+                pickle.UnpicklingError) as err:  # truncated, garbage
             raise OutputError(f"{path}: not a readable checkpoint ({type(err).__name__}); move it away to "
                               "start over") from None
         theirs, ours = data.get("dataset_fingerprint"), self.ds.fingerprint
         if theirs is not None and ours is not None and theirs != ours:
-            raise OutputError(f"{path}: checkpoint of another dataset (fingerprint {theirs}, {self.ds.root} is "
-                              f"{ours}); use another output directory")
+            raise OutputError(f"{path}: checkpoint of another dataset (fingerprint {theirs}, {self.ds.root} "
+                              f"is {ours}); use another output directory")
         saved = TrainConfig.from_dict(data["config"])
         diff = [f.name for f in fields(TrainConfig)
                 if f.name not in RUN_ONLY and getattr(saved, f.name) != getattr(self.cfg, f.name)]
@@ -722,12 +742,14 @@ class Trainer:
             self.backscatter_opt.load_state_dict(data["backscatter_optimizer"])
         if self.log_sky is not None:
             if data.get("reflection") is None:  # 2dgs+full+water before it had the reflection
-                raise OutputError(f"{path}: checkpoint of {self.cfg.variant} without the surface's reflection "
-                                  "(written before the variant had it); use another output directory")
+                raise OutputError(f"{path}: checkpoint of {self.cfg.variant} without the surface's "
+                                  "reflection (written before the variant had it); use another output "
+                                  "directory")
             with torch.no_grad():
                 self.log_sky.copy_(data["reflection"])
             self.sky_opt.load_state_dict(data["reflection_optimizer"])
-        self.strat_state = {k: (v.to(self.device) if torch.is_tensor(v) else v) for k, v in data["strategy"].items()}
+        self.strat_state = {k: (v.to(self.device) if torch.is_tensor(v) else v)
+                            for k, v in data["strategy"].items()}
         self.step, self.elapsed = int(data["step"]), float(data["elapsed"])
         self.cpu_elapsed = float(data.get("cpu_elapsed", 0.0))
         self.step_seconds = [float(t) for t in data.get("step_seconds", [])]
