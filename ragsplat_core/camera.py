@@ -54,7 +54,8 @@ class Camera:
     t: np.ndarray  # [3] world -> camera translation
 
     def __post_init__(self):
-        if int(self.width) != self.width or int(self.height) != self.height or self.width < 1 or self.height < 1:
+        if (int(self.width) != self.width or int(self.height) != self.height
+                or self.width < 1 or self.height < 1):
             raise ValueError(f"image size must be positive integers, got {self.width} x {self.height}")
         for name in ("fx", "fy", "cx", "cy"):
             if not math.isfinite(getattr(self, name)):

@@ -1,6 +1,6 @@
 """Products of a finished training run: the bed surface as a DEM GeoTIFF (elevation and water depth), the bed
-points as LAS/LAZ and PLY and a depth map PNG over a hillshade (`ragsplat export`); and the run rendered at its
-dataset's camera poses, through the water, without it, or as z-depth (`Model`, `ragsplat render`).
+points as LAS/LAZ and PLY and a depth map PNG over a hillshade (`ragsplat export`); and the run rendered at
+its dataset's camera poses, through the water, without it, or as z-depth (`Model`, `ragsplat render`).
 
 The bed is `surface.extract_surface` of the trained Gaussians on a grid of `resolution` metres, cropped to
 the dataset's evaluation region when it has one. Every product is in one coordinate frame: the run's local
@@ -43,12 +43,12 @@ from ragsplat_core.train.trainer import (
 BATHYMETRIC, GROUND = 40, 2  # ASPRS classes (LAS 1.4 R15): submerged bed ("bathymetric point"), emerged
 LAS_SCALE = 0.001  # metres per integer step of the LAS coordinates
 # Extraction samples per cell of the DEM grid inside the region: the evaluation's rule (`eval.ablation`'s
-# `extract_config`: samples_per_cell x the ground-truth grid's nodes, 16 for every preset but the CI's `smoke`),
-# so that at the evaluation's 5 cm a run exports the bed `ragsplat eval` scores (on a reach its grid counts the
-# wet nodes only; the export cannot know which are wet before extracting and counts them all).
+# `extract_config`: samples_per_cell x the ground-truth grid's nodes, 16 for every preset but the CI's
+# `smoke`), so that at the evaluation's 5 cm a run exports the bed `ragsplat eval` scores (on a reach its grid
+# counts the wet nodes only; the export cannot know which are wet before extracting and counts them all).
 SAMPLES_PER_CELL = 16
-# A bed whose samples exceed this is extracted in blocks (`surface.extract_surface_blocks`), each of about this
-# many: memory is bounded by a block, not the area (about 200 bytes per sample while filtering).
+# A bed whose samples exceed this is extracted in blocks (`surface.extract_surface_blocks`), each of about
+# this many: memory is bounded by a block, not the area (about 200 bytes per sample while filtering).
 BLOCK_SAMPLES = 2_000_000
 MAX_CELLS = 50_000_000  # the DEM's nodes (the grid and its rasters: about 40 bytes each); more is a typo
 # The noise filter's neighbourhood (`ExtractConfig.filter_radius`, 10 cm = 2 cells of the evaluation's 5 cm)
@@ -56,9 +56,9 @@ MAX_CELLS = 50_000_000  # the DEM's nodes (the grid and its rasters: about 40 by
 # 50 cm leave about 2 within 10 cm, and the filter, which wants 6, would drop the whole bed).
 FILTER_RADIUS_CELLS = 2.0
 # Never fewer samples than this per Gaussian, whatever the cell: `surface.largest_remainder` hands them out in
-# proportion to volume, floors first, so with fewer samples than Gaussians only the largest (and, among equals,
-# the first in the file) are sampled at all. At the evaluation's 5 cm it does not bind (the `small` reach: 16 x
-# 30 535 nodes for at most 40 000 Gaussians).
+# proportion to volume, floors first, so with fewer samples than Gaussians only the largest (and, among
+# equals, the first in the file) are sampled at all. At the evaluation's 5 cm it does not bind (the `small`
+# reach: 16 x 30 535 nodes for at most 40 000 Gaussians).
 SAMPLES_PER_GAUSSIAN = 4
 
 
@@ -82,8 +82,9 @@ class Bed:
         return np.where(d > 0, d, np.nan)
 
 
-def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None = None, ply: Path | None = None,
-               png: Path | None = None, data: Path | None = None, on_block=None, bounds=None, **extract) -> Bed:
+def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None = None,
+               ply: Path | None = None, png: Path | None = None, data: Path | None = None, on_block=None,
+               bounds=None, **extract) -> Bed:
     """Extract the bed of a finished run (`load_run`, `extract_bed`, `extract`: its `ExtractConfig` fields to
     change) and write the DEM and each other product given a path, in the dataset's georeference (an
     imported survey's CRS and offset), depths below the water the run ended with (`run_water`). `bounds`
@@ -130,7 +131,8 @@ def _read_run(run: Path, data: Path | None, **load) -> tuple[dict, Dataset, dict
         meta = json.loads((run / "config.json").read_text())
         dataset, seed = Path(meta["dataset"]), int(meta["config"]["seed"])
     except (ValueError, KeyError, TypeError):
-        raise OutputError(f"{run / 'config.json'}: not a training run's config (no dataset or seed)") from None
+        raise OutputError(f"{run / 'config.json'}: not a training run's config (no dataset or "
+                          "seed)") from None
     root = dataset if data is None else Path(data)
     if not root.is_dir():
         raise DatasetError(f"{root}: the run's dataset directory does not exist (moved? give --data)")
@@ -186,8 +188,8 @@ class Model:
         return img.clamp(0, 1), alpha, depth
 
     def median_depth(self, camera: Camera) -> torch.Tensor:  # [H, W], see `trainer.median_depth`
-        return median_depth(self.splats, camera, self.cfg.surfels, self.water if fades_opacity(self.flags) else None,
-                            self.backend)
+        return median_depth(self.splats, camera, self.cfg.surfels,
+                            self.water if fades_opacity(self.flags) else None, self.backend)
 
 
 def load_model(run: Path, data: Path | None = None, splits: tuple[str, ...] = ()) -> tuple[Model, Dataset]:
@@ -197,7 +199,8 @@ def load_model(run: Path, data: Path | None = None, splits: tuple[str, ...] = ()
     run = Path(run)
     meta, ds, splats, _ = _read_run(run, data, splits=splits, load_dry=False)
     try:
-        cfg, flags, trained_on = TrainConfig.from_dict(meta["config"]), meta["refraction_applied"], meta["device"]
+        cfg, flags, trained_on = (TrainConfig.from_dict(meta["config"]), meta["refraction_applied"],
+                                  meta["device"])
     except (KeyError, TypeError):
         raise OutputError(f"{run / 'config.json'}: not a training run's config (no refraction_applied or "
                           "device)") from None
@@ -216,7 +219,8 @@ def load_model(run: Path, data: Path | None = None, splits: tuple[str, ...] = ()
     backscatter = None if b is None else backscatter_tensor(b, device)
     r = meta.get("reflection_final")
     reflection = None if r is None else reflection_tensor(r, device)
-    return Model(splats, cfg, flags, run_water(meta, ds), device, backend, attenuation, backscatter, reflection), ds
+    return Model(splats, cfg, flags, run_water(meta, ds), device, backend, attenuation, backscatter,
+                 reflection), ds
 
 
 def run_water(meta: dict, ds: Dataset) -> WaterSurface | None:
@@ -267,8 +271,8 @@ def write_render(model: Model, view: View, kind: str, out: Path) -> list[Path]:
 
 
 def depth_colours(depth: np.ndarray, hit: np.ndarray, opaque: np.ndarray) -> np.ndarray:
-    """[H, W] z-depth -> [H, W, 3] colours in [0, 1] (viridis reversed: near is yellow), black where not `hit`;
-    the scale spans the 1st to 99th percentile of the `opaque` pixels (of the hit ones if none is)."""
+    """[H, W] z-depth -> [H, W, 3] colours in [0, 1] (viridis reversed: near is yellow), black where not
+    `hit`; the scale spans the 1st to 99th percentile of the `opaque` pixels (of the hit ones if none is)."""
     import matplotlib
 
     ref = depth[opaque] if opaque.any() else depth[hit]
@@ -317,8 +321,8 @@ def sample_count(lo, hi, resolution: float, georef: Georef | None = None, gaussi
         need = 1.01 * resolution * math.sqrt(cells / MAX_CELLS)  # the count goes as 1 / resolution^2
         step = 10.0 ** (math.floor(math.log10(need)) - 1)
         raise ConfigError(f"resolution {resolution:g} m over {area:.4g} m^2 is {cells:.3g} cells (at most "
-                          f"{MAX_CELLS:.0e}); choose a coarser resolution, {math.ceil(need / step) * step:.2g} m "
-                          "or more")
+                          f"{MAX_CELLS:.0e}); choose a coarser resolution, "
+                          f"{math.ceil(need / step) * step:.2g} m or more")
     return max(SAMPLES_PER_CELL * cells, SAMPLES_PER_GAUSSIAN * gaussians)
 
 
@@ -341,8 +345,8 @@ def extract_bed(gaussians: dict, resolution: float, water: WaterSurface | None, 
     (`ExtractConfig`; `sample_count` samples, the noise filter `FILTER_RADIUS_CELLS` wide at cells coarser
     than the evaluation's) except the fields in `extract` (e.g. min_opacity, max_scale_gsd in ground sample
     distances `gsd`, `Dataset.gsd`). A bed of more than `BLOCK_SAMPLES` samples is extracted in blocks
-    (`surface.extract_surface_blocks`, `on_block(done, total)` after each). Raises ConfigError (too many cells:
-    before any work), OutputError (nothing found)."""
+    (`surface.extract_surface_blocks`, `on_block(done, total)` after each). Raises ConfigError (too many
+    cells: before any work), OutputError (nothing found)."""
     georef = georef or Georef()  # default: the local frame
     cfg = ExtractConfig(gsd=gsd, cell=resolution, seed=seed, **extract)
     n = sample_count(*export_box(gaussians, region, cfg.min_opacity), resolution, georef,
@@ -359,9 +363,9 @@ def extract_bed(gaussians: dict, resolution: float, water: WaterSurface | None, 
         side = math.isqrt(BLOCK_SAMPLES // SAMPLES_PER_CELL)
         grid, _ = extract_surface_blocks(*g, cfg, side, grid_origin(resolution, georef), region, on_block)
     if not len(grid):
-        raise OutputError(f"no bed surface: no Gaussian is opaque enough (>= {cfg.min_opacity}) and small enough "
-                          f"(<= {cfg.max_scale_gsd:g} ground sample distances), or the noise filter removed every "
-                          "sample")
+        raise OutputError(f"no bed surface: no Gaussian is opaque enough (>= {cfg.min_opacity}) and small "
+                          f"enough (<= {cfg.max_scale_gsd:g} ground sample distances), or the noise filter "
+                          "removed every sample")
     return Bed(grid, resolution, water, georef)
 
 

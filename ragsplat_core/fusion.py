@@ -75,13 +75,14 @@ class Tsdf:
 
 
 def _depth(d) -> torch.Tensor:  # [H, W] float32 on the CPU
-    return d.detach().to("cpu", torch.float32) if torch.is_tensor(d) else torch.as_tensor(d, dtype=torch.float32)
+    return (d.detach().to("cpu", torch.float32) if torch.is_tensor(d)
+            else torch.as_tensor(d, dtype=torch.float32))
 
 
 def _check(depths: Sequence, cameras: Sequence[Camera]) -> list[torch.Tensor]:
     if len(depths) != len(cameras) or not cameras:
-        raise ValueError(f"fusion needs one depth map per camera and at least one, got {len(depths)} depth maps "
-                         f"and {len(cameras)} cameras")
+        raise ValueError(f"fusion needs one depth map per camera and at least one, got {len(depths)} depth "
+                         f"maps and {len(cameras)} cameras")
     out = []
     for d, cam in zip(depths, cameras):
         d = _depth(d)
@@ -117,12 +118,13 @@ def z_range(depths: Sequence, cameras: Sequence[Camera], region: dict, quantile:
     return float(lo), float(hi)
 
 
-def integrate(depths: Sequence, cameras: Sequence[Camera], region: dict, zlim: tuple[float, float], voxel: float,
-              trunc: float, chunk: int = 1 << 18) -> Tsdf:
+def integrate(depths: Sequence, cameras: Sequence[Camera], region: dict, zlim: tuple[float, float],
+              voxel: float, trunc: float, chunk: int = 1 << 18) -> Tsdf:
     """Fuses z-depth maps (one [H, W] per camera, 0 = no depth) into a TSDF over `region` {xmin, xmax, ymin,
     ymax} grown by one voxel (so nodes at its edge have voxel columns on both sides) and z in `zlim`."""
     if not (voxel > 0 and trunc > 0 and zlim[1] >= zlim[0]):
-        raise ValueError(f"integrate needs voxel > 0, trunc > 0 and zlim low <= high, got {voxel}, {trunc}, {zlim}")
+        raise ValueError(f"integrate needs voxel > 0, trunc > 0 and zlim low <= high, got {voxel}, {trunc}, "
+                         f"{zlim}")
     maps = [torch.nn.functional.pad(d, (1, 1, 1, 1)) for d in _check(depths, cameras)]  # [H + 2, W + 2]
     origin = np.array([region["xmin"] - voxel, region["ymin"] - voxel, zlim[0]])
     span = np.array([region["xmax"] - region["xmin"] + 2 * voxel, region["ymax"] - region["ymin"] + 2 * voxel,
@@ -154,7 +156,8 @@ def integrate(depths: Sequence, cameras: Sequence[Camera], region: dict, zlim: t
             w_new = w + ok.float()
             val.copy_(torch.where(ok, (val * w + obs) / w_new.clamp(min=1.0), val))
             w.copy_(w_new)
-    return Tsdf(values.reshape(shape).numpy(), weights.reshape(shape).numpy(), origin, float(voxel), float(trunc))
+    return Tsdf(values.reshape(shape).numpy(), weights.reshape(shape).numpy(), origin, float(voxel),
+                float(trunc))
 
 
 def _sample(pad: torch.Tensor, u: torch.Tensor, v: torch.Tensor, trunc: float) -> torch.Tensor:
@@ -164,7 +167,8 @@ def _sample(pad: torch.Tensor, u: torch.Tensor, v: torch.Tensor, trunc: float) -
     coordinates; a nearest-pixel read is off by up to half a pixel's depth change), else the depth of the
     pixel itself (across a depth edge); 0 outside the image or where that pixel has none."""
     H, W = pad.shape[0] - 2, pad.shape[1] - 2
-    near = pad[torch.floor(v).clamp(-1, H).long() + 1, torch.floor(u).clamp(-1, W).long() + 1]  # pixel i: [i, i + 1)
+    # pixel i: [i, i + 1)
+    near = pad[torch.floor(v).clamp(-1, H).long() + 1, torch.floor(u).clamp(-1, W).long() + 1]
     x, y = u - 0.5, v - 0.5  # pixel centres on the integers
     i0, j0 = torch.floor(x).clamp(-1, W - 1), torch.floor(y).clamp(-1, H - 1)
     ax, ay = (x - i0).clamp(0, 1), (y - j0).clamp(0, 1)
@@ -181,8 +185,10 @@ def grid_nodes(region: dict, cell: float, origin: tuple[float, float]) -> np.nda
     sorted by i then j."""
     ox, oy = origin
     tol = 1e-6
-    i = np.arange(math.ceil((region["xmin"] - ox) / cell - tol), math.floor((region["xmax"] - ox) / cell + tol) + 1)
-    j = np.arange(math.ceil((region["ymin"] - oy) / cell - tol), math.floor((region["ymax"] - oy) / cell + tol) + 1)
+    i = np.arange(math.ceil((region["xmin"] - ox) / cell - tol),
+                  math.floor((region["xmax"] - ox) / cell + tol) + 1)
+    j = np.arange(math.ceil((region["ymin"] - oy) / cell - tol),
+                  math.floor((region["ymax"] - oy) / cell + tol) + 1)
     ii, jj = np.meshgrid(i, j, indexing="ij")
     return np.column_stack([ox + ii.ravel() * cell, oy + jj.ravel() * cell])
 

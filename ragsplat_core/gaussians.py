@@ -1,7 +1,7 @@
 """Gaussian scene parameters, their initialisation, rotation, covariance and surfel tangents, and
 spherical-harmonics colour, in plain PyTorch (autograd, any device). The `cpu` backend's numba kernels are
-twins of `covariance`, `surfel_tangents` and `colors_for_view` (`raster/cpu/`, chosen in `raster/backends.py`);
-this module imports nothing of the rasterizer.
+twins of `covariance`, `surfel_tangents` and `colors_for_view` (`raster/cpu/`, chosen in
+`raster/backends.py`); this module imports nothing of the rasterizer.
 
 Parameters live in a `torch.nn.ParameterDict` (the layout gsplat uses), keyed by
 - `means`     [N, 3]  world position (metres; the TRUE position for underwater Gaussians)
@@ -130,7 +130,8 @@ def _make(means: torch.Tensor, log_scales: torch.Tensor, rgb: torch.Tensor, opac
         "means": means,
         "scales": log_scales,
         "quats": quats,
-        "opacities": torch.full((n,), math.log(opacity / (1 - opacity)), dtype=means.dtype, device=means.device),
+        "opacities": torch.full((n,), math.log(opacity / (1 - opacity)), dtype=means.dtype,
+                                device=means.device),
         "sh0": rgb_to_sh(rgb)[:, None, :],
     }
     if degree > 0:
@@ -139,7 +140,8 @@ def _make(means: torch.Tensor, log_scales: torch.Tensor, rgb: torch.Tensor, opac
 
 
 def init_grid(xmin: float, xmax: float, ymin: float, ymax: float, z: float, spacing: float, degree: int = 3,
-              opacity: float = 0.1, rgb: float = 0.5, dtype=torch.float32, device=None) -> torch.nn.ParameterDict:
+              opacity: float = 0.1, rgb: float = 0.5, dtype=torch.float32,
+              device=None) -> torch.nn.ParameterDict:
     """Gaussians on a regular horizontal grid at height `z` (the paper's synthetic setup: the bed depth).
 
     Cell centres at `spacing` over [xmin, xmax] x [ymin, ymax]; isotropic scale = spacing, grey colour.

@@ -124,7 +124,8 @@ def claim(out: Path, kind: str, legacy: tuple[str, ...] = ()) -> None:
         except (OSError, ValueError):
             found = None
         if found != kind:
-            raise OutputError(f"{out} holds a ragsplat {found or 'output'}, not a {kind}; choose another --out")
+            raise OutputError(f"{out} holds a ragsplat {found or 'output'}, not a {kind}; choose another "
+                              "--out")
         return
     if out.is_dir() and any(out.iterdir()) and not any(any(out.glob(g)) for g in legacy):
         raise OutputError(f"{out} is not empty and was not written by ragsplat; choose an empty or new --out")

@@ -82,7 +82,8 @@ def load_ply(path: str | Path) -> dict[str, torch.Tensor]:
     if raw.size != count * len(props):
         raise ValueError(f"{path}: truncated ({raw.size} of {count * len(props)} values)")
     num_rest = sum(p.startswith("f_rest_") for p in props)
-    if props != _columns(num_rest) or num_rest % 3 or round(math.sqrt(num_rest // 3 + 1)) ** 2 != num_rest // 3 + 1:
+    if (props != _columns(num_rest) or num_rest % 3
+            or round(math.sqrt(num_rest // 3 + 1)) ** 2 != num_rest // 3 + 1):
         raise ValueError(f"{path}: properties are not the 3DGS layout: {props[:12]}...")
     t = torch.from_numpy(raw.reshape(count, len(props)).copy())
     k1 = num_rest // 3

@@ -55,8 +55,9 @@ def rasterize(means, quats, scales, opacities, colors, camera: Camera, backgroun
         out = b.render(means, quats, scales, opacities, colors, camera, background, covars)
         if median:  # a forward pass of the reference on the same device: gsplat has no median depth
             with torch.no_grad():
-                out[3]["median_depth"] = rasterize(means, quats, scales, opacities, colors, camera, background,
-                                                   covars, backend="torch", median=True)[3]["median_depth"]
+                out[3]["median_depth"] = rasterize(means, quats, scales, opacities, colors, camera,
+                                                   background, covars, backend="torch",
+                                                   median=True)[3]["median_depth"]
         return out
     if covars is None:
         covars = b.covariance(quats, scales)  # [N, 3, 3]
@@ -65,11 +66,13 @@ def rasterize(means, quats, scales, opacities, colors, camera: Camera, backgroun
     if means2d.requires_grad:
         means2d.retain_grad()
     bins = b.bin_tiles(proj, camera.width, camera.height)
-    color_sum, trans, z_sum, med = b.composite(proj, opacities, colors, bins, camera.width, camera.height, median)
+    color_sum, trans, z_sum, med = b.composite(proj, opacities, colors, bins, camera.width, camera.height,
+                                               median)
     image, alpha, depth = resolve(color_sum, trans, z_sum, background)
     meta = {"means2d": means2d, "radii": proj.radii, "depths": proj.depths, "conics": proj.conics,
             "visible": proj.visible, "tiles_touched": bins.tiles_touched, "backend": b.name,
-            "width": camera.width, "height": camera.height, "median_depth": None if med is None else med[..., None]}
+            "width": camera.width, "height": camera.height,
+            "median_depth": None if med is None else med[..., None]}
     return image, alpha[..., None], depth[..., None], meta
 
 

@@ -2,9 +2,9 @@
 
 `rasterize_surfels(means, quats, scales, opacities, colors, camera, background, tangents=None,
 backend="auto")` renders surfels with the ray-splat intersection and low-pass filter of 2DGS (see
-`raster/reference/surfel_project.py`) and the compositing of `rasterize` (alpha = min(0.99, o G), skipped below 1/255,
-front to back by centre depth, a pixel stops before the surfel that would take its transmittance below
-1e-4; 16 px tiles; surfels whose centre has camera z < 0.01 culled). Outputs:
+`raster/reference/surfel_project.py`) and the compositing of `rasterize` (alpha = min(0.99, o G), skipped
+below 1/255, front to back by centre depth, a pixel stops before the surfel that would take its transmittance
+below 1e-4; 16 px tiles; surfels whose centre has camera z < 0.01 culled). Outputs:
 - image [H, W, 3] = sum_i w_i c_i + T background, with w_i = alpha_i T_i;
 - alpha [H, W, 1] = 1 - T;
 - depth [H, W, 1] = sum_i w_i z_i / alpha, z_i the camera z of the pixel's ray-plane intersection with

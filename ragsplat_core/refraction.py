@@ -29,11 +29,11 @@ depends on the interface's normal alone, so the tilted transform is the flat one
 exactly: rotate the world so that the normal is +z, transform, rotate back (`plane_frame`). Gradients reach
 the slope through the rotation as they reach the level.
 
-Water absorbs along the light's path (issue 50): from P to the interface the bent ray runs L = d / cos(theta_w)
-in the water. With t = r alpha = tan(theta_a), sin(theta_w) = t / (n sqrt(1 + t^2)), so cos(theta_w) =
-D / (n sqrt(1 + t^2)) and L = d n sqrt(1 + t^2) / D (`water_paths`), the solve's alpha reused; at n = 1 it is
-the straight ray's share below the level, d sqrt(1 + t^2). `refract_gaussians(attenuation=c)` multiplies a
-submerged Gaussian's radiance by exp(-c L) per channel.
+Water absorbs along the light's path (issue 50): from P to the interface the bent ray runs L = d /
+cos(theta_w) in the water. With t = r alpha = tan(theta_a), sin(theta_w) = t / (n sqrt(1 + t^2)), so
+cos(theta_w) = D / (n sqrt(1 + t^2)) and L = d n sqrt(1 + t^2) / D (`water_paths`), the solve's alpha reused;
+at n = 1 it is the straight ray's share below the level, d sqrt(1 + t^2). `refract_gaussians(attenuation=c)`
+multiplies a submerged Gaussian's radiance by exp(-c L) per channel.
 
 The water column in front of what a pixel renders adds a veil B_inf (1 - exp(-c_b L)) (backscatter, SeaThru's
 model), L the pixel's path in the water. The rendered depth gives the APPARENT point on the pixel's ray, and
@@ -79,7 +79,8 @@ def opacity_factor(means, water: WaterSurface):
     """[N] rendered / true opacity of Gaussians centred at means [N, 3] under `water` (RA-GS's 1 / n^2,
     blended at the water line as in `refract_gaussians`; 1 above the level). Pruning and opacity resets
     apply their thresholds to what is rendered through it."""
-    if water.tilted or water.curved:  # the depth along the surface's normal (its frames'), as the transform blends
+    # the depth along the surface's normal (its frames'), as the transform blends
+    if water.tilted or water.curved:
         return _fade(waterline_weight(-_into(*_frames(water, means), means)[:, 2]), water.n)
     level = torch.as_tensor(water.level, dtype=means.dtype, device=means.device)
     return _fade(waterline_weight(level - means[:, 2]), water.n)
@@ -121,8 +122,8 @@ class Profile:
         if not (len(s) == len(self.offsets) >= 2 and all(b > a for a, b in itertools.pairwise(s))
                 and all(math.isfinite(v) for v in (*s, *self.offsets, *self.origin, *u))
                 and abs(math.hypot(*u) - 1) < 1e-9):
-            raise ValueError("a water profile needs >= 2 increasing stations, as many finite offsets and a unit "
-                             "direction")
+            raise ValueError("a water profile needs >= 2 increasing stations, as many finite offsets and a "
+                             "unit direction")
 
     def _knots(self, like):
         lib = _lib(like)
@@ -132,7 +133,8 @@ class Profile:
         return lib.asarray(self.stations), lib.asarray(self.offsets)
 
     def along(self, xy):  # [...] the station of horizontal points xy [..., 2]
-        return (xy[..., 0] - self.origin[0]) * self.direction[0] + (xy[..., 1] - self.origin[1]) * self.direction[1]
+        return ((xy[..., 0] - self.origin[0]) * self.direction[0]
+                + (xy[..., 1] - self.origin[1]) * self.direction[1])
 
     def value_and_slope(self, s):
         """(r(s), dr/ds) at stations s [...] (tensors or numpy arrays)."""
@@ -162,8 +164,8 @@ class Profile:
 
 @dataclass(frozen=True)
 class WaterSurface:
-    """The water surface z = level + slope[0] x + slope[1] y (world metres; `level` is its height at x = y = 0)
-    with refractive index n relative to air: a horizontal plane by default, a tilted one for a river whose
+    """The water surface z = level + slope[0] x + slope[1] y (world metres; `level` is its height at x = y =
+    0) with refractive index n relative to air: a horizontal plane by default, a tilted one for a river whose
     surface falls along the reach (slope = (dz/dx, dz/dy): a 1 % fall along +x is (-0.01, 0)), plus, for a
     surface that curves along the reach, a `profile` (`Profile`) added to the plane.
 
@@ -197,7 +199,8 @@ class WaterSurface:
     def tilted(self) -> bool:
         """False for the horizontal plane z = level (a zero slope that nothing asks the gradient of), which
         keeps today's transform and its arithmetic exactly."""
-        return torch.is_tensor(self.slope) and self.slope.requires_grad or any(_value(v) != 0 for v in self.slope)
+        return (torch.is_tensor(self.slope) and self.slope.requires_grad
+                or any(_value(v) != 0 for v in self.slope))
 
     @property
     def curved(self) -> bool:
@@ -266,8 +269,9 @@ def _tangent_frames(water: WaterSurface, points):
 
 
 def _frames(water: WaterSurface, points):
-    """(R, p0) of a tilted or curved surface's own frame: one plane's (R [3, 3], p0 [3]), or the tangent plane's
-    above each of points [N, 3] (R [N, 3, 3], p0 [N, 3]). In it the flat transform applies (`_into`)."""
+    """(R, p0) of a tilted or curved surface's own frame: one plane's (R [3, 3], p0 [3]), or the tangent
+    plane's above each of points [N, 3] (R [N, 3, 3], p0 [N, 3]). In it the flat transform applies
+    (`_into`)."""
     return _tangent_frames(water, points) if water.curved else plane_frame(water, points)
 
 
@@ -354,7 +358,8 @@ def _local(points, camera_center, water) -> _Local:
     return _Local(v, (v * v).sum(-1), level - points[:, 2], C[..., 2] - level, n, C[..., :2], level)
 
 
-def _path_lengths(loc: _Local, alpha):  # [M] in-water length of the bent ray, d / cos(theta_w) (module docstring)
+# [M] in-water length of the bent ray, d / cos(theta_w) (module docstring)
+def _path_lengths(loc: _Local, alpha):
     t2 = loc.r2 * alpha * alpha  # tan^2(theta_a)
     D = torch.sqrt(loc.n * loc.n + (loc.n - 1) * (loc.n + 1) * t2)
     return loc.d * loc.n * torch.sqrt(1 + t2) / D
@@ -364,7 +369,8 @@ def water_paths(points, camera_center, water: WaterSurface, steps: int | None = 
     """[N] length (m) of the light path inside the water from points [N, 3] to the surface, along the ray
     that reaches camera_center [3] (refracted at the surface: d / cos(theta_w) under a flat one); 0 at or
     above the surface. A tilted or curved surface: the flat length in its frame(s), as `apparent_points`.
-    Gradients reach the points, the camera and the water. Raises ValueError for a camera not above the water."""
+    Gradients reach the points, the camera and the water. Raises ValueError for a camera not above the
+    water."""
     _check_camera(camera_center, water)
     C = torch.as_tensor(camera_center, dtype=points.dtype, device=points.device)
     if water.tilted or water.curved:  # a length is the same in any frame
@@ -395,7 +401,8 @@ def pixel_water_paths(rays, depth, camera_center, water: WaterSurface):
     p = C + depth[..., None] * rays  # [..., 3] the apparent point
     if water.tilted or water.curved:
         g = water.gradient(p[..., :2])  # [..., 2]
-        normal = torch.cat([-g, torch.ones_like(g[..., :1])], -1) / torch.sqrt(1 + (g * g).sum(-1, keepdim=True))
+        normal = (torch.cat([-g, torch.ones_like(g[..., :1])], -1)
+                  / torch.sqrt(1 + (g * g).sum(-1, keepdim=True)))
         d_app = water.depth(p) * normal[..., 2]  # [...] to the (tangent) plane along its normal
         down = -(rays * normal).sum(-1)
     else:
@@ -404,7 +411,8 @@ def pixel_water_paths(rays, depth, camera_center, water: WaterSurface):
     # nothing is rendered: P' = C) finite in value and gradient, and no bed is seen within 0.06 deg of grazing
     cos = (down / torch.linalg.vector_norm(rays, dim=-1)).clamp(min=GRAZING_COS)
     n = torch.as_tensor(water.n, dtype=rays.dtype, device=rays.device)
-    return d_app.clamp(min=0) * ((n - 1) * (n + 1) + cos * cos) / (n * cos**3)  # clamps, not wheres: fewer ops
+    # clamps, not wheres: fewer ops
+    return d_app.clamp(min=0) * ((n - 1) * (n + 1) + cos * cos) / (n * cos**3)
 
 
 def backscatter_veil(alpha, paths, veil, coefficients):
@@ -427,7 +435,8 @@ def _place(loc: _Local, rho, d_app):  # [M, 3] apparent points from r'/r and d'
     return torch.cat([loc.origin + rho[:, None] * loc.v, (loc.level - d_app)[:, None]], -1)
 
 
-@torch.compiler.disable  # under torch.compile: a graph break (it reads a value), not a traced float() and a warning
+# under torch.compile: a graph break (it reads a value), not a traced float() and a warning
+@torch.compiler.disable
 def _check_camera(camera_center, water) -> None:
     C = torch.as_tensor(camera_center).detach().double().reshape(-1, 3)  # one camera, or one per row
     if not len(C):
@@ -457,7 +466,8 @@ def apparent_points(points, camera_center, water: WaterSurface, steps: int | Non
     if water.is_identity:
         return points.clone()
     if water.tilted or water.curved:
-        return _apparent_in_frames(points, torch.as_tensor(camera_center, dtype=points.dtype, device=points.device),
+        return _apparent_in_frames(points,
+                                   torch.as_tensor(camera_center, dtype=points.dtype, device=points.device),
                                    water, steps)
     wet = _submerged(points, water)
     loc = _local(points[wet], camera_center, water)
@@ -465,8 +475,9 @@ def apparent_points(points, camera_center, water: WaterSurface, steps: int | Non
 
 
 def _apparent_in_frames(points, centers, water: WaterSurface, steps):
-    """Apparent points [N, 3] under a tilted or curved surface: the flat transform in its frame(s) (`_frames`),
-    each point seen from centers [3] or its own [N, 3]; points above the surface stay exactly as they are."""
+    """Apparent points [N, 3] under a tilted or curved surface: the flat transform in its frame(s)
+    (`_frames`), each point seen from centers [3] or its own [N, 3]; points above the surface stay exactly as
+    they are."""
     R, p0 = _frames(water, points)
     local = _into(R, p0, points)
     moved = apparent_points_each(local, _into(R, p0, centers).expand_as(local), _flat_in_plane(water), steps)
@@ -490,7 +501,8 @@ def apparent_points_each(points, centers, water: WaterSurface, steps: int | None
 
 
 class _Derivatives(NamedTuple):
-    """alpha, rho, d' and the total derivatives of rho and d' w.r.t. r2 and d, for the submerged points [M]."""
+    """alpha, rho, d' and the total derivatives of rho and d' w.r.t. r2 and d, for the submerged points
+    [M]."""
 
     alpha: torch.Tensor
     rho: torch.Tensor
@@ -518,8 +530,8 @@ def _derivatives(loc: _Local, steps: int | None) -> _Derivatives:
     dapp_r2 = -3 * d_app / D * D_r2
     dapp_d = n2 / D3 - 3 * d_app / D * D_d
     rho = alpha * slope
-    return _Derivatives(alpha, rho, d_app, alpha_r2 * slope + alpha * dapp_r2, alpha_d * slope + alpha * dapp_d,
-                        dapp_r2, dapp_d)
+    return _Derivatives(alpha, rho, d_app, alpha_r2 * slope + alpha * dapp_r2,
+                        alpha_d * slope + alpha * dapp_d, dapp_r2, dapp_d)
 
 
 def _jacobian(loc: _Local, der: _Derivatives):  # [M, 3, 3]
@@ -542,7 +554,8 @@ def apparent_jacobian(points, camera_center, water: WaterSurface, steps: int | N
     if water.tilted or water.curved:  # J_world = R^T J_frame R (a curved surface: its tangent planes')
         R, p0 = _frames(water, points)
         C = _into(R, p0, torch.as_tensor(camera_center, dtype=points.dtype, device=points.device))
-        return R.transpose(-1, -2) @ apparent_jacobian(_into(R, p0, points), C, _flat_in_plane(water), steps) @ R
+        return (R.transpose(-1, -2)
+                @ apparent_jacobian(_into(R, p0, points), C, _flat_in_plane(water), steps) @ R)
     wet = _submerged(points, water)
     per_row = torch.is_tensor(camera_center) and camera_center.dim() == 2  # a curved surface's frames
     loc = _local(points[wet], camera_center[wet] if per_row else camera_center, water)
@@ -551,7 +564,8 @@ def apparent_jacobian(points, camera_center, water: WaterSurface, steps: int | N
 
 def _column_norms(loc: _Local, der: _Derivatives):  # [M, 3]: |J e_x|, |J e_y|, |J e_z| without forming J
     v2 = loc.v * loc.v
-    xy = der.rho[:, None] ** 2 + (4 * der.rho * der.rho_r2 + 4 * der.rho_r2**2 * loc.r2 + 4 * der.dapp_r2**2)[:, None] * v2
+    xy = (der.rho[:, None] ** 2
+          + (4 * der.rho * der.rho_r2 + 4 * der.rho_r2**2 * loc.r2 + 4 * der.dapp_r2**2)[:, None] * v2)
     z = loc.r2 * der.rho_d**2 + der.dapp_d**2
     return torch.sqrt(torch.cat([xy, z[:, None]], -1))
 
@@ -561,7 +575,8 @@ def _abs_det(loc: _Local, der: _Derivatives):  # [M]: tangential rho times the r
     return torch.abs(der.rho * (j11 * der.dapp_d - 2 * loc.r2 * der.rho_d * der.dapp_r2))
 
 
-@torch.compiler.disable  # data-dependent: under torch.compile a graph break, not a traced bool() and a warning
+# data-dependent: under torch.compile a graph break, not a traced bool() and a warning
+@torch.compiler.disable
 def _wet_rows(wet):  # [M] indices of the True entries of wet [N], None when all are
     return None if bool(wet.all()) else wet.nonzero().squeeze(1)
 
@@ -591,9 +606,9 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
     as given; `covariances=False`: the Jacobians alone, which is all a surfel's tangents need).
     Opacity: alpha' = alpha / n^2. Colour: radiance / n^2 in linear light, re-encoded to sRGB. Within
     `WATERLINE_BAND` of the level each factor (S, J, 1 / n^2) blends from 1 (`waterline_weight`).
-    `attenuation`: the water's attenuation coefficients c [3] (1/m, per channel of linear RGB) or None (nothing
-    computed): each submerged Gaussian's radiance times exp(-c L) in linear light, L its in-water path
-    (`water_paths`), which tends to 0 at the level and needs no blend; at n = 1 it alone applies.
+    `attenuation`: the water's attenuation coefficients c [3] (1/m, per channel of linear RGB) or None
+    (nothing computed): each submerged Gaussian's radiance times exp(-c L) in linear light, L its in-water
+    path (`water_paths`), which tends to 0 at the level and needs no blend; at n = 1 it alone applies.
     """
     if scale not in SCALE_MODES:
         raise ValueError(f"scale must be one of {SCALE_MODES}, got {scale!r}")
@@ -605,10 +620,12 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
     if water.is_identity or not (position or opacity or color or scale != "none"):
         if attenuation is None:
             return ApparentGaussians(means, scales, quats, opacities, colors, covars, jacobians)
-        position, scale, opacity, color = False, "none", False, False  # the geometry is the identity: absorb only
+        # the geometry is the identity: absorb only
+        position, scale, opacity, color = False, "none", False, False
     if water.tilted or water.curved:
-        return _refract_in_frames(*_frames(water, means), means, scales, quats, opacities, colors, camera_center,
-                                  water, position, scale, opacity, color, steps, covars, attenuation)
+        return _refract_in_frames(*_frames(water, means), means, scales, quats, opacities, colors,
+                                  camera_center, water, position, scale, opacity, color, steps, covars,
+                                  attenuation)
     wet = _submerged(means, water)
     rows = _wet_rows(wet)  # found once: a boolean index searches every time
     all_wet = rows is None
@@ -630,7 +647,8 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
             rho, d_app = (der.rho, der.d_app) if der else _offsets(alpha, loc.r2, loc.d, loc.H, loc.n)
             means = put(means, _place(loc, rho, d_app))
         if scale in ("isotropic", "determinant"):
-            factor = (_column_norms(loc, der).prod(-1) if scale == "isotropic" else _abs_det(loc, der)) ** (1 / 3)
+            factor = (_column_norms(loc, der).prod(-1) if scale == "isotropic"
+                      else _abs_det(loc, der)) ** (1 / 3)
             scales = put(scales, take(scales) * torch.lerp(torch.ones_like(factor), factor, w)[:, None])
         elif scale == "anisotropic":
             eye = torch.eye(3, dtype=means.dtype, device=means.device).expand(len(w), 3, 3)
@@ -641,7 +659,8 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
     fade = _fade(w, water.n)  # [M]
     if opacity:
         opacities = put(opacities, take(opacities) * fade)
-    if color or attenuation is not None:  # the interface and the water scale radiance: factors in linear light
+    # the interface and the water scale radiance: factors in linear light
+    if color or attenuation is not None:
         lin = srgb_to_linear(take(colors))
         if color:
             lin = lin * fade.reshape(-1, *[1] * (lin.dim() - 1))
@@ -654,18 +673,19 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
 def _refract_in_frames(R, p0, means, scales, quats, opacities, colors, camera_center, water, position, scale,
                        opacity, color, steps, covars, attenuation) -> ApparentGaussians:
     """`refract_gaussians` under a tilted or curved surface, in its frame(s) (`_frames`): the flat transform
-    there, positions and Jacobians rotated back (J_world = R^T J_frame R; covariances J Sigma J^T in the world).
-    The isotropic and determinant scale factors are the frame's (the determinant is the same in any frame).
+    there, positions and Jacobians rotated back (J_world = R^T J_frame R; covariances J Sigma J^T in the
+    world). The isotropic and determinant scale factors are the frame's (the determinant is the same in any
+    frame).
 
     A tilted plane is exact. A curved surface (a profile along the reach) refracts each Gaussian through the
     tangent plane above it: the light path meets the surface off the point's vertical (by up to d tan(theta_w)
-    + the air leg's share), where the surface departs from that tangent plane by about curvature x offset^2 / 2
-    (tests/test_water_surface.py measures it against a ray trace by Fermat's principle). Its Jacobians are the
-    planes' (the plane's own motion with the point is left out of them, not of the gradients)."""
+    + the air leg's share), where the surface departs from that tangent plane by about curvature x offset^2 /
+    2 (tests/test_water_surface.py measures it against a ray trace by Fermat's principle). Its Jacobians are
+    the planes' (the plane's own motion with the point is left out of them, not of the gradients)."""
     local = _into(R, p0, means)
     C = _into(R, p0, torch.as_tensor(camera_center, dtype=means.dtype, device=means.device))
-    out = refract_gaussians(local, scales, quats, opacities, colors, C, _flat_in_plane(water), position, scale,
-                            opacity, color, steps, covariances=False, attenuation=attenuation)
+    out = refract_gaussians(local, scales, quats, opacities, colors, C, _flat_in_plane(water), position,
+                            scale, opacity, color, steps, covariances=False, attenuation=attenuation)
     if position:  # rows above the surface keep their coordinates exactly, not rotated there and back
         means = torch.where((local[:, 2] < 0)[:, None], _out_of(R, p0, out.means), means)
     jacobians = None
@@ -678,9 +698,9 @@ def _refract_in_frames(R, p0, means, scales, quats, opacities, colors, camera_ce
 
 @functools.cache
 def compiled_refract_gaussians():
-    """`refract_gaussians` through `torch.compile` (dynamic shapes): its few dozen small elementwise ops become
-    a handful of fused kernels. That matters where every op is a kernel launch: on a GPU the eager transform is
-    launch-bound (the same 7-10 ms at 40k and 200k Gaussians, docs/performance.md). Values and gradients equal
-    the eager ones to round-off (tests/test_refraction.py); each new family of shapes compiles first (tens of
-    seconds on a CPU)."""
+    """`refract_gaussians` through `torch.compile` (dynamic shapes): its few dozen small elementwise ops
+    become a handful of fused kernels. That matters where every op is a kernel launch: on a GPU the eager
+    transform is launch-bound (the same 7-10 ms at 40k and 200k Gaussians, docs/performance.md). Values and
+    gradients equal the eager ones to round-off (tests/test_refraction.py); each new family of shapes compiles
+    first (tens of seconds on a CPU)."""
     return torch.compile(refract_gaussians, dynamic=True)

@@ -58,9 +58,9 @@ def tvu(depth: np.ndarray, order: str) -> np.ndarray:
 
 
 def quantile_with_holes(abs_err: np.ndarray, holes: int, q: float) -> float | None:
-    """The `q` quantile (numpy's linear rule) of the errors [N] together with `holes` cells that have none, a hole
-    counting as larger than every error: None when the quantile falls on or between holes (more than about
-    1 - q of the cells are holes), and numpy's percentile of the errors alone when `holes` is 0."""
+    """The `q` quantile (numpy's linear rule) of the errors [N] together with `holes` cells that have none, a
+    hole counting as larger than every error: None when the quantile falls on or between holes (more than
+    about 1 - q of the cells are holes), and numpy's percentile of the errors alone when `holes` is 0."""
     e = np.sort(np.asarray(abs_err, np.float64))
     total = len(e) + int(holes)
     if total == 0:
@@ -79,4 +79,5 @@ def plane_scores(gt: np.ndarray, z: float, max_depth: float) -> dict:
     named = thresholds(max_depth)
     m = geometry_metrics(plane, gt, tuple(named.values()))
     return {"z": float(z), "chamfer": m["chamfer"],
-            **{f"{k}_{name}": m[f"{k}@{t:g}"] for name, t in named.items() for k in ("precision", "recall", "f1")}}
+            **{f"{k}_{name}": m[f"{k}@{t:g}"]
+               for name, t in named.items() for k in ("precision", "recall", "f1")}}

@@ -60,7 +60,8 @@ def water_rays(camera, pixels: np.ndarray, water) -> tuple[np.ndarray, np.ndarra
     normal = np.array([-sx, -sy, 1.0]) / np.sqrt(1 + sx * sx + sy * sy)  # upward; exactly (0, 0, 1) when flat
     cos_i = -d @ normal
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(cos_i > 0, (float(water.level) - centre @ [-sx, -sy, 1.0]) / (d @ [-sx, -sy, 1.0]), np.nan)
+        t = np.where(cos_i > 0, (float(water.level) - centre @ [-sx, -sy, 1.0]) / (d @ [-sx, -sy, 1.0]),
+                     np.nan)
     origin = centre + t[:, None] * d
     # Snell in vector form: the part along the surface shrinks by 1 / n
     eta = 1.0 / float(water.n)

@@ -124,8 +124,9 @@ def max_scale(cfg: ExtractConfig) -> float:
     if math.isinf(cfg.max_scale_gsd):
         return math.inf
     if cfg.gsd is None or not cfg.gsd > 0:
-        raise ConfigError(f"the size cull ({cfg.max_scale_gsd:g} ground sample distances) needs the views' ground "
-                          f"sample distance, got {cfg.gsd}; pass it, or lift the cull (max_scale_gsd = inf)")
+        raise ConfigError(f"the size cull ({cfg.max_scale_gsd:g} ground sample distances) needs the views' "
+                          f"ground sample distance, got {cfg.gsd}; pass it, or lift the cull (max_scale_gsd "
+                          "= inf)")
     return cfg.max_scale_gsd * cfg.gsd
 
 
@@ -157,7 +158,8 @@ def sample_gaussians(means, scales, quats, opacities, cfg: ExtractConfig, region
     return points, keep
 
 
-def plane_filter(points: np.ndarray, cfg: ExtractConfig, chunk: int = 20_000, fast: bool = True) -> np.ndarray:
+def plane_filter(points: np.ndarray, cfg: ExtractConfig, chunk: int = 20_000,
+                 fast: bool = True) -> np.ndarray:
     """Step 3: bool mask [M] of the points the local-plane noise filter keeps.
 
     `fast`: each point's plane test in one numba kernel (`_plane_keep`); otherwise in numpy, its twin."""
@@ -181,7 +183,8 @@ def plane_filter(points: np.ndarray, cfg: ExtractConfig, chunk: int = 20_000, fa
 
 
 def _plane_keep_numpy(points, p, nb, valid, min_neighbours: int, k: float, min_tol: float) -> np.ndarray:
-    """[C] bool: the plane test of points p [C, 3] against their neighbours points[nb] [C, K] (where valid)."""
+    """[C] bool: the plane test of points p [C, 3] against their neighbours points[nb] [C, K] (where
+    valid)."""
     cnt = valid.sum(1)
     q = points[np.where(valid, nb, 0)]  # [C, K, 3]
     w = valid[..., None].astype(np.float64)
@@ -315,14 +318,15 @@ def extract_surface(means, scales, quats, opacities, cfg: ExtractConfig = Extrac
     grid = grid_median(pts[mask], cfg.cell, origin)
     smooth = despike(grid, cfg.cell, cfg.despike_radius, cfg.despike_tol, cfg.despike_min_neighbours)
     spikes = int((~smooth).sum())
-    grid = grid[smooth]  # before the crop, so that cells at the region's edge have their neighbours outside it
+    # before the crop, so that cells at the region's edge have their neighbours outside it
+    grid = grid[smooth]
     if region is not None:
         grid = grid[in_region(grid, region, tol=1e-6 * cfg.cell)]
     extracted = len(grid)
     grid = fill_holes(grid, cfg.cell, origin, cfg.fill_gap_cells)
     stats = {"gaussians": len(kept), "gaussians_sampled": int(kept.sum()), "samples": len(pts),
-             "samples_after_filter": int(mask.sum()), "grid_spikes": spikes, "grid_filled": len(grid) - extracted,
-             "grid_points": len(grid),
+             "samples_after_filter": int(mask.sum()), "grid_spikes": spikes,
+             "grid_filled": len(grid) - extracted, "grid_points": len(grid),
              "config": cfg.to_dict(), "grid_origin": list(origin)}
     if cells:
         count, spread = cell_spread(pts[mask], grid, cfg.cell, origin)
@@ -343,7 +347,8 @@ def cell_spread(points: np.ndarray, grid: np.ndarray, cell: float, origin: tuple
     node = np.rint((grid[:, :2] - o) / cell).astype(np.int64)  # [G, 2]
     lo = np.minimum(ij.min(0), node.min(0))
     width = int(max(ij[:, 1].max(), node[:, 1].max()) - lo[1] + 1)
-    key_p, key_g = (ij[:, 0] - lo[0]) * width + ij[:, 1] - lo[1], (node[:, 0] - lo[0]) * width + node[:, 1] - lo[1]
+    key_p, key_g = ((ij[:, 0] - lo[0]) * width + ij[:, 1] - lo[1],
+                    (node[:, 0] - lo[0]) * width + node[:, 1] - lo[1])
     order = np.lexsort((points[:, 2], key_p))  # by cell, then height
     key_s, z = key_p[order], points[order, 2]
     start, end = np.searchsorted(key_s, key_g, "left"), np.searchsorted(key_s, key_g, "right")
@@ -397,8 +402,9 @@ def extract_surface_blocks(means, scales, quats, opacities, cfg: ExtractConfig, 
         near = idx[((means[idx, :2] >= lo - reach) & (means[idx, :2] <= hi + reach)).all(1)]
         n = round(density * np.prod(scales[near], axis=1).sum())
         rng = np.random.default_rng([cfg.seed, int(bi - first[0]), int(bj - first[1])])
-        grid, counts = extract_surface(means[near], scales[near], quats[near], opac[near], replace(cfg, n_samples=n),
-                                       region, tuple(origin), rng=rng, window=(lo, hi), cells=cells)
+        grid, counts = extract_surface(means[near], scales[near], quats[near], opac[near],
+                                       replace(cfg, n_samples=n), region, tuple(origin), rng=rng,
+                                       window=(lo, hi), cells=cells)
         samples += counts["samples"]
         kept_samples += counts["samples_after_filter"]
         ij = np.rint((grid[:, :2] - origin) / cfg.cell).astype(np.int64)

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-# The tracks' outlier filter: the DEM's despiking rule (`surface.ExtractConfig`, chosen on the development reach
-# for trained beds), a point dropped when more than TRACK_TOL from the median of its neighbours within
+# The tracks' outlier filter: the DEM's despiking rule (`surface.ExtractConfig`, chosen on the development
+# reach for trained beds), a point dropped when more than TRACK_TOL from the median of its neighbours within
 # TRACK_RADIUS; not tuned again for tracks.
 TRACK_RADIUS, TRACK_TOL, TRACK_MIN_NEIGHBOURS = 1.0, 0.3, 8
 

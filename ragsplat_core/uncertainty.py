@@ -106,7 +106,8 @@ def _water_steps(water: WaterSurface | None):
     lo_n = max(float(water.n) - N_STEP, 1.0)
     return [("level", replace(water, level=float(water.level) + LEVEL_STEP),
              replace(water, level=float(water.level) - LEVEL_STEP), 2 * LEVEL_STEP),
-            ("n", replace(water, n=float(water.n) + N_STEP), replace(water, n=lo_n), float(water.n) + N_STEP - lo_n)]
+            ("n", replace(water, n=float(water.n) + N_STEP), replace(water, n=lo_n),
+             float(water.n) + N_STEP - lo_n)]
 
 
 def _view_geometry(pts: torch.Tensor, cameras, water: WaterSurface | None):
@@ -183,18 +184,20 @@ def cell_features(grid, cameras, water: WaterSurface | None, cells: dict | None 
     geo = view_geometry(grid, cameras, water, chunk)
     depth = np.zeros(len(grid)) if water is None else np.maximum(np.asarray(water.depth(grid), float), 0.0)
     if cells is None:
-        samples, spread, filled = np.zeros(len(grid), np.int64), np.zeros(len(grid)), np.zeros(len(grid), bool)
+        samples, spread, filled = (np.zeros(len(grid), np.int64), np.zeros(len(grid)),
+                                   np.zeros(len(grid), bool))
     else:
         samples, spread, filled = (np.asarray(cells[k]) for k in ("samples", "spread", "filled"))
         if not len(samples) == len(spread) == len(filled) == len(grid):
-            raise ConfigError(f"the extraction's per-cell record has {len(samples)} cells, the bed {len(grid)}")
+            raise ConfigError(f"the extraction's per-cell record has {len(samples)} cells, the bed "
+                              f"{len(grid)}")
         known = np.isfinite(spread)
         spread = np.where(known, spread, np.median(spread[known]) if known.any() else 0.0)
     level_term = np.nan_to_num(geo.dz_dlevel) * sigma_level
     n_term = np.nan_to_num(geo.dz_dn) * sigma_n
     return CellFeatures(grid, np.where(np.isfinite(geo.sigma_z), geo.sigma_z, GEOMETRY_CAP), geo.views, depth,
-                        spread.astype(np.float64), samples.astype(np.int64), filled.astype(bool), geo.dz_dlevel,
-                        geo.dz_dn, np.hypot(level_term, n_term))
+                        spread.astype(np.float64), samples.astype(np.int64), filled.astype(bool),
+                        geo.dz_dlevel, geo.dz_dn, np.hypot(level_term, n_term))
 
 
 # ---------------------------------------------------------------- the model
@@ -299,7 +302,8 @@ def fit(features, errors, names=FEATURES, seeds=(), systematic=None, commit: str
 
 def conformal_rank(n: int, coverage: float) -> int:
     """The split-conformal order statistic (1-based) of n calibration scores: ceil((n + 1) coverage), so that
-    a new exchangeable cell is covered with probability >= coverage. Above n: no finite scale guarantees it."""
+    a new exchangeable cell is covered with probability >= coverage. Above n: no finite scale guarantees
+    it."""
     return math.ceil((n + 1) * coverage - 1e-9)
 
 
@@ -308,7 +312,8 @@ def calibrate(model: UncertaintyModel, features, errors, seeds=(), systematic=No
     """`model` with the split-conformal scale c of its statistical term on the calibration cells (another
     development seed than the fit's): each cell's score is the least c for which |e| <= Z95 sqrt((c
     sigma)^2 + sigma_sys^2), and c is the `conformal_rank`-th smallest score, so that TVU95 covers `coverage`
-    of the cells (at least: ties and the (n + 1) correction round up). Raises ConfigError with too few cells."""
+    of the cells (at least: ties and the (n + 1) correction round up). Raises ConfigError with too few
+    cells."""
     F = _matrix(model, features)
     e = np.asarray(errors, np.float64)
     stat = np.sqrt(F**2 @ np.square(model.weights))
