@@ -100,7 +100,8 @@ def make_bed(spec: SceneSpec) -> Bed:
             rot = rng.uniform(0, math.pi)
             h = cls.height * bb * rng.uniform(0.8, 1.2)
             if reach is not None:  # boulders in the channel, gravel in the channel and on the bars
-                ground = relief[np.searchsorted(coords, cy).clip(0, m - 1), np.searchsorted(coords, cx).clip(0, m - 1)]
+                ground = relief[np.searchsorted(coords, cy).clip(0, m - 1),
+                                np.searchsorted(coords, cx).clip(0, m - 1)]
                 if ground >= (-0.3 if cls is reach.boulders else reach.bar_height + 0.05):
                     continue
             stones.append((cx, cy, a, bb, rot, h))
@@ -136,7 +137,8 @@ def make_bed(spec: SceneSpec) -> Bed:
 
     # Albedo (linear reflectance, then sRGB-encoded for the PNG): stones get a colour and speckle,
     # the gaps sand; the background noise is periodic so the floor can repeat it.
-    tints = np.array([[1.0, 1.0, 1.0], [1.0, 0.85, 0.65], [0.85, 0.9, 1.0], [1.0, 0.75, 0.6]])  # river rock hues
+    # river rock hues
+    tints = np.array([[1.0, 1.0, 1.0], [1.0, 0.85, 0.65], [0.85, 0.9, 1.0], [1.0, 0.75, 0.6]])
     count = max(len(stones), 1)
     palette = rng.dirichlet(np.full(len(tints), 0.5), count) @ tints * rng.uniform(0.12, 0.55, (count, 1))
     speckle = _periodic_noise(rng, m, 1.0)[..., None]  # [M, M, 1] texel-scale grain
@@ -299,4 +301,5 @@ def waterline(bed: Bed, level: float) -> list[np.ndarray]:
 
     k = bed.mesh_heights.shape[0]
     c = bed.x0 + np.arange(k) * bed.cell
-    return [line for line in contourpy.contour_generator(c, c, bed.mesh_heights).lines(level) if len(line) > 1]
+    return [line for line in contourpy.contour_generator(c, c, bed.mesh_heights).lines(level)
+            if len(line) > 1]

@@ -127,8 +127,10 @@ def _flat_geometry(spec: SceneSpec, bed: Bed, targets: np.ndarray | None) -> dic
     a, f, z = bed.x0 + bed.cell, FAR, bed.z0
     b = bed.x0 + bed.extent - bed.cell
     if bed.profile is None:
-        fv = np.array([[a, a, z], [b, a, z], [b, b, z], [a, b, z], [-f, -f, z], [f, -f, z], [f, f, z], [-f, f, z]])
-        ft = np.array([[4, 5, 1], [4, 1, 0], [5, 6, 2], [5, 2, 1], [6, 7, 3], [6, 3, 2], [7, 4, 0], [7, 0, 3]])
+        fv = np.array([[a, a, z], [b, a, z], [b, b, z], [a, b, z], [-f, -f, z], [f, -f, z], [f, f, z],
+                       [-f, f, z]])
+        ft = np.array([[4, 5, 1], [4, 1, 0], [5, 6, 2], [5, 2, 1], [6, 7, 3], [6, 3, 2], [7, 4, 0],
+                       [7, 0, 3]])
         fuv = uv(fv)
     else:
         fv, ft, fuv = _reach_floor(bed, a, b, f, uv)
@@ -141,9 +143,11 @@ def _flat_geometry(spec: SceneSpec, bed: Bed, targets: np.ndarray | None) -> dic
     if c is None:
         return geo
     if c.rippled:
-        geo["water_verts"], geo["water_tris"], geo["water_weight"] = conditions.water_surface(spec, bed.extent, f)
+        geo["water_verts"], geo["water_tris"], geo["water_weight"] = conditions.water_surface(
+            spec, bed.extent, f)
     if c.turbid:
-        geo["volume_verts"], geo["volume_tris"] = conditions.water_body(spec, float(bed.heights.min()) - 1.0, 1.01 * f)
+        geo["volume_verts"], geo["volume_tris"] = conditions.water_body(spec, float(bed.heights.min()) - 1.0,
+                                                                        1.01 * f)
     if targets is not None:
         for colour, (verts, tris) in conditions.target_meshes(c, targets).items():
             geo[f"target_{colour}_verts"], geo[f"target_{colour}_tris"] = verts, tris
@@ -216,7 +220,8 @@ def _write_bed_assets(spec: SceneSpec, out: Path) -> None:
         layout.write_waterline(out / layout.GT_WATERLINE, world_waterline(spec, bed), spec.level)
 
 
-# Signals of a crash inside the renderer, not of a kill (the OOM killer's SIGKILL, the user's SIGINT / SIGTERM).
+# Signals of a crash inside the renderer, not of a kill (the OOM killer's SIGKILL, the user's SIGINT /
+# SIGTERM).
 CRASH_SIGNALS = frozenset({signal.SIGSEGV, signal.SIGBUS, signal.SIGABRT, signal.SIGILL, signal.SIGFPE})
 
 
@@ -257,8 +262,10 @@ def run_blender(job: RenderJob, workdir: Path, progress: Callable[[dict], None] 
             for stale in (jobfile, *workdir.parent.glob(f"**/.*.{proc.pid}.render")):  # this renderer's only
                 stale.unlink(missing_ok=True)
     if code != 0:
-        why = f"killed by signal {-code}{' (out of memory?)' if code == -9 else ''}" if code < 0 else f"exit {code}"
-        message = f"Blender render process failed ({why}); finished images are kept, rerun to resume; see {log_path}"
+        why = (f"killed by signal {-code}{' (out of memory?)' if code == -9 else ''}" if code < 0
+               else f"exit {code}")
+        message = (f"Blender render process failed ({why}); finished images are kept, rerun to resume; see "
+                   f"{log_path}")
         if code < 0 and -code in CRASH_SIGNALS:
             raise RendererCrashed(message, -code, log_path)
         raise RagsplatError(message)
@@ -370,7 +377,8 @@ def _keep_stamp(path: Path, scene: dict) -> dict:
     except (OSError, ValueError):
         return scene
     new = json.loads(json.dumps(scene))  # as it reads back (tuples become lists)
-    same = {k: v for k, v in old.items() if k != "versions"} == {k: v for k, v in new.items() if k != "versions"}
+    same = ({k: v for k, v in old.items() if k != "versions"}
+            == {k: v for k, v in new.items() if k != "versions"})
     return {**scene, "versions": old.get("versions")} if same else scene
 
 
@@ -427,7 +435,8 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
                and not layout.intact(layout.output_path(out, kind, p.name),
                                      manifest.get(layout.relative_path(kind, p.name)))]
     tasks = [_task(spec, kind, p, layout.output_path(out, kind, p.name)) for kind in kinds for p in mine
-             if not layout.output_path(out, kind, p.name).exists() or layout.relative_path(kind, p.name) in damaged]
+             if not layout.output_path(out, kind, p.name).exists()
+             or layout.relative_path(kind, p.name) in damaged]
     # the survey's photos through a lens (`LENS`, where the spec asks for them): the training views' wet pass
     # again, through Cycles' polynomial lens; outside the manifest and the fingerprint, as the survey is
     lensed = surveyed(spec) and spec.render.lens
@@ -467,4 +476,5 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
 
 def overhead_fraction(summary: dict) -> float:
     """Time outside Cycles' render calls as a fraction of the time inside them."""
-    return (summary["wall_s"] - summary["render_s"]) / summary["render_s"] if summary["render_s"] else math.nan
+    return ((summary["wall_s"] - summary["render_s"]) / summary["render_s"] if summary["render_s"]
+            else math.nan)

@@ -90,7 +90,8 @@ class FlightSpec:
     tilts: tuple[float, ...] = (20.0, 40.0)  # obliques: optical axis angle from the vertical (deg)
     azimuth_step: float = 10.0  # training azimuth step on each ring (at each station) (deg)
     test_azimuth_offset: float = 5.0  # held-out obliques sit between training azimuths
-    test_azimuth_step: float = 60.0  # held-out ring views every this many degrees (strips: from station to station)
+    # held-out ring views every this many degrees (strips: from station to station)
+    test_azimuth_step: float = 60.0
     # Obliques: "rings" about the scene centre, or "strips": at `stations` points along the reach's axis
     # (y = 0), from the first nadir column to the last, as a survey of a long reach flies them.
     pattern: str = "rings"
@@ -120,8 +121,8 @@ class RenderSpec:
 @dataclass(frozen=True)
 class FieldConditions:
     """Field conditions, each off at its default (the ideal survey: still, clear, non-reflecting water).
-    Rendered by Cycles itself (`datagen.conditions` makes the geometry and numbers, `blender_scenes.render` the
-    materials): a water body that absorbs and scatters per colour channel, Fresnel reflection of sky and
+    Rendered by Cycles itself (`datagen.conditions` makes the geometry and numbers, `blender_scenes.render`
+    the materials): a water body that absorbs and scatters per colour channel, Fresnel reflection of sky and
     sun at the surface, ripples with a new phase in every photo, and checkerboard ground control targets on
     the banks."""
 
@@ -199,7 +200,8 @@ class SceneSpec:
         return cls(preset=d["preset"], seed=int(d["seed"]), bed=BedSpec(**bed), reach=reach,
                    water=None if d["water"] is None else WaterSpec(**{
                        k: tuple(v) if isinstance(v, list) else v for k, v in d["water"].items()}),
-                   flight=FlightSpec(**flight), light=LightSpec(**d["light"]), render=RenderSpec(**d["render"]),
+                   flight=FlightSpec(**flight), light=LightSpec(**d["light"]),
+                   render=RenderSpec(**d["render"]),
                    conditions=None if d.get("conditions") is None else FieldConditions(**{
                        k: tuple(v) if isinstance(v, list) else v for k, v in d["conditions"].items()}))
 
@@ -230,7 +232,8 @@ PRESETS: dict[str, SceneSpec] = {
     "paper-reach": SceneSpec(
         preset="paper-reach",
         bed=BedSpec(size=66.0, cell=0.04, texel=0.02, depth=5.0, taper=3.0,
-                    stones=(StoneClass(0.30, 1.5, 0.5), StoneClass(0.15, 6.0, 0.55), StoneClass(0.07, 20.0, 0.6))),
+                    stones=(StoneClass(0.30, 1.5, 0.5), StoneClass(0.15, 6.0, 0.55),
+                            StoneClass(0.07, 20.0, 0.6))),
         reach=ReachSpec(width=23.0, max_depth=10.0, pool_spacing=23.0, meander=2.7, bank_height=2.0,
                         bank_width=4.0, bar_height=0.6, bar_width=6.5, boulders=StoneClass(1.0, 0.02, 0.55)),
         flight=FlightSpec(altitude=12.0, grid=(3, 5)),
@@ -302,7 +305,8 @@ def with_conditions(spec: SceneSpec, turbidity: float | None = None, reflection:
     """`spec` with these field conditions changed (None: as the spec has them). An ideal spec starts from
     CLEAR_RIVER with every effect off, so that `--turbidity 1` alone gives clear river water and nothing
     else; a spec left with no effect on is the ideal one (no conditions)."""
-    c = spec.conditions or replace(CLEAR_RIVER, turbidity=0.0, reflection=False, ripple_amplitude=0.0, targets=0)
+    c = (spec.conditions
+         or replace(CLEAR_RIVER, turbidity=0.0, reflection=False, ripple_amplitude=0.0, targets=0))
     changes = {"turbidity": turbidity, "reflection": reflection, "ripple_amplitude": ripple_amplitude}
     c = replace(c, **{k: v for k, v in changes.items() if v is not None})
     ideal = not (c.turbid or c.reflection or c.rippled or c.targets)
@@ -332,7 +336,8 @@ def validate(spec: SceneSpec) -> None:
         raise SpecError(f"bed depth {b.depth} m must be positive (the bed lies below the water level)")
     if spec.reach is None:
         if b.undulation + max((s.radius * s.height for s in b.stones), default=0.0) >= b.depth:
-            raise SpecError("bed relief reaches the water surface: reduce undulation/stones or increase depth")
+            raise SpecError("bed relief reaches the water surface: reduce undulation/stones or increase "
+                            "depth")
     else:
         _validate_reach(spec)
     if not (0.0 < f.overlap < 1.0):
@@ -344,14 +349,15 @@ def validate(spec: SceneSpec) -> None:
     if min(f.grid) < 1:
         raise SpecError(f"nadir grid must have at least 1 x 1 views, got {f.grid}")
     if any(not (0.0 < t < 90.0 - f.fov_deg / 2) for t in f.tilts):
-        raise SpecError(f"oblique tilts {f.tilts} must be in (0, {90 - f.fov_deg / 2:g}) deg to stay below the horizon")
+        raise SpecError(f"oblique tilts {f.tilts} must be in (0, {90 - f.fov_deg / 2:g}) deg to stay below "
+                        "the horizon")
     if not (0.0 < f.azimuth_step <= 360.0 and 0.0 < f.test_azimuth_step <= 360.0):
         raise SpecError("azimuth steps must be in (0, 360] degrees")
     if f.pattern not in ("rings", "strips"):
         raise SpecError(f"flight pattern must be 'rings' or 'strips', got {f.pattern!r}")
     if f.pattern == "rings" and f.stations != 0 or f.pattern == "strips" and min(f.stations, f.grid[1]) < 2:
-        raise SpecError(f"oblique stations belong to the strips pattern, which needs at least 2 of them and 2 "
-                        f"nadir columns: got {f.stations} stations and {f.grid[1]} columns for {f.pattern}")
+        raise SpecError("oblique stations belong to the strips pattern, which needs at least 2 of them and "
+                        f"2 nadir columns: got {f.stations} stations and {f.grid[1]} columns for {f.pattern}")
     if b.texel <= 0 or b.cell <= 0 or abs(b.cell / b.texel - round(b.cell / b.texel)) > 1e-9:
         raise SpecError(f"bed cell {b.cell} must be a positive integer multiple of texel {b.texel}")
     if b.taper < 2 * b.cell or 2 * b.taper >= b.size:
@@ -394,11 +400,11 @@ def _validate_conditions(spec: SceneSpec) -> None:
     c = spec.conditions
     if spec.water is None:
         raise SpecError("field conditions need water: drop --no-water or use an ideal preset")
-    numbers = (*c.absorption, *c.scattering, c.turbidity, c.ripple_amplitude, *c.ripple_wavelengths, c.ripple_cell,
-               c.target_size)
+    numbers = (*c.absorption, *c.scattering, c.turbidity, c.ripple_amplitude, *c.ripple_wavelengths,
+               c.ripple_cell, c.target_size)
     if not all(math.isfinite(v) for v in numbers) or min(numbers) < 0:
-        raise SpecError("absorption, scattering, turbidity, ripple amplitude, wavelengths, cell and target size "
-                        "must be finite and >= 0")
+        raise SpecError("absorption, scattering, turbidity, ripple amplitude, wavelengths, cell and target "
+                        "size must be finite and >= 0")
     shortest, longest = c.ripple_wavelengths
     if not (0 < shortest <= longest) or c.ripple_waves < 1:
         raise SpecError(f"ripple wavelengths {c.ripple_wavelengths} need 0 < shortest <= longest, and a wave")
@@ -411,8 +417,10 @@ def _validate_conditions(spec: SceneSpec) -> None:
 
 def _validate_reach(spec: SceneSpec) -> None:
     r, b = spec.reach, spec.bed
-    if not all(v > 0 for v in (r.width, r.max_depth, r.pool_spacing, r.bank_height, r.bank_width, r.bar_width)):
-        raise SpecError("reach width, max_depth, pool_spacing, bank_height, bank_width and bar_width must be > 0")
+    if not all(v > 0 for v in (r.width, r.max_depth, r.pool_spacing, r.bank_height, r.bank_width,
+                               r.bar_width)):
+        raise SpecError("reach width, max_depth, pool_spacing, bank_height, bank_width and bar_width must be "
+                        "> 0")
     if not (0 < r.riffle_depth <= 1 and 0 <= r.bar_height < r.bank_height and r.meander >= 0):
         raise SpecError("reach needs 0 < riffle_depth <= 1, 0 <= bar_height < bank_height and meander >= 0")
     reach = 0.5 * r.width * 1.15 + r.meander + 1.25 * r.bar_width + r.bank_width  # centre to bank top, worst

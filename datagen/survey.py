@@ -3,14 +3,13 @@ focal length in EXIF (`survey/images/`), the camera centres as an RTK drone reco
 (`survey/positions.csv`, and the same positions in the photos' EXIF GPS and DJI-style XMP, RtkFlag 50, through
 a geographic origin of the scene, `GeoOrigin`; the same photos again in `survey/images-gps/` with a consumer
 drone's GPS instead: a bias per flight line and scatter, metres, no RTK flag; and in `survey/images-lens/`
-the photos the renderer took through a lens with radial distortion, `LENS`), the water level as measured at the edge, with noise
-(`survey/water_level.txt`),
-points on the water's edge along both banks as a surveyor measures them with RTK (`survey/water_edge.csv`,
-header x,y,z, with noise on z) and ground control on the banks with the targets' pixels (`survey/gcp.csv`,
-`survey/gcp_pixels.csv`). On a sloping surface water_level.txt holds one level at the mean of the edge
-points' heights: what a tool that takes one flat water level would be given. No poses: recovering them is
-`ragsplat survey`'s job; the dataset's transforms.json stays the truth that scores it. numpy only (JPEG
-through Pillow, geodesy through pyproj).
+the photos the renderer took through a lens with radial distortion, `LENS`), the water level as measured at
+the edge, with noise (`survey/water_level.txt`), points on the water's edge along both banks as a surveyor
+measures them with RTK (`survey/water_edge.csv`, header x,y,z, with noise on z) and ground control on the
+banks with the targets' pixels (`survey/gcp.csv`, `survey/gcp_pixels.csv`). On a sloping surface
+water_level.txt holds one level at the mean of the edge points' heights: what a tool that takes one flat water
+level would be given. No poses: recovering them is `ragsplat survey`'s job; the dataset's transforms.json
+stays the truth that scores it. numpy only (JPEG through Pillow, geodesy through pyproj).
 
 The scene's frame is a UTM grid's, shifted: x, y, z = easting - E0, northing - N0, height - h0, where
 (E0, N0) is `GeoOrigin`'s position in its UTM zone and h0 its height (WGS 84 ellipsoidal), all recorded in
@@ -33,7 +32,8 @@ EDGE_SPACING = 2.0  # ... or one every this many metres of the evaluated reach's
 _EDGE_STREAM = 4  # the edge points' noise: a random stream apart from the survey's and the conditions' (1-3)
 _GPS_STREAM = 5  # consumer GPS: each flight line's bias and each photo's scatter
 _ANGLE_STREAM = 6  # the gimbal angles' noise
-TAKEOFF_ABOVE_WATER = 1.0  # the drone takes off from the bank this far above the water (RelativeAltitude's zero)
+# the drone takes off from the bank this far above the water (RelativeAltitude's zero)
+TAKEOFF_ABOVE_WATER = 1.0
 
 
 @dataclass(frozen=True)
@@ -50,7 +50,8 @@ class GeoOrigin:
 class ConsumerGPS:
     """A consumer drone's GPS (metres, no RTK): what `survey/images-gps/` carries."""
 
-    line_bias: tuple[float, float] = (1.0, 1.5)  # each flight line's horizontal offset: its length, uniform (m)
+    # each flight line's horizontal offset: its length, uniform (m)
+    line_bias: tuple[float, float] = (1.0, 1.5)
     line_bias_z: float = 0.5  # each flight line's vertical offset, standard deviation (m)
     jitter: float = 0.5  # each photo's own scatter about its line's offset, each axis (m)
 
@@ -107,7 +108,8 @@ def write_survey(root: Path, poses, water, seed: int = 0, noise: SurveyNoise = S
     rng = np.random.default_rng(seed)
     sigma = np.array([noise.horizontal, noise.horizontal, noise.vertical])
     centres = np.array([p.camera.camera_center for p in train])
-    layout.write_positions(root / layout.SURVEY_POSITIONS, names, centres + rng.normal(size=centres.shape) * sigma)
+    layout.write_positions(root / layout.SURVEY_POSITIONS, names,
+                           centres + rng.normal(size=centres.shape) * sigma)
     record["geo"] = write_geotags(root, train, names, water, seed, noise, origin, gps, lens)
     level = float(edge[:, 2].mean()) if water.sloping and edge is not None else water.level  # one level
     write_bytes(root / layout.SURVEY_LEVEL, f"{level + rng.normal() * noise.level:.4f}\n".encode())
@@ -118,12 +120,14 @@ def write_survey(root: Path, poses, water, seed: int = 0, noise: SurveyNoise = S
         targets = spread(dry, noise.gcp_count, rng) if len(dry) >= 3 else None
     if targets is not None:
         gcps = [f"GCP{k + 1}" for k in range(len(targets))]
-        layout.write_positions(root / layout.SURVEY_GCP, gcps, targets + rng.normal(size=targets.shape) * noise.gcp)
+        layout.write_positions(root / layout.SURVEY_GCP, gcps,
+                               targets + rng.normal(size=targets.shape) * noise.gcp)
         rows = []
         for p, name in zip(train, names):
             uv, z = p.camera.project(targets)
             uv = uv + rng.normal(size=uv.shape) * noise.gcp_pixel
-            inside = (z > 0) & (uv >= 2).all(1) & (uv[:, 0] <= p.camera.width - 2) & (uv[:, 1] <= p.camera.height - 2)
+            inside = ((z > 0) & (uv >= 2).all(1) & (uv[:, 0] <= p.camera.width - 2)
+                      & (uv[:, 1] <= p.camera.height - 2))
             rows += [(name, gcps[k], *uv[k]) for k in np.flatnonzero(inside)]
         layout.write_gcp_pixels(root / layout.SURVEY_GCP_PIXELS, rows)
     write_json(path, record)  # last: its presence marks a finished survey
@@ -140,24 +144,27 @@ def geo_record(train, names: list[str], water, seed: int, noise: SurveyNoise,
     e0, n0, _ = exif.to_metric(origin.lat, origin.lon, origin.height, f"EPSG:{epsg}")[0]
     lines = flight_lines(train)
     bias = _line_bias(len(set(lines)), seed, gps)
-    return {"origin": asdict(origin), "crs": f"EPSG:{epsg}", "origin_metric": [float(e0), float(n0), origin.height],
+    return {"origin": asdict(origin), "crs": f"EPSG:{epsg}",
+            "origin_metric": [float(e0), float(n0), origin.height],
             "frame": "scene x, y, z = easting - E0, northing - N0, height - h0 (the UTM grid; heights WGS 84 "
                      "ellipsoidal, as the photos' GPSAltitude and AbsoluteAltitude hold them)",
             "takeoff_z": water.level + TAKEOFF_ABOVE_WATER, "gimbal_noise_deg": list(GIMBAL_NOISE_DEG),
             layout.SURVEY_IMAGES: {"positions": layout.SURVEY_POSITIONS, "rtk_flag": exif.RTK_FIXED,
                                    "rtk_std_m": [noise.horizontal, noise.horizontal, noise.vertical]},
             layout.SURVEY_IMAGES_GPS: {"noise": asdict(gps), "lines": [
-                {"photos": [n for n, k in zip(names, lines) if k == line], "bias_m": bias[line].round(4).tolist()}
+                {"photos": [n for n, k in zip(names, lines) if k == line],
+                 "bias_m": bias[line].round(4).tolist()}
                 for line in range(len(bias))]},
             **({layout.SURVEY_IMAGES_LENS: {"geotags": layout.SURVEY_IMAGES, "lens": {
-                "model": "COLMAP RADIAL / OpenCV k1, k2 (no tangential terms): x_d = x (1 + k1 r^2 + k2 r^4) in "
-                         "normalised coordinates, the principal point and the focal length the pinhole photos'; "
-                         "rendered through it (Cycles' polynomial lens, `lens_polynomial`)",
+                "model": "COLMAP RADIAL / OpenCV k1, k2 (no tangential terms): x_d = x (1 + k1 r^2 + k2 r^4) "
+                         "in normalised coordinates, the principal point and the focal length the pinhole "
+                         "photos'; rendered through it (Cycles' polynomial lens, `lens_polynomial`)",
                 "k1": LENS[0], "k2": LENS[1]}}} if lens else {})}
 
 
 def write_geotags(root: Path, train, names: list[str], water, seed: int, noise: SurveyNoise,
-                  origin: GeoOrigin = GeoOrigin(), gps: ConsumerGPS = ConsumerGPS(), lens: bool = True) -> dict:
+                  origin: GeoOrigin = GeoOrigin(), gps: ConsumerGPS = ConsumerGPS(),
+                  lens: bool = True) -> dict:
     """The training photos (`train`: poses, `names`: their JPEG names) written again into `survey/images/`
     with the positions.csv centres as EXIF GPS and DJI-style XMP (AbsoluteAltitude, RelativeAltitude, gimbal
     and flight angles, RtkFlag 50 with RtkStdLon / RtkStdLat / RtkStdHgt), and into `survey/images-gps/`
@@ -173,7 +180,8 @@ def write_geotags(root: Path, train, names: list[str], water, seed: int, noise: 
     rtk = np.array([rtk[n] for n in names])
     lines = flight_lines(train)
     scatter = np.random.default_rng([seed, _GPS_STREAM]).normal(size=(len(train), 3)) * gps.jitter
-    consumer = np.array([p.camera.camera_center for p in train]) + _line_bias(len(set(lines)), seed, gps)[lines]
+    consumer = (np.array([p.camera.camera_center for p in train])
+                + _line_bias(len(set(lines)), seed, gps)[lines])
     consumer += scatter
     angles = gimbal_angles([p.camera for p in train], shift, crs)
     angles += np.random.default_rng([seed, _ANGLE_STREAM]).normal(size=angles.shape) * GIMBAL_NOISE_DEG
@@ -187,8 +195,8 @@ def write_geotags(root: Path, train, names: list[str], water, seed: int, noise: 
         for p, name, (lat, lon, h), z, (yaw, pitch, roll) in zip(train, names, geographic, xyz[:, 2], angles):
             xmp = {"AbsoluteAltitude": round(h, 3), "RelativeAltitude": round(z - record["takeoff_z"], 3),
                    "GimbalRollDegree": round(roll, 2), "GimbalYawDegree": round(yaw, 2),
-                   "GimbalPitchDegree": round(pitch, 2), "FlightRollDegree": 0.0, "FlightYawDegree": round(yaw, 2),
-                   "FlightPitchDegree": 0.0, **tags}
+                   "GimbalPitchDegree": round(pitch, 2), "FlightRollDegree": 0.0,
+                   "FlightYawDegree": round(yaw, 2), "FlightPitchDegree": 0.0, **tags}
             kind = "lens" if folder == layout.SURVEY_IMAGES_LENS else "wet"
             image = layout.read_png(layout.output_path(root, kind, p.name))
             layout.write_jpeg(root / folder / name, image, p.camera.fx, gps=(lat, lon, h), xmp=xmp)
@@ -207,7 +215,8 @@ def lens_polynomial(camera, k1: float, k2: float, sensor_mm: float = 36.0) -> li
     Cycles sends the sensor point r_s millimetres from the centre (`sensor_mm` over the larger side) along the
     ray theta = -(k0 + k1 r_s + ... + k4 r_s^4) from the axis; theta(r_s) = atan(r) with r_d = r_s / (mm per
     pixel) / f, fitted by least squares from the centre to past the corners (k0 = 0: the axis stays the
-    axis). The fit's error is under 0.05 px for `LENS` at small's 70-degree view (tests/test_survey_exif.py)."""
+    axis). The fit's error is under 0.05 px for `LENS` at small's 70-degree view
+    (tests/test_survey_exif.py)."""
     mm = sensor_mm / max(camera.width, camera.height)  # millimetres per pixel
     corner = np.hypot(camera.width, camera.height) / 2 * mm * 1.02
     r_s = np.linspace(0.0, corner, 400)
@@ -223,7 +232,8 @@ def lens_polynomial(camera, k1: float, k2: float, sensor_mm: float = 36.0) -> li
 def flight_lines(train) -> np.ndarray:
     """[V] the flight line of each training pose: the nadirs by grid row (one y), each oblique ring (or pass
     along the reach, `strips`) one."""
-    keys = [(p.kind, round(float(p.camera.camera_center[1]), 2) if p.kind == "nadir" else None) for p in train]
+    keys = [(p.kind, round(float(p.camera.camera_center[1]), 2) if p.kind == "nadir" else None)
+            for p in train]
     order = list(dict.fromkeys(keys))
     return np.array([order.index(k) for k in keys], dtype=int)
 
@@ -234,7 +244,8 @@ def _line_bias(count: int, seed: int, gps: ConsumerGPS) -> np.ndarray:
     rng = np.random.default_rng([seed, _GPS_STREAM, 1])
     turn = rng.uniform(0, 2 * np.pi, count)
     length = rng.uniform(*gps.line_bias, count)
-    return np.column_stack([length * np.cos(turn), length * np.sin(turn), rng.normal(size=count) * gps.line_bias_z])
+    return np.column_stack([length * np.cos(turn), length * np.sin(turn),
+                            rng.normal(size=count) * gps.line_bias_z])
 
 
 def gimbal_angles(cameras, shift: np.ndarray, crs: str) -> np.ndarray:
