@@ -22,9 +22,9 @@ from the rows of this run's variants and seeds only. The command is `ragsplat_co
 
 The water. Every row is scored against the ground truth's own surface (`GroundTruth.water`, a river's sloping
 plane included: depths below it). What the method and the references are given is the dataset's surface, or,
-with one level (`--one-level`, `one_level_water`), one flat level at the mean height of the water's edge points
-a surveyor measured (`EDGE_POINTS`): what a flat-water tool does on a sloping river. That choice is part of
-every row key and of results.json ("one_level").
+with one level (`--one-level`, `one_level_water`), one flat level at the mean height of the water's edge
+points a surveyor measured (`EDGE_POINTS`): what a flat-water tool does on a sloping river. That choice is
+part of every row key and of results.json ("one_level").
 """
 
 from __future__ import annotations
@@ -82,7 +82,8 @@ class AblationPreset:
 
     name: str
     checkpoints: int  # evaluation intervals along training: points at step 0, k * iterations / this, the end
-    samples_per_cell: int  # extraction samples per ground-truth node of the region (wet and banks), table and curves
+    # extraction samples per ground-truth node of the region (wet and banks), table and curves
+    samples_per_cell: int
     fuse: FuseConfig = field(default_factory=FuseConfig)  # the fused extraction, table and curves
 
 
@@ -97,15 +98,15 @@ CODE = ("ragsplat_core", "eval")  # the sources whose digest stamps results.json
 # The sources a row's numbers come from, whose digest is part of every row key: training, extraction and
 # scoring (the references' own code joins a reference row's key; the tables are written anew every run).
 ROW_CODE = ("ragsplat_core", "eval/ablation.py", "eval/evaluate.py", "eval/metrics.py")
-# The protocol's reach seeds (dataset seeds of `small`): hyperparameters and the references' settings chosen on
-# the development reach; the evaluation reach measured after every tuning round until issue 46 (so partly a
+# The protocol's reach seeds (dataset seeds of `small`): hyperparameters and the references' settings chosen
+# on the development reach; the evaluation reach measured after every tuning round until issue 46 (so partly a
 # validation set); the untouched reach rendered and measured once, with the presets frozen (results.json:
 # "dataset_role").
 DATASET_SEEDS = {"development": 1, "evaluation": 0, "untouched": 7}
-# The main job's defaults, here only (`ragsplat ablation` takes them; the Makefile passes nothing unless told):
-# every row starts from the refracted tracks (`INIT`, the training's own default start, shared with `ragsplat
-# survey`), the clear-water variants (`CLEAR_VARIANTS`), three training seeds (tables: mean +- std), and on the
-# CPU `JOBS` processes of cores / JOBS threads (`train.defaults`, shared with the survey's tiles).
+# The main job's defaults, here only (`ragsplat ablation` takes them; the Makefile passes nothing unless
+# told): every row starts from the refracted tracks (`INIT`, the training's own default start, shared with
+# `ragsplat survey`), the clear-water variants (`CLEAR_VARIANTS`), three training seeds (tables: mean +- std),
+# and on the CPU `JOBS` processes of cores / JOBS threads (`train.defaults`, shared with the survey's tiles).
 # On CUDA six processes per GPU: a `small` row leaves one H100 mostly idle (launch-bound), and six at once
 # trained all 27 rows of the 1 500-step preset of then in 6.7 min where one alone took 61 s for its longest
 # row (docs/performance.md; not measured at today's 3 000 steps).
@@ -163,7 +164,8 @@ def one_level_water(data: Path, water: WaterSurface | None) -> tuple[WaterSurfac
                            "edge points as surveyed (a CSV with header x,y,z)")
     pts = layout.read_points(path)
     if not len(pts):
-        raise DatasetError(f"{path}: no points; one level (--one-level) is the mean height of the water's edge")
+        raise DatasetError(f"{path}: no points; one level (--one-level) is the mean height of the water's "
+                           "edge")
     level = float(pts[:, 2].mean())
     flat = WaterSurface(level, float(water.n))
     # the file as the dataset names it: a moved dataset keeps its rows' keys
@@ -178,8 +180,9 @@ def dataset_role(seed: int | None, preset: str) -> str:
 
 
 def extract_config(preset: str, n_nodes: int, seed: int, gsd: float | None) -> ExtractConfig:
-    """The table's extraction over a region of `n_nodes` ground-truth nodes (`GroundTruth.nodes`: wet and banks,
-    the cells `ragsplat export` counts over the same region) with views of `gsd` m per pixel (`Dataset.gsd`)."""
+    """The table's extraction over a region of `n_nodes` ground-truth nodes (`GroundTruth.nodes`: wet and
+    banks, the cells `ragsplat export` counts over the same region) with views of `gsd` m per pixel
+    (`Dataset.gsd`)."""
     return replace(ExtractConfig(), n_samples=PRESETS[preset].samples_per_cell * n_nodes, seed=seed, gsd=gsd)
 
 
@@ -345,8 +348,8 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
     header = {"data": str(Path(data).resolve()), "dataset_fingerprint": runner.fingerprint,
               "dataset_seed": runner.dataset_seed, "dataset_seeds": DATASET_SEEDS,
               "dataset_role": dataset_role(runner.dataset_seed, preset), "tuning": TUNING,
-              **({"field_tuning": FIELD_TUNING} if preset == "small-field" else {}), "extract_tuning": EXTRACT_TUNING,
-              "preset": preset, "seeds": list(seeds),
+              **({"field_tuning": FIELD_TUNING} if preset == "small-field" else {}),
+              "extract_tuning": EXTRACT_TUNING, "preset": preset, "seeds": list(seeds),
               "init": getattr(runner, "init", "grid"),
               "harness_preset": asdict(PRESETS[preset]), "code_digest": source_digest(*CODE),
               "row_code_digest": base["code"],
@@ -380,7 +383,8 @@ def reference_rows(out: Path, runner, preset: str, seed: int, ecfg: ExtractConfi
             grid = depth_times_n(np.load(row_dir(out, "3dgs", seed) / "bed.npy"), water)
             return score_grid(grid, truth), grid
 
-        todo.append(("3dgs x n", row_dir(out, "3dgs x n", seed), {**base, "from": src["key"], "n": n}, corrected))
+        todo.append(("3dgs x n", row_dir(out, "3dgs x n", seed), {**base, "from": src["key"], "n": n},
+                     corrected))
         if hasattr(runner, "dietrich_grid"):
             def dietrich_3dgs():
                 grid = runner.dietrich_grid(np.load(row_dir(out, "3dgs", seed) / "bed.npy"))
@@ -463,8 +467,8 @@ def train_row(job: RowJob, variant: str, seed: int) -> str:
     with open(path, "a") as f:
         say = lambda line: print(line, file=f, flush=True)
         say(f"[{variant} seed {seed}] worker process {os.getpid()}")
-        run_ablation(Path(job.data), Path(job.out), job.preset, [variant], [seed], _RUNNERS[spec], vgg16=job.vgg16,
-                     download=False, log=say, code=job.code, rows_only=True)
+        run_ablation(Path(job.data), Path(job.out), job.preset, [variant], [seed], _RUNNERS[spec],
+                     vgg16=job.vgg16, download=False, log=say, code=job.code, rows_only=True)
     return str(path)
 
 
@@ -488,7 +492,8 @@ class TrainEval:
                                "(held-out views are needed)")
         self.truth = self.ds.ground_truth
         self.fingerprint = self.ds.fingerprint
-        self.water, self.one_level = one_level_water(data, self.ds.water) if one_level else (self.ds.water, None)
+        self.water, self.one_level = (one_level_water(data, self.ds.water) if one_level
+                                      else (self.ds.water, None))
         self.gsd = self.ds.gsd
         self.dataset_seed = dataset_seed(data)
         self.device = device
@@ -548,7 +553,8 @@ class TrainEval:
             curve[:] = [c for c in curve if c["iteration"] != step]
             curve.append({"iteration": step, "time_s": tr.elapsed, "cpu_s": tr.cpu_elapsed,
                           "num_gaussians": tr.num_gaussians, "psnr_refr": (app["refr"] or {}).get("psnr"),
-                          "psnr_dry": (app["dry"] or {}).get("psnr"), "f1": geo["f1"], "chamfer": geo["chamfer"]})
+                          "psnr_dry": (app["dry"] or {}).get("psnr"), "f1": geo["f1"],
+                          "chamfer": geo["chamfer"]})
             # the fused bed only at the end: rendering 87 depth maps and fusing them costs ~100 s a point
             write_json(curve_file, jsonable(curve), indent=1)
             eval_time[0] += time.perf_counter() - t0
@@ -571,7 +577,8 @@ class TrainEval:
         t1 = time.perf_counter()
         geometry, grid = evaluate_geometry(model_gaussians(trainer), self.truth, ecfg)
         t2 = time.perf_counter()
-        fused_geometry, fused = evaluate_fused(model_depth(trainer), self.ds.train, self.truth, fcfg, ecfg.cell)
+        fused_geometry, fused = evaluate_fused(model_depth(trainer), self.ds.train, self.truth, fcfg,
+                                               ecfg.cell)
         t3 = time.perf_counter()
         row = {"config": cfg.to_dict(), "train_stats": stats, "num_gaussians": stats["num_gaussians"],
                "time": {"wall_s": stats["train_seconds"], "cpu_s": stats["train_cpu_seconds"],

@@ -246,10 +246,10 @@ def read_bed(path: Path, truth, georef, band: int = 1, depth: bool = False, desp
     what was read) for `truth` (`dataset.load.GroundTruth`) of a dataset with `georef` (`layout.Georef`).
     `band`: a DEM's; `depth`: its values (a DEM's band, the points' z) are water depths; `despike`: points
     through the outlier filter; `crs`: the file's CRS where it names none or a wrong one; `geotags`: the frame
-    a synthetic survey's photos were geotagged in (`survey_geotags`), a candidate for a file in a CRS (a survey
-    run from the photos' EXIF writes its products there). Raises ConfigError
-    (unknown kind, no such band, unusable `crs`), DatasetError (unreadable, or not over the ground truth:
-    fewer than `MIN_COVER` of its wet nodes covered)."""
+    a synthetic survey's photos were geotagged in (`survey_geotags`), a candidate for a file in a CRS (a
+    survey run from the photos' EXIF writes its products there). Raises ConfigError (unknown kind, no such
+    band, unusable `crs`), DatasetError (unreadable, or not over the ground truth: fewer than `MIN_COVER` of
+    its wet nodes covered)."""
     from rasterio.crs import CRS
     from rasterio.errors import CRSError
     from scipy.spatial import cKDTree
@@ -300,7 +300,8 @@ def read_bed(path: Path, truth, georef, band: int = 1, depth: bool = False, desp
             f"({_label(CRS.from_user_input(georef.crs))})")
     grid[:, 2] = truth.water.height(grid[:, :2]) - grid[:, 2] if depth else grid[:, 2] - frame.offset[2]
     if kind == "DEM":
-        how = {"band": band, "cells": count, "gridding": "bilinear between cell centres, else the cell a node lies in"}
+        how = {"band": band, "cells": count,
+               "gridding": "bilinear between cell centres, else the cell a node lies in"}
     else:
         how = {"points": count, "points_near": near, "gridding": "TIN",
                "filter": TIN_FILTER if despike else None}
@@ -331,7 +332,7 @@ def score_file(path: Path, data: Path, references: bool = False,
         rows.update(TrainEval(data).track_grids(log))
     return {**record, "data": str(Path(data).resolve()), "dataset_fingerprint": ds.fingerprint,
             "dataset_seed": dataset_seed(data),
-            "georef": ds.georef.to_json(), "max_depth_m": truth.max_depth, "water": layout.water_json(truth.water),
-            "geometry": score_grid(grid, truth),
+            "georef": ds.georef.to_json(), "max_depth_m": truth.max_depth,
+            "water": layout.water_json(truth.water), "geometry": score_grid(grid, truth),
             "references": {name: score_grid(g, truth) for name, g in rows.items()},
             "uses_ground_truth": list(USES_GROUND_TRUTH)}, grid, truth

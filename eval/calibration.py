@@ -166,8 +166,8 @@ def iho_shares(tvu95, depth) -> dict:
 def calibration_report(tvu95, err, seeds, depth, views, xy=None, cell: float = 0.05,
                        max_depth: float | None = None) -> dict:
     """Every figure of the module docstring for cells with TVU95 [N] (m), errors [N] (m), dataset seeds [N],
-    true depths [N] (m), view counts [N], and, for the oracle, their horizontal positions xy [N, 2] on a grid of
-    `cell` m (None: no oracle). `max_depth`: the depth bands' D (default the deepest cell)."""
+    true depths [N] (m), view counts [N], and, for the oracle, their horizontal positions xy [N, 2] on a grid
+    of `cell` m (None: no oracle). `max_depth`: the depth bands' D (default the deepest cell)."""
     tvu95, err, seeds = np.asarray(tvu95, float), np.asarray(err, float), np.asarray(seeds)
     sigma = tvu95 / Z95
     pooled = {f"{p:g}": coverage(sigma, err, p) for p in LEVELS}
@@ -190,9 +190,9 @@ def calibration_report(tvu95, err, seeds, depth, views, xy=None, cell: float = 0
 
 
 def reliability_figure(tvu95, err, seeds=None, title: str = ""):
-    """A matplotlib figure: left, the observed coverage of the central p intervals (|e| <= z_p sigma) against p,
-    pooled (black) and per seed (thin); right, RMSE against RMV in the ENCE's bins (log-log), both against the
-    diagonal of a calibrated uncertainty. The caller saves or shows it."""
+    """A matplotlib figure: left, the observed coverage of the central p intervals (|e| <= z_p sigma) against
+    p, pooled (black) and per seed (thin); right, RMSE against RMV in the ENCE's bins (log-log), both against
+    the diagonal of a calibrated uncertainty. The caller saves or shows it."""
     import matplotlib
 
     matplotlib.use("Agg")  # files only, no display
@@ -203,10 +203,12 @@ def reliability_figure(tvu95, err, seeds=None, title: str = ""):
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4.5), constrained_layout=True)
     if seeds is not None:
         for s, m in per_seed(lambda m: m, seeds).items():
-            left.plot(levels, [coverage(sigma[m], err[m], p) for p in levels], lw=0.8, alpha=0.6, label=f"seed {s}")
+            left.plot(levels, [coverage(sigma[m], err[m], p) for p in levels], lw=0.8, alpha=0.6,
+                      label=f"seed {s}")
     left.plot(levels, [coverage(sigma, err, p) for p in levels], "k", lw=2, label="pooled")
     left.plot([0, 1], [0, 1], ":", color="grey")
-    left.set(xlabel="nominal coverage p", ylabel="observed share with |e| <= z_p sigma", xlim=(0, 1), ylim=(0, 1))
+    left.set(xlabel="nominal coverage p", ylabel="observed share with |e| <= z_p sigma", xlim=(0, 1),
+             ylim=(0, 1))
     left.legend(fontsize=8)
     order = np.argsort(sigma, kind="stable")
     parts = [p for p in np.array_split(order, ENCE_BINS) if len(p)]

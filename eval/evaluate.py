@@ -53,12 +53,14 @@ def evaluate_views(render: Callable, views, lpips_metric=None, psnr_only: bool =
                 if not psnr_only:
                     entry[cond].update(ssim=float(metrics.ssim_standard(img, target)),
                                        ssim_3dgs=float(metrics.ssim(img, target)),
-                                       lpips=None if lpips_metric is None else float(lpips_metric(img, target)))
+                                       lpips=None if lpips_metric is None
+                                       else float(lpips_metric(img, target)))
         per_view.append(entry)
     out = {"per_view": per_view}
     for cond in ("refr", "dry"):
         rows = [v[cond] for v in per_view if v[cond] is not None]
-        out[cond] = {k: _mean(r[k] for r in rows) for k in ("psnr", "ssim", "ssim_3dgs", "lpips")} if rows else None
+        out[cond] = ({k: _mean(r[k] for r in rows) for k in ("psnr", "ssim", "ssim_3dgs", "lpips")} if rows
+                     else None)
     return out
 
 
@@ -72,7 +74,8 @@ def score_grid(grid: np.ndarray, truth) -> dict:
     """
     named = thresholds(truth.max_depth)
     gt = truth.grid
-    on_truth = np.isfinite(cKDTree(gt[:, :2]).query(grid[:, :2], distance_upper_bound=0.5 * GT_GRID_STEP)[0]) \
+    on_truth = np.isfinite(cKDTree(gt[:, :2]).query(grid[:, :2],
+                                                    distance_upper_bound=0.5 * GT_GRID_STEP)[0]) \
         if len(grid) else np.zeros(0, bool)
     m = geometry_metrics(grid[on_truth], gt, tuple(named.values()))
     out = {k: m[k] for k in ("n_pred", "n_gt", "accuracy", "completeness", "chamfer")}
@@ -114,8 +117,8 @@ def survey_figures(grid: np.ndarray, truth) -> dict:
 
 
 def wet_figures(dz: np.ndarray, depth: np.ndarray, holes: int) -> dict:
-    """`survey_figures` of one band: the errors dz [N] of its covered cells at true depths [N] (metres) and the
-    number of its wet cells left empty."""
+    """`survey_figures` of one band: the errors dz [N] of its covered cells at true depths [N] (metres) and
+    the number of its wet cells left empty."""
     e, total = np.abs(dz), len(dz) + holes
     share = (lambda ok: float(ok.sum() / total)) if total else (lambda ok: None)
     return {"n": len(dz), "holes": holes, "cover": float(len(dz) / total) if total else None,
@@ -151,7 +154,8 @@ def evaluate_geometry(gaussians: dict, truth, cfg: ExtractConfig) -> tuple[dict,
     return {**score_grid(grid, truth), "extraction": stats}, grid
 
 
-def evaluate_fused(render_depth: Callable, views, truth, cfg: FuseConfig, cell: float) -> tuple[dict, np.ndarray]:
+def evaluate_fused(render_depth: Callable, views, truth, cfg: FuseConfig,
+                   cell: float) -> tuple[dict, np.ndarray]:
     """The bed from rendered depth + `score_grid`: `render_depth(camera) -> [H, W]` z-depth (0 = none) at
     every view's camera (the training views), fused (`ragsplat_core.fusion.fuse`) on the GT grid's nodes
     (`cell` apart) inside the region. Returns (scores with the fusion's choices under "fusion", the grid

@@ -100,7 +100,8 @@ class LPIPS:
             raise ValueError(f"VGG16 state dict lacks {missing[0]} (and {len(missing) - 1} more)")
         for i, (cin, cout) in VGG16_CONVS.items():
             if tuple(trunk[f"features.{i}.weight"].shape) != (cout, cin, 3, 3):
-                raise ValueError(f"features.{i}.weight has shape {tuple(trunk[f'features.{i}.weight'].shape)}")
+                raise ValueError(f"features.{i}.weight has shape "
+                                 f"{tuple(trunk[f'features.{i}.weight'].shape)}")
         if [tuple(w.shape) for w in lins] != [(1, c, 1, 1) for c in LPIPS_CHANNELS]:
             raise ValueError(f"LPIPS linear weights have shapes {[tuple(w.shape) for w in lins]}")
         self.trunk = {k: v.detach().float() for k, v in trunk.items() if k.startswith("features.")}
@@ -197,7 +198,8 @@ def vgg16_weights(vgg16_path: str | Path | None = None, download: bool = True,
         download_vgg16(path)
     except Exception as err:  # noqa: BLE001 (network, disk, checksum: any failure means n/a, no crash)
         detail = (str(err).splitlines() or [""])[0] or type(err).__name__
-        return None, None, f"{missing}; downloading {VGG16_URL} failed: {detail} (give --vgg16 PATH to {VGG16_FILE})"
+        return (None, None,
+                f"{missing}; downloading {VGG16_URL} failed: {detail} (give --vgg16 PATH to {VGG16_FILE})")
     if not path.is_file():
         return None, None, f"{missing}; downloading {VGG16_URL} left no file there"
     return path, VGG16_URL, ""

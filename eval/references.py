@@ -39,8 +39,8 @@ from ragsplat_core.outputs import source_digest
 from ragsplat_core.surface import ExtractConfig
 from ragsplat_core.tracks import tin, track_filter
 
-# This module's source as imported: part of every reference row's key (read once, so that a file edited during a
-# long run cannot key a row computed with the settings loaded before the edit)
+# This module's source as imported: part of every reference row's key (read once, so that a file edited during
+# a long run cannot key a row computed with the settings loaded before the edit)
 REFERENCES_CODE = source_digest("eval/references.py")
 
 # In table order: what a surveyor would do without ragsplat first, then the trivial answers. `init` stays in
@@ -62,8 +62,8 @@ EXTRACTION = {"init": "volume", "3dgs x n": "volume", "oracle plane": "-", "orac
 # reduction (pyBathySfM's defaults, 35 degrees and the mean, as the starting point).
 TIN_FILTER = {"radius": 1.0, "tol": 0.3, "min_neighbours": 8}
 DIETRICH_TRACKS = {"max_angle_deg": None, "reduce": "mean"}
-# The same rule on the 3dgs row's dense apparent bed (`dietrich_grid`), chosen on the development reach's 3dgs bed
-# (`--bed`): the angle filter in degrees and the reduction.
+# The same rule on the 3dgs row's dense apparent bed (`dietrich_grid`), chosen on the development reach's 3dgs
+# bed (`--bed`): the angle filter in degrees and the reduction.
 DIETRICH_MAX_ANGLE = 40.0
 DIETRICH_DENSE_REDUCE = "median"
 REDUCE = {"mean": np.mean, "median": np.median}
@@ -143,18 +143,21 @@ def seen_by(points: np.ndarray, cameras) -> tuple[np.ndarray, np.ndarray]:
     pairs = []
     for k, cam in enumerate(cameras):
         uv, z = cam.project(np.asarray(points, float))
-        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        inside = ((z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0)
+                  & (uv[:, 1] < cam.height))
         pairs.append(np.column_stack([np.flatnonzero(inside), np.full(inside.sum(), k)]))
     both = np.concatenate(pairs) if pairs else np.zeros((0, 2), int)
     return both[:, 0], both[:, 1]
 
 
-def track_grids(root, fingerprint: str, cameras: dict, water, nodes: np.ndarray, tin_filter: dict | None = TIN_FILTER,
+def track_grids(root, fingerprint: str, cameras: dict, water, nodes: np.ndarray,
+                tin_filter: dict | None = TIN_FILTER,
                 dietrich_tracks: dict = DIETRICH_TRACKS) -> dict[str, np.ndarray]:
     """{reference name: height grid [G', 3] on `nodes` [G, 2]} for the tracks' references (module docstring)
     of the dataset `root` (its cached triangulation; `cameras`: image name -> Camera), with the outlier filter
     `tin_filter` (`track_filter`'s keywords, or None: none) and Dietrich's `dietrich_tracks` (`max_angle_deg`,
-    None: every camera; `reduce`: a name of `REDUCE`). Raises DatasetError when nothing can be triangulated."""
+    None: every camera; `reduce`: a name of `REDUCE`). Raises DatasetError when nothing can be
+    triangulated."""
     clouds = track_clouds(root, fingerprint, cameras, water, dietrich_tracks)
     return {name: gridded(pts, nodes, tin_filter) for name, pts in clouds.items()}
 
@@ -193,8 +196,8 @@ def track_clouds(root, fingerprint: str, cameras: dict, water, dietrich_tracks: 
 def dietrich_grid(bed: np.ndarray, cameras, water, max_angle_deg: float | None = DIETRICH_MAX_ANGLE,
                   reduce: str = DIETRICH_DENSE_REDUCE) -> np.ndarray:
     """[G', 3] Dietrich's correction of a dense apparent bed [G, 3] (the 3dgs row's), every camera whose image
-    holds a cell voting, within the angle filter `max_angle_deg` (None: none), by `reduce` (a name of `REDUCE`);
-    cells no camera keeps are dropped."""
+    holds a cell voting, within the angle filter `max_angle_deg` (None: none), by `reduce` (a name of
+    `REDUCE`); cells no camera keeps are dropped."""
     point, camera = seen_by(bed, cameras)
     centres = np.array([c.camera_center for c in cameras]).reshape(-1, 3)
     out = dietrich(bed, centres, point, camera, water, max_angle_deg, REDUCE[reduce])

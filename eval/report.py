@@ -145,7 +145,8 @@ def _table(rows: dict[str, list[dict]], published: dict, table: str | None, colu
                for label, found in (extractions(rows[name]) if by_extraction else [(None, rows[name])])]
     for name, label, found in entries:
         seeds = [r.get("seed") for r in found]
-        cells = [_label(name, found), "-" if seeds == [None] else str(len(seeds))] + ([label] if label else [])
+        cells = ([_label(name, found), "-" if seeds == [None] else str(len(seeds))]
+                 + ([label] if label else []))
         for _, pcol, keys, fmt, scale in columns:
             cells.append(_cell(values(found, keys, scale), fmt))
             if pcol and table:
@@ -157,7 +158,8 @@ def _table(rows: dict[str, list[dict]], published: dict, table: str | None, colu
 def geometry_table(head: list[str], rows: list[tuple[list[str], dict]], columns) -> str:
     """A Markdown table of single beds (no seeds): per row its leading cells (under `head`) and its geometry
     scores (`score_grid`'s), in `columns` (entries of T2_COLUMNS / T3_COLUMNS); a missing value prints n/a."""
-    lines = ["| " + " | ".join(head + [c[0] for c in columns]) + " |", "|" + "---|" * (len(head) + len(columns))]
+    lines = ["| " + " | ".join(head + [c[0] for c in columns]) + " |",
+             "|" + "---|" * (len(head) + len(columns))]
     for lead, geometry in rows:
         cells = list(lead)
         for _, _, keys, fmt, scale in columns:
@@ -232,8 +234,8 @@ def error_vs_time(curves: dict[str, list[list[dict]]], path: str | Path, title: 
                     y.append(np.mean(vals))
                     e.append(np.std(vals, ddof=1) if len(vals) > 1 else 0.0)
             if x:
-                legend[variant] = ax.errorbar(x, y, yerr=e, marker="o", ms=3, capsize=2, color=colors[variant],
-                                              label=variant)[0]
+                legend[variant] = ax.errorbar(x, y, yerr=e, marker="o", ms=3, capsize=2,
+                                              color=colors[variant], label=variant)[0]
         for name, ref in (lines or {}).items():
             if key in ref and ref[key] is not None:
                 legend[name] = ax.axhline(scale * ref[key], ls=dashes[name], lw=1, color="k", label=name)
@@ -274,7 +276,8 @@ def depth_error_map(grid: np.ndarray, truth, path: str | Path, title: str = "") 
     img[ij[inside, 1], ij[inside, 0]] = 100 * dz[inside]
     limit = 5.0 * truth.max_depth  # cm: 5 % of the maximum depth
     fig, ax = plt.subplots(figsize=(7, 5.5), constrained_layout=True)
-    extent = (lo[0] - step / 2, lo[0] + (shape[0] - 0.5) * step, lo[1] - step / 2, lo[1] + (shape[1] - 0.5) * step)
+    extent = (lo[0] - step / 2, lo[0] + (shape[0] - 0.5) * step, lo[1] - step / 2,
+              lo[1] + (shape[1] - 0.5) * step)
     ax.imshow(np.where(known, 0.85, np.nan), origin="lower", extent=extent, cmap="gray", vmin=0, vmax=1)
     im = ax.imshow(img, origin="lower", extent=extent, cmap="RdBu_r", vmin=-limit, vmax=limit)
     wet = np.zeros(shape[::-1])
@@ -299,14 +302,15 @@ def water_notes(header: dict) -> list[str]:
     out, water, flat = [], header.get("water") or {}, header.get("one_level")
     if water.get("slope"):
         sx, sy = water["slope"]
-        terms = "".join(f" {'-' if v < 0 else '+'} {abs(v):g} {axis}" for v, axis in ((sx, "x"), (sy, "y")) if v)
+        terms = "".join(f" {'-' if v < 0 else '+'} {abs(v):g} {axis}" for v, axis in ((sx, "x"), (sy, "y"))
+                        if v)
         out.append(f"Water: a sloping surface, z = {water['level']:g}{terms} (a fall of "
-                   f"{100 * math.hypot(sx, sy):.2g} %); every depth (the thresholds' maximum depth, the bands, IHO) "
-                   "is the depth below it.")
+                   f"{100 * math.hypot(sx, sy):.2g} %); every depth (the thresholds' maximum depth, the "
+                   "bands, IHO) is the depth below it.")
     if flat:
-        out.append(f"ONE LEVEL (--one-level): every variant and every reference was given one flat water level, "
-                   f"{flat['level']:.3f} m (the mean of the {flat['edge_points']} surveyed edge points, "
-                   f"{flat['edge_file']}), instead of the dataset's surface: what a flat-water tool "
+        out.append("ONE LEVEL (--one-level): every variant and every reference was given one flat water "
+                   f"level, {flat['level']:.3f} m (the mean of the {flat['edge_points']} surveyed edge "
+                   f"points, {flat['edge_file']}), instead of the dataset's surface: what a flat-water tool "
                    "does. The scores are against the true surface and bed, as in every run.")
     return out
 
@@ -316,20 +320,22 @@ def notes(rows: dict[str, list[dict]], header: dict, lpips_reason: str) -> list[
     if lpips_reason:
         out.append(f"LPIPS n/a: {lpips_reason}")
     out.append("SSIM: the standard SSIM (Wang et al. 2004, Gaussian window 11, sigma 1.5, valid region: the "
-               "value of scikit-image and torchmetrics); the 3DGS training SSIM is in results.json as ssim_3dgs.")
+               "value of scikit-image and torchmetrics); the 3DGS training SSIM is in results.json as "
+               "ssim_3dgs.")
     if "3dgs" in rows:
         out.append("3dgs has no interface model: its `refr` values compare its plain render with the "
                    "with-water images (the paper leaves these cells empty).")
-    out.append("Time: training wall clock (evaluation excluded), the process's CPU time and the median wall time "
-               "of one iteration on this machine; the paper's is an RTX 3090 at 800 x 800, 30k iterations.")
+    out.append("Time: training wall clock (evaluation excluded), the process's CPU time and the median wall "
+               "time of one iteration on this machine; the paper's is an RTX 3090 at 800 x 800, 30k "
+               "iterations.")
     return out
 
 
 def geometry_notes(header: dict) -> list[str]:
     depth, tuning = header.get("max_depth_m"), header.get("tuning") or {}
     thresholds = (f"Thresholds: absolute 10 / 30 cm, and 1 % / 3 % of the maximum depth ({depth:g} m: "
-                  f"{10 * depth:g} / {30 * depth:g} mm); the paper's 10 / 30 cm are 1 % / 3 % of its 10 m, so "
-                  "only the depth-scaled columns are compared with it.")
+                  f"{10 * depth:g} / {30 * depth:g} mm); the paper's 10 / 30 cm are 1 % / 3 % of its 10 m, "
+                  "so only the depth-scaled columns are compared with it.")
     out = [*water_notes(header), thresholds if depth else "Thresholds: absolute 10 / 30 cm.",
            ("CD in metres (mean of accuracy and completeness, unsquared); P/R/F1 in %, strict < threshold; "
             "mean ± sample standard deviation over the training seeds (the extraction seed is the training "
@@ -357,42 +363,47 @@ def references_note(header: dict) -> str:
     angle = die.get("max_angle_deg")
     cams = "every camera" if angle is None else f"the cameras within {angle:g} degrees of the vertical"
     dense = refs.get("dietrich_3dgs_max_angle_deg")
-    return ("Reference rows, what a surveyor would do without ragsplat: triangulation (refracted) = the dataset's "
-            "SIFT tracks intersected through the water; dietrich (tracks) = the straight-ray tracks corrected by "
-            f"Dietrich's (2017) multi-camera rule ({die.get('reduce', 'median')} over {cams}, each point below "
-            "the water surface's height above it, pyBathySfM's per-point water surface elevation); triangulation "
-            f"x n = the straight-ray tracks with depths x n; each {cleaned} and gridded by linear interpolation on "
-            "its Delaunay triangulation (TIN), settings chosen on the development reach; dietrich (3dgs) = the rule "
-            f"applied to the 3dgs bed ({refs.get('dietrich_3dgs_reduce', 'median')} over the cameras that see a cell"
-            + ("" if dense is None else f", within {dense:g} degrees of the vertical") + "). The trivial answers: 3dgs x n = the 3dgs bed with submerged depths "
-            "multiplied by n (the classical correction); oracle plane = the least-squares tilted plane through the "
-            "ground truth's submerged bed, oracle median plane = the flat plane at its median height (both read "
-            "the ground truth). The untrained start (init) is in results.json only.")
+    return ("Reference rows, what a surveyor would do without ragsplat: triangulation (refracted) = the "
+            "dataset's SIFT tracks intersected through the water; dietrich (tracks) = the straight-ray "
+            f"tracks corrected by Dietrich's (2017) multi-camera rule ({die.get('reduce', 'median')} over "
+            f"{cams}, each point below the water surface's height above it, pyBathySfM's per-point water "
+            "surface elevation); triangulation x n = the straight-ray tracks with depths x n; each "
+            f"{cleaned} and gridded by linear interpolation on its Delaunay triangulation (TIN), settings "
+            "chosen on the development reach; dietrich (3dgs) = the rule applied to the 3dgs bed "
+            f"({refs.get('dietrich_3dgs_reduce', 'median')} over the cameras that see a cell"
+            + ("" if dense is None else f", within {dense:g} degrees of the vertical")
+            + "). The trivial answers: 3dgs x n = the 3dgs bed with submerged depths "
+            "multiplied by n (the classical correction); oracle plane = the least-squares tilted plane "
+            "through the ground truth's submerged bed, oracle median plane = the flat plane at its median "
+            "height (both read the ground truth). The untrained start (init) is in results.json only.")
 
 
 def bed_note(header: dict) -> str:
     """What the "bed" column of Tables 2 and 3 means, with the fusion's settings when the header has them."""
     fuse = (header.get("harness_preset") or {}).get("fuse") or {}
-    voxel = (f"{fuse['voxel']:g} m" if fuse.get("voxel") else f"{fuse['voxel_gsd']:g} x the views' ground sample "
+    voxel = (f"{fuse['voxel']:g} m" if fuse.get("voxel")
+             else f"{fuse['voxel_gsd']:g} x the views' ground sample "
              "distance") if fuse else "a few ground sample distances"
     trunc = f"{fuse['trunc_voxels']:g} voxels" if fuse else "a few voxels"
     return ("Bed: volume = volume sampling of the Gaussians, noise filter, median height per cell, "
             "despiking; fused = the "
-            "true Gaussians' median depth maps of the training views (no water interface: straight rays) fused "
-            f"in a TSDF (voxel {voxel}, truncation {trunc}), the topmost surface crossing per cell; for 3dgs "
-            "both are its apparent bed. The reference rows have one bed each.")
+            "true Gaussians' median depth maps of the training views (no water interface: straight rays) "
+            f"fused in a TSDF (voxel {voxel}, truncation {trunc}), the topmost surface crossing per cell; "
+            "for 3dgs both are its apparent bed. The reference rows have one bed each.")
 
 
 def survey_notes(header: dict) -> list[str]:
     depth = header.get("max_depth_m") or 0
-    return [*water_notes(header), (f"dz = predicted - true bed height at the centre of each reconstructed 5 cm cell (exact surface); "
-             f"wet = true depth > 0; bands are thirds of the maximum depth ({depth:g} m); banks = emerged "
-             "ground in the evaluation region; wet cover = wet cells reconstructed / wet ground-truth cells."),
+    return [*water_notes(header),
+            ("dz = predicted - true bed height at the centre of each reconstructed 5 cm cell (exact "
+             f"surface); wet = true depth > 0; bands are thirds of the maximum depth ({depth:g} m); banks = "
+             "emerged ground in the evaluation region; wet cover = wet cells reconstructed / wet "
+             "ground-truth cells."),
             ("Holes count as misses: p95 (of |dz|), within 3 / 5 cm and the IHO columns are over every wet "
-             "ground-truth cell, a cell the bed leaves empty counting as beyond every threshold (p95 n/a when "
-             "more than 5 % are empty); bias and RMSE cannot count a hole and are over the covered cells, "
-             "wet cover beside them. IHO: the share of wet cells within the IHO S-44 (2020) total vertical "
-             "uncertainty at 95 %, sqrt(a^2 + (b d)^2) at the cell's true depth d: "
+             "ground-truth cell, a cell the bed leaves empty counting as beyond every threshold (p95 n/a "
+             "when more than 5 % are empty); bias and RMSE cannot count a hole and are over the covered "
+             "cells, wet cover beside them. IHO: the share of wet cells within the IHO S-44 (2020) total "
+             "vertical uncertainty at 95 %, sqrt(a^2 + (b d)^2) at the cell's true depth d: "
              + ", ".join(f"{k} ({a:g} m, {b:g})" for k, (a, b) in reversed(IHO_ORDERS.items()))
              + " (order 1: 1a and 1b).")]
 
@@ -406,14 +417,17 @@ def write_outputs(out: Path, rows: dict[str, list[dict]], header: dict, lpips_re
     for name, text in (("table1.md", t1), ("table2.md", t2), ("table3.md", t3)):
         write_bytes(out / name, text.encode())
     curves = {v: [r["curve"] for r in rows[v]] for v in ordered(rows) if v in VARIANTS}
+    # the field's best, the trivial
     lines = {n: {k: (summary(values(rows[n], ("geometry", "f1", k))) or {}).get("mean") for k in ("1%", "3%")}
-             for n in ("triangulation (refracted)", "oracle plane", "3dgs x n") if n in rows}  # the field's best, the trivial
-    error_vs_time(curves, out / "error_vs_time.png", title=f"error vs training time ({header.get('preset', '')}, "
+             for n in ("triangulation (refracted)", "oracle plane", "3dgs x n") if n in rows}
+    error_vs_time(curves, out / "error_vs_time.png",
+                  title=f"error vs training time ({header.get('preset', '')}, "
                   f"seeds {header.get('seeds', '')})", lines=lines)
     summaries = {name: {col: summary(values(rows[name], keys, scale))
                         for col, _, keys, _, scale in T1_COLUMNS + T2_COLUMNS + T3_COLUMNS}
                  for name in ordered(rows)}
-    fused = {name: {col: summary(values(found, keys, scale)) for col, _, keys, _, scale in T2_COLUMNS + T3_COLUMNS}
+    fused = {name: {col: summary(values(found, keys, scale))
+                    for col, _, keys, _, scale in T2_COLUMNS + T3_COLUMNS}
              for name in ordered(rows) for label, found in extractions(rows[name]) if label == "fused"}
     results = {**header, "lpips": {"available": not lpips_reason, "reason": lpips_reason or None},
                "published": published, "summary": summaries, "summary_fused": fused,

@@ -35,20 +35,22 @@ def score_run(run: Path, data: Path | None = None, vgg16: str | None = None, dow
               dem: Path | None = None, extract: dict | None = None) -> dict:
     """The run's appearance on the held-out views (`evaluate_views`: PSNR, SSIM, LPIPS when its weights are
     found or, with `download`, fetched) and its bed's geometry (`evaluate_geometry`; `evaluate_fused` of its
-    training views under "geometry_fused"), with the reference answers' geometry under "references". `data`: the run's dataset moved elsewhere. `truth`: score against
-    another dataset's ground truth and held-out views, in the same frame (a survey imported from a synthetic
-    dataset's COLMAP model). `dem`: also score that DEM GeoTIFF (`ragsplat export`) under "dem". `extract`:
-    ExtractConfig fields to change for the volume bed (e.g. {"max_scale_gsd": math.inf}). Raises
-    OutputError (not a finished run), DatasetError (dataset missing, changed, without ground truth or
-    held-out views, in another frame), ConfigError (a preset the harness does not know)."""
+    training views under "geometry_fused"), with the reference answers' geometry under "references". `data`:
+    the run's dataset moved elsewhere. `truth`: score against another dataset's ground truth and held-out
+    views, in the same frame (a survey imported from a synthetic dataset's COLMAP model). `dem`: also score
+    that DEM GeoTIFF (`ragsplat export`) under "dem". `extract`: ExtractConfig fields to change for the volume
+    bed (e.g. {"max_scale_gsd": math.inf}). Raises OutputError (not a finished run), DatasetError (dataset
+    missing, changed, without ground truth or held-out views, in another frame), ConfigError (a preset the
+    harness does not know)."""
     model, ds = load_model(run, data, splits=("train",))  # the training cameras: the views fusion reads
     cfg = model.cfg
     if cfg.preset not in PRESETS:
-        raise ConfigError(f"{run}: preset {cfg.preset!r} has no evaluation settings; known: {', '.join(PRESETS)}")
+        raise ConfigError(f"{run}: preset {cfg.preset!r} has no evaluation settings; known: "
+                          f"{', '.join(PRESETS)}")
     runner = TrainEval(ds.root if truth is None else truth)
     if runner.ds.georef.offset != ds.georef.offset:
-        raise DatasetError(f"{runner.ds.root} is in another frame than {ds.root} (offsets {runner.ds.georef.offset}"
-                           f" and {ds.georef.offset})")
+        raise DatasetError(f"{runner.ds.root} is in another frame than {ds.root} (offsets "
+                           f"{runner.ds.georef.offset} and {ds.georef.offset})")
     truth = runner.truth
     ecfg = replace(extract_config(cfg.preset, len(truth.nodes), cfg.seed, ds.gsd), **(extract or {}))
     lpips_metric, lpips_reason = metrics.load_lpips(vgg16, download=download, log=log)
@@ -56,21 +58,24 @@ def score_run(run: Path, data: Path | None = None, vgg16: str | None = None, dow
         log(f"LPIPS n/a: {lpips_reason}")
     else:
         lpips_metric.to(model.device)
-    appearance = evaluate_views(lambda view, interface: model.render(view.camera, interface)[0], runner.ds.test,
-                                lpips_metric)
+    appearance = evaluate_views(lambda view, interface: model.render(view.camera, interface)[0],
+                                runner.ds.test, lpips_metric)
     geometry, _ = evaluate_geometry(model.gaussians(), truth, ecfg)
     fused, _ = evaluate_fused(model.median_depth, ds.train, truth, PRESETS[cfg.preset].fuse, ecfg.cell)
     initial = runner.initial(replace(cfg, device=str(model.device), backend=model.backend))
     return {"run": str(run), "data": str(Path(ds.root).resolve()), "dataset_fingerprint": ds.fingerprint,
-            "dataset_seed": runner.dataset_seed, "variant": cfg.variant, "preset": cfg.preset, "seed": cfg.seed,
+            "dataset_seed": runner.dataset_seed, "variant": cfg.variant, "preset": cfg.preset,
+            "seed": cfg.seed,
             "harness_preset": asdict(PRESETS[cfg.preset]), "water": layout.water_json(model.water),
-            "truth_water": layout.water_json(truth.water), "max_depth_m": truth.max_depth, "lpips": {"available": not lpips_reason, "reason": lpips_reason or None},
+            "truth_water": layout.water_json(truth.water), "max_depth_m": truth.max_depth,
+            "lpips": {"available": not lpips_reason, "reason": lpips_reason or None},
             "lpips_network": getattr(lpips_metric, "network", None), "versions": versions("torch", "scipy"),
             "code_digest": source_digest(*CODE), "num_gaussians": int(model.splats["means"].shape[0]),
             "appearance": appearance, "geometry": geometry, "geometry_fused": fused,
             "references": {"init": evaluate_geometry(initial, truth, start_extraction(ecfg))[0],
                            **{name: score_grid(grid, truth) for name, grid in oracle_grids(truth).items()},
-                           **{name: score_grid(grid, truth) for name, grid in runner.track_grids(log).items()}},
+                           **{name: score_grid(grid, truth)
+                              for name, grid in runner.track_grids(log).items()}},
             "uses_ground_truth": list(USES_GROUND_TRUTH),
             **({} if dem is None else {"dem": _score_dem(dem, ds.georef, truth)})}
 
@@ -113,14 +118,15 @@ def table(result: dict) -> str:
         rows.append((f"its DEM ({Path(result['dem']['file']).name})", result["dem"]))
     lines = [geometry_table(["Row"], [([name], geometry) for name, geometry in rows], COLUMNS)]
     depth = result["max_depth_m"]
-    lines += ["", (f"- F1 at 10 / 30 cm and at 1 % / 3 % of the maximum depth ({depth:g} m); dz = predicted - true "
-                   "bed height: p95 of |dz| over every wet cell (a hole counts as a miss), bias and RMSE over the "
-                   "covered wet cells, banks bias over the emerged ground."),
+    lines += ["", (f"- F1 at 10 / 30 cm and at 1 % / 3 % of the maximum depth ({depth:g} m); dz = predicted "
+                   "- true bed height: p95 of |dz| over every wet cell (a hole counts as a miss), bias and "
+                   "RMSE over the covered wet cells, banks bias over the emerged ground."),
               ("- volume: volume sampling of the Gaussians; fused: TSDF fusion of the true Gaussians' median "
                "depth maps of the training views.")]
     lines += [f"- {note}" for note in water_notes({"water": result.get("truth_water")})]  # a sloping surface
     app = result["appearance"]
-    for cond, what in (("refr", "through the water vs the with-water images"), ("dry", "without it vs the dry images")):
+    for cond, what in (("refr", "through the water vs the with-water images"),
+                       ("dry", "without it vs the dry images")):
         if app[cond] is not None:
             a = app[cond]
             lpips = "n/a" if a["lpips"] is None else f"{a['lpips']:.3f}"
