@@ -1,5 +1,5 @@
-"""Where a DEM gains or loses against the tracks: the wet ground-truth cells binned three ways, with the error of
-the DEM and of the refracted tracks' TIN (the best reference row) in every bin:
+"""Where a DEM gains or loses against the tracks: the wet ground-truth cells binned three ways, with the error
+of the DEM and of the refracted tracks' TIN (the best reference row) in every bin:
 
 - `tracks`: refracted tracks within RADIUS of the cell (where a start from the tracks is dense or sparse);
 - `views`: training views whose image holds the cell's apparent point (seen through the water);
@@ -37,7 +37,8 @@ def views_seeing(points: np.ndarray, cameras, water) -> np.ndarray:
     for cam in cameras:
         centre = torch.as_tensor(np.asarray(cam.camera_center, dtype=np.float64))
         uv, z = cam.project(apparent_points(pts, centre, water).numpy())
-        count += (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        count += ((z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0)
+                  & (uv[:, 1] < cam.height))
     return count
 
 
@@ -63,8 +64,8 @@ def summary(dz: np.ndarray) -> dict:
     ok = np.isfinite(dz)
     e = dz[ok]
     if not ok.any():
-        return {"cover": float(ok.mean()) if len(dz) else None, "good": 0.0 if len(dz) else None, "median_cm": None,
-                "p95_cm": None, "bias_cm": None}
+        return {"cover": float(ok.mean()) if len(dz) else None, "good": 0.0 if len(dz) else None,
+                "median_cm": None, "p95_cm": None, "bias_cm": None}
     p95 = quantile_with_holes(np.abs(e), int((~ok).sum()), 0.95)
     return {"cover": float(ok.mean()), "good": float((np.abs(e) < GOOD).sum() / len(dz)),
             "median_cm": float(np.median(np.abs(e)) * 100), "p95_cm": None if p95 is None else p95 * 100,
@@ -102,7 +103,8 @@ def by_place(dem: Path, data: Path, radius: float = 0.5) -> dict[str, list[dict]
     tin = track_grids(ds.root, ds.fingerprint, cams, ds.water, gt[:, :2])["triangulation (refracted)"]
 
     def errors(points):  # predicted - true height at each GT node, NaN where none
-        d, i = cKDTree(points[:, :2]).query(gt[:, :2], distance_upper_bound=0.5 * GT_GRID_STEP)  # as score_grid
+        # as score_grid
+        d, i = cKDTree(points[:, :2]).query(gt[:, :2], distance_upper_bound=0.5 * GT_GRID_STEP)
         z = np.full(len(gt), np.nan)
         z[np.isfinite(d)] = points[i[np.isfinite(d)], 2]
         return z - gt[:, 2]
@@ -119,12 +121,14 @@ def table(rows: list[dict], key: str, radius: float = 0.5) -> str:
 
     title = {"tracks": f"tracks within {radius:g} m", "views": "views that see it",
              "relief": f"relief over {RELIEF_RADIUS:g} m (cm)"}[key]
-    head = (f"| {title} | wet cells | DEM cover | DEM within {GOOD * 100:g} cm | DEM abs(dz) median / p95 (cm) | "
-            f"DEM bias (cm) | TIN within {GOOD * 100:g} cm | TIN abs(dz) median / p95 (cm) | TIN bias (cm) |")
+    head = (f"| {title} | wet cells | DEM cover | DEM within {GOOD * 100:g} cm | DEM abs(dz) median / p95 "
+            f"(cm) | DEM bias (cm) | TIN within {GOOD * 100:g} cm | TIN abs(dz) median / p95 (cm) | TIN bias "
+            "(cm) |")
     lines = [head, "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lo, hi = r["bin"]
-        band = f"< {hi}" if lo is None else (f"{lo}+" if hi is None else (f"{lo}" if lo == hi else f"{lo}-{hi}"))
+        band = (f"< {hi}" if lo is None
+                else (f"{lo}+" if hi is None else (f"{lo}" if lo == hi else f"{lo}-{hi}")))
         dem, tin = r["dem"], r["tin"]
         cells = [band, str(r["cells"]), fmt(None if dem["cover"] is None else 100 * dem["cover"], "{:.0f} %")]
         for m in (dem, tin):

@@ -1,5 +1,6 @@
-"""docs/benchmark.md's figures of a rendered dataset: one view with and without the water, and the ground-truth
-height map with its waterline and evaluated region. `python -m tools.figures DATA docs/figures [VIEW]`."""
+"""docs/benchmark.md's figures of a rendered dataset: one view with and without the water, and the
+ground-truth height map with its waterline and evaluated region. `python -m tools.figures DATA docs/figures
+[VIEW]`."""
 
 from __future__ import annotations
 
@@ -26,7 +27,8 @@ def write_figures(data: Path, out: Path, view: str | None = None) -> list[Path]:
     scene = json.loads((data / layout.SCENE).read_text())
     name = scene["spec"]["preset"]
     frame = next(f for f in tf["frames"] if (f["name"] == view if view else f["kind"] == "oblique20"))
-    pair = np.hstack([layout.read_png(data / frame["file_path"]), layout.read_png(data / frame["dry_file_path"])])
+    pair = np.hstack([layout.read_png(data / frame["file_path"]),
+                      layout.read_png(data / frame["dry_file_path"])])
     views = out / f"{name}_views.png"
     layout.write_png(views, pair)
 

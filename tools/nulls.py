@@ -17,18 +17,21 @@ from ragsplat_core.dataset import layout
 
 
 def table(runs: list[tuple[str, int]]) -> str:
-    lines = ["| preset, seed | max depth | F1 @ 1 % | F1 @ 3 % | F1 @ 10 cm | F1 @ 30 cm | mean-depth plane F1 @ 3 % |",
+    lines = [("| preset, seed | max depth | F1 @ 1 % | F1 @ 3 % | F1 @ 10 cm | F1 @ 30 cm | mean-depth "
+              "plane F1 @ 3 % |"),
              "|---|---|---|---|---|---|---|"]
     for name, seed in runs:
         spec = preset(name, seed=seed)
         grid, _ = ground_truth(spec, make_bed(spec), flight.eval_region(spec), layout.GT_GRID_STEP)
         scores = null_models(spec, shear(spec, grid))
         m, mean = scores["median_plane"], scores["mean_depth_plane"]
-        lines.append(f"| {name}, {seed} | {max_depth(spec):g} m | {100 * m['f1_1%']:.1f} | {100 * m['f1_3%']:.1f} | "
-                     f"{100 * m['f1_10cm']:.1f} | {100 * m['f1_30cm']:.1f} | {100 * mean['f1_3%']:.1f} |")
+        lines.append(f"| {name}, {seed} | {max_depth(spec):g} m | {100 * m['f1_1%']:.1f} | "
+                     f"{100 * m['f1_3%']:.1f} | {100 * m['f1_10cm']:.1f} | {100 * m['f1_30cm']:.1f} | "
+                     f"{100 * mean['f1_3%']:.1f} |")
     return "\n".join(lines)
 
 
 if __name__ == "__main__":
     args = sys.argv[1:] or ["smoke:0,1,2,3,4", "small:0,1,2", "paper-reach:0,1", "small-bed:0"]
-    print(table([(name, int(s)) for arg in args for name, seeds in [arg.split(":")] for s in seeds.split(",")]))
+    print(table([(name, int(s)) for arg in args for name, seeds in [arg.split(":")]
+                 for s in seeds.split(",")]))

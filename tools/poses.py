@@ -16,7 +16,8 @@ TILT_BANDS = ((0, 10), (10, 30), (30, 50), (50, 90))  # degrees of the true opti
 def pose_errors(model: Path, truth: Path, similarity: dict | None = None) -> dict:
     """{"per_image": {name: {"centre_m", "rotation_deg", "tilt_deg"}}, "centre_m", "rotation_deg": {"median",
     "p95"}, "by_tilt": {band: {...}}} for the registered images of `model` against the cameras of the dataset
-    `truth`; `similarity` ({"scale", "R", "t"}, georef.json) first maps a model that is not yet in the frame."""
+    `truth`; `similarity` ({"scale", "R", "t"}, georef.json) first maps a model that is not yet in the
+    frame."""
     import pycolmap
 
     from eval.bed_file import survey_geotags
@@ -51,12 +52,14 @@ def pose_errors(model: Path, truth: Path, similarity: dict | None = None) -> dic
         out = {"images": len(rows)}
         for key in ("centre_m", "rotation_deg"):
             vals = np.array([r[key] for r in rows])
-            out[key] = {"median": float(np.median(vals)), "p95": float(np.percentile(vals, 95))} if len(vals) else None
+            out[key] = ({"median": float(np.median(vals)), "p95": float(np.percentile(vals, 95))}
+                        if len(vals) else None)
         return out
 
     rows = list(per.values())
     return {**stats(rows), "per_image": per,
-            "by_tilt": {f"{lo}-{hi}": stats([r for r in rows if lo <= r["tilt_deg"] < hi]) for lo, hi in TILT_BANDS
+            "by_tilt": {f"{lo}-{hi}": stats([r for r in rows if lo <= r["tilt_deg"] < hi])
+                        for lo, hi in TILT_BANDS
                         if any(lo <= r["tilt_deg"] < hi for r in rows)}}
 
 

@@ -27,14 +27,16 @@ def variants(name: str) -> dict:
     return {"ideal": ideal,
             "turbid": with_conditions(replace(ideal, conditions=alone), turbidity=field.turbidity),
             "reflection": with_conditions(replace(ideal, conditions=alone), reflection=True),
-            "ripples": with_conditions(replace(ideal, conditions=alone), ripple_amplitude=field.ripple_amplitude),
+            "ripples": with_conditions(replace(ideal, conditions=alone),
+                                       ripple_amplitude=field.ripple_amplitude),
             "targets": replace(ideal, conditions=replace(alone, targets=field.targets)),
             "all": replace(ideal, conditions=field)}
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m tools.render_cost", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--preset", default="small", help="an ideal preset that has a -field twin (default small)")
+    parser.add_argument("--preset", default="small",
+                        help="an ideal preset that has a -field twin (default small)")
     parser.add_argument("--views", type=int, default=4, help="views rendered per variant (default 4)")
     args = parser.parse_args(argv)
     specs = variants(args.preset)
@@ -48,7 +50,8 @@ def main(argv: list[str] | None = None) -> int:
             events = []
             generate(spec, Path(tmp) / label, shard=shard, progress=lambda e, out=events: out.append(e))
             done = [e for e in events if e["event"] == "done"]
-            per = {kind: [e["render_s"] for e in done if e["kind"] == kind] for kind in ("wet", "dry", "depth")}
+            per = {kind: [e["render_s"] for e in done if e["kind"] == kind]
+                   for kind in ("wet", "dry", "depth")}
             totals[label] = sum(sum(v) for v in per.values())
             print(f"  {label:10s} " + "  ".join(f"{k} {sum(v) / len(v):6.2f} s" for k, v in per.items() if v)
                   + f"  total {totals[label]:7.1f} s  x{totals[label] / totals['ideal']:.2f} of ideal")

@@ -2,12 +2,12 @@
 
     python -m tools.seams RUN --truth DATA [--bands 0 1 2 5 10]
 
-RUN is a finished `ragsplat survey --out RUN` that was split into tiles (RUN/tiles.json, RUN/dem.tif); DATA the
-synthetic dataset whose ground truth scores it (`ragsplat score`'s reading of the DEM: the truth's cells). Each
-wet cell's distance is to the nearest finite edge of the core that holds it (an edge open to the survey's
-outside is no seam). Prints one row per distance band: cells, bias, RMSE, p95 of |dz| and the shares within
-1 % and 3 % of the maximum depth and within 5 cm. A band of worse cells at the seams shows as a first row
-worse than the others.
+RUN is a finished `ragsplat survey --out RUN` that was split into tiles (RUN/tiles.json, RUN/dem.tif); DATA
+the synthetic dataset whose ground truth scores it (`ragsplat score`'s reading of the DEM: the truth's cells).
+Each wet cell's distance is to the nearest finite edge of the core that holds it (an edge open to the survey's
+outside is no seam). Prints one row per distance band: cells, bias, RMSE, p95 of |dz| and the shares within 1
+% and 3 % of the maximum depth and within 5 cm. A band of worse cells at the seams shows as a first row worse
+than the others.
 """
 
 from __future__ import annotations
@@ -53,8 +53,8 @@ def main(argv: list[str] | None = None) -> int:
     dist = border_distance(grid[wet, :2] - offset, cores)
     dz, depth = dz[wet], depth[wet]
     top = truth.max_depth
-    print(f"| distance to a seam (m) | wet cells | bias (cm) | RMSE (cm) | p95 (cm) | within 1 % of {top:.2f} m |"
-          f" within 3 % | within 5 cm |")
+    print("| distance to a seam (m) | wet cells | bias (cm) | RMSE (cm) | p95 (cm) | within 1 % of "
+          f"{top:.2f} m | within 3 % | within 5 cm |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- |")
     edges = list(args.bands) + [math.inf]
     for lo, hi in itertools.pairwise(edges):

@@ -2,10 +2,10 @@
 `python -m tools.tune --data DEV_DIR --out DIR [--preset small]
 [--param lr_means | densify.max_gaussians | ...] [--values ...] [--variants full] [--seed 0]
 [--set PARAM=VALUE ...]` trains each variant at each value (the
-`--set` parameters held fixed), scores the bed like the ablation and prints F1 at 1 % / 3 % of depth, wet RMSE,
-p95 and cover and the training time per value, and the value with the best mean F1 at 3 % over the variants.
-The choice is recorded by hand in ragsplat_core/tuning/small.json (or small_field.json: the values, figures,
-command, commit and dataset seed), which every results.json repeats.
+`--set` parameters held fixed), scores the bed like the ablation and prints F1 at 1 % / 3 % of depth, wet
+RMSE, p95 and cover and the training time per value, and the value with the best mean F1 at 3 % over the
+variants. The choice is recorded by hand in ragsplat_core/tuning/small.json (or small_field.json: the values,
+figures, command, commit and dataset seed), which every results.json repeats.
 """
 
 from __future__ import annotations
@@ -71,7 +71,8 @@ def main(argv: list[str] | None = None) -> int:
                 row, grid, fused = runner.train(cfg, folder, ecfg, PRESETS[args.preset].fuse, checkpoints=1)
                 row = save_row(folder, {**row, "name": variant, "seed": args.seed}, grid, runner.truth, fused)
             g = row["geometry"]
-            results.append({"variant": variant, "value": value, "f1_1%": g["f1"]["1%"], "f1_3%": g["f1"]["3%"],
+            results.append({"variant": variant, "value": value, "f1_1%": g["f1"]["1%"],
+                            "f1_3%": g["f1"]["3%"],
                             "rmse_wet": g["survey"]["wet"]["rmse"], "p95_wet": g["survey"]["wet"]["p95"],
                             "cover_wet": g["survey"]["coverage"], "train_s": row["time"]["wall_s"]})
             print(f"{variant} {args.param}={value:g}: F1@1% {100 * g['f1']['1%']:.1f}  F1@3% "
@@ -81,10 +82,12 @@ def main(argv: list[str] | None = None) -> int:
     score = {v: np.mean([r["f1_3%"] for r in results if r["value"] == v]) for v in args.values}
     best = max(score, key=score.get)
     write_json(args.out / "tune.json", {"data": str(args.data.resolve()), "dataset_seed": runner.dataset_seed,
-                                        "param": args.param, "fixed": fixed, "results": results, "chosen": best,
-                                        "rule": "max mean F1@3% over the variants", "versions": versions("torch")})
-    print(f"chosen {args.param} = {best:g} (mean F1@3% {100 * score[best]:.1f} over {', '.join(args.variants)}) "
-          f"on dataset seed {runner.dataset_seed}")
+                                        "param": args.param, "fixed": fixed, "results": results,
+                                        "chosen": best,
+                                        "rule": "max mean F1@3% over the variants",
+                                        "versions": versions("torch")})
+    print(f"chosen {args.param} = {best:g} (mean F1@3% {100 * score[best]:.1f} over "
+          f"{', '.join(args.variants)}) on dataset seed {runner.dataset_seed}")
     return 0
 
 

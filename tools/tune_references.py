@@ -28,7 +28,8 @@ from ragsplat_core.tracks import TRACK_MIN_NEIGHBOURS
 
 TIN_FILTERS = [None] + [{"radius": r, "tol": t, "min_neighbours": TRACK_MIN_NEIGHBOURS}
                         for r in (0.5, 1.0, 2.0) for t in (0.05, 0.1, 0.2, 0.3, 0.5)]
-DIETRICH_SETTINGS = [{"max_angle_deg": a, "reduce": r} for a in (None, 15.0, 20.0, 25.0, 30.0, 35.0, 40.0, 50.0)
+DIETRICH_SETTINGS = [{"max_angle_deg": a, "reduce": r}
+                     for a in (None, 15.0, 20.0, 25.0, 30.0, 35.0, 40.0, 50.0)
                      for r in ("mean", "median")]
 MARGIN_3PCT = 0.005  # the rule's 0.5 point
 
@@ -53,7 +54,8 @@ def table(rows: list[dict], chosen: int, label) -> str:
     for k, r in enumerate(rows):
         p95 = "n/a" if r["p95"] is None else f"{100 * r['p95']:.1f}"
         lines.append(f"| {label(r['setting'])} | {100 * r['f1_1pct']:.1f} | {100 * r['f1_3pct']:.1f} | "
-                     f"{100 * r['cover']:.1f} | {100 * r['bias']:+.1f} | {p95} | {'chosen' if k == chosen else ''} |")
+                     f"{100 * r['cover']:.1f} | {100 * r['bias']:+.1f} | {p95} | "
+                     f"{'chosen' if k == chosen else ''} |")
     return "\n".join(lines)
 
 
@@ -73,14 +75,16 @@ def tune(data: Path, bed: Path | None = None) -> dict:
     for setting in DIETRICH_SETTINGS:
         cloud = track_clouds(ds.root, ds.fingerprint, cameras, ds.water, setting)["dietrich (tracks)"]
         die_rows.append({"setting": setting, **figures(gridded(cloud, truth.nodes, chosen_filter), truth)})
-    out = {"data": str(Path(data).resolve()), "dataset_seed": runner.dataset_seed, "fingerprint": ds.fingerprint,
+    out = {"data": str(Path(data).resolve()), "dataset_seed": runner.dataset_seed,
+           "fingerprint": ds.fingerprint,
            "rule": "max F1@1% among settings within 0.5 point of the best F1@3%",
            "tin_filter": {"rows": tin_rows, "chosen": chosen_filter},
            "dietrich": {"rows": die_rows, "chosen": die_rows[choose(die_rows)]["setting"]}}
     if bed is not None:
         apparent = np.load(bed)
         views = [v.camera for v in ds.train]
-        dense = [{"setting": d, **figures(dietrich_grid(apparent, views, ds.water, d["max_angle_deg"], d["reduce"]),
+        dense = [{"setting": d, **figures(dietrich_grid(apparent, views, ds.water, d["max_angle_deg"],
+                                                        d["reduce"]),
                                           truth)} for d in DIETRICH_SETTINGS]
         out["dietrich_dense"] = {"bed": str(bed), "rows": dense, "chosen": dense[choose(dense)]["setting"]}
     return out
@@ -104,7 +108,8 @@ def main(argv: list[str]) -> int:
                 f"radius {f['radius']:g} m, tol {f['tol']:g} m"))
     print(f"\nDietrich's rule on the tracks, with that filter ({result['tin_filter']['chosen']})")
     def angle(d):
-        return f"{d['reduce']}, " + ("every camera" if d["max_angle_deg"] is None else f"<= {d['max_angle_deg']:g} deg")
+        return (f"{d['reduce']}, "
+                + ("every camera" if d["max_angle_deg"] is None else f"<= {d['max_angle_deg']:g} deg"))
 
     print(table(die_rows, choose(die_rows), angle))
     if "dietrich_dense" in result:
