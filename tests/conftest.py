@@ -47,11 +47,13 @@ def channel_scene(seed: int) -> dict:
 def tiny_smoke(mp: pytest.MonkeyPatch, folder) -> None:
     """An ablation row in seconds: the smoke preset at 6 iterations of the torch rasterizer, opaque from the
     start and with no opacity reset (so the median depth, T <= 0.5, has a surface to fuse; the stretched
-    schedule would reset at every step), and LPIPS n/a (its weights looked for in `folder`, where they are not)."""
+    schedule would reset at every step), and LPIPS n/a (its weights looked for in `folder`, where they are
+    not)."""
     mp.setattr(metrics, "default_vgg16_path", lambda: folder / "absent.pth")
     smoke = train.PRESETS["smoke"]
     mp.setitem(train.PRESETS, "smoke", replace(smoke, iterations=6, init_count=200, init_opacity=0.9,
-                                               densify=replace(smoke.densify, reset_every=30_000), backend="torch"))
+                                               densify=replace(smoke.densify, reset_every=30_000),
+                                               backend="torch"))
 
 
 def render_dataset(root, scene, cameras, water, test_views: int, region: dict, bed: dict | None = None,
@@ -128,14 +130,15 @@ def water_bed(size: int = 24, count: int = 300, **optics):
     scene["means"][:, 2] += level
     water = WaterSurface(level, 1.33)
     cams = ring_cameras(6, size, level + 1.5, 2.5, target=(0, 0, level - depth))
-    views = [View(f"{i:04d}", "train", "nadir", v["camera"], (v["image"] * 255).round().to(torch.uint8), None, "",
-                  None, None) for i, v in enumerate(render_views(scene, cams, water, **optics))]
+    views = [View(f"{i:04d}", "train", "nadir", v["camera"], (v["image"] * 255).round().to(torch.uint8),
+                  None, "", None, None) for i, v in enumerate(render_views(scene, cams, water, **optics))]
     return Dataset(Path("mem"), water, views, BedInfo(depth=depth, size=2.0)), \
         np.concatenate([scene["means"].numpy(), scene["colors"].numpy()], 1)
 
 
 def water_bed_config(variant: str, **overrides):
-    """A smoke training config of `variant` for `water_bed`: sh degree 0, no densification, checkpoints off."""
+    """A smoke training config of `variant` for `water_bed`: sh degree 0, no densification, checkpoints
+    off."""
     from ragsplat_core.train import preset_config
     from ragsplat_core.train.strategy import DensifyConfig
 

@@ -39,7 +39,8 @@ def point_from_air_angle(theta_a_deg, d, n=WATER.n, azimuth=0.7):
     ta = math.radians(theta_a_deg)
     tw = math.asin(math.sin(ta) / n)
     r = H * math.tan(ta) + d * math.tan(tw)
-    p = torch.tensor([[CAM[0] + r * math.cos(azimuth), CAM[1] + r * math.sin(azimuth), WATER.level - d]], dtype=f64)
+    p = torch.tensor([[CAM[0] + r * math.cos(azimuth), CAM[1] + r * math.sin(azimuth), WATER.level - d]],
+                     dtype=f64)
     return p, tw
 
 
@@ -102,8 +103,8 @@ def test_curved_surface_is_each_tangent_plane_and_a_flat_profile_the_plane():
     for i in (0, 7, 19):  # the plane tangent to the surface above the point, through that surface point
         xy = p[i:i + 1, :2]
         sx, sy = (float(v) for v in riffle.gradient(xy)[0])
-        tangent = WaterSurface(float(riffle.height(xy)[0]) - sx * float(xy[0, 0]) - sy * float(xy[0, 1]), 1.33,
-                               (sx, sy))
+        tangent = WaterSurface(float(riffle.height(xy)[0]) - sx * float(xy[0, 0]) - sy * float(xy[0, 1]),
+                               1.33, (sx, sy))
         assert float(L[i]) == pytest.approx(float(water_paths(p[i:i + 1], CAM, tangent)[0]), rel=1e-12)
 
 
@@ -118,11 +119,13 @@ def test_gradients_match_finite_differences():
                                         eps=1e-6, atol=1e-7, rtol=1e-6)
 
 
-# ---- the colour factor in refract_gaussians -------------------------------------------------------------------
+# ---- the colour factor in refract_gaussians
+# -------------------------------------------------------------------
 def _gaussians(n=30, seed=3):
     g = torch.Generator().manual_seed(seed)
     means = torch.cat([(torch.rand(n, 2, generator=g, dtype=f64) - 0.5) * 30,
-                       WATER.level + 1 - 6 * torch.rand(n, 1, generator=g, dtype=f64)], 1)  # some above the level
+                       # some above the level
+                       WATER.level + 1 - 6 * torch.rand(n, 1, generator=g, dtype=f64)], 1)
     scales = 0.05 + 0.1 * torch.rand(n, 3, generator=g, dtype=f64)
     quats = torch.nn.functional.normalize(torch.randn(n, 4, generator=g, dtype=f64), dim=-1)
     return means, scales, quats, 0.2 + 0.7 * torch.rand(n, generator=g, dtype=f64), \
@@ -132,7 +135,8 @@ def _gaussians(n=30, seed=3):
 C = torch.tensor([0.4, 0.1, 0.05], dtype=f64)  # 1/m: a red-absorbing river
 
 
-@pytest.mark.parametrize("flags", [{"scale": "anisotropic", "color": False}, {"scale": "isotropic", "color": True},
+@pytest.mark.parametrize("flags", [{"scale": "anisotropic", "color": False},
+                                   {"scale": "isotropic", "color": True},
                                    {"position": False, "scale": "none", "opacity": False}])
 def test_attenuation_multiplies_submerged_radiance_by_exp_minus_c_l(flags):
     g = _gaussians()
@@ -224,15 +228,16 @@ def test_coefficients_are_trained_and_resumed(turbid, tmp_path):
     cfg = _cfg(iterations=6, checkpoint_every=3)
     a = Trainer(cfg, turbid, tmp_path / "a")
     stats = a.train()
-    assert stats["attenuation"] == [float(c) for c in a.attenuation] and not torch.equal(a.attenuation,
-                                                                                          torch.full((3,), 0.1))
+    assert (stats["attenuation"] == [float(c) for c in a.attenuation]
+            and not torch.equal(a.attenuation, torch.full((3,), 0.1)))
     meta = json.loads((tmp_path / "a/config.json").read_text())
     assert meta["attenuation"] == [0.1] * 3 and meta["attenuation_final"] == stats["attenuation"]
     assert meta["config"]["water_terms"] == ["attenuation"]
     b, c = killed_and_resumed(cfg, turbid, tmp_path / "b")  # killed after 4 steps: resumes from step 3
     assert c.step == 3 and not torch.equal(c.attenuation, b.attenuation)
     c.train()
-    assert torch.equal(c.attenuation, a.attenuation)  # the same steps from the same state (its Adam moments too)
+    # the same steps from the same state (its Adam moments too)
+    assert torch.equal(c.attenuation, a.attenuation)
     assert torch.equal(c.splats["sh0"], a.splats["sh0"])
 
 
@@ -248,7 +253,8 @@ def test_variants_without_the_term_have_none_and_call_the_transform_as_before(tu
     calls.clear()
     Trainer(_cfg(iterations=1), turbid).train()
     assert set(calls[0]) == {*VARIANTS["2dgs+full"], "covariances", "attenuation"}
-    assert VARIANTS[VARIANT] == VARIANTS["2dgs+full"] and _cfg().surfels and _cfg().water_terms == ("attenuation",)
+    assert (VARIANTS[VARIANT] == VARIANTS["2dgs+full"] and _cfg().surfels
+            and _cfg().water_terms == ("attenuation",))
     dry = Dataset(Path("mem"), None, turbid.views, turbid.bed)  # no water, nothing to attenuate
     assert Trainer(_cfg(), dry).log_attenuation is None
 
@@ -268,8 +274,9 @@ def test_ablation_row_and_renders_of_a_finished_run(evaluable_dataset, tmp_path,
     """`ragsplat ablation --variants 2dgs+full+attenuation` trains its row, which records the coefficients;
     `ragsplat render` reproduces the trainer's renders through the water from config.json."""
     tiny_smoke(monkeypatch, tmp_path)
-    assert main(["ablation", "--data", str(evaluable_dataset), "--out", str(tmp_path / "abl"), "--preset", "smoke",
-                 "--variants", VARIANT, "--seeds", "0", "--init", "grid", "--jobs", "1", "--no-download"]) == 0
+    assert main(["ablation", "--data", str(evaluable_dataset), "--out", str(tmp_path / "abl"),
+                 "--preset", "smoke", "--variants", VARIANT, "--seeds", "0", "--init", "grid", "--jobs", "1",
+                 "--no-download"]) == 0
     run = tmp_path / "abl" / VARIANT / "seed0"
     row = json.loads((run / "row.json").read_text())
     assert len(row["train_stats"]["attenuation"]) == 3

@@ -52,7 +52,8 @@ def test_nadir_path_is_n_times_the_apparent_depth():
 @pytest.mark.parametrize("theta_a", [5.0, 30.0, 60.0, 80.0])
 def test_path_at_a_known_air_angle_is_depth_over_cos_theta_w(theta_a):
     """The true point built forwards by Snell; its apparent point found by the forward transform: the pixel
-    that renders it gets the bent ray's length d / cos(theta_w), the same as `water_paths` of the true point."""
+    that renders it gets the bent ray's length d / cos(theta_w), the same as `water_paths` of the true
+    point."""
     d, az = 6.0, 0.7
     ta = math.radians(theta_a)
     tw = math.asin(math.sin(ta) / WATER.n)
@@ -69,8 +70,8 @@ def test_matches_the_true_points_paths_everywhere():
     g = torch.Generator().manual_seed(0)
     p = torch.cat([(torch.rand(200, 2, generator=g, dtype=f64) - 0.5) * 120,
                    WATER.level - 0.01 - 15 * torch.rand(200, 1, generator=g, dtype=f64)], 1)
-    torch.testing.assert_close(pixel_water_paths(*seen(p), CAM, WATER), water_paths(p, CAM, WATER), rtol=1e-10,
-                               atol=1e-12)
+    torch.testing.assert_close(pixel_water_paths(*seen(p), CAM, WATER), water_paths(p, CAM, WATER),
+                               rtol=1e-10, atol=1e-12)
 
 
 def test_n_one_is_the_straight_ray_below_the_level():
@@ -80,8 +81,8 @@ def test_n_one_is_the_straight_ray_below_the_level():
                    WATER.level - 0.01 - 15 * torch.rand(50, 1, generator=g, dtype=f64)], 1)
     u = (WATER.level - p[:, 2]) / (CAM[2] - p[:, 2])
     rays, depth = (p - CAM) * 0.1, torch.full((50,), 10.0, dtype=f64)
-    torch.testing.assert_close(pixel_water_paths(rays, depth, CAM, water), u * torch.linalg.norm(CAM - p, dim=1),
-                               rtol=1e-12, atol=0)
+    torch.testing.assert_close(pixel_water_paths(rays, depth, CAM, water),
+                               u * torch.linalg.norm(CAM - p, dim=1), rtol=1e-12, atol=0)
 
 
 def test_no_path_above_the_level_or_where_nothing_is_rendered():
@@ -104,7 +105,8 @@ def test_tilted_plane_is_exact_in_its_frame():
     torch.testing.assert_close(L, water_paths(p, CAM, water), rtol=1e-10, atol=1e-12)
     R, p0 = plane_frame(water, p)  # and the flat case in the plane's frame
     rays, depth = seen(p, water)
-    torch.testing.assert_close(L, pixel_water_paths(rays @ R.T, depth, R @ (CAM - p0), WaterSurface(0.0, 1.33)),
+    torch.testing.assert_close(L, pixel_water_paths(rays @ R.T, depth, R @ (CAM - p0),
+                                                    WaterSurface(0.0, 1.33)),
                                rtol=1e-12, atol=1e-12)
 
 
@@ -117,7 +119,8 @@ def test_gradients_match_finite_differences():
     for water in (WATER, WaterSurface(0.3, 1.33, (-0.02, 0.01))):
         rays, depth = seen(p, water)
         assert torch.autograd.gradcheck(
-            lambda r, z, c, lv, water=water: pixel_water_paths(r, z, c, WaterSurface(lv, water.n, water.slope)),
+            lambda r, z, c, lv, water=water: pixel_water_paths(r, z, c,
+                                                               WaterSurface(lv, water.n, water.slope)),
             (rays.requires_grad_(), depth.requires_grad_(), CAM.clone().requires_grad_(), level),
             eps=1e-6, atol=1e-7, rtol=1e-6)
 
@@ -145,7 +148,8 @@ def test_veil_in_linear_light_only_where_there_is_water():
 
 def test_veil_gradients_match_finite_differences():
     g = torch.Generator().manual_seed(5)
-    args = (0.1 + 0.8 * torch.rand(3, 4, 3, generator=g, dtype=f64), torch.rand(3, 4, 1, generator=g, dtype=f64),
+    args = (0.1 + 0.8 * torch.rand(3, 4, 3, generator=g, dtype=f64),
+            torch.rand(3, 4, 1, generator=g, dtype=f64),
             0.1 + 3 * torch.rand(3, 4, generator=g, dtype=f64), VEIL.clone(), CB.clone())
     assert torch.autograd.gradcheck(add_backscatter, [a.requires_grad_() for a in args], eps=1e-6, atol=1e-7,
                                     rtol=1e-6)
@@ -170,13 +174,14 @@ def _cfg(**kw):
 def test_training_moves_the_veil_towards_the_scenes(tmp_path, truth, start, up):
     """From the bed's own points, 100 steps: B_inf and c_b leave the start in every channel towards the water
     the images were rendered through (the clear water from a veiled start, 0.22 linear on the bed: the default
-    start's is under two 8-bit steps, which the images hardly see). Recovering them is the issue's measurement:
-    on the 1 m bed the veil B_inf (1 - exp(-c_b L)) is nearly B_inf c_b L, so the images fix the product better
-    than either factor, the same weak contrast that keeps tests/test_attenuation.py from recovering c."""
+    start's is under two 8-bit steps, which the images hardly see). Recovering them is the issue's
+    measurement: on the 1 m bed the veil B_inf (1 - exp(-c_b L)) is nearly B_inf c_b L, so the images fix the
+    product better than either factor, the same weak contrast that keeps tests/test_attenuation.py from
+    recovering c."""
     ds, points = _dataset(truth)
     np.save(tmp_path / "bed.npy", points)
-    tr = Trainer(_cfg(iterations=100, init="points", init_points=str(tmp_path / "bed.npy"), veil_start=start[0],
-                      backscatter_start=start[1]), ds)
+    tr = Trainer(_cfg(iterations=100, init="points", init_points=str(tmp_path / "bed.npy"),
+                      veil_start=start[0], backscatter_start=start[1]), ds)
     first = torch.tensor([[start[0]] * 3, [start[1]] * 3])
     torch.testing.assert_close(tr.backscatter, first)
     tr.train()
@@ -193,7 +198,8 @@ def test_backscatter_is_trained_and_resumed(turbid, tmp_path):
     cfg = _cfg(iterations=6, checkpoint_every=3)
     a = Trainer(cfg, turbid, tmp_path / "a")
     stats = a.train()
-    want = {"veil": [float(b) for b in a.backscatter[0]], "coefficients": [float(c) for c in a.backscatter[1]]}
+    want = {"veil": [float(b) for b in a.backscatter[0]],
+            "coefficients": [float(c) for c in a.backscatter[1]]}
     assert stats["backscatter"] == want and not torch.equal(a.backscatter, START)
     assert stats["attenuation"] is None and a.log_attenuation is None  # this variant has the veil alone
     meta = json.loads((tmp_path / "a/config.json").read_text())
@@ -202,7 +208,8 @@ def test_backscatter_is_trained_and_resumed(turbid, tmp_path):
     b, c = killed_and_resumed(cfg, turbid, tmp_path / "b")  # killed after 4 steps: resumes from step 3
     assert c.step == 3 and not torch.equal(c.backscatter, b.backscatter)
     c.train()
-    assert torch.equal(c.backscatter, a.backscatter)  # the same steps from the same state (its Adam moments too)
+    # the same steps from the same state (its Adam moments too)
+    assert torch.equal(c.backscatter, a.backscatter)
     assert torch.equal(c.splats["sh0"], a.splats["sh0"])
 
 
@@ -218,7 +225,8 @@ def test_variants_without_the_term_compute_no_veil(turbid, monkeypatch):
     both = Trainer(_cfg(variant="2dgs+full+water", iterations=1), turbid)
     both.train()
     assert calls == [1] and both.log_attenuation is not None and both.log_backscatter is not None
-    assert VARIANTS[VARIANT] == VARIANTS["2dgs+full"] and _cfg().surfels and _cfg().water_terms == ("backscatter",)
+    assert (VARIANTS[VARIANT] == VARIANTS["2dgs+full"] and _cfg().surfels
+            and _cfg().water_terms == ("backscatter",))
     dry = Dataset(Path("mem"), None, turbid.views, turbid.bed)  # no water, no veil
     assert Trainer(_cfg(), dry).log_backscatter is None
 
@@ -238,12 +246,13 @@ def test_backscatter_stays_in_natural_waters_range(turbid):
 
 
 def test_ablation_row_and_renders_of_a_finished_run(evaluable_dataset, tmp_path, monkeypatch):
-    """`ragsplat ablation --variants 2dgs+full+water` trains its row (attenuation and backscatter), which records
-    both; `ragsplat render` reproduces the trainer's renders through the water from config.json."""
+    """`ragsplat ablation --variants 2dgs+full+water` trains its row (attenuation and backscatter), which
+    records both; `ragsplat render` reproduces the trainer's renders through the water from config.json."""
     tiny_smoke(monkeypatch, tmp_path)
     variant = "2dgs+full+water"
-    assert main(["ablation", "--data", str(evaluable_dataset), "--out", str(tmp_path / "abl"), "--preset", "smoke",
-                 "--variants", variant, "--seeds", "0", "--init", "grid", "--jobs", "1", "--no-download"]) == 0
+    assert main(["ablation", "--data", str(evaluable_dataset), "--out", str(tmp_path / "abl"),
+                 "--preset", "smoke", "--variants", variant, "--seeds", "0", "--init", "grid", "--jobs", "1",
+                 "--no-download"]) == 0
     run = tmp_path / "abl" / variant / "seed0"
     row = json.loads((run / "row.json").read_text())
     assert len(row["train_stats"]["attenuation"]) == 3 and len(row["train_stats"]["backscatter"]["veil"]) == 3
@@ -256,5 +265,6 @@ def test_ablation_row_and_renders_of_a_finished_run(evaluable_dataset, tmp_path,
         for ours, theirs in zip(model.render(ds.test[0].camera, interface),
                                 trainer.render(ds.test[0].camera, interface)):
             assert torch.equal(ours, theirs)
-    veiled, plain = (m.render(ds.test[0].camera)[0] for m in (model, dataclasses.replace(model, backscatter=None)))
+    veiled, plain = (m.render(ds.test[0].camera)[0]
+                     for m in (model, dataclasses.replace(model, backscatter=None)))
     assert bool((veiled >= plain).all()) and not torch.equal(veiled, plain)  # the veil adds light

@@ -59,8 +59,8 @@ ABLATION = ["ablation", "--data", "{data}", "--out", "{run}", "--preset", "smoke
 # (id, setup(tmp) on the copied dataset `tmp/data`, argv, phrase in the message, environment patch)
 CASES = [
     ("data missing", lambda t: shutil.rmtree(t / "data"), TRAIN, "does not exist", None),
-    ("transforms not json", lambda t: (t / "data" / "transforms.json").write_text("{"), TRAIN, "not valid JSON",
-     None),
+    ("transforms not json", lambda t: (t / "data" / "transforms.json").write_text("{"), TRAIN,
+     "not valid JSON", None),
     ("camera under water", lambda t: edit_json(t / "data" / "transforms.json",
                                                lambda m: m.update(water={"level": 50.0, "n": 1.33})),
      TRAIN, "not above the water surface", None),
@@ -99,8 +99,8 @@ def snapshot(root, skip):
 
 
 @pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
-def test_bad_input_is_one_line_exit_2_and_touches_nothing_else(case, evaluable_dataset, tmp_path, monkeypatch,
-                                                               capsys):
+def test_bad_input_is_one_line_exit_2_and_touches_nothing_else(case, evaluable_dataset, tmp_path,
+                                                               monkeypatch, capsys):
     _, setup, argv, phrase, patch = case
     shutil.copytree(evaluable_dataset, tmp_path / "data")
     argv = fill(argv, tmp_path)

@@ -17,7 +17,8 @@ TOLERANCE = {torch.float64: 1e-12, torch.float32: 2e-6}  # measured: ~1e-15 and 
 
 
 def _special_cases(dtype):
-    """Hand-picked r, d, H, n: nadir (r = 0), pinhole (n = 1), grazing (r >> H), near-surface (d = 1e-4), both."""
+    """Hand-picked r, d, H, n: nadir (r = 0), pinhole (n = 1), grazing (r >> H), near-surface (d = 1e-4),
+    both."""
     rows = [(0.0, 5.0, 10.0, 1.33), (0.0, 1e-4, 0.1, 1.6), (7.0, 3.0, 2.0, 1.0), (1e3, 100.0, 0.1, 1.0),
             (1e3, 1.0, 0.1, 1.33), (1e3, 100.0, 0.1, 1.6), (500.0, 0.5, 0.2, 1.0 + 1e-6),
             (50.0, 1e-4, 1e3, 1.33), (1e3, 1e-4, 0.1, 1.5), (1e-6, 1e-4, 1e3, 1.33), (1e-12, 100.0, 0.1, 1.2)]
@@ -34,7 +35,8 @@ def _cases(dtype):
 
 
 def _error(out, r, d, H, n):
-    """Relative apparent-point error against the float64 bisection reference from the same (rounded) inputs."""
+    """Relative apparent-point error against the float64 bisection reference from the same (rounded)
+    inputs."""
     r, d, H, n = (x.double() for x in (r, d, H, n))
     r_ref, d_ref = reference(r, d, H, n)
     r_app, d_app = (x.double() for x in out)
@@ -77,7 +79,8 @@ def test_output_obeys_snell(fn, steps):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
 @pytest.mark.parametrize(("fn", "steps"), SOLVERS, ids=IDS)
 def test_pinhole_and_nadir(fn, steps, dtype):
-    """n = 1: no refraction, the apparent point is the point. r = 0: the vertical ray, r' = 0 and d' = d / n."""
+    """n = 1: no refraction, the apparent point is the point. r = 0: the vertical ray, r' = 0 and d' = d /
+    n."""
     gen = torch.Generator().manual_seed(3)
     r, d, H, _ = (x.to(dtype) for x in sample(REGIMES["full domain"], 500, gen))
     r_app, d_app = fn(r, d, H, torch.ones_like(r), steps)
@@ -94,7 +97,8 @@ def test_pinhole_and_nadir(fn, steps, dtype):
 @pytest.mark.parametrize(("fn", "steps"), SOLVERS, ids=IDS)
 def test_equal_legs_case(fn, steps):
     """A case built so that the refraction point is at s = r / 2 (where ferrari switches from w to 1/w)."""
-    r, H, n = (torch.tensor(x, dtype=torch.float64) for x in ([2.0, 2.0, 60.0], [1.0, 1e-3, 3.0], [1.33, 1.6, 1.01]))
+    r, H, n = (torch.tensor(x, dtype=torch.float64)
+               for x in ([2.0, 2.0, 60.0], [1.0, 1e-3, 3.0], [1.33, 1.6, 1.01]))
     # sin(theta_a) = n sin(theta_w) with both legs r / 2 wide: d^2 = n^2 (r^2 / 4 + H^2) - r^2 / 4.
     d = torch.sqrt(n * n * (r * r / 4 + H * H) - r * r / 4)
     r_exp, d_exp = apparent_from_tan_a(r / 2 / H, d, H, n)
@@ -123,7 +127,8 @@ def test_newton_converges_with_steps():
 def test_solver_table_rows():
     rows = bench.solver_table(cases=500, repeats=1, seed=0)
     names = {row["solver"] for row in rows}
-    assert names == {"halley-alpha", "newton-alpha", "newton-s-bracketed", "ferrari-scaled", "bisection-alpha"}
+    assert (names == {"halley-alpha", "newton-alpha", "newton-s-bracketed", "ferrari-scaled",
+                      "bisection-alpha"})
     final = {(row["dtype"], row["solver"]): row for row in rows
              if row["steps"] in (None, 6, 60) and row["solver"] != "newton-alpha"}
     for (dtype, name), row in final.items():

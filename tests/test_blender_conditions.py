@@ -73,7 +73,8 @@ def test_turbid_water_darkens_deep_bed_more_than_shallow_and_red_most(renders):
 def test_sky_reflection_grows_towards_oblique_views_and_the_glint_falls_where_the_sun_puts_it(tmp_path):
     """A dark bed 1 m under a flat surface, the sun at 50 degrees in -x, seen at nadir and from a 40 degree
     oblique east of the centre looking west, whose view ray at the image centre mirrors onto the sun. Many
-    samples: Cycles picks the mirror for about R = 2 % of a pixel's samples, and the sun is a 1 degree disc."""
+    samples: Cycles picks the mirror for about R = 2 % of a pixel's samples, and the sun is a 1 degree
+    disc."""
     far, width = 100.0, 64
     np.savez(tmp_path / "geometry.npz",
              bed_verts=np.array([[-far, -far, -1], [far, -far, -1], [far, far, -1], [-far, far, -1]], float),
@@ -85,8 +86,8 @@ def test_sky_reflection_grows_towards_oblique_views_and_the_glint_falls_where_th
             "oblique40": Camera.look_at([height * np.tan(tilt), 0, height], [0, 0, 0], width, width, 70.0,
                                         up=(0, 0, 1)),
             # Looking away from the sun, 50 degrees down: the view rays meet the water at 15 to 85 degrees.
-            "away": Camera.look_at([0, 0, height], [height * np.tan(np.radians(50)), 0, 0], width, width, 70.0,
-                                   up=(0, 0, 1))}
+            "away": Camera.look_at([0, 0, height], [height * np.tan(np.radians(50)), 0, 0], width, width,
+                                   70.0, up=(0, 0, 1))}
     light = LightSpec(sun_elevation=SUN_ELEVATION, sun_azimuth=SUN_AZIMUTH, sun_strength=3.0, sun_angle=1.0,
                       sky_strength=0.3)
     images = {}
@@ -103,8 +104,9 @@ def test_sky_reflection_grows_towards_oblique_views_and_the_glint_falls_where_th
         images[reflect] = {name: linear(tmp_path / f"{name}{reflect}.png") for name in cams}
     glint = {name: images[True][name].min(-1) > 0.95 for name in cams}
     added = {name: (images[True][name] - images[False][name])[~glint[name]].mean() for name in cams}
-    print(f"\nsky reflection added (linear, mean): nadir {added['nadir']:.4f}, oblique40 {added['oblique40']:.4f}; "
-          f"glint pixels: nadir {glint['nadir'].sum()}, oblique40 {glint['oblique40'].sum()}")
+    print(f"\nsky reflection added (linear, mean): nadir {added['nadir']:.4f}, oblique40 "
+          f"{added['oblique40']:.4f}; glint pixels: nadir {glint['nadir'].sum()}, oblique40 "
+          f"{glint['oblique40'].sum()}")
     assert 0 < added["nadir"] and added["oblique40"] > 1.5 * added["nadir"]
     # Fresnel, not a constant mirror share: R is about 0.02 up to 40 degrees and 0.3 at 80. Away from the
     # sun the sky itself changes far less between the image's top rows (grazing) and its bottom rows.
@@ -112,7 +114,8 @@ def test_sky_reflection_grows_towards_oblique_views_and_the_glint_falls_where_th
     top, bottom = gain[: width // 6].mean(), gain[-width // 6:].mean()
     print(f"looking away from the sun: added {top:.4f} near the horizon, {bottom:.4f} at the bottom")
     assert top > 5 * bottom > 0
-    assert glint["oblique40"][width // 2 - 2:width // 2 + 2, width // 2 - 2:width // 2 + 2].any()  # at the centre
+    # at the centre
+    assert glint["oblique40"][width // 2 - 2:width // 2 + 2, width // 2 - 2:width // 2 + 2].any()
     assert glint["oblique40"].sum() <= 16 and not glint["nadir"].any()  # a 1 degree sun: a small glint
     assert all(images[False][name].max() < 0.5 for name in cams)  # no reflection, no glint
 
@@ -150,8 +153,9 @@ def test_ripples_give_every_photo_its_own_surface(tmp_path):
     # A ray bends by about (1 - 1/n) times the surface slope; over 1 m of water that is the marker's shift,
     # and two independent surfaces differ by sqrt(2) of one. Four rms slopes: a bound, not a fit.
     scale = (1 - 1 / 1.33) * 4 * np.sqrt(2) * slope * depth * cam.fx / 3.0  # px
-    print(f"\nmarkers moved between two photos' surfaces: median {np.median(moved):.3f} px, max {moved.max():.3f} "
-          f"px (bound {scale:.2f} px); same surface twice: {np.abs(a - again).max():.2e} px")
+    print(f"\nmarkers moved between two photos' surfaces: median {np.median(moved):.3f} px, max "
+          f"{moved.max():.3f} px (bound {scale:.2f} px); same surface twice: {np.abs(a - again).max():.2e} "
+          "px")
     assert np.median(moved) > 0.05 and moved.max() < scale
     assert np.abs(a - again).max() < 0.02
 

@@ -65,7 +65,8 @@ def test_colmap_model_matches_transforms(smoke):
     folder = smoke / "colmap"
     cam_line = next(l for l in (folder / "cameras.txt").read_text().splitlines() if not l.startswith("#"))
     assert cam_line.split()[1:4] == ["PINHOLE", "64", "64"]
-    rows = [l.split() for l in (folder / "images.txt").read_text().splitlines() if l and not l.startswith("#")]
+    rows = [l.split() for l in (folder / "images.txt").read_text().splitlines()
+            if l and not l.startswith("#")]
     assert len(rows) == len(tf["frames"])
     for row, frame in zip(rows, tf["frames"]):
         w, x, y, z = map(float, row[1:5])
@@ -101,7 +102,8 @@ def test_files_read_by_users_tools(smoke):
     assert tf["applied_transform"] == np.eye(4)[:3].tolist() and tf["orientation_override"] == "none"
     assert tf["train_filenames"] == [f["file_path"] for f in tf["frames"] if f["split"] == "train"]
     assert tf["test_filenames"] == [f["file_path"] for f in tf["frames"] if f["split"] == "test"]
-    assert not any("depth_file_path" in f for f in tf["frames"]) and not (smoke / "colmap" / "sparse").exists()
+    assert (not any("depth_file_path" in f for f in tf["frames"])
+            and not (smoke / "colmap" / "sparse").exists())
     # the elevation raster: local metric CRS, nodata outside the wet area, values = the wet grid
     import rasterio
 
@@ -178,7 +180,8 @@ def test_rerun_resumes_and_shards_merge(smoke, tmp_path):
             p.unlink()
     (copy / "transforms.json").unlink()
     assert main(["dataset", "--preset", "smoke", "--out", str(copy), "--shard", "0/2", "--quiet"]) == 0
-    assert (copy / "images" / "wet" / "0002.png").exists() and not (copy / "images" / "wet" / "0001.png").exists()
+    assert ((copy / "images" / "wet" / "0002.png").exists()
+            and not (copy / "images" / "wet" / "0001.png").exists())
     assert not (copy / "transforms.json").exists()  # incomplete: no merge yet
     assert main(["dataset", "--preset", "smoke", "--out", str(copy), "--shard", "1/2", "--quiet"]) == 0
     assert (copy / "transforms.json").read_text() == original
@@ -255,15 +258,17 @@ def test_sigint_keeps_only_whole_files_and_the_rerun_completes(smoke, tmp_path):
     proc.send_signal(signal.SIGINT)
     err = proc.communicate(timeout=120)[1].strip().splitlines()
     assert proc.returncode == 130 and len(err) == 1, err
-    assert err[0] == "ragsplat dataset: interrupted; finished files are kept, rerun the same command to resume"
-    assert not list(out.rglob("*.tmp")) and not list(out.rglob("*.render")) and not list(out.glob("scene/job.*"))
+    assert (err[0] == "ragsplat dataset: interrupted; finished files are kept, rerun the same command to "
+                      "resume")
+    assert (not list(out.rglob("*.tmp")) and not list(out.rglob("*.render"))
+            and not list(out.glob("scene/job.*")))
     assert main(["dataset", "--preset", "smoke", "--out", str(out), "--quiet"]) == 0
     for p in out.glob("images/*/*.png"):
         assert p.read_bytes() == (smoke / p.relative_to(out)).read_bytes()
 
 
-def test_a_killed_renderer_and_a_full_disk_are_one_line_and_the_rerun_completes(smoke, tmp_path, monkeypatch,
-                                                                                 capsys):
+def test_a_killed_renderer_and_a_full_disk_are_one_line_and_the_rerun_completes(smoke, tmp_path,
+                                                                                 monkeypatch, capsys):
     import os
     import subprocess
     import sys
@@ -276,12 +281,14 @@ def test_a_killed_renderer_and_a_full_disk_are_one_line_and_the_rerun_completes(
     real_popen = subprocess.Popen
 
     def oom_killed(cmd, **kw):  # the Blender child dies as the kernel's OOM killer would kill it
-        return real_popen([sys.executable, "-c", "import os, signal; os.kill(os.getpid(), signal.SIGKILL)"], **kw)
+        return real_popen([sys.executable, "-c",
+                           "import os, signal; os.kill(os.getpid(), signal.SIGKILL)"], **kw)
 
     monkeypatch.setattr(build.subprocess, "Popen", oom_killed)
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "killed by signal 9 (out of memory?)" in err[0] and "rerun to resume" in err[0], err
+    assert (len(err) == 1 and "killed by signal 9 (out of memory?)" in err[0]
+            and "rerun to resume" in err[0]), err
     assert not list(out.rglob("*.tmp")) and not list(out.glob("scene/job.*"))
     monkeypatch.undo()
 
@@ -361,7 +368,8 @@ def test_smoke_long_renders_a_survey_along_the_reach(tmp_path):
     assert x.min() < r["xmin"] / 2 and x.max() > r["xmax"] / 2  # photos along the whole reach
     survey = out / "survey"
     assert not (out / "images" / "lens").exists() and not (survey / "images-lens").exists()
-    assert len(list((survey / "images").glob("*.jpg"))) == len(list((survey / "images-gps").glob("*.jpg"))) == 72
+    assert (len(list((survey / "images").glob("*.jpg"))) == len(list((survey / "images-gps").glob("*.jpg")))
+            == 72)
     assert "survey/images-lens" not in json.loads((survey / "survey.json").read_text())["geo"]
     edge = np.loadtxt(survey / "water_edge.csv", delimiter=",", skiprows=1)
     assert len(edge) == 30 and (edge[:, 1] < 0).sum() == 15  # 15 a bank

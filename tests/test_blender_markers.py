@@ -30,9 +30,11 @@ CPU_64 = RenderSettings(samples=64, device="CPU", threads=0, seed=0, filter_widt
 def disc(centre, radius, segments=32):
     """Horizontal disc as a triangle fan [V, 3], [F, 3]: its centroid is exactly `centre`."""
     a = 2 * np.pi * np.arange(segments) / segments
-    ring = np.stack([centre[0] + radius * np.cos(a), centre[1] + radius * np.sin(a), np.full(segments, centre[2])], -1)
+    ring = np.stack([centre[0] + radius * np.cos(a), centre[1] + radius * np.sin(a),
+                     np.full(segments, centre[2])], -1)
     verts = np.concatenate([np.asarray(centre, float)[None], ring])
-    tris = np.stack([np.zeros(segments, int), 1 + np.arange(segments), 1 + (np.arange(segments) + 1) % segments], -1)
+    tris = np.stack([np.zeros(segments, int), 1 + np.arange(segments),
+                     1 + (np.arange(segments) + 1) % segments], -1)
     return verts, tris
 
 
@@ -40,13 +42,16 @@ def views():
     nadir = Camera.look_at([0.1, -0.05, ALTITUDE], [0.1, -0.05, 0.0], WIDTH, WIDTH, FOV)
     tilt = math.radians(40)
     # Axis enters the water h tan(40) from the camera, towards the origin (as in the flight plan).
-    eye = np.array([ALTITUDE * math.tan(tilt) + DEPTH * math.tan(math.asin(math.sin(tilt) / N)), 0.0, ALTITUDE])
-    oblique = Camera.look_at(eye, [eye[0] - ALTITUDE * math.tan(tilt), 0.0, 0.0], WIDTH, WIDTH, FOV, up=(0, 0, 1))
+    eye = np.array([ALTITUDE * math.tan(tilt) + DEPTH * math.tan(math.asin(math.sin(tilt) / N)), 0.0,
+                    ALTITUDE])
+    oblique = Camera.look_at(eye, [eye[0] - ALTITUDE * math.tan(tilt), 0.0, 0.0], WIDTH, WIDTH, FOV,
+                             up=(0, 0, 1))
     return {"nadir": nadir, "oblique40": oblique}
 
 
 def centroids(image_srgb: np.ndarray) -> np.ndarray:
-    """Radiance-weighted centroids [K, 2] of the bright blobs, in our pixel convention (centres at i + 0.5)."""
+    """Radiance-weighted centroids [K, 2] of the bright blobs, in our pixel convention (centres at i +
+    0.5)."""
     c = image_srgb.astype(np.float64).mean(-1) / 255.0
     lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
     labels, count = ndimage.label(lin > 0.01)
@@ -107,7 +112,8 @@ def rendered_lens(tmp_path_factory):
 
 
 def distort(cam: Camera, uv: np.ndarray, k1: float, k2: float) -> np.ndarray:
-    """Pixels [K, 2] of the pinhole `cam` as a lens with radial distortion k1, k2 (COLMAP's RADIAL) sees them."""
+    """Pixels [K, 2] of the pinhole `cam` as a lens with radial distortion k1, k2 (COLMAP's RADIAL) sees
+    them."""
     x = (uv - [cam.cx, cam.cy]) / [cam.fx, cam.fy]
     r2 = (x * x).sum(1, keepdims=True)
     return x * (1 + k1 * r2 + k2 * r2 * r2) * [cam.fx, cam.fy] + [cam.cx, cam.cy]
@@ -141,7 +147,8 @@ def errors(rendered, name: str, water: WaterSurface, other: WaterSurface | None 
 def test_markers_land_on_the_refracted_projection(rendered, name):
     err, err_naive, count = errors(rendered, name, WaterSurface(0.0, N))
     print(f"\n{name}: {count} markers, refracted-model error max {err.max():.3f} px "
-          f"(mean {err.mean():.3f}); naive pinhole error max {err_naive.max():.2f} px (mean {err_naive.mean():.2f})")
+          f"(mean {err.mean():.3f}); naive pinhole error max {err_naive.max():.2f} px (mean "
+          f"{err_naive.mean():.2f})")
     assert err.max() <= 0.15
     assert err_naive.mean() > 2.0  # the refraction is large at this scale: the check has teeth
 
@@ -163,6 +170,7 @@ def test_markers_through_a_lens_land_on_the_distorted_refracted_projection(rende
     water = WaterSurface(0.0, N)
     err, err_pinhole, count = errors(rendered_lens, name, water, water, LENS, (0.0, 0.0))
     print(f"\n{name}, lens {LENS}: {count} markers, distorted refracted-model error max {err.max():.3f} px "
-          f"(mean {err.mean():.3f}); undistorted: max {err_pinhole.max():.2f} px (mean {err_pinhole.mean():.2f})")
+          f"(mean {err.mean():.3f}); undistorted: max {err_pinhole.max():.2f} px (mean "
+          f"{err_pinhole.mean():.2f})")
     assert err.max() <= 0.15
     assert err_pinhole.max() > 1.5  # the lens moves the outer markers by pixels: the check has teeth

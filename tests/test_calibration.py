@@ -26,8 +26,8 @@ N = 200_000
 
 
 def cells(rng, n=N, seeds=5):
-    """Synthetic wet cells of `seeds` seeds: (sigma [n] heteroscedastic, seed [n], depth [n], views [n], xy [n, 2]
-    on a 5 cm grid, each seed's own 100 x (n / seeds / 100) patch)."""
+    """Synthetic wet cells of `seeds` seeds: (sigma [n] heteroscedastic, seed [n], depth [n], views [n], xy
+    [n, 2] on a 5 cm grid, each seed's own 100 x (n / seeds / 100) patch)."""
     per = n // seeds
     side = 100
     ij = np.stack(np.meshgrid(np.arange(side), np.arange(per // side), indexing="ij"), -1).reshape(-1, 2)
@@ -88,7 +88,8 @@ def test_the_worst_bins_find_a_band_that_is_off():
 
 
 def test_bands_are_thirds_of_the_maximum_depth():
-    np.testing.assert_array_equal(depth_bins([0.5, 1.0, 1.01, 2.0, 2.5, 3.0, 4.0], max_depth=3.0), [0, 0, 1, 1, 2, 2, 2])
+    np.testing.assert_array_equal(depth_bins([0.5, 1.0, 1.01, 2.0, 2.5, 3.0, 4.0], max_depth=3.0),
+                                  [0, 0, 1, 1, 2, 2, 2])
 
 
 def test_a_seed_with_a_shared_offset_shows_in_the_per_seed_spread():

@@ -95,7 +95,8 @@ def test_error_is_ragsplat_and_value_error():
     (lambda m: m["frames"][1].update(file_path="images/wet/nope.png"), "image file is missing"),
     (lambda m: m.update(w=13), "image is 12 x 8"),
     (lambda m: [f.update(split="test") for f in m["frames"]], "no frame has split 'train'"),
-    (lambda m: m.update(water={"level": 6.0, "n": 1.33}), r"frames\[0\] \(0000\): camera centre z = 5 is not above"),
+    (lambda m: m.update(water={"level": 6.0, "n": 1.33}),
+     r"frames\[0\] \(0000\): camera centre z = 5 is not above"),
 ])
 def test_bad_transforms_one_line(ds, edit, match):
     root, _ = ds
@@ -122,7 +123,8 @@ def test_missing_and_broken_files(ds, tmp_path):
 
 def test_bad_eval_region(ds):
     root, _ = ds
-    (root / "scene.json").write_text(json.dumps({"eval_region": {"xmin": 1, "xmax": 0, "ymin": 0, "ymax": 1}}))
+    (root / "scene.json").write_text(json.dumps(
+        {"eval_region": {"xmin": 1, "xmax": 0, "ymin": 0, "ymax": 1}}))
     with pytest.raises(DatasetError, match="eval_region is empty"):
         load_dataset(root)
 

@@ -59,4 +59,5 @@ def test_ground_truth_grid_covers_eval_region_at_5cm(smoke_bed):
     xs = np.unique(g[:, 0].round(9))
     np.testing.assert_allclose(np.diff(xs), 0.05, atol=1e-9)
     assert xs[0] == pytest.approx(region["xmin"]) and xs[-1] <= region["xmax"] + 1e-9
-    np.testing.assert_array_equal(g[:, 2], height_at(smoke_bed, g[:, :2]))  # the grid's own call: same function
+    # the grid's own call: same function
+    np.testing.assert_array_equal(g[:, 2], height_at(smoke_bed, g[:, :2]))

@@ -22,7 +22,8 @@ def test_ripples_have_the_rms_height_asked_and_zero_mean():
     c = preset("small-field").conditions
     k, amplitude = conditions.ripple_waves(c, seed=0)
     xy = np.random.default_rng(1).uniform(-8, 8, (50_000, 2))
-    heights = [conditions.ripple_height(xy, k, amplitude, conditions.ripple_phases(c, 0, v)) for v in range(8)]
+    heights = [conditions.ripple_height(xy, k, amplitude, conditions.ripple_phases(c, 0, v))
+               for v in range(8)]
     h = np.concatenate(heights)
     assert h.std() == pytest.approx(c.ripple_amplitude, rel=0.05)
     assert abs(h.mean()) < 0.05 * c.ripple_amplitude  # the level is the mean surface
@@ -51,7 +52,8 @@ def test_rippled_mesh_fades_into_the_flat_frame():
     spec = preset("smoke-field")
     verts, tris, weight = conditions.water_surface(spec, spec.bed.size, FAR)
     assert len(verts) == len(weight) and tris.max() < len(verts)
-    edge = np.isclose(np.abs(verts[:, :2]).max(1), spec.bed.size / 2) | (np.abs(verts[:, :2]).max(1) > spec.bed.size)
+    edge = (np.isclose(np.abs(verts[:, :2]).max(1), spec.bed.size / 2)
+            | (np.abs(verts[:, :2]).max(1) > spec.bed.size))
     assert (weight[edge] == 0).all() and weight.max() == 1.0
     inside = np.abs(verts[:, :2]).max(1) < spec.bed.size / 2 - spec.bed.taper
     assert (weight[inside] == 1).all()
@@ -81,7 +83,8 @@ def test_targets_sit_on_dry_gentle_ground_and_show_a_checker():
     centres = conditions.place_targets(c, lambda xy: height_at(bed, xy), banks, spec.level, spec.seed)
     assert centres.shape == (c.targets, 3)
     ground = height_at(bed, centres[:, :2])
-    assert (ground > spec.level + 0.03).all() and (centres[:, 2] >= ground + conditions.TARGET_LIFT - 1e-12).all()
+    assert ((ground > spec.level + 0.03).all()
+            and (centres[:, 2] >= ground + conditions.TARGET_LIFT - 1e-12).all())
     gaps = np.linalg.norm(centres[:, None, :2] - centres[None, :, :2], axis=-1) + np.eye(len(centres)) * 1e9
     assert gaps.min() > 2 * c.target_size  # spread apart, never overlapping
     meshes = conditions.target_meshes(c, centres)
@@ -140,7 +143,8 @@ def test_one_effect_at_a_time_from_an_ideal_preset():
     dry = with_conditions(preset("small-field"), turbidity=0.0, reflection=False, ripple_amplitude=0.0)
     assert not dry.conditions.turbid and dry.conditions.targets == CLEAR_RIVER.targets  # targets stay
     doubled = with_conditions(preset("small-field"), turbidity=2.0)
-    np.testing.assert_allclose(conditions.attenuation(doubled.conditions)[0], 2 * np.array(CLEAR_RIVER.absorption))
+    np.testing.assert_allclose(conditions.attenuation(doubled.conditions)[0],
+                               2 * np.array(CLEAR_RIVER.absorption))
 
 
 @pytest.mark.parametrize("change, message", [

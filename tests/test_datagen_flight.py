@@ -1,4 +1,5 @@
-"""Flight plan: overlap on the bed (through the water), tilt, aim and counts, checked by an independent tracer."""
+"""Flight plan: overlap on the bed (through the water), tilt, aim and counts, checked by an independent
+tracer."""
 
 import math
 from dataclasses import replace
@@ -12,7 +13,8 @@ from datagen.spec import SceneSpec, SpecError, preset, validate
 
 def trace_to_bed(cam, pixels, level, n, bed_z):
     """Independent vector-Snell tracer: pixels [N, 2] -> points [N, 3] where their rays meet z = bed_z."""
-    d = np.stack([(pixels[:, 0] - cam.cx) / cam.fx, (pixels[:, 1] - cam.cy) / cam.fy, np.ones(len(pixels))], -1)
+    d = np.stack([(pixels[:, 0] - cam.cx) / cam.fx, (pixels[:, 1] - cam.cy) / cam.fy,
+                  np.ones(len(pixels))], -1)
     d = d @ cam.R  # camera -> world directions
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     c = cam.camera_center

@@ -35,7 +35,8 @@ def test_strip_obliques_aim_at_the_bed_below_their_stations(name):
     f = spec.flight
     nadir_x = flight.nadir_positions(spec)[:, 0]
     stations = flight.stations(spec)
-    np.testing.assert_allclose(stations[:, 0], np.linspace(min(nadir_x), max(nadir_x), f.stations), atol=1e-12)
+    np.testing.assert_allclose(stations[:, 0], np.linspace(min(nadir_x), max(nadir_x), f.stations),
+                               atol=1e-12)
     assert not stations[:, 1].any()  # on the reach's axis, from the first nadir column to the last
     for split, aims in (("train", stations), ("test", (stations[1:] + stations[:-1]) / 2)):
         count = np.zeros(len(aims), int)

@@ -71,7 +71,8 @@ def test_same_seed_same_reach(smoke):
 
 @pytest.mark.parametrize("name, seed", [("smoke", s) for s in range(4)] + [("small", 0), ("small", 1)])
 def test_flat_planes_score_badly(name, seed):
-    """The benchmark's target: a plane at the median bed height scores F1 < 40 % at 3 % of the maximum depth."""
+    """The benchmark's target: a plane at the median bed height scores F1 < 40 % at 3 % of the maximum
+    depth."""
     spec = preset(name, seed=seed)
     _, wet = wet_grid(spec, make_bed(spec))
     scores = null_models(spec, wet)

@@ -54,7 +54,8 @@ def test_tables_compare_with_the_paper_only_on_depth_scaled_columns():
     assert "| 30.0 ± 7.1 | 94.0 |" in full
     # the fused bed of the same row follows it, with the same paper values beside it
     fused = lines[lines.index(full) + 1]
-    assert fused.startswith("| full | 2 | fused | 0.250 ± 0.000 |") and fused.endswith("| 87.5 ± 0.0 | 99.1 |")
+    assert (fused.startswith("| full | 2 | fused | 0.250 ± 0.000 |")
+            and fused.endswith("| 87.5 ± 0.0 | 99.1 |"))
     t1 = table1(rows, published)
     base = next(line for line in t1.splitlines() if line.startswith("| 3dgs |"))
     # the paper leaves 3dgs refr empty; 12345 Gaussians -> 12.3 K; 90 s -> 1.5 min wall, 2.5 min CPU
@@ -68,7 +69,8 @@ def test_tables_compare_with_the_paper_only_on_depth_scaled_columns():
 
 def test_write_outputs_files(tmp_path):
     rows = {v: [fake_row(i)] for i, v in enumerate(list(VARIANTS)[:3])}
-    text = write_outputs(tmp_path, rows, {"preset": "smoke", "seeds": [3], "max_depth_m": 3.0}, "weights missing")
+    text = write_outputs(tmp_path, rows, {"preset": "smoke", "seeds": [3], "max_depth_m": 3.0},
+                         "weights missing")
     assert "LPIPS n/a: weights missing" in (tmp_path / "table1.md").read_text()
     assert (tmp_path / "table2.md").read_text() in text and (tmp_path / "table3.md").read_text() in text
     assert "1 % / 3 % of the maximum depth (3 m: 30 / 90 mm)" in text
@@ -99,7 +101,8 @@ class FakeRunner:
     def initial(self, cfg):
         g = self.truth.grid
         return {"means": torch.tensor(g), "scales": torch.full((len(g), 3), 0.03),
-                "quats": torch.tensor([[1.0, 0, 0, 0]]).expand(len(g), 4), "opacities": torch.full((len(g),), 0.9)}
+                "quats": torch.tensor([[1.0, 0, 0, 0]]).expand(len(g), 4),
+                "opacities": torch.full((len(g),), 0.9)}
 
     def train(self, cfg, out, ecfg, fcfg, checkpoints, lpips_metric=None):
         self.calls.append((cfg.variant, cfg.seed))
@@ -108,8 +111,8 @@ class FakeRunner:
 
 
 def test_rows_only_trains_each_row_and_the_tables_reuse_them(tmp_path):
-    # what a Dask task of `ragsplat ablation --jobs 2` does (`train_row`): its rows, trained, and nothing else;
-    # the surfel rows are handed out first; the last run reuses every row and writes the tables
+    # what a Dask task of `ragsplat ablation --jobs 2` does (`train_row`): its rows, trained, and nothing
+    # else; the surfel rows are handed out first; the last run reuses every row and writes the tables
     data, out, runner = tmp_path / "data", tmp_path / "out", FakeRunner()
     data.mkdir()
     quiet = {"log": lambda s: None, "download": False}
@@ -139,9 +142,11 @@ def test_rows_are_reused_only_under_their_key(tmp_path):
     assert runner.calls == [("3dgs", 0), ("full", 0), ("3dgs", 1), ("full", 1)]
     assert list(rows) == ["3dgs", "full", "init", "3dgs x n", "oracle plane", "oracle median plane"]
     assert [r["seed"] for r in rows["full"]] == [0, 1] and len(rows["oracle plane"]) == 1
-    # the classical correction of an apparent flat bed (depth / n) is exact: every reference has a known answer
+    # the classical correction of an apparent flat bed (depth / n) is exact: every reference has a known
+    # answer
     assert rows["3dgs x n"][0]["geometry"]["f1"]["1%"] == 1.0
-    assert rows["oracle plane"][0]["geometry"]["f1"]["1%"] == 1.0 and rows["oracle plane"][0]["uses_ground_truth"]
+    assert (rows["oracle plane"][0]["geometry"]["f1"]["1%"] == 1.0
+            and rows["oracle plane"][0]["uses_ground_truth"])
     assert rows["init"][0]["geometry"]["survey"]["wet"]["bias"] == pytest.approx(0.0, abs=0.01)
     for name in ("bed.npy", "bed.tif", "depth_error.png"):
         assert (out / "3dgs-x-n" / "seed0" / name).stat().st_size > 0
@@ -157,7 +162,8 @@ def test_rows_are_reused_only_under_their_key(tmp_path):
     rows = run_ablation(data, out, "smoke", ["full"], [1], runner, **quiet)
     assert len(runner.calls) == 4 and list(rows) == ["full", "init", "oracle plane", "oracle median plane"]
     res = json.loads((out / "results.json").read_text())
-    assert list(res["rows"]) == ["oracle plane", "oracle median plane", "init", "full"] and res["seeds"] == [1]
+    assert (list(res["rows"]) == ["oracle plane", "oracle median plane", "init", "full"]
+            and res["seeds"] == [1])
     assert "| 3dgs |" not in (out / "table2.md").read_text()
     # another dataset content (one image changed): recomputed, never reused
     runner.fingerprint = "bbbb"
@@ -193,14 +199,17 @@ def test_survey_figures_count_holes_as_misses():
     pred = nodes + [0, 0, 0.02]
     whole = score_grid(pred, truth)["survey"]
     assert whole["wet"]["bias"] == pytest.approx(0.02) and whole["wet"]["rmse"] == pytest.approx(0.02)
-    assert whole["wet"]["p95"] == pytest.approx(0.02) and whole["coverage"] == 1.0 and whole["wet"]["holes"] == 0
-    assert whole["wet"]["within"] == {"3cm": 1.0, "5cm": 1.0} and all(v == 1.0 for v in whole["wet"]["iho"].values())
+    assert (whole["wet"]["p95"] == pytest.approx(0.02) and whole["coverage"] == 1.0
+            and whole["wet"]["holes"] == 0)
+    assert (whole["wet"]["within"] == {"3cm": 1.0, "5cm": 1.0}
+            and all(v == 1.0 for v in whole["wet"]["iho"].values()))
     half = score_grid(pred[::2], truth)["survey"]  # every other cell: half the wet cells are holes
     wet = half["wet"]
     assert half["coverage"] == pytest.approx(195 / 390) and wet["n"] + wet["holes"] == 390
     assert wet["bias"] == pytest.approx(0.02) and wet["rmse"] == pytest.approx(0.02)  # over the covered cells
     assert wet["p95"] is None  # half the cells have no error to rank
-    assert wet["within"]["3cm"] == pytest.approx(195 / 390) and wet["within"]["5cm"] == pytest.approx(195 / 390)
+    assert (wet["within"]["3cm"] == pytest.approx(195 / 390)
+            and wet["within"]["5cm"] == pytest.approx(195 / 390))
     assert all(v == pytest.approx(195 / 390) for v in wet["iho"].values())
     for band in ("shallow", "middle", "deep"):
         assert half[band]["n"] + half[band]["holes"] == whole[band]["n"]
@@ -236,7 +245,8 @@ def test_quantile_with_holes_is_numpy_s_with_holes_as_the_largest():
     e = np.random.default_rng(0).uniform(0, 1, 200)
     assert quantile_with_holes(e, 0, 0.95) == pytest.approx(np.percentile(e, 95), abs=0, rel=1e-12)
     for holes in (1, 5, 9):  # the quantile still falls among the errors
-        assert quantile_with_holes(e, holes, 0.95) == pytest.approx(np.percentile(np.r_[e, np.full(holes, 9.0)], 95))
+        assert (quantile_with_holes(e, holes, 0.95)
+                == pytest.approx(np.percentile(np.r_[e, np.full(holes, 9.0)], 95)))
     assert quantile_with_holes(e, 11, 0.95) is None and quantile_with_holes(np.zeros(0), 0, 0.95) is None
 
 
@@ -276,10 +286,12 @@ def test_evaluate_geometry_flat_bed():
     x, y = np.meshgrid(np.arange(30) * 0.05, np.arange(30) * 0.05, indexing="ij")
     bed = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, -2.0)])
     g = {"means": torch.tensor(bed), "scales": torch.tensor([[0.03, 0.03, 0.003]]).expand(len(bed), 3),
-         "quats": torch.tensor([[1.0, 0, 0, 0]]).expand(len(bed), 4), "opacities": torch.full((len(bed),), 0.9)}
+         "quats": torch.tensor([[1.0, 0, 0, 0]]).expand(len(bed), 4),
+         "opacities": torch.full((len(bed),), 0.9)}
     region = {"xmin": 0.3, "xmax": 1.2, "ymin": 0.3, "ymax": 1.2}
     gt = bed[(np.abs(bed[:, :2] - 0.75) < 0.451).all(1)]  # nodes 6 .. 24 on both axes
-    res, grid = evaluate_geometry(g, GroundTruth(gt, region, 2.0, WATER), ablation.extract_config("small", 19 * 19, 0, 0.01))
+    res, grid = evaluate_geometry(g, GroundTruth(gt, region, 2.0, WATER),
+                                  ablation.extract_config("small", 19 * 19, 0, 0.01))
     assert res["n_gt"] == 19 * 19 and res["f1"]["10cm"] == 1.0 and res["chamfer"] < 0.005 and len(grid) > 350
     assert res["extraction"]["config"]["n_samples"] == 16 * 19 * 19
 
@@ -297,13 +309,15 @@ def test_evaluate_fused_flat_bed():
     res, grid = evaluate_fused(lambda cam: maps[id(cam)], views, truth, FuseConfig(), 0.05)
     assert len(grid) == len(gt) and np.abs(grid[:, 2] + 1.0).max() < 1e-3
     assert res["f1"]["1%"] == 1.0 and res["n_gt"] == len(gt) and res["survey"]["wet"]["rmse"] < 1e-3
-    assert res["fusion"]["views"] == 5 and res["fusion"]["voxel_m"] == pytest.approx(3 * res["fusion"]["gsd_m"])
+    assert (res["fusion"]["views"] == 5
+            and res["fusion"]["voxel_m"] == pytest.approx(3 * res["fusion"]["gsd_m"]))
 
 
 def test_eval_steps_avoid_opacity_resets():
     assert ablation.eval_steps(1500, 8) == [188, 375, 562, 750, 938, 1125, 1312]
     # resets every 150 steps before 750: 188 is 38 steps after the reset at 150 (opacities still recovering)
-    assert ablation.eval_steps(1500, 8, reset_every=150, reset_stop=750) == [149, 375, 562, 750, 938, 1125, 1312]
+    assert (ablation.eval_steps(1500, 8, reset_every=150, reset_stop=750)
+            == [149, 375, 562, 750, 938, 1125, 1312])
     assert ablation.eval_steps(10, 1) == []
 
 
@@ -351,8 +365,8 @@ def test_default_jobs_and_the_gpus_they_share(monkeypatch):
 
 
 def test_gsplat_is_built_once_before_the_processes_on_cuda(monkeypatch, tmp_path):
-    # gsplat's JIT start deletes a build folder without a library, so six processes building it at once deleted
-    # each other's build (an H100, 2026-11-26): the parent builds it first when the rows train on CUDA
+    # gsplat's JIT start deletes a build folder without a library, so six processes building it at once
+    # deleted each other's build (an H100, 2026-11-26): the parent builds it first when the rows train on CUDA
     import sys
     from argparse import Namespace
 

@@ -23,11 +23,13 @@ def test_ablation_command(evaluable_dataset, tmp_path, monkeypatch, capsys):
             "full", "--seeds", "0", "1", "--init", "grid", "--jobs", "1", "--no-download"]
     assert main(argv) == 0
     printed = capsys.readouterr().out
-    assert "| full | 2 | volume |" in printed and "| 3dgs x n | 2 | volume |" in printed and "LPIPS n/a" in printed
+    assert ("| full | 2 | volume |" in printed and "| 3dgs x n | 2 | volume |" in printed
+            and "LPIPS n/a" in printed)
     assert "| oracle plane (uses GT) | - | - |" in printed and "F1@3% (%) | paper |" in printed
     res = json.loads((out / "results.json").read_text())
     # the field's references first (the tracks' need a triangulable dataset: not this tiny one), init last
-    assert list(res["rows"]) == ["dietrich (3dgs)", "3dgs x n", "oracle plane", "oracle median plane", "init", "3dgs", "full"]
+    assert (list(res["rows"])
+            == ["dietrich (3dgs)", "3dgs x n", "oracle plane", "oracle median plane", "init", "3dgs", "full"])
     assert res["seeds"] == [0, 1] and "the tracks' reference rows n/a" in printed
     assert "| init |" not in printed and "| dietrich (3dgs) | 2 | volume |" in printed
     full = res["rows"]["full"][0]
@@ -42,7 +44,8 @@ def test_ablation_command(evaluable_dataset, tmp_path, monkeypatch, capsys):
     assert full["time"]["cpu_s"] > 0 and full["time"]["median_step_s"] > 0
     assert full["config"]["variant"] == "full" and full["config"]["refraction"]["position"] is True
     assert len(full["appearance"]["per_view"]) == 2 and full["appearance"]["dry"]["psnr"] > 0
-    assert full["geometry"]["n_gt"] == 21 * 21 and full["geometry"]["extraction"]["config"]["n_samples"] == 4 * 441
+    assert (full["geometry"]["n_gt"] == 21 * 21
+            and full["geometry"]["extraction"]["config"]["n_samples"] == 4 * 441)
     assert set(full["geometry"]["f1"]) == {"10cm", "30cm", "1%", "3%"}
     # the fused bed beside it, scored the same way (at the end only)
     fused = full["geometry_fused"]
@@ -91,23 +94,25 @@ def test_sigint_keeps_finished_rows_and_the_rerun_completes(evaluable_dataset, t
     import torch
 
     out = tmp_path / "runs"
-    cmd = [sys.executable, "-m", "ragsplat_core.cli.main", "ablation", "--data", str(evaluable_dataset), "--out",
-           str(out), "--preset", "smoke", "--variants", "3dgs", "position", "--seeds", "0", "--init", "grid",
-           "--jobs", "1", "--no-download"]
+    cmd = [sys.executable, "-m", "ragsplat_core.cli.main", "ablation", "--data", str(evaluable_dataset),
+           "--out", str(out), "--preset", "smoke", "--variants", "3dgs", "position", "--seeds", "0", "--init",
+           "grid", "--jobs", "1", "--no-download"]
     env = {**os.environ, "TORCH_HOME": str(tmp_path / "torch")}  # no LPIPS backbone there: LPIPS n/a
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
     deadline = time.time() + 300
-    while not (out / "3dgs" / "seed0" / "row.json").exists() and time.time() < deadline and proc.poll() is None:
+    while (not (out / "3dgs" / "seed0" / "row.json").exists() and time.time() < deadline
+           and proc.poll() is None):
         time.sleep(0.02)
     proc.send_signal(signal.SIGINT)  # `position` is starting to train
     err = [line for line in proc.communicate(timeout=300)[1].splitlines() if line.startswith("ragsplat")]
     assert proc.returncode == 130, err
-    assert err == ["ragsplat ablation: interrupted; finished files are kept, rerun the same command to resume"]
+    assert err == [("ragsplat ablation: interrupted; finished files are kept, rerun the same command "
+                    "to resume")]
     assert not (out / "position" / "seed0" / "row.json").exists()
     assert torch.load(out / "position" / "seed0" / "ckpt.pt", weights_only=True)["step"] >= 1
     row = (out / "3dgs" / "seed0" / "row.json").read_bytes()
-    done = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env, timeout=300,
-                          check=False)
+    done = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env,
+                          timeout=300, check=False)
     assert done.returncode == 0 and "[3dgs seed 0] reusing" in done.stdout
     assert (out / "3dgs" / "seed0" / "row.json").read_bytes() == row
     assert set(json.loads((out / "results.json").read_text())["rows"]) >= {"3dgs", "position"}
@@ -161,9 +166,9 @@ def test_a_killed_worker_s_row_is_trained_again_and_the_command_finishes(evaluab
     import sys
 
     out = tmp_path / "runs"
-    cmd = [sys.executable, "-m", "ragsplat_core.cli.main", "ablation", "--data", str(evaluable_dataset), "--out",
-           str(out), "--preset", "smoke", "--variants", "3dgs", "full", "--seeds", "0", "--init", "grid",
-           "--jobs", "2", "--no-download"]
+    cmd = [sys.executable, "-m", "ragsplat_core.cli.main", "ablation", "--data", str(evaluable_dataset),
+           "--out", str(out), "--preset", "smoke", "--variants", "3dgs", "full", "--seeds", "0", "--init",
+           "grid", "--jobs", "2", "--no-download"]
     env = {**os.environ, "TORCH_HOME": str(tmp_path / "torch")}  # no LPIPS backbone there: LPIPS n/a
 
     def victim():  # a row a worker took: its pid in the first line
@@ -181,10 +186,11 @@ def test_a_killed_worker_s_row_is_trained_again_and_the_command_finishes(evaluab
     assert len(workers) == 2 and workers[0] != workers[1], log.read_text()
 
 
-def test_one_level_trains_with_the_level_it_is_given_and_scores_against_the_surface(evaluable_dataset, tmp_path,
-                                                                                     monkeypatch, capsys):
-    # `--one-level` for real (a shrunken smoke row): the row trains under one level at the mean of the surveyed
-    # edge points, the references are given it, the truth's surface scores them, and results.json records both
+def test_one_level_trains_with_the_level_it_is_given_and_scores_against_the_surface(
+        evaluable_dataset, tmp_path, monkeypatch, capsys):
+    # `--one-level` for real (a shrunken smoke row): the row trains under one level at the mean of the
+    # surveyed edge points, the references are given it, the truth's surface scores them, and results.json
+    # records both
     smoke = train.PRESETS["smoke"]
     monkeypatch.setitem(train.PRESETS, "smoke", replace(smoke, iterations=4, init_count=100, backend="torch"))
     monkeypatch.setitem(ablation.PRESETS, "smoke", replace(ablation.PRESETS["smoke"], checkpoints=2))
@@ -192,14 +198,18 @@ def test_one_level_trains_with_the_level_it_is_given_and_scores_against_the_surf
     data = tmp_path / "data"
     shutil.copytree(evaluable_dataset, data)
     (data / "survey").mkdir()
-    (data / ablation.EDGE_POINTS).write_text("x,y,z\n-0.5,-0.6,0.03\n0.5,-0.6,0.01\n-0.5,0.6,0.02\n0.5,0.6,0.0\n")
+    (data / ablation.EDGE_POINTS).write_text("x,y,z\n-0.5,-0.6,0.03\n0.5,-0.6,0.01\n"
+                                             "-0.5,0.6,0.02\n0.5,0.6,0.0\n")
     out = tmp_path / "runs"
-    assert main(["ablation", "--data", str(data), "--out", str(out), "--preset", "smoke", "--variants", "3dgs",
-                 "full", "--seeds", "0", "--init", "grid", "--jobs", "1", "--no-download", "--one-level"]) == 0
+    assert main(["ablation", "--data", str(data), "--out", str(out), "--preset", "smoke",
+                 "--variants", "3dgs", "full", "--seeds", "0", "--init", "grid", "--jobs", "1",
+                 "--no-download", "--one-level"]) == 0
     printed = capsys.readouterr().out
-    assert "ONE LEVEL (--one-level)" in printed and "0.015 m (the mean of the 4 surveyed edge points" in printed
+    assert ("ONE LEVEL (--one-level)" in printed
+            and "0.015 m (the mean of the 4 surveyed edge points" in printed)
     res = json.loads((out / "results.json").read_text())
     assert res["one_level"]["level"] == pytest.approx(0.015) and res["water"] == {"level": 0.0, "n": 1.33}
     full = res["rows"]["full"][0]
-    assert full["config"]["water_level"] == pytest.approx(0.015) and full["config"]["water_slope"] == [0.0, 0.0]
+    assert (full["config"]["water_level"] == pytest.approx(0.015)
+            and full["config"]["water_slope"] == [0.0, 0.0])
     assert all(rows[0]["key"]["one_level"] == res["one_level"] for rows in res["rows"].values())

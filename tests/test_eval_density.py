@@ -43,7 +43,8 @@ def test_relief_is_zero_on_a_plane_and_the_height_of_a_bump():
 def test_breakdown_partitions_the_cells_and_summarises_each_bin():
     rng = np.random.default_rng(0)
     n = 500
-    keys = {"tracks": rng.integers(0, 20, n), "views": rng.integers(0, 90, n), "relief": rng.uniform(-3, 9, n)}
+    keys = {"tracks": rng.integers(0, 20, n), "views": rng.integers(0, 90, n),
+            "relief": rng.uniform(-3, 9, n)}
     dz = rng.normal(0, 0.03, n)
     dz[::7] = np.nan  # cells left out
     out = breakdown({"dem": dz}, keys)

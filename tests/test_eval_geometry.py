@@ -106,7 +106,8 @@ def test_plane_filter_kernel_matches_numpy_twin():
     # a bumpy, noisy bed with floaters, sparse patches (few neighbours) and isolated points: every branch
     rng = np.random.default_rng(1)
     xy = rng.random((6000, 2)) * 3
-    bed = np.column_stack([xy, 0.1 * np.sin(3 * xy[:, 0]) * np.cos(2 * xy[:, 1]) + 0.004 * rng.standard_normal(6000)])
+    bed = np.column_stack([xy, 0.1 * np.sin(3 * xy[:, 0]) * np.cos(2 * xy[:, 1])
+                           + 0.004 * rng.standard_normal(6000)])
     sparse = np.column_stack([5 + rng.random((40, 2)) * 0.3, 0.02 * rng.standard_normal(40)])
     floaters = np.column_stack([rng.random((60, 2)) * 3, rng.uniform(0.02, 0.2, 60)])
     pts = rng.permutation(np.vstack([bed, sparse, floaters, [[9.0, 9.0, 0.0], [0.0, -9.0, 0.0]]]))
@@ -116,8 +117,10 @@ def test_plane_filter_kernel_matches_numpy_twin():
     # threshold here (measured), so the two agree exactly
     np.testing.assert_array_equal(fast, twin)
     assert 0.5 < fast.mean() < 1  # both outcomes occur
-    lax = ExtractConfig(filter_radius=0.1, filter_k=2.0, filter_min_neighbours=0)  # isolated points tested too
-    np.testing.assert_array_equal(plane_filter(pts, lax, chunk=2500), plane_filter(pts, lax, chunk=2500, fast=False))
+    # isolated points tested too
+    lax = ExtractConfig(filter_radius=0.1, filter_k=2.0, filter_min_neighbours=0)
+    np.testing.assert_array_equal(plane_filter(pts, lax, chunk=2500),
+                                  plane_filter(pts, lax, chunk=2500, fast=False))
 
 
 def test_grid_median_ignores_one_floater():
@@ -141,21 +144,24 @@ def test_despike_drops_a_floater_patch_and_keeps_the_relief():
     for dz in (2.0, -0.6):  # floaters above, a hole below
         spiked = bed + np.where(patch, dz, 0.0)[:, None] * [0, 0, 1]
         keep = despike(spiked, 0.05, 1.0, 0.3)
-        np.testing.assert_array_equal(keep, ~patch)  # booleans: the patch is 0.6 m or more off, the tolerance 0.3
+        # booleans: the patch is 0.6 m or more off, the tolerance 0.3
+        np.testing.assert_array_equal(keep, ~patch)
     # too tight a tolerance takes the crests and troughs of real relief: a test that can fail
     assert not despike(bed, 0.05, 1.0, 0.05).all()
     assert despike(spiked, 0.05, 1.0, np.inf).all()  # off
 
 
 def test_despike_tiles_give_the_same_cells():
-    # tiles of 16 cells (the disc is 20 cells wide) against one tile holding the whole bed; a far floater alone
-    # in its tile, 5 km away, has no neighbours and is kept (the point filter's job), and costs no memory
+    # tiles of 16 cells (the disc is 20 cells wide) against one tile holding the whole bed; a far floater
+    # alone in its tile, 5 km away, has no neighbours and is kept (the point filter's job), and costs no
+    # memory
     bed = undulating_bed()
     rng = np.random.default_rng(0)
     spiked = bed + (rng.random(len(bed)) < 0.02)[:, None] * [0, 0, 1.0]
     far = np.vstack([spiked, [[5000.0, 5000.0, 3.0]]])
     whole, tiled = despike(far, 0.05, 1.0, 0.3, block=256), despike(far, 0.05, 1.0, 0.3, block=16)
-    np.testing.assert_array_equal(tiled, whole)  # medians select values: the same neighbours, the same verdicts
+    # medians select values: the same neighbours, the same verdicts
+    np.testing.assert_array_equal(tiled, whole)
     assert tiled[-1] and 0 < (~tiled).sum() < len(bed)
 
 
@@ -172,7 +178,8 @@ def test_despike_matches_a_cell_by_cell_reference():
         if len(others) >= 8:
             ref[g] = abs(bed[g, 2] - np.median(bed[others, 2])) <= 0.3
     keep = despike(bed, 0.1, 0.5, 0.3, block=16, chunk=100)
-    np.testing.assert_array_equal(keep, ref)  # a median selects (or halves a sum of two) values: exact both ways
+    # a median selects (or halves a sum of two) values: exact both ways
+    np.testing.assert_array_equal(keep, ref)
     assert 0 < (~keep).sum() < 0.2 * len(bed)
 
 
@@ -210,14 +217,15 @@ def test_extraction_recovers_a_flat_bed():
 
 
 def test_extraction_despikes_a_floater_patch():
-    # the bed z = -1 with a 0.3 m square gap, and there a patch of small opaque discs 1.5 m higher: each of its
-    # cells has only floater samples, so the point filter and the medians keep them; despiking drops them
+    # the bed z = -1 with a 0.3 m square gap, and there a patch of small opaque discs 1.5 m higher: each of
+    # its cells has only floater samples, so the point filter and the medians keep them; despiking drops them
     step = 0.05
     bed = plane_grid(40, 40, step, z=-1.0)
     gap = (np.abs(bed[:, 0] - 1.0) < 0.15) & (np.abs(bed[:, 1] - 1.0) < 0.15)
     means = np.vstack([bed[~gap], bed[gap] + [0, 0, 1.5]])
     n = len(means)
-    scales, quats, opac = np.tile([0.03, 0.03, 0.003], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1)), np.full(n, 0.9)
+    scales, quats, opac = (np.tile([0.03, 0.03, 0.003], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1)),
+                           np.full(n, 0.9))
     region = {"xmin": 0.2, "xmax": 1.7, "ymin": 0.2, "ymax": 1.7}
     cfg = ExtractConfig(n_samples=40_000, gsd=0.025, fill_gap_cells=0.0)  # the despiked cells stay empty
     kept, _ = extract_surface(means, scales, quats, opac, replace(cfg, despike_tol=math.inf), region)
@@ -268,7 +276,8 @@ def test_fill_holes_recovers_a_plane_and_leaves_wide_gaps():
     filled = fill_holes(grid, cell, origin, 1.0)
     assert np.array_equal(filled[:len(grid)], grid)  # the measured cells first, unchanged
     new = filled[len(grid):]
-    rim = wide & ~((i > 20) & (i < 24) & (j > 10) & (j < 14)).ravel()  # the wide hole's cells next to measured ones
+    # the wide hole's cells next to measured ones
+    rim = wide & ~((i > 20) & (i < 24) & (j > 10) & (j < 14)).ravel()
     cells = lambda p: set(map(tuple, np.round((p[:, :2] - origin) / cell).astype(int)))
     assert cells(new) == cells(full[small | rim])  # the wide hole's inner 3 x 3 stays empty
     np.testing.assert_allclose(new[:, 2], 0.3 * new[:, 0] - 0.2 * new[:, 1] + 1.0, atol=1e-12)

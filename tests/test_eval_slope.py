@@ -32,7 +32,8 @@ SLOPE = (-0.05, 0.02)  # steeper than a river's 0.1-1 %, so that a wrong level s
 
 
 def nadir_view(X: np.ndarray, water: WaterSurface, height: float = 20.0) -> tuple[np.ndarray, np.ndarray]:
-    """(the apparent point of X [3] seen by a camera `height` m above it through `water`, the camera centre)."""
+    """(the apparent point of X [3] seen by a camera `height` m above it through `water`, the camera
+    centre)."""
     centre = np.array([X[0], X[1], float(water.height(X[:2])) + height])
     return apparent_points(torch.tensor(X[None]), torch.tensor(centre), water)[0].numpy(), centre
 
@@ -154,8 +155,8 @@ def test_a_depth_band_under_a_sloping_surface_is_a_bed_below_it(sloping_dataset,
 def write_edge(root, z) -> np.ndarray:
     """survey/water_edge.csv of `root`: points along both banks at heights `z` [K]."""
     x = np.linspace(-0.5, 0.5, len(z))
-    pts = np.column_stack([np.r_[x[::2], x[1::2]], np.r_[np.full(len(x[::2]), -0.6), np.full(len(x[1::2]), 0.6)],
-                           z])
+    pts = np.column_stack([np.r_[x[::2], x[1::2]],
+                           np.r_[np.full(len(x[::2]), -0.6), np.full(len(x[1::2]), 0.6)], z])
     (root / "survey").mkdir(exist_ok=True)
     (root / EDGE_POINTS).write_text("x,y,z\n" + "".join(f"{a!r},{b!r},{c!r}\n" for a, b, c in pts))
     return pts
@@ -218,7 +219,8 @@ def test_one_level_rows_give_the_references_the_level_and_are_scored_against_the
     grid = np.load(out / "3dgs-x-n" / "seed0" / "bed.npy")
     np.testing.assert_allclose(grid, depth_times_n(runner.truth.grid + [0, 0, 1.0 - 1.0 / N], runner.water))
     dz = score_grid(grid, runner.truth)["survey"]["wet"]
-    assert 0.012 < np.abs(grid[:, 2] - runner.truth.grid[:, 2]).max() < 0.02 and dz["bias"] == pytest.approx(0, abs=1e-3)
+    assert (0.012 < np.abs(grid[:, 2] - runner.truth.grid[:, 2]).max() < 0.02
+            and dz["bias"] == pytest.approx(0, abs=1e-3))
     assert rows["3dgs x n"][0]["geometry"]["f1"]["1%"] < 0.9
     assert rows["oracle plane"][0]["geometry"]["f1"]["1%"] == 1.0  # scored against the true bed as always
     for name in ("3dgs", "3dgs x n", "init", "oracle plane"):  # every row keyed with it
@@ -256,8 +258,8 @@ def test_train_eval_gives_every_row_and_reference_the_one_level(evaluable_datase
 def test_the_command_refuses_one_level_without_edge_points_and_passes_it_to_its_processes(
         evaluable_dataset, tmp_path, monkeypatch, capsys):
     out = tmp_path / "runs"
-    argv = ["ablation", "--data", str(evaluable_dataset), "--out", str(out), "--preset", "smoke", "--jobs", "1",
-            "--no-download", "--one-level"]
+    argv = ["ablation", "--data", str(evaluable_dataset), "--out", str(out), "--preset", "smoke", "--jobs",
+            "1", "--no-download", "--one-level"]
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "water_edge.csv: no such file" in err[0] and not out.exists()

@@ -56,7 +56,8 @@ def plane_gaussians(z, half=1.0, step=0.05) -> dict:
     x, y = np.meshgrid(np.arange(-half, half + step / 2, step), np.arange(-half, half + step / 2, step))
     means = np.column_stack([x.ravel(), y.ravel(), z(x.ravel(), y.ravel())])
     n = len(means)
-    return {"means": torch.tensor(means, dtype=torch.float32), "scales": torch.tensor([[0.03, 0.03, 0.003]] * n),
+    return {"means": torch.tensor(means, dtype=torch.float32),
+            "scales": torch.tensor([[0.03, 0.03, 0.003]] * n),
             "quats": torch.tensor([[1.0, 0, 0, 0]] * n), "opacities": torch.full((n,), 0.8)}
 
 
@@ -78,21 +79,25 @@ def at_cells(tif, points: np.ndarray) -> np.ndarray:
 
 def test_export_writes_every_product(run, tmp_path, capsys):
     out = {k: tmp_path / f"bed.{k}" for k in ("tif", "laz", "ply", "png")}
-    # 2 steps from opacity 0.1 and the start's wide Gaussians: limits they pass (the defaults are for trained runs)
-    assert main(["export", str(run), "--dem", str(out["tif"]), "--las", str(out["laz"]), "--ply", str(out["ply"]),
-                 "--png", str(out["png"]), "--min-opacity", "0.05", "--max-scale-gsd", "inf", "--despike-radius",
-                 "0.5", "--despike-tol", "0.02"]) == 0
+    # 2 steps from opacity 0.1 and the start's wide Gaussians: limits they pass (the defaults are for trained
+    # runs)
+    assert main(["export", str(run), "--dem", str(out["tif"]), "--las", str(out["laz"]),
+                 "--ply", str(out["ply"]), "--png", str(out["png"]), "--min-opacity", "0.05",
+                 "--max-scale-gsd", "inf", "--despike-radius", "0.5", "--despike-tol", "0.02"]) == 0
     gaussians, ds, seed = load_run(run)
     bed = extract_bed(gaussians, 0.05, ds.water.level, ds.eval_region, seed=seed, min_opacity=0.05,
                       max_scale_gsd=math.inf, despike_radius=0.5, despike_tol=0.02)  # the same
     grid = bed.grid
     assert len(grid) > 100 and (grid[:, 2] < 0).all()  # 2 steps from the grid at -1 m: all under water
     stdout = capsys.readouterr().out
-    assert f"{len(grid)} cells of 0.05 m, {len(grid)} under water" in stdout and f"wrote {out['png']}" in stdout
+    assert (f"{len(grid)} cells of 0.05 m, {len(grid)} under water" in stdout
+            and f"wrote {out['png']}" in stdout)
     with rasterio.open(out["tif"]) as tif:
         assert tif.count == 2 and tif.dtypes == ("float32", "float32") and tif.nodata == NODATA
-        assert tif.crs.to_wkt().startswith(LOCAL_CRS[:LOCAL_CRS.index(",")])  # GeoTIFF keeps the local frame's name
-        assert tif.transform.a == 0.05 and tif.transform.e == -0.05 and tif.transform.b == tif.transform.d == 0
+        # GeoTIFF keeps the local frame's name
+        assert tif.crs.to_wkt().startswith(LOCAL_CRS[:LOCAL_CRS.index(",")])
+        assert (tif.transform.a == 0.05 and tif.transform.e == -0.05
+                and tif.transform.b == tif.transform.d == 0)
         values = at_cells(tif, grid[:, :2])
         assert (tif.read(1) != NODATA).sum() == len(grid)  # nothing else is covered
     # the same extraction in one process; the DEM's float32 of z (+ a zero offset) read back losslessly
@@ -112,7 +117,8 @@ def test_flat_bed_at_known_depth(run, tmp_path):
     shutil.copytree(run, flat)
     g = plane_gaussians(lambda x, y: np.full_like(x, -1.5))
     save_ply(flat / "point_cloud.ply", {"means": g["means"], "sh0": torch.zeros(len(g["means"]), 1, 3),
-                                         "opacities": torch.logit(g["opacities"]), "scales": g["scales"].log(),
+                                         "opacities": torch.logit(g["opacities"]),
+                                        "scales": g["scales"].log(),
                                          "quats": g["quats"]})
     assert main(["export", str(flat), "--dem", str(tmp_path / "dem.tif"), "--resolution", "0.1"]) == 0
     with rasterio.open(tmp_path / "dem.tif") as tif:
@@ -123,8 +129,8 @@ def test_flat_bed_at_known_depth(run, tmp_path):
 
 
 def test_export_extracts_the_bed_that_eval_scores(evaluable_dataset):
-    """At the evaluation's 5 cm the export samples as `ragsplat eval` does (`extract_config`: 16 per node of the
-    ground-truth grid, 21 x 21 here, all under water): the same bed, cell for cell (the count by area of
+    """At the evaluation's 5 cm the export samples as `ragsplat eval` does (`extract_config`: 16 per node of
+    the ground-truth grid, 21 x 21 here, all under water): the same bed, cell for cell (the count by area of
     before, 6 400 per m^2, drew 6 400 samples instead of 7 056: other samples, other medians)."""
     ds = load_dataset(evaluable_dataset, splits=(), ground_truth=True)
     truth = ds.ground_truth
@@ -154,13 +160,15 @@ def test_a_coarser_resolution_draws_fewer_samples(monkeypatch):
     monkeypatch.setattr(export, "extract_surface", spy)
     g = plane_gaussians(lambda x, y: np.full_like(x, -1.5), step=0.1)  # 21 x 21 Gaussians
     for resolution, nodes, n in ((0.05, 33, 16 * 33**2), (0.1, 17, 16 * 17**2), (0.5, 3, 4 * 21**2)):
-        bed = extract_bed(g, resolution, WaterSurface(0.0), REGION, gsd=0.01)  # nodes: multiples of it in [-0.8, 0.8]
+        # nodes: multiples of it in [-0.8, 0.8]
+        bed = extract_bed(g, resolution, WaterSurface(0.0), REGION, gsd=0.01)
         assert drawn[-1] == (n, max(0.1, 2 * resolution)), resolution
         assert len(bed.grid) == nodes**2 and np.abs(bed.grid[:, 2] + 1.5).max() < 0.01, resolution
     # a coarse model for a coarse DEM: 9 x 9 Gaussians 10 cm wide, 324 samples, about 2 within 10 cm of each
     coarse = plane_gaussians(lambda x, y: np.full_like(x, -1.5), step=0.25)
     coarse["scales"] = torch.tensor([[0.1, 0.1, 0.003]] * len(coarse["means"]))
-    bed = extract_bed(coarse, 0.5, WaterSurface(0.0), REGION, gsd=0.05)  # found: the noise filter looks 1 m around
+    # found: the noise filter looks 1 m around
+    bed = extract_bed(coarse, 0.5, WaterSurface(0.0), REGION, gsd=0.05)
     assert drawn[-1] == (4 * 9**2, 1.0) and len(bed.grid) == 9 and np.abs(bed.grid[:, 2] + 1.5).max() < 0.01
     big = {"xmin": -200.0, "xmax": 200.0, "ymin": -200.0, "ymax": 200.0}  # 16 ha: 6.4e7 cells of 5 cm
     with pytest.raises(ConfigError, match=r"6.4e\+07 cells .*resolution, (\S+) m or more") as refused:
@@ -181,7 +189,8 @@ def test_a_large_bed_is_extracted_in_blocks(monkeypatch):
     once = extract_bed(g, 0.05, WaterSurface(0.0), REGION, gsd=0.01)
     monkeypatch.setattr(export, "BLOCK_SAMPLES", 4000)  # 15 x 15 cells a block: 3 x 3 blocks over 33 x 33
     seen = []
-    blocks = extract_bed(g, 0.05, WaterSurface(0.0), REGION, gsd=0.01, on_block=lambda k, n: seen.append((k, n)))
+    blocks = extract_bed(g, 0.05, WaterSurface(0.0), REGION, gsd=0.01,
+                         on_block=lambda k, n: seen.append((k, n)))
     assert seen == [(k, 9) for k in range(1, 10)]
 
     def by_node(grid):
@@ -203,7 +212,8 @@ def test_utm_offset_round_trip(tmp_path):
     x0, y0, z0 = 500_000.012, 5_000_000.037, 100.0
     georef = Georef((x0, y0, z0), "EPSG:32633")
     g = plane_gaussians(lambda x, y: 0.2 * x - 0.1)
-    bed = extract_bed(g, 0.05, WaterSurface(0.0), {"xmin": -0.7, "xmax": 0.7, "ymin": -0.7, "ymax": 0.7}, georef, gsd=0.01)
+    bed = extract_bed(g, 0.05, WaterSurface(0.0), {"xmin": -0.7, "xmax": 0.7, "ymin": -0.7, "ymax": 0.7},
+                      georef, gsd=0.01)
     absolute = bed.grid + [x0, y0, z0]
     wet = bed.grid[:, 2] < 0
     assert 0.3 < wet.mean() < 0.9 and np.abs(bed.grid[:, 2] - (0.2 * bed.grid[:, 0] - 0.1)).max() < 0.01
@@ -224,7 +234,8 @@ def test_utm_offset_round_trip(tmp_path):
     np.testing.assert_array_equal(las.classification, np.where(wet, BATHYMETRIC, GROUND))
     assert las.header.global_encoding.wkt
     assert CRS.from_wkt(las.header.vlrs[0].string) == CRS.from_epsg(32633)
-    np.testing.assert_array_equal(read_ply(tmp_path / "bed.ply"), absolute)  # the same one add; doubles: lossless
+    # the same one add; doubles: lossless
+    np.testing.assert_array_equal(read_ply(tmp_path / "bed.ply"), absolute)
     with pytest.raises(ConfigError, match="CRS 'EPSG:0' is not usable"):
         Georef(crs="EPSG:0")
 
@@ -259,7 +270,8 @@ def test_not_a_run_or_no_dataset_is_one_line(run, tmp_path, capsys):
         assert main(["export", *argv, "--dem", str(dem)]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("ragsplat export: error: ") and phrase in err[0], err
-    for argv, option in ((["--las", str(tmp_path / "bed.txt")], "--las"), (["--resolution", "0"], "--resolution")):
+    for argv, option in ((["--las", str(tmp_path / "bed.txt")], "--las"),
+                         (["--resolution", "0"], "--resolution")):
         with pytest.raises(SystemExit) as done:
             main(["export", str(run), "--dem", str(dem), *argv])
         assert done.value.code == 2 and option in capsys.readouterr().err.splitlines()[-1]

@@ -42,8 +42,8 @@ def cameras(size=96):
 
 
 def depth_map(cam: Camera, height) -> np.ndarray:
-    """[H, W] exact z-depth of the height field z = height(x, y) at every pixel centre (bisection along the ray
-    between the camera and 6 m of z-depth), 0 where the ray leaves the region first (no depth)."""
+    """[H, W] exact z-depth of the height field z = height(x, y) at every pixel centre (bisection along the
+    ray between the camera and 6 m of z-depth), 0 where the ray leaves the region first (no depth)."""
     j, i = np.mgrid[0: cam.height, 0: cam.width]
     pix = np.stack([i + 0.5, j + 0.5], -1).reshape(-1, 2).astype(float)
     c = cam.camera_center
@@ -55,7 +55,8 @@ def depth_map(cam: Camera, height) -> np.ndarray:
         above = p[:, 2] > height(p[:, :2])
         lo, hi = np.where(above, mid, lo), np.where(above, hi, mid)
     p = c + hi[:, None] * ray
-    inside = (np.abs(p[:, 0]) < 1.3) & (np.abs(p[:, 1]) < 1.1)  # depth only over a patch a bit wider than REGION
+    # depth only over a patch a bit wider than REGION
+    inside = (np.abs(p[:, 0]) < 1.3) & (np.abs(p[:, 1]) < 1.1)
     return np.where(inside, hi, 0.0).reshape(cam.height, cam.width)
 
 
@@ -78,7 +79,8 @@ def test_exact_depth_maps_give_the_heights(height, tol):
     nodes = grid_nodes(REGION, CELL, ORIGIN)
     assert len(nodes) == 41 * 33 and len(grid) == len(nodes)  # every node has a surface
     err = grid[:, 2] - height(grid[:, :2])
-    assert np.abs(err).max() < tol[0] * voxel and np.abs(err).mean() < tol[1] * voxel, (np.abs(err).max(), voxel)
+    assert (np.abs(err).max() < tol[0] * voxel
+            and np.abs(err).mean() < tol[1] * voxel), (np.abs(err).max(), voxel)
     np.testing.assert_allclose(grid[:, :2], nodes)
     # the z range came from the depth maps alone, padded
     zs = height(nodes)
@@ -169,5 +171,6 @@ def test_bad_inputs():
     grid, stats = fuse([np.zeros((16, 16))], cams[:1], REGION, CELL, ORIGIN)
     assert len(grid) == 0 and stats["z_range_m"] is None
     assert z_range([np.zeros((16, 16))], cams[:1], REGION) is None
-    flat = integrate([np.ones((16, 16))], cams[:1], REGION, (-1.0, -1.0), 0.1, 0.3)  # a zero z span: two layers
+    # a zero z span: two layers
+    flat = integrate([np.ones((16, 16))], cams[:1], REGION, (-1.0, -1.0), 0.1, 0.3)
     assert flat.values.shape[2] == 2 and len(height_grid(flat, grid_nodes(REGION, CELL, ORIGIN))) == 0

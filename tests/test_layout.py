@@ -42,7 +42,8 @@ def test_nothing_outside_the_command_layer_imports_it():
     # never import it (the tests do)
     outside = [p for p in SOURCES if COMMAND_LAYER not in p.parents]
     bad = {p.relative_to(ROOT).as_posix() for p in outside
-           if any(m == "ragsplat_core.cli" or m.startswith("ragsplat_core.cli.") for m in imported_modules(p))}
+           if any(m == "ragsplat_core.cli" or m.startswith("ragsplat_core.cli.")
+                  for m in imported_modules(p))}
     assert not bad, f"{sorted(bad)} import ragsplat_core.cli"
 
 
@@ -62,7 +63,8 @@ def test_every_command_is_one_module_of_the_command_layer():
         defined = {node.name for node in tree.body if isinstance(node, ast.FunctionDef)}
         assert {"add_arguments", "run"} <= defined, f"ragsplat {name}: {module} lacks {{add_arguments, run}}"
     files = {p.stem for p in COMMAND_LAYER.glob("*.py")}
-    assert files - helpers == {m.rsplit(".", 1)[1] for m in modules.values()}, "a command module not in COMMANDS"
+    assert (files - helpers
+            == {m.rsplit(".", 1)[1] for m in modules.values()}), "a command module not in COMMANDS"
 
 
 def runs_as_script(path: Path) -> bool:
@@ -106,7 +108,8 @@ def core_import_graph() -> dict[str, set[str]]:
             if isinstance(node, ast.Import):
                 targets.update(a.name for a in node.names)
             elif isinstance(node, ast.ImportFrom) and node.module:  # `from pkg import module` names a module
-                targets.update(f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in modules else node.module
+                targets.update(f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in modules
+                               else node.module
                                for a in node.names)
         graph[name] = {t for t in targets if t in modules and t != name}
     return graph
@@ -134,7 +137,8 @@ def test_no_import_circle_in_the_core():
 
 def test_the_model_imports_nothing_of_the_rasterizer():
     # `gaussians` is the model; each backend's twins of its maths are chosen in raster/backends.py
-    assert not {m for m in core_import_graph()["ragsplat_core.gaussians"] if m.startswith("ragsplat_core.raster")}
+    assert not {m for m in core_import_graph()["ragsplat_core.gaussians"]
+                if m.startswith("ragsplat_core.raster")}
 
 
 def test_only_the_renderer_imports_bpy():
@@ -159,7 +163,8 @@ def test_data_contract_and_generator_import_without_torch():
 
 
 @pytest.mark.parametrize("pattern", [
-    "def quat_to_rotmat(", "def covariance(", "def psnr(", "def versions(", "def temp_path(", "def atomic_path(",
+    "def quat_to_rotmat(", "def covariance(", "def psnr(", "def versions(", "def temp_path(",
+    "def atomic_path(",
     "def ground_offset(", "math.asin(", "def footprint(cameras", "VARIANTS: dict", "class DatasetError(",
     "class SpecError(", "def extract_surface(", "NODATA = ", "INIT = ", "JOBS = ", "CLEAR_VARIANTS = ",
     '"@@ragsplat ', "def training_bar(", "os.replace(",
@@ -209,7 +214,8 @@ def test_bad_arguments_stop_before_any_work(argv, option, tmp_path, monkeypatch,
 
 def test_outputs_of_the_wrong_kind(tmp_path, capsys):
     (tmp_path / "file").write_text("mine")
-    for argv in (["stability", "--out", str(tmp_path)], ["train", "--data", "d", "--out", str(tmp_path / "file")]):
+    for argv in (["stability", "--out", str(tmp_path)],
+                 ["train", "--data", "d", "--out", str(tmp_path / "file")]):
         with pytest.raises(SystemExit) as done:
             main(argv)
         assert done.value.code == 2 and "--out" in capsys.readouterr().err

@@ -284,7 +284,8 @@ def test_cpu_projection_matches_its_twin(dtype, tol):
     from ragsplat_core.raster.reference.project import project
 
     cam = nadir(width=48, height=36)
-    means, quats, scales, opacities, _ = scene(600, 8, dtype=torch.float64, spread=(6.0, 5.0), size=(0.01, 0.2))
+    means, quats, scales, opacities, _ = scene(600, 8, dtype=torch.float64, spread=(6.0, 5.0),
+                                               size=(0.01, 0.2))
     means[::13, 2] = 3.0  # behind the camera (at 2 m, looking down)
     opacities[::17] = 1e-3  # below 1/255
     covars = covariance(quats, scales)
@@ -292,7 +293,8 @@ def test_cpu_projection_matches_its_twin(dtype, tol):
     weights = [torch.randn(600, k, generator=gen, dtype=torch.float64).to(dtype) for k in (2, 3, 1)]
     res = []
     for fn in (project, project_cpu.project):
-        m, c = means.to(dtype).clone().requires_grad_(), covars.to(dtype).clone().requires_grad_()  # own grads
+        # own grads
+        m, c = means.to(dtype).clone().requires_grad_(), covars.to(dtype).clone().requires_grad_()
         p = fn(m, c, opacities.to(dtype), cam)
         ((p.means2d * weights[0]).sum() + (p.conics * weights[1]).sum() + (p.depths * weights[2][:, 0]).sum()
          ).backward()

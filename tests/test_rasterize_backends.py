@@ -36,7 +36,8 @@ def render_and_grads(backend, params, cam, weights, covars=False):
     means, quats, scales, opacities, colors, bg = params
     if covars:
         cov = covariance(quats, scales).detach().requires_grad_(True)
-        out = rasterize(means, None, None, opacities, colors, cam, bg, covars=cov, backend=backend, median=True)
+        out = rasterize(means, None, None, opacities, colors, cam, bg, covars=cov, backend=backend,
+                        median=True)
         params = [means, cov, opacities, colors, bg]
     else:
         out = rasterize(means, quats, scales, opacities, colors, cam, bg, backend=backend, median=True)

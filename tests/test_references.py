@@ -1,8 +1,8 @@
 """The field's reference methods from first principles: Dietrich's multi-camera correction (nadir gives
 depth x n; two symmetric cameras, whose straight rays meet right above the true point, give the true depth;
 the angle filter), the TIN DEM (a plane exactly, a paraboloid to the linear interpolation's error; nothing
-outside the hull), the tracks' outlier filter (an injected outlier removed, the rest kept), and the start's fill of
-the tracks' gaps (in a hole only, on the filtered TIN)."""
+outside the hull), the tracks' outlier filter (an injected outlier removed, the rest kept), and the start's
+fill of the tracks' gaps (in a hole only, on the filtered TIN)."""
 
 import numpy as np
 import pytest
@@ -17,7 +17,8 @@ N = 1.33
 
 def test_dietrich_at_nadir_is_depth_times_n():
     app = np.array([[1.0, 2.0, -0.6], [0.0, 0.0, 0.5]])  # a submerged point and a dry one
-    got = dietrich(app, np.array([[1.0, 2.0, 30.0]]), np.array([0, 1]), np.array([0, 0]), WaterSurface(0.0, N))
+    got = dietrich(app, np.array([[1.0, 2.0, 30.0]]), np.array([0, 1]), np.array([0, 0]),
+                   WaterSurface(0.0, N))
     np.testing.assert_allclose(got, [[1.0, 2.0, -0.6 * N], [0.0, 0.0, 0.5]], atol=1e-12)
 
 
@@ -105,7 +106,8 @@ def test_gap_nodes_in_chunks_are_the_whole_grids_gaps():
     nodes = np.stack(np.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)  # the whole grid at once
     want = nodes[tree.query(nodes)[0] > 0.2]
     assert 0 < len(want) < len(nodes)
-    for chunk in (1, len(ys), 3 * len(ys) + 1, 10**6):  # a column per chunk (twice), three columns, all at once
+    # a column per chunk (twice), three columns, all at once
+    for chunk in (1, len(ys), 3 * len(ys) + 1, 10**6):
         np.testing.assert_array_equal(gap_nodes(tree, lo, hi, 0.2, chunk), want)
 
 
@@ -119,7 +121,8 @@ def test_gridded_applies_the_outlier_filter_it_is_given():
     kept = gridded(pts, nodes, {"radius": 1.0, "tol": 0.3, "min_neighbours": 8})
     raw = gridded(pts, nodes, None)
     assert np.abs(kept[:, 2] - (-1.0 - 0.1 * kept[:, 0])).max() < 1e-9  # the plane again, the spike gone
-    assert raw[np.argmax(raw[:, 2])][2] == pytest.approx(-1.0 - 0.1 * 2.0 + 2.0)  # unfiltered: the spike stays
+    # unfiltered: the spike stays
+    assert raw[np.argmax(raw[:, 2])][2] == pytest.approx(-1.0 - 0.1 * 2.0 + 2.0)
 
 
 def test_tune_references_rule_prefers_1pct_within_half_a_point_at_3pct():

@@ -32,7 +32,8 @@ def point_from_air_angle(theta_a_deg, d, H, n, azimuth=0.7, cam=CAM, level=WATER
     ta = math.radians(theta_a_deg)
     tw = math.asin(math.sin(ta) / n)
     r = H * math.tan(ta) + d * math.tan(tw)
-    return torch.tensor([[cam[0] + r * math.cos(azimuth), cam[1] + r * math.sin(azimuth), level - d]], dtype=f64)
+    return torch.tensor([[cam[0] + r * math.cos(azimuth), cam[1] + r * math.sin(azimuth), level - d]],
+                        dtype=f64)
 
 
 def test_normal_incidence_does_not_bend():
@@ -115,8 +116,10 @@ def test_above_water_untouched():
     assert torch.equal(q[:2], p[:2]) and not torch.equal(q[2], p[2])
     J = apparent_jacobian(p, CAM, WATER)
     assert torch.equal(J[:2], torch.eye(3, dtype=f64).expand(2, 3, 3))
-    out = refract_gaussians(p, torch.ones(3, 3, dtype=f64), torch.tensor([[1.0, 0, 0, 0]], dtype=f64).expand(3, 4),
-                            torch.full((3,), 0.8, dtype=f64), torch.ones(3, 3, dtype=f64), CAM, WATER, color=True)
+    out = refract_gaussians(p, torch.ones(3, 3, dtype=f64),
+                            torch.tensor([[1.0, 0, 0, 0]], dtype=f64).expand(3, 4),
+                            torch.full((3,), 0.8, dtype=f64), torch.ones(3, 3, dtype=f64), CAM, WATER,
+                            color=True)
     assert torch.equal(out.means[:2], p[:2]) and torch.equal(out.scales[:2], torch.ones(2, 3, dtype=f64))
     assert torch.equal(out.opacities[:2], torch.full((2,), 0.8, dtype=f64))
     assert float(out.opacities[2]) == pytest.approx(0.8 / 1.33**2)
@@ -147,7 +150,8 @@ def test_waterline_is_continuous_in_values_and_gradients(scale):
     level = WATER.level
     eps = 1e-10
     heights = torch.tensor([level + 0.02, level + eps, level, level - eps, level - WATERLINE_BAND / 2,
-                            level - WATERLINE_BAND + eps, level - WATERLINE_BAND - eps, level - 0.5], dtype=f64)
+                            level - WATERLINE_BAND + eps, level - WATERLINE_BAND - eps, level - 0.5],
+                           dtype=f64)
 
     def apparent(z):  # [N] -> (sum of apparent opacity, scale (or covariance) and colour terms per Gaussian)
         p = torch.stack([torch.full_like(z, 3.0), torch.full_like(z, 1.0), z], 1)
@@ -165,7 +169,8 @@ def test_waterline_is_continuous_in_values_and_gradients(scale):
         assert abs(float(v[1] - v[3])) < 1e-9 and abs(float(g[1] - g[3])) < 1e-4  # across the level
         assert abs(float(v[5] - v[6])) < 1e-9 and abs(float(g[5] - g[6])) < 1e-4  # across the band's edge
         assert float(v[2] - v[0]) == 0 or abs(float(v[2] - v[0])) < 1e-12  # at the level = above it
-        assert abs(float(v[4] - v[3])) > 0.02 * abs(float(v[3]))  # the band does change them: the test can fail
+        # the band does change them: the test can fail
+        assert abs(float(v[4] - v[3])) > 0.02 * abs(float(v[3]))
 
 
 def test_waterline_band_is_thin_and_exact_below_it():
@@ -270,7 +275,8 @@ def test_scale_modes_at_nadir_by_hand():
     # At nadir the map is locally diag(1, 1, 1/n): horizontal unchanged, vertical compressed by n.
     n = WATER.n
     p = torch.tensor([[CAM[0], CAM[1], -3.0]], dtype=f64)
-    torch.testing.assert_close(apparent_jacobian(p, CAM, WATER)[0], torch.diag(torch.tensor([1, 1, 1 / n], dtype=f64)))
+    torch.testing.assert_close(apparent_jacobian(p, CAM, WATER)[0],
+                               torch.diag(torch.tensor([1, 1, 1 / n], dtype=f64)))
     args = (p, torch.full((1, 3), 0.2, dtype=f64), torch.tensor([[1.0, 0, 0, 0]], dtype=f64),
             torch.full((1,), 0.5, dtype=f64), torch.ones(1, 3, dtype=f64), CAM, WATER)
     none = refract_gaussians(*args, scale="none")
@@ -293,13 +299,15 @@ def test_scale_modes_off_nadir_match_jacobian():
     iso = refract_gaussians(*args, scale="isotropic")
     det = refract_gaussians(*args, scale="determinant")
     ani = refract_gaussians(*args, scale="anisotropic")
-    torch.testing.assert_close(iso.scales, scales * torch.linalg.norm(J, dim=1).prod(-1, keepdim=True) ** (1 / 3))
+    torch.testing.assert_close(iso.scales,
+                               scales * torch.linalg.norm(J, dim=1).prod(-1, keepdim=True) ** (1 / 3))
     torch.testing.assert_close(det.scales, scales * torch.linalg.det(J).abs()[:, None] ** (1 / 3))
     torch.testing.assert_close(ani.covars, J @ covariance(quats, scales) @ J.transpose(1, 2))
     torch.testing.assert_close(ani.jacobians, J)  # the surfels' tangent map
     bare = refract_gaussians(*args, scale="anisotropic", covariances=False)  # what surfels ask for
     # bit-identical: the same operations give J and the means whether or not covariances are asked for
-    assert bare.covars is None and torch.equal(bare.jacobians, ani.jacobians) and torch.equal(bare.means, ani.means)
+    assert (bare.covars is None and torch.equal(bare.jacobians, ani.jacobians)
+            and torch.equal(bare.means, ani.means))
     assert iso.jacobians is None and det.jacobians is None
     # The paper's observation: the determinant shrinks more than the geometric mean of axis stretches.
     assert bool((det.scales <= iso.scales + 1e-12).all())
@@ -326,7 +334,8 @@ def test_water_rays_bend_by_snell_and_meet_at_the_true_point():
     from ragsplat_core.camera import Camera
     from ragsplat_core.snell import closest_points, water_rays
 
-    cams = [Camera.look_at([x, y, 4.5], [0.0, 0.0, -1.0], 64, 48, 60.0) for x, y in ((0, 0), (2, 0.5), (-1.5, 2))]
+    cams = [Camera.look_at([x, y, 4.5], [0.0, 0.0, -1.0], 64, 48, 60.0)
+            for x, y in ((0, 0), (2, 0.5), (-1.5, 2))]
     origin, d = water_rays(cams[0], np.array([[32.0, 24.0]]), WATER)  # the principal point: straight down
     np.testing.assert_allclose(d, [[0, 0, -1]], atol=1e-12)
     np.testing.assert_allclose(origin[0, 2], WATER.level)
@@ -348,7 +357,8 @@ def test_water_rays_bend_by_snell_and_meet_at_the_true_point():
 
 @pytest.mark.parametrize("flags", [{"scale": "isotropic", "color": True},  # `full` (+ colour)
                                    {"scale": "anisotropic", "covariances": False},  # `2dgs+full`'s tangents
-                                   {"scale": "anisotropic", "covariances": False,  # and the water's attenuation
+                                   # and the water's attenuation
+                                   {"scale": "anisotropic", "covariances": False,
                                     "attenuation": torch.tensor([0.4, 0.1, 0.05])}])
 def test_compiled_transform_matches_eager_in_values_and_gradients(flags):
     # torch.compile fuses the ops and may reorder their arithmetic: the same values to float32 round-off, not
@@ -358,14 +368,15 @@ def test_compiled_transform_matches_eager_in_values_and_gradients(flags):
     means = random_points(n, seed=3, depth=(-0.5, 4.0), radius=8.0).float()
     means[:20, 2] = WATER.level - torch.rand(20, generator=g) * 0.01  # the waterline band
     inputs = [means, torch.rand(n, 3, generator=g) * 0.05 + 0.01,
-              torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=-1), torch.rand(n, generator=g),
-              torch.rand(n, 3, generator=g)]
+              torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=-1),
+              torch.rand(n, generator=g), torch.rand(n, 3, generator=g)]
     cam = torch.tensor([2.0, -1.0, 6.0])
     outs = {}
     for name, transform in (("eager", refract_gaussians), ("compiled", compiled_refract_gaussians())):
         leaves = [t.clone().requires_grad_(True) for t in inputs]
         a = transform(*leaves, cam, WATER, **flags)
-        values = [t for t in (a.means, a.scales, a.opacities, a.colors, a.covars, a.jacobians) if t is not None]
+        values = [t for t in (a.means, a.scales, a.opacities, a.colors, a.covars, a.jacobians)
+                  if t is not None]
         # a fixed random weighting of every output, so each output's gradient reaches the inputs
         loss = sum((v * torch.randn(v.shape, generator=torch.Generator().manual_seed(k))).sum()
                    for k, v in enumerate(values))

@@ -1,6 +1,6 @@
-"""`ragsplat render` and `ragsplat eval` on a finished run, without retraining: renders equal to the trainer's,
-files and sizes, z-depth as EXR; the scores equal to the ablation's row of the same run and to the library
-functions called directly; one-line errors."""
+"""`ragsplat render` and `ragsplat eval` on a finished run, without retraining: renders equal to the
+trainer's, files and sizes, z-depth as EXR; the scores equal to the ablation's row of the same run and to the
+library functions called directly; one-line errors."""
 
 import json
 import math
@@ -23,9 +23,10 @@ from ragsplat_core.dataset import layout
 from ragsplat_core.dataset.load import load_dataset
 from ragsplat_core.export import load_model, load_run, write_render
 
-KEYS = {"run", "data", "dataset_fingerprint", "dataset_seed", "variant", "preset", "seed", "harness_preset", "water",
-        "max_depth_m", "truth_water", "lpips", "lpips_network", "versions", "code_digest", "num_gaussians", "appearance",
-        "geometry", "geometry_fused", "references", "uses_ground_truth"}
+KEYS = {"run", "data", "dataset_fingerprint", "dataset_seed", "variant", "preset", "seed", "harness_preset",
+        "water",
+        "max_depth_m", "truth_water", "lpips", "lpips_network", "versions", "code_digest", "num_gaussians",
+        "appearance", "geometry", "geometry_fused", "references", "uses_ground_truth"}
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +37,8 @@ def ablated(evaluable_dataset, tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         tiny_smoke(mp, out)
         assert main(["ablation", "--data", str(evaluable_dataset), "--out", str(out), "--preset", "smoke",
-                     "--variants", "full", "--seeds", "0", "--init", "grid", "--jobs", "1", "--no-download"]) == 0
+                     "--variants", "full", "--seeds", "0", "--init", "grid", "--jobs", "1",
+                     "--no-download"]) == 0
     return out
 
 
@@ -57,8 +59,10 @@ def test_renders_are_the_trainers(run, evaluable_dataset):
     assert trainer.step == cfg.iterations and model.flags == trainer.flags and model.water == trainer.water
     for view in ds.views[::3]:
         for interface in (True, False):
-            for ours, theirs in zip(model.render(view.camera, interface), trainer.render(view.camera, interface)):
-                assert torch.equal(ours, theirs)  # the same function (render_splats), same inputs, one process
+            for ours, theirs in zip(model.render(view.camera, interface),
+                                    trainer.render(view.camera, interface)):
+                # the same function (render_splats), same inputs, one process
+                assert torch.equal(ours, theirs)
 
 
 def test_render_each_kind(run, tmp_path, capsys):
@@ -66,7 +70,8 @@ def test_render_each_kind(run, tmp_path, capsys):
     view = ds.test[0]
     paths = {}
     for kind in ("wet", "dry", "depth"):
-        assert main(["render", str(run), "--view", view.name, f"--{kind}", "--out", str(tmp_path / kind)]) == 0
+        assert (main(["render", str(run), "--view", view.name, f"--{kind}", "--out", str(tmp_path / kind)])
+                == 0)
         paths[kind] = tmp_path / kind / f"{view.name}.png"
         assert str(tmp_path / kind) in capsys.readouterr().out
     shape = (view.camera.height, view.camera.width, 3)
@@ -80,12 +85,14 @@ def test_render_each_kind(run, tmp_path, capsys):
     assert exr.shape == shape[:2] and exr.dtype == np.float32
     opaque = alpha[..., 0].numpy() >= 0.5
     assert opaque.sum() > 10
-    np.testing.assert_array_equal(exr[opaque], depth[..., 0].numpy()[opaque])  # same render; float32 EXR: lossless
+    # same render; float32 EXR: lossless
+    np.testing.assert_array_equal(exr[opaque], depth[..., 0].numpy()[opaque])
     # cameras 2 m above the water, bed 1 m under it: z-depth between 2 and 5 m where the bed is opaque
     assert np.isfinite(exr[opaque]).all() and 2 < exr[opaque].min() and exr[opaque].max() < 5
     # the default place: RUN/renders/KIND
     assert main(["render", str(run), "--view", view.name]) == 0
-    assert (layout.read_png(run / "renders" / "wet" / f"{view.name}.png") == wet).all()  # same render, same PNG
+    # same render, same PNG
+    assert (layout.read_png(run / "renders" / "wet" / f"{view.name}.png") == wet).all()
 
 
 def test_depth_where_nothing_is_drawn(run, tmp_path):
@@ -98,19 +105,22 @@ def test_depth_where_nothing_is_drawn(run, tmp_path):
     assert empty.sum() > 20 and drawn.sum() > 20
     exr, colours = layout.read_depth(tmp_path / "0000.exr"), layout.read_png(tmp_path / "0000.png")
     assert (exr[empty] == layout.NO_HIT).all() and (colours[empty] == 0).all()  # as the dataset's gt/depth
-    np.testing.assert_array_equal(exr[drawn], depth[..., 0].numpy()[drawn])  # same render; float32 EXR: lossless
+    # same render; float32 EXR: lossless
+    np.testing.assert_array_equal(exr[drawn], depth[..., 0].numpy()[drawn])
     assert (colours[drawn].max(1) > 0).all()
 
 
 def test_render_all_views(run, tmp_path, capsys):
-    assert main(["render", str(run), "--view", "all", "--split", "test", "--dry", "--out", str(tmp_path / "t")]) == 0
+    assert (main(["render", str(run), "--view", "all", "--split", "test", "--dry", "--out",
+                  str(tmp_path / "t")]) == 0)
     assert capsys.readouterr().out.strip() == f"wrote 2 files for 2 views to {tmp_path / 't'}"
     assert main(["render", str(run), "--view", "all", "--depth", "--out", str(tmp_path / "a")]) == 0
     names = sorted(p.name for p in (tmp_path / "a").iterdir())
     assert names == [".ragsplat"] + sorted(f"{i:04d}.{ext}" for i in range(7) for ext in ("exr", "png"))
 
 
-def test_eval_matches_the_ablation_and_the_library(run, ablated, evaluable_dataset, tmp_path, monkeypatch, capsys):
+def test_eval_matches_the_ablation_and_the_library(run, ablated, evaluable_dataset, tmp_path,
+                                                   monkeypatch, capsys):
     monkeypatch.setattr(metrics, "default_vgg16_path", lambda: tmp_path / "absent.pth")
     out = tmp_path / "scores.json"
     assert main(["eval", str(run), "--out", str(out), "--no-download"]) == 0
@@ -121,23 +131,26 @@ def test_eval_matches_the_ablation_and_the_library(run, ablated, evaluable_datas
         assert text in printed
     res = json.loads(out.read_text())
     assert set(res) == KEYS and res["variant"] == "full" and res["seed"] == 0 and res["preset"] == "smoke"
-    assert res["water"] == res["truth_water"] == {"level": 0.0, "n": 1.33} and res["lpips"]["available"] is False
+    assert (res["water"] == res["truth_water"] == {"level": 0.0, "n": 1.33}
+            and res["lpips"]["available"] is False)
     row = json.loads((ablated / "full" / "seed0" / "row.json").read_text())
     # bit-identical: the same library functions on the same run (its PLY is float32, lossless) in one process;
     # JSON keeps a float exactly
     assert res["geometry"] == row["geometry"] and res["appearance"] == row["appearance"]
     assert res["geometry_fused"] == row["geometry_fused"] and res["geometry_fused"]["fusion"]["views"] == 5
-    assert res["references"]["init"] == json.loads((ablated / "init" / "seed0" / "row.json").read_text())["geometry"]
+    assert (res["references"]["init"]
+            == json.loads((ablated / "init" / "seed0" / "row.json").read_text())["geometry"])
     assert res["references"]["oracle plane"] == \
         json.loads((ablated / "oracle-plane" / "row.json").read_text())["geometry"]
     # the library, called directly
     gaussians, _, seed = load_run(run)
     ds = load_dataset(evaluable_dataset, splits=(), ground_truth=True)
     truth, ds_gsd = ds.ground_truth, ds.gsd
-    geometry, _ = evaluate_geometry(gaussians, truth, ablation.extract_config("smoke", len(truth.nodes), seed, ds_gsd))
+    geometry, _ = evaluate_geometry(gaussians, truth,
+                                    ablation.extract_config("smoke", len(truth.nodes), seed, ds_gsd))
     assert res["geometry"] == json.loads(json.dumps(jsonable(geometry)))
-    assert res["references"]["oracle plane"] == json.loads(json.dumps(jsonable(score_grid(oracle_grids(truth)["oracle plane"],
-                                                                                            truth))))
+    assert res["references"]["oracle plane"] == json.loads(
+        json.dumps(jsonable(score_grid(oracle_grids(truth)["oracle plane"], truth))))
     assert main(["eval", str(run), "--no-download"]) == 0  # the default place: RUN/eval.json
     assert json.loads((run / "eval.json").read_text())["geometry"] == res["geometry"]
     # the volume bed's culls changed: recorded with its scores, and the same as the library's
@@ -177,7 +190,8 @@ def test_eval_needs_ground_truth(tmp_path, capsys):
     cams = ring_cameras(4, 16, 1.5, 0.8, target=(0, 0, -1))
     render_dataset(tmp_path / "data", bed_scene(200, 1.0, 1.0, seed=2), cams, WATER, 1,
                    {"xmin": -0.5, "xmax": 0.5, "ymin": -0.5, "ymax": 0.5})
-    assert main(["train", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "run"), "--preset", "smoke",
+    assert main(["train", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "run"),
+                 "--preset", "smoke",
                  "--iterations", "2", "--init-depth", "1.0", "--backend", "torch", "--no-progress"]) == 0
     capsys.readouterr()
     assert main(["eval", str(tmp_path / "run"), "--no-download"]) == 2
@@ -195,8 +209,10 @@ def test_eval_scores_a_dem_against_the_truth(run, evaluable_dataset, tmp_path, m
     monkeypatch.setattr(metrics, "default_vgg16_path", lambda: tmp_path / "absent.pth")
     grid = load_dataset(evaluable_dataset, splits=(), ground_truth=True).ground_truth.grid
     for name, dz in (("exact", 0.0), ("raised", 0.15)):
-        layout.write_raster(tmp_path / f"{name}.tif", grid[:, :2], [(grid[:, 2] + dz, "bed")], layout.GT_GRID_STEP)
-        assert main(["eval", str(run), "--truth", str(evaluable_dataset), "--dem", str(tmp_path / f"{name}.tif"),
+        layout.write_raster(tmp_path / f"{name}.tif", grid[:, :2], [(grid[:, 2] + dz, "bed")],
+                            layout.GT_GRID_STEP)
+        assert main(["eval", str(run), "--truth", str(evaluable_dataset), "--dem",
+                     str(tmp_path / f"{name}.tif"),
                      "--out", str(tmp_path / f"{name}.json"), "--no-download"]) == 0
         dem = json.loads((tmp_path / f"{name}.json").read_text())["dem"]
         assert dem["survey"]["wet"]["n"] == len(grid) and (tmp_path / f"{name}_error.png").is_file()

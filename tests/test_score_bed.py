@@ -105,7 +105,8 @@ def test_an_exported_dem_scores_as_its_grid(evaluable_dataset, tmp_path, capsys)
 
 def test_a_depth_band_scores_as_the_elevation_band(evaluable_dataset, tmp_path):
     truth = truth_of(evaluable_dataset)
-    write_dem(tmp_path / "bed.tif", Bed(truth.grid + [0, 0, UP], 0.05, WATER, Georef()))  # band 2: the depth below the water
+    # band 2: the depth below the water
+    write_dem(tmp_path / "bed.tif", Bed(truth.grid + [0, 0, UP], 0.05, WATER, Georef()))
     elevation = score(tmp_path / "bed.tif", evaluable_dataset)
     depth = score(tmp_path / "bed.tif", evaluable_dataset, "--band", "2", "--kind", "depth")
     assert_same(depth["geometry"], elevation["geometry"], atol=1e-6)
@@ -236,5 +237,6 @@ def test_a_dem_off_the_truth_s_lattice_keeps_its_cells_at_a_hole_s_edge():
                    [0.5, 3.5]])  # on a centre: that cell
     z, read = dem_at(values, tf, xy)
     assert read.tolist() == [True, False, True, True]
-    assert z[0] == pytest.approx(4 * (3.5 - 1.8) + (2.8 - 0.5))  # the plane 4 r + c at centres r = 3.5 - y, c = x - 0.5
+    # the plane 4 r + c at centres r = 3.5 - y, c = x - 0.5
+    assert z[0] == pytest.approx(4 * (3.5 - 1.8) + (2.8 - 0.5))
     assert z[2] == values[1, 2] and z[3] == values[0, 0]

@@ -45,15 +45,17 @@ def test_jobs_triangulate_before_the_tasks_start(evaluable_dataset, tmp_path, mo
 
     rows = tmp_path / "rows.txt"  # the task runs on a copy of this function: it says what it did in a file
 
-    def fails(job, variant, seed):  # a row's task that fails at once: the command stops after the shared inputs
+    # a row's task that fails at once: the command stops after the shared inputs
+    def fails(job, variant, seed):
         with open(rows, "a") as f:
             f.write("row\n")
         raise RuntimeError("no")
 
     monkeypatch.setattr(ablation, "train_row", fails)
     with LocalCluster(n_workers=1, processes=False, dashboard_address=None) as cluster:
-        argv = ["ablation", "--data", str(evaluable_dataset), "--out", str(tmp_path / "runs"), "--preset", "smoke",
-                "--variants", "3dgs", "--seeds", "0", "--no-download", "--scheduler", cluster.scheduler_address]
+        argv = ["ablation", "--data", str(evaluable_dataset), "--out", str(tmp_path / "runs"),
+                "--preset", "smoke", "--variants", "3dgs", "--seeds", "0", "--no-download", "--scheduler",
+                cluster.scheduler_address]
         assert main(argv) == 2  # the default start: the refracted tracks
         assert order == ["tracks"] and rows.read_text() == "row\n"
         assert "training 3dgs seed 0 failed: RuntimeError: no" in capsys.readouterr().err

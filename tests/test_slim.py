@@ -100,7 +100,7 @@ except DatasetError as err:
 """
     tif = tmp_path / "bed.tif"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(package.parent), str(ROOT)])}
-    done = subprocess.run([sys.executable, "-c", script, str(package), str(tif)], env=env, capture_output=True,
-                          text=True, cwd=tmp_path, check=False)
+    done = subprocess.run([sys.executable, "-c", script, str(package), str(tif)], env=env,
+                          capture_output=True, text=True, cwd=tmp_path, check=False)
     assert done.returncode == 0, done.stderr
     assert tif.stat().st_size == 0 and "refused:" in done.stdout and "reads no raster" in done.stdout

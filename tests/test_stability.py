@@ -7,8 +7,10 @@ from ragsplat_core.bench.stability import REGIMES, StabilityConfig, reference, r
 
 
 def test_sweep_meets_targets_in_every_regime():
-    results = run_sweep(StabilityConfig(cases_per_regime=3000, jacobian_cameras=4, jacobian_points=64, seed=1))
-    failed = [(dt, name) for dt, regimes in results["dtypes"].items() for name, r in regimes.items() if not r["passed"]]
+    results = run_sweep(StabilityConfig(cases_per_regime=3000, jacobian_cameras=4, jacobian_points=64,
+                                        seed=1))
+    failed = [(dt, name) for dt, regimes in results["dtypes"].items() for name, r in regimes.items()
+              if not r["passed"]]
     assert not failed, failed
     assert set(results["dtypes"]["float64"]) == set(REGIMES)
 

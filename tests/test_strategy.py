@@ -20,7 +20,8 @@ def _setup(n_side=4, seed=0):
     with torch.no_grad():
         for p in params.values():
             p.add_(0.01 * torch.randn_like(p))
-    opts = {k: torch.optim.Adam([{"params": [p], "lr": 1e-3, "name": k}], eps=1e-15) for k, p in params.items()}
+    opts = {k: torch.optim.Adam([{"params": [p], "lr": 1e-3, "name": k}], eps=1e-15)
+            for k, p in params.items()}
     _step(params, opts)  # populate Adam moments
     return params, opts
 
@@ -142,8 +143,8 @@ def test_strategy_grows_and_prunes():
 
 def test_strategy_cap_and_reset_and_stop():
     params, opts = _setup()
-    cfg = DensifyConfig(refine_start_iter=0, refine_every=1, reset_every=3, refine_stop_iter=5, grow_grad2d=0.0,
-                        grow_scale3d=100.0, prune_opa=0.001, max_gaussians=20)
+    cfg = DensifyConfig(refine_start_iter=0, refine_every=1, reset_every=3, refine_stop_iter=5,
+                        grow_grad2d=0.0, grow_scale3d=100.0, prune_opa=0.001, max_gaussians=20)
     strat = DefaultStrategy(cfg)
     state = strat.initialize_state()
     grads = torch.rand(16, 2, dtype=torch.float64) + 0.1
@@ -152,7 +153,8 @@ def test_strategy_cap_and_reset_and_stop():
     out = strat.step_post_backward(params, opts, state, 3, _info(20, torch.ones(20, 2, dtype=torch.float64)))
     assert out["cloned"] == 0 and out["reset"] == 1
     assert float(torch.sigmoid(params["opacities"].detach()).max()) <= 0.002 + 1e-12
-    assert strat.step_post_backward(params, opts, state, 5, _info(20, torch.ones(20, 2, dtype=torch.float64))) == {}
+    assert (strat.step_post_backward(params, opts, state, 5,
+                                     _info(20, torch.ones(20, 2, dtype=torch.float64))) == {})
 
 
 def test_never_prunes_everything():
@@ -168,7 +170,8 @@ def test_never_prunes_everything():
 
 def test_schedule_scaling():
     cfg = DensifyConfig().scaled(3000)
-    assert (cfg.refine_start_iter, cfg.refine_stop_iter, cfg.reset_every, cfg.refine_every) == (50, 1500, 300, 10)
+    assert ((cfg.refine_start_iter, cfg.refine_stop_iter, cfg.reset_every, cfg.refine_every)
+            == (50, 1500, 300, 10))
     assert DensifyConfig().scaled(30_000) == DensifyConfig()
     assert DensifyConfig().scaled(300).refine_every == 10
 

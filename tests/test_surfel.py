@@ -423,7 +423,8 @@ def test_ray_transforms_meet_the_pixel_rays_where_the_kernels_do():
     length s, has u = dx z / (fx s) at dx pixels from its centre."""
     from ragsplat_core.raster.reference.surfel_project import project_surfels
 
-    def kernel_uv(T, px, py):  # gsplat 1.5 RasterizeToPixels2DGSFwd.cu: h_u = px T_2 - T_0, h_v = py T_2 - T_1
+    # gsplat 1.5 RasterizeToPixels2DGSFwd.cu: h_u = px T_2 - T_0, h_v = py T_2 - T_1
+    def kernel_uv(T, px, py):
         h = torch.linalg.cross(px[..., None] * T[:, 2] - T[:, 0], py[..., None] * T[:, 2] - T[:, 1])
         return h[..., 0] / h[..., 2], h[..., 1] / h[..., 2]
 
@@ -442,11 +443,13 @@ def test_ray_transforms_meet_the_pixel_rays_where_the_kernels_do():
         want = torch.stack([(r[:, 0] * dx + r[:, 1] * dy) / q2, (r[:, 2] * dx + r[:, 3] * dy) / q2])
         got = torch.stack(kernel_uv(proj.transforms, px, py))  # [2, 500, N]
         ok = proj.visible & (q2.abs() > 1e-3 * r[:, 6].abs())  # rays that meet the plane in front
-        assert torch.allclose(got[:, ok], want[:, ok], rtol=1e-9, atol=1e-9 * float(want[:, ok].detach().abs().max()))
+        assert torch.allclose(got[:, ok], want[:, ok], rtol=1e-9,
+                              atol=1e-9 * float(want[:, ok].detach().abs().max()))
         # and the same gradients: to the surfel, and to means2d (the translation of its image, at fixed rays)
         w = torch.rand(2, *ok.shape, generator=g, dtype=torch.float64) * ok
         inputs = (means, tangents, proj.means2d)
-        for d_got, d_want in zip(torch.autograd.grad((torch.where(ok, got, 0) * w).sum(), inputs, retain_graph=True),
+        for d_got, d_want in zip(torch.autograd.grad((torch.where(ok, got, 0) * w).sum(), inputs,
+                                                     retain_graph=True),
                                  torch.autograd.grad((torch.where(ok, want, 0) * w).sum(), inputs)):
             assert torch.allclose(d_got, d_want, rtol=1e-7, atol=1e-9 * float(d_want.abs().max()))
     cam = nadir(40, 30, height_m=2.0)
@@ -519,8 +522,8 @@ def test_depth_normals_of_a_tilted_plane():
     """The normal from depth of a plane z = 0.3 x - 2 seen obliquely is the plane's unit normal, turned
     towards the camera, away from the border."""
     cam = Camera.look_at([0.5, -1.0, 1.5], [0.0, 0.0, -2.0], 24, 20, 60.0)
-    v, u = torch.meshgrid(torch.arange(20, dtype=torch.float64) + 0.5, torch.arange(24, dtype=torch.float64) + 0.5,
-                          indexing="ij")
+    v, u = torch.meshgrid(torch.arange(20, dtype=torch.float64) + 0.5,
+                          torch.arange(24, dtype=torch.float64) + 0.5, indexing="ij")
     # ray-plane intersection per pixel: world ray C + t d, with d from the unprojection at z-depth 1
     C = torch.as_tensor(cam.camera_center)
     d = cam.unproject(torch.stack([u, v], -1), torch.ones_like(u)) - C  # [H, W, 3], camera z-depth 1

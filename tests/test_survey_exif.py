@@ -44,7 +44,8 @@ def test_gps_and_dji_xmp_round_trip(tmp_path):
            "RtkStdLat": 0.014, "RtkStdHgt": 0.023}
     layout.write_jpeg(path, IMAGE, 40.0, gps=(-33.912345678, -70.123456789, 241.3371), xmp=xmp)
     p = exif.read_photo(path)
-    assert p.name == "DJI_0001.JPG" and p.source == "EXIF GPS" and p.altitude_source == "DJI XMP AbsoluteAltitude"
+    assert (p.name == "DJI_0001.JPG" and p.source == "EXIF GPS"
+            and p.altitude_source == "DJI XMP AbsoluteAltitude")
     assert abs(p.lat + 33.912345678) < 1e-9 and abs(p.lon + 70.123456789) < 1e-9  # 1e-6 arc seconds
     assert p.altitude == pytest.approx(241.337, abs=1e-6) and p.relative_altitude == 38.5
     assert p.rtk_flag == 50 and p.rtk_fixed and p.std_horizontal == 0.014 and p.std_vertical == 0.023
@@ -62,12 +63,15 @@ def test_exif_gps_alone_and_xmp_as_elements(tmp_path):
     layout.write_jpeg(path, IMAGE, 40.0, gps=(46.5, 13.25, -3.25))
     p = exif.read_photo(path)
     assert (p.lat, p.lon, p.altitude) == (pytest.approx(46.5), pytest.approx(13.25), pytest.approx(-3.25))
-    assert p.altitude_source == "EXIF GPSAltitude" and p.rtk_flag is None and not p.rtk_fixed and p.gimbal is None
-    packet = (b'<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
-              b'<rdf:Description xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/"><drone-dji:RtkFlag>34'
-              b'</drone-dji:RtkFlag><drone-dji:GpsLatitude>+1.5</drone-dji:GpsLatitude></rdf:Description>'
+    assert (p.altitude_source == "EXIF GPSAltitude" and p.rtk_flag is None and not p.rtk_fixed
+            and p.gimbal is None)
+    packet = (b'<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF '
+              b'xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#"><rdf:Description '
+              b'xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/"><drone-dji:RtkFlag>34</drone-dji:RtkFlag>'
+              b'<drone-dji:GpsLatitude>+1.5</drone-dji:GpsLatitude></rdf:Description>'
               b'</rdf:RDF></x:xmpmeta>')
-    assert exif.dji_tags(exif.xmp_packet(b"junk" + packet + b"junk")) == {"RtkFlag": "34", "GpsLatitude": "+1.5"}
+    assert (exif.dji_tags(exif.xmp_packet(b"junk" + packet + b"junk"))
+            == {"RtkFlag": "34", "GpsLatitude": "+1.5"})
     assert exif.dji_tags(b"<x:xmpmeta not xml") == {}
 
 
@@ -146,7 +150,8 @@ def test_positions_in_the_zone_of_their_mean_or_the_chosen_crs():
 def test_the_noise_follows_the_source():
     fixed = exif.PhotoPosition("f", 46.0, 13.0, 1.0, "EXIF GPS", "x", rtk_flag=50, std_horizontal=0.012,
                                std_vertical=0.001)
-    s = exif.sigmas([fixed, photo("r", 46.0, 13.0, 50), photo("g", 46.0, 13.0), photo("fl", 46.0, 13.0, 34)], None)
+    s = exif.sigmas([fixed, photo("r", 46.0, 13.0, 50), photo("g", 46.0, 13.0), photo("fl", 46.0, 13.0, 34)],
+                    None)
     np.testing.assert_allclose(s, [[0.012, exif.MIN_STD], [0.02, 0.03], [2.0, 3.0], [2.0, 3.0]])
     np.testing.assert_allclose(exif.sigmas([fixed], (0.05, 0.06)), [[0.05, 0.06]])  # --rtk-sigma wins
 
@@ -231,7 +236,8 @@ def test_the_generator_geotags_its_photos(geotagged):
         if tolerance:  # the positions.csv centres, to the millimetre
             np.testing.assert_allclose(got, [rtk[p.name] for p in photos], atol=tolerance)
             assert all(p.rtk_fixed and p.std_vertical == 0.008 for p in photos)
-            assert photos[0].relative_altitude == pytest.approx(4.0 - 1.0, abs=0.05)  # above the take-off point
+            # above the take-off point
+            assert photos[0].relative_altitude == pytest.approx(4.0 - 1.0, abs=0.05)
         else:  # each line off by its bias, plus scatter
             assert all(p.rtk_flag is None for p in photos)
             off = np.linalg.norm((got - truth)[:, :2], axis=1)
@@ -260,23 +266,26 @@ def test_the_generator_geotags_its_photos(geotagged):
 
 
 def survey_args(root, folder, out, *extra):
-    level = json.loads((root / layout.SURVEY_RECORD).read_text())["geo"]["origin_metric"][2]  # z = 0 in heights
-    return ["survey", str(root / folder), "--water-level", str(level), "--out", str(out), "--stop-after", "georef",
-            "--no-progress", *extra]
+    # z = 0 in heights
+    level = json.loads((root / layout.SURVEY_RECORD).read_text())["geo"]["origin_metric"][2]
+    return ["survey", str(root / folder), "--water-level", str(level), "--out", str(out), "--stop-after",
+            "georef", "--no-progress", *extra]
 
 
 def test_photos_alone_with_rtk_positions(geotagged, tmp_path, capsys):
     root, cams = geotagged
     assert main(survey_args(root, layout.SURVEY_IMAGES, tmp_path / "run")) == 0
     err = capsys.readouterr().err
-    assert ("positions from the photos: 18 of 18 have GPS (18 RTK fixed, 0 consumer GPS), in EPSG:32633, WGS 84 / "
-            "UTM zone 33N; heights as the photos give them (DJI XMP AbsoluteAltitude)") in err
+    assert ("positions from the photos: 18 of 18 have GPS (18 RTK fixed, 0 consumer GPS), in EPSG:32633, WGS "
+            "84 / UTM zone 33N; heights as the photos give them (DJI XMP AbsoluteAltitude)") in err
     report = json.loads((tmp_path / "run" / "georef.json").read_text())
-    assert report["inliers"] == report["count"] == 18 and report["rms_m"] < 0.05  # the pinhole SfM's, through water
+    # the pinhole SfM's, through water
+    assert report["inliers"] == report["count"] == 18 and report["rms_m"] < 0.05
     assert report["positions"]["crs"] == "EPSG:32633" and "EXIF GPS" in report["positions"]["source"]
     assert report["noise"]["rtk_fixed"]["count"] == 18 and "consumer_gps" not in report["noise"]
     assert "scale_uncertainty" not in report and "scale comes from consumer GPS" not in err
-    assert report["noise"]["rtk_fixed"]["sigma_m_median"] == [0.005, 0.008] and report["noise"]["threshold_m"] == 0.2
+    assert (report["noise"]["rtk_fixed"]["sigma_m_median"] == [0.005, 0.008]
+            and report["noise"]["threshold_m"] == 0.2)
     assert set(report["positions"]["photos"]) == {f"{i:04d}.jpg" for i in range(18)}
     # the model's cameras where the truth is, in UTM
     shift = np.array(json.loads((root / layout.SURVEY_RECORD).read_text())["geo"]["origin_metric"])
@@ -298,7 +307,8 @@ def test_photos_alone_with_consumer_gps_keep_every_camera(geotagged, tmp_path, c
     # the scale is the GPS's: the user is told how far depths can be off, and that it covers the frame's
     # scale error (a similarity of the model's camera centres to the true ones)
     stated = report["scale_uncertainty"]
-    assert stated["relative"] == pytest.approx(report["rms_m"] / stated["extent_m"]) and stated["extent_m"] > 2
+    assert (stated["relative"] == pytest.approx(report["rms_m"] / stated["extent_m"])
+            and stated["extent_m"] > 2)
     assert f"may be off by up to about {100 * stated['relative']:.0f} %" in err and "--gcp" in err
     import pycolmap
 
@@ -325,7 +335,8 @@ def test_the_adjustment_holds_each_camera_to_its_own_accuracy():
     from ragsplat_core.survey import bundle
 
     rng = np.random.default_rng(0)
-    cams = [Camera.look_at([x, y, 5.0], [x, y, 0.0], 120, 90, 60.0) for x in (-1.0, 0.0, 1.0) for y in (-0.5, 0.5)]
+    cams = [Camera.look_at([x, y, 5.0], [x, y, 0.0], 120, 90, 60.0) for x in (-1.0, 0.0, 1.0)
+            for y in (-0.5, 0.5)]
     R = torch.tensor(np.array([c.R for c in cams]))
     C = torch.tensor(np.array([c.camera_center for c in cams]))
     K = torch.tensor([[c.fx, c.fy, c.cx, c.cy] for c in cams])
@@ -336,7 +347,8 @@ def test_the_adjustment_holds_each_camera_to_its_own_accuracy():
     point, image, pixels = point[inside], image[inside], pixels[inside]
     prior = C.clone()
     prior[0, 0] += 0.5  # one camera's GPS 0.5 m off
-    same = bundle.adjust(R, C, K, P, point, image, pixels, None, prior_C=prior, prior_sigma=(0.02, 0.02, 0.03))
+    same = bundle.adjust(R, C, K, P, point, image, pixels, None, prior_C=prior,
+                         prior_sigma=(0.02, 0.02, 0.03))
     rows = bundle.adjust(R, C, K, P, point, image, pixels, None, prior_C=prior,
                          prior_sigma=torch.tensor([[0.02, 0.02, 0.03]] * len(cams)))
     torch.testing.assert_close(rows.C, same.C)

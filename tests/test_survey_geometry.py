@@ -44,7 +44,8 @@ def cameras(tilts=(0, 25), size=(400, 300)):
         for y in np.linspace(-8, 8, 3):
             for tilt in tilts:
                 eye = np.array([x, y, 30.0])
-                out.append(Camera.look_at(eye, eye + [0, 30 * math.tan(math.radians(tilt)), -30], *size, 70.0))
+                out.append(Camera.look_at(eye, eye + [0, 30 * math.tan(math.radians(tilt)), -30], *size,
+                                          70.0))
     return out
 
 
@@ -85,7 +86,8 @@ def scene(seed=0, points=1500, noise_px=0.3):
     pts = np.column_stack([xy, 0.8 - 3.0 * np.exp(-(xy[:, 1] / 8) ** 2)])
     obs = []
     for i, c in enumerate(cams):
-        uv, depth = c.project(apparent_points(torch.tensor(pts), torch.tensor(c.camera_center), WATER).numpy())
+        uv, depth = c.project(apparent_points(torch.tensor(pts), torch.tensor(c.camera_center),
+                                              WATER).numpy())
         seen = (depth > 0) & (uv[:, 0] > 0) & (uv[:, 0] < c.width) & (uv[:, 1] > 0) & (uv[:, 1] < c.height)
         obs += [(p, i, *uv[p]) for p in np.nonzero(seen)[0]]
     obs = np.array(obs)
@@ -108,8 +110,8 @@ def test_jacobians_match_finite_differences():
     m = slice(0, 400)
     turn = torch.zeros(400, 3, dtype=torch.float64, requires_grad=True)
     Cm, X = C[image[m]].clone().requires_grad_(True), pts[point[m]].clone().requires_grad_(True)
-    uv = bundle.project(R[image[m]] @ (torch.eye(3, dtype=torch.float64) + bundle.skew(turn)), Cm, K[image[m]], X,
-                        WATER)
+    uv = bundle.project(R[image[m]] @ (torch.eye(3, dtype=torch.float64) + bundle.skew(turn)), Cm,
+                        K[image[m]], X, WATER)
     grads = torch.autograd.grad(uv[:, 0].sum(), (turn, Cm, X))
     h = 1e-6
     for which, (g, base) in enumerate(zip(grads, (torch.zeros(400, 3, dtype=torch.float64), C[image[m]],
@@ -120,14 +122,16 @@ def test_jacobians_match_finite_differences():
             args = [torch.zeros(400, 3, dtype=torch.float64), C[image[m]], pts[point[m]]]
             lo, hi = list(args), list(args)
             lo[which], hi[which] = base - e, base + e
-            f = [bundle.project(R[image[m]] @ torch.linalg.matrix_exp(bundle.skew(a[0])), a[1], K[image[m]], a[2],
-                                WATER)[:, 0] for a in (lo, hi)]
-            np.testing.assert_allclose(g[:, j].numpy(), ((f[1] - f[0]) / (2 * h)).numpy(), rtol=1e-5, atol=1e-4)
+            f = [bundle.project(R[image[m]] @ torch.linalg.matrix_exp(bundle.skew(a[0])), a[1], K[image[m]],
+                                a[2], WATER)[:, 0] for a in (lo, hi)]
+            np.testing.assert_allclose(g[:, j].numpy(), ((f[1] - f[0]) / (2 * h)).numpy(), rtol=1e-5,
+                                       atol=1e-4)
 
 
 def started(points: int):
     """`scene`'s survey, its cameras as tensors, and where an adjustment starts: the cameras turned by a
-    degree (structure from motion's tilts) and moved 5 cm, the points 20 cm off, RTK positions 2 / 3 cm off."""
+    degree (structure from motion's tilts) and moved 5 cm, the points 20 cm off, RTK positions 2 / 3 cm
+    off."""
     cams, pts, point, image, pixels = scene(points=points)
     R, C, K = stack(cams)
     rng = np.random.default_rng(3)
@@ -150,7 +154,8 @@ def test_adjustment_through_the_water_recovers_tilted_cameras_and_the_bed():
     assert (pin.points[wet, 2] - pts[wet, 2]).median() > 0.1
     # a camera without a position (NaN) is adjusted without a prior
     rtk[0] = float("nan")
-    assert rotation_error_deg(bundle.adjust(R0, C0, K, P0, point, image, pixels, WATER, prior_C=rtk).R, R).median() < 0.1
+    assert (rotation_error_deg(bundle.adjust(R0, C0, K, P0, point, image, pixels, WATER, prior_C=rtk).R,
+                               R).median() < 0.1)
 
 
 def test_the_sparse_camera_system_in_chunks_is_the_dense_one(monkeypatch):
@@ -205,7 +210,8 @@ def test_positions_csv(tmp_path):
     assert list(got) == ["a.jpg", "b.jpg"] and np.allclose(got["a.jpg"], [451234.5678, 5212345.1, 231.42])
     path.write_text("z, y, x, name\n3,2,1,c.jpg\n\n")  # any column order, spaces, a blank line
     assert np.allclose(layout.read_positions(path)["c.jpg"], [1, 2, 3])
-    for text, message in (("name,x,y\na,1,2\n", "header name,x,y,z"), ("name,x,y,z\na,1,2,q\n", "must be numbers"),
+    for text, message in (("name,x,y\na,1,2\n", "header name,x,y,z"),
+                          ("name,x,y,z\na,1,2,q\n", "must be numbers"),
                           ("name,x,y,z\na,1,2,3\na,1,2,3\n", "appears twice"), ("name,x,y,z\n", "no rows"),
                           ("name,x,y,z\na,1,2\n", "3 values for the 4 columns")):
         path.write_text(text)
@@ -261,6 +267,8 @@ def test_the_adjustment_estimates_a_lens_distortion_through_the_water():
     got = bundle.adjust(R0, C0, K, P0, point, image, pixels, WATER, prior_C=rtk, free=("lens",))
     for k, name in enumerate(("k1", "k2")):
         assert abs(got.lens[k] - lens[k]) < max(4 * got.sigma[name], 1e-3), (got.lens, got.sigma)
-    assert got.residuals.pow(2).mean().sqrt() < 0.5 and (got.points[wet, 2] - pts[wet, 2]).abs().median() < 0.05
+    assert (got.residuals.pow(2).mean().sqrt() < 0.5
+            and (got.points[wet, 2] - pts[wet, 2]).abs().median() < 0.05)
     pin = bundle.adjust(R0, C0, K, P0, point, image, pixels, WATER, prior_C=rtk)
-    assert pin.residuals.pow(2).mean().sqrt() > 1.5 * got.residuals.pow(2).mean().sqrt() and pin.lens == (0.0, 0.0)
+    assert (pin.residuals.pow(2).mean().sqrt() > 1.5 * got.residuals.pow(2).mean().sqrt()
+            and pin.lens == (0.0, 0.0))

@@ -104,7 +104,8 @@ def test_points_init(wet, tmp_path):
     pts = np.array([[0.0, 0.0, -0.5, 1, 0, 0], [0.2, 0.0, -0.6, 0, 1, 0], [0.0, 0.3, -0.4, 0, 0, 1]])
     np.save(tmp_path / "pc.npy", pts)
     tr = Trainer(_cfg(init="points", init_points=str(tmp_path / "pc.npy")), wet)
-    assert torch.allclose(tr.splats["means"][:, 2].detach(), torch.tensor(pts[:, 2] * 1.33, dtype=torch.float32))
+    assert torch.allclose(tr.splats["means"][:, 2].detach(),
+                          torch.tensor(pts[:, 2] * 1.33, dtype=torch.float32))
 
 
 def test_points_init_fills_the_gaps_of_the_points(wet, tmp_path):
@@ -113,7 +114,8 @@ def test_points_init_fills_the_gaps_of_the_points(wet, tmp_path):
     xy = xy[np.abs(xy[:, 0]) > 0.15]  # a 0.3 m strip without points
     np.save(tmp_path / "pc.npy", np.column_stack([xy, np.full(len(xy), -0.5), np.full((len(xy), 3), 0.5)]))
     plain = Trainer(_cfg(init="points", init_points=str(tmp_path / "pc.npy"), init_count=5000), wet)
-    filled = Trainer(_cfg(init="points", init_points=str(tmp_path / "pc.npy"), init_count=5000, init_fill=0.08), wet)
+    filled = Trainer(_cfg(init="points", init_points=str(tmp_path / "pc.npy"), init_count=5000,
+                          init_fill=0.08), wet)
     extra = filled.splats["means"].detach()[plain.num_gaussians:]
     assert plain.num_gaussians == len(xy) and len(extra) > 0
     assert float(extra[:, 0].abs().max()) < 0.15 and torch.allclose(extra[:, 2], torch.tensor(-0.5 * 1.33))
@@ -125,14 +127,17 @@ def test_points_init_fills_the_gaps_of_the_points(wet, tmp_path):
 
 def test_points_init_keeps_a_seeded_subset_of_a_large_cloud(wet, tmp_path):
     rng = np.random.default_rng(0)
-    pts = np.column_stack([rng.uniform(-0.5, 0.5, (50, 2)), rng.uniform(-0.6, -0.4, 50), rng.uniform(0, 1, (50, 3))])
+    pts = np.column_stack([rng.uniform(-0.5, 0.5, (50, 2)), rng.uniform(-0.6, -0.4, 50),
+                           rng.uniform(0, 1, (50, 3))])
     np.save(tmp_path / "pc.npy", pts)
     runs = [Trainer(_cfg(init="points", init_points=str(tmp_path / "pc.npy"), init_count=20, seed=s), wet)
             for s in (0, 0, 1)]
     means = [tr.splats["means"].detach() for tr in runs]
-    assert means[0].shape == (20, 3) and torch.equal(means[0], means[1]) and not torch.equal(means[0], means[2])
+    assert (means[0].shape == (20, 3) and torch.equal(means[0], means[1])
+            and not torch.equal(means[0], means[2]))
     known = {tuple(np.round(p, 5)) for p in pts[:, :2]}
-    assert all(tuple(np.round(m, 5)) in known for m in means[0][:, :2].double().numpy())  # points of the cloud
+    # points of the cloud
+    assert all(tuple(np.round(m, 5)) in known for m in means[0][:, :2].double().numpy())
 
 
 def test_dry_scene_never_calls_refraction(tmp_path, monkeypatch):
@@ -181,8 +186,8 @@ def test_render_without_interface_is_the_true_scene(wet, variant):
 
 def test_surfels_keep_no_thickness_through_splits(wet):
     # grow_scale3d 0: every Gaussian with a gradient counts as large and is split at the refinement (step 10)
-    densify = DensifyConfig(refine_start_iter=0, refine_stop_iter=PAPER_ITERATIONS, reset_every=PAPER_ITERATIONS,
-                            grow_grad2d=0.0, grow_scale3d=0.0)
+    densify = DensifyConfig(refine_start_iter=0, refine_stop_iter=PAPER_ITERATIONS,
+                            reset_every=PAPER_ITERATIONS, grow_grad2d=0.0, grow_scale3d=0.0)
     tr = Trainer(_cfg(variant="2dgs+full", densify=densify), wet)
     n0 = tr.num_gaussians
     tr.train()
@@ -199,12 +204,13 @@ def test_surfel_variants_render_surfels_and_map_their_tangents(wet):
     scales, quats, opac = activated(tr.splats)
     colors = colors_for_view(tr.splats, center, tr.active_sh_degree)
     with torch.no_grad():
-        want, _, _, _ = rasterize_surfels(tr.splats["means"], quats, scales[:, :2], opac, colors, cam, tr.background)
+        want, _, _, _ = rasterize_surfels(tr.splats["means"], quats, scales[:, :2], opac, colors, cam,
+                                          tr.background)
     img, _, _ = tr.render(cam, interface=False)  # the true surfels
     assert torch.allclose(img, want.clamp(0, 1))
     # Through water of n = 1 the apparent surfels are the true ones (J = I): the pinhole render
-    args = (tr.splats, cam, center, tr.active_sh_degree, WaterSurface(level=WATER.level, n=1.0), tr.flags, True,
-            tr.background, "cpu")
+    args = (tr.splats, cam, center, tr.active_sh_degree, WaterSurface(level=WATER.level, n=1.0), tr.flags,
+            True, tr.background, "cpu")
     with torch.no_grad():
         torch.testing.assert_close(train_mod.render_splats(*args)[0], want)
         wet_img = train_mod.render_splats(*args[:4], WATER, *args[5:])[0]
@@ -247,7 +253,8 @@ def test_outputs_resume_and_determinism(wet, tmp_path):
     with pytest.raises(OutputError, match="different settings .*seed"):
         Trainer(_cfg(variant="full", iterations=14, checkpoint_every=5, seed=1), wet, tmp_path / "a")
     # how the run executes is not what it computes: those settings resume
-    assert Trainer(dataclasses.replace(cfg, checkpoint_every=7, compile_refraction=True), wet, tmp_path / "a").step == 14
+    assert (Trainer(dataclasses.replace(cfg, checkpoint_every=7, compile_refraction=True), wet,
+                    tmp_path / "a").step == 14)
 
 
 def test_callbacks_at_eval_steps(wet):
@@ -290,8 +297,10 @@ def test_cli_train(wet, tmp_path, capsys):
     few = tmp_path / "few"  # a start thinned to a seeded subset of the points
     points = tmp_path / "points.npy"
     np.save(points, np.random.default_rng(0).uniform(-0.5, 0.5, (300, 3)) - [0, 0, 1.0])
-    assert main(["train", "--data", str(wet.root), "--out", str(few), "--preset", "smoke", "--iterations", "1",
-                 "--init", "points", "--init-points", str(points), "--init-count", "50", "--no-progress"]) == 0
+    assert main(["train", "--data", str(wet.root), "--out", str(few), "--preset", "smoke", "--iterations",
+                 "1",
+                 "--init", "points", "--init-points", str(points), "--init-count", "50",
+                 "--no-progress"]) == 0
     assert json.loads((few / "config.json").read_text())["config"]["init_count"] == 50
     err = capsys.readouterr().err.strip().splitlines()
     assert err[0] == f"resumed from step 3 of 3 ({out})"
@@ -319,7 +328,8 @@ def test_refraction_aware_training_recovers_depth(tmp_path):
     for i, v in enumerate(views):
         v["split"] = "test" if i % 4 == 3 else "train"
     region = {"xmin": -1, "xmax": 1, "ymin": -1, "ymax": 1}
-    ds = load_dataset(write_dataset(tmp_path / "e2e", views, WATER, region, bed={"depth": d, "size": 2 * half}))
+    ds = load_dataset(write_dataset(tmp_path / "e2e", views, WATER, region,
+                                    bed={"depth": d, "size": 2 * half}))
 
     def bed_error(tr):  # opacity-weighted (signed mean, mean absolute) height error over the central region
         m = tr.splats["means"].detach()
@@ -331,7 +341,8 @@ def test_refraction_aware_training_recovers_depth(tmp_path):
     err, fit = {}, {}
     for variant in ("3dgs", "full", "2dgs", "2dgs+full"):
         cfg = preset_config("smoke", variant=variant, iterations=100, init_depth=(d + d / WATER.n) / 2,
-                            init_count=1000, init_opacity=0.5, lr_means=5e-3, lr_means_final=5e-3, lr_sh0=1e-2,
+                            init_count=1000, init_opacity=0.5, lr_means=5e-3, lr_means_final=5e-3,
+                            lr_sh0=1e-2,
                             densify=DensifyConfig(refine_stop_iter=0))  # no growth, pruning or resets
         tr = Trainer(cfg, ds)
         start = bed_error(tr)
@@ -344,7 +355,8 @@ def test_refraction_aware_training_recovers_depth(tmp_path):
     for variant in ("full", "2dgs+full"):  # recovered: the bias and the bed's shape (|bias| <= mean |dz|)
         assert err[variant][1] < start[1] / 3, (start, err)
     for variant in ("3dgs", "2dgs"):  # pulled up towards the apparent bed, a third of the way at least
-        assert err[variant][0] > start[0] + (apparent - start[0]) / 3 and err[variant][1] > start[1], (start, err)
+        assert (err[variant][0] > start[0] + (apparent - start[0]) / 3
+                and err[variant][1] > start[1]), (start, err)
 
 
 def test_sigint_checkpoints_finished_steps_and_resume_says_so(evaluable_dataset, tmp_path):
@@ -357,7 +369,8 @@ def test_sigint_checkpoints_finished_steps_and_resume_says_so(evaluable_dataset,
 
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "ragsplat_core.cli.main", "train", "--data", str(evaluable_dataset), "--out",
-           str(out), "--preset", "smoke", "--iterations", "100000", "--checkpoint-every", "0", "--no-progress"]
+           str(out), "--preset", "smoke", "--iterations", "100000", "--checkpoint-every", "0",
+           "--no-progress"]
 
     log = tmp_path / "stderr.txt"
 
@@ -387,8 +400,8 @@ def test_outputs_are_never_overwritten_or_mixed(wet, evaluable_dataset, tmp_path
     foreign.mkdir()
     (foreign / "config.json").write_text("someone else's")
     assert main(["train", "--data", str(wet.root), "--out", str(foreign), *args]) == 2
-    assert [p.name for p in foreign.iterdir()] == ["config.json"] and (foreign / "config.json").read_text() == \
-        "someone else's"
+    assert ([p.name for p in foreign.iterdir()] == ["config.json"]
+            and (foreign / "config.json").read_text() == "someone else's")
     run = tmp_path / "run"
     assert main(["train", "--data", str(wet.root), "--out", str(run), *args]) == 0
     before = (run / "config.json").read_text()
@@ -396,16 +409,20 @@ def test_outputs_are_never_overwritten_or_mixed(wet, evaluable_dataset, tmp_path
     assert (run / "config.json").read_text() == before
     (run / "ckpt.pt").write_bytes(b"not a checkpoint")
     assert main(["train", "--data", str(wet.root), "--out", str(run), *args]) == 2
-    assert main(["ablation", "--data", str(evaluable_dataset), "--out", str(foreign), "--preset", "smoke"]) == 2
-    assert main(["train", "--data", str(wet.root), "--out", str(tmp_path / "new"), "--device", "tpu9", *args]) == 2
-    assert main(["train", "--data", str(wet.root), "--out", str(tmp_path / "g"), "--backend", "gsplat", *args]) == 2
+    assert (main(["ablation", "--data", str(evaluable_dataset), "--out", str(foreign), "--preset", "smoke"])
+            == 2)
+    assert (main(["train", "--data", str(wet.root), "--out", str(tmp_path / "new"), "--device", "tpu9",
+                  *args]) == 2)
+    assert (main(["train", "--data", str(wet.root), "--out", str(tmp_path / "g"), "--backend", "gsplat",
+                  *args]) == 2)
     assert main(["ablation", "--data", str(evaluable_dataset), "--out", str(tmp_path / "a"), "--vgg16",
                  str(tmp_path / "nowhere.pth")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 7 and all(line.startswith("ragsplat ") for line in err)
     assert "not written by ragsplat" in err[0] and "another dataset" in err[1]
     assert "not a readable checkpoint" in err[2] and "not written by ragsplat" in err[3]
-    assert "unknown torch device 'tpu9'" in err[4] and "gsplat" in err[5] and "nowhere.pth: no such file" in err[6]
+    assert ("unknown torch device 'tpu9'" in err[4] and "gsplat" in err[5]
+            and "nowhere.pth: no such file" in err[6])
     assert not (tmp_path / "g" / "config.json").exists()  # refused before any work
 
 

@@ -43,7 +43,8 @@ def _cfg(**kw):
     return preset_config("smoke", **{**base, **kw})
 
 
-# ---- masked loss --------------------------------------------------------------------------------------------
+# ---- masked loss
+# --------------------------------------------------------------------------------------------
 def _grads(ds: Dataset) -> tuple[dict, float]:
     """The gradient of every Gaussian parameter in the first training step, and that step's loss."""
     tr = Trainer(_cfg(), ds)
@@ -56,8 +57,8 @@ def _grads(ds: Dataset) -> tuple[dict, float]:
 
 def _one_view(ds: Dataset, rgb: torch.Tensor, mask) -> Dataset:
     v = ds.views[3]  # an oblique view
-    return Dataset(ds.root, ds.water, [View(v.name, "train", v.kind, v.camera, rgb, None, "", None, None, mask)],
-                   ds.bed)
+    return Dataset(ds.root, ds.water,
+                   [View(v.name, "train", v.kind, v.camera, rgb, None, "", None, None, mask)], ds.bed)
 
 
 def test_pixels_outside_the_mask_do_not_reach_the_loss(wet):
@@ -105,10 +106,13 @@ def test_masked_psnr_counts_used_pixels_only(wet):
     assert tr.train_step()["psnr"] == pytest.approx(-10 * torch.log10(torch.tensor(mse)).item(), rel=1e-4)
 
 
-# ---- configuration ----------------------------------------------------------------------------------------------
+# ---- configuration
+# ----------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("kw, match", [
-    ({"water_n": 0.99}, "water_n"), ({"water_n": float("nan")}, "water_n"), ({"water_level": float("inf")}, "finite"),
-    ({"optimize_water": "n"}, "optimize_water"), ({"optimize_water": "level", "variant": "3dgs"}, "never refracts"),
+    ({"water_n": 0.99}, "water_n"), ({"water_n": float("nan")}, "water_n"),
+                                       ({"water_level": float("inf")}, "finite"),
+    ({"optimize_water": "n"}, "optimize_water"),
+                                       ({"optimize_water": "level", "variant": "3dgs"}, "never refracts"),
     ({"lr_water_level": 0.0}, "lr_water_level"), ({"lr_water_n": -1e-4}, "lr_water_n"),
     ({"water_warmup": 1.0}, "water_warmup"), ({"water_warmup": -0.1}, "water_warmup")])
 def test_config_refuses(kw, match):
@@ -142,14 +146,15 @@ def test_overridden_water_is_the_one_used_everywhere(wet):
     s = tr.splats
     with torch.no_grad():
         scales, quats, opac = activated(s)
-        a = refract_gaussians(s["means"], scales, quats, opac, colors_for_view(s, center, tr.active_sh_degree), center,
-                              WaterSurface(level, n))
+        a = refract_gaussians(s["means"], scales, quats, opac,
+                              colors_for_view(s, center, tr.active_sh_degree), center, WaterSurface(level, n))
         want, _, _, _ = rasterize(a.means, a.quats, a.scales, a.opacities, a.colors, cam, tr.background)
     # the same operations as tr.render (degree 0: no SH kernel; full's flags are the defaults): bit-identical
     assert torch.equal(tr.render(cam)[0], want.clamp(0, 1))
 
 
-# ---- calibration ------------------------------------------------------------------------------------------------
+# ---- calibration
+# ------------------------------------------------------------------------------------------------
 def test_frozen_water_trains_as_without_calibration(wet):
     """During the warm-up the run is the uncalibrated one, bit for bit; after it the water moves."""
     def run(**kw):
@@ -230,7 +235,8 @@ def test_cli_water_arguments(tmp_path, capsys):
     data = write_dataset(tmp_path / "data", views, WaterSurface(0.0, N), bed={"depth": DEPTH})
     args = ["train", "--data", str(data), "--preset", "smoke", "--iterations", "3", "--no-progress"]
     out = tmp_path / "run"
-    assert main([*args, "--out", str(out), "--water-level", "-0.05", "--n", "1.34", "--optimize-water", "level"]) == 0
+    assert (main([*args, "--out", str(out), "--water-level", "-0.05", "--n", "1.34", "--optimize-water",
+                  "level"]) == 0)
     meta = json.loads((out / "config.json").read_text())
     assert (meta["config"]["water_level"], meta["config"]["water_n"], meta["config"]["optimize_water"]) == \
         (-0.05, 1.34, "level")

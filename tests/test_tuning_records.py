@@ -1,5 +1,5 @@
-"""The tuning records (ragsplat_core/tuning/*.json) are data the configs agree with: each record's chosen value
-is the value the config holds, and each record names its command, commit and dataset seed."""
+"""The tuning records (ragsplat_core/tuning/*.json) are data the configs agree with: each record's chosen
+value is the value the config holds, and each record names its command, commit and dataset seed."""
 
 from dataclasses import asdict
 
@@ -9,7 +9,8 @@ from ragsplat_core.tuning import record
 
 def test_the_extraction_holds_the_recorded_choices():
     cfg = asdict(ExtractConfig())
-    for chosen in (EXTRACT_TUNING["chosen"], EXTRACT_TUNING["despike"]["chosen"], EXTRACT_TUNING["fill"]["chosen"]):
+    for chosen in (EXTRACT_TUNING["chosen"], EXTRACT_TUNING["despike"]["chosen"],
+                   EXTRACT_TUNING["fill"]["chosen"]):
         assert {k: cfg[k] for k in chosen} == chosen
     assert EXTRACT_TUNING["dataset_seed"] == 1
     for step in ("min_opacity", "both", "despike", "fill"):
@@ -26,7 +27,8 @@ def test_the_presets_hold_the_recorded_choices():
     from ragsplat_core.train.config import FIELD_TUNING, PRESETS, TUNING
 
     def value(cfg, name):
-        return getattr(cfg.densify, name.split(".", 1)[1]) if name.startswith("densify.") else getattr(cfg, name)
+        return (getattr(cfg.densify, name.split(".", 1)[1]) if name.startswith("densify.")
+                else getattr(cfg, name))
 
     small, field = PRESETS["small"], PRESETS["small-field"]
     for rec in (TUNING, *(TUNING[k] for k in ("surfel_terms", "ssim_lambda", "refine_stop", "length"))):
@@ -35,5 +37,6 @@ def test_the_presets_hold_the_recorded_choices():
     assert all(value(field, k) == v for k, v in FIELD_TUNING["chosen"].items())
     assert field.lambda_normal == FIELD_TUNING["lambda_normal"]["kept"]
     assert field.ssim_lambda == FIELD_TUNING["ssim_lambda"]["kept"]
-    assert value(field, "densify.refine_stop_iter") == FIELD_TUNING["refine_stop"]["kept"]["densify.refine_stop_iter"]
+    assert (value(field, "densify.refine_stop_iter")
+            == FIELD_TUNING["refine_stop"]["kept"]["densify.refine_stop_iter"])
     assert TUNING["dataset_seed"] == FIELD_TUNING["dataset_seed"] == 1

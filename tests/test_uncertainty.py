@@ -59,7 +59,8 @@ def test_two_views_at_plus_minus_theta_in_air_give_the_closed_form():
     # -cos) has zz entry 2 (f / L)^2 sin^2(theta), so sigma_z = L / (f sqrt(2) sin(theta))
     L, point = 10.0, np.array([0.3, -0.2, -2.0])
     for theta in (math.radians(10), math.radians(25), math.radians(40)):
-        cams = [Camera.look_at(point + L * np.array([s * math.sin(theta), 0, math.cos(theta)]), point, 300, 300, 50.0)
+        cams = [Camera.look_at(point + L * np.array([s * math.sin(theta), 0, math.cos(theta)]), point, 300,
+                               300, 50.0)
                 for s in (1, -1)]
         want = L / (cams[0].fx * math.sqrt(2) * math.sin(theta))
         for water in (None, WaterSurface(0.0, 1.0)):  # air, and water of n = 1
@@ -187,7 +188,8 @@ def test_the_extraction_records_its_cells_without_changing_the_grid():
     np.testing.assert_array_equal(grid, plain)
     assert {k: v for k, v in with_cells.items() if k != "cells"} == stats
     cells = with_cells["cells"]
-    assert cells["filled"].sum() == stats["grid_filled"] and not cells["filled"][:len(grid) - stats["grid_filled"]].any()
+    assert (cells["filled"].sum() == stats["grid_filled"]
+            and not cells["filled"][:len(grid) - stats["grid_filled"]].any())
     assert (cells["samples"][~cells["filled"]] > 0).all()
     known = np.isfinite(cells["spread"])
     assert np.median(cells["spread"][known]) < 0.01  # thin discs: millimetres of height spread
@@ -256,7 +258,8 @@ def test_conformal_rank_has_the_n_plus_1_correction():
 
 
 def test_the_model_round_trips_through_json_and_refuses_nonsense():
-    model = UncertaintyModel(("one", "depth"), (0.01, 0.003), 1.2, 0.95, (1, 2), (3,), "deadbeef", {"fit_cells": 9})
+    model = UncertaintyModel(("one", "depth"), (0.01, 0.003), 1.2, 0.95, (1, 2), (3,), "deadbeef",
+                             {"fit_cells": 9})
     assert UncertaintyModel.from_json(model.to_json()) == model
     with pytest.raises(ConfigError):
         UncertaintyModel(("one",), (0.1, 0.2))

@@ -1,5 +1,6 @@
-"""A sloping water surface (a river's): the tilted plane's transform, tested from physics (Snell's law with the
-tilted normal, RA-GS's apparent depth along it, rotation equivariance) and against the horizontal plane."""
+"""A sloping water surface (a river's): the tilted plane's transform, tested from physics (Snell's law with
+the tilted normal, RA-GS's apparent depth along it, rotation equivariance) and against the horizontal
+plane."""
 
 import math
 
@@ -41,10 +42,12 @@ def test_horizontal_surface_is_todays_transform_exactly():
     p = below(WaterSurface(0.5, 1.33))
     flat = WaterSurface(0.5, 1.33, slope=(0.0, 0.0))
     assert not flat.tilted and flat == WaterSurface(0.5, 1.33)
-    q = refract_gaussians(p, torch.full_like(p, 0.05), torch.tensor([[1.0, 0, 0, 0]], dtype=f64).expand(len(p), 4),
+    q = refract_gaussians(p, torch.full_like(p, 0.05),
+                          torch.tensor([[1.0, 0, 0, 0]], dtype=f64).expand(len(p), 4),
                           torch.full((len(p),), 0.5, dtype=f64), torch.rand(len(p), 3, dtype=f64), CAM, flat,
                           scale="anisotropic")
-    r = refract_gaussians(p, torch.full_like(p, 0.05), torch.tensor([[1.0, 0, 0, 0]], dtype=f64).expand(len(p), 4),
+    r = refract_gaussians(p, torch.full_like(p, 0.05),
+                          torch.tensor([[1.0, 0, 0, 0]], dtype=f64).expand(len(p), 4),
                           torch.full((len(p),), 0.5, dtype=f64), torch.rand(len(p), 3, dtype=f64), CAM,
                           WaterSurface(0.5, 1.33), scale="anisotropic")
     assert torch.equal(q.means, r.means) and torch.equal(q.jacobians, r.jacobians)
@@ -70,7 +73,8 @@ def test_snell_holds_at_the_tilted_interface_and_the_depth_is_rags_along_the_nor
     e1 = e1 / e1.norm()
     ta = math.radians(theta_a)
     air = -math.cos(ta) * N + math.sin(ta) * e1
-    t = (water.height(CAM[None, :2])[0] - CAM[2]) / (air @ torch.tensor([-water.slope[0], -water.slope[1], 1.0],
+    t = (water.height(CAM[None, :2])[0]
+         - CAM[2]) / (air @ torch.tensor([-water.slope[0], -water.slope[1], 1.0],
                                                                        dtype=f64))
     hit = CAM + t * air  # on the plane: N . (hit - p0) = 0
     assert float(water.depth(hit[None])[0]) == pytest.approx(0, abs=1e-12)
@@ -107,7 +111,8 @@ def test_equivariant_under_any_rotation_about_the_normal():
 
 def test_n_one_is_the_pinhole_and_points_above_stay_exactly():
     p = below(TILTED)
-    assert torch.allclose(apparent_points(p, CAM, WaterSurface(0.5, 1.0, TILTED.slope)), p, rtol=0, atol=1e-12)
+    assert torch.allclose(apparent_points(p, CAM, WaterSurface(0.5, 1.0, TILTED.slope)), p, rtol=0,
+                          atol=1e-12)
     above = p.clone()
     above[:, 2] = TILTED.height(p[:, :2]) + 0.3
     assert torch.equal(apparent_points(above, CAM, TILTED), above)
@@ -124,8 +129,8 @@ def test_tilted_jacobian_matches_differences_and_the_gaussians_use_it():
         assert torch.allclose(J[:, :, k], col, rtol=0, atol=1e-7)
     quats = torch.nn.functional.normalize(torch.rand(len(p), 4, dtype=f64), dim=-1)
     scales = torch.rand(len(p), 3, dtype=f64) * 0.1
-    out = refract_gaussians(p, scales, quats, torch.full((len(p),), 0.6, dtype=f64), torch.rand(len(p), 3, dtype=f64),
-                            CAM, TILTED, scale="anisotropic")
+    out = refract_gaussians(p, scales, quats, torch.full((len(p),), 0.6, dtype=f64),
+                            torch.rand(len(p), 3, dtype=f64), CAM, TILTED, scale="anisotropic")
     assert torch.allclose(out.jacobians, J, rtol=0, atol=1e-12)
     assert torch.allclose(out.covars, J @ covariance(quats, scales) @ J.transpose(1, 2), rtol=0, atol=1e-14)
     assert torch.allclose(out.means, apparent_points(p, CAM, TILTED), rtol=0, atol=1e-12)
@@ -144,7 +149,8 @@ def test_gradients_reach_level_slope_and_n():
     assert torch.autograd.gradcheck(f, (level, slope, n), eps=1e-7, atol=1e-6, rtol=1e-5)
 
     def g(level, slope):
-        out = refract_gaussians(p, torch.full_like(p, 0.1), torch.tensor([[1.0, 0, 0, 0]], dtype=f64).expand(6, 4),
+        out = refract_gaussians(p, torch.full_like(p, 0.1),
+                                torch.tensor([[1.0, 0, 0, 0]], dtype=f64).expand(6, 4),
                                 torch.full((6,), 0.5, dtype=f64), torch.ones(6, 3, dtype=f64), CAM,
                                 WaterSurface(level, 1.33, slope), scale="anisotropic")
         return out.means, out.jacobians, out.covars
@@ -162,21 +168,24 @@ def test_surface_height_depth_shift_and_json():
     s = w.shifted(off)
     assert s.height(xy - np.array(off[:2]))[0] == pytest.approx(w.height(xy)[0] - off[2], abs=1e-12)
     assert WaterSurface(**water_json(w)) == w
-    assert water_json(WaterSurface(0.5, 1.33)) == {"level": 0.5, "n": 1.33}  # a flat surface's files as they were
+    # a flat surface's files as they were
+    assert water_json(WaterSurface(0.5, 1.33)) == {"level": 0.5, "n": 1.33}
     with pytest.raises(ValueError, match="slope"):
         WaterSurface(0.0, 1.33, (2.0, 0.0))
     with pytest.raises(ValueError, match="above the water surface"):
-        apparent_points(below(w, n=2), torch.tensor([0.0, 0.0, 1.9], dtype=f64), WaterSurface(2.0, 1.33, (0.0, -0.1)))
+        apparent_points(below(w, n=2), torch.tensor([0.0, 0.0, 1.9], dtype=f64),
+                        WaterSurface(2.0, 1.33, (0.0, -0.1)))
 
 
 def test_water_rays_bend_at_the_tilted_normal_and_meet_at_the_true_point():
-    """`snell.water_rays` under a tilted surface: the rays of one true point's pixels in several views, through
-    the tilted transform, meet at it; the crossing points lie on the surface."""
+    """`snell.water_rays` under a tilted surface: the rays of one true point's pixels in several views,
+    through the tilted transform, meet at it; the crossing points lie on the surface."""
     from ragsplat_core.camera import Camera
     from ragsplat_core.snell import closest_points, water_rays
 
     water = WaterSurface(level=0.5, n=1.33, slope=(-0.02, 0.01))
-    cams = [Camera.look_at([x, y, 4.5], [0.0, 0.0, -1.0], 64, 48, 60.0) for x, y in ((0, 0), (2, 0.5), (-1.5, 2))]
+    cams = [Camera.look_at([x, y, 4.5], [0.0, 0.0, -1.0], 64, 48, 60.0)
+            for x, y in ((0, 0), (2, 0.5), (-1.5, 2))]
     true = np.array([[0.3, -0.2, -1.0], [-0.4, 0.5, -2.5]])
     rays = []
     for cam in cams:
@@ -188,7 +197,8 @@ def test_water_rays_bend_at_the_tilted_normal_and_meet_at_the_true_point():
 
 
 # A riffle: the surface falls 1 % on average and 6 cm more over 8 m around x = 0 (up to 1.6 % more there).
-RIFFLE = WaterSurface(0.0, 1.33, (-0.01, 0.0), Profile((0.0, 0.0), (1.0, 0.0), (-20, -4, 4, 20), (0.03, 0.03, -0.03,
+RIFFLE = WaterSurface(0.0, 1.33, (-0.01, 0.0),
+                      Profile((0.0, 0.0), (1.0, 0.0), (-20, -4, 4, 20), (0.03, 0.03, -0.03,
                                                                                                    -0.03)))
 
 
@@ -230,9 +240,10 @@ def test_a_flat_profile_is_the_plane():
 
 
 def test_curved_surface_against_a_ray_trace():
-    """Under the riffle, the tangent plane above each point puts its apparent point on the true light path's air
-    ray within 1e-3 rad (0.2 px of a 256 px, 70 degree view; measured 0.08 px at most), several times closer
-    than one plane through the mean fall; under a plane the same trace agrees to round-off (the tracer's check)."""
+    """Under the riffle, the tangent plane above each point puts its apparent point on the true light path's
+    air ray within 1e-3 rad (0.2 px of a 256 px, 70 degree view; measured 0.08 px at most), several times
+    closer than one plane through the mean fall; under a plane the same trace agrees to round-off (the
+    tracer's check)."""
     rng = np.random.default_rng(0)
     C = np.array([0.0, 0.0, 4.0])
     mean_plane = WaterSurface(0.0, 1.33, (-0.01, 0.0))
@@ -255,8 +266,8 @@ def test_curved_transform_is_consistent_and_differentiable():
     p = below(RIFFLE, n=30, radius=10.0)
     quats = torch.nn.functional.normalize(torch.rand(len(p), 4, dtype=f64), dim=-1)
     scales = torch.rand(len(p), 3, dtype=f64) * 0.1
-    out = refract_gaussians(p, scales, quats, torch.full((len(p),), 0.6, dtype=f64), torch.rand(len(p), 3, dtype=f64),
-                            CAM, RIFFLE, scale="anisotropic")
+    out = refract_gaussians(p, scales, quats, torch.full((len(p),), 0.6, dtype=f64),
+                            torch.rand(len(p), 3, dtype=f64), CAM, RIFFLE, scale="anisotropic")
     assert torch.allclose(out.means, apparent_points(p, CAM, RIFFLE), rtol=0, atol=1e-12)
     assert torch.allclose(out.jacobians, apparent_jacobian(p, CAM, RIFFLE), rtol=0, atol=1e-12)
     assert torch.allclose(out.opacities, 0.6 * opacity_factor(p, RIFFLE), rtol=0, atol=1e-15)
