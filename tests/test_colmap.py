@@ -36,11 +36,12 @@ def write_model(folder, images, centres, cams=None, R=DOWN, points=(), binary=Fa
     images.mkdir(parents=True, exist_ok=True)
     for i, c in enumerate(np.asarray(centres, float), start=1):
         cam = cams[(i - 1) % len(cams)]
-        image = pycolmap.Image(name=f"img{i:02d}.jpg" if i % 2 else f"sub/img{i:02d}.png", camera_id=cam.camera_id,
-                               image_id=i)
+        image = pycolmap.Image(name=f"img{i:02d}.jpg" if i % 2 else f"sub/img{i:02d}.png",
+                               camera_id=cam.camera_id, image_id=i)
         rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ c))
         u, v = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
-        xy = np.asarray(cam.cam_from_img(np.stack([u.ravel(), v.ravel()], 1))).reshape(cam.height, cam.width, 2)
+        xy = np.asarray(cam.cam_from_img(np.stack([u.ravel(), v.ravel()], 1))).reshape(
+            cam.height, cam.width, 2)
         grey = np.clip(np.round(pattern(xy[..., 0], xy[..., 1])), 0, 255).astype(np.uint8)
         path = images / image.name
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -112,7 +113,8 @@ def test_each_camera_keeps_its_own_intrinsics(tmp_path):
     write_model(tmp_path / "model", tmp_path / "img", CENTRES, cams=[wide, tele])
     done = import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", WaterSurface(0.0))
     assert (done.cameras, done.undistorted) == (2, 0)
-    got = {v.name: (v.camera.fx, v.camera.cx, v.camera.cy, v.camera.width) for v in load_dataset(tmp_path / "data").views}
+    got = {v.name: (v.camera.fx, v.camera.cx, v.camera.cy, v.camera.width)
+           for v in load_dataset(tmp_path / "data").views}
     assert got == {"img01.jpg": (80.0, 48.0, 36.0, 96), "sub/img02.png": (150.0, 61.0, 44.0, 120),
                    "img03.jpg": (80.0, 48.0, 36.0, 96)}
 
@@ -124,7 +126,8 @@ def test_downscale_and_user_masks(tmp_path):
     m = np.full((72, 96), 255, np.uint8)
     m[:, :24] = 0  # glint on the left quarter
     cv2.imwrite(str(masks / "img01.jpg.png"), m)
-    import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", WaterSurface(0.0), masks=masks, max_size=48)
+    import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", WaterSurface(0.0), masks=masks,
+                  max_size=48)
     (view,) = load_dataset(tmp_path / "data").views
     c = view.camera
     assert (c.width, c.height, c.fx, c.cx, c.cy) == (48, 36, 40.0, 24.0, 18.0)
@@ -135,7 +138,8 @@ def test_utm_sized_coordinates_train_near_the_origin_and_keep_the_offset(tmp_pat
     east, north = 512_345.678, 5_123_456.789
     centres = [(east + x, north + y, 105.0 + z) for x, y, z in CENTRES]
     write_model(tmp_path / "model", tmp_path / "img", centres, points=[(east, north, 99.0)])
-    done = import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", WaterSurface(100.0), crs="EPSG:32633")
+    done = import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", WaterSurface(100.0),
+                         crs="EPSG:32633")
     ds = load_dataset(tmp_path / "data")
     assert ds.georef.crs == "EPSG:32633" and ds.georef.offset == done.georef.offset
     x0, y0, z0 = ds.georef.offset
@@ -201,7 +205,8 @@ def test_survey_to_dem_and_laz_in_the_survey_crs(tmp_path):
     render_dataset(tmp_path / "local", scene, cams, WATER, 0, {"xmin": -1, "xmax": 1, "ymin": -1, "ymax": 1})
     rec = pycolmap.Reconstruction()
     c = cams[0]
-    rec.add_camera_with_trivial_rig(pycolmap.Camera.create_from_model_name(1, "PINHOLE", c.fx, c.width, c.height))
+    rec.add_camera_with_trivial_rig(
+        pycolmap.Camera.create_from_model_name(1, "PINHOLE", c.fx, c.width, c.height))
     rec.cameras[1].params = [c.fx, c.fy, c.cx, c.cy]
     for i, view in enumerate(load_dataset(tmp_path / "local").views, start=1):
         R, t = view.camera.R, view.camera.t
@@ -213,9 +218,9 @@ def test_survey_to_dem_and_laz_in_the_survey_crs(tmp_path):
     (tmp_path / "model").mkdir()
     rec.write_text(str(tmp_path / "model"))
     run = tmp_path / "run"
-    assert main(["train", "--colmap", str(tmp_path / "model"), "--images", str(tmp_path / "local"), "--water-level",
-                 "100", "--crs", "EPSG:32633", "--out", str(run), "--preset", "smoke", "--iterations", "2",
-                 "--no-progress"]) == 0
+    assert main(["train", "--colmap", str(tmp_path / "model"), "--images", str(tmp_path / "local"),
+                 "--water-level", "100", "--crs", "EPSG:32633", "--out", str(run), "--preset", "smoke",
+                 "--iterations", "2", "--no-progress"]) == 0
     config = json.loads((run / "config.json").read_text())["config"]
     assert config["init"] == "points" and config["init_points"].endswith(POINTS)
     assert main(["export", str(run), "--dem", str(tmp_path / "dem.tif"), "--las", str(tmp_path / "bed.laz"),
@@ -238,7 +243,8 @@ def test_triangulation_with_known_poses_finds_a_plane(tmp_path):
     from ragsplat_core.dataset.colmap import triangulate
 
     rng = np.random.default_rng(1)
-    texture = sum(cv2.resize(rng.uniform(0, 255, (k, k)).astype(np.float32), (512, 512)) / 3 for k in (16, 64, 256))
+    texture = sum(cv2.resize(rng.uniform(0, 255, (k, k)).astype(np.float32), (512, 512)) / 3
+                  for k in (16, 64, 256))
     texture = cv2.GaussianBlur(texture, (0, 0), 1.0).astype(np.uint8)
     s, z_plane = 4 / 512, 1.0  # the texture covers [-2, 2]^2 m
     centres = [(x, y, 5.0) for x in (-0.6, 0, 0.6) for y in (-0.4, 0.4)]
@@ -253,7 +259,8 @@ def test_triangulation_with_known_poses_finds_a_plane(tmp_path):
         K = im.camera.calibration_matrix()
         H = to_opencv @ K @ np.column_stack([R[:, 0], R[:, 1], R[:, 2] * z_plane + t]) @ plane_from_texture
         grey = cv2.warpPerspective(texture, H, (160, 160), flags=cv2.INTER_LINEAR)
-        cv2.imwrite(str(tmp_path / "img" / im.name), np.repeat(grey[..., None], 3, 2), [cv2.IMWRITE_JPEG_QUALITY, 100])
+        cv2.imwrite(str(tmp_path / "img" / im.name), np.repeat(grey[..., None], 3, 2),
+                    [cv2.IMWRITE_JPEG_QUALITY, 100])
     import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", WaterSurface(0.0))
     pts, obs, names = triangulate(tmp_path / "data", tmp_path / "work")
     again = triangulate(tmp_path / "data", tmp_path / "work2")
@@ -267,4 +274,5 @@ def test_triangulation_with_known_poses_finds_a_plane(tmp_path):
         rows = obs[:, 1] == k
         px, _ = cams[name].project(pts[obs[rows, 0].astype(int), :3])
         assert np.median(np.abs(px - obs[rows, 2:])) < 0.5
-    assert np.median(np.abs(pts[:, 2] - z_plane)) < 0.005 and np.percentile(np.abs(pts[:, 2] - z_plane), 90) < 0.02
+    assert (np.median(np.abs(pts[:, 2] - z_plane)) < 0.005
+            and np.percentile(np.abs(pts[:, 2] - z_plane), 90) < 0.02)

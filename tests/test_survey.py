@@ -25,7 +25,8 @@ def survey(tmp_path_factory):
     (photos, positions.csv with 5 / 8 mm noise) and, for scoring only, the same views as a dataset."""
     root = tmp_path_factory.mktemp("survey")
     scene = bed_scene(30000, half=3.0, depth=0.8, seed=0)
-    scene["colors"] = torch.rand(30000, 3, generator=torch.Generator().manual_seed(1))  # speckled, like gravel
+    # speckled, like gravel
+    scene["colors"] = torch.rand(30000, 3, generator=torch.Generator().manual_seed(1))
     cams = survey_cameras()
     views = render_views(scene, cams, WATER)
     for v in views:
@@ -37,10 +38,11 @@ def survey(tmp_path_factory):
         layout.write_jpeg(root / "images" / name, image, v["camera"].fx)
     centres = np.array([c.camera_center for c in cams])
     rng = np.random.default_rng(0)
-    layout.write_positions(root / "positions.csv", names, centres + rng.normal(size=centres.shape) * [0.005, 0.005,
-                                                                                                       0.008])
+    layout.write_positions(root / "positions.csv", names,
+                           centres + rng.normal(size=centres.shape) * [0.005, 0.005, 0.008])
     # ground control: five targets on posts above the water (the pixels given, as a surveyor picks them)
-    targets = np.array([[-1.5, -1.2, 0.2], [1.5, -1.2, 0.25], [1.5, 1.2, 0.15], [-1.5, 1.2, 0.2], [0.0, 0.0, 0.3]])
+    targets = np.array([[-1.5, -1.2, 0.2], [1.5, -1.2, 0.25], [1.5, 1.2, 0.15], [-1.5, 1.2, 0.2],
+                        [0.0, 0.0, 0.3]])
     rows = []
     for name, cam in zip(names, cams):
         uv, z = cam.project(targets)
@@ -48,13 +50,14 @@ def survey(tmp_path_factory):
         inside = (z > 0) & (uv >= 0).all(1) & (uv[:, 0] < cam.width) & (uv[:, 1] < cam.height)
         rows += [(name, f"T{k}", *uv[k]) for k in np.flatnonzero(inside)]
     layout.write_gcp_pixels(root / "gcp_pixels.csv", rows)
-    layout.write_positions(root / "gcp.csv", [f"T{k}" for k in range(5)], targets + rng.normal(size=(5, 3)) * 0.005)
+    layout.write_positions(root / "gcp.csv", [f"T{k}" for k in range(5)],
+                           targets + rng.normal(size=(5, 3)) * 0.005)
     return root
 
 
 def args(survey, out, *extra):
-    return ["survey", str(survey / "images"), "--positions", str(survey / "positions.csv"), "--water-level", "0",
-            "--out", str(out), "--preset", "smoke", "--no-progress", *extra]
+    return ["survey", str(survey / "images"), "--positions", str(survey / "positions.csv"), "--water-level",
+            "0", "--out", str(out), "--preset", "smoke", "--no-progress", *extra]
 
 
 @pytest.fixture(scope="session")
@@ -125,8 +128,10 @@ def test_sizes_are_refused_before_any_work(survey, finished, tmp_path, capsys, m
 def test_too_few_photos_registered(tmp_path, capsys):
     rng = np.random.default_rng(0)
     for k in range(4):  # noise: nothing matches
-        layout.write_jpeg(tmp_path / "images" / f"{k}.jpg", (rng.random((120, 160, 3)) * 255).astype(np.uint8), 140.0)
-    layout.write_positions(tmp_path / "positions.csv", [f"{k}.jpg" for k in range(4)], rng.normal(size=(4, 3)) + 10)
+        layout.write_jpeg(tmp_path / "images" / f"{k}.jpg",
+                          (rng.random((120, 160, 3)) * 255).astype(np.uint8), 140.0)
+    layout.write_positions(tmp_path / "positions.csv", [f"{k}.jpg" for k in range(4)],
+                           rng.normal(size=(4, 3)) + 10)
     assert main(args(tmp_path, tmp_path / "run")) == 2
     assert "structure from motion registered only 0 of 4 photos" in capsys.readouterr().err
 
@@ -149,8 +154,8 @@ def test_positions_that_are_not_z_up_are_refused(survey, finished, tmp_path, cap
 def gcp_args(survey, out, pixels=None):
     # the photos are rendered by a pinhole: with five targets over 18 photos the frame is held loosely enough
     # that a lens estimated beside it moved the median camera centre from under 3 cm to 3.4 cm
-    argv = args(survey, out, "--gcp-pixels", str(pixels or survey / "gcp_pixels.csv"), "--stop-after", "water",
-                "--lens", "pinhole")
+    argv = args(survey, out, "--gcp-pixels", str(pixels or survey / "gcp_pixels.csv"), "--stop-after",
+                "water", "--lens", "pinhole")
     argv[argv.index("--positions"):argv.index("--positions") + 2] = ["--gcp", str(survey / "gcp.csv")]
     return argv
 
@@ -181,15 +186,15 @@ def test_an_unmeasured_level_comes_from_the_photos(tmp_path, capsys):
     views = render_views(channel_scene(4), cams, WATER)
     names = [f"{i:04d}.jpg" for i in range(len(views))]
     for name, v in zip(names, views):
-        layout.write_jpeg(tmp_path / "images" / name, (np.clip(v["image"].numpy(), 0, 1) * 255 + 0.5).astype(np.uint8),
-                          v["camera"].fx)
+        layout.write_jpeg(tmp_path / "images" / name,
+                          (np.clip(v["image"].numpy(), 0, 1) * 255 + 0.5).astype(np.uint8), v["camera"].fx)
     centres = np.array([c.camera_center for c in cams])
     rng = np.random.default_rng(2)
-    layout.write_positions(tmp_path / "positions.csv", names, centres + rng.normal(size=centres.shape) * [0.005, 0.005,
-                                                                                                         0.008])
+    layout.write_positions(tmp_path / "positions.csv", names,
+                           centres + rng.normal(size=centres.shape) * [0.005, 0.005, 0.008])
     out = tmp_path / "run"
-    argv = ["survey", str(tmp_path / "images"), "--positions", str(tmp_path / "positions.csv"), "--out", str(out),
-            "--stop-after", "water", "--no-progress"]
+    argv = ["survey", str(tmp_path / "images"), "--positions", str(tmp_path / "positions.csv"), "--out",
+            str(out), "--stop-after", "water", "--no-progress"]
     assert main(argv) == 0, capsys.readouterr().err
     water = json.loads((out / "water.json").read_text())
     # 18 photos of a synthetic splat scene fix it to about 5 cm (-5.3 cm, the cost 0.1 % lower there than at
@@ -216,7 +221,8 @@ def test_ground_control_outside_the_model_is_refused(survey, finished, tmp_path,
 
 def test_a_sloping_surface_from_the_edge_points(tmp_path, capsys):
     """Photos through a surface falling 2 % along x, the water's edge measured at 16 points (1 cm noise): the
-    survey fits the plane, adjusts and trains through it, and its DEM's depths are below the sloping surface."""
+    survey fits the plane, adjusts and trains through it, and its DEM's depths are below the sloping
+    surface."""
     water = WaterSurface(0.0, 1.33, (-0.02, 0.0))
     scene = bed_scene(30000, half=3.0, depth=0.8, seed=2)
     scene["means"][:, 2] += water.height(scene["means"][:, :2].double()).float()  # the bed falls with it
@@ -225,17 +231,19 @@ def test_a_sloping_surface_from_the_edge_points(tmp_path, capsys):
     views = render_views(scene, cams, water)
     names = [f"{i:04d}.jpg" for i in range(len(views))]
     for name, v in zip(names, views):
-        layout.write_jpeg(tmp_path / "images" / name, (np.clip(v["image"].numpy(), 0, 1) * 255 + 0.5).astype(np.uint8),
-                          v["camera"].fx)
+        layout.write_jpeg(tmp_path / "images" / name,
+                          (np.clip(v["image"].numpy(), 0, 1) * 255 + 0.5).astype(np.uint8), v["camera"].fx)
     rng = np.random.default_rng(1)
     centres = np.array([c.camera_center for c in cams])
-    layout.write_positions(tmp_path / "positions.csv", names, centres + rng.normal(size=centres.shape) * 0.005)
+    layout.write_positions(tmp_path / "positions.csv", names,
+                           centres + rng.normal(size=centres.shape) * 0.005)
     x = np.tile(np.linspace(-3, 3, 8), 2)
     y = np.repeat([-3.2, 3.2], 8)
     edge = np.column_stack([x, y, water.height(np.column_stack([x, y])) + rng.normal(0, 0.01, 16)])
     layout.write_points(tmp_path / "edge.csv", edge)
-    argv = ["survey", str(tmp_path / "images"), "--positions", str(tmp_path / "positions.csv"), "--water-surface",
-            str(tmp_path / "edge.csv"), "--out", str(tmp_path / "run"), "--preset", "smoke", "--no-progress"]
+    argv = ["survey", str(tmp_path / "images"), "--positions", str(tmp_path / "positions.csv"),
+            "--water-surface", str(tmp_path / "edge.csv"), "--out", str(tmp_path / "run"), "--preset",
+            "smoke", "--no-progress"]
     assert main(argv) == 0, capsys.readouterr().err
     report = json.loads((tmp_path / "run" / "water.json").read_text())
     fit = report["edge_fit"]
@@ -251,7 +259,8 @@ def test_a_sloping_surface_from_the_edge_points(tmp_path, capsys):
         xs, ys = rasterio.transform.xy(dem.transform, rows, cols)
     xy = np.column_stack([xs, ys])
     surface = WaterSurface(report["surface"]["level"], 1.33, tuple(report["surface"]["slope"]))
-    np.testing.assert_allclose(depth[rows, cols], surface.height(xy) - z[rows, cols], atol=1e-3)  # float32 bands
+    # float32 bands
+    np.testing.assert_allclose(depth[rows, cols], surface.height(xy) - z[rows, cols], atol=1e-3)
     # the depths are right below the sloping surface along the whole reach: no trend from one end to the other
     # (one level at the mean would be 4 cm off at each end, in opposite directions)
     true = 0.8 - 0.08 * np.sin(2 * xy[:, 0] / 3.0) * np.cos(1.5 * xy[:, 1] / 3.0)  # `bed_scene`'s relief
@@ -262,8 +271,8 @@ def test_a_sloping_surface_from_the_edge_points(tmp_path, capsys):
 
 
 def test_edge_points_in_another_frame_are_refused(survey, tmp_path, capsys):
-    """Edge points in a local frame beside positions in UTM (or the reverse) are refused in one line before any
-    work, not taken for a survey kilometres wide."""
+    """Edge points in a local frame beside positions in UTM (or the reverse) are refused in one line before
+    any work, not taken for a survey kilometres wide."""
     edge = tmp_path / "edge.csv"
     edge.write_text("x,y,z\n" + "".join(f"{500000 + x},{5100000 + y},0\n" for x, y in
                                         [(-2, -2), (2, -2), (2, 2), (-2, 2), (0, 3)]))

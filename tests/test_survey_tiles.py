@@ -18,8 +18,8 @@ from ragsplat_core.survey import tiles
 
 
 def test_a_nadir_footprint_is_the_field_of_view_at_the_water():
-    """A nadir camera h above the water sees h tan(fov / 2) either side; an oblique one's box lies ahead of it;
-    on a sloping surface the height is the surface's below the camera."""
+    """A nadir camera h above the water sees h tan(fov / 2) either side; an oblique one's box lies ahead of
+    it; on a sloping surface the height is the surface's below the camera."""
     cams = [Camera.look_at([1.0, 2.0, 5.0], [1.0, 2.0, 0.0], 200, 100, 60.0),
             Camera.look_at([0.0, 0.0, 5.0], [5.0, 0.0, 0.0], 200, 100, 60.0, up=(0.0, 0.0, 1.0))]
     R = np.stack([c.R for c in cams])
@@ -51,7 +51,8 @@ def test_the_tiles_partition_the_plane_and_hold_the_photos_that_see_them():
     middle = plan[1]
     assert middle.core[0] == pytest.approx(100 / 3) and middle.outer[0] == pytest.approx(100 / 3 - 4)
     for t in plan:  # a photo joins when a tenth of its footprint lies in the outer box
-        share = tiles._share_inside(boxes, [max(v, -1e9) if k < 2 else min(v, 1e9) for k, v in enumerate(t.outer)])
+        share = tiles._share_inside(boxes, [max(v, -1e9) if k < 2 else min(v, 1e9)
+                                            for k, v in enumerate(t.outer)])
         assert set(t.photos) == {n for n, s in zip(names, share) if s >= tiles.MIN_SEEN}
     assert set().union(*(t.photos for t in plan)) == set(names)
 
@@ -70,7 +71,8 @@ def test_the_merge_takes_each_cell_from_its_core_and_measures_the_overlap():
     assert pair["tiles"] == [0, 1] and pair["cells"] == 11
     assert pair["median_m"] == pytest.approx(-0.01) and pair["rms_m"] == pytest.approx(0.01)
     holed = left[np.abs(left[:, 0] - 0.5) > 1e-9]  # the left tile left x = 0.5 empty: nobody made it
-    right_hole = right[np.abs(right[:, 0] - 1.1) > 1e-9]  # the right tile left x = 1.1: the left one's is used
+    # the right tile left x = 1.1: the left one's is used
+    right_hole = right[np.abs(right[:, 0] - 1.1) > 1e-9]
     grid, owner, report = tiles.merge([holed, right_hole], plan, step)
     assert len(grid) == len(xs) - 1 and report["filled"] == 1
     assert owner[np.isclose(grid[:, 0], 1.1)].tolist() == [0]
@@ -134,7 +136,8 @@ def test_tiles_on_dask_workers_one_killed_give_the_same_products(survey, tiled, 
 
     out = tmp_path / "run"
     _reuse_poses(tiled[0], out)
-    argv = [sys.executable, "-m", "ragsplat_core.cli.main", *args(survey, out, "--tile-size", "3", "--jobs", "2")]
+    argv = [sys.executable, "-m", "ragsplat_core.cli.main",
+            *args(survey, out, "--tile-size", "3", "--jobs", "2")]
 
     def victim():  # a tile a worker is training: its pid in the log's first line
         for log in out.glob("tiles/*/log.txt"):
@@ -153,7 +156,8 @@ def test_tiles_on_dask_workers_one_killed_give_the_same_products(survey, tiled, 
 
 
 def test_seam_distance_counts_only_edges_between_tiles():
-    """tools.seams: a point's distance is to its own core's finite edges; the survey's open outside is no seam."""
+    """tools.seams: a point's distance is to its own core's finite edges; the survey's open outside is no
+    seam."""
     from tools.seams import border_distance
 
     cores = [[None, None, 10.0, None], [10.0, None, None, None]]  # two tiles split at x = 10
