@@ -152,14 +152,14 @@ def _resample(image: np.ndarray, used: np.ndarray, maps, size: tuple[int, int]) 
 def import_colmap(model: Path, images: Path, out: Path, water, masks: Path | None = None,
                   crs: str = layout.LOCAL_CRS, max_size: int | None = None) -> Imported:
     """Write the dataset directory `out` from a COLMAP model, its image folder and the water (`WaterSurface`,
-    flat or sloping, in the model's frame, metres, z up). Splits from the model folder's train.txt / test.txt when present (image
-    names, one per line), else every image trains. A second call with the same inputs reuses `out`; other
-    inputs are refused. Raises DatasetError (model, images, frame), ConfigError (CRS)."""
+    flat or sloping, in the model's frame, metres, z up). Splits from the model folder's train.txt / test.txt
+    when present (image names, one per line), else every image trains. A second call with the same inputs
+    reuses `out`; other inputs are refused. Raises DatasetError (model, images, frame), ConfigError (CRS)."""
     model, images, out = Path(model), Path(images), Path(out)
     sources = sorted(p for p in model.iterdir() if p.is_file()) if model.is_dir() else []
     key = {"model": str(model.resolve()), "model_digest": _digest(sources), "images": str(images.resolve()),
-           **layout.water_json(water), "masks": None if masks is None else str(Path(masks).resolve()), "crs": crs,
-           "max_size": max_size}
+           **layout.water_json(water), "masks": None if masks is None else str(Path(masks).resolve()),
+           "crs": crs, "max_size": max_size}
     if (out / IMPORT).is_file():
         return _reuse(out, key)
     rec = read_model(model)

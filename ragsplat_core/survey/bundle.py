@@ -101,10 +101,11 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
     points) sum of ((P - position) / point_sigma)^2, which fixes it too; without either the frame floats
     (damped only). `lens`: every camera's radial distortion (k1, k2; `project`). `free` ("level", "slope",
     "lens"): the water's parameters (a flat or tilted plane) or the lens's adjusted too, shared by all
-    observations (their Jacobian columns by central differences), their standard deviations from the final normal
-    equations scaled by the residuals' variance (and with the cameras held). Stops after `iterations` or when an accepted step lowers the
-    cost by less than `tol` relative; `on_iteration(cost)` after each. `sparse`: the reduced system solved
-    sparse on the CPU (True) or dense on the tensors' device (False); None: sparse above `DENSE_MAX` unknowns."""
+    observations (their Jacobian columns by central differences), their standard deviations from the final
+    normal equations scaled by the residuals' variance (and with the cameras held). Stops after
+    `iterations` or when an accepted step lowers the cost by less than `tol` relative; `on_iteration(cost)`
+    after each. `sparse`: the reduced system solved sparse on the CPU (True) or dense on the tensors' device
+    (False); None: sparse above `DENSE_MAX` unknowns."""
     dt = torch.float64
     R, C, points, intrinsics, pixels = (x.to(dt) for x in (R, C, points, intrinsics, pixels))
     index = _free_index(free, water)  # which of (level, slope x, slope y, k1, k2) are adjusted
