@@ -67,7 +67,8 @@ def read_model(model: Path):
     try:
         (rec.read_binary if kinds[0] == ".bin" else rec.read_text)(str(model))
     except (RuntimeError, ValueError) as err:  # pycolmap reports a broken file as a RuntimeError
-        raise DatasetError(f"{model}: not a readable COLMAP model ({str(err).splitlines()[0] if str(err) else err})") \
+        raise DatasetError(f"{model}: not a readable COLMAP model "
+                           f"({str(err).splitlines()[0] if str(err) else err})") \
             from None
     if not rec.num_reg_images():
         raise DatasetError(f"{model}: the model has no registered images")
@@ -92,16 +93,18 @@ def _check_frame(names: list[str], centres: np.ndarray, axes: np.ndarray, water,
     mean = axes.mean(0)
     off_nadir = np.degrees(np.arccos(np.clip(-mean[2] / max(np.linalg.norm(mean), 1e-12), -1, 1)))
     if mean[2] > 0 and off_nadir > 90 + MAX_OFF_NADIR / 2:
-        raise DatasetError(f"{model}: the cameras look up (mean viewing direction {off_nadir:.0f} deg from straight "
-                    "down): the model is upside down; align it so z points up (colmap model_aligner)")
+        raise DatasetError(f"{model}: the cameras look up (mean viewing direction {off_nadir:.0f} deg from "
+                           "straight down): the model is upside down; align it so z points up (colmap "
+                           "model_aligner)")
     if off_nadir > MAX_OFF_NADIR:
-        raise DatasetError(f"{model}: the cameras look {off_nadir:.0f} deg away from straight down on average: the "
-                    "model's z axis is not up; align it metric with z up (colmap model_aligner)")
+        raise DatasetError(f"{model}: the cameras look {off_nadir:.0f} deg away from straight down on "
+                           "average: the model's z axis is not up; align it metric with z up (colmap "
+                           "model_aligner)")
     low = int(np.argmax(water.depth(centres)))
     if not water.depth(centres[low]) < 0:
-        raise DatasetError(f"{model}: camera {names[low]} is at z = {centres[low, 2]:.4g}, not above the water "
-                           f"surface ({float(water.height(centres[low, :2])):g} there); give the water in the "
-                           "model's frame (metric, z up)")
+        raise DatasetError(f"{model}: camera {names[low]} is at z = {centres[low, 2]:.4g}, not above the "
+                           f"water surface ({float(water.height(centres[low, :2])):g} there); give the water "
+                           "in the model's frame (metric, z up)")
 
 
 def _mask_file(masks: Path, name: str) -> Path:
@@ -132,7 +135,8 @@ def _undistort_maps(cam) -> tuple[np.ndarray, np.ndarray]:
     return src[..., 0].astype(np.float32), src[..., 1].astype(np.float32)
 
 
-def _resample(image: np.ndarray, used: np.ndarray, maps, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def _resample(image: np.ndarray, used: np.ndarray, maps,
+              size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Undistort (maps, or None) then downscale to `size` (area average). `used`: [H, W] bool of the source;
     a target pixel stays used only if every source pixel under it was used and inside the image."""
     import cv2
@@ -201,8 +205,8 @@ def _reuse(out: Path, key: dict) -> Imported:
     done = json.loads((out / IMPORT).read_text())
     if done.get("key") != key:
         changed = [k for k in key if done.get("key", {}).get(k) != key[k]]
-        raise DatasetError(f"{out} holds an import of other inputs ({', '.join(changed)} changed); use another "
-                           "--out")
+        raise DatasetError(f"{out} holds an import of other inputs ({', '.join(changed)} changed); use "
+                           "another --out")
     return Imported(out, done["images"], done["cameras"], done["points"], done["undistorted"],
                     layout.Georef(tuple(done["georef"]["offset"]), done["georef"]["crs"]), True)
 
@@ -358,8 +362,9 @@ def triangulate(root: Path, work: Path) -> tuple[np.ndarray, np.ndarray, list[st
     reader = pycolmap.ImageReaderOptions()
     for cam_id, group in groups.items():
         reader.existing_camera_id = cam_id
-        pycolmap.extract_features(db, root, group, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                                  extraction_options=extraction, device=pycolmap.Device.cpu)
+        pycolmap.extract_features(db, root, group, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=extraction,
+                                  device=pycolmap.Device.cpu)
     pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
     with pycolmap.Database.open(db) as d:
         cams, images = d.read_all_cameras(), d.read_all_images()
@@ -369,13 +374,16 @@ def triangulate(root: Path, work: Path) -> tuple[np.ndarray, np.ndarray, list[st
     names = {v.file_path: v for v in views}
     for im in images:
         v = names[im.name]
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=im.name, camera_id=im.camera_id, image_id=im.image_id),
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(name=im.name, camera_id=im.camera_id, image_id=im.image_id),
                                          pycolmap.Rigid3d(pycolmap.Rotation3d(v.camera.R), v.camera.t))
     (work / "model").mkdir()
-    rec = pycolmap.triangulate_points(rec, db, root, work / "model", options=pipeline, refine_intrinsics=False)
+    rec = pycolmap.triangulate_points(rec, db, root, work / "model", options=pipeline,
+                                      refine_intrinsics=False)
     pts = _points(rec, np.zeros(3))
     if not len(pts):
-        raise DatasetError(f"{root}: no point could be triangulated from the training images (no texture or overlap?)")
+        raise DatasetError(f"{root}: no point could be triangulated from the training images (no texture or "
+                           "overlap?)")
     names = sorted(rec.images[i].name for i in rec.reg_image_ids())
     index = {name: k for k, name in enumerate(names)}
     obs = [(row, index[rec.images[el.image_id].name], *rec.images[el.image_id].points2D[el.point2D_idx].xy)
@@ -394,7 +402,8 @@ def triangulated_points(root: Path, fingerprint: str) -> Path:
     COLMAP's own database, that every run on the dataset shares. Made under a lock in the dataset: two
     processes that need it at once (two rows of `ragsplat ablation --jobs 2`) do not both run pycolmap in
     the same folder (which crashed one of them inside SQLite); the second waits and reads the first's."""
-    path, work, tracks = Path(root) / TRIANGULATED, Path(root) / "colmap" / "triangulation", Path(root) / TRACKS
+    path, work, tracks = (Path(root) / TRIANGULATED, Path(root) / "colmap" / "triangulation",
+                          Path(root) / TRACKS)
     stamp = Path(root) / STAMP
 
     def cached() -> bool:

@@ -309,7 +309,8 @@ def _sigmas(problem: _Problem, fit: _Fit) -> tuple[dict[str, float], dict[str, f
     scale = float((w * (r * r).sum(-1)).sum()) / dof
     names = [PARAMETERS[j] for j in problem.index]
     sigma = {n: float(v.clamp(min=0).sqrt()) for n, v in zip(names, S.marginal().diagonal() * scale)}
-    held = {n: float(v.clamp(min=0).sqrt()) for n, v in zip(names, torch.linalg.inv(S.Sgg).diagonal() * scale)}
+    held = {n: float(v.clamp(min=0).sqrt())
+            for n, v in zip(names, torch.linalg.inv(S.Sgg).diagonal() * scale)}
     return sigma, held
 
 
@@ -351,7 +352,8 @@ class _Couples:
         k = self.counts[self.point[obs]]
         rep = torch.repeat_interleave(obs, k)  # each observation once per observation of its point
         first = self.start[self.point[rep]]
-        within = torch.arange(len(rep), device=obs.device) - torch.repeat_interleave(torch.cumsum(k, 0) - k, k)
+        within = (torch.arange(len(rep), device=obs.device)
+                  - torch.repeat_interleave(torch.cumsum(k, 0) - k, k))
         return rep, self.order[first + within]
 
     def gather(self, Y: torch.Tensor, W: torch.Tensor) -> torch.Tensor:  # [M, 6, 3] twice -> [B, 6, 6]
@@ -390,7 +392,8 @@ class _System:
         values = self.blocks.detach().cpu().numpy()
         shape = np.broadcast_shapes(rows.shape, cols.shape)
         return scipy.sparse.csc_matrix((values.ravel(), (np.broadcast_to(rows, shape).ravel(),
-                                                         np.broadcast_to(cols, shape).ravel())), shape=(6 * n, 6 * n))
+                                                         np.broadcast_to(cols, shape).ravel())),
+                                       shape=(6 * n, 6 * n))
 
     def _solve_cameras(self, S, rhs: torch.Tensor) -> torch.Tensor:  # S_cc^-1 rhs, rhs [6I] or [6I, G]
         if not self.sparse:
@@ -432,4 +435,5 @@ def _free_index(free: tuple[str, ...], water: WaterSurface | None) -> list[int]:
         raise ValueError(f"free parameters are {FREE}, got {sorted(strange)}")
     if {"level", "slope"} & set(free) and (water is None or water.curved):
         raise ValueError("only a plane water surface (no profile) can be adjusted")
-    return ([0] if "level" in free else []) + ([1, 2] if "slope" in free else []) + ([3, 4] if "lens" in free else [])
+    return (([0] if "level" in free else []) + ([1, 2] if "slope" in free else [])
+            + ([3, 4] if "lens" in free else []))

@@ -147,7 +147,8 @@ def _digest(*parts) -> str:
 
 
 class Stamps:
-    """RUN/stages.json: the key each finished stage was made with; a stage whose key is unchanged is skipped."""
+    """RUN/stages.json: the key each finished stage was made with; a stage whose key is unchanged is
+    skipped."""
 
     def __init__(self, run: Path):
         self.path = run / "stages.json"
@@ -163,7 +164,8 @@ class Stamps:
 
         if self.keys.get(stage) == key:
             return
-        self.keys = {**{s: k for s, k in self.keys.items() if STAGES.index(s) < STAGES.index(stage)}, stage: key}
+        self.keys = {**{s: k for s, k in self.keys.items() if STAGES.index(s) < STAGES.index(stage)},
+                     stage: key}
         write_json(self.path, self.keys)
 
 
@@ -864,8 +866,8 @@ def _seams(merged: dict) -> str:
     pairs = merged["overlap"]
     if not pairs:
         return "nothing (no cell made by two tiles)"
-    return (f"{100 * max(p['rms_m'] for p in pairs):.1f} cm rms and {100 * max(p['p95_abs_m'] for p in pairs):.1f} "
-            f"cm p95 at worst")
+    return (f"{100 * max(p['rms_m'] for p in pairs):.1f} cm rms and "
+            f"{100 * max(p['p95_abs_m'] for p in pairs):.1f} cm p95 at worst")
 
 
 def _tiles(cfg: SurveyConfig, model: Path, surface, lo, hi) -> tuple[list, float, float]:
@@ -944,7 +946,8 @@ class _Log(Progress):
     def training(self, total: int, desc: str, initial: int):
         def on_step(trainer) -> None:
             if trainer.step % 100 == 0 or trainer.step == total:
-                self.say("train", f"{desc}: step {trainer.step} of {total}, {trainer.num_gaussians} Gaussians")
+                self.say("train",
+                         f"{desc}: step {trainer.step} of {total}, {trainer.num_gaussians} Gaussians")
 
         return _Silent(), on_step
 
@@ -993,8 +996,8 @@ def _tile_beds(cfg: SurveyConfig, progress: Progress, cluster, model: Path, surf
                     if future.status != "finished":
                         err = future.exception()
                         raise OutputError(f"tile {k} failed: {type(err).__name__}: {err} (log: "
-                                          f"{cfg.out / 'tiles' / str(k) / 'log.txt'}); finished tiles are kept, "
-                                          "rerun to resume")
+                                          f"{cfg.out / 'tiles' / str(k) / 'log.txt'}); finished tiles are "
+                                          "kept, rerun to resume")
                     beds[k] = np.load(future.result())
                     b.update(1)
     return beds
@@ -1011,8 +1014,10 @@ def _noise_model(tagged, sigma: dict, labels: list[str]) -> dict:
                     "single-point or float solution) as consumer GPS to metres"}
     if fixed:
         own = [p.std_horizontal is not None for p in tagged if p.name in fixed]
-        out["rtk_fixed"] = {"count": len(fixed), "sigma_m_median": np.median([sigma[n] for n in fixed], 0).tolist(),
-                            "from": f"the photos' RtkStdLon / RtkStdLat / RtkStdHgt ({sum(own)} of {len(fixed)})"
+        out["rtk_fixed"] = {"count": len(fixed),
+                            "sigma_m_median": np.median([sigma[n] for n in fixed], 0).tolist(),
+                            "from": f"the photos' RtkStdLon / RtkStdLat / RtkStdHgt ({sum(own)} of "
+                                    f"{len(fixed)})"
                                     if any(own) else "--rtk-sigma (or its 2 / 3 cm default)"}
     if other:
         out["consumer_gps"] = {
@@ -1037,16 +1042,17 @@ def _describe(water) -> str:
     if not (water.tilted or water.curved):
         return f"level {water.level:g} m"
     if water.curved:
-        return (f"a plane falling {100 * (water.slope[0] ** 2 + water.slope[1] ** 2) ** 0.5:.2f} % with a profile "
-                f"of {len(water.profile.stations)} stations along the reach ({water.level:.3f} m at x = y = 0)")
+        return (f"a plane falling {100 * (water.slope[0] ** 2 + water.slope[1] ** 2) ** 0.5:.2f} % with a "
+                f"profile of {len(water.profile.stations)} stations along the reach ({water.level:.3f} m at "
+                "x = y = 0)")
     return (f"a plane falling {100 * (water.slope[0] ** 2 + water.slope[1] ** 2) ** 0.5:.2f} % (slope "
             f"{water.slope[0]:+.5f}, {water.slope[1]:+.5f}; {water.level:.3f} m at x = y = 0)")
 
 
 def _check_near(points, frame, source: Path, what: str, crs: str | None) -> None:
-    """ConfigError when `points` [N, 3] lie far from the survey `frame` [M, 3] (the positions or targets): more
-    than a kilometre, and ten times the frame's extent, from its centre, they are in another frame (e.g. a
-    local one beside EXIF positions in UTM)."""
+    """ConfigError when `points` [N, 3] lie far from the survey `frame` [M, 3] (the positions or targets):
+    more than a kilometre, and ten times the frame's extent, from its centre, they are in another frame (e.g.
+    a local one beside EXIF positions in UTM)."""
     import numpy as np
 
     from ragsplat_core.errors import ConfigError
@@ -1067,17 +1073,17 @@ def _check_above(water, centres) -> None:
 
     top = int(np.argmin(water.depth(centres)))
     if not water.depth(centres[top]) < 0:
-        raise ConfigError(f"the water surface ({_describe(water)}) is not below any camera (the highest above it "
-                          f"is at {centres[top, 2]:g} m, the surface {float(water.height(centres[top, :2])):g} m "
-                          "there)")
+        raise ConfigError(f"the water surface ({_describe(water)}) is not below any camera (the highest "
+                          f"above it is at {centres[top, 2]:g} m, the surface "
+                          f"{float(water.height(centres[top, :2])):g} m there)")
 
 
 def _check_sizes(cfg: SurveyConfig, progress: Progress, photos: list[Path], centres, surface) -> SurveyConfig:
     """Every size refusal before any work, each in one line with advice that works: the training's images
     must fit `IMAGE_MEMORY` of this machine's memory (without --max-size, the largest that fits is chosen,
-    said and returned in the config), and the DEM's grid over the cameras' footprints must pass `export.sample_count` at
-    --resolution (the area is known only after structure from motion; here its lower bound: the cameras'
-    extent, grown by each one's nadir footprint where the water level is given)."""
+    said and returned in the config), and the DEM's grid over the cameras' footprints must pass
+    `export.sample_count` at --resolution (the area is known only after structure from motion; here its lower
+    bound: the cameras' extent, grown by each one's nadir footprint where the water level is given)."""
     import os
     from dataclasses import replace
 
@@ -1104,15 +1110,17 @@ def _check_sizes(cfg: SurveyConfig, progress: Progress, photos: list[Path], cent
         while fits > 16 and image_bytes(fits) > budget:
             fits -= 16
         if cfg.max_size is not None:
-            raise ConfigError(f"{len(photos)} photos at --max-size {cfg.max_size} take {image_bytes(cfg.max_size) / 1e9:.1f} "
-                              f"GB in training, over {budget / 1e9:.1f} GB ({IMAGE_MEMORY:.0%} of this machine's "
-                              f"memory); give --max-size {fits} or less")
+            raise ConfigError(f"{len(photos)} photos at --max-size {cfg.max_size} take "
+                              f"{image_bytes(cfg.max_size) / 1e9:.1f} GB in training, over "
+                              f"{budget / 1e9:.1f} GB ({IMAGE_MEMORY:.0%} of this machine's memory); give "
+                              f"--max-size {fits} or less")
         cfg = replace(cfg, max_size=fits)
-        progress.say("check", f"{len(photos)} photos of {int(longest.max())} px take {image_bytes(None) / 1e9:.1f} GB: "
-             f"training on them downscaled to at most {fits} px ({image_bytes(fits) / 1e9:.1f} GB; --max-size "
-             "to choose)")
+        progress.say("check", f"{len(photos)} photos of {int(longest.max())} px take "
+                     f"{image_bytes(None) / 1e9:.1f} GB: training on them downscaled to at most {fits} px "
+                     f"({image_bytes(fits) / 1e9:.1f} GB; --max-size to choose)")
     lo, hi = centres[:, :2].min(0), centres[:, :2].max(0)
-    if surface is not None:  # the nadir footprint's half width: height over the water x half the sensor / focal
+    # the nadir footprint's half width: height over the water x half the sensor / focal
+    if surface is not None:
         from ragsplat_core.survey.exif import focal_pixels
 
         focal = focal_pixels(photos[0])
@@ -1131,8 +1139,9 @@ def _fresh(folder: Path) -> Path:
 
 def _train(cfg: SurveyConfig, progress: Progress, model: Path, data: Path, out: Path, surface,
            area: float) -> None:
-    """The survey (or a tile's) model imported into `data` (`dataset.colmap`), then trained in `out` (resumes),
-    with a Gaussian budget for its `area` (m^2) at its ground sample distance (`GAUSSIANS_PER_GSD2`)."""
+    """The survey (or a tile's) model imported into `data` (`dataset.colmap`), then trained in `out`
+    (resumes), with a Gaussian budget for its `area` (m^2) at its ground sample distance
+    (`GAUSSIANS_PER_GSD2`)."""
     from dataclasses import replace
 
     from ragsplat_core.dataset import layout
@@ -1140,19 +1149,21 @@ def _train(cfg: SurveyConfig, progress: Progress, model: Path, data: Path, out: 
     from ragsplat_core.dataset.load import load_dataset
     from ragsplat_core.train import Trainer, preset_config
 
-    done = import_colmap(model, cfg.images, data, surface, cfg.masks, cfg.crs or layout.LOCAL_CRS, cfg.max_size)
-    progress.say("train", f"{'reusing the' if done.reused else 'imported'} survey in {done.root}: {done.images} "
-                 "images")
+    done = import_colmap(model, cfg.images, data, surface, cfg.masks, cfg.crs or layout.LOCAL_CRS,
+                         cfg.max_size)
+    progress.say("train", f"{'reusing the' if done.reused else 'imported'} survey in {done.root}: "
+                          f"{done.images} images")
     overrides = {"variant": cfg.variant, "seed": cfg.seed, "init": cfg.init}
     if cfg.iterations is not None:
         overrides["iterations"] = cfg.iterations
     train = preset_config(cfg.preset, **overrides)
     ds = load_dataset(done.root, splits=("train",), load_dry=False)
-    budget = min(max(round(GAUSSIANS_PER_GSD2 * area / ds.gsd**2), train.densify.max_gaussians), MAX_GAUSSIANS)
+    budget = min(max(round(GAUSSIANS_PER_GSD2 * area / ds.gsd**2), train.densify.max_gaussians),
+                 MAX_GAUSSIANS)
     train = replace(train, densify=replace(train.densify, max_gaussians=budget))
     progress.say("train", f"at most {budget} Gaussians for {area:.0f} m^2 at a ground sample distance of "
-                 f"{100 * ds.gsd:.2f} cm ({GAUSSIANS_PER_GSD2} per GSD^2, at least the {cfg.preset} preset's, at "
-                 f"most {MAX_GAUSSIANS})")
+                 f"{100 * ds.gsd:.2f} cm ({GAUSSIANS_PER_GSD2} per GSD^2, at least the {cfg.preset} "
+                 f"preset's, at most {MAX_GAUSSIANS})")
     t0 = time.perf_counter()
     trainer = Trainer(train, ds, out)  # the start (the refracted tracks: triangulated once, cached in `data`)
     if trainer.step >= train.iterations:
