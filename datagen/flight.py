@@ -21,6 +21,7 @@ import numpy as np
 
 from datagen.spec import SceneSpec
 from ragsplat_core.camera import Camera
+from ragsplat_core.errors import SpecError
 from ragsplat_core.snell import ground_offset
 
 
@@ -76,6 +77,17 @@ def eval_region(spec: SceneSpec) -> dict[str, float]:
     half = spec.flight.altitude * math.tan(math.radians(spec.flight.fov_deg / 2))
     xs, ys = (cols - 1) * s / 2 + half, (rows - 1) * s / 2 + half
     return {"xmin": -xs, "xmax": xs, "ymin": -ys, "ymax": ys}
+
+
+def check_region(spec: SceneSpec) -> None:
+    """Raises SpecError where the evaluated region (`eval_region`) reaches the bed's tapered border: a check
+    of the flight against the bed, here with the plan rather than in `spec.validate` (the spec imports
+    nothing of the flight plan that reads it)."""
+    r, inner = eval_region(spec), spec.bed.size / 2 - spec.bed.taper
+    if max(-r["xmin"], r["xmax"], -r["ymin"], r["ymax"]) >= inner:
+        raise SpecError(f"the evaluated region (x {r['xmin']:.2f} to {r['xmax']:.2f} m, y {r['ymin']:.2f} to "
+                        f"{r['ymax']:.2f} m) reaches the {spec.bed.size} m bed's {spec.bed.taper} m border: "
+                        "enlarge bed.size or fly fewer nadirs")
 
 
 def nadir_views_covering(spec: SceneSpec, xy) -> np.ndarray:
@@ -142,7 +154,9 @@ def _obliques(spec: SceneSpec, split: str) -> list[tuple[str, str, Camera]]:
 
 
 def plan(spec: SceneSpec) -> list[Pose]:
-    """All poses, training first: nadir grid, obliques by tilt; then test nadirs and test obliques."""
+    """All poses, training first: nadir grid, obliques by tilt; then test nadirs and test obliques. Raises
+    SpecError (`check_region`) for a flight whose evaluated region reaches the bed's border."""
+    check_region(spec)
     views = [("nadir", "train", _nadir(spec, xy)) for xy in nadir_positions(spec)] + _obliques(spec, "train")
     views += [("nadir", "test", _nadir(spec, xy)) for xy in nadir_positions(spec, between=True)]
     views += _obliques(spec, "test")

@@ -371,17 +371,6 @@ def validate(spec: SceneSpec) -> None:
                         f"{spec.light.sun_elevation} and {spec.light.sun_azimuth}")
     if spec.conditions is not None:
         _validate_conditions(spec)
-    _validate_region(spec)
-
-
-def _validate_region(spec: SceneSpec) -> None:
-    from datagen.flight import eval_region  # the flight plan reads the spec: imported here, not at the top
-
-    r, inner = eval_region(spec), spec.bed.size / 2 - spec.bed.taper
-    if max(-r["xmin"], r["xmax"], -r["ymin"], r["ymax"]) >= inner:
-        raise SpecError(f"the evaluated region (x {r['xmin']:.2f} to {r['xmax']:.2f} m, y {r['ymin']:.2f} to "
-                        f"{r['ymax']:.2f} m) reaches the {spec.bed.size} m bed's {spec.bed.taper} m border: "
-                        "enlarge bed.size or fly fewer nadirs")
 
 
 def _validate_slope(spec: SceneSpec) -> None:

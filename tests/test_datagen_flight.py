@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from datagen import flight
-from datagen.spec import SceneSpec, SpecError, preset, validate
+from datagen.spec import PRESETS, SceneSpec, SpecError, preset, validate
 
 
 def trace_to_bed(cam, pixels, level, n, bed_z):
@@ -135,3 +135,11 @@ def test_unknown_preset_and_spec_round_trip():
     assert SceneSpec.from_dict(bed.to_dict()) == bed
     dry = replace(spec, water=None)
     assert SceneSpec.from_dict(dry.to_dict()) == dry
+
+
+@pytest.mark.parametrize("name", sorted(PRESETS))
+def test_every_preset_validates_and_plans(name):
+    """Each preset passes validate and its flight plan's region check (`flight.check_region`)."""
+    spec = preset(name)
+    validate(spec)
+    assert len(flight.plan(spec)) > 0

@@ -151,9 +151,11 @@ def test_spec_round_trips_and_older_presets_spec_json_are_unchanged(name):
     (lambda f: replace(f, grid=(2, 30)), "evaluated region"),
 ])
 def test_bad_strip_plans_are_one_line_errors(change, message):
-    spec = preset("smoke-long")
+    """validate refuses a bad plan's parameters; the plan itself one whose evaluated region leaves the bed."""
+    spec = replace(preset("smoke-long"), flight=change(preset("smoke-long").flight))
     with pytest.raises(SpecError, match=message) as err:
-        validate(replace(spec, flight=change(spec.flight)))
+        validate(spec)
+        flight.plan(spec)
     assert "\n" not in str(err.value)
 
 
