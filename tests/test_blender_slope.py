@@ -4,6 +4,7 @@ sheared bed; the survey's water-edge points lie on the surface and water_level.t
 mean; the ripples of a sloping river ride on its mean surface."""
 
 import json
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -70,20 +71,20 @@ def test_the_survey_measures_the_edge_on_the_surface(smoke_slope):
 def test_ripples_ride_on_the_sloping_mean_surface():
     from blender_scenes.render import _ripple
     from datagen.conditions import ripple_height
+    from datagen.job import Ripples
 
     rng = np.random.default_rng(0)
     verts = np.column_stack([rng.uniform(-5, 5, (50, 2)), np.zeros(50)])
     geo = {"water_verts": verts, "water_weight": rng.uniform(0, 1, 50)}
-    ripples = {"k": rng.normal(0, 10, (4, 2)).tolist(), "amplitude": [0.004, 0.002, 0.001, 0.003],
-               "level": 0.2}
+    ripples = Ripples(k=rng.normal(0, 10, (4, 2)).tolist(), amplitude=[0.004, 0.002, 0.001, 0.003], level=0.2)
     phases = rng.uniform(0, 6, 4).tolist()
     got = {}
     water = SimpleNamespace(data=SimpleNamespace(
         vertices=SimpleNamespace(foreach_set=lambda key, co: got.update({key: np.reshape(co, (-1, 3))})),
         update=lambda: None))
-    ripple = geo["water_weight"] * ripple_height(verts[:, :2], np.array(ripples["k"]),
-                                                 np.array(ripples["amplitude"]), np.array(phases))
+    ripple = geo["water_weight"] * ripple_height(verts[:, :2], np.array(ripples.k),
+                                                 np.array(ripples.amplitude), np.array(phases))
     _ripple(water, geo, ripples, phases)
     np.testing.assert_allclose(got["co"][:, 2], 0.2 + ripple, atol=1e-6)  # flat: as before
-    _ripple(water, geo, {**ripples, "slope": [-0.01, 0.02]}, phases)
+    _ripple(water, geo, replace(ripples, slope=(-0.01, 0.02)), phases)
     np.testing.assert_allclose(got["co"][:, 2], 0.2 + verts[:, :2] @ [-0.01, 0.02] + ripple, atol=1e-6)
