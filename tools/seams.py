@@ -22,6 +22,7 @@ import numpy as np
 
 from eval.bed_file import score_file
 from eval.evaluate import height_error
+from ragsplat_core.survey.tiles import inside
 
 
 def border_distance(xy: np.ndarray, cores: list[list[float | None]]) -> np.ndarray:
@@ -29,9 +30,9 @@ def border_distance(xy: np.ndarray, cores: list[list[float | None]]) -> np.ndarr
     holds it or its core has no finite edge). `cores`: tiles.json's [xmin, ymin, xmax, ymax], None open."""
     out = np.full(len(xy), np.inf)
     for core in cores:
-        lo = np.array([-math.inf if core[0] is None else core[0], -math.inf if core[1] is None else core[1]])
-        hi = np.array([math.inf if core[2] is None else core[2], math.inf if core[3] is None else core[3]])
-        mine = np.all((xy >= lo) & (xy < hi), axis=1)
+        box = [(-math.inf if e < 2 else math.inf) if v is None else v for e, v in enumerate(core)]
+        mine = inside(xy, box)  # the merge's own ownership rule
+        lo, hi = np.array(box[:2]), np.array(box[2:])
         gaps = np.concatenate([xy[mine] - lo, hi - xy[mine]], axis=1)  # [M, 4], inf at an open edge
         out[mine] = gaps.min(axis=1)
     return out
