@@ -151,6 +151,13 @@ def dataset_seed(data: Path) -> int | None:
     return json.loads(scene.read_text()).get("seed") if scene.is_file() else None
 
 
+def scene_conditions(data: Path) -> dict | None:
+    """The field conditions the dataset `data` was rendered with (its scene.json's "conditions": the water
+    body's coefficients, reflection, ripples), None for a clear scene or one that was not rendered."""
+    scene = Path(data) / layout.SCENE
+    return json.loads(scene.read_text()).get("conditions") if scene.is_file() else None
+
+
 def one_level_water(data: Path, water: WaterSurface | None) -> tuple[WaterSurface, dict]:
     """(the flat surface, its record) that a flat-water tool puts on the dataset `data` with the surface
     `water`: one level, the mean height of the water's edge points a surveyor measured (`EDGE_POINTS`), with
@@ -354,6 +361,7 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
               "harness_preset": asdict(PRESETS[preset]), "code_digest": source_digest(*CODE),
               "row_code_digest": base["code"],
               "versions": stamp, "command": sys.argv,
+              "conditions": scene_conditions(data),
               "max_depth_m": truth.max_depth, "water": layout.water_json(truth.water), "one_level": one_level,
               "lpips_network": getattr(lpips_metric, "network", None),
               "references": {"names": list(REFERENCES), "use_ground_truth": list(USES_GROUND_TRUTH),

@@ -194,6 +194,50 @@ def table3(rows: dict[str, list[dict]], notes: list[str] = ()) -> str:
     return text + _table(rows, {}, None, T3_COLUMNS, tabled(rows), True) + _notes(notes)
 
 
+def table4(rows: dict[str, list[dict]], conditions: dict | None) -> str:
+    """The water's optics the rows trained (issue 50), against the scene's: the attenuation c per linear RGB
+    channel (1/m) and its ratio to the scene's extinction (absorption + scattering, scene.json's
+    "conditions"), and the backscatter's veil B_inf and coefficient c_b. Empty when no row trained a term."""
+    def trained(r: dict) -> bool:
+        stats = r.get("train_stats") or {}
+        return bool(stats.get("attenuation") or stats.get("backscatter"))
+
+    names = [n for n in tabled(rows) if any(trained(r) for r in rows[n])]
+    if not names:
+        return ""
+    scene = (conditions or {}).get("extinction_per_m")
+    rgb = ("R", "G", "B")
+    head = ["Row", "seeds", *[f"c {k} (1/m)" for k in rgb], *[f"c/scene {k}" for k in rgb],
+            *[f"B_inf {k}" for k in rgb], *[f"c_b {k} (1/m)" for k in rgb]]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+
+    def stat(found: list[dict], keys: tuple, i: int, fmt: str, scale: float = 1.0) -> str:
+        vals = []
+        for r in found:
+            v = r.get("train_stats") or {}
+            for k in keys:
+                v = v.get(k) if isinstance(v, dict) else None
+            if v is not None:
+                vals.append(v[i] * scale)
+        return _cell(vals, fmt)
+
+    for name in names:
+        found = rows[name]
+        cells = [name, str(len(found))]
+        cells += [stat(found, ("attenuation",), i, "{:.3f}") for i in range(3)]
+        cells += [stat(found, ("attenuation",), i, "{:.2f}", 1 / scene[i])
+                  if scene and scene[i] > 0 else "n/a" for i in range(3)]
+        cells += [stat(found, ("backscatter", "veil"), i, "{:.3f}") for i in range(3)]
+        cells += [stat(found, ("backscatter", "coefficients"), i, "{:.3f}") for i in range(3)]
+        lines.append("| " + " | ".join(cells) + " |")
+    where = ("the scene's extinction (1/m, R G B): " + " / ".join(f"{c:.3f}" for c in scene) if scene
+             else "the scene records no water body (scene.json has no conditions)")
+    title = "### Table 4: the water's optics the rows trained, against the scene's (mean ± std over seeds)"
+    return (title + "\n\n"
+            + "\n".join(lines) + "\n" + _notes([where + "; c/scene 1.00 is the scene's value (the issue's "
+                                              "target: within 0.75-1.25 in every channel)."]))
+
+
 PANELS = (("psnr_refr", "PSNR refr (dB)"), ("psnr_dry", "PSNR dry (dB)"), ("1%", "F1 @ 1 % of depth (%)"),
           ("3%", "F1 @ 3 % of depth (%)"))
 
@@ -409,13 +453,16 @@ def survey_notes(header: dict) -> list[str]:
 
 
 def write_outputs(out: Path, rows: dict[str, list[dict]], header: dict, lpips_reason: str) -> str:
-    """results.json, table1.md, table2.md, table3.md, error_vs_time.png from the rows; returns the tables."""
+    """results.json, table1.md, table2.md, table3.md (table4.md when a row trained the water's optics),
+    error_vs_time.png from the rows; returns the tables."""
     published = load_published()
     t1 = table1(rows, published, notes(rows, header, lpips_reason))
     t2 = table2(rows, published, geometry_notes(header))
     t3 = table3(rows, survey_notes(header))
-    for name, text in (("table1.md", t1), ("table2.md", t2), ("table3.md", t3)):
-        write_bytes(out / name, text.encode())
+    t4 = table4(rows, header.get("conditions"))
+    for name, text in (("table1.md", t1), ("table2.md", t2), ("table3.md", t3), ("table4.md", t4)):
+        if text:
+            write_bytes(out / name, text.encode())
     curves = {v: [r["curve"] for r in rows[v]] for v in ordered(rows) if v in VARIANTS}
     # the field's best, the trivial
     lines = {n: {k: (summary(values(rows[n], ("geometry", "f1", k))) or {}).get("mean") for k in ("1%", "3%")}
@@ -433,7 +480,7 @@ def write_outputs(out: Path, rows: dict[str, list[dict]], header: dict, lpips_re
                "published": published, "summary": summaries, "summary_fused": fused,
                "rows": {n: rows[n] for n in ordered(rows)}}
     write_json(out / "results.json", jsonable(results), indent=1)
-    return t1 + "\n" + t2 + "\n" + t3
+    return t1 + "\n" + t2 + "\n" + t3 + ("\n" + t4 if t4 else "")
 
 
 def jsonable(x):

@@ -8,7 +8,7 @@ import torch
 from eval import ablation, references
 from eval.ablation import run_ablation
 from eval.evaluate import evaluate_fused, evaluate_geometry, evaluate_views, score_grid
-from eval.report import load_published, table1, table2, table3, write_outputs
+from eval.report import load_published, table1, table2, table3, table4, write_outputs
 from ragsplat_core.dataset.load import GroundTruth
 from ragsplat_core.errors import ConfigError
 from ragsplat_core.fusion import FuseConfig
@@ -108,6 +108,23 @@ class FakeRunner:
         self.calls.append((cfg.variant, cfg.seed))
         apparent = self.truth.grid + [0, 0, 1.0 - 1.0 / 1.33]  # an uncorrected bed at depth / n
         return fake_row(list(VARIANTS).index(cfg.variant), cfg.seed), apparent, self.truth.grid + [0, 0, 0.01]
+
+
+def test_table4_puts_the_trained_optics_beside_the_scenes():
+    """Table 4 (issue 50): the attenuation per channel over the seeds and its ratio to the scene's extinction;
+    no table when no row trained a water term (the clear-water ablation writes no table4.md)."""
+    veil = {"veil": [0.1, 0.2, 0.3], "coefficients": [1, 2, 3]}
+    rows = {"2dgs+full": [{"seed": 0, "train_stats": {"attenuation": None, "backscatter": None}}],
+            "2dgs+full+water": [
+                {"seed": 0, "train_stats": {"attenuation": [0.4, 0.2, 0.3], "backscatter": veil}},
+                {"seed": 1, "train_stats": {"attenuation": [0.6, 0.2, 0.3], "backscatter": veil}}]}
+    text = table4(rows, {"extinction_per_m": [0.5, 0.25, 0.3]})
+    line = next(x for x in text.splitlines() if x.startswith("| 2dgs+full+water"))
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert cells[:8] == ["2dgs+full+water", "2", "0.500 ± 0.141", "0.200 ± 0.000", "0.300 ± 0.000",
+                         "1.00 ± 0.28", "0.80 ± 0.00", "1.00 ± 0.00"]
+    assert "| 2dgs+full |" not in text and "0.500 / 0.250 / 0.300" in text
+    assert "n/a" in table4(rows, None) and table4({"2dgs+full": rows["2dgs+full"]}, None) == ""
 
 
 def test_rows_only_trains_each_row_and_the_tables_reuse_them(tmp_path):
