@@ -1,14 +1,16 @@
-"""Thin Cycles renderer: `python -m blender_scenes.render JOB.json` (the venv python with the bpy module).
+"""Thin Cycles renderer: `python -m ragsplat.blender_scenes.render JOB.json` (the venv python with the bpy
+module).
 
-The job is a `datagen.job.RenderJob` (its schema and the meaning of each part are there). All geometry comes
-ready-made from datagen (one .npz); this module only builds Blender objects and materials, one per job part,
-then renders the job's tasks in order in ONE process (persistent data: the scene is synced once).
+The job is a `ragsplat.datagen.job.RenderJob` (its schema and the meaning of each part are there). All
+geometry comes ready-made from datagen (one .npz); this module only builds Blender objects and materials, one
+per job part, then renders the job's tasks in order in ONE process (persistent data: the scene is synced
+once).
 
 Passes: "wet" renders with the water object and the wet-only objects, "dry" without; both 8-bit sRGB PNG,
 'Standard' view transform. "depth" renders without water at 1 sample with a 0.01 px pixel filter (exact
-surface at the pixel centre) and stores Cycles' z-depth via ragsplat_core.dataset.layout.write_depth. Every
+surface at the pixel centre) and stores Cycles' z-depth via ragsplat.dataset.layout.write_depth. Every
 file is written to a temporary name and renamed, so a killed run never leaves a partial file. The scene
-built, and each finished task, print one event line (`datagen.job.Ready`, `Done`) on stdout.
+built, and each finished task, print one event line (`ragsplat.datagen.job.Ready`, `Done`) on stdout.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix, Vector
 
-from datagen.job import (
+from ragsplat.datagen.job import (
     Diffuse,
     Done,
     Emission,
@@ -39,9 +41,9 @@ from datagen.job import (
     Volume,
     event_line,
 )
-from datagen.spec import LightSpec
-from ragsplat_core.dataset.layout import NO_HIT, write_depth
-from ragsplat_core.outputs import temp_path, write_bytes
+from ragsplat.datagen.spec import LightSpec
+from ragsplat.dataset.layout import NO_HIT, write_depth
+from ragsplat.outputs import temp_path, write_bytes
 
 
 def _say(event: Event) -> None:
@@ -240,7 +242,7 @@ def _setup(job: RenderJob) -> tuple[bpy.types.Scene, bpy.types.Object, list[bpy.
 
 def _ripple(water: bpy.types.Object, geo, ripples: Ripples, phases: tuple[float, ...]) -> None:
     """Set the water mesh to this photo's surface: z = level (+ sx x + sy y) + weight * ripple height."""
-    from datagen.conditions import ripple_height
+    from ragsplat.datagen.conditions import ripple_height
 
     verts = geo["water_verts"]
     z = ripples.level + geo["water_weight"] * ripple_height(

@@ -26,8 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from datagen.spec import SceneSpec
-from ragsplat_core.dataset.layout import Surface
+from ragsplat.datagen.spec import SceneSpec
+from ragsplat.dataset.layout import Surface
 
 
 @dataclass(frozen=True)

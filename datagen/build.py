@@ -20,9 +20,19 @@ from pathlib import Path
 
 import numpy as np
 
-from datagen import conditions, flight
-from datagen.bed import Bed, ground_truth, height_at, make_bed, mesh, shear, world_surface, world_waterline
-from datagen.job import (
+from ragsplat.camera import Camera
+from ragsplat.datagen import conditions, flight
+from ragsplat.datagen.bed import (
+    Bed,
+    ground_truth,
+    height_at,
+    make_bed,
+    mesh,
+    shear,
+    world_surface,
+    world_waterline,
+)
+from ragsplat.datagen.job import (
     Diffuse,
     Done,
     Intrinsics,
@@ -38,13 +48,12 @@ from datagen.job import (
     event_json,
     parse_event,
 )
-from datagen.spec import SceneSpec, validate
-from datagen.survey import LENS, lens_polynomial, write_survey
-from ragsplat_core.camera import Camera
-from ragsplat_core.dataset import layout
-from ragsplat_core.errors import OutputError, RagsplatError
-from ragsplat_core.outputs import atomic_path, versions, write_json
-from ragsplat_core.scoring import geometry_metrics, plane_scores, thresholds
+from ragsplat.datagen.spec import SceneSpec, validate
+from ragsplat.datagen.survey import LENS, lens_polynomial, write_survey
+from ragsplat.dataset import layout
+from ragsplat.errors import OutputError, RagsplatError
+from ragsplat.outputs import atomic_path, versions, write_json
+from ragsplat.scoring import geometry_metrics, plane_scores, thresholds
 
 FAR = 2000.0  # half-size (m) of the floor and water planes: beyond every view's horizon-free field
 
@@ -74,7 +83,7 @@ def passes_for(spec: SceneSpec) -> tuple[str, ...]:
 
 
 def surveyed(spec: SceneSpec) -> bool:
-    """Whether the dataset gets a survey (`datagen.survey`): wet photos of water."""
+    """Whether the dataset gets a survey (`ragsplat.datagen.survey`): wet photos of water."""
     return spec.water is not None and "wet" in passes_for(spec)
 
 
@@ -235,13 +244,13 @@ class RendererCrashed(RagsplatError):
 
 def run_blender(job: RenderJob, workdir: Path, progress: Callable[[dict], None] | None = None) -> RenderStats:
     """Render `job` in one Blender (bpy) process; `progress(event)` is called after each finished image with
-    the `Done` event as a dict (`datagen.job.event_json`)."""
+    the `Done` event as a dict (`ragsplat.datagen.job.event_json`)."""
     jobfile = workdir / f"job.{os.getpid()}.json"
     write_json(jobfile, job.to_json())
     stats = RenderStats()
     log_path = workdir / "blender.log"
     with open(log_path, "a") as log:
-        proc = subprocess.Popen([sys.executable, "-m", "blender_scenes.render", str(jobfile)],
+        proc = subprocess.Popen([sys.executable, "-m", "ragsplat.blender_scenes.render", str(jobfile)],
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
         try:
             for line in proc.stdout:

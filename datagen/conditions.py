@@ -7,9 +7,9 @@ proportion to wavelength), scaled so that the surface's rms height is `ripple_am
 its own phases from (seed, view index): a new surface per photo, the same one on a rerun or in any shard.
 The mean surface is the level (a sum of cosines with independent phases has mean zero); the ground truth
 stays the bed. Towards the bed's border the ripples fade to the flat plane that continues to the horizon.
-Like the bed (`datagen.bed`), everything here is made in the flat scene; under a sloping water surface the
-generator shears it (`datagen.bed.shear`), so the ripples ride on the sloping mean surface and the water
-body's top stays parallel to it.
+Like the bed (`ragsplat.datagen.bed`), everything here is made in the flat scene; under a sloping water
+surface the generator shears it (`ragsplat.datagen.bed.shear`), so the ripples ride on the sloping mean
+surface and the water body's top stays parallel to it.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ import math
 
 import numpy as np
 
-from datagen.bed import _smoothstep, grid_triangles
-from datagen.spec import FieldConditions, SceneSpec
-from ragsplat_core.errors import SpecError
+from ragsplat.datagen.bed import _smoothstep, grid_triangles
+from ragsplat.datagen.spec import FieldConditions, SceneSpec
+from ragsplat.errors import SpecError
 
 # Random streams of the conditions, apart from the bed's own (`make_bed` draws from default_rng(seed)).
 _WAVES, _PHASES, _TARGETS = 1, 2, 3
@@ -111,7 +111,7 @@ def place_targets(c: FieldConditions, height, banks: np.ndarray, level: float, s
     ground under it is within TARGET_TILT of level; `height(xy [N, 2]) -> [N]` is the ground. A target is
     a level board just clear of the highest ground under it; its centre, the point a surveyor measures,
     is on the board."""
-    from datagen.survey import spread
+    from ragsplat.datagen.survey import spread
 
     half = c.target_size / 2
     offsets = np.array([[sx, sy] for sx in (-half, 0, half) for sy in (-half, 0, half)])

@@ -7,7 +7,7 @@ along the reach's axis (`strips`: a long reach, where rings about its centre wou
 Held-out test views: nadirs between grid points, and obliques at azimuths offset from the training ones
 (strips: one per tilt at each midpoint between stations, the azimuth turning from one to the next).
 
-Refraction shrinks the footprint on the bed (`ragsplat_core.snell.ground_offset`): the half-footprint is
+Refraction shrinks the footprint on the bed (`ragsplat.snell.ground_offset`): the half-footprint is
 h tan(a) + d tan(asin(sin(a) / n)) instead of the dry (h + d) tan(a). Using the dry footprint would overstate
 the overlap.
 """
@@ -19,10 +19,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from datagen.spec import SceneSpec
-from ragsplat_core.camera import Camera
-from ragsplat_core.errors import SpecError
-from ragsplat_core.snell import ground_offset
+from ragsplat.camera import Camera
+from ragsplat.datagen.spec import SceneSpec
+from ragsplat.errors import SpecError
+from ragsplat.snell import ground_offset
 
 
 @dataclass(frozen=True)

@@ -1,9 +1,9 @@
 """The renderer boundary: the job datagen hands to the Blender process, and the events it prints back.
 
-Blender runs as its own process (`python -m blender_scenes.render JOB.json`): datagen builds a `RenderJob`
-(`datagen.build.render_job`), writes it with `to_json()` and reads the events; the renderer reads the job with
-`RenderJob.from_json` and prints `Ready` and `Done`. Both sides import this module, which imports no bpy (and
-no torch): the arrow goes from blender_scenes to datagen, never back.
+Blender runs as its own process (`python -m ragsplat.blender_scenes.render JOB.json`): datagen builds a
+`RenderJob` (`ragsplat.datagen.build.render_job`), writes it with `to_json()` and reads the events; the
+renderer reads the job with `RenderJob.from_json` and prints `Ready` and `Done`. Both sides import this
+module, which imports no bpy (and no torch): the arrow goes from blender_scenes to datagen, never back.
 
 All geometry comes ready-made in one .npz (`RenderJob.geometry`): object `name`'s mesh is `{name}_verts`
 [V, 3], `{name}_tris` [F, 3] and optionally `{name}_uv` [V, 2]; a rippled water mesh also has `water_weight`
@@ -19,8 +19,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from datagen.spec import LightSpec
-from ragsplat_core.errors import RagsplatError
+from ragsplat.datagen.spec import LightSpec
+from ragsplat.errors import RagsplatError
 
 PROTOCOL = "@@ragsplat "  # prefix of the renderer's event lines on stdout; every other line is Blender's log
 
@@ -52,7 +52,7 @@ def _encode(value):
     return out
 
 
-# Materials: the renderer builds one Cycles node tree per kind (`blender_scenes.render._material`).
+# Materials: the renderer builds one Cycles node tree per kind (`ragsplat.blender_scenes.render._material`).
 
 @dataclass(frozen=True)
 class Texture:
@@ -120,7 +120,8 @@ class SceneObject:
 
 @dataclass(frozen=True)
 class RenderSettings:
-    """Cycles' settings for every task of a job (`datagen.spec.RenderSpec` with the dataset's seed)."""
+    """Cycles' settings for every task of a job (`ragsplat.datagen.spec.RenderSpec` with the dataset's
+    seed)."""
     samples: int  # per pixel, colour passes
     device: str  # "CPU", "GPU" or "auto"
     threads: int  # 0: all cores
@@ -134,7 +135,7 @@ class RenderSettings:
 class Intrinsics:
     """The pinhole every task renders through (square pixels, principal point centred); with
     `fisheye_polynomial` [k0..k4], Cycles' polynomial lens instead: a lens with radial distortion
-    (`datagen.survey.lens_polynomial`)."""
+    (`ragsplat.datagen.survey.lens_polynomial`)."""
     width: int
     height: int
     fx: float
@@ -151,7 +152,7 @@ class Intrinsics:
 class Ripples:
     """The water mesh of a wet task with `phases` is moved to that photo's surface before it renders: the
     mean surface level + sx x + sy y (`slope`, None: flat) plus `water_weight` times the ripples
-    (`datagen.conditions.ripple_height`)."""
+    (`ragsplat.datagen.conditions.ripple_height`)."""
     k: tuple[tuple[float, float], ...]  # [K, 2] wave vectors (rad/m)
     amplitude: tuple[float, ...]  # [K] (m)
     level: float
@@ -232,7 +233,8 @@ EVENTS = {e.event: e for e in (Ready, Done)}
 
 
 def event_json(event: Event) -> dict:
-    """The event as a dict, {"event": "ready" | "done", **fields} (what `datagen.build.generate` reports)."""
+    """The event as a dict, {"event": "ready" | "done", **fields} (what `ragsplat.datagen.build.generate`
+    reports)."""
     return {"event": event.event, **{f.name: getattr(event, f.name) for f in fields(event)}}
 
 

@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from ragsplat_core.errors import SpecError
+from ragsplat.errors import SpecError
 
 
 @dataclass(frozen=True)
@@ -61,9 +61,10 @@ class ReachSpec:
 
 @dataclass(frozen=True)
 class WaterSpec:
-    """The water surface z = level + slope[0] x + slope[1] y (`ragsplat_core.refraction.WaterSurface`'s
+    """The water surface z = level + slope[0] x + slope[1] y (`ragsplat.refraction.WaterSurface`'s
     meaning): a flat plane by default; a river falling by a fraction S downstream (+x) has slope (-S, 0).
-    The whole scene falls with it (`datagen.bed.shear`), so the depths are those of the flat scene."""
+    The whole scene falls with it (`ragsplat.datagen.bed.shear`), so the depths are those of the flat
+    scene."""
 
     level: float = 0.0  # z of the water surface at x = y = 0 (m)
     n: float = 1.33  # refractive index relative to air
@@ -121,10 +122,10 @@ class RenderSpec:
 @dataclass(frozen=True)
 class FieldConditions:
     """Field conditions, each off at its default (the ideal survey: still, clear, non-reflecting water).
-    Rendered by Cycles itself (`datagen.conditions` makes the geometry and numbers, `blender_scenes.render`
-    the materials): a water body that absorbs and scatters per colour channel, Fresnel reflection of sky and
-    sun at the surface, ripples with a new phase in every photo, and checkerboard ground control targets on
-    the banks."""
+    Rendered by Cycles itself (`ragsplat.datagen.conditions` makes the geometry and numbers,
+    `ragsplat.blender_scenes.render` the materials): a water body that absorbs and scatters per colour
+    channel, Fresnel reflection of sky and sun at the surface, ripples with a new phase in every photo, and
+    checkerboard ground control targets on the banks."""
 
     # Water body: absorption and scattering coefficients (1/m) per linear RGB channel, each times
     # `turbidity` (the sweep's scale). Beer-Lambert along every in-water path, the sunlight's included.

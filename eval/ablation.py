@@ -5,20 +5,22 @@ Per variant and seed (a row, `OUT/<variant>/seed<S>/`): train with evaluation po
 PSNR in both conditions and the geometry at every threshold against training time, with the table's
 extraction settings), then evaluate on the held-out views (PSNR, SSIM, LPIPS; `refr` = rendered through
 the interface vs the with-water images, `dry` = true Gaussians without it vs the dry images) and the bed,
-extracted twice and each scored by `eval.evaluate.score_grid`: "volume" (`geometry`: volume sampling of the
-Gaussians, `ragsplat_core.surface`) and "fused" (`geometry_fused`: TSDF fusion of the true Gaussians' median
-depth maps of the training views, `ragsplat_core.fusion`). The reference rows (`eval.references`) are height
-grids scored the same way (no fused variant). Every row writes `row.json`, the extracted bed (`bed.npy`,
-`bed.tif`) and its depth-error map (`depth_error.png`); a trained row also the fused bed (`bed_fused.npy`,
-`bed_fused.tif`, `bed_fused.ply`: the height grid as a triangle mesh, `depth_error_fused.png`).
+extracted twice and each scored by `ragsplat.eval.evaluate.score_grid`: "volume" (`geometry`: volume sampling
+of the Gaussians, `ragsplat.surface`) and "fused" (`geometry_fused`: TSDF fusion of the true Gaussians' median
+depth maps of the training views, `ragsplat.fusion`). The reference rows (`ragsplat.eval.references`) are
+height grids scored the same way (no fused variant). Every row writes `row.json`, the extracted bed
+(`bed.npy`, `bed.tif`) and its depth-error map (`depth_error.png`); a trained row also the fused bed
+(`bed_fused.npy`, `bed_fused.tif`, `bed_fused.ply`: the height grid as a triangle mesh,
+`depth_error_fused.png`).
 
 A row is reused only when its key matches: the dataset's content fingerprint (images and ground truth),
 the resolved training and extraction configs, the harness preset and the source digest of the code that
 computes it (`ROW_CODE`: ragsplat_core and the harness's training and scoring; a reference row also its
 settings and `eval/references.py`), so a change to the tables or the references alone retrains nothing. A
 killed row resumes from its checkpoint only under the same key (`key.json`, written before training starts);
-otherwise it starts over. Then `eval.report` (re)writes `OUT/results.json`, the tables and `error_vs_time.png`
-from the rows of this run's variants and seeds only. The command is `ragsplat_core.cli.ablation`.
+otherwise it starts over. Then `ragsplat.eval.report` (re)writes `OUT/results.json`, the tables and
+`error_vs_time.png` from the rows of this run's variants and seeds only. The command is
+`ragsplat.cli.ablation`.
 
 The water. Every row is scored against the ground truth's own surface (`GroundTruth.water`, a river's sloping
 plane included: depths below it). What the method and the references are given is the dataset's surface, or,
@@ -39,8 +41,10 @@ from pathlib import Path
 
 import numpy as np
 
-from eval import metrics
-from eval.evaluate import (
+from ragsplat.dataset import layout
+from ragsplat.errors import ConfigError, DatasetError
+from ragsplat.eval import metrics
+from ragsplat.eval.evaluate import (
     evaluate_fused,
     evaluate_geometry,
     evaluate_views,
@@ -49,7 +53,7 @@ from eval.evaluate import (
     model_renderer,
     score_grid,
 )
-from eval.references import (
+from ragsplat.eval.references import (
     DIETRICH_DENSE_REDUCE,
     DIETRICH_MAX_ANGLE,
     DIETRICH_TRACKS,
@@ -65,15 +69,13 @@ from eval.references import (
     start_extraction,
     track_grids,
 )
-from eval.report import depth_error_map, jsonable, write_outputs
-from ragsplat_core.dataset import layout
-from ragsplat_core.errors import ConfigError, DatasetError
-from ragsplat_core.fusion import FuseConfig, height_mesh
-from ragsplat_core.outputs import claim, source_digest, versions, write_json
-from ragsplat_core.refraction import WaterSurface
-from ragsplat_core.surface import EXTRACT_TUNING, ExtractConfig
-from ragsplat_core.train.config import FIELD_TUNING, INIT, SURFELS, TUNING, VARIANTS
-from ragsplat_core.train.defaults import JOBS
+from ragsplat.eval.report import depth_error_map, jsonable, write_outputs
+from ragsplat.fusion import FuseConfig, height_mesh
+from ragsplat.outputs import claim, source_digest, versions, write_json
+from ragsplat.refraction import WaterSurface
+from ragsplat.surface import EXTRACT_TUNING, ExtractConfig
+from ragsplat.train.config import FIELD_TUNING, INIT, SURFELS, TUNING, VARIANTS
+from ragsplat.train.defaults import JOBS
 
 
 @dataclass(frozen=True)
@@ -481,7 +483,7 @@ def train_row(job: RowJob, variant: str, seed: int) -> str:
 
 
 class TrainEval:
-    """The `runner` of `run_ablation` on a dataset directory, with `ragsplat_core.train`.
+    """The `runner` of `run_ablation` on a dataset directory, with `ragsplat.train`.
 
     The dataset (with its dry images) and the ground truth are loaded once for all variants.
     `training_bar(total, desc, initial) -> (bar, on_step)` shows training progress (None: nothing shown).
@@ -492,7 +494,7 @@ class TrainEval:
 
     def __init__(self, data: Path, device: str | None = None, training_bar: Callable | None = None,
                  init: str = INIT, one_level: bool = False):
-        from ragsplat_core.dataset.load import load_dataset
+        from ragsplat.dataset.load import load_dataset
 
         self.ds = load_dataset(data, ground_truth=True)
         if not self.ds.test:
@@ -509,7 +511,7 @@ class TrainEval:
         self.init = init  # TrainConfig.init of every row
 
     def config(self, variant: str, preset: str, seed: int):
-        from ragsplat_core.train import preset_config
+        from ragsplat.train import preset_config
 
         overrides = {"variant": variant, "seed": seed, "init": self.init}
         if self.one_level is not None:  # what a flat-water tool is given: one level, no slope
@@ -537,7 +539,7 @@ class TrainEval:
 
     def initial(self, cfg) -> dict:
         """The activated Gaussians training would start from (nothing is written)."""
-        from ragsplat_core.train import Trainer
+        from ragsplat.train import Trainer
 
         return model_gaussians(Trainer(cfg, self.ds, None))
 
@@ -545,7 +547,7 @@ class TrainEval:
               ) -> tuple[dict, np.ndarray, np.ndarray]:
         """Train `cfg` in `out` (resuming its checkpoint), with the curve's evaluation points; returns the
         row and the two extracted bed grids (volume, fused)."""
-        from ragsplat_core.train import Trainer
+        from ragsplat.train import Trainer
 
         trainer = Trainer(cfg, self.ds, out)
         curve_file = out / "curve.json"

@@ -17,8 +17,8 @@ Gridding, onto the ground truth's nodes (`GroundTruth.nodes`), so that every bed
 - a DEM is read at each node: where the node is a cell centre (a DEM on the truth's lattice), that cell's
   value; elsewhere bilinear between the four cell centres around it, or, where one of them is empty, the
   value of the cell the node lies in. A node in an empty cell is a hole;
-- points as ragsplat's own references grid their tracks (`eval.references.gridded`): the outlier filter
-  `tracks.track_filter` with the references' settings `TIN_FILTER` (switchable), then linear on their
+- points as ragsplat's own references grid their tracks (`ragsplat.eval.references.gridded`): the outlier
+  filter `tracks.track_filter` with the references' settings `TIN_FILTER` (switchable), then linear on their
   Delaunay triangulation (`tracks.tin`). Only the points within the filter's radius of the nodes are read.
 
 A file whose bed covers fewer than `MIN_COVER` of the truth's wet nodes is refused (DatasetError).
@@ -32,8 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from eval.references import TIN_FILTER, USES_GROUND_TRUTH, gridded, oracle_grids
-from ragsplat_core.errors import ConfigError, DatasetError
+from ragsplat.errors import ConfigError, DatasetError
+from ragsplat.eval.references import TIN_FILTER, USES_GROUND_TRUTH, gridded, oracle_grids
 
 KINDS = {".tif": "DEM", ".tiff": "DEM", ".las": "LAS", ".laz": "LAS", ".ply": "PLY", ".csv": "CSV"}
 MIN_COVER = 0.01  # of the ground truth's wet nodes: a bed covering fewer is another place or another frame
@@ -87,7 +87,7 @@ def survey_geotags(data: Path):
     scene's x, y, z are its CRS's coordinates less `origin_metric`), or None (no such record)."""
     import json
 
-    from ragsplat_core.dataset import layout
+    from ragsplat.dataset import layout
 
     path = Path(data) / layout.SURVEY_RECORD
     geo = json.loads(path.read_text()).get("geo") if path.is_file() else None
@@ -154,7 +154,7 @@ def _read_csv(path: Path) -> np.ndarray:
 
 def read_ply_points(path: Path) -> np.ndarray:
     """[P, 3] float64 x, y, z of a PLY's `vertex` element (ascii or binary, scalar properties of any type; the
-    first element: a mesh's faces may follow). Trained Gaussians: `ragsplat_core.ply.load_ply`."""
+    first element: a mesh's faces may follow). Trained Gaussians: `ragsplat.ply.load_ply`."""
     with open(path, "rb") as f:
         if f.readline().strip() != b"ply":
             raise DatasetError(f"{path}: not a PLY file")
@@ -313,21 +313,21 @@ def read_bed(path: Path, truth, georef, band: int = 1, depth: bool = False, desp
 def score_file(path: Path, data: Path, references: bool = False,
                log: Callable[[str], None] = lambda line: None, **read) -> tuple[dict, np.ndarray, object]:
     """The bed of the file `path` (`read_bed` with `read`) scored against the ground truth of the dataset
-    `data` by `eval.evaluate.score_grid`, beside the reference rows that need no training: the oracle planes
-    (`references.oracle_grids`) and, with `references`, the tracks' grids (`TrainEval.track_grids`: it
+    `data` by `ragsplat.eval.evaluate.score_grid`, beside the reference rows that need no training: the oracle
+    planes (`references.oracle_grids`) and, with `references`, the tracks' grids (`TrainEval.track_grids`: it
     triangulates a dataset without a cached triangulation, minutes). Returns (the result, the bed grid
     [G', 3], the ground truth)."""
-    from eval.ablation import dataset_seed
-    from eval.evaluate import score_grid
-    from ragsplat_core.dataset import layout
-    from ragsplat_core.dataset.load import load_dataset
+    from ragsplat.dataset import layout
+    from ragsplat.dataset.load import load_dataset
+    from ragsplat.eval.ablation import dataset_seed
+    from ragsplat.eval.evaluate import score_grid
 
     ds = load_dataset(data, splits=(), ground_truth=True)
     truth = ds.ground_truth
     grid, record = read_bed(path, truth, ds.georef, geotags=survey_geotags(data), **read)
     rows = oracle_grids(truth)
     if references:
-        from eval.ablation import TrainEval
+        from ragsplat.eval.ablation import TrainEval
 
         rows.update(TrainEval(data).track_grids(log))
     return {**record, "data": str(Path(data).resolve()), "dataset_fingerprint": ds.fingerprint,

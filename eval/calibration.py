@@ -9,8 +9,8 @@ error to cover and is counted by the accuracy tables, not here):
   cells of one seed share its poses' and water's errors, so a seed, not a cell, is the unit of the spread
   (`seed_spread`: mean, standard deviation with ddof 1, least and largest over the seeds).
 - worst depth third: the least 95 % coverage over the depth bands (0, D/3], (D/3, 2D/3], (2D/3, inf) of the
-  maximum depth D (the accuracy tables' bands, `eval.evaluate.survey_figures`); worst view-count bin: the
-  least over `VIEW_BINS` bins of equal count by view count (ties in one bin); bins of fewer than `MIN_BIN`
+  maximum depth D (the accuracy tables' bands, `ragsplat.eval.evaluate.survey_figures`); worst view-count bin:
+  the least over `VIEW_BINS` bins of equal count by view count (ties in one bin); bins of fewer than `MIN_BIN`
   cells are left out of both.
 - ENCE (Levi et al. 2022, expected normalised calibration error): the cells sorted by sigma into 10 bins of
   equal count; per bin RMV = sqrt(mean sigma^2), RMSE = sqrt(mean e^2); ENCE = mean over bins of
@@ -35,8 +35,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import norm, spearmanr
 
-from ragsplat_core.scoring import IHO_ORDERS, WITHIN, tvu
-from ragsplat_core.uncertainty import Z95, conformal_rank
+from ragsplat.scoring import IHO_ORDERS, WITHIN, tvu
+from ragsplat.uncertainty import Z95, conformal_rank
 
 LEVELS = (0.5, 0.8, 0.95)
 ENCE_BINS = 10

@@ -1,8 +1,8 @@
 """Evaluate one trained model: appearance on held-out views and geometry against the ground-truth bed.
 
 `evaluate_views` takes a render function, so it serves any model (a Trainer, a loaded PLY);
-`evaluate_geometry` takes activated Gaussians (the volume extraction, `ragsplat_core.surface`),
-`evaluate_fused` a depth render function (TSDF fusion of depth maps, `ragsplat_core.fusion`), and
+`evaluate_geometry` takes activated Gaussians (the volume extraction, `ragsplat.surface`),
+`evaluate_fused` a depth render function (TSDF fusion of depth maps, `ragsplat.fusion`), and
 `score_grid` any bed height grid (a reference answer too). `model_gaussians`, `model_renderer` and
 `model_depth` adapt a Trainer.
 """
@@ -15,11 +15,11 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from eval import metrics
-from ragsplat_core.dataset.layout import GT_GRID_STEP
-from ragsplat_core.fusion import FuseConfig, fuse
-from ragsplat_core.scoring import IHO_ORDERS, WITHIN, geometry_metrics, quantile_with_holes, thresholds, tvu
-from ragsplat_core.surface import ExtractConfig, extract_surface
+from ragsplat.dataset.layout import GT_GRID_STEP
+from ragsplat.eval import metrics
+from ragsplat.fusion import FuseConfig, fuse
+from ragsplat.scoring import IHO_ORDERS, WITHIN, geometry_metrics, quantile_with_holes, thresholds, tvu
+from ragsplat.surface import ExtractConfig, extract_surface
 
 
 def _mean(values) -> float | None:
@@ -28,7 +28,7 @@ def _mean(values) -> float | None:
 
 
 def evaluate_views(render: Callable, views, lpips_metric=None, psnr_only: bool = False) -> dict:
-    """Appearance on `views` (objects with `.name`, `.kind`, `.image`, `.dry` as in `ragsplat_core.dataset`).
+    """Appearance on `views` (objects with `.name`, `.kind`, `.image`, `.dry` as in `ragsplat.dataset`).
 
     `render(view, interface: bool) -> [H, W, 3]` renders through the interface (True) or the true
     Gaussians without it (False). Renders are clamped to [0, 1] (as 3DGS evaluates them); the metrics run
@@ -66,7 +66,7 @@ def evaluate_views(render: Callable, views, lpips_metric=None, psnr_only: bool =
 
 def score_grid(grid: np.ndarray, truth) -> dict:
     """Scores of a predicted bed height grid [P, 3] (cells of `cfg.cell` at nodes of the GT grid, inside the
-    region) against `truth` (`ragsplat_core.dataset.load.GroundTruth`).
+    region) against `truth` (`ragsplat.dataset.load.GroundTruth`).
 
     Point-set scores (Chamfer, P/R/F1 at the absolute 10 / 30 cm and the depth-scaled 1 % / 3 % of the
     maximum depth) use the cells where the ground truth has a submerged point; `survey` scores every cell
@@ -157,7 +157,7 @@ def evaluate_geometry(gaussians: dict, truth, cfg: ExtractConfig) -> tuple[dict,
 def evaluate_fused(render_depth: Callable, views, truth, cfg: FuseConfig,
                    cell: float) -> tuple[dict, np.ndarray]:
     """The bed from rendered depth + `score_grid`: `render_depth(camera) -> [H, W]` z-depth (0 = none) at
-    every view's camera (the training views), fused (`ragsplat_core.fusion.fuse`) on the GT grid's nodes
+    every view's camera (the training views), fused (`ragsplat.fusion.fuse`) on the GT grid's nodes
     (`cell` apart) inside the region. Returns (scores with the fusion's choices under "fusion", the grid
     [P, 3])."""
     cameras = [v.camera for v in views]
@@ -168,7 +168,7 @@ def evaluate_fused(render_depth: Callable, views, truth, cfg: FuseConfig,
 
 def model_gaussians(trainer) -> dict:
     """The trainer's true Gaussians, activated: means, scales (linear), quats (unit wxyz), opacities."""
-    from ragsplat_core.gaussians import activated
+    from ragsplat.gaussians import activated
 
     scales, quats, opac = activated(trainer.splats)
     return {"means": trainer.splats["means"].detach(), "scales": scales.detach(), "quats": quats.detach(),

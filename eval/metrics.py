@@ -4,7 +4,7 @@ Images are float tensors in [0, 1], either [H, W, 3] or [B, 3, H, W].
 
 Which SSIM is which (both Wang et al. 2004 with an 11-tap Gaussian window, sigma 1.5, K1 0.01, K2 0.03,
 data range 1, population statistics; they differ only at the border):
-- `ssim`: the 3D Gaussian Splatting one, shared with the training loss (`ragsplat_core.ssim`): the window
+- `ssim`: the 3D Gaussian Splatting one, shared with the training loss (`ragsplat.ssim`): the window
   runs with zero padding ("same"), and the mean is over the whole map, border included, so it is biased
   by the padding. It is the value 3DGS's own metrics script reports.
 - `ssim_standard`: the standard value that scikit-image (`structural_similarity(..., gaussian_weights=True,
@@ -33,8 +33,8 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from ragsplat_core.errors import ConfigError
-from ragsplat_core.ssim import C1, C2, SIGMA, channels_first, gaussian_window, psnr, ssim
+from ragsplat.errors import ConfigError
+from ragsplat.ssim import C1, C2, SIGMA, channels_first, gaussian_window, psnr, ssim
 
 __all__ = ["LPIPS", "VGG16_FILE", "VGG16_URL", "load_lpips", "psnr", "ssim", "ssim_standard",
            "vgg16_features_init"]

@@ -3,7 +3,7 @@ beat before its numbers mean anything.
 
 - `init`: the initial Gaussians (a horizontal grid at the preset depth, or the start's points), no training,
   through the variants' extraction with every Gaussian counted (`start_extraction`; the trainer builds
-  them, see `eval.ablation.TrainEval.initial`);
+  them, see `ragsplat.eval.ablation.TrainEval.initial`);
 - `3dgs x n`: the refraction-unaware 3DGS bed with every submerged depth multiplied by n (the field's
   classical correction, the paper's Table 3): `depth_times_n` of the 3dgs variant's extracted grid;
 - `oracle plane`: the least-squares tilted plane through the submerged ground truth, over every ground-truth
@@ -35,9 +35,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from ragsplat_core.outputs import source_digest
-from ragsplat_core.surface import ExtractConfig
-from ragsplat_core.tracks import tin, track_filter
+from ragsplat.outputs import source_digest
+from ragsplat.surface import ExtractConfig
+from ragsplat.tracks import tin, track_filter
 
 # This module's source as imported: part of every reference row's key (read once, so that a file edited during
 # a long run cannot key a row computed with the settings loaded before the edit)
@@ -179,7 +179,7 @@ def track_clouds(root, fingerprint: str, cameras: dict, water, dietrich_tracks: 
     import json
     from pathlib import Path
 
-    from ragsplat_core.dataset.colmap import STAMP, TRACKS, refracted_points, triangulated_points
+    from ragsplat.dataset.colmap import STAMP, TRACKS, refracted_points, triangulated_points
 
     path = triangulated_points(root, fingerprint)
     straight = np.load(path)[:, :3]

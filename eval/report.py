@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ragsplat_core.dataset.layout import GT_GRID_STEP
-from ragsplat_core.outputs import atomic_path, write_bytes, write_json
-from ragsplat_core.scoring import IHO_ORDERS
-from ragsplat_core.train.config import VARIANTS
+from ragsplat.dataset.layout import GT_GRID_STEP
+from ragsplat.outputs import atomic_path, write_bytes, write_json
+from ragsplat.scoring import IHO_ORDERS
+from ragsplat.train.config import VARIANTS
 
 PUBLISHED_FILE = Path(__file__).resolve().parent / "published_tables.json"
 # (header, paper column in published_tables.json or None, how to read ours from a row, format, scale)
@@ -109,7 +109,7 @@ def _paper(published: dict, table: str, name: str, column: str, fmt: str) -> str
 
 
 def ordered(rows: dict[str, list[dict]]) -> list[str]:
-    from eval.references import REFERENCES
+    from ragsplat.eval.references import REFERENCES
 
     return [n for n in REFERENCES if n in rows] + [v for v in VARIANTS if v in rows] + \
         [n for n in rows if n not in REFERENCES and n not in VARIANTS]
@@ -117,7 +117,7 @@ def ordered(rows: dict[str, list[dict]]) -> list[str]:
 
 def tabled(rows: dict[str, list[dict]]) -> list[str]:
     """The rows the tables show (`ordered`, less the references kept only in results.json)."""
-    from eval.references import NOT_IN_TABLES
+    from ragsplat.eval.references import NOT_IN_TABLES
 
     return [n for n in ordered(rows) if n not in NOT_IN_TABLES]
 
@@ -305,7 +305,7 @@ def depth_error_map(grid: np.ndarray, truth, path: str | Path, title: str = "") 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from eval.evaluate import height_error
+    from ragsplat.eval.evaluate import height_error
 
     dz, _ = height_error(grid, truth)
     step, nodes = GT_GRID_STEP, truth.nodes

@@ -1,10 +1,11 @@
 """Score a finished training run against its dataset's ground truth without retraining (`ragsplat eval`).
 
-Everything comes from the ablation's own code: the dataset and ground truth as `eval.ablation.TrainEval`
-loads them, the extraction settings of the run's preset (`extract_config`, seeded with the run's seed, and
-the preset's fusion settings), the measures of `eval.evaluate` (the bed extracted both ways: volume
-sampling and fused depth) and the reference answers of `eval.references` (`init`: the run's own initial
-Gaussians; `oracle plane`). A run the ablation trained therefore scores exactly as its row.json.
+Everything comes from the ablation's own code: the dataset and ground truth as
+`ragsplat.eval.ablation.TrainEval` loads them, the extraction settings of the run's preset (`extract_config`,
+seeded with the run's seed, and the preset's fusion settings), the measures of `ragsplat.eval.evaluate` (the
+bed extracted both ways: volume sampling and fused depth) and the reference answers of
+`ragsplat.eval.references` (`init`: the run's own initial Gaussians; `oracle plane`). A run the ablation
+trained therefore scores exactly as its row.json.
 """
 
 from __future__ import annotations
@@ -15,15 +16,15 @@ from pathlib import Path
 
 import numpy as np
 
-from eval import metrics
-from eval.ablation import CODE, PRESETS, TrainEval, extract_config
-from eval.evaluate import evaluate_fused, evaluate_geometry, evaluate_views, score_grid
-from eval.references import USES_GROUND_TRUTH, oracle_grids, start_extraction
-from eval.report import T2_COLUMNS, T3_COLUMNS, geometry_table, water_notes
-from ragsplat_core.dataset import layout
-from ragsplat_core.errors import ConfigError, DatasetError
-from ragsplat_core.export import load_model
-from ragsplat_core.outputs import source_digest, versions
+from ragsplat.dataset import layout
+from ragsplat.errors import ConfigError, DatasetError
+from ragsplat.eval import metrics
+from ragsplat.eval.ablation import CODE, PRESETS, TrainEval, extract_config
+from ragsplat.eval.evaluate import evaluate_fused, evaluate_geometry, evaluate_views, score_grid
+from ragsplat.eval.references import USES_GROUND_TRUTH, oracle_grids, start_extraction
+from ragsplat.eval.report import T2_COLUMNS, T3_COLUMNS, geometry_table, water_notes
+from ragsplat.export import load_model
+from ragsplat.outputs import source_digest, versions
 
 # The short table: the ablation's CD and F1 columns (Table 2) and the wet and banks bias and errors (Table 3)
 COLUMNS = [c for c in T2_COLUMNS if c[0].startswith(("CD", "F1"))] + \
@@ -84,8 +85,8 @@ def _score_dem(path: Path, georef, truth) -> dict:
     """The DEM read at the ground truth's nodes as `ragsplat score` reads it (`bed_file.read_bed`: the same
     cells as every row; a DEM's own cells off that lattice would add their horizontal offset to every F1
     distance) and scored like an extracted bed, its error map written beside it (NAME_error.png)."""
-    from eval.bed_file import read_bed
-    from eval.report import depth_error_map
+    from ragsplat.eval.bed_file import read_bed
+    from ragsplat.eval.report import depth_error_map
 
     grid, _ = read_bed(path, truth, georef)
     figure = depth_error_map(grid, truth, Path(path).with_name(Path(path).stem + "_error.png"),

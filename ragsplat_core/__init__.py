@@ -1,7 +1,7 @@
 """ragsplat's core: refraction-aware Gaussian splatting (RA-GS) for photogrammetric bathymetry.
 
-The public API, imported on first use (so that `ragsplat_core.dataset.layout`, `ragsplat_core.camera`
-and `ragsplat_core.snell` stay importable without torch, for the dataset generator and Blender):
+The public API, imported on first use (so that `ragsplat.dataset.layout`, `ragsplat.camera`
+and `ragsplat.snell` stay importable without torch, for the dataset generator and Blender):
 
     Camera            pinhole camera, OpenCV world-to-camera (the conventions in one place)
     WaterSurface      the plane z = level with refractive index n
@@ -14,17 +14,17 @@ and `ragsplat_core.snell` stay importable without torch, for the dataset generat
 """
 
 _API = {
-    "Camera": "ragsplat_core.camera",
-    "WaterSurface": "ragsplat_core.refraction",
-    "refract_gaussians": "ragsplat_core.refraction",
-    "rasterize": "ragsplat_core.rasterize",
-    "rasterize_surfels": "ragsplat_core.rasterize_surfels",
-    "load_dataset": "ragsplat_core.dataset.load",
-    "Dataset": "ragsplat_core.dataset.load",
-    "Trainer": "ragsplat_core.train.trainer",
-    "TrainConfig": "ragsplat_core.train.config",
-    "preset_config": "ragsplat_core.train.config",
-    "RagsplatError": "ragsplat_core.errors",
+    "Camera": "ragsplat.camera",
+    "WaterSurface": "ragsplat.refraction",
+    "refract_gaussians": "ragsplat.refraction",
+    "rasterize": "ragsplat.rasterize",
+    "rasterize_surfels": "ragsplat.rasterize_surfels",
+    "load_dataset": "ragsplat.dataset.load",
+    "Dataset": "ragsplat.dataset.load",
+    "Trainer": "ragsplat.train.trainer",
+    "TrainConfig": "ragsplat.train.config",
+    "preset_config": "ragsplat.train.config",
+    "RagsplatError": "ragsplat.errors",
 }
 __all__ = list(_API)
 
@@ -34,7 +34,7 @@ def __getattr__(name: str):
         import importlib
 
         return getattr(importlib.import_module(_API[name]), name)
-    raise AttributeError(f"module 'ragsplat_core' has no attribute {name!r}")
+    raise AttributeError(f"module 'ragsplat' has no attribute {name!r}")
 
 
 def __dir__():

@@ -1,6 +1,6 @@
 """The errors ragsplat raises for problems that are the user's or the environment's, not bugs.
 
-Library code raises these; only the command layer (`ragsplat_core.cli`) turns one into a single line on
+Library code raises these; only the command layer (`ragsplat.cli`) turns one into a single line on
 stderr and exit code 2. Each message is one line that names the file, option or value at fault.
 Errors about bad values are also `ValueError`s, so code that called the library before these classes
 existed keeps catching them.

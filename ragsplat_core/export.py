@@ -19,19 +19,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.dataset import layout
-from ragsplat_core.dataset.layout import Georef
-from ragsplat_core.dataset.load import Dataset, View, load_dataset
-from ragsplat_core.errors import ConfigError, DatasetError, OutputError
-from ragsplat_core.gaussians import activated
-from ragsplat_core.outputs import atomic_path, claim
-from ragsplat_core.ply import load_ply
-from ragsplat_core.rasterize import choose_backend
-from ragsplat_core.refraction import WaterSurface
-from ragsplat_core.surface import ExtractConfig, extract_surface, extract_surface_blocks
-from ragsplat_core.train.config import TrainConfig
-from ragsplat_core.train.trainer import (
+from ragsplat.camera import Camera
+from ragsplat.dataset import layout
+from ragsplat.dataset.layout import Georef
+from ragsplat.dataset.load import Dataset, View, load_dataset
+from ragsplat.errors import ConfigError, DatasetError, OutputError
+from ragsplat.gaussians import activated
+from ragsplat.outputs import atomic_path, claim
+from ragsplat.ply import load_ply
+from ragsplat.rasterize import choose_backend
+from ragsplat.refraction import WaterSurface
+from ragsplat.surface import ExtractConfig, extract_surface, extract_surface_blocks
+from ragsplat.train.config import TrainConfig
+from ragsplat.train.trainer import (
     PLY,
     backscatter_tensor,
     fades_opacity,
@@ -42,10 +42,11 @@ from ragsplat_core.train.trainer import (
 
 BATHYMETRIC, GROUND = 40, 2  # ASPRS classes (LAS 1.4 R15): submerged bed ("bathymetric point"), emerged
 LAS_SCALE = 0.001  # metres per integer step of the LAS coordinates
-# Extraction samples per cell of the DEM grid inside the region: the evaluation's rule (`eval.ablation`'s
-# `extract_config`: samples_per_cell x the ground-truth grid's nodes, 16 for every preset but the CI's
-# `smoke`), so that at the evaluation's 5 cm a run exports the bed `ragsplat eval` scores (on a reach its grid
-# counts the wet nodes only; the export cannot know which are wet before extracting and counts them all).
+# Extraction samples per cell of the DEM grid inside the region: the evaluation's rule
+# (`ragsplat.eval.ablation`'s `extract_config`: samples_per_cell x the ground-truth grid's nodes, 16 for every
+# preset but the CI's `smoke`), so that at the evaluation's 5 cm a run exports the bed `ragsplat eval` scores
+# (on a reach its grid counts the wet nodes only; the export cannot know which are wet before extracting and
+# counts them all).
 SAMPLES_PER_CELL = 16
 # A bed whose samples exceed this is extracted in blocks (`surface.extract_surface_blocks`), each of about
 # this many: memory is bounded by a block, not the area (about 200 bytes per sample while filtering).

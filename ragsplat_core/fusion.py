@@ -34,9 +34,9 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.errors import ConfigError
-from ragsplat_core.surface import in_region
+from ragsplat.camera import Camera
+from ragsplat.errors import ConfigError
+from ragsplat.surface import in_region
 
 NEAR = 1e-6  # voxels at or behind a camera's plane are not observed by it
 

@@ -16,7 +16,7 @@ from collections.abc import Iterator
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
-from ragsplat_core.errors import OutputError
+from ragsplat.errors import OutputError
 
 ROOT = Path(__file__).resolve().parent.parent  # the source tree (for the git commit)
 

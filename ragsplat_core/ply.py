@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ragsplat_core.outputs import atomic_path
+from ragsplat.outputs import atomic_path
 
 
 def _columns(num_rest: int) -> list[str]:

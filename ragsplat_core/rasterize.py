@@ -31,8 +31,8 @@ from __future__ import annotations
 
 import torch
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.raster.backends import BACKENDS, build_gsplat, choose_backend, gsplat_available
+from ragsplat.camera import Camera
+from ragsplat.raster.backends import BACKENDS, build_gsplat, choose_backend, gsplat_available
 
 # the rasterizer's public API: the backend names and choice are defined in raster/backends.py
 __all__ = ["BACKENDS", "build_gsplat", "check_shapes", "choose_backend", "gsplat_available", "rasterize",

@@ -35,10 +35,10 @@ from __future__ import annotations
 
 import torch
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.raster.backends import choose_backend
-from ragsplat_core.raster.reference.surfel_project import project_surfels
-from ragsplat_core.rasterize import check_shapes, resolve
+from ragsplat.camera import Camera
+from ragsplat.raster.backends import choose_backend
+from ragsplat.raster.reference.surfel_project import project_surfels
+from ragsplat.rasterize import check_shapes, resolve
 
 
 def rasterize_surfels(means, quats, scales, opacities, colors, camera: Camera, background, tangents=None,

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import torch
 
-from ragsplat_core.refraction import GRAZING_COS, WaterSurface, linear_to_srgb, srgb_to_linear
+from ragsplat.refraction import GRAZING_COS, WaterSurface, linear_to_srgb, srgb_to_linear
 
 # Texels per side of the sky map. A map, not spherical harmonics: what the water mirrors is a smooth sky
 # gradient plus the sun's glint, which ripples of a few mm widen into a lobe of some 10-20 degrees (the

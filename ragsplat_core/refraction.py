@@ -52,7 +52,7 @@ from typing import NamedTuple
 
 import torch
 
-from ragsplat_core.gaussians import covariance
+from ragsplat.gaussians import covariance
 
 SCALE_MODES = ("none", "isotropic", "determinant", "anisotropic")
 # Gaussians whose centre lies less than this below the level blend from their true state (at the level) to

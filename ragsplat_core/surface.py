@@ -26,7 +26,7 @@ Extraction (the paper's Section 3, "Geometry Extraction"):
    linear (Delaunay) interpolation (`fill_holes`). Where deep Gaussians were culled or sampled thinly the
    grid has scattered one-cell holes; wider gaps stay empty.
 
-The evaluation scores the grid with `ragsplat_core.scoring.geometry_metrics` (`eval.evaluate`).
+The evaluation scores the grid with `ragsplat.scoring.geometry_metrics` (`ragsplat.eval.evaluate`).
 """
 
 from __future__ import annotations
@@ -39,9 +39,9 @@ import torch
 from numba import njit, prange
 from scipy.spatial import cKDTree
 
-from ragsplat_core.errors import ConfigError
-from ragsplat_core.gaussians import quat_to_rotmat
-from ragsplat_core.tuning import record
+from ragsplat.errors import ConfigError
+from ragsplat.gaussians import quat_to_rotmat
+from ragsplat.tuning import record
 
 # The culls, despiking and fill were chosen on the development reach (dataset seed 1), each by a rule fixed
 # before its sweep: ragsplat_core/tuning/extract.json (docs/history.md, "The extraction's settings").
@@ -306,7 +306,7 @@ def extract_surface(means, scales, quats, opacities, cfg: ExtractConfig = Extrac
     `rng`: the samples' draw (`sample_gaussians`); `window` (lo [2], hi [2]): only the samples inside it are
     kept (a block of `extract_surface_blocks` with its margin). `cells`: the stats also hold "cells", per
     node of the grid, the filtered samples' count and height spread in its cell (`cell_spread`) and whether
-    step 6 filled it (the uncertainty's features, `ragsplat_core.uncertainty`); the grid is the same.
+    step 6 filled it (the uncertainty's features, `ragsplat.uncertainty`); the grid is the same.
     """
     pts, kept = sample_gaussians(means, scales, quats, opacities, cfg, region, rng=rng)
     if window is not None:
@@ -435,7 +435,7 @@ def fill_holes(grid: np.ndarray, cell: float, origin: tuple[float, float], gap_c
     from scipy.ndimage import distance_transform_edt
     from scipy.spatial import QhullError
 
-    from ragsplat_core.tracks import tin
+    from ragsplat.tracks import tin
 
     ij = np.round((grid[:, :2] - np.asarray(origin)) / cell).astype(np.int64)  # [G, 2]
     lo = ij.min(0)

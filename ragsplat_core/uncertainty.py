@@ -41,8 +41,8 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 import torch
 
-from ragsplat_core.errors import ConfigError
-from ragsplat_core.refraction import WaterSurface, apparent_jacobian, apparent_points
+from ragsplat.errors import ConfigError
+from ragsplat.refraction import WaterSurface, apparent_jacobian, apparent_points
 
 Z95 = 1.959963984540054  # the standard normal's 97.5 % quantile: a 95 % two-sided interval is +-Z95 sigma
 GEOMETRY_CAP = 1.0  # m per pixel: the geometry feature of a cell no two views triangulate

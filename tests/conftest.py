@@ -8,11 +8,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from eval import metrics
-from ragsplat_core import train
-from ragsplat_core.bench.synthetic import bed_scene, render_views, ring_cameras, write_dataset
-from ragsplat_core.dataset import layout
-from ragsplat_core.refraction import WaterSurface
+from ragsplat import train
+from ragsplat.bench.synthetic import bed_scene, render_views, ring_cameras, write_dataset
+from ragsplat.dataset import layout
+from ragsplat.eval import metrics
+from ragsplat.refraction import WaterSurface
 
 WATER = WaterSurface(0.0, 1.33)
 
@@ -20,7 +20,7 @@ WATER = WaterSurface(0.0, 1.33)
 def survey_cameras(lines_along_x: bool = False):
     """The synthetic surveys' flight: 12 nadir photos from 4 m over a 4 x 3 grid (flight lines along y, or
     along x), then 6 obliques on a 2.2 m ring aimed at the bed 0.8 m down; 240 x 180 px, 60 degrees."""
-    from ragsplat_core.camera import Camera
+    from ragsplat.camera import Camera
 
     xs, ys = np.linspace(-1.2, 1.2, 4), np.linspace(-1.0, 1.0, 3)
     grid = [(x, y) for y in ys for x in xs] if lines_along_x else [(x, y) for x in xs for y in ys]
@@ -35,7 +35,7 @@ def channel_scene(seed: int) -> dict:
     what fixes an unmeasured level is the depth varying and the waterline on both banks."""
     import torch
 
-    from ragsplat_core.bench.synthetic import bed_scene
+    from ragsplat.bench.synthetic import bed_scene
 
     scene = bed_scene(30000, half=3.0, depth=0.8, seed=seed)
     y = scene["means"][:, 1]
@@ -103,7 +103,7 @@ def kill_a_worker(argv: list[str], victim, env: dict | None = None, timeout: flo
 def killed_and_resumed(cfg, dataset, folder, steps: int = 4):
     """(a trainer killed after `steps` steps of `cfg`, checkpointing every `cfg.checkpoint_every`; a new
     trainer on its folder, resumed from its last checkpoint, not yet trained on)."""
-    from ragsplat_core.train import Trainer
+    from ragsplat.train import Trainer
 
     killed = Trainer(cfg, dataset, folder)
     for _ in range(steps):
@@ -122,8 +122,8 @@ def water_bed(size: int = 24, count: int = 300, **optics):
 
     import torch
 
-    from ragsplat_core.dataset import BedInfo, Dataset
-    from ragsplat_core.dataset.load import View
+    from ragsplat.dataset import BedInfo, Dataset
+    from ragsplat.dataset.load import View
 
     level, depth = 0.2, 1.0
     scene = bed_scene(count, 1.0, depth, seed=0)
@@ -139,8 +139,8 @@ def water_bed(size: int = 24, count: int = 300, **optics):
 def water_bed_config(variant: str, **overrides):
     """A smoke training config of `variant` for `water_bed`: sh degree 0, no densification, checkpoints
     off."""
-    from ragsplat_core.train import preset_config
-    from ragsplat_core.train.strategy import DensifyConfig
+    from ragsplat.train import preset_config
+    from ragsplat.train.strategy import DensifyConfig
 
     base = {"variant": variant, "iterations": 6, "init_depth": 1.0, "init_count": 300, "init_opacity": 0.9,
             "checkpoint_every": 0, "sh_degree": 0,

@@ -11,11 +11,11 @@ import pytest
 import torch
 from conftest import killed_and_resumed, tiny_smoke, water_bed, water_bed_config
 
-from ragsplat_core.cli.main import main
-from ragsplat_core.dataset import Dataset, load_dataset
-from ragsplat_core.errors import ConfigError
-from ragsplat_core.export import load_model
-from ragsplat_core.refraction import (
+from ragsplat.cli.main import main
+from ragsplat.dataset import Dataset, load_dataset
+from ragsplat.errors import ConfigError
+from ragsplat.export import load_model
+from ragsplat.refraction import (
     WaterSurface,
     add_backscatter,
     apparent_points,
@@ -25,9 +25,9 @@ from ragsplat_core.refraction import (
     srgb_to_linear,
     water_paths,
 )
-from ragsplat_core.train import VARIANTS, TrainConfig, Trainer
-from ragsplat_core.train import trainer as train_mod
-from ragsplat_core.train.config import BACKSCATTER_RANGE, VEIL_RANGE
+from ragsplat.train import VARIANTS, TrainConfig, Trainer
+from ragsplat.train import trainer as train_mod
+from ragsplat.train.config import BACKSCATTER_RANGE, VEIL_RANGE
 
 f64 = torch.float64
 CAM = torch.tensor([1.0, -2.0, 30.0], dtype=f64)

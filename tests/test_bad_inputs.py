@@ -8,7 +8,7 @@ import shutil
 import pytest
 import torch
 
-from ragsplat_core.cli.main import main
+from ragsplat.cli.main import main
 
 
 def edit_json(path, fn):
@@ -43,7 +43,7 @@ def full_disk(monkeypatch):
 
 
 def read_only(monkeypatch):
-    from ragsplat_core import outputs
+    from ragsplat import outputs
 
     def denied(src, dst):
         raise PermissionError(13, "Permission denied", str(dst))

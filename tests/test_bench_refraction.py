@@ -7,8 +7,8 @@ Every solver returns (r', d'), the apparent point; errors are relative to |P - C
 import pytest
 import torch
 
-from ragsplat_core.bench import refraction as bench
-from ragsplat_core.bench.stability import REGIMES, apparent_from_tan_a, reference, sample
+from ragsplat.bench import refraction as bench
+from ragsplat.bench.stability import REGIMES, apparent_from_tan_a, reference, sample
 
 # (solver, steps) as the benchmark runs them at float64 round-off; halley_alpha is the project's solver.
 SOLVERS = [(bench.newton_s, 6), (bench.ferrari, None), (bench.bisection_alpha, 60), (bench.halley_alpha, 4)]

@@ -11,12 +11,21 @@ import numpy as np
 import pytest
 from test_blender_markers import CPU_64, centroids, disc
 
-from datagen import conditions
-from datagen.build import generate, run_blender
-from datagen.job import Diffuse, Emission, Intrinsics, Refraction, RenderJob, Ripples, SceneObject, Task
-from datagen.spec import LightSpec, preset, with_conditions
-from ragsplat_core.camera import Camera
-from ragsplat_core.dataset import layout
+from ragsplat.camera import Camera
+from ragsplat.datagen import conditions
+from ragsplat.datagen.build import generate, run_blender
+from ragsplat.datagen.job import (
+    Diffuse,
+    Emission,
+    Intrinsics,
+    Refraction,
+    RenderJob,
+    Ripples,
+    SceneObject,
+    Task,
+)
+from ragsplat.datagen.spec import LightSpec, preset, with_conditions
+from ragsplat.dataset import layout
 
 pytestmark = pytest.mark.blender
 

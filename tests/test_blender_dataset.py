@@ -10,9 +10,9 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.cli.main import main
-from ragsplat_core.dataset.layout import NO_HIT, read_depth
+from ragsplat.camera import Camera
+from ragsplat.cli.main import main
+from ragsplat.dataset.layout import NO_HIT, read_depth
 
 pytestmark = pytest.mark.blender
 
@@ -248,7 +248,7 @@ def test_sigint_keeps_only_whole_files_and_the_rerun_completes(smoke, tmp_path):
     out = tmp_path / "interrupted"
     # A shell's background job ignores SIGINT and children inherit that: the command gets Python's default
     start = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
-             "sys.argv[0] = 'ragsplat'; runpy.run_module('ragsplat_core.cli.main', run_name='__main__')")
+             "sys.argv[0] = 'ragsplat'; runpy.run_module('ragsplat.cli.main', run_name='__main__')")
     cmd = [sys.executable, "-c", start, "dataset", "--preset", "smoke", "--out", str(out), "--quiet"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120
@@ -273,8 +273,8 @@ def test_a_killed_renderer_and_a_full_disk_are_one_line_and_the_rerun_completes(
     import subprocess
     import sys
 
-    from datagen import build
-    from ragsplat_core import outputs
+    from ragsplat import outputs
+    from ragsplat.datagen import build
 
     out = tmp_path / "data"
     argv = ["dataset", "--preset", "smoke", "--out", str(out), "--quiet"]
@@ -297,7 +297,7 @@ def test_a_killed_renderer_and_a_full_disk_are_one_line_and_the_rerun_completes(
 
     def crashes(times):
         def popen(cmd, **kw):
-            if "blender_scenes.render" not in cmd:  # git, for the metadata's versions
+            if "ragsplat.blender_scenes.render" not in cmd:  # git, for the metadata's versions
                 return real_popen(cmd, **kw)
             starts.append(cmd)
             if len(starts) <= times:
@@ -340,7 +340,7 @@ def test_a_killed_renderer_and_a_full_disk_are_one_line_and_the_rerun_completes(
 
 
 def test_a_rerun_that_renders_nothing_keeps_the_fingerprint(smoke, tmp_path, capsys):
-    from ragsplat_core.dataset.layout import fingerprint
+    from ragsplat.dataset.layout import fingerprint
 
     out = tmp_path / "copy"
     shutil.copytree(smoke, out)

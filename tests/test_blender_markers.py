@@ -13,10 +13,18 @@ import pytest
 import torch
 from scipy import ndimage
 
-from datagen.build import run_blender
-from datagen.job import Emission, Intrinsics, Refraction, RenderJob, RenderSettings, SceneObject, Task
-from ragsplat_core.camera import Camera
-from ragsplat_core.refraction import WaterSurface, apparent_points
+from ragsplat.camera import Camera
+from ragsplat.datagen.build import run_blender
+from ragsplat.datagen.job import (
+    Emission,
+    Intrinsics,
+    Refraction,
+    RenderJob,
+    RenderSettings,
+    SceneObject,
+    Task,
+)
+from ragsplat.refraction import WaterSurface, apparent_points
 
 pytestmark = pytest.mark.blender
 
@@ -64,8 +72,8 @@ def render_markers(work, water: WaterSurface, far: float, lens: tuple[float, flo
     """(marker centres [16, 3], cameras, images): horizontal discs DEPTH below `water` (a bed that falls
     with it) in a 4 x 4 grid out to +-spread, under the surface's plane out to +-far, rendered by Cycles from
     `views` (through a lens with radial distortion `lens`, k1 and k2, when given:
-    `datagen.survey.lens_polynomial`)."""
-    from datagen.survey import lens_polynomial
+    `ragsplat.datagen.survey.lens_polynomial`)."""
+    from ragsplat.datagen.survey import lens_polynomial
 
     xs = spread * np.array([-1, -1 / 3, 1 / 3, 1])
     xy = np.array([[x, y] for x in xs for y in xs])
@@ -104,7 +112,7 @@ def rendered_sloping(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def rendered_lens(tmp_path_factory):
-    from datagen.survey import LENS
+    from ragsplat.datagen.survey import LENS
 
     # out towards the corners, where the lens moves them most
     return render_markers(tmp_path_factory.mktemp("markers_lens"), WaterSurface(0.0, N), far=100.0, lens=LENS,
@@ -165,7 +173,7 @@ def test_markers_under_a_sloping_surface_land_on_the_tilted_projection(rendered_
 
 @pytest.mark.parametrize("name", ["nadir", "oblique40"])
 def test_markers_through_a_lens_land_on_the_distorted_refracted_projection(rendered_lens, name):
-    from datagen.survey import LENS
+    from ragsplat.datagen.survey import LENS
 
     water = WaterSurface(0.0, N)
     err, err_pinhole, count = errors(rendered_lens, name, water, water, LENS, (0.0, 0.0))

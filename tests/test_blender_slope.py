@@ -10,9 +10,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.cli.main import main
-from ragsplat_core.dataset import layout, load_dataset
+from ragsplat.camera import Camera
+from ragsplat.cli.main import main
+from ragsplat.dataset import layout, load_dataset
 
 pytestmark = pytest.mark.blender
 
@@ -69,9 +69,9 @@ def test_the_survey_measures_the_edge_on_the_surface(smoke_slope):
 
 
 def test_ripples_ride_on_the_sloping_mean_surface():
-    from blender_scenes.render import _ripple
-    from datagen.conditions import ripple_height
-    from datagen.job import Ripples
+    from ragsplat.blender_scenes.render import _ripple
+    from ragsplat.datagen.conditions import ripple_height
+    from ragsplat.datagen.job import Ripples
 
     rng = np.random.default_rng(0)
     verts = np.column_stack([rng.uniform(-5, 5, (50, 2)), np.zeros(50)])

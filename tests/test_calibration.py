@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from eval.calibration import (
+from ragsplat.eval.calibration import (
     calibration_report,
     constant_width,
     coverage,
@@ -19,8 +19,8 @@ from eval.calibration import (
     z_level,
     z_variance,
 )
-from ragsplat_core.scoring import tvu
-from ragsplat_core.uncertainty import Z95
+from ragsplat.scoring import tvu
+from ragsplat.uncertainty import Z95
 
 N = 200_000
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from ragsplat_core.camera import Camera, ground_sample_distance
+from ragsplat.camera import Camera, ground_sample_distance
 
 NADIR_R = np.diag([1.0, -1.0, -1.0])  # camera x = world x, camera y = world -y, looks down world -z
 

@@ -10,12 +10,12 @@ import pytest
 import torch
 from conftest import WATER, render_dataset
 
-from ragsplat_core.bench.synthetic import bed_scene, ring_cameras
-from ragsplat_core.cli.main import main
-from ragsplat_core.dataset.colmap import IMPORT, POINTS, import_colmap
-from ragsplat_core.dataset.load import load_dataset
-from ragsplat_core.errors import DatasetError
-from ragsplat_core.refraction import WaterSurface
+from ragsplat.bench.synthetic import bed_scene, ring_cameras
+from ragsplat.cli.main import main
+from ragsplat.dataset.colmap import IMPORT, POINTS, import_colmap
+from ragsplat.dataset.load import load_dataset
+from ragsplat.errors import DatasetError
+from ragsplat.refraction import WaterSurface
 
 DOWN = np.diag([1.0, -1.0, -1.0])  # world -> camera of a nadir camera (x right = east, looking down -z)
 
@@ -240,7 +240,7 @@ def test_survey_to_dem_and_laz_in_the_survey_crs(tmp_path):
 def test_triangulation_with_known_poses_finds_a_plane(tmp_path):
     """A textured plane at z = 1 (dry: the water is at 0) photographed by six nadir cameras at z = 5 (each
     image an exact homography of one texture): the triangulated points lie on the plane."""
-    from ragsplat_core.dataset.colmap import triangulate
+    from ragsplat.dataset.colmap import triangulate
 
     rng = np.random.default_rng(1)
     texture = sum(cv2.resize(rng.uniform(0, 255, (k, k)).astype(np.float32), (512, 512)) / 3

@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 import torch
 
-from ragsplat_core.bench.synthetic import ring_cameras, write_dataset
-from ragsplat_core.camera import Camera
-from ragsplat_core.dataset import load_dataset
-from ragsplat_core.dataset.layout import read_png
-from ragsplat_core.errors import DatasetError, RagsplatError
-from ragsplat_core.refraction import WaterSurface
+from ragsplat.bench.synthetic import ring_cameras, write_dataset
+from ragsplat.camera import Camera
+from ragsplat.dataset import load_dataset
+from ragsplat.dataset.layout import read_png
+from ragsplat.errors import DatasetError, RagsplatError
+from ragsplat.refraction import WaterSurface
 
 W, H = 12, 8
 
@@ -68,7 +68,7 @@ def test_dry_only_scene(tmp_path):
 def test_camera_extent():
     cams = ring_cameras(6, 8, 10.0, 4.0)  # nadir at the centre + 6 on a radius-4 circle
     views = [{"camera": c, "image": torch.zeros(8, 8, 3)} for c in cams]
-    from ragsplat_core.dataset import Dataset, View
+    from ragsplat.dataset import Dataset, View
 
     d = Dataset(None, None, [View(str(i), "train", "", v["camera"], torch.zeros(8, 8, 3, dtype=torch.uint8),
                                   None, "", None, None) for i, v in enumerate(views)])

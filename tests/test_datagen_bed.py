@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from datagen import flight
-from datagen.bed import ground_truth_grid, height_at, make_bed, mesh
-from datagen.spec import preset
-from ragsplat_core.dataset import layout
+from ragsplat.datagen import flight
+from ragsplat.datagen.bed import ground_truth_grid, height_at, make_bed, mesh
+from ragsplat.datagen.spec import preset
+from ragsplat.dataset import layout
 
 
 @pytest.fixture(scope="module")

@@ -8,12 +8,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from datagen import conditions, flight
-from datagen.bed import ground_truth, height_at, make_bed
-from datagen.build import FAR, _geometry, render_job, scene_metadata
-from datagen.spec import CLEAR_RIVER, PRESETS, SceneSpec, preset, validate, with_conditions
-from ragsplat_core.camera import Camera
-from ragsplat_core.errors import SpecError
+from ragsplat.camera import Camera
+from ragsplat.datagen import conditions, flight
+from ragsplat.datagen.bed import ground_truth, height_at, make_bed
+from ragsplat.datagen.build import FAR, _geometry, render_job, scene_metadata
+from ragsplat.datagen.spec import CLEAR_RIVER, PRESETS, SceneSpec, preset, validate, with_conditions
+from ragsplat.errors import SpecError
 
 IDEAL = [name for name, spec in PRESETS.items() if spec.conditions is None]
 

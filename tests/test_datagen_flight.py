@@ -7,8 +7,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from datagen import flight
-from datagen.spec import PRESETS, SceneSpec, SpecError, preset, validate
+from ragsplat.datagen import flight
+from ragsplat.datagen.spec import PRESETS, SceneSpec, SpecError, preset, validate
 
 
 def trace_to_bed(cam, pixels, level, n, bed_z):

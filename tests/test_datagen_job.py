@@ -1,5 +1,5 @@
-"""The renderer job and its events (`datagen.job`): a preset's job reads back from its JSON as the same job,
-and the renderer's event lines parse back into the events it printed."""
+"""The renderer job and its events (`ragsplat.datagen.job`): a preset's job reads back from its JSON as the
+same job, and the renderer's event lines parse back into the events it printed."""
 
 import json
 import sys
@@ -7,13 +7,13 @@ from pathlib import Path
 
 import pytest
 
-from datagen import flight
-from datagen.build import _task, passes_for, render_job, run_blender
-from datagen.job import Done, Ready, RenderJob, Texture, event_line, material_from_json, parse_event
-from datagen.spec import preset, with_slope
-from datagen.survey import LENS
-from ragsplat_core.dataset import layout
-from ragsplat_core.errors import RagsplatError
+from ragsplat.datagen import flight
+from ragsplat.datagen.build import _task, passes_for, render_job, run_blender
+from ragsplat.datagen.job import Done, Ready, RenderJob, Texture, event_line, material_from_json, parse_event
+from ragsplat.datagen.spec import preset, with_slope
+from ragsplat.datagen.survey import LENS
+from ragsplat.dataset import layout
+from ragsplat.errors import RagsplatError
 
 
 def preset_job(spec, out, lens=None) -> RenderJob:
@@ -74,8 +74,9 @@ def test_events_read_back_from_their_lines():
 FAKE_RENDERER = """
 import json, sys
 from pathlib import Path
-from datagen.job import Done, Ready, RenderJob, event_line
-job = RenderJob.from_json(json.loads(Path(sys.argv[-1]).read_text()))  # as blender_scenes.render reads it
+from ragsplat.datagen.job import Done, Ready, RenderJob, event_line
+# as ragsplat.blender_scenes.render reads it
+job = RenderJob.from_json(json.loads(Path(sys.argv[-1]).read_text()))
 print("Blender 5.0.1 (a line of its own log)")
 print(event_line(Ready(build_s=0.25, device="CPU")))
 for t in job.tasks:
@@ -88,7 +89,7 @@ def test_run_blender_hands_the_job_over_and_reads_the_events_back(tmp_path, monk
     renderer reads it, the events come back typed, and Blender's own lines go to the log."""
     fake = tmp_path / "fake_renderer.py"
     fake.write_text(FAKE_RENDERER)
-    python = tmp_path / "python"  # run_blender starts `python -m blender_scenes.render JOB`
+    python = tmp_path / "python"  # run_blender starts `python -m ragsplat.blender_scenes.render JOB`
     python.write_text(f'#!/bin/sh\nexec {sys.executable} {fake} "$@"\n')
     python.chmod(0o755)
     monkeypatch.setattr(sys, "executable", str(python))

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from test_datagen_flight import trace_to_bed
 
-from datagen import flight
-from datagen.bed import make_bed, world_waterline
-from datagen.spec import PRESETS, SceneSpec, SpecError, preset, validate
-from datagen.survey import EDGE_POINTS, edge_count, edge_points, flight_lines
+from ragsplat.datagen import flight
+from ragsplat.datagen.bed import make_bed, world_waterline
+from ragsplat.datagen.spec import PRESETS, SceneSpec, SpecError, preset, validate
+from ragsplat.datagen.survey import EDGE_POINTS, edge_count, edge_points, flight_lines
 
 LONG = ("long", "smoke-long")
 

@@ -5,10 +5,10 @@ border cross-section, the scene is seeded, and trivial answers (flat planes) sco
 import numpy as np
 import pytest
 
-from datagen import flight
-from datagen.bed import ground_truth, make_bed, waterline
-from datagen.build import _geometry, null_models
-from datagen.spec import preset
+from ragsplat.datagen import flight
+from ragsplat.datagen.bed import ground_truth, make_bed, waterline
+from ragsplat.datagen.build import _geometry, null_models
+from ragsplat.datagen.spec import preset
 
 
 @pytest.fixture(scope="module")

@@ -10,14 +10,14 @@ import math
 import numpy as np
 import pytest
 
-from datagen import flight
-from datagen.bed import make_bed, world_waterline
-from datagen.build import _write_bed_assets, null_models, render_job
-from datagen.spec import PRESETS, SceneSpec, preset, validate, with_slope
-from datagen.survey import EDGE_POINTS, SurveyNoise, _write_edge, edge_points
-from ragsplat_core.cli import dataset as cli
-from ragsplat_core.dataset import layout
-from ragsplat_core.errors import SpecError
+from ragsplat.cli import dataset as cli
+from ragsplat.datagen import flight
+from ragsplat.datagen.bed import make_bed, world_waterline
+from ragsplat.datagen.build import _write_bed_assets, null_models, render_job
+from ragsplat.datagen.spec import PRESETS, SceneSpec, preset, validate, with_slope
+from ragsplat.datagen.survey import EDGE_POINTS, SurveyNoise, _write_edge, edge_points
+from ragsplat.dataset import layout
+from ragsplat.errors import SpecError
 
 # sha256 (16 hex) of json.dumps(preset.to_dict()) before the slope existed: spec.json is the first file of a
 # dataset and the spec check of every rerun, so these presets' datasets stay byte-identical.
@@ -71,7 +71,7 @@ def test_cli_water_slope_sets_the_spec(monkeypatch, tmp_path):
         seen.append(spec)
         return {"damaged": [], "rendered": 0, "skipped": 0, "complete": True}
 
-    monkeypatch.setattr("datagen.build.generate", generate)
+    monkeypatch.setattr("ragsplat.datagen.build.generate", generate)
     parser = argparse.ArgumentParser()
     cli.add_arguments(parser)
     for extra, slope in (([], (0.0, 0.0)), (["--water-slope", "0.005"], (-0.005, 0.0))):

@@ -5,15 +5,15 @@ import numpy as np
 import pytest
 import torch
 
-from eval import ablation, references
-from eval.ablation import run_ablation
-from eval.evaluate import evaluate_fused, evaluate_geometry, evaluate_views, score_grid
-from eval.report import load_published, table1, table2, table3, table4, write_outputs
-from ragsplat_core.dataset.load import GroundTruth
-from ragsplat_core.errors import ConfigError
-from ragsplat_core.fusion import FuseConfig
-from ragsplat_core.refraction import WaterSurface
-from ragsplat_core.train.config import VARIANTS, preset_config
+from ragsplat.dataset.load import GroundTruth
+from ragsplat.errors import ConfigError
+from ragsplat.eval import ablation, references
+from ragsplat.eval.ablation import run_ablation
+from ragsplat.eval.evaluate import evaluate_fused, evaluate_geometry, evaluate_views, score_grid
+from ragsplat.eval.report import load_published, table1, table2, table3, table4, write_outputs
+from ragsplat.fusion import FuseConfig
+from ragsplat.refraction import WaterSurface
+from ragsplat.train.config import VARIANTS, preset_config
 
 WATER = WaterSurface(0.0, 1.33)
 
@@ -245,7 +245,7 @@ def test_a_bank_cell_never_counts_as_wet():
 
 
 def test_iho_shares_at_the_order_s_bound():
-    from ragsplat_core.scoring import tvu
+    from ragsplat.scoring import tvu
 
     truth, nodes = slope_truth()
     depth = -nodes[:, 2]
@@ -257,7 +257,7 @@ def test_iho_shares_at_the_order_s_bound():
 
 
 def test_quantile_with_holes_is_numpy_s_with_holes_as_the_largest():
-    from ragsplat_core.scoring import quantile_with_holes
+    from ragsplat.scoring import quantile_with_holes
 
     e = np.random.default_rng(0).uniform(0, 1, 200)
     assert quantile_with_holes(e, 0, 0.95) == pytest.approx(np.percentile(e, 95), abs=0, rel=1e-12)
@@ -345,7 +345,7 @@ def test_published_rows_are_the_papers_variants():
 
 
 def test_tune_sets_nested_and_top_level_parameters():
-    from ragsplat_core.train import preset_config
+    from ragsplat.train import preset_config
     from tools.tune import PARAMS, with_value
 
     cfg = preset_config("small")
@@ -362,7 +362,7 @@ def test_default_jobs_and_the_gpus_they_share(monkeypatch):
     # `--jobs` left out: 2 processes on the CPU, JOBS_PER_GPU per GPU on CUDA, shared out round the GPUs.
     import torch
 
-    from eval import ablation
+    from ragsplat.eval import ablation
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     assert ablation.default_jobs(None) == ablation.default_jobs("cpu") == ablation.JOBS == 2
@@ -387,8 +387,8 @@ def test_gsplat_is_built_once_before_the_processes_on_cuda(monkeypatch, tmp_path
     import sys
     from argparse import Namespace
 
-    from ragsplat_core import rasterize
-    from ragsplat_core.cli import ablation as cli
+    from ragsplat import rasterize
+    from ragsplat.cli import ablation as cli
 
     # build_gsplat imports gsplat's backend module (here a stand-in that counts its imports)
     pkg = tmp_path / "gsplat" / "cuda"

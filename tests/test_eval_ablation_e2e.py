@@ -8,9 +8,9 @@ from dataclasses import replace
 import pytest
 from conftest import kill_a_worker, tiny_smoke
 
-from eval import ablation, metrics
-from ragsplat_core import train
-from ragsplat_core.cli.main import main
+from ragsplat import train
+from ragsplat.cli.main import main
+from ragsplat.eval import ablation, metrics
 
 
 def test_ablation_command(evaluable_dataset, tmp_path, monkeypatch, capsys):
@@ -94,7 +94,7 @@ def test_sigint_keeps_finished_rows_and_the_rerun_completes(evaluable_dataset, t
     import torch
 
     out = tmp_path / "runs"
-    cmd = [sys.executable, "-m", "ragsplat_core.cli.main", "ablation", "--data", str(evaluable_dataset),
+    cmd = [sys.executable, "-m", "ragsplat.cli.main", "ablation", "--data", str(evaluable_dataset),
            "--out", str(out), "--preset", "smoke", "--variants", "3dgs", "position", "--seeds", "0", "--init",
            "grid", "--jobs", "1", "--no-download"]
     env = {**os.environ, "TORCH_HOME": str(tmp_path / "torch")}  # no LPIPS backbone there: LPIPS n/a
@@ -166,7 +166,7 @@ def test_a_killed_worker_s_row_is_trained_again_and_the_command_finishes(evaluab
     import sys
 
     out = tmp_path / "runs"
-    cmd = [sys.executable, "-m", "ragsplat_core.cli.main", "ablation", "--data", str(evaluable_dataset),
+    cmd = [sys.executable, "-m", "ragsplat.cli.main", "ablation", "--data", str(evaluable_dataset),
            "--out", str(out), "--preset", "smoke", "--variants", "3dgs", "full", "--seeds", "0", "--init",
            "grid", "--jobs", "2", "--no-download"]
     env = {**os.environ, "TORCH_HOME": str(tmp_path / "torch")}  # no LPIPS backbone there: LPIPS n/a

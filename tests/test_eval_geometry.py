@@ -6,10 +6,10 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from ragsplat_core.errors import ConfigError
-from ragsplat_core.gaussians import quat_to_rotmat
-from ragsplat_core.scoring import geometry_metrics
-from ragsplat_core.surface import (
+from ragsplat.errors import ConfigError
+from ragsplat.gaussians import quat_to_rotmat
+from ragsplat.scoring import geometry_metrics
+from ragsplat.surface import (
     ExtractConfig,
     despike,
     extract_surface,
@@ -263,7 +263,7 @@ def test_wide_gaussians_are_not_sampled():
 def test_fill_holes_recovers_a_plane_and_leaves_wide_gaps():
     # A plane on a 5 cm lattice with one-cell holes and a hole 5 cells wide: filling 1 cell gives back the
     # plane's exact height in the small holes and leaves the wide one empty; 0 changes nothing.
-    from ragsplat_core.surface import fill_holes
+    from ragsplat.surface import fill_holes
 
     cell, origin = 0.05, (0.1, -0.2)
     i, j = np.meshgrid(np.arange(40), np.arange(30), indexing="ij")

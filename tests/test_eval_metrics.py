@@ -3,8 +3,9 @@ import math
 import pytest
 import torch
 
-from eval import metrics
-from eval.metrics import (
+from ragsplat.errors import ConfigError
+from ragsplat.eval import metrics
+from ragsplat.eval.metrics import (
     LPIPS,
     load_lin_weights,
     load_lpips,
@@ -14,8 +15,7 @@ from eval.metrics import (
     ssim_standard,
     vgg16_features_init,
 )
-from ragsplat_core.errors import ConfigError
-from ragsplat_core.ssim import ssim_map
+from ragsplat.ssim import ssim_map
 
 
 def test_psnr_hand_value():

@@ -15,17 +15,17 @@ import pytest
 import torch
 from test_eval_ablation import FakeRunner
 
-from eval.ablation import EDGE_POINTS, TrainEval, one_level_water, run_ablation
-from eval.bed_file import read_bed
-from eval.evaluate import score_grid
-from eval.references import depth_times_n, dietrich, dietrich_grid
-from ragsplat_core.cli import ablation as cli
-from ragsplat_core.cli.main import main
-from ragsplat_core.dataset import layout
-from ragsplat_core.dataset.load import GroundTruth, load_dataset
-from ragsplat_core.errors import ConfigError, DatasetError
-from ragsplat_core.export import Bed, Georef, write_dem
-from ragsplat_core.refraction import WaterSurface, apparent_points
+from ragsplat.cli import ablation as cli
+from ragsplat.cli.main import main
+from ragsplat.dataset import layout
+from ragsplat.dataset.load import GroundTruth, load_dataset
+from ragsplat.errors import ConfigError, DatasetError
+from ragsplat.eval.ablation import EDGE_POINTS, TrainEval, one_level_water, run_ablation
+from ragsplat.eval.bed_file import read_bed
+from ragsplat.eval.evaluate import score_grid
+from ragsplat.eval.references import depth_times_n, dietrich, dietrich_grid
+from ragsplat.export import Bed, Georef, write_dem
+from ragsplat.refraction import WaterSurface, apparent_points
 
 N = 1.33
 SLOPE = (-0.05, 0.02)  # steeper than a river's 0.1-1 %, so that a wrong level shows at a few metres
@@ -265,7 +265,7 @@ def test_the_command_refuses_one_level_without_edge_points_and_passes_it_to_its_
     assert len(err) == 1 and "water_edge.csv: no such file" in err[0] and not out.exists()
     from dask.distributed import LocalCluster
 
-    from eval import ablation
+    from ragsplat.eval import ablation
 
     parser = argparse.ArgumentParser()
     cli.add_arguments(parser)

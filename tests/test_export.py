@@ -13,15 +13,15 @@ import torch
 from conftest import WATER, render_dataset
 from rasterio.crs import CRS
 
-from eval.ablation import extract_config
-from eval.evaluate import evaluate_geometry
-from ragsplat_core import export
-from ragsplat_core.bench.synthetic import bed_scene, ring_cameras
-from ragsplat_core.cli.main import main
-from ragsplat_core.dataset import load_dataset
-from ragsplat_core.dataset.layout import LOCAL_CRS, NODATA
-from ragsplat_core.errors import ConfigError
-from ragsplat_core.export import (
+from ragsplat import export
+from ragsplat.bench.synthetic import bed_scene, ring_cameras
+from ragsplat.cli.main import main
+from ragsplat.dataset import load_dataset
+from ragsplat.dataset.layout import LOCAL_CRS, NODATA
+from ragsplat.errors import ConfigError
+from ragsplat.eval.ablation import extract_config
+from ragsplat.eval.evaluate import evaluate_geometry
+from ragsplat.export import (
     BATHYMETRIC,
     GROUND,
     Georef,
@@ -33,8 +33,8 @@ from ragsplat_core.export import (
     write_las,
     write_ply,
 )
-from ragsplat_core.ply import save_ply
-from ragsplat_core.refraction import WaterSurface
+from ragsplat.ply import save_ply
+from ragsplat.refraction import WaterSurface
 
 REGION = {"xmin": -0.8, "xmax": 0.8, "ymin": -0.8, "ymax": 0.8}
 

@@ -1,12 +1,12 @@
-"""TSDF fusion of depth maps (`ragsplat_core.fusion`): exact depth maps of analytic height fields, cast from
+"""TSDF fusion of depth maps (`ragsplat.fusion`): exact depth maps of analytic height fields, cast from
 a few cameras, come back as heights within a fraction of a voxel; pixels without depth change nothing."""
 
 import numpy as np
 import pytest
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.errors import ConfigError
-from ragsplat_core.fusion import (
+from ragsplat.camera import Camera
+from ragsplat.errors import ConfigError
+from ragsplat.fusion import (
     FuseConfig,
     Tsdf,
     fuse,

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from ragsplat_core.gaussians import (
+from ragsplat.gaussians import (
     activated,
     colors_for_view,
     eval_sh,
@@ -13,8 +13,8 @@ from ragsplat_core.gaussians import (
     rgb_to_sh,
     sh_degree,
 )
-from ragsplat_core.raster.backends import backend
-from ragsplat_core.refraction import WaterSurface
+from ragsplat.raster.backends import backend
+from ragsplat.refraction import WaterSurface
 
 
 def _sphere(n=6_000):
@@ -134,7 +134,7 @@ def test_sh_kernel_matches_its_twin(degree, dtype, tol):
 
 def test_sh_kernel_gradient_matches_finite_differences():
     # the means' gradient (through the view direction) from first principles, in float64
-    from ragsplat_core.raster.cpu.sh import view_colors
+    from ragsplat.raster.cpu.sh import view_colors
 
     gen = torch.Generator().manual_seed(3)
     means = torch.randn(20, 3, generator=gen, dtype=torch.float64).requires_grad_()
@@ -164,8 +164,8 @@ def test_shape_kernels_match_their_twins(dtype, tol):
 
 
 def test_shape_kernels_gradients_match_finite_differences():
-    from ragsplat_core.raster.cpu.rotation import covariance_cpu as cov_fast
-    from ragsplat_core.raster.cpu.rotation import tangents_cpu as tangents
+    from ragsplat.raster.cpu.rotation import covariance_cpu as cov_fast
+    from ragsplat.raster.cpu.rotation import tangents_cpu as tangents
 
     gen = torch.Generator().manual_seed(6)
     quats = torch.randn(12, 4, generator=gen, dtype=torch.float64).requires_grad_()

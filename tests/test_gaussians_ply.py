@@ -3,8 +3,8 @@ import struct
 import pytest
 import torch
 
-from ragsplat_core.gaussians import init_grid
-from ragsplat_core.ply import load_ply, save_ply
+from ragsplat.gaussians import init_grid
+from ragsplat.ply import load_ply, save_ply
 
 
 @pytest.mark.parametrize("degree", [0, 1, 3])

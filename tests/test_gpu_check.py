@@ -43,7 +43,7 @@ def gpu_check(tmp_path, stage, **env):
 def test_all_runs_both_stages_and_exits_with_the_first_failure(tmp_path, tests_rc):
     run, calls = gpu_check(tmp_path, "all", LIMIT_S="300", TESTS_RC=str(tests_rc))
     assert run.returncode == tests_rc, run.stderr
-    assert "-m pytest -q" in calls and "-m ragsplat_core.cli.main bench" in calls
+    assert "-m pytest -q" in calls and "-m ragsplat.cli.main bench" in calls
     # the ablation ran under what was left of the 300 s (the stand-in's tests take about no time)
     limit = next(int(c.split()[1]) for c in calls if c.startswith("timeout"))
     assert 290 <= limit <= 300
@@ -56,7 +56,7 @@ def test_all_starts_no_ablation_without_a_minute_left(tmp_path):
     run, calls = gpu_check(tmp_path, "all", LIMIT_S="59")
     assert run.returncode == 124
     assert "the ablation is not started" in run.stderr
-    assert "-m ragsplat_core.cli.main ablation" not in calls
+    assert "-m ragsplat.cli.main ablation" not in calls
     # a failed test's exit code wins over the lack of time
     run, _ = gpu_check(tmp_path, "all", LIMIT_S="59", TESTS_RC="1")
     assert run.returncode == 1

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from ragsplat_core.cli.main import COMMANDS, main
+from ragsplat.cli.main import COMMANDS, main
 
 ROOT = Path(__file__).resolve().parent.parent
 LIBRARY = [p for p in (ROOT / "ragsplat_core").rglob("*.py") if "cli" not in p.relative_to(ROOT).parts[1:2]]
@@ -33,7 +33,7 @@ def imported_modules(path: Path) -> set[str]:
 def test_library_imports_no_command_layer():
     for path in LIBRARY:
         bad = {m for m in imported_modules(path)
-               if m == "argparse" or m.startswith(("ragsplat_core.cli", "eval", "datagen"))}
+               if m == "argparse" or m.startswith(("ragsplat.cli", "eval", "datagen"))}
         assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"
 
 
@@ -42,9 +42,9 @@ def test_nothing_outside_the_command_layer_imports_it():
     # never import it (the tests do)
     outside = [p for p in SOURCES if COMMAND_LAYER not in p.parents]
     bad = {p.relative_to(ROOT).as_posix() for p in outside
-           if any(m == "ragsplat_core.cli" or m.startswith("ragsplat_core.cli.")
+           if any(m == "ragsplat.cli" or m.startswith("ragsplat.cli.")
                   for m in imported_modules(p))}
-    assert not bad, f"{sorted(bad)} import ragsplat_core.cli"
+    assert not bad, f"{sorted(bad)} import ragsplat.cli"
 
 
 def test_the_installed_packages_import_no_tool():
@@ -56,7 +56,7 @@ def test_the_installed_packages_import_no_tool():
 def test_every_command_is_one_module_of_the_command_layer():
     helpers = {"__init__", "main", "args", "progress", "cluster"}  # the entry point and what commands share
     modules = {name: module for name, (module, _) in COMMANDS.items()}
-    assert all(m.startswith("ragsplat_core.cli.") for m in modules.values()), modules
+    assert all(m.startswith("ragsplat.cli.") for m in modules.values()), modules
     assert len(set(modules.values())) == len(modules)  # one module per subcommand
     for name, module in modules.items():
         tree = ast.parse((COMMAND_LAYER / f"{module.rsplit('.', 1)[1]}.py").read_text())
@@ -117,8 +117,8 @@ def import_graph() -> dict[str, set[str]]:
 
 def test_no_import_circle():
     graph = import_graph()
-    assert {"ragsplat_core.gaussians", "ragsplat_core.raster.backends", "datagen.spec", "eval.ablation",
-            "blender_scenes.render"} <= set(graph)  # the walk found them
+    assert {"ragsplat.gaussians", "ragsplat.raster.backends", "ragsplat.datagen.spec",
+            "ragsplat.eval.ablation", "ragsplat.blender_scenes.render"} <= set(graph)  # the walk found them
     done, path = set(), []
 
     def visit(module):  # depth first; a module met again on the current path closes a circle
@@ -138,8 +138,8 @@ def test_no_import_circle():
 
 def test_the_model_imports_nothing_of_the_rasterizer():
     # `gaussians` is the model; each backend's twins of its maths are chosen in raster/backends.py
-    assert not {m for m in import_graph()["ragsplat_core.gaussians"]
-                if m.startswith("ragsplat_core.raster")}
+    assert not {m for m in import_graph()["ragsplat.gaussians"]
+                if m.startswith("ragsplat.raster")}
 
 
 def test_only_the_renderer_imports_bpy():
@@ -148,17 +148,18 @@ def test_only_the_renderer_imports_bpy():
 
 
 def test_the_generator_imports_nothing_from_the_renderer():
-    # the renderer reads datagen's job (`datagen.job`) and runs as its own process; datagen never imports it
+    # the renderer reads datagen's job (`ragsplat.datagen.job`) and runs as its own process; datagen never
+    # imports it
     datagen = [p for p in SOURCES if p.relative_to(ROOT).parts[0] == "datagen"]
     bad = {p.relative_to(ROOT).as_posix() for p in datagen
            if any(m.split(".")[0] == "blender_scenes" for m in imported_modules(p))}
-    assert not bad, f"{sorted(bad)} import blender_scenes"
+    assert not bad, f"{sorted(bad)} import ragsplat.blender_scenes"
 
 
 def test_data_contract_and_generator_import_without_torch():
-    code = ("import sys; import datagen.build, ragsplat_core.cli.dataset, ragsplat_core.dataset.layout, "
-            "datagen.job; "
-            "import ragsplat_core; ragsplat_core.dataset; "
+    code = ("import sys; import ragsplat.datagen.build, ragsplat.cli.dataset, ragsplat.dataset.layout, "
+            "ragsplat.datagen.job; "
+            "import ragsplat; ragsplat.dataset; "
             "assert 'torch' not in sys.modules, 'torch was imported'")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
 
@@ -224,7 +225,7 @@ def test_outputs_of_the_wrong_kind(tmp_path, capsys):
 
 
 def test_interrupt_and_os_errors_are_one_line(tmp_path, monkeypatch, capsys):
-    from ragsplat_core.cli import stability
+    from ragsplat.cli import stability
 
     def interrupted(args):
         raise KeyboardInterrupt

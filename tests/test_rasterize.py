@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.gaussians import covariance, quat_to_rotmat
-from ragsplat_core.rasterize import rasterize
+from ragsplat.camera import Camera
+from ragsplat.gaussians import covariance, quat_to_rotmat
+from ragsplat.rasterize import rasterize
 
 NADIR_R = np.diag([1.0, -1.0, -1.0])  # looks down world -z; camera x = world x, camera y = world -y
 BACKENDS = ["torch", "cpu"]
@@ -32,7 +32,7 @@ def scene(n, seed, dtype=torch.float64, spread=(0.8, 0.6), size=(0.02, 0.08)):
 def literal_3dgs(means, quats, scales, opacities, colors, cam, bg):
     """The per-pixel loop of 3DGS's forward kernel over all Gaussians (no tiles, no boxes), in float64, with
     2DGS's median depth (the z of the Gaussian that takes T from above 0.5 to at most 0.5; 0 if none)."""
-    from ragsplat_core.raster.reference.project import project
+    from ragsplat.raster.reference.project import project
 
     proj = project(means, covariance(quats, scales), opacities, cam)
     m2, con, z = proj.means2d.detach().numpy(), proj.conics.detach().numpy(), proj.depths.detach().numpy()
@@ -280,8 +280,8 @@ def test_cpu_projection_matches_its_twin(dtype, tol):
     # the numba EWA projection against project.project: outputs, boxes, and the gradients to the means and
     # the covariances; with Gaussians behind the camera, too faint to draw, and far outside the view (where
     # the Jacobian's x/z, y/z are clamped)
-    from ragsplat_core.raster.cpu import project as project_cpu
-    from ragsplat_core.raster.reference.project import project
+    from ragsplat.raster.cpu import project as project_cpu
+    from ragsplat.raster.reference.project import project
 
     cam = nadir(width=48, height=36)
     means, quats, scales, opacities, _ = scene(600, 8, dtype=torch.float64, spread=(6.0, 5.0),
@@ -311,7 +311,7 @@ def test_cpu_projection_matches_its_twin(dtype, tol):
 
 
 def test_cpu_projection_gradients_match_finite_differences():
-    from ragsplat_core.raster.cpu import project as project_cpu
+    from ragsplat.raster.cpu import project as project_cpu
 
     cam = nadir(width=48, height=36)
     means, quats, scales, opacities, _ = scene(15, 3, spread=(3.0, 2.5))

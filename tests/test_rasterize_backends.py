@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 import torch
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.gaussians import covariance
-from ragsplat_core.raster.backends import BACKENDS, backend
-from ragsplat_core.raster.reference import composite as reference_composite
-from ragsplat_core.rasterize import gsplat_available, rasterize
+from ragsplat.camera import Camera
+from ragsplat.gaussians import covariance
+from ragsplat.raster.backends import BACKENDS, backend
+from ragsplat.raster.reference import composite as reference_composite
+from ragsplat.rasterize import gsplat_available, rasterize
 
 NAMES = ["means", "quats", "scales", "opacities", "colors", "background"]
 
@@ -145,7 +145,7 @@ def test_means2d_gradient_matches_between_backends():
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_tile_bins_kernel_matches_its_twin(dtype):
     # the crowded scene (partial edge tiles, Gaussians several tiles wide, some off screen) with tied depths
-    from ragsplat_core.raster.reference.project import project
+    from ragsplat.raster.reference.project import project
 
     cam, (means, quats, scales, opacities, _, _), _ = crowded_scene(dtype)
     means = torch.cat([means, means[:50], means[:5] + 40])  # 50 exact depth ties; 5 far off screen

@@ -65,7 +65,7 @@ _HELP: dict[tuple[str, ...], str] = {}  # `ragsplat PATH --help`, fetched once p
 
 
 def _run_help(path: tuple[str, ...]) -> str:
-    done = subprocess.run([sys.executable, "-m", "ragsplat_core.cli.main", *path, "--help"], check=False,
+    done = subprocess.run([sys.executable, "-m", "ragsplat.cli.main", *path, "--help"], check=False,
                           cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, f"`ragsplat {' '.join(path)} --help` failed:\n{done.stderr}"
     return done.stdout

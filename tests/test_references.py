@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from eval.references import dietrich
-from ragsplat_core.refraction import WaterSurface, apparent_points
-from ragsplat_core.tracks import fill_gaps, gap_nodes, tin, track_filter
+from ragsplat.eval.references import dietrich
+from ragsplat.refraction import WaterSurface, apparent_points
+from ragsplat.tracks import fill_gaps, gap_nodes, tin, track_filter
 
 N = 1.33
 
@@ -112,7 +112,7 @@ def test_gap_nodes_in_chunks_are_the_whole_grids_gaps():
 
 
 def test_gridded_applies_the_outlier_filter_it_is_given():
-    from eval.references import gridded
+    from ragsplat.eval.references import gridded
 
     x, y = np.meshgrid(np.linspace(0, 4, 21), np.linspace(0, 4, 21), indexing="ij")
     pts = np.column_stack([x.ravel(), y.ravel(), -1.0 - 0.1 * x.ravel()])

@@ -10,10 +10,10 @@ import pytest
 import torch
 from conftest import killed_and_resumed, water_bed, water_bed_config
 
-from ragsplat_core.dataset import Dataset, load_dataset
-from ragsplat_core.errors import ConfigError
-from ragsplat_core.export import load_model
-from ragsplat_core.reflection import (
+from ragsplat.dataset import Dataset, load_dataset
+from ragsplat.errors import ConfigError
+from ragsplat.export import load_model
+from ragsplat.reflection import (
     SKY_SIZE,
     add_reflection,
     fresnel,
@@ -22,10 +22,10 @@ from ragsplat_core.reflection import (
     sky_radiance,
     surface_reflection,
 )
-from ragsplat_core.refraction import WaterSurface, linear_to_srgb, plane_frame, srgb_to_linear
-from ragsplat_core.train import VARIANTS, TrainConfig, Trainer
-from ragsplat_core.train import trainer as train_mod
-from ragsplat_core.train.config import SKY_RANGE, WATER_TERMS
+from ragsplat.refraction import WaterSurface, linear_to_srgb, plane_frame, srgb_to_linear
+from ragsplat.train import VARIANTS, TrainConfig, Trainer
+from ragsplat.train import trainer as train_mod
+from ragsplat.train.config import SKY_RANGE, WATER_TERMS
 
 f64 = torch.float64
 CAM = torch.tensor([1.0, -2.0, 30.0], dtype=f64)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from ragsplat_core.refraction import (
+from ragsplat.refraction import (
     WaterSurface,
     apparent_jacobian,
     apparent_points,
@@ -145,7 +145,7 @@ def test_colour_factor_applies_in_linear_light():
 def test_waterline_is_continuous_in_values_and_gradients(scale):
     """Gaussians moved through the water line: every apparent quantity and its gradient w.r.t. the height
     change smoothly (no jump at the level, none at the blend band's lower edge, finite everywhere)."""
-    from ragsplat_core.refraction import WATERLINE_BAND
+    from ragsplat.refraction import WATERLINE_BAND
 
     level = WATER.level
     eps = 1e-10
@@ -174,7 +174,7 @@ def test_waterline_is_continuous_in_values_and_gradients(scale):
 
 
 def test_waterline_band_is_thin_and_exact_below_it():
-    from ragsplat_core.refraction import WATERLINE_BAND, waterline_weight
+    from ragsplat.refraction import WATERLINE_BAND, waterline_weight
 
     d = torch.tensor([-1.0, 0.0, WATERLINE_BAND / 2, WATERLINE_BAND, 1.0], dtype=f64)
     assert waterline_weight(d).tolist() == [0.0, 0.0, 0.5, 1.0, 1.0]  # t in {0, 1/2, 1}: every step exact
@@ -331,8 +331,8 @@ def test_water_rays_bend_by_snell_and_meet_at_the_true_point():
     """`snell.water_rays`: straight down is not bent, an oblique ray leaves at asin(sin / n); the rays of one
     true point's pixels in several views (through the exact forward transform) meet at it; n = 1 is the
     pinhole."""
-    from ragsplat_core.camera import Camera
-    from ragsplat_core.snell import closest_points, water_rays
+    from ragsplat.camera import Camera
+    from ragsplat.snell import closest_points, water_rays
 
     cams = [Camera.look_at([x, y, 4.5], [0.0, 0.0, -1.0], 64, 48, 60.0)
             for x, y in ((0, 0), (2, 0.5), (-1.5, 2))]

@@ -12,16 +12,16 @@ import pytest
 import torch
 from conftest import WATER, render_dataset, tiny_smoke
 
-from eval import ablation, metrics
-from eval.evaluate import evaluate_geometry, score_grid
-from eval.references import oracle_grids
-from eval.report import jsonable
-from ragsplat_core import train
-from ragsplat_core.bench.synthetic import bed_scene, ring_cameras
-from ragsplat_core.cli.main import main
-from ragsplat_core.dataset import layout
-from ragsplat_core.dataset.load import load_dataset
-from ragsplat_core.export import load_model, load_run, write_render
+from ragsplat import train
+from ragsplat.bench.synthetic import bed_scene, ring_cameras
+from ragsplat.cli.main import main
+from ragsplat.dataset import layout
+from ragsplat.dataset.load import load_dataset
+from ragsplat.eval import ablation, metrics
+from ragsplat.eval.evaluate import evaluate_geometry, score_grid
+from ragsplat.eval.references import oracle_grids
+from ragsplat.eval.report import jsonable
+from ragsplat.export import load_model, load_run, write_render
 
 KEYS = {"run", "data", "dataset_fingerprint", "dataset_seed", "variant", "preset", "seed", "harness_preset",
         "water",

@@ -1,7 +1,7 @@
 """`ragsplat score`: a bed from any software (DEM GeoTIFF, LAS/LAZ, PLY, CSV) on the ground truth's nodes,
-scored as `eval.evaluate.score_grid` scores a grid: an exported DEM as its grid; points on the true bed + 2 cm
-with a +2 cm bias in every file kind; a depth band as the elevation band; files in the dataset's UTM frame or
-in another CRS on the same cells; a file elsewhere refused in one line."""
+scored as `ragsplat.eval.evaluate.score_grid` scores a grid: an exported DEM as its grid; points on the true
+bed + 2 cm with a +2 cm bias in every file kind; a depth band as the elevation band; files in the dataset's
+UTM frame or in another CRS on the same cells; a file elsewhere refused in one line."""
 
 import json
 import shutil
@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 from rasterio.warp import transform
 
-from eval.evaluate import score_grid
-from ragsplat_core.cli.main import main
-from ragsplat_core.dataset import layout
-from ragsplat_core.dataset.load import load_dataset
-from ragsplat_core.export import Bed, Georef, write_dem
-from ragsplat_core.refraction import WaterSurface
+from ragsplat.cli.main import main
+from ragsplat.dataset import layout
+from ragsplat.dataset.load import load_dataset
+from ragsplat.eval.evaluate import score_grid
+from ragsplat.export import Bed, Georef, write_dem
+from ragsplat.refraction import WaterSurface
 
 OFFSET = (500_000.012, 5_000_000.037, 100.0)  # not on multiples of the 5 cm cells
 WATER = WaterSurface(0.0, 1.33)  # the evaluable dataset's (conftest)
@@ -194,7 +194,7 @@ def test_utm_files_and_another_crs_land_on_the_same_cells(utm_dataset, evaluable
 
 
 def test_the_references_option_adds_the_tracks_rows(evaluable_dataset, tmp_path, monkeypatch, capsys):
-    from eval.ablation import TrainEval
+    from ragsplat.eval.ablation import TrainEval
 
     truth = truth_of(evaluable_dataset)
     monkeypatch.setattr(TrainEval, "track_grids", lambda self, log: {"triangulation (refracted)": truth.grid})
@@ -226,7 +226,7 @@ def test_a_file_elsewhere_or_unknown_is_refused_in_one_line(evaluable_dataset, t
 def test_a_dem_off_the_truth_s_lattice_keeps_its_cells_at_a_hole_s_edge():
     from rasterio.transform import from_origin
 
-    from eval.bed_file import dem_at
+    from ragsplat.eval.bed_file import dem_at
 
     values = np.arange(16, dtype=float).reshape(4, 4)  # cell (row r, col c) holds 4 r + c
     values[1, 1] = np.nan  # one empty cell

@@ -6,8 +6,8 @@ import time
 
 import numpy as np
 
-from ragsplat_core.cli.main import main
-from ragsplat_core.dataset import colmap
+from ragsplat.cli.main import main
+from ragsplat.dataset import colmap
 
 
 def test_two_processes_asking_at_once_triangulate_once(tmp_path, monkeypatch):
@@ -37,7 +37,7 @@ def test_two_processes_asking_at_once_triangulate_once(tmp_path, monkeypatch):
 def test_jobs_triangulate_before_the_tasks_start(evaluable_dataset, tmp_path, monkeypatch, capsys):
     from dask.distributed import LocalCluster
 
-    from eval import ablation
+    from ragsplat.eval import ablation
 
     order = []
     monkeypatch.setattr(colmap, "triangulated_points",

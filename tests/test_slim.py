@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 from conftest import tiny_smoke
 
-from eval import ablation
-from eval.references import SEEDLESS
-from ragsplat_core.cli.main import main
-from ragsplat_core.dataset import colmap, layout
-from ragsplat_core.dataset.load import load_dataset
+from ragsplat.cli.main import main
+from ragsplat.dataset import colmap, layout
+from ragsplat.dataset.load import load_dataset
+from ragsplat.eval import ablation
+from ragsplat.eval.references import SEEDLESS
 from tools import slim
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -84,9 +84,9 @@ def test_the_rasterio_stand_in_writes_empty_geotiffs_and_reads_none(tmp_path):
 import sys
 import numpy as np
 import rasterio
-from eval.score import dem_points
-from ragsplat_core.dataset import layout
-from ragsplat_core.errors import DatasetError
+from ragsplat.eval.score import dem_points
+from ragsplat.dataset import layout
+from ragsplat.errors import DatasetError
 assert rasterio.__file__.startswith(sys.argv[1]), rasterio.__file__
 georef = layout.Georef()
 assert georef.wkt() == layout.LOCAL_CRS

@@ -3,7 +3,7 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from ragsplat_core.ssim import ssim, ssim_map
+from ragsplat.ssim import ssim, ssim_map
 
 PAD = 5  # half the 11-tap window: beyond it the zero padding of 3DGS and skimage's reflection differ
 
@@ -62,7 +62,7 @@ def test_matches_the_2d_window_of_3dgs_everywhere():
     # 3DGS's own formulation: one grouped 2-D conv per moment with an 11x11 window, padding 5
     import torch.nn.functional as F
 
-    from ragsplat_core.ssim import C1, C2, gaussian_window
+    from ragsplat.ssim import C1, C2, gaussian_window
 
     a, b = (torch.from_numpy(x).permute(2, 0, 1)[None] for x in _pair(3, 23, 29))
     g = gaussian_window(dtype=torch.float64)

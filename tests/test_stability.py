@@ -2,8 +2,8 @@
 
 import torch
 
-from ragsplat_core.bench import refraction as bench
-from ragsplat_core.bench.stability import REGIMES, StabilityConfig, reference, run_sweep, sample
+from ragsplat.bench import refraction as bench
+from ragsplat.bench.stability import REGIMES, StabilityConfig, reference, run_sweep, sample
 
 
 def test_sweep_meets_targets_in_every_regime():

@@ -3,8 +3,8 @@ import math
 import pytest
 import torch
 
-from ragsplat_core.gaussians import init_grid, quat_to_rotmat
-from ragsplat_core.train.strategy import (
+from ragsplat.gaussians import init_grid, quat_to_rotmat
+from ragsplat.train.strategy import (
     DefaultStrategy,
     DensifyConfig,
     duplicate,
@@ -190,7 +190,7 @@ def test_pruning_and_resets_test_the_rendered_opacity():
     below the rasterizer's 1/255, so it gets no gradient. With the water's opacity factor the strategy prunes
     it (and a dry Gaussian of the same opacity stays); a reset leaves every Gaussian rendering at
     2 x prune_opa, submerged or not."""
-    from ragsplat_core.refraction import WaterSurface, opacity_factor
+    from ragsplat.refraction import WaterSurface, opacity_factor
 
     water = WaterSurface(level=0.0, n=1.33)
     params, opts = _setup()  # a 4 x 4 grid at z = -1: submerged

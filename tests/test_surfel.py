@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import torch
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.errors import ConfigError
-from ragsplat_core.gaussians import quat_to_rotmat, surfel_tangents
-from ragsplat_core.rasterize import gsplat_available
-from ragsplat_core.rasterize_surfels import depth_normals, rasterize_surfels
-from ragsplat_core.refraction import WaterSurface, apparent_jacobian, apparent_points
+from ragsplat.camera import Camera
+from ragsplat.errors import ConfigError
+from ragsplat.gaussians import quat_to_rotmat, surfel_tangents
+from ragsplat.rasterize import gsplat_available
+from ragsplat.rasterize_surfels import depth_normals, rasterize_surfels
+from ragsplat.refraction import WaterSurface, apparent_jacobian, apparent_points
 
 NADIR_R = np.diag([1.0, -1.0, -1.0])  # looks down world -z; camera x = world x, camera y = world -y
 BACKENDS = ["torch", "cpu"]
@@ -421,7 +421,7 @@ def test_ray_transforms_meet_the_pixel_rays_where_the_kernels_do():
     kernel's formula, written out here) gives the (u, v) of the rays the torch and cpu kernels use, for
     oblique and refracted surfels; and the physics: a surfel facing a nadir camera at z metres, tangent
     length s, has u = dx z / (fx s) at dx pixels from its centre."""
-    from ragsplat_core.raster.reference.surfel_project import project_surfels
+    from ragsplat.raster.reference.surfel_project import project_surfels
 
     # gsplat 1.5 RasterizeToPixels2DGSFwd.cu: h_u = px T_2 - T_0, h_v = py T_2 - T_1
     def kernel_uv(T, px, py):
@@ -511,7 +511,7 @@ def test_gsplat_depths_of_surfels_facing_the_camera():
 
 
 def test_benchmark_rows():
-    from ragsplat_core.bench.surfel import format_table, time_pair
+    from ragsplat.bench.surfel import format_table, time_pair
 
     row = time_pair("cpu", 300, 64, repeats=1, warmup=0)
     assert row["surfel-image_median_s"] > 0 and row["surfel-all_ratio"] > 0 and row["3dgs_median_s"] > 0

@@ -10,10 +10,10 @@ import pytest
 import torch
 from conftest import channel_scene, survey_cameras
 
-from ragsplat_core.bench.synthetic import bed_scene, render_views, write_dataset
-from ragsplat_core.cli.main import main
-from ragsplat_core.dataset import layout
-from ragsplat_core.refraction import WaterSurface
+from ragsplat.bench.synthetic import bed_scene, render_views, write_dataset
+from ragsplat.cli.main import main
+from ragsplat.dataset import layout
+from ragsplat.refraction import WaterSurface
 from tools.poses import pose_errors
 
 WATER = WaterSurface(0.0, 1.33)
@@ -109,7 +109,7 @@ def test_sizes_are_refused_before_any_work(survey, finished, tmp_path, capsys, m
     """A DEM grid too fine for the flight's extent, and training images over the memory share, are refused in
     one line naming what passes, before the run folder is made; without --max-size the size that fits is
     chosen and said."""
-    from ragsplat_core.survey import pipeline
+    from ragsplat.survey import pipeline
 
     out = tmp_path / "run"
     assert main(args(survey, out, "--resolution", "0.0002")) == 2

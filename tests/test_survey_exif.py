@@ -1,8 +1,8 @@
 """Camera positions from the photos' own metadata (`survey.exif`): EXIF GPS and DJI's XMP written by
 `layout.write_jpeg` and read back, the conversion to UTM against the projection's definition, the zone
 chosen, a photo without GPS refused in one line, and `ragsplat survey PHOTOS` with no positions file on a
-small synthetic survey geotagged by the generator (`datagen.survey.write_survey`): RTK-fixed photos, and the
-same photos with consumer GPS (a bias per flight line), every camera kept."""
+small synthetic survey geotagged by the generator (`ragsplat.datagen.survey.write_survey`): RTK-fixed photos,
+and the same photos with consumer GPS (a bias per flight line), every camera kept."""
 
 import json
 import math
@@ -14,9 +14,12 @@ import pytest
 import torch
 from conftest import channel_scene, survey_cameras
 
-from datagen.flight import Pose
-from datagen.spec import WaterSpec
-from datagen.survey import (
+from ragsplat.bench.synthetic import bed_scene, render_views, write_dataset
+from ragsplat.camera import Camera
+from ragsplat.cli.main import main
+from ragsplat.datagen.flight import Pose
+from ragsplat.datagen.spec import WaterSpec
+from ragsplat.datagen.survey import (
     LENS,
     ConsumerGPS,
     GeoOrigin,
@@ -25,13 +28,10 @@ from datagen.survey import (
     gimbal_angles,
     write_survey,
 )
-from ragsplat_core.bench.synthetic import bed_scene, render_views, write_dataset
-from ragsplat_core.camera import Camera
-from ragsplat_core.cli.main import main
-from ragsplat_core.dataset import layout
-from ragsplat_core.errors import ConfigError, DatasetError
-from ragsplat_core.refraction import WaterSurface
-from ragsplat_core.survey import exif
+from ragsplat.dataset import layout
+from ragsplat.errors import ConfigError, DatasetError
+from ragsplat.refraction import WaterSurface
+from ragsplat.survey import exif
 
 IMAGE = (np.random.default_rng(0).random((36, 48, 3)) * 255).astype(np.uint8)
 
@@ -312,7 +312,7 @@ def test_photos_alone_with_consumer_gps_keep_every_camera(geotagged, tmp_path, c
     assert f"may be off by up to about {100 * stated['relative']:.0f} %" in err and "--gcp" in err
     import pycolmap
 
-    from ragsplat_core.survey import georef
+    from ragsplat.survey import georef
 
     rec = pycolmap.Reconstruction(str(out / "sfm" / "model"))
     model = {img.name: img.projection_center() for img in rec.images.values()}
@@ -332,7 +332,7 @@ def test_photos_alone_with_consumer_gps_keep_every_camera(geotagged, tmp_path, c
 def test_the_adjustment_holds_each_camera_to_its_own_accuracy():
     """A per-camera prior (RTK and consumer GPS in one flight): the same as the tuple when every row is the
     same; a camera held to metres goes where its photos put it, away from a position 0.5 m off."""
-    from ragsplat_core.survey import bundle
+    from ragsplat.survey import bundle
 
     rng = np.random.default_rng(0)
     cams = [Camera.look_at([x, y, 5.0], [x, y, 0.0], 120, 90, 60.0) for x in (-1.0, 0.0, 1.0)
@@ -413,10 +413,11 @@ def test_consumer_gps_is_levelled_by_the_water(channel_geotagged, tmp_path, caps
 
 
 def test_the_renderers_lens_polynomial_is_the_radial_model():
-    """`datagen.survey.lens_polynomial`: the ray Cycles' polynomial lens sends through each sensor point, out
-    to the corners, lands where COLMAP's RADIAL model with the pinhole's focal length puts it, within 0.05 px;
-    with k = 0 it is the pinhole. (Rendered markers land there too: tests/test_blender_markers.py.)"""
-    from datagen.survey import lens_polynomial
+    """`ragsplat.datagen.survey.lens_polynomial`: the ray Cycles' polynomial lens sends through each sensor
+    point, out to the corners, lands where COLMAP's RADIAL model with the pinhole's focal length puts it,
+    within 0.05 px; with k = 0 it is the pinhole. (Rendered markers land there too:
+    tests/test_blender_markers.py.)"""
+    from ragsplat.datagen.survey import lens_polynomial
 
     for cam in (Camera(256, 256, 182.8, 182.8, 128.0, 128.0, np.eye(3), np.zeros(3)),
                 Camera(240, 180, 150.0, 150.0, 120.0, 90.0, np.eye(3), np.zeros(3))):
@@ -453,7 +454,7 @@ def test_a_lens_distortion_is_estimated_from_the_photos(geotagged, tmp_path, cap
 
 
 def test_neighbour_pairs_each_photo_with_its_nearest():
-    from ragsplat_core.survey.sfm import neighbour_pairs
+    from ragsplat.survey.sfm import neighbour_pairs
 
     rng = np.random.default_rng(0)
     centres = np.column_stack([rng.uniform(0, 200, 300), rng.uniform(0, 40, 300), rng.uniform(20, 21, 300)])
@@ -474,7 +475,7 @@ def test_a_large_survey_matches_neighbours_not_every_pair(geotagged, tmp_path, c
     """Above `EXHAUSTIVE_MAX` photos, each is matched with its nearest by the photos' positions (here the
     limits lowered to this 18-photo survey): fewer pairs, every photo still registered; the pairs and each
     stage's time reported."""
-    from ragsplat_core.survey import sfm
+    from ragsplat.survey import sfm
 
     root, _ = geotagged
     monkeypatch.setattr(sfm, "EXHAUSTIVE_MAX", 10)

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.dataset import layout
-from ragsplat_core.errors import DatasetError
-from ragsplat_core.refraction import WaterSurface, apparent_points
-from ragsplat_core.survey import bundle, georef
+from ragsplat.camera import Camera
+from ragsplat.dataset import layout
+from ragsplat.errors import DatasetError
+from ragsplat.refraction import WaterSurface, apparent_points
+from ragsplat.survey import bundle, georef
 
 WATER = WaterSurface(0.0, 1.33)
 

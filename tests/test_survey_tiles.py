@@ -11,10 +11,10 @@ import pytest
 from conftest import kill_a_worker
 from test_survey import args, finished, survey  # noqa: F401 (fixtures)
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.cli.main import main
-from ragsplat_core.refraction import WaterSurface
-from ragsplat_core.survey import tiles
+from ragsplat.camera import Camera
+from ragsplat.cli.main import main
+from ragsplat.refraction import WaterSurface
+from ragsplat.survey import tiles
 
 
 def test_a_nadir_footprint_is_the_field_of_view_at_the_water():
@@ -136,7 +136,7 @@ def test_tiles_on_dask_workers_one_killed_give_the_same_products(survey, tiled, 
 
     out = tmp_path / "run"
     _reuse_poses(tiled[0], out)
-    argv = [sys.executable, "-m", "ragsplat_core.cli.main",
+    argv = [sys.executable, "-m", "ragsplat.cli.main",
             *args(survey, out, "--tile-size", "3", "--jobs", "2")]
 
     def victim():  # a tile a worker is training: its pid in the log's first line

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from ragsplat_core.errors import DatasetError
-from ragsplat_core.survey.water import fit_edge, profile
+from ragsplat.errors import DatasetError
+from ragsplat.survey.water import fit_edge, profile
 
 
 def banks(slope=(-0.01, 0.0), level=100.0, noise=0.01, count=15, seed=0, length=40.0, width=7.0):
@@ -70,7 +70,7 @@ def test_a_riffle_is_a_profile_and_a_plane_stays_a_plane():
     z = 50.0 - 0.01 * x + step + rng.normal(0, 0.005, len(x))
     fit = fit_edge(np.column_stack([x, y, z]))
     assert fit.kind == "profile" and fit.profile is not None
-    from ragsplat_core.refraction import WaterSurface
+    from ragsplat.refraction import WaterSurface
 
     surface = WaterSurface(fit.level, 1.33, fit.slope, fit.profile)
     xs = np.column_stack([np.linspace(-35, 35, 71), np.zeros(71)])

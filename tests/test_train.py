@@ -8,20 +8,20 @@ import pytest
 import torch
 from conftest import WATER, render_dataset
 
-from ragsplat_core.bench.synthetic import bed_scene, render_views, ring_cameras, write_dataset
-from ragsplat_core.camera import Camera
-from ragsplat_core.cli.main import main
-from ragsplat_core.dataset import BedInfo, load_dataset
-from ragsplat_core.errors import OutputError, TrainingDiverged
-from ragsplat_core.gaussians import activated, colors_for_view
-from ragsplat_core.ply import load_ply
-from ragsplat_core.rasterize import rasterize
-from ragsplat_core.rasterize_surfels import rasterize_surfels
-from ragsplat_core.refraction import WaterSurface
-from ragsplat_core.snell import footprint
-from ragsplat_core.train import VARIANTS, TrainConfig, Trainer, preset_config
-from ragsplat_core.train import trainer as train_mod
-from ragsplat_core.train.strategy import PAPER_ITERATIONS, DensifyConfig
+from ragsplat.bench.synthetic import bed_scene, render_views, ring_cameras, write_dataset
+from ragsplat.camera import Camera
+from ragsplat.cli.main import main
+from ragsplat.dataset import BedInfo, load_dataset
+from ragsplat.errors import OutputError, TrainingDiverged
+from ragsplat.gaussians import activated, colors_for_view
+from ragsplat.ply import load_ply
+from ragsplat.rasterize import rasterize
+from ragsplat.rasterize_surfels import rasterize_surfels
+from ragsplat.refraction import WaterSurface
+from ragsplat.snell import footprint
+from ragsplat.train import VARIANTS, TrainConfig, Trainer, preset_config
+from ragsplat.train import trainer as train_mod
+from ragsplat.train.strategy import PAPER_ITERATIONS, DensifyConfig
 
 REGION = {"xmin": -0.8, "xmax": 0.8, "ymin": -0.8, "ymax": 0.8}
 
@@ -368,7 +368,7 @@ def test_sigint_checkpoints_finished_steps_and_resume_says_so(evaluable_dataset,
     import time
 
     out = tmp_path / "run"
-    cmd = [sys.executable, "-m", "ragsplat_core.cli.main", "train", "--data", str(evaluable_dataset), "--out",
+    cmd = [sys.executable, "-m", "ragsplat.cli.main", "train", "--data", str(evaluable_dataset), "--out",
            str(out), "--preset", "smoke", "--iterations", "100000", "--checkpoint-every", "0",
            "--no-progress"]
 
@@ -477,7 +477,7 @@ def test_pruning_sees_the_rendered_opacity_of_variants_that_fade_it(wet):
 def test_triangulated_init_is_computed_once_per_dataset_content(tmp_path, monkeypatch):
     """init="triangulated" starts from `colmap.triangulate` of the training images (submerged depths x n),
     cached in the dataset with its fingerprint: a second run reuses it, changed content recomputes it."""
-    from ragsplat_core.dataset import colmap
+    from ragsplat.dataset import colmap
 
     calls = []
 
@@ -499,8 +499,8 @@ def test_refracted_init_intersects_the_tracks_through_the_water(tmp_path, monkey
     """init="refracted": the cached tracks' pixels, bent at the water, meet at the true points (the pixels
     here are exact: each true point seen through the water by every training camera); a point above the
     level keeps its straight-ray position."""
-    from ragsplat_core.dataset import colmap
-    from ragsplat_core.refraction import apparent_points
+    from ragsplat.dataset import colmap
+    from ragsplat.refraction import apparent_points
 
     ds = load_dataset(_tiny(tmp_path / "data"))
     true = np.array([[0.1, -0.2, -0.7], [-0.3, 0.25, -1.2], [0.2, 0.1, -0.05]])

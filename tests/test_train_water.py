@@ -6,16 +6,16 @@ from pathlib import Path
 import pytest
 import torch
 
-from ragsplat_core.bench.synthetic import bed_scene, render_views, ring_cameras, write_dataset
-from ragsplat_core.cli.main import main
-from ragsplat_core.dataset import BedInfo, Dataset
-from ragsplat_core.dataset.load import View
-from ragsplat_core.errors import ConfigError
-from ragsplat_core.gaussians import PARAM_NAMES, activated, colors_for_view
-from ragsplat_core.rasterize import rasterize
-from ragsplat_core.refraction import WaterSurface, refract_gaussians
-from ragsplat_core.train import Trainer, preset_config
-from ragsplat_core.train.strategy import DensifyConfig
+from ragsplat.bench.synthetic import bed_scene, render_views, ring_cameras, write_dataset
+from ragsplat.cli.main import main
+from ragsplat.dataset import BedInfo, Dataset
+from ragsplat.dataset.load import View
+from ragsplat.errors import ConfigError
+from ragsplat.gaussians import PARAM_NAMES, activated, colors_for_view
+from ragsplat.rasterize import rasterize
+from ragsplat.refraction import WaterSurface, refract_gaussians
+from ragsplat.train import Trainer, preset_config
+from ragsplat.train.strategy import DensifyConfig
 
 LEVEL, N, DEPTH = 0.2, 1.33, 1.0  # a level off zero, so nothing passes by reading 0 for it
 NO_DENSIFY = DensifyConfig(refine_start_iter=10**6, refine_stop_iter=10**6, reset_every=10**6)

@@ -3,8 +3,8 @@ value is the value the config holds, and each record names its command, commit a
 
 from dataclasses import asdict
 
-from ragsplat_core.surface import EXTRACT_TUNING, ExtractConfig
-from ragsplat_core.tuning import record
+from ragsplat.surface import EXTRACT_TUNING, ExtractConfig
+from ragsplat.tuning import record
 
 
 def test_the_extraction_holds_the_recorded_choices():
@@ -24,7 +24,7 @@ def test_a_record_is_a_new_dict_each_time():
 
 
 def test_the_presets_hold_the_recorded_choices():
-    from ragsplat_core.train.config import FIELD_TUNING, PRESETS, TUNING
+    from ragsplat.train.config import FIELD_TUNING, PRESETS, TUNING
 
     def value(cfg, name):
         return (getattr(cfg.densify, name.split(".", 1)[1]) if name.startswith("densify.")

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.errors import ConfigError
-from ragsplat_core.refraction import WaterSurface, apparent_points
-from ragsplat_core.surface import ExtractConfig, extract_surface, extract_surface_blocks
-from ragsplat_core.uncertainty import (
+from ragsplat.camera import Camera
+from ragsplat.errors import ConfigError
+from ragsplat.refraction import WaterSurface, apparent_points
+from ragsplat.surface import ExtractConfig, extract_surface, extract_surface_blocks
+from ragsplat.uncertainty import (
     GEOMETRY_CAP,
     Z95,
     UncertaintyModel,

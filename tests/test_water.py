@@ -2,7 +2,7 @@ import math
 
 import pytest
 
-from ragsplat_core.refraction import WaterSurface
+from ragsplat.refraction import WaterSurface
 
 
 def test_defaults():

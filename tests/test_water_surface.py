@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from ragsplat_core.dataset.layout import water_json
-from ragsplat_core.refraction import (
+from ragsplat.dataset.layout import water_json
+from ragsplat.refraction import (
     Profile,
     WaterSurface,
     apparent_jacobian,
@@ -180,8 +180,8 @@ def test_surface_height_depth_shift_and_json():
 def test_water_rays_bend_at_the_tilted_normal_and_meet_at_the_true_point():
     """`snell.water_rays` under a tilted surface: the rays of one true point's pixels in several views,
     through the tilted transform, meet at it; the crossing points lie on the surface."""
-    from ragsplat_core.camera import Camera
-    from ragsplat_core.snell import closest_points, water_rays
+    from ragsplat.camera import Camera
+    from ragsplat.snell import closest_points, water_rays
 
     water = WaterSurface(level=0.5, n=1.33, slope=(-0.02, 0.01))
     cams = [Camera.look_at([x, y, 4.5], [0.0, 0.0, -1.0], 64, 48, 60.0)

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from ragsplat_core.scoring import quantile_with_holes
+from ragsplat.scoring import quantile_with_holes
 
 BINS = {"tracks": ((0, 0), (1, 2), (3, 5), (6, 10), (11, None)),  # counts, both ends included
         "views": ((0, 19), (20, 39), (40, 59), (60, None)),
@@ -30,7 +30,7 @@ GOOD = 0.03  # metres: the share of cells within it, the 1 % of depth of the rea
 def views_seeing(points: np.ndarray, cameras, water) -> np.ndarray:
     """[N] how many of `cameras` have the apparent point (through `water`) of each point [N, 3] inside their
     image and in front of them."""
-    from ragsplat_core.refraction import apparent_points
+    from ragsplat.refraction import apparent_points
 
     pts = torch.as_tensor(points, dtype=torch.float64)
     count = np.zeros(len(points), dtype=np.int64)
@@ -58,9 +58,9 @@ def in_bin(values: np.ndarray, lo, hi, closed: bool) -> np.ndarray:
 
 def summary(dz: np.ndarray) -> dict:
     """Cover, share within GOOD, |dz| median and 95th percentile (cm) and bias (cm) of the errors dz [C]
-    (NaN: a cell left out). As `eval.evaluate.survey_figures`: a hole counts as a miss in the share within
-    GOOD and as beyond every error in the p95 (None when more than about 5 % are holes); the median and bias
-    are over the covered cells."""
+    (NaN: a cell left out). As `ragsplat.eval.evaluate.survey_figures`: a hole counts as a miss in the share
+    within GOOD and as beyond every error in the p95 (None when more than about 5 % are holes); the median and
+    bias are over the covered cells."""
     ok = np.isfinite(dz)
     e = dz[ok]
     if not ok.any():
@@ -88,11 +88,11 @@ def breakdown(dz: dict[str, np.ndarray], keys: dict[str, np.ndarray]) -> dict[st
 
 def by_place(dem: Path, data: Path, radius: float = 0.5) -> dict[str, list[dict]]:
     """`breakdown` of the DEM's and the refracted tracks' TIN's errors at the wet ground-truth nodes."""
-    from eval.ablation import TrainEval
-    from eval.references import despiked, track_grids
-    from eval.score import dem_points
-    from ragsplat_core.dataset.colmap import refracted_points
-    from ragsplat_core.dataset.layout import GT_GRID_STEP
+    from ragsplat.dataset.colmap import refracted_points
+    from ragsplat.dataset.layout import GT_GRID_STEP
+    from ragsplat.eval.ablation import TrainEval
+    from ragsplat.eval.references import despiked, track_grids
+    from ragsplat.eval.score import dem_points
 
     runner = TrainEval(data)
     ds, truth = runner.ds, runner.truth

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ragsplat_core.dataset import layout
-from ragsplat_core.outputs import atomic_path
+from ragsplat.dataset import layout
+from ragsplat.outputs import atomic_path
 
 
 def write_figures(data: Path, out: Path, view: str | None = None) -> list[Path]:

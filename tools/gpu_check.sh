@@ -50,7 +50,7 @@ tests)
         tests/test_refraction.py || rc=$?
     echo "tests: ${SECONDS} s (gsplat's first use compiles it), exit ${rc}"
     # shellcheck disable=SC2086 (a list)
-    "$py" -m ragsplat_core.cli.main bench train-step --backends ${BACKENDS:-gsplat:cuda} \
+    "$py" -m ragsplat.cli.main bench train-step --backends ${BACKENDS:-gsplat:cuda} \
         --counts 40000 200000 --compile --out "$out/train_step.json"
     exit "$rc"
     ;;
@@ -61,7 +61,7 @@ ablation)
     rc=0
     # stopped (SIGTERM: checkpoints written) before the caller's limit, so the finished rows come back
     # shellcheck disable=SC2086 (lists)
-    timeout "${LIMIT_S:-540}" "$py" -m ragsplat_core.cli.main ablation --preset "${PRESET:-small}" \
+    timeout "${LIMIT_S:-540}" "$py" -m ragsplat.cli.main ablation --preset "${PRESET:-small}" \
         --data "$data" --out "$runs" --device "${DEVICE:-cuda}" --variants ${VARIANTS:-full 2dgs+full} \
         --seeds ${SEEDS:-0 1 2} --no-download || rc=$?
     echo "ablation: ${SECONDS} s wall, exit ${rc}"

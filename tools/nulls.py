@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import sys
 
-from datagen import flight
-from datagen.bed import ground_truth, make_bed, shear
-from datagen.build import max_depth, null_models
-from datagen.spec import preset
-from ragsplat_core.dataset import layout
+from ragsplat.datagen import flight
+from ragsplat.datagen.bed import ground_truth, make_bed, shear
+from ragsplat.datagen.build import max_depth, null_models
+from ragsplat.datagen.spec import preset
+from ragsplat.dataset import layout
 
 
 def table(runs: list[tuple[str, int]]) -> str:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ragsplat_core.errors import DatasetError
+from ragsplat.errors import DatasetError
 
 TILT_BANDS = ((0, 10), (10, 30), (30, 50), (50, 90))  # degrees of the true optical axis from the vertical
 
@@ -20,8 +20,8 @@ def pose_errors(model: Path, truth: Path, similarity: dict | None = None) -> dic
     frame."""
     import pycolmap
 
-    from eval.bed_file import survey_geotags
-    from ragsplat_core.dataset.load import load_dataset
+    from ragsplat.dataset.load import load_dataset
+    from ragsplat.eval.bed_file import survey_geotags
 
     views = load_dataset(truth, splits=("train", "test"), load_dry=False)
     cams = {Path(v.file_path).stem: v.camera for v in [*views.train, *views.test]}

@@ -14,9 +14,9 @@ import tempfile
 from dataclasses import replace
 from pathlib import Path
 
-from datagen import flight
-from datagen.build import generate
-from datagen.spec import preset, with_conditions
+from ragsplat.datagen import flight
+from ragsplat.datagen.build import generate
+from ragsplat.datagen.spec import preset, with_conditions
 
 
 def variants(name: str) -> dict:

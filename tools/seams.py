@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from eval.bed_file import score_file
-from eval.evaluate import height_error
-from ragsplat_core.survey.tiles import inside
+from ragsplat.eval.bed_file import score_file
+from ragsplat.eval.evaluate import height_error
+from ragsplat.survey.tiles import inside
 
 
 def border_distance(xy: np.ndarray, cores: list[list[float | None]]) -> np.ndarray:

@@ -26,10 +26,10 @@ import shutil
 import sys
 from pathlib import Path
 
-from ragsplat_core.dataset import layout
-from ragsplat_core.dataset.colmap import STAMP, TRACKS, TRIANGULATED, triangulated_points
-from ragsplat_core.errors import DatasetError, RagsplatError
-from ragsplat_core.outputs import write_json
+from ragsplat.dataset import layout
+from ragsplat.dataset.colmap import STAMP, TRACKS, TRIANGULATED, triangulated_points
+from ragsplat.errors import DatasetError, RagsplatError
+from ragsplat.outputs import write_json
 
 TRUTH = (layout.GT_GRID, layout.GT_BANKS, layout.GT_SURFACE, layout.GT_WATERLINE)
 FRAME_FILES = ("file_path", "dry_file_path", "mask_path")  # not gt_depth_file_path: no score reads the EXRs
@@ -63,7 +63,7 @@ def slim_copy(src: Path, dst: Path) -> dict:
 
 
 # The rasterio a slim copy needs where rasterio is absent (`stand_ins/rasterio/`): what `layout.Georef.wkt`
-# and `layout.write_raster` call; reading a raster is refused (`eval.score.dem_points` then raises
+# and `layout.write_raster` call; reading a raster is refused (`ragsplat.eval.score.dem_points` then raises
 # DatasetError).
 STAND_IN = Path(__file__).resolve().parent / "stand_ins" / "rasterio"
 

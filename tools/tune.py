@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from eval.ablation import PRESETS, TrainEval, extract_config, save_row, start_row
-from ragsplat_core.outputs import claim, versions, write_json
-from ragsplat_core.train.config import DensifyConfig, TrainConfig
+from ragsplat.eval.ablation import PRESETS, TrainEval, extract_config, save_row, start_row
+from ragsplat.outputs import claim, versions, write_json
+from ragsplat.train.config import DensifyConfig, TrainConfig
 
 NUMBERS = ("float", "int")
 PARAMS = [f.name for f in fields(TrainConfig) if f.type in NUMBERS] + \

@@ -11,7 +11,7 @@ point of the best F1 at 3 %), so that the field's practice gets the care the met
 
 `python -m tools.tune_references DATA [OUT.json] [--bed BED.npy]`: DATA is the development reach
 (`data/small-dev`, dataset seed 1); prints one Markdown table per step with the chosen row marked, and writes
-every figure as JSON. The chosen values go into `eval.references` (`TIN_FILTER`, `DIETRICH_TRACKS`,
+every figure as JSON. The chosen values go into `ragsplat.eval.references` (`TIN_FILTER`, `DIETRICH_TRACKS`,
 `DIETRICH_MAX_ANGLE`, `DIETRICH_DENSE_REDUCE`) by hand, with the tables in docs/history.md.
 """
 
@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from eval.evaluate import score_grid
-from eval.references import dietrich_grid, gridded, track_clouds
-from ragsplat_core.tracks import TRACK_MIN_NEIGHBOURS
+from ragsplat.eval.evaluate import score_grid
+from ragsplat.eval.references import dietrich_grid, gridded, track_clouds
+from ragsplat.tracks import TRACK_MIN_NEIGHBOURS
 
 TIN_FILTERS = [None] + [{"radius": r, "tol": t, "min_neighbours": TRACK_MIN_NEIGHBOURS}
                         for r in (0.5, 1.0, 2.0) for t in (0.05, 0.1, 0.2, 0.3, 0.5)]
@@ -62,7 +62,7 @@ def table(rows: list[dict], chosen: int, label) -> str:
 def tune(data: Path, bed: Path | None = None) -> dict:
     """The steps on the dataset `data`: {"tin_filter": {...}, "dietrich": {...}, "dietrich_dense": {...} with
     `bed`} with every setting's figures and the choice."""
-    from eval.ablation import TrainEval
+    from ragsplat.eval.ablation import TrainEval
 
     runner = TrainEval(data)
     ds, truth = runner.ds, runner.truth
@@ -98,8 +98,8 @@ def main(argv: list[str]) -> int:
     if len(argv) not in (1, 2):
         print("usage: python -m tools.tune_references DATA [OUT.json] [--bed BED.npy]", file=sys.stderr)
         return 2
-    from eval.report import jsonable
-    from ragsplat_core.outputs import write_json
+    from ragsplat.eval.report import jsonable
+    from ragsplat.outputs import write_json
 
     result = tune(Path(argv[0]), bed)
     tin_rows, die_rows = result["tin_filter"]["rows"], result["dietrich"]["rows"]

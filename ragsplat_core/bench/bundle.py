@@ -11,7 +11,7 @@ import time
 import numpy as np
 import torch
 
-from ragsplat_core.bench.export import peak_rss_gb
+from ragsplat.bench.export import peak_rss_gb
 
 HEIGHT, FOV, WIDTH, HEIGHT_PX = 12.0, 70.0, 400, 300  # metres above the water, degrees, pixels
 
@@ -19,9 +19,9 @@ HEIGHT, FOV, WIDTH, HEIGHT_PX = 12.0, 70.0, 400, 300  # metres above the water, 
 def flight(columns: int, rows: int, spacing: float, points: int, seed: int = 0) -> dict:
     """The synthetic survey's tensors for `bundle.adjust` (truth and start): `columns` x `rows` photos
     `spacing` metres apart, `points` bed points 0.5-1.5 m under the water (z = 0) over the photos' area."""
-    from ragsplat_core.camera import Camera
-    from ragsplat_core.refraction import WaterSurface
-    from ragsplat_core.survey import bundle
+    from ragsplat.camera import Camera
+    from ragsplat.refraction import WaterSurface
+    from ragsplat.survey import bundle
 
     rng = np.random.default_rng(seed)
     cams = [Camera.look_at([i * spacing, j * spacing, HEIGHT], [i * spacing, j * spacing, 0.0], WIDTH,
@@ -57,7 +57,7 @@ def bench_bundle(columns: int, rows: int, spacing: float, points: int, iteration
                  sparse: bool | None = None) -> dict:
     """The figures of one adjustment: sizes (observations, their pairs, camera pairs), seconds per
     iteration, peak memory before and after, and the cameras' error at the end."""
-    from ragsplat_core.survey import bundle
+    from ragsplat.survey import bundle
 
     f = flight(columns, rows, spacing, points)
     counts = torch.bincount(f["point"], minlength=len(f["P0"]))

@@ -25,8 +25,8 @@ import time
 import numpy as np
 import torch
 
-from ragsplat_core.bench import openmp_wait
-from ragsplat_core.camera import Camera
+from ragsplat.bench import openmp_wait
+from ragsplat.camera import Camera
 
 
 def make_scene(n: int, size: int = 256, seed: int = 0, footprint: float = 1.0, dtype=torch.float32):
@@ -63,7 +63,7 @@ def make_scene(n: int, size: int = 256, seed: int = 0, footprint: float = 1.0, d
 def time_one(backend: str, n: int, size: int, repeats: int, warmup: int = 2, seed: int = 0,
              device: str = "cpu", footprint: float = 1.0, threads: int | None = None) -> dict:
     """Median seconds of forward + backward of `rasterize` (projection included) in this process."""
-    from ragsplat_core.rasterize import rasterize
+    from ragsplat.rasterize import rasterize
 
     if threads:  # torch's and numba's pools; oversubscribed cores make 2 threads far slower than 1
         import numba
@@ -111,7 +111,7 @@ def time_one(backend: str, n: int, size: int, repeats: int, warmup: int = 2, see
 
 # One (backend, N, ...) timed in a fresh interpreter, so its peak RSS is its own: kwargs of `time_one` in,
 # the row as JSON out (last line of stdout).
-_WORKER = ("import json, sys; from ragsplat_core.bench.raster import time_one; "
+_WORKER = ("import json, sys; from ragsplat.bench.raster import time_one; "
            "print(json.dumps(time_one(**json.loads(sys.argv[1]))))")
 _ON_CUDA = {"torch-cuda": ("torch", "cuda"), "gsplat": ("gsplat", "cuda")}
 
@@ -135,7 +135,7 @@ def bench_rasterizer(sizes=(10_000, 40_000), size: int = 256, repeats: int = 7, 
 
 
 def available_backends() -> list[str]:
-    from ragsplat_core.rasterize import gsplat_available
+    from ragsplat.rasterize import gsplat_available
 
     names = ["cpu", "torch"]
     if torch.cuda.is_available():

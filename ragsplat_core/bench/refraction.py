@@ -22,8 +22,8 @@ import time
 
 import torch
 
-from ragsplat_core.bench.stability import REGIMES, apparent_from_tan_a, reference, sample
-from ragsplat_core.refraction import SOLVER_STEPS, WaterSurface, apparent_offsets, refract_gaussians
+from ragsplat.bench.stability import REGIMES, apparent_from_tan_a, reference, sample
+from ragsplat.refraction import SOLVER_STEPS, WaterSurface, apparent_offsets, refract_gaussians
 
 
 def _apparent_from_alpha(alpha, r2, d, H, n):  # -> r', d'

@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass, field
 
 import torch
 
-from ragsplat_core.refraction import WaterSurface, apparent_jacobian, apparent_offsets, apparent_points
+from ragsplat.refraction import WaterSurface, apparent_jacobian, apparent_offsets, apparent_points
 
 DOMAIN = {"r": (0.0, 1e3), "d": (1e-4, 100.0), "H": (0.1, 1e3), "n": (1.0, 1.6)}
 TARGETS = {"float64": 1e-10, "float32": 2e-6}

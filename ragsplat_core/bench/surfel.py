@@ -20,8 +20,8 @@ import time
 
 import torch
 
-from ragsplat_core.bench import openmp_wait
-from ragsplat_core.bench.raster import make_scene
+from ragsplat.bench import openmp_wait
+from ragsplat.bench.raster import make_scene
 
 _LOSSES = ("image", "all")
 
@@ -29,8 +29,8 @@ _LOSSES = ("image", "all")
 def time_pair(backend: str, n: int, size: int, repeats: int, warmup: int = 2, seed: int = 0,
               footprint: float = 1.0, threads: int | None = None) -> dict:
     """Median seconds of forward + backward (projection included) of 3DGS and of surfels, interleaved."""
-    from ragsplat_core.rasterize import rasterize
-    from ragsplat_core.rasterize_surfels import rasterize_surfels
+    from ragsplat.rasterize import rasterize
+    from ragsplat.rasterize_surfels import rasterize_surfels
 
     if threads:  # torch's and numba's pools; oversubscribed cores make 2 threads far slower than 1
         import numba
@@ -85,7 +85,7 @@ def time_pair(backend: str, n: int, size: int, repeats: int, warmup: int = 2, se
 
 
 # One (backend, N, threads) timed in a fresh interpreter: kwargs of `time_pair` in, the row as JSON out.
-_WORKER = ("import json, sys; from ragsplat_core.bench.surfel import time_pair; "
+_WORKER = ("import json, sys; from ragsplat.bench.surfel import time_pair; "
            "print(json.dumps(time_pair(**json.loads(sys.argv[1]))))")
 
 

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import torch
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.dataset import layout
-from ragsplat_core.outputs import write_json
-from ragsplat_core.refraction import WaterSurface
+from ragsplat.camera import Camera
+from ragsplat.dataset import layout
+from ragsplat.outputs import write_json
+from ragsplat.refraction import WaterSurface
 
 
 def write_dataset(root: str | Path, views: list[dict], water: WaterSurface | None,
@@ -43,7 +43,7 @@ def write_dataset(root: str | Path, views: list[dict], water: WaterSurface | Non
     write_json(root / layout.TRANSFORMS, layout.transforms_json(cam0, frames, water), indent=1)
     spec = {"bed": bed} if bed is not None else {}
     write_json(root / layout.SCENE,
-               layout.scene_json(spec, eval_region, generator="ragsplat_core.bench.synthetic"), indent=1)
+               layout.scene_json(spec, eval_region, generator="ragsplat.bench.synthetic"), indent=1)
     return root
 
 
@@ -91,10 +91,10 @@ def render_views(scene: dict[str, torch.Tensor], cameras: list[Camera], water: W
     None; `backscatter`: [2, 3] its veil B_inf and coefficients c_b, added as the trainer does, or None;
     `reflection`: [S, S, 3] the sky map the surface mirrors, composited as the trainer does, or None), `dry`
     without it, and the dry expected `depth`."""
-    from ragsplat_core.rasterize import rasterize
-    from ragsplat_core.reflection import add_reflection, sky_radiance, surface_reflection
-    from ragsplat_core.refraction import add_backscatter, pixel_water_paths, refract_gaussians
-    from ragsplat_core.train.trainer import pixel_rays
+    from ragsplat.rasterize import rasterize
+    from ragsplat.reflection import add_reflection, sky_radiance, surface_reflection
+    from ragsplat.refraction import add_backscatter, pixel_water_paths, refract_gaussians
+    from ragsplat.train.trainer import pixel_rays
 
     out = []
     for cam in cameras:

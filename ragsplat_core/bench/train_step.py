@@ -25,10 +25,10 @@ from pathlib import Path
 
 import torch
 
-from ragsplat_core.bench.synthetic import bed_scene, render_views
-from ragsplat_core.camera import Camera
-from ragsplat_core.dataset.load import BedInfo, Dataset, View
-from ragsplat_core.refraction import WaterSurface
+from ragsplat.bench.synthetic import bed_scene, render_views
+from ragsplat.camera import Camera
+from ragsplat.dataset.load import BedInfo, Dataset, View
+from ragsplat.refraction import WaterSurface
 
 SIZE = 256
 ALTITUDE = 4.0  # camera height above the water (m)
@@ -37,7 +37,7 @@ DEPTH = 3.0  # bed depth below the water (m)
 
 def backends_available() -> list[tuple[str, str]]:
     """(backend, device) pairs this machine can run."""
-    from ragsplat_core.rasterize import gsplat_available
+    from ragsplat.rasterize import gsplat_available
 
     pairs = [("cpu", "cpu"), ("torch", "cpu")]
     if torch.cuda.is_available():
@@ -71,7 +71,7 @@ def _transform_time(tr, steps: int, device: str, transform) -> float:
     """Median seconds of `transform` (`refract_gaussians` or its compiled twin) alone, forward + backward with
     `full` flags, on the trainer's Gaussians, cut out of the graph: the part of a `full` iteration that plain
     3DGS does not do."""
-    from ragsplat_core.gaussians import activated, colors_for_view
+    from ragsplat.gaussians import activated, colors_for_view
 
     with torch.no_grad():
         scales, quats, opac = activated(tr.splats)
@@ -101,8 +101,8 @@ def bench_train_step(counts=(10_000, 40_000), pairs=None, steps: int = 10, warmu
     2dgs+full; `backscatter`: also 2dgs+full+backscatter and 2dgs+full+water, and theirs; `reflection`: also
     2dgs+full+reflection, and its (row keys: the terms; `paired_ratio`: the median of the step-by-step
     ratios)."""
-    from ragsplat_core.refraction import compiled_refract_gaussians, refract_gaussians
-    from ragsplat_core.train import Trainer, preset_config
+    from ragsplat.refraction import compiled_refract_gaussians, refract_gaussians
+    from ragsplat.train import Trainer, preset_config
 
     water = WaterSurface(0.0, 1.33)
     rows = []

@@ -10,7 +10,7 @@ argument types; `progress`: bars and deferred interrupts; `cluster`: the Dask cl
 The arrows point one way (tests/test_layout.py checks them): only this package imports `eval` and
 `datagen` from `ragsplat_core`, and nothing outside it imports it (the tests excepted). Defaults that a
 command shares with the library or with another command live in the library (`train.config`,
-`train.defaults`, `eval.ablation`), so a library function and its command agree without an import up.
+`train.defaults`, `ragsplat.eval.ablation`), so a library function and its command agree without an import up.
 Operational scripts that are not `ragsplat` commands (dataset copies, tuning sweeps, the GPU check) are in
 `tools/` at the repository root, not installed.
 """

@@ -1,11 +1,11 @@
 """`ragsplat ablation --data DIR --out DIR [--preset smoke|small|paper] [--variants ...] [--seeds S ...]
 [--init ...] [--jobs N] [--one-level]`: every variant trained and evaluated per seed, the reference rows
-scored, Tables 1-3 printed (mean +- std over seeds) beside the paper's (`eval.ablation`, which also holds its
-own defaults; those it shares with `ragsplat survey` are `ragsplat_core.train.defaults`').
+scored, Tables 1-3 printed (mean +- std over seeds) beside the paper's (`ragsplat.eval.ablation`, which also
+holds its own defaults; those it shares with `ragsplat survey` are `ragsplat.train.defaults`').
 
 `--one-level` measures what a flat-water tool does on a sloping river: the method and every reference are
-given one level, the mean height of the dataset's surveyed water edge (`eval.ablation.one_level_water`),
-while every row is still scored against the true surface and bed.
+given one level, the mean height of the dataset's surveyed water edge
+(`ragsplat.eval.ablation.one_level_water`), while every row is still scored against the true surface and bed.
 
 `--jobs N` trains the rows as Dask tasks (`dask.distributed`) on a local cluster of N worker processes with
 cores / N threads each (on CUDA each worker sees one GPU), then reuses their rows in this one for the
@@ -24,14 +24,14 @@ import argparse
 import time
 from functools import partial
 
-from ragsplat_core.cli.args import count, dataset_dir, lpips_arguments, out_dir, positive_int
-from ragsplat_core.errors import RagsplatError
+from ragsplat.cli.args import count, dataset_dir, lpips_arguments, out_dir, positive_int
+from ragsplat.errors import RagsplatError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from eval.ablation import EDGE_POINTS, JOBS_PER_GPU, PRESETS, SEEDS
-    from ragsplat_core.train.config import INIT, VARIANTS, WATER_TERMS
-    from ragsplat_core.train.defaults import CLEAR_VARIANTS, JOBS
+    from ragsplat.eval.ablation import EDGE_POINTS, JOBS_PER_GPU, PRESETS, SEEDS
+    from ragsplat.train.config import INIT, VARIANTS, WATER_TERMS
+    from ragsplat.train.defaults import CLEAR_VARIANTS, JOBS
 
     parser.add_argument("--data", required=True, type=dataset_dir,
                         help="dataset directory (transforms.json, gt/)")
@@ -72,9 +72,9 @@ def prepare(args: argparse.Namespace, fingerprint: str) -> None:
     """What every row reads and nothing but one process should make, made here once before the processes
     start: the dataset's triangulated tracks (cached in it), the LPIPS weights (downloaded to the cache) and,
     for training on CUDA, gsplat's CUDA extension (`rasterize.build_gsplat`)."""
-    from eval import metrics
-    from eval.ablation import trains_on_cuda
-    from ragsplat_core import rasterize
+    from ragsplat import rasterize
+    from ragsplat.eval import metrics
+    from ragsplat.eval.ablation import trains_on_cuda
 
     if trains_on_cuda(args.device) and rasterize.gsplat_available():
         print("gsplat's CUDA extension (built once, here, before the processes start) ...", flush=True)
@@ -86,20 +86,20 @@ def prepare(args: argparse.Namespace, fingerprint: str) -> None:
         print(f"LPIPS n/a: {reason}", flush=True)
         args.no_download = True
     if args.init in ("triangulated", "refracted"):
-        from ragsplat_core.dataset.colmap import triangulated_points
+        from ragsplat.dataset.colmap import triangulated_points
 
         print("the training images' tracks (triangulated once per dataset, cached in it) ...", flush=True)
         print(f"tracks: {triangulated_points(args.data, fingerprint)}", flush=True)
 
 
 def run_rows(args: argparse.Namespace, fingerprint: str, code: str, check) -> None:
-    """The trained rows as Dask tasks (`eval.ablation.train_row`, one per row, the longest first) on a local
-    cluster of `args.jobs` worker processes or on the one at `args.scheduler`, with a bar of the rows done.
-    `check()` raises KeyboardInterrupt once this process was interrupted; the tasks are then cancelled (each
-    row keeps its last checkpoint). A task that fails raises JobFailed naming its row and log."""
-    from eval.ablation import RowJob, claim_out, row_log, row_order, train_row, visible_gpus
-    from ragsplat_core.cli.cluster import client as dask_client
-    from ragsplat_core.cli.progress import bar
+    """The trained rows as Dask tasks (`ragsplat.eval.ablation.train_row`, one per row, the longest first) on
+    a local cluster of `args.jobs` worker processes or on the one at `args.scheduler`, with a bar of the rows
+    done. `check()` raises KeyboardInterrupt once this process was interrupted; the tasks are then cancelled
+    (each row keeps its last checkpoint). A task that fails raises JobFailed naming its row and log."""
+    from ragsplat.cli.cluster import client as dask_client
+    from ragsplat.cli.progress import bar
+    from ragsplat.eval.ablation import RowJob, claim_out, row_log, row_order, train_row, visible_gpus
 
     claim_out(args.out)
     prepare(args, fingerprint)
@@ -140,9 +140,9 @@ def _reason(task) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from eval.ablation import ROW_CODE, TrainEval, default_jobs, run_ablation
-    from ragsplat_core.cli.progress import deferred_interrupts, training_bar
-    from ragsplat_core.outputs import source_digest
+    from ragsplat.cli.progress import deferred_interrupts, training_bar
+    from ragsplat.eval.ablation import ROW_CODE, TrainEval, default_jobs, run_ablation
+    from ragsplat.outputs import source_digest
 
     code = source_digest(*ROW_CODE)  # every row keyed to the code the command started with
     if args.jobs is None:

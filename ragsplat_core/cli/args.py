@@ -133,7 +133,7 @@ def cull_overrides(args: argparse.Namespace) -> dict:
 
 
 def lpips_arguments(parser: argparse.ArgumentParser) -> None:
-    """--vgg16 and --no-download: where LPIPS's weights come from (`eval.metrics.load_lpips`)."""
+    """--vgg16 and --no-download: where LPIPS's weights come from (`ragsplat.eval.metrics.load_lpips`)."""
     parser.add_argument("--vgg16", default=None, metavar="PATH",
                         help="torchvision's vgg16-397923af.pth for LPIPS (default: torch hub cache, "
                              "downloaded there with its hash check when missing)")

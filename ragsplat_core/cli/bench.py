@@ -5,7 +5,7 @@ Targets: `refraction` (Snell solvers: error against run time; the cost of refrac
 forward+backward time next to the 3DGS one's), `train-step` (median time per training iteration,
 refraction overhead full / 3dgs), `export` (a large bed's export: time and peak memory), `bundle` (the
 adjustment through the water on a synthetic flight: time and peak memory). The measuring code
-lives in `ragsplat_core.bench`.
+lives in `ragsplat.bench`.
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ import platform
 import sys
 from pathlib import Path
 
-from ragsplat_core.cli.args import count, out_file, positive_float, positive_int
-from ragsplat_core.errors import ConfigError
-from ragsplat_core.outputs import write_json
+from ragsplat.cli.args import count, out_file, positive_float, positive_int
+from ragsplat.errors import ConfigError
+from ragsplat.outputs import write_json
 
 
 def _refraction_arguments(parser: argparse.ArgumentParser) -> None:
@@ -32,7 +32,7 @@ def _refraction_arguments(parser: argparse.ArgumentParser) -> None:
 def _refraction(args: argparse.Namespace) -> int:
     import torch
 
-    from ragsplat_core.bench.refraction import format_tables, solver_table, transform_table
+    from ragsplat.bench.refraction import format_tables, solver_table, transform_table
 
     solvers = solver_table(args.cases, args.repeats, args.seed)
     transform = transform_table([10_000, 100_000], args.repeats, args.seed)
@@ -61,7 +61,7 @@ def _raster_arguments(parser: argparse.ArgumentParser) -> None:
 def _raster(args: argparse.Namespace) -> int:
     import os
 
-    from ragsplat_core.bench.raster import available_backends, bench_rasterizer, format_table
+    from ragsplat.bench.raster import available_backends, bench_rasterizer, format_table
 
     unknown = [b for b in args.backends or () if b not in available_backends()]
     if unknown:
@@ -90,7 +90,7 @@ def _surfel_arguments(parser: argparse.ArgumentParser) -> None:
 def _surfel(args: argparse.Namespace) -> int:
     import os
 
-    from ragsplat_core.bench.surfel import bench_surfels, format_table
+    from ragsplat.bench.surfel import bench_surfels, format_table
 
     rows = bench_surfels(args.n, args.size, args.repeats, args.backend, args.threads)
     print(format_table(rows))
@@ -124,8 +124,8 @@ def _train_step_arguments(parser: argparse.ArgumentParser) -> None:
 def _train_step(args: argparse.Namespace) -> int:
     import torch
 
-    from ragsplat_core.bench import openmp_wait
-    from ragsplat_core.bench.train_step import SIZE, backends_available, bench_train_step
+    from ragsplat.bench import openmp_wait
+    from ragsplat.bench.train_step import SIZE, backends_available, bench_train_step
 
     pairs = None
     if args.backends:
@@ -159,8 +159,8 @@ def _export_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from ragsplat_core.bench.export import bench_export
-    from ragsplat_core.cli.progress import count_bar
+    from ragsplat.bench.export import bench_export
+    from ragsplat.cli.progress import count_bar
 
     b, on_block = count_bar("export", "block")
     with b:
@@ -191,7 +191,7 @@ def _bundle_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _bundle(args: argparse.Namespace) -> int:
-    from ragsplat_core.bench.bundle import bench_bundle
+    from ragsplat.bench.bundle import bench_bundle
 
     row = bench_bundle(*args.grid, args.spacing, args.points, args.iterations,
                        {"auto": None, "dense": False, "sparse": True}[args.solver])

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import replace
 
-from ragsplat_core.cli.args import count, out_dir
+from ragsplat.cli.args import count, out_dir
 
 
 def shard(text: str) -> tuple[int, int]:
@@ -20,7 +20,7 @@ def shard(text: str) -> tuple[int, int]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from datagen.spec import PRESETS
+    from ragsplat.datagen.spec import PRESETS
 
     parser.add_argument("--preset", default="small",
                         help=f"scene size: {', '.join(PRESETS)} (default: small)")
@@ -53,10 +53,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from datagen import flight
-    from datagen.build import generate, overhead_fraction
-    from datagen.spec import preset, validate, with_conditions, with_slope
-    from ragsplat_core.cli.progress import bar
+    from ragsplat.cli.progress import bar
+    from ragsplat.datagen import flight
+    from ragsplat.datagen.build import generate, overhead_fraction
+    from ragsplat.datagen.spec import preset, validate, with_conditions, with_slope
 
     spec = preset(args.preset, seed=args.seed)
     if args.no_radiance_scale and spec.water is not None:

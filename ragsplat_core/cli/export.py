@@ -1,7 +1,7 @@
 """`ragsplat export RUN --dem FILE.tif [--resolution 0.05] [--min-opacity A] [--max-scale-gsd K]
 [--despike-radius M] [--despike-tol M] [--fill-gap-cells K] [--las FILE.las|.laz] [--ply FILE] [--png FILE]`.
 
-Turns a finished training run into survey products (`ragsplat_core.export`): the DEM GeoTIFF (bed elevation
+Turns a finished training run into survey products (`ragsplat.export`): the DEM GeoTIFF (bed elevation
 and water depth), and on request the bed points as LAS/LAZ and PLY and a depth map PNG.
 """
 
@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ragsplat_core.cli.args import (
+from ragsplat.cli.args import (
     cull_arguments,
     cull_overrides,
     dataset_dir,
@@ -39,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ragsplat_core.export import export_run
+    from ragsplat.export import export_run
 
     bed = export_run(args.run, args.dem, args.resolution, args.las, args.ply, args.png, args.data,
                      **cull_overrides(args))

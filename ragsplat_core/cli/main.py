@@ -18,22 +18,22 @@ import sys
 # name -> (its module, one line of help), in workflow order: make data, train, look at and score a run, the
 # ablation, export; then the diagnostics. Every command is a module of this package (`cli/__init__.py`).
 COMMANDS: dict[str, tuple[str, str]] = {
-    "dataset": ("ragsplat_core.cli.dataset",
+    "dataset": ("ragsplat.cli.dataset",
                 "render the synthetic riverbed dataset (Blender Cycles, resumable, shardable)"),
-    "train": ("ragsplat_core.cli.train", "train one RA-GS variant on a dataset directory (resumable)"),
-    "render": ("ragsplat_core.cli.render",
+    "train": ("ragsplat.cli.train", "train one RA-GS variant on a dataset directory (resumable)"),
+    "render": ("ragsplat.cli.render",
                "render a trained run at its dataset's views: wet, dry or z-depth"),
-    "eval": ("ragsplat_core.cli.score_run",
+    "eval": ("ragsplat.cli.score_run",
              "score a trained run against the ground truth, beside the reference answers"),
-    "score": ("ragsplat_core.cli.score",
+    "score": ("ragsplat.cli.score",
               "score any bed (DEM, LAS/LAZ, PLY, CSV) against a dataset's ground truth"),
-    "ablation": ("ragsplat_core.cli.ablation",
+    "ablation": ("ragsplat.cli.ablation",
                  "train every variant, evaluate, and print Tables 1 and 2 beside the paper's"),
-    "export": ("ragsplat_core.cli.export",
+    "export": ("ragsplat.cli.export",
                "a trained run's bed as survey products: DEM GeoTIFF, LAS/LAZ, PLY, PNG"),
-    "survey": ("ragsplat_core.cli.survey", "from a survey's photos, RTK positions and water level to a DEM"),
-    "stability": ("ragsplat_core.cli.stability", "numerical stability report of the refraction transform"),
-    "bench": ("ragsplat_core.cli.bench", "benchmarks: refraction solvers, rasterizer, training step"),
+    "survey": ("ragsplat.cli.survey", "from a survey's photos, RTK positions and water level to a DEM"),
+    "stability": ("ragsplat.cli.stability", "numerical stability report of the refraction transform"),
+    "bench": ("ragsplat.cli.bench", "benchmarks: refraction solvers, rasterizer, training step"),
 }
 
 
@@ -86,7 +86,7 @@ def _run(name: str, argv: list[str]) -> int:
     module.add_arguments(parser)
     parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     args = parser.parse_args(argv)
-    from ragsplat_core.errors import RagsplatError
+    from ragsplat.errors import RagsplatError
 
     try:
         return int(module.run(args) or 0)

@@ -2,7 +2,7 @@
 DIR]`.
 
 Renders a finished training run at the camera poses of its dataset, without retraining
-(`ragsplat_core.export.Model`): through the water as trained (`--wet`), the true Gaussians without the
+(`ragsplat.export.Model`): through the water as trained (`--wet`), the true Gaussians without the
 interface (`--dry`: the bed as if drained), or the z-depth of the dry render (`--depth`: EXR in metres and a
 colour PNG). Writes NAME.png (and NAME.exr) per view into --out (default RUN/renders/KIND).
 """
@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ragsplat_core.cli.args import dataset_dir, out_dir
+from ragsplat.cli.args import dataset_dir, out_dir
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -37,9 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ragsplat_core.cli.progress import bar
-    from ragsplat_core.dataset.load import SPLITS
-    from ragsplat_core.export import load_model, render_views, select_views
+    from ragsplat.cli.progress import bar
+    from ragsplat.dataset.load import SPLITS
+    from ragsplat.export import load_model, render_views, select_views
 
     model, ds = load_model(args.run, args.data, SPLITS if args.split == "all" else (args.split,))
     views = select_views(ds, args.view, args.split)

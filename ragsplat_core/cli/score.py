@@ -1,14 +1,14 @@
 """`ragsplat score FILE --truth DIR [--out FILE.json] [--band K] [--kind elevation|depth] [--crs CRS]
 [--no-filter] [--references]`: any bed (a DEM GeoTIFF, LAS/LAZ, PLY or CSV points, from any software) on the
-ground truth's nodes, scored by the ablation's own measures (`eval.bed_file`); prints its row beside the
-reference rows that need no training, writes the scores as JSON and its error map as PNG."""
+ground truth's nodes, scored by the ablation's own measures (`ragsplat.eval.bed_file`); prints its row beside
+the reference rows that need no training, writes the scores as JSON and its error map as PNG."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from ragsplat_core.cli.args import dataset_dir, out_file_ending, positive_int
+from ragsplat.cli.args import dataset_dir, out_file_ending, positive_int
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -39,8 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def table(result: dict) -> str:
     """The file's row, then the reference rows, in the columns of the ablation's Tables 2 and 3."""
-    from eval.references import EXTRACTION
-    from eval.report import T2_COLUMNS, T3_COLUMNS, geometry_table
+    from ragsplat.eval.references import EXTRACTION
+    from ragsplat.eval.report import T2_COLUMNS, T3_COLUMNS, geometry_table
 
     rows = [([Path(result["file"]).name, "DEM" if result["kind"] == "DEM" else "TIN"], result["geometry"])]
     rows += [([f"{name} (uses GT)" if name in result["uses_ground_truth"] else name,
@@ -50,9 +50,9 @@ def table(result: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from eval.bed_file import score_file
-    from eval.report import depth_error_map, jsonable, survey_notes
-    from ragsplat_core.outputs import write_json
+    from ragsplat.eval.bed_file import score_file
+    from ragsplat.eval.report import depth_error_map, jsonable, survey_notes
+    from ragsplat.outputs import write_json
 
     result, grid, truth = score_file(args.file, args.truth, args.references, log=print, band=args.band,
                                      depth=args.kind == "depth", despike=not args.no_filter, crs=args.crs)

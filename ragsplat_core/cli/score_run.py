@@ -1,14 +1,15 @@
 """`ragsplat eval RUN [--data DIR] [--out FILE.json] [--min-opacity A] [--max-scale-gsd K] [--despike-radius
 M] [--despike-tol M] [--fill-gap-cells K] [--vgg16 PATH] [--no-download]`: a finished training run
-scored against its dataset's ground truth with the ablation's measures, without retraining (`eval.score`);
-prints the bed's scores beside the reference answers and writes them all as JSON (default RUN/eval.json)."""
+scored against its dataset's ground truth with the ablation's measures, without retraining
+(`ragsplat.eval.score`); prints the bed's scores beside the reference answers and writes them all as JSON
+(default RUN/eval.json)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from ragsplat_core.cli.args import (
+from ragsplat.cli.args import (
     cull_arguments,
     cull_overrides,
     dataset_dir,
@@ -35,9 +36,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from eval.report import jsonable
-    from eval.score import score_run, table
-    from ragsplat_core.outputs import write_json
+    from ragsplat.eval.report import jsonable
+    from ragsplat.eval.score import score_run, table
+    from ragsplat.outputs import write_json
 
     result = score_run(args.run, args.data, args.vgg16, download=not args.no_download, log=print,
                        truth=args.truth, dem=args.dem, extract=cull_overrides(args))

@@ -8,12 +8,12 @@ import sys
 import time
 from pathlib import Path
 
-from ragsplat_core.cli.args import count, out_file, positive_int
-from ragsplat_core.outputs import write_json
+from ragsplat.cli.args import count, out_file, positive_int
+from ragsplat.outputs import write_json
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ragsplat_core.bench.stability import StabilityConfig
+    from ragsplat.bench.stability import StabilityConfig
 
     parser.add_argument("--cases", type=positive_int, default=StabilityConfig.cases_per_regime,
                         help="cases per regime and dtype (8 regimes)")
@@ -26,7 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from ragsplat_core.bench.stability import StabilityConfig, format_table, run_sweep
+    from ragsplat.bench.stability import StabilityConfig, format_table, run_sweep
 
     cfg = StabilityConfig(cases_per_regime=args.cases, dtypes=tuple(args.dtypes), seed=args.seed)
     start = time.perf_counter()

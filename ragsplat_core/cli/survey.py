@@ -1,6 +1,6 @@
 """`ragsplat survey IMAGES [--positions positions.csv | --gcp gcp.csv --gcp-pixels pixels.csv]
 --water-level Z | --water-surface EDGE.csv --out RUN [--crs EPSG:N] [--masks DIR] [--tile-size M] [--jobs N |
---scheduler ADDRESS]`: from the drone's photos to a DEM, by the stages of `ragsplat_core.survey.pipeline`
+--scheduler ADDRESS]`: from the drone's photos to a DEM, by the stages of `ragsplat.survey.pipeline`
 (which says each), every stage cached in RUN and skipped by a rerun whose inputs are the same. Without
 --positions or --gcp the camera positions come from the photos' own metadata (`survey.exif`: EXIF GPS, DJI's
 XMP with its RTK flag and accuracies), converted to the UTM zone of their mean position (or --crs), in which
@@ -15,7 +15,7 @@ import contextlib
 import sys
 from pathlib import Path
 
-from ragsplat_core.cli.args import (
+from ragsplat.cli.args import (
     count,
     finite_float,
     non_negative_float,
@@ -27,16 +27,16 @@ from ragsplat_core.cli.args import (
 
 
 def level_or_auto(text: str) -> float | str:
-    from ragsplat_core.survey.pipeline import AUTO
+    from ragsplat.survey.pipeline import AUTO
 
     return AUTO if text.strip().lower() == AUTO else finite_float(text)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ragsplat_core.survey.exif import CONSUMER_SIGMA
-    from ragsplat_core.survey.pipeline import STAGES
-    from ragsplat_core.train.config import INIT, PRESETS, VARIANTS
-    from ragsplat_core.train.defaults import JOBS
+    from ragsplat.survey.exif import CONSUMER_SIGMA
+    from ragsplat.survey.pipeline import STAGES
+    from ragsplat.train.config import INIT, PRESETS, VARIANTS
+    from ragsplat.train.defaults import JOBS
 
     parser.add_argument("images", type=Path, metavar="IMAGES",
                         help="the folder of the survey's photos (JPEG/PNG)")
@@ -120,22 +120,22 @@ class _Printed:
         self.quiet, self.check = quiet, check
 
     def say(self, stage: str, text: str, since: float | None = None) -> None:
-        from ragsplat_core.survey.pipeline import line
+        from ragsplat.survey.pipeline import line
 
         print(line(stage, text, since), file=sys.stderr, flush=True)
 
     def bar(self, total: int, desc: str, unit: str):
-        from ragsplat_core.cli.progress import bar
+        from ragsplat.cli.progress import bar
 
         return bar(total, desc, unit, disable=self.quiet)
 
     def count(self, desc: str, unit: str):
-        from ragsplat_core.cli.progress import count_bar
+        from ragsplat.cli.progress import count_bar
 
         return count_bar(desc, unit, self.quiet)
 
     def training(self, total: int, desc: str, initial: int):
-        from ragsplat_core.cli.progress import training_bar
+        from ragsplat.cli.progress import training_bar
 
         return training_bar(total, desc, initial, self.quiet, check=self.check)
 
@@ -143,9 +143,9 @@ class _Printed:
 def run(args: argparse.Namespace) -> int:
     from dataclasses import fields
 
-    from ragsplat_core.cli.cluster import client
-    from ragsplat_core.cli.progress import deferred_interrupts
-    from ragsplat_core.survey import pipeline
+    from ragsplat.cli.cluster import client
+    from ragsplat.cli.progress import deferred_interrupts
+    from ragsplat.survey import pipeline
 
     settings = {f.name: getattr(args, f.name) for f in fields(pipeline.SurveyConfig)}
     cfg = pipeline.SurveyConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()})

@@ -15,7 +15,7 @@ import json
 import sys
 from pathlib import Path
 
-from ragsplat_core.cli.args import (
+from ragsplat.cli.args import (
     count,
     dataset_dir,
     finite_float,
@@ -24,12 +24,12 @@ from ragsplat_core.cli.args import (
     positive_int,
     refractive_index,
 )
-from ragsplat_core.errors import TrainingDiverged
+from ragsplat.errors import TrainingDiverged
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ragsplat_core.rasterize import BACKENDS
-    from ragsplat_core.train.config import INITS, PRESETS, VARIANTS
+    from ragsplat.rasterize import BACKENDS
+    from ragsplat.train.config import INITS, PRESETS, VARIANTS
 
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--data", type=dataset_dir, help="dataset directory (transforms.json, images/)")
@@ -83,9 +83,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ragsplat_core.cli.progress import deferred_interrupts, training_bar
-    from ragsplat_core.dataset.load import load_dataset
-    from ragsplat_core.train import Trainer, preset_config
+    from ragsplat.cli.progress import deferred_interrupts, training_bar
+    from ragsplat.dataset.load import load_dataset
+    from ragsplat.train import Trainer, preset_config
 
     overrides = {"variant": args.variant, "seed": args.seed}
     for key in ("iterations", "init", "init_depth", "init_count", "init_fill", "init_points", "water_level",
@@ -117,12 +117,12 @@ def _import(args: argparse.Namespace, overrides: dict) -> Path:
     """Import the survey into RUN/data (once) and, unless an --init-depth is given, start from the model's
     points, or points triangulated from the images when it has none (depths x n). Returns the dataset
     directory."""
-    from ragsplat_core.dataset import layout
-    from ragsplat_core.dataset.colmap import POINTS, import_colmap
-    from ragsplat_core.errors import ConfigError
-    from ragsplat_core.outputs import claim
-    from ragsplat_core.refraction import WaterSurface
-    from ragsplat_core.train.trainer import CHECKPOINT
+    from ragsplat.dataset import layout
+    from ragsplat.dataset.colmap import POINTS, import_colmap
+    from ragsplat.errors import ConfigError
+    from ragsplat.outputs import claim
+    from ragsplat.refraction import WaterSurface
+    from ragsplat.train.trainer import CHECKPOINT
 
     missing = [flag for flag, value in (("--images", args.images), ("--water-level", args.water_level))
                if value is None]

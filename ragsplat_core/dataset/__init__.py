@@ -8,7 +8,7 @@ __all__ = list(_LOAD)
 
 def __getattr__(name: str):
     if name in _LOAD:
-        from ragsplat_core.dataset import load
+        from ragsplat.dataset import load
 
         return getattr(load, name)
-    raise AttributeError(f"module 'ragsplat_core.dataset' has no attribute {name!r}")
+    raise AttributeError(f"module 'ragsplat.dataset' has no attribute {name!r}")

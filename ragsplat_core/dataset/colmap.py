@@ -27,10 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.dataset import layout
-from ragsplat_core.errors import DatasetError
-from ragsplat_core.outputs import locked, write_bytes, write_json
+from ragsplat.camera import Camera
+from ragsplat.dataset import layout
+from ragsplat.errors import DatasetError
+from ragsplat.outputs import locked, write_bytes, write_json
 
 IMPORT = "import.json"  # what was imported and how (the rerun check)
 POINTS = "points3D.npy"  # [P, 6] float64: x, y, z (local frame), r, g, b in [0, 1]
@@ -329,7 +329,7 @@ def triangulate(root: Path, work: Path) -> tuple[np.ndarray, np.ndarray, list[st
     triangulated (no texture, no overlap)."""
     import pycolmap
 
-    from ragsplat_core.dataset.load import load_dataset
+    from ragsplat.dataset.load import load_dataset
 
     views = load_dataset(root, splits=("train",), load_dry=False).train
     work = Path(work)
@@ -432,7 +432,7 @@ def refracted_points(root: Path, fingerprint: str, cameras: dict, water) -> np.n
     Why: the field's depth x n is exact only at nadir; with oblique views through 2-3 m of water the points
     x n come out too high (development reach: median +33 cm where the bed is 2-4 m deep, +4 cm under 1 m;
     these: under 1 cm), and training does not pull a bed that far down."""
-    from ragsplat_core.snell import closest_points, water_rays
+    from ragsplat.snell import closest_points, water_rays
 
     path = triangulated_points(root, fingerprint)
     pts = np.load(path)

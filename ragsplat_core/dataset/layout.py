@@ -21,8 +21,8 @@ DIR/
   scene/                     generator inputs and state: spec.json, geometry.npz, albedo.png, render log
 
 Every writer of a dataset (the Blender generator in `datagen`, the small in-memory scenes of
-`ragsplat_core.bench.synthetic`) writes through this module and every reader reads through
-`ragsplat_core.dataset.load`. numpy and OpenCV only, no torch: Blender's process imports it.
+`ragsplat.bench.synthetic`) writes through this module and every reader reads through
+`ragsplat.dataset.load`. numpy and OpenCV only, no torch: Blender's process imports it.
 """
 
 from __future__ import annotations
@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ragsplat_core.errors import ConfigError, DatasetError
-from ragsplat_core.outputs import atomic_path, write_bytes, write_json
+from ragsplat.errors import ConfigError, DatasetError
+from ragsplat.outputs import atomic_path, write_bytes, write_json
 
 TRANSFORMS = "transforms.json"
 SCENE = "scene.json"
@@ -58,9 +58,9 @@ NO_HIT = 1e10  # Cycles' depth where a ray escapes; far beyond any scene distanc
 LOCAL_CRS = ('LOCAL_CS["ragsplat scene (local metres, z up)",LOCAL_DATUM["scene origin",0],UNIT["metre",1],'
              'AXIS["X",EAST],AXIS["Y",NORTH]]')
 NODATA = -9999.0  # raster cells without a value
-# What a surveyor hands over, beside a rendered dataset (`datagen.survey`) or from the field: the photos as
-# the drone writes them (JPEG with the focal length in EXIF), the camera centres as its RTK receiver records
-# them and the water level; no poses. `ragsplat survey` reads only these.
+# What a surveyor hands over, beside a rendered dataset (`ragsplat.datagen.survey`) or from the field: the
+# photos as the drone writes them (JPEG with the focal length in EXIF), the camera centres as its RTK receiver
+# records them and the water level; no poses. `ragsplat survey` reads only these.
 SURVEY_IMAGES = "survey/images"  # with EXIF GPS and DJI-style XMP: the positions.csv centres, RTK fixed
 SURVEY_IMAGES_GPS = "survey/images-gps"  # the same photos geotagged by consumer GPS (metres, no RTK flag)
 SURVEY_IMAGES_LENS = "survey/images-lens"  # the RTK-tagged photos through a lens with radial distortion
@@ -118,7 +118,7 @@ def write_npy(path: Path, array: np.ndarray) -> None:
 
 def write_ply(path: Path, verts: np.ndarray, tris: np.ndarray | None = None, comment: str = "") -> None:
     """Binary little-endian PLY of vertices [N, 3] as doubles (exact, also at UTM-sized coordinates) and,
-    when given, triangles [F, 3] as int32 vertex lists. (Trained Gaussians: `ragsplat_core.ply`.)"""
+    when given, triangles [F, 3] as int32 vertex lists. (Trained Gaussians: `ragsplat.ply`.)"""
     header = "ply\nformat binary_little_endian 1.0\n" + (f"comment {comment}\n" if comment else "")
     header += f"element vertex {len(verts)}\nproperty double x\nproperty double y\nproperty double z\n"
     if tris is not None:

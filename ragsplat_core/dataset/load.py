@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ragsplat_core.camera import Camera, ground_sample_distance
-from ragsplat_core.dataset import layout
-from ragsplat_core.errors import ConfigError, DatasetError
-from ragsplat_core.refraction import WaterSurface
+from ragsplat.camera import Camera, ground_sample_distance
+from ragsplat.dataset import layout
+from ragsplat.errors import ConfigError, DatasetError
+from ragsplat.refraction import WaterSurface
 
 SPLITS = ("train", "test")
 _POSE_TOL = 1e-4  # w2c and transform_matrix must describe the same pose (metres / unitless rotation)

@@ -1,5 +1,5 @@
-"""Parts of the Gaussian rasterizers; the public entries are `ragsplat_core.rasterize.rasterize` (3D
-Gaussians, 3DGS) and `ragsplat_core.rasterize_surfels.rasterize_surfels` (2D surfels, 2DGS).
+"""Parts of the Gaussian rasterizers; the public entries are `ragsplat.rasterize.rasterize` (3D
+Gaussians, 3DGS) and `ragsplat.rasterize_surfels.rasterize_surfels` (2D surfels, 2DGS).
 
     backends.py             the table: which function each backend runs at each stage, and `choose_backend`
     reference/              plain PyTorch, autograd, any device: the semantics, and the twin of every kernel

@@ -15,7 +15,7 @@
 `rasterize` runs covariance, project, bin_tiles and composite, or render where the backend has it (gsplat
 takes the quaternions and scales itself). Every backend projects surfels with
 `reference/surfel_project.project_surfels` (PyTorch) before its surfel_composite. The cpu and gsplat
-modules are imported when their backend is first asked for, so ragsplat_core imports without numba and
+modules are imported when their backend is first asked for, so ragsplat imports without numba and
 without gsplat; `gaussians` (the model) imports nothing of this folder.
 """
 
@@ -28,8 +28,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ragsplat_core import gaussians
-from ragsplat_core.errors import ConfigError
+from ragsplat import gaussians
+from ragsplat.errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -49,7 +49,7 @@ class Backend:
 
 
 def _torch() -> Backend:
-    from ragsplat_core.raster.reference import composite, project, surfel_composite
+    from ragsplat.raster.reference import composite, project, surfel_composite
 
     return Backend("torch", colors=gaussians.colors_for_view, covariance=gaussians.covariance,
                    tangents=gaussians.surfel_tangents, project=project.project, bin_tiles=project.bin_tiles,
@@ -58,7 +58,7 @@ def _torch() -> Backend:
 
 def _cpu() -> Backend:
     # numba is imported here, when the cpu backend is first asked for
-    from ragsplat_core.raster.cpu import composite, project, rotation, sh, surfel_composite
+    from ragsplat.raster.cpu import composite, project, rotation, sh, surfel_composite
 
     return Backend("cpu", colors=sh.colors_for_view, covariance=rotation.covariance_cpu,
                    tangents=rotation.tangents_cpu, project=project.project, bin_tiles=project.bin_tiles,
@@ -66,7 +66,7 @@ def _cpu() -> Backend:
 
 
 def _gsplat() -> Backend:
-    from ragsplat_core.raster.cuda import render, surfel_composite  # they import gsplat when called
+    from ragsplat.raster.cuda import render, surfel_composite  # they import gsplat when called
 
     return Backend("gsplat", colors=gaussians.colors_for_view, covariance=gaussians.covariance,
                    tangents=gaussians.surfel_tangents, project=None, bin_tiles=None, composite=None,

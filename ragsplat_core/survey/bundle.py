@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ragsplat_core.refraction import WaterSurface, apparent_points_each
+from ragsplat.refraction import WaterSurface, apparent_points_each
 
 
 def skew(w: torch.Tensor) -> torch.Tensor:  # [N, 3] -> [N, 3, 3]

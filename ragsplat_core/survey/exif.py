@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ragsplat_core.errors import ConfigError, DatasetError
+from ragsplat.errors import ConfigError, DatasetError
 
 DJI_NS = "http://www.dji.com/drone-dji/1.0/"
 RDF_NS = "http://www.w3.org/1999/02/22-rdf-syntax-ns#"

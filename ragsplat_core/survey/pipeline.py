@@ -33,21 +33,21 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ragsplat_core.survey.exif import CONSUMER_SIGMA
-from ragsplat_core.train.config import INIT
+from ragsplat.survey.exif import CONSUMER_SIGMA
+from ragsplat.train.config import INIT
 
 if TYPE_CHECKING:
     import numpy as np
     import pycolmap
     import torch
 
-    from ragsplat_core.refraction import WaterSurface
-    from ragsplat_core.survey.bundle import Bundle
-    from ragsplat_core.survey.exif import PhotoPosition
-    from ragsplat_core.survey.georef import Similarity
-    from ragsplat_core.survey.sfm import Tracks
-    from ragsplat_core.survey.tiles import Tile
-    from ragsplat_core.survey.water import EdgeFit
+    from ragsplat.refraction import WaterSurface
+    from ragsplat.survey.bundle import Bundle
+    from ragsplat.survey.exif import PhotoPosition
+    from ragsplat.survey.georef import Similarity
+    from ragsplat.survey.sfm import Tracks
+    from ragsplat.survey.tiles import Tile
+    from ragsplat.survey.water import EdgeFit
 
 AUTO = "auto"
 STAGES = ("sfm", "georef", "water", "train", "export")
@@ -160,7 +160,7 @@ class Stamps:
 
     def mark(self, stage: str, key: str) -> None:
         """Records `stage` as made with `key`; a new key makes every later stage stale."""
-        from ragsplat_core.outputs import write_json
+        from ragsplat.outputs import write_json
 
         if self.keys.get(stage) == key:
             return
@@ -324,8 +324,8 @@ def check_inputs(cfg: SurveyConfig, progress: Progress) -> Survey:
     claimed and RUN/survey.json written with the config resolved."""
     import numpy as np
 
-    from ragsplat_core.errors import DatasetError
-    from ragsplat_core.outputs import claim, write_json
+    from ragsplat.errors import DatasetError
+    from ragsplat.outputs import claim, write_json
 
     if not cfg.images.is_dir():
         raise DatasetError(f"{cfg.images}: no such folder of photos")
@@ -353,8 +353,8 @@ def locate(cfg: SurveyConfig, photos: list[Path], progress: Progress) -> tuple[S
     for a half-given ground control, DatasetError unless enough of the names are photos."""
     from dataclasses import replace
 
-    from ragsplat_core.dataset import layout
-    from ragsplat_core.errors import ConfigError, DatasetError
+    from ragsplat.dataset import layout
+    from ragsplat.errors import ConfigError, DatasetError
 
     names = [p.name for p in photos]
     tagged = sigma = pixels = None
@@ -362,7 +362,7 @@ def locate(cfg: SurveyConfig, photos: list[Path], progress: Progress) -> tuple[S
         positions, control = layout.read_positions(cfg.positions), None
         known, source = positions, cfg.positions
     elif cfg.gcp is None:  # the positions from the photos' EXIF GPS and DJI XMP
-        from ragsplat_core.survey import exif
+        from ragsplat.survey import exif
 
         if cfg.gcp_pixels is not None:
             raise ConfigError("--gcp-pixels needs --gcp (the targets' surveyed positions)")
@@ -404,10 +404,10 @@ def water_as_given(cfg: SurveyConfig, where: Positions, progress: Progress) -> G
     refuses, a ConfigError)."""
     import numpy as np
 
-    from ragsplat_core.dataset import layout
-    from ragsplat_core.errors import ConfigError
-    from ragsplat_core.refraction import WaterSurface
-    from ragsplat_core.survey import water as water_fit
+    from ragsplat.dataset import layout
+    from ragsplat.errors import ConfigError
+    from ragsplat.refraction import WaterSurface
+    from ragsplat.survey import water as water_fit
 
     if cfg.water_surface is not None:
         edge_points = layout.read_points(cfg.water_surface)
@@ -435,9 +435,9 @@ def structure_from_motion(survey: Survey, stamps: Stamps, progress: Progress) ->
     import numpy as np
     import pycolmap
 
-    from ragsplat_core.dataset import layout
-    from ragsplat_core.outputs import write_json
-    from ragsplat_core.survey import sfm
+    from ragsplat.dataset import layout
+    from ragsplat.outputs import write_json
+    from ragsplat.survey import sfm
 
     cfg, photos, names, positions = survey.cfg, survey.photos, survey.names, survey.where.positions
     key = _digest({p.name: layout.file_digest(p) for p in photos}, sfm.CAMERA_MODEL)
@@ -471,10 +471,10 @@ def georeference(survey: Survey, structure: Structure, stamps: Stamps, progress:
     DatasetError where too few correspond, or the cameras then do not look down."""
     import numpy as np
 
-    from ragsplat_core.dataset import layout
-    from ragsplat_core.errors import DatasetError
-    from ragsplat_core.outputs import write_json
-    from ragsplat_core.survey import georef, sfm
+    from ragsplat.dataset import layout
+    from ragsplat.errors import DatasetError
+    from ragsplat.outputs import write_json
+    from ragsplat.survey import georef, sfm
 
     cfg, where, names = survey.cfg, survey.where, survey.names
     given = layout.file_digest(where.source) if where.tagged is None else _digest(
@@ -513,7 +513,7 @@ def _camera_pairs(survey: Survey, trk: Tracks) -> Correspondences:
     """The registered cameras' centres and their positions, each position's threshold from its source."""
     import numpy as np
 
-    from ragsplat_core.errors import DatasetError
+    from ragsplat.errors import DatasetError
 
     where = survey.where
     have = [k for k, n in enumerate(trk.names) if n in where.positions]
@@ -540,8 +540,8 @@ def _control_pairs(survey: Survey, rec, trk: Tracks) -> Correspondences:
     """The ground control points triangulated in the model from their pixels, and their surveyed positions."""
     import numpy as np
 
-    from ragsplat_core.errors import DatasetError
-    from ragsplat_core.survey import sfm
+    from ragsplat.errors import DatasetError
+    from ragsplat.survey import sfm
 
     cfg, control = survey.cfg, survey.where.control
     gcp = sfm.control_points(rec, trk, survey.where.pixels)  # name -> (model xyz, observations)
@@ -599,10 +599,10 @@ def adjust_through_water(survey: Survey, structure: Structure, geo: Georeference
     import numpy as np
     import torch
 
-    from ragsplat_core.dataset import layout
-    from ragsplat_core.outputs import write_json
-    from ragsplat_core.refraction import WaterSurface
-    from ragsplat_core.survey import sfm
+    from ragsplat.dataset import layout
+    from ragsplat.outputs import write_json
+    from ragsplat.refraction import WaterSurface
+    from ragsplat.survey import sfm
 
     cfg, water = survey.cfg, survey.water
     held_by = list(survey.rtk_sigma) if survey.where.sigma is None else geo.given  # one accuracy, or each's
@@ -664,7 +664,7 @@ def _adjust(survey: Survey, geo: Georeferenced, problem: Problem, progress: Prog
     where none is given, the water (`_estimate_water`); as it is with --no-water-adjustment."""
     import torch
 
-    from ragsplat_core.survey import bundle
+    from ragsplat.survey import bundle
 
     cfg, trk = survey.cfg, geo.tracks
     water, surface, adj, estimated, lens_record = survey.water, survey.given.surface, None, None, None
@@ -709,9 +709,9 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
 
     import torch
 
-    from ragsplat_core.refraction import WaterSurface
-    from ragsplat_core.survey import bundle, georef
-    from ragsplat_core.survey import water as water_fit
+    from ragsplat.refraction import WaterSurface
+    from ragsplat.survey import bundle, georef
+    from ragsplat.survey import water as water_fit
 
     cfg, trk, origin, P = survey.cfg, geo.tracks, survey.origin, problem.points
     start = water_fit.start_level(P[: len(trk.points)].numpy())
@@ -744,8 +744,8 @@ def _water_report(survey: Survey, fit: Adjusted) -> dict:
     water, lens and targets' residuals where there are."""
     import numpy as np
 
-    from ragsplat_core.dataset import layout
-    from ragsplat_core.survey import water as water_fit
+    from ragsplat.dataset import layout
+    from ragsplat.survey import water as water_fit
 
     given, origin, adj, P = survey.given, survey.origin, fit.bundle, fit.points
     z = -fit.water.depth(P.numpy())  # height above the surface
@@ -797,7 +797,7 @@ def train_and_export(survey: Survey, water: Water, stamps: Stamps, progress: Pro
     (`train_one`, `export`), or the tiles' (`train_tiles`) where the survey is larger than a tile."""
     import numpy as np
 
-    from ragsplat_core.export import sample_count
+    from ragsplat.export import sample_count
 
     cfg = survey.cfg
     lo, hi = water.extent
@@ -825,7 +825,7 @@ def export(cfg: SurveyConfig, water: Water, trained: Path, products: list[Path],
     key = _digest(water.key, (trained / "point_cloud.ply").stat().st_mtime_ns, cfg.resolution)
     t0 = time.perf_counter()
     if not stamps.done("export", key, *products):
-        from ragsplat_core.export import export_run
+        from ragsplat.export import export_run
 
         dem, las, png = products
         b, on_block = progress.count("[export] bed", "block")
@@ -840,7 +840,7 @@ def train_tiles(cfg: SurveyConfig, water: Water, tiling: list[Tile], size: float
     """A survey of several tiles: each trained and extracted on its own (`_tile_beds`), their beds merged into
     the products (`_merge`), the layout and the seams' agreement in RUN/tiles.json; kept while the tiles and
     the training's settings are the same."""
-    from ragsplat_core.outputs import write_json
+    from ragsplat.outputs import write_json
 
     key = _digest(water.key, cfg.variant, cfg.init, cfg.preset, cfg.iterations, cfg.seed, cfg.max_size,
                   cfg.resolution, [t.to_json() for t in tiling])
@@ -877,7 +877,7 @@ def _tiles(cfg: SurveyConfig, model: Path, surface, lo, hi) -> tuple[list, float
     import numpy as np
     import pycolmap
 
-    from ragsplat_core.survey import sfm, tiles
+    from ragsplat.survey import sfm, tiles
 
     rec = pycolmap.Reconstruction(str(model))
     ids, names, R, C, K = sfm.cameras(rec)
@@ -909,9 +909,9 @@ def train_tile(job: TileJob) -> str:
 
     import numpy as np
 
-    from ragsplat_core.export import export_run
-    from ragsplat_core.outputs import atomic_path, write_json
-    from ragsplat_core.refraction import WaterSurface
+    from ragsplat.export import export_run
+    from ragsplat.outputs import atomic_path, write_json
+    from ragsplat.refraction import WaterSurface
 
     folder = Path(job.folder)
     bed_path, stamp = folder / "bed.npy", folder / "key.txt"
@@ -960,8 +960,8 @@ def _tile_beds(cfg: SurveyConfig, progress: Progress, cluster, model: Path, surf
     import numpy as np
     import pycolmap
 
-    from ragsplat_core.dataset import layout
-    from ragsplat_core.errors import OutputError
+    from ragsplat.dataset import layout
+    from ragsplat.errors import OutputError
 
     jobs = []
     for tile in tiling:
@@ -1055,7 +1055,7 @@ def _check_near(points, frame, source: Path, what: str, crs: str | None) -> None
     a local one beside EXIF positions in UTM)."""
     import numpy as np
 
-    from ragsplat_core.errors import ConfigError
+    from ragsplat.errors import ConfigError
 
     centre = frame[:, :2].mean(0)
     extent = float(np.ptp(frame[:, :2], axis=0).max()) if len(frame) > 1 else 0.0
@@ -1069,7 +1069,7 @@ def _check_above(water, centres) -> None:
     """ConfigError unless some camera of centres [V, 3] is above the water surface."""
     import numpy as np
 
-    from ragsplat_core.errors import ConfigError
+    from ragsplat.errors import ConfigError
 
     top = int(np.argmin(water.depth(centres)))
     if not water.depth(centres[top]) < 0:
@@ -1090,8 +1090,8 @@ def _check_sizes(cfg: SurveyConfig, progress: Progress, photos: list[Path], cent
     import numpy as np
     from PIL import Image
 
-    from ragsplat_core.errors import ConfigError
-    from ragsplat_core.export import sample_count
+    from ragsplat.errors import ConfigError
+    from ragsplat.export import sample_count
 
     sizes = []
     for p in photos:
@@ -1121,7 +1121,7 @@ def _check_sizes(cfg: SurveyConfig, progress: Progress, photos: list[Path], cent
     lo, hi = centres[:, :2].min(0), centres[:, :2].max(0)
     # the nadir footprint's half width: height over the water x half the sensor / focal
     if surface is not None:
-        from ragsplat_core.survey.exif import focal_pixels
+        from ragsplat.survey.exif import focal_pixels
 
         focal = focal_pixels(photos[0])
         if focal:
@@ -1144,10 +1144,10 @@ def _train(cfg: SurveyConfig, progress: Progress, model: Path, data: Path, out: 
     (`GAUSSIANS_PER_GSD2`)."""
     from dataclasses import replace
 
-    from ragsplat_core.dataset import layout
-    from ragsplat_core.dataset.colmap import import_colmap
-    from ragsplat_core.dataset.load import load_dataset
-    from ragsplat_core.train import Trainer, preset_config
+    from ragsplat.dataset import layout
+    from ragsplat.dataset.colmap import import_colmap
+    from ragsplat.dataset.load import load_dataset
+    from ragsplat.train import Trainer, preset_config
 
     done = import_colmap(model, cfg.images, data, surface, cfg.masks, cfg.crs or layout.LOCAL_CRS,
                          cfg.max_size)
@@ -1183,9 +1183,9 @@ def _merge(cfg: SurveyConfig, surface, tiling: list, beds: list, products: list[
     every tile); returns the merge's report."""
     import numpy as np
 
-    from ragsplat_core.dataset.load import load_dataset
-    from ragsplat_core.export import Bed, write_dem, write_las, write_png
-    from ragsplat_core.survey import tiles
+    from ragsplat.dataset.load import load_dataset
+    from ragsplat.export import Bed, write_dem, write_las, write_png
+    from ragsplat.survey import tiles
 
     grid, _, report = tiles.merge(beds, tiling, cfg.resolution)
     georef = load_dataset(cfg.out / "tiles" / "0" / "data", splits=()).georef

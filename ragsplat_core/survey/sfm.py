@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ragsplat_core.errors import DatasetError
+from ragsplat.errors import DatasetError
 
 CAMERA_MODEL = "SIMPLE_PINHOLE"  # one focal length, the principal point at the centre, no distortion
 # Every pair is matched up to this many photos (4 950 pairs, a few minutes on 2 cores); a larger survey
@@ -241,7 +241,7 @@ def control_points(rec, trk: Tracks, pixels: list[tuple[str, str, np.ndarray]]) 
     undistorted pixel [2])])} for the ground control targets seen at `pixels` [(image name, target, [u, v])]
     in the registered photos: their straight rays (the targets stand on dry ground) intersected by least
     squares, at least 2 photos at least a degree apart."""
-    from ragsplat_core.snell import closest_points
+    from ragsplat.snell import closest_points
 
     index = {name: k for k, name in enumerate(trk.names)}
     seen: dict[str, list] = {}

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ragsplat_core.errors import DatasetError
-from ragsplat_core.refraction import Profile
+from ragsplat.errors import DatasetError
+from ragsplat.refraction import Profile
 
 MIN_SIGMA = 0.002  # m: a scatter below this (RTK's own) is not taken as a fit better than RTK can measure
 OUTLIER = 3.5  # robust standard deviations

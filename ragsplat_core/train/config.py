@@ -9,9 +9,9 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field, fields, replace
 
-from ragsplat_core.errors import ConfigError
-from ragsplat_core.train.strategy import PAPER_ITERATIONS, DensifyConfig
-from ragsplat_core.tuning import record
+from ragsplat.errors import ConfigError
+from ragsplat.train.strategy import PAPER_ITERATIONS, DensifyConfig
+from ragsplat.tuning import record
 
 # variant -> refract_gaussians flags (None: plain 3DGS, no refraction work at all)
 VARIANTS: dict[str, dict | None] = {

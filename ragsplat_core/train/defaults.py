@@ -1,11 +1,11 @@
 """What the commands that train many runs start from when not told, shared by `ragsplat ablation` (its rows)
 and `ragsplat survey` (its tiles), one home each; their `--help` prints them. The training's own defaults (the
 variants, the start `INIT`, the presets) are `train.config`'s; the ablation's alone (seeds, jobs per GPU) are
-`eval.ablation`'s."""
+`ragsplat.eval.ablation`'s."""
 
 from __future__ import annotations
 
-from ragsplat_core.train.config import VARIANTS, WATER_TERMS
+from ragsplat.train.config import VARIANTS, WATER_TERMS
 
 # The ablation's rows by default: the clear-water variants (the paper's and 2DGS's). The water's optics
 # (`WATER_TERMS`) are for the scenes that need them (e.g. `small-field`), asked for by name.

@@ -26,7 +26,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from ragsplat_core.gaussians import PARAM_NAMES, quat_to_rotmat
+from ragsplat.gaussians import PARAM_NAMES, quat_to_rotmat
 
 PAPER_ITERATIONS = 30_000  # the schedule below is 3DGS's, written for this many iterations
 

@@ -40,17 +40,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.dataset import layout
-from ragsplat_core.dataset.load import Dataset
-from ragsplat_core.errors import ConfigError, DatasetError, OutputError, TrainingDiverged
-from ragsplat_core.gaussians import PARAM_NAMES, activated, init_grid, init_points
-from ragsplat_core.outputs import atomic_path, claim, versions, write_json
-from ragsplat_core.ply import save_ply
-from ragsplat_core.rasterize import choose_backend, rasterize
-from ragsplat_core.rasterize_surfels import depth_normals, rasterize_surfels
-from ragsplat_core.reflection import SKY_SIZE, reflect, sky_radiance, surface_reflection
-from ragsplat_core.refraction import (
+from ragsplat.camera import Camera
+from ragsplat.dataset import layout
+from ragsplat.dataset.load import Dataset
+from ragsplat.errors import ConfigError, DatasetError, OutputError, TrainingDiverged
+from ragsplat.gaussians import PARAM_NAMES, activated, init_grid, init_points
+from ragsplat.outputs import atomic_path, claim, versions, write_json
+from ragsplat.ply import save_ply
+from ragsplat.rasterize import choose_backend, rasterize
+from ragsplat.rasterize_surfels import depth_normals, rasterize_surfels
+from ragsplat.reflection import SKY_SIZE, reflect, sky_radiance, surface_reflection
+from ragsplat.refraction import (
     ApparentGaussians,
     WaterSurface,
     backscatter_veil,
@@ -61,9 +61,9 @@ from ragsplat_core.refraction import (
     refract_gaussians,
     srgb_to_linear,
 )
-from ragsplat_core.snell import footprint
-from ragsplat_core.ssim import psnr, ssim, ssim_map
-from ragsplat_core.train.config import (
+from ragsplat.snell import footprint
+from ragsplat.ssim import psnr, ssim, ssim_map
+from ragsplat.train.config import (
     ATTENUATION_RANGE,
     BACKSCATTER_RANGE,
     RUN_ONLY,
@@ -72,7 +72,7 @@ from ragsplat_core.train.config import (
     VEIL_RANGE,
     TrainConfig,
 )
-from ragsplat_core.train.strategy import DefaultStrategy
+from ragsplat.train.strategy import DefaultStrategy
 
 CHECKPOINT = "ckpt.pt"
 # No camera sees a bed deeper than this many times its height above the water through clear water (light,
@@ -322,8 +322,8 @@ class Trainer:
     def _init_splats(self) -> torch.nn.ParameterDict:
         cfg = self.cfg
         if cfg.init in ("points", "triangulated", "refracted"):
-            from ragsplat_core.dataset.colmap import refracted_points, triangulated_points
-            from ragsplat_core.tracks import fill_gaps
+            from ragsplat.dataset.colmap import refracted_points, triangulated_points
+            from ragsplat.tracks import fill_gaps
 
             if cfg.init == "refracted":
                 if self.water is None:

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from ragsplat_core.raster.reference.project import ALPHA_MAX, ALPHA_MIN, BOX_PAD, T_MIN, TILE, Bins, Projected
+from ragsplat.raster.reference.project import ALPHA_MAX, ALPHA_MIN, BOX_PAD, T_MIN, TILE, Bins, Projected
 
 _F = np.float32
 _HALF = _F(0.5)

@@ -11,8 +11,8 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.raster.reference.project import ALPHA_MIN, EPS2D, NEAR, TILE, Bins, Projected, screen_box
+from ragsplat.camera import Camera
+from ragsplat.raster.reference.project import ALPHA_MIN, EPS2D, NEAR, TILE, Bins, Projected, screen_box
 
 _CHUNK = 1024  # Gaussians per parallel task
 

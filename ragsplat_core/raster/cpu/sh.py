@@ -12,8 +12,8 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from ragsplat_core import gaussians
-from ragsplat_core.gaussians import SH_C0, SH_C1, SH_C2, SH_C3
+from ragsplat import gaussians
+from ragsplat.gaussians import SH_C0, SH_C1, SH_C2, SH_C3
 
 _C2 = np.array(SH_C2)
 _C3 = np.array(SH_C3)

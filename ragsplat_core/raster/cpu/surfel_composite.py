@@ -23,9 +23,9 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from ragsplat_core.raster.cpu.composite import _chunks, _np32, _tile_box
-from ragsplat_core.raster.reference.project import ALPHA_MAX, ALPHA_MIN, BOX_PAD, T_MIN, Bins
-from ragsplat_core.raster.reference.surfel_project import SurfelsProjected
+from ragsplat.raster.cpu.composite import _chunks, _np32, _tile_box
+from ragsplat.raster.reference.project import ALPHA_MAX, ALPHA_MIN, BOX_PAD, T_MIN, Bins
+from ragsplat.raster.reference.surfel_project import SurfelsProjected
 
 _F = np.float32
 _HALF = _F(0.5)

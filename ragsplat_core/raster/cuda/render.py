@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import torch
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.raster.reference.project import EPS2D, NEAR, TILE
+from ragsplat.camera import Camera
+from ragsplat.raster.reference.project import EPS2D, NEAR, TILE
 
 
 def render(means, quats, scales, opacities, colors, camera: Camera, background, covars):

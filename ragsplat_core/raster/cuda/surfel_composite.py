@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import torch
 
-from ragsplat_core.raster.reference.project import TILE
-from ragsplat_core.raster.reference.surfel_project import SurfelsProjected
+from ragsplat.raster.reference.project import TILE
+from ragsplat.raster.reference.surfel_project import SurfelsProjected
 
 
 def composite(proj: SurfelsProjected, opacities: torch.Tensor, colors: torch.Tensor, background: torch.Tensor,

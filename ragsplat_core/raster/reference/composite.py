@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 from torch.utils.checkpoint import checkpoint
 
-from ragsplat_core.raster.reference.project import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE, Bins, Projected
+from ragsplat.raster.reference.project import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE, Bins, Projected
 
 # Elements of one [tiles, pixels, Gaussians] intermediate per chunk: bounds the reference's memory.
 CHUNK_ELEMENTS = 1 << 20

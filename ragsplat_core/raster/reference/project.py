@@ -20,7 +20,7 @@ from typing import NamedTuple
 
 import torch
 
-from ragsplat_core.camera import Camera
+from ragsplat.camera import Camera
 
 NEAR = 0.01  # near plane (camera z, metres)
 EPS2D = 0.3  # low-pass dilation of the 2D covariance (pixels^2)

@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import torch
 
-from ragsplat_core.raster.reference.composite import front_to_back, over_tiles
-from ragsplat_core.raster.reference.project import ALPHA_MAX, ALPHA_MIN, TILE, Bins
-from ragsplat_core.raster.reference.surfel_project import SurfelsProjected
+from ragsplat.raster.reference.composite import front_to_back, over_tiles
+from ragsplat.raster.reference.project import ALPHA_MAX, ALPHA_MIN, TILE, Bins
+from ragsplat.raster.reference.surfel_project import SurfelsProjected
 
 _NOUT = 10  # per pixel: colour (3), normal (3), z sum, transmittance, distortion, median depth
 

@@ -44,8 +44,8 @@ from typing import NamedTuple
 
 import torch
 
-from ragsplat_core.camera import Camera
-from ragsplat_core.raster.reference.project import ALPHA_MIN, BOX_PAD, NEAR
+from ragsplat.camera import Camera
+from ragsplat.raster.reference.project import ALPHA_MIN, BOX_PAD, NEAR
 
 
 class SurfelsProjected(NamedTuple):
