@@ -19,6 +19,10 @@ from pathlib import Path
 from ragsplat.errors import OutputError
 
 ROOT = Path(__file__).resolve().parent.parent  # the source tree (for the git commit)
+# The source folders and the packages they install as (pyproject.toml's package-dir): in a checkout each
+# package is its folder, in a wheel ragsplat/ holds the other three.
+SOURCE_PACKAGES = {"ragsplat_core": "ragsplat", "eval": "ragsplat.eval", "datagen": "ragsplat.datagen",
+                   "blender_scenes": "ragsplat.blender_scenes"}
 
 
 def temp_path(path: Path) -> Path:
@@ -88,16 +92,33 @@ def git_commit() -> str | None:
     return done.stdout.strip() or None
 
 
+def _package_dir(folder: str) -> Path:
+    """Where the package of a source folder is imported from (the folder itself in a checkout)."""
+    import importlib.util
+
+    return Path(importlib.util.find_spec(SOURCE_PACKAGES[folder]).submodule_search_locations[0])
+
+
 def source_digest(*dirs: str) -> str:
     """sha256 (16 hex digits) over the Python sources under the given folders or files of the source tree
     ("ragsplat_core", "eval/evaluate.py"): the code version of a result, also outside git and with uncommitted
-    edits."""
+    edits. Each file counts under its source-tree path, read where its package is installed, so a checkout
+    and a wheel of the same sources agree (a folder's digest leaves out the packages a wheel nests in it)."""
     import hashlib
 
     h = hashlib.sha256()
     for d in dirs:
-        for path in [ROOT / d] if (ROOT / d).is_file() else sorted((ROOT / d).rglob("*.py")):
-            h.update(str(path.relative_to(ROOT)).encode() + b"\0" + path.read_bytes() + b"\0")
+        folder, _, rest = d.partition("/")
+        base = _package_dir(folder)
+        target = base / rest
+        if target.is_file():
+            files = [target]
+        else:
+            nested = [n for n in map(_package_dir, SOURCE_PACKAGES) if base in n.parents]
+            files = sorted(p for p in target.rglob("*.py") if not any(n in p.parents for n in nested))
+        for path in files:
+            name = f"{folder}/{path.relative_to(base).as_posix()}"
+            h.update(name.encode() + b"\0" + path.read_bytes() + b"\0")
     return h.hexdigest()[:16]
 
 

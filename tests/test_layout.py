@@ -1,9 +1,10 @@
 """The architecture the README describes, checked on the source tree: commands import the library, never
-the reverse; every command is a module of `ragsplat_core/cli`, every operational script is in `tools/`; the
-data contract imports without torch; each shared fact has exactly one definition."""
+the reverse; every command is a module of `ragsplat_core/cli` (`ragsplat.cli`), every operational script is
+in `tools/`; the data contract imports without torch; each shared fact has exactly one definition. The four
+folders install as one package, `ragsplat` (pyproject.toml's package-dir), so the rules below name modules
+by their installed names: `ragsplat.X` for ragsplat_core/X.py, `ragsplat.eval.X` for eval/X.py, ..."""
 
 import ast
-import fnmatch
 import subprocess
 import sys
 import tomllib
@@ -12,28 +13,84 @@ from pathlib import Path
 import pytest
 
 from ragsplat.cli.main import COMMANDS, main
+from ragsplat.outputs import SOURCE_PACKAGES
 
 ROOT = Path(__file__).resolve().parent.parent
+SETUPTOOLS = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+# {folder: its installed package}: ragsplat_core -> ragsplat, eval -> ragsplat.eval, ...
+INSTALLED = {folder: package for package, folder in SETUPTOOLS["package-dir"].items()}
+PACKAGES = tuple(INSTALLED)  # the folders the wheel installs
+OLD_NAMES = {"ragsplat_core", "eval", "datagen", "blender_scenes"}  # their import names before issue 51
 LIBRARY = [p for p in (ROOT / "ragsplat_core").rglob("*.py") if "cli" not in p.relative_to(ROOT).parts[1:2]]
-PACKAGES = ("ragsplat_core", "datagen", "eval", "blender_scenes")  # what the wheel installs
 SOURCES = [p for d in (*PACKAGES, "tools") for p in (ROOT / d).rglob("*.py")]
 COMMAND_LAYER = ROOT / "ragsplat_core" / "cli"
 
 
 def imported_modules(path: Path) -> set[str]:
+    """The modules `path` imports; `from a import b` counts as `a` and `a.b` (b may be a module: `from
+    ragsplat import eval` imports the harness)."""
     names = set()
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.Import):
             names.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom) and node.module:
             names.add(node.module)
+            names.update(f"{node.module}.{a.name}" for a in node.names)
     return names
 
 
+def within(module: str, *packages: str) -> bool:
+    """Whether `module` is one of `packages` or inside one."""
+    return any(module == p or module.startswith(p + ".") for p in packages)
+
+
+def module_name(path: Path) -> str:
+    """The installed name of a source file of the packages: ragsplat_core/train/config.py ->
+    ragsplat.train.config, eval/__init__.py -> ragsplat.eval."""
+    folder, *parts = path.relative_to(ROOT).with_suffix("").parts
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join([INSTALLED[folder], *parts])
+
+
+def test_one_installed_package():
+    # one top-level name, each folder where the design fixes it; nothing imports the old names (the tests'
+    # pythonpath has the repository root, where `import eval` would still find the folder)
+    assert INSTALLED == {"ragsplat_core": "ragsplat", "eval": "ragsplat.eval", "datagen": "ragsplat.datagen",
+                         "blender_scenes": "ragsplat.blender_scenes"} == SOURCE_PACKAGES  # (the digests')
+    tests = list((ROOT / "tests").rglob("*.py"))
+    old = {p.relative_to(ROOT).as_posix(): names for p in SOURCES + tests
+           if (names := sorted(m for m in imported_modules(p) if m.split(".")[0] in OLD_NAMES))}
+    assert not old, old
+
+
+def test_a_wheel_digests_its_sources_as_the_checkout(tmp_path):
+    # a wheel nests the folders in ragsplat/ (as pyproject.toml's package-dir maps them); the digests that key
+    # the ablation's rows and stamp its results name each file by its source-tree path there too
+    import os
+    import shutil
+
+    from ragsplat.eval.ablation import CODE, ROW_CODE
+    from ragsplat.outputs import source_digest
+
+    site = tmp_path / "site"
+    for folder, package in INSTALLED.items():
+        shutil.copytree(ROOT / folder, site.joinpath(*package.split(".")), dirs_exist_ok=True,
+                        ignore=shutil.ignore_patterns("__pycache__"))
+    code = ("import ragsplat; from ragsplat.outputs import source_digest; print(ragsplat.__file__); "
+            f"print(source_digest(*{CODE!r})); print(source_digest(*{ROW_CODE!r}))")
+    done = subprocess.run([sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": str(site)},
+                          cwd=tmp_path, capture_output=True, text=True, check=True)
+    where, *digests = done.stdout.split()
+    assert Path(where).parent == site / "ragsplat"
+    assert digests == [source_digest(*CODE), source_digest(*ROW_CODE)]
+
+
 def test_library_imports_no_command_layer():
+    # the core (ragsplat.* but its command layer) imports nothing of the commands, the harness, the generator
     for path in LIBRARY:
         bad = {m for m in imported_modules(path)
-               if m == "argparse" or m.startswith(("ragsplat.cli", "eval", "datagen"))}
+               if m == "argparse" or within(m, "ragsplat.cli", "ragsplat.eval", "ragsplat.datagen")}
         assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"
 
 
@@ -42,8 +99,7 @@ def test_nothing_outside_the_command_layer_imports_it():
     # never import it (the tests do)
     outside = [p for p in SOURCES if COMMAND_LAYER not in p.parents]
     bad = {p.relative_to(ROOT).as_posix() for p in outside
-           if any(m == "ragsplat.cli" or m.startswith("ragsplat.cli.")
-                  for m in imported_modules(p))}
+           if any(within(m, "ragsplat.cli") for m in imported_modules(p))}
     assert not bad, f"{sorted(bad)} import ragsplat.cli"
 
 
@@ -87,11 +143,12 @@ def test_scripts_are_commands_or_tools():
     assert not [p for d in PACKAGES for p in (ROOT / d).rglob("*.sh")], "a shell script outside tools/"
 
 
-def test_the_tools_are_not_installed():
-    found = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]
-    assert not any(fnmatch.fnmatch(name, pattern) for pattern in found["include"]
-                   for name in ("tools", "tools.slim")), found
-    assert all(any(fnmatch.fnmatch(name, pattern) for pattern in found["include"]) for name in PACKAGES)
+def test_the_wheel_holds_every_package_and_no_tool():
+    # pyproject.toml lists the packages (a mapped folder cannot be found by pattern): every folder of the
+    # four with an __init__.py, under its installed name, and nothing else (no tool)
+    folders = {module_name(p) for d in PACKAGES for p in (ROOT / d).rglob("__init__.py")}
+    assert set(SETUPTOOLS["packages"]) == folders
+    assert all(within(name, "ragsplat") for name in SETUPTOOLS["packages"])
 
 
 def import_graph() -> dict[str, set[str]]:
@@ -99,8 +156,7 @@ def import_graph() -> dict[str, set[str]]:
     counts, the ones inside functions and under TYPE_CHECKING too: a lazy import is still an arrow."""
     modules = {}
     for path in (p for package in PACKAGES for p in (ROOT / package).rglob("*.py")):
-        parts = path.relative_to(ROOT).with_suffix("").parts
-        modules[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+        modules[module_name(path)] = path
     graph = {}
     for name, path in modules.items():
         targets = set()
@@ -152,7 +208,7 @@ def test_the_generator_imports_nothing_from_the_renderer():
     # imports it
     datagen = [p for p in SOURCES if p.relative_to(ROOT).parts[0] == "datagen"]
     bad = {p.relative_to(ROOT).as_posix() for p in datagen
-           if any(m.split(".")[0] == "blender_scenes" for m in imported_modules(p))}
+           if any(within(m, "ragsplat.blender_scenes") for m in imported_modules(p))}
     assert not bad, f"{sorted(bad)} import ragsplat.blender_scenes"
 
 
