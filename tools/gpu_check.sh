@@ -7,7 +7,10 @@
 #                                             `python -m tools.slim`), its small files in OUT/rows.tar.gz
 #   bash tools/gpu_check.sh all OUT DATA      both in one command (one machine start, one gsplat compile):
 #                                             the ablation gets what is left of LIMIT_S after the tests
-# Needs a CUDA torch and gsplat where PYTHON runs. Settings (environment): PYTHON (python3), DEVICE (cuda),
+# Needs a CUDA torch, gsplat and ragsplat itself installed where PYTHON runs: ragsplat from its wheel, built
+# here into .gpu/whl (`.venv/bin/pip wheel --no-deps --no-build-isolation -w .gpu/whl .`) and installed there
+# with the other wheels (docs/performance.md, "The GPU checks in one command"); the checkout gives the tests
+# and the commands run from the installed package. Settings (environment): PYTHON (python3), DEVICE (cuda),
 # BACKENDS (gsplat:cuda), PRESET (small), VARIANTS ("full 2dgs+full"), SEEDS ("0 1 2"), RUNS (OUT/runs:
 # the ablation's folder; elsewhere, a rerun on the same machine resumes), LIMIT_S (540 s: the ablation, or
 # with `all` the whole stage, is stopped then and its finished rows packed). The same stages run on a CPU
@@ -31,16 +34,31 @@ if [ "$stage" = all ]; then
     exit $(( rc ? rc : rc_ablation ))
 fi
 py=${PYTHON:-python3}
-export PYTHONPATH="$root${PYTHONPATH:+:$PYTHONPATH}"
 mkdir -p "$out"
 out="$(cd "$out" && pwd)"
 exec > >(tee "$out/$stage.log") 2>&1
 cd "$root"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null \
     || echo "no nvidia-smi"
-"$py" -c 'import sys, numpy, torch
+"$py" -c 'import sys, numpy, torch, ragsplat
 print(sys.version.split()[0], "torch", torch.__version__, "numpy", numpy.__version__,
-      "cuda", torch.cuda.is_available())'
+      "cuda", torch.cuda.is_available(), "ragsplat from", ragsplat.__path__[0])'
+# the installed ragsplat must be this checkout's sources (a wheel in .gpu/whl built before the last edit
+# would measure other code): every .py of the four folders, byte for byte, where the wheel puts it
+"$py" -c 'import importlib.util, sys
+from pathlib import Path
+from ragsplat.outputs import SOURCE_PACKAGES
+root, stale = Path(sys.argv[1]), []
+for folder, package in SOURCE_PACKAGES.items():
+    where = Path(importlib.util.find_spec(package).submodule_search_locations[0])
+    for path in sorted((root / folder).rglob("*.py")):
+        rel = path.relative_to(root / folder)
+        if "__pycache__" not in rel.parts and not ((where / rel).is_file()
+                                                   and (where / rel).read_bytes() == path.read_bytes()):
+            stale.append(f"{folder}/{rel}")
+if stale:
+    sys.exit(f"the installed ragsplat is not this checkout: {stale[0]} and {len(stale) - 1} more differ; "
+             "rebuild .gpu/whl")' "$root"
 case "$stage" in
 tests)
     SECONDS=0
