@@ -7,6 +7,10 @@ the dataset's evaluation region when it has one. Every product is in one coordin
 frame (metres, x east, y north, z up) plus a `Georef` offset, in the CRS the `Georef` names (default: the
 local frame, zero offset). Depth is level - bed height where the bed lies below the water level; emerged
 ground has no depth (nodata in the DEM, grey in the PNG; class 2 instead of 40 in the LAS).
+
+With a fitted uncertainty model (`ragsplat.uncertainty.UncertaintyModel`, `export_run(uncertainty=...)`) each
+cell also gets its total vertical uncertainty at 95 % (TVU95, m; `cell_tvu95`): the DEM's band 3 ("tvu95")
+and the LAS's extra dimension `tvu95`. Without one the products are as they always were.
 """
 
 from __future__ import annotations
@@ -39,7 +43,9 @@ from ragsplat.train.trainer import (
     reflection_tensor,
     render_splats,
 )
+from ragsplat.uncertainty import UncertaintyModel, cell_features, tvu95
 
+TVU_BAND = "tvu95"  # the DEM band's description and the LAS extra dimension's name of the cells' TVU95
 BATHYMETRIC, GROUND = 40, 2  # ASPRS classes (LAS 1.4 R15): submerged bed ("bathymetric point"), emerged
 LAS_SCALE = 0.001  # metres per integer step of the LAS coordinates
 # Extraction samples per cell of the DEM grid inside the region: the evaluation's rule
@@ -72,6 +78,11 @@ class Bed:
     resolution: float
     water: WaterSurface | None
     georef: Georef
+    # [G] m: each cell's TVU95 (`cell_tvu95`), written as the DEM's band 3 and the LAS's `tvu95`; None: none
+    tvu95: np.ndarray | None = None
+    # the extraction's per-cell record (`surface.extract_surface(..., cells=True)`: samples, spread, filled),
+    # where `extract_bed` was asked for it (the uncertainty's features); None: not kept
+    cells: dict | None = None
 
     def absolute(self) -> np.ndarray:  # [G, 3] in the CRS
         return self.grid + np.asarray(self.georef.offset, dtype=np.float64)
@@ -85,12 +96,15 @@ class Bed:
 
 def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None = None,
                ply: Path | None = None, png: Path | None = None, data: Path | None = None, on_block=None,
-               bounds=None, **extract) -> Bed:
+               bounds=None, uncertainty: UncertaintyModel | None = None, level_sigma: float = 0.0,
+               n_sigma: float = 0.0, **extract) -> Bed:
     """Extract the bed of a finished run (`load_run`, `extract_bed`, `extract`: its `ExtractConfig` fields to
     change) and write the DEM and each other product given a path, in the dataset's georeference (an
     imported survey's CRS and offset), depths below the water the run ended with (`run_water`). `bounds`
     (xmin, ymin, xmax, ymax in the CRS, +-inf where open: a survey's tile) cuts the bed to that box, within
-    what it would cover without. Returns the bed."""
+    what it would cover without. `uncertainty`: a fitted model, whose TVU95 of each cell (`cell_tvu95`, from
+    the run's training views; `level_sigma` m and `n_sigma`: the standard deviations of the water's level
+    and index, the systematic term) the DEM and the LAS then carry. Returns the bed."""
     meta, ds, splats, seed = _read_run(Path(run), data, splits=())
     water = run_water(meta, ds)
     gaussians, region = activated_dict(splats), ds.eval_region
@@ -99,7 +113,10 @@ def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None 
         off = ds.georef.offset
         region = {"xmin": max(lo[0], bounds[0] - off[0]), "ymin": max(lo[1], bounds[1] - off[1]),
                   "xmax": min(hi[0], bounds[2] - off[0]), "ymax": min(hi[1], bounds[3] - off[1])}
-    bed = extract_bed(gaussians, resolution, water, region, ds.georef, seed, ds.gsd, on_block, **extract)
+    bed = extract_bed(gaussians, resolution, water, region, ds.georef, seed, ds.gsd, on_block,
+                      cells=uncertainty is not None, **extract)
+    if uncertainty is not None:
+        bed = replace(bed, tvu95=cell_tvu95(bed, ds.train_cameras, uncertainty, level_sigma, n_sigma))
     write_dem(dem, bed)
     for path, write in ((las, write_las), (ply, write_ply), (png, write_png)):
         if path is not None:
@@ -339,15 +356,16 @@ def export_box(gaussians: dict, region: dict | None, min_opacity: float) -> tupl
 
 def extract_bed(gaussians: dict, resolution: float, water: WaterSurface | None, region: dict | None = None,
                 georef: Georef | None = None, seed: int = 0, gsd: float | None = None, on_block=None,
-                **extract) -> Bed:
+                cells: bool = False, **extract) -> Bed:
     """The bed of activated Gaussians (means [N, 3], scales [N, 3], quats [N, 4], opacities [N]) on a grid
     of `resolution` metres whose nodes lie on multiples of it in the CRS (`grid_origin`), inside `region`
     {xmin, xmax, ymin, ymax} when given, by `surface.extract_surface` with the evaluation's settings
     (`ExtractConfig`; `sample_count` samples, the noise filter `FILTER_RADIUS_CELLS` wide at cells coarser
     than the evaluation's) except the fields in `extract` (e.g. min_opacity, max_scale_gsd in ground sample
     distances `gsd`, `Dataset.gsd`). A bed of more than `BLOCK_SAMPLES` samples is extracted in blocks
-    (`surface.extract_surface_blocks`, `on_block(done, total)` after each). Raises ConfigError (too many
-    cells: before any work), OutputError (nothing found)."""
+    (`surface.extract_surface_blocks`, `on_block(done, total)` after each). `cells`: keep the extraction's
+    per-cell record in `Bed.cells` (the same grid). Raises ConfigError (too many cells: before any work),
+    OutputError (nothing found)."""
     georef = georef or Georef()  # default: the local frame
     cfg = ExtractConfig(gsd=gsd, cell=resolution, seed=seed, **extract)
     n = sample_count(*export_box(gaussians, region, cfg.min_opacity), resolution, georef,
@@ -357,36 +375,68 @@ def extract_bed(gaussians: dict, resolution: float, water: WaterSurface | None, 
     cfg = replace(cfg, n_samples=n)
     g = (gaussians["means"], gaussians["scales"], gaussians["quats"], gaussians["opacities"])
     if n <= BLOCK_SAMPLES:
-        grid, _ = extract_surface(*g, cfg, region, grid_origin(resolution, georef))
+        grid, stats = extract_surface(*g, cfg, region, grid_origin(resolution, georef), cells=cells)
         if on_block is not None:
             on_block(1, 1)
     else:  # blocks of about BLOCK_SAMPLES samples each
         side = math.isqrt(BLOCK_SAMPLES // SAMPLES_PER_CELL)
-        grid, _ = extract_surface_blocks(*g, cfg, side, grid_origin(resolution, georef), region, on_block)
+        grid, stats = extract_surface_blocks(*g, cfg, side, grid_origin(resolution, georef), region, on_block,
+                                             cells=cells)
     if not len(grid):
         raise OutputError(f"no bed surface: no Gaussian is opaque enough (>= {cfg.min_opacity}) and small "
                           f"enough (<= {cfg.max_scale_gsd:g} ground sample distances), or the noise filter "
                           "removed every sample")
-    return Bed(grid, resolution, water, georef)
+    return Bed(grid, resolution, water, georef, cells=stats["cells"] if cells else None)
+
+
+def cell_tvu95(bed: Bed, cameras, model: UncertaintyModel, level_sigma: float = 0.0,
+               n_sigma: float = 0.0) -> np.ndarray:
+    """[G] the TVU95 (m) of each cell of `bed` by `model` (`uncertainty.tvu95`) from its features
+    (`uncertainty.cell_features`: the views `cameras` (a run's training cameras) through the bed's water, the
+    extraction's per-cell record `bed.cells`, the systematic term of the level's and n's standard deviations
+    `level_sigma` (m) and `n_sigma`). Raises ConfigError for a bed extracted without its cells' record or a
+    model naming an unknown feature."""
+    if bed.cells is None:
+        raise ConfigError("the bed's cells were not recorded (extract_bed(..., cells=True)): no uncertainty "
+                          "features")
+    features = cell_features(bed.grid, cameras, bed.water, bed.cells, level_sigma, n_sigma)
+    return tvu95(model, features)
+
+
+def read_uncertainty(path: Path) -> UncertaintyModel:
+    """The fitted `UncertaintyModel` in the JSON file `path` (`python -m tools.fit_uncertainty` writes one).
+    Raises ConfigError (missing, or not a model)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such uncertainty model file (`python -m tools.fit_uncertainty` fits "
+                          "one)")
+    try:
+        return UncertaintyModel.from_json(path.read_text())
+    except ConfigError as err:
+        raise ConfigError(f"{path}: {err}") from None
 
 
 def write_dem(path: Path, bed: Bed) -> None:
     """GeoTIFF, two float32 bands: 1 = bed elevation (m, z up, + z0), 2 = water depth (m, nodata on
-    emerged ground); nodata (`layout.NODATA`) outside the covered cells."""
+    emerged ground), and a third where the bed has its TVU95 (`Bed.tvu95`, m, description `TVU_BAND`);
+    nodata (`layout.NODATA`) outside the covered cells."""
     above = ""
     if bed.water is not None:
         w = bed.water.shifted([-v for v in bed.georef.offset])  # in the CRS
         above = f"; water level {w.level:g} m" + (f" at x = y = 0, slope {w.slope[0]:g}, {w.slope[1]:g}"
                                                   if w.tilted else "")
-    layout.write_raster(path, bed.absolute()[:, :2], [
-        (bed.absolute()[:, 2], f"bed elevation (m, z up{above})"),
-        (bed.depth(), "water depth (m, surface - bed where the bed is submerged; nodata on emerged ground)"),
-    ], bed.resolution, crs=bed.georef.crs)
+    bands = [(bed.absolute()[:, 2], f"bed elevation (m, z up{above})"),
+             (bed.depth(),
+              "water depth (m, surface - bed where the bed is submerged; nodata on emerged ground)")]
+    if bed.tvu95 is not None:
+        bands.append((bed.tvu95, TVU_BAND))
+    layout.write_raster(path, bed.absolute()[:, :2], bands, bed.resolution, crs=bed.georef.crs)
 
 
 def write_las(path: Path, bed: Bed) -> None:
     """LAS 1.4 (point format 6), or LAZ when `path` ends in .laz: one point per covered cell, integer
-    coordinates of 1 mm, classes `BATHYMETRIC` (submerged) and `GROUND` (emerged), the CRS as a WKT record."""
+    coordinates of 1 mm, classes `BATHYMETRIC` (submerged) and `GROUND` (emerged), the CRS as a WKT record;
+    where the bed has its TVU95 (`Bed.tvu95`) an extra dimension `TVU_BAND` (float32, m)."""
     import laspy
     from laspy.vlrs.known import WktCoordinateSystemVlr
 
@@ -396,9 +446,14 @@ def write_las(path: Path, bed: Bed) -> None:
     header.offsets = np.floor(pts.min(0))  # whole metres: small positive integers fit int32 up to 2000 km
     header.vlrs.append(WktCoordinateSystemVlr(bed.georef.wkt()))
     header.global_encoding.wkt = True
+    if bed.tvu95 is not None:
+        header.add_extra_dim(laspy.ExtraBytesParams(name=TVU_BAND, type=np.float32,
+                                                    description="TVU95 (m), 95 % vertical"))
     las = laspy.LasData(header)
     las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
     las.classification = np.where(np.isnan(bed.depth()), GROUND, BATHYMETRIC).astype(np.uint8)
+    if bed.tvu95 is not None:
+        las[TVU_BAND] = bed.tvu95.astype(np.float32)
     # A stream, not the path: laspy picks compression by the name's suffix, and tmp's is .tmp
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         las.write(f, do_compress=Path(path).suffix.lower() == ".laz")

@@ -153,9 +153,9 @@ def test_a_coarser_resolution_draws_fewer_samples(monkeypatch):
     drawn = []
     real = export.extract_surface
 
-    def spy(*args):
+    def spy(*args, **kwargs):
         drawn.append((args[4].n_samples, args[4].filter_radius))
-        return real(*args)
+        return real(*args, **kwargs)
 
     monkeypatch.setattr(export, "extract_surface", spy)
     g = plane_gaussians(lambda x, y: np.full_like(x, -1.5), step=0.1)  # 21 x 21 Gaussians

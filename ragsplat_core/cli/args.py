@@ -139,3 +139,32 @@ def lpips_arguments(parser: argparse.ArgumentParser) -> None:
                              "downloaded there with its hash check when missing)")
     parser.add_argument("--no-download", action="store_true",
                         help="never download the LPIPS weights (offline: LPIPS prints n/a with the reason)")
+
+
+def uncertainty_arguments(parser: argparse.ArgumentParser, level_default: str) -> None:
+    """--uncertainty, --level-sigma, --n-sigma (`ragsplat export`, `ragsplat survey`)."""
+    parser.add_argument("--uncertainty", type=Path, metavar="MODEL.json",
+                        help="a fitted uncertainty model (`python -m tools.fit_uncertainty`): the DEM gets "
+                             "band 3, each cell's total vertical uncertainty at 95 %% (TVU95, m, described "
+                             "'tvu95'), the LAS/LAZ an extra dimension tvu95 (docs/uncertainty.md)")
+    parser.add_argument("--level-sigma", type=non_negative_float, metavar="M",
+                        help="with --uncertainty: the water level's standard deviation (m), added to TVU95 "
+                             f"as a systematic term (default: {level_default})")
+    parser.add_argument("--n-sigma", type=non_negative_float, default=0.0, metavar="S",
+                        help="with --uncertainty: the refractive index's standard deviation, likewise "
+                             "(default: 0)")
+
+
+def uncertainty_options(args: argparse.Namespace):
+    """The model --uncertainty names (None without), read before any work. Raises ConfigError for a sigma
+    without it, or a file that is not a model."""
+    from ragsplat.errors import ConfigError
+    from ragsplat.export import read_uncertainty
+
+    if args.uncertainty is None:
+        given = [o for o, v in (("--level-sigma", args.level_sigma), ("--n-sigma", args.n_sigma)) if v]
+        if given:
+            raise ConfigError(f"{' and '.join(given)} without --uncertainty: nothing to add them to")
+        return None
+    return read_uncertainty(args.uncertainty)
+

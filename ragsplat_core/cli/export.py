@@ -1,8 +1,11 @@
 """`ragsplat export RUN --dem FILE.tif [--resolution 0.05] [--min-opacity A] [--max-scale-gsd K]
-[--despike-radius M] [--despike-tol M] [--fill-gap-cells K] [--las FILE.las|.laz] [--ply FILE] [--png FILE]`.
+[--despike-radius M] [--despike-tol M] [--fill-gap-cells K] [--las FILE.las|.laz] [--ply FILE] [--png FILE]
+[--uncertainty MODEL.json [--level-sigma M] [--n-sigma S]]`.
 
 Turns a finished training run into survey products (`ragsplat.export`): the DEM GeoTIFF (bed elevation
-and water depth), and on request the bed points as LAS/LAZ and PLY and a depth map PNG.
+and water depth), and on request the bed points as LAS/LAZ and PLY and a depth map PNG. With a fitted
+uncertainty model (`python -m tools.fit_uncertainty`), each cell's TVU95 too: the DEM's band 3 and the
+LAS's extra dimension `tvu95` (docs/uncertainty.md).
 """
 
 from __future__ import annotations
@@ -16,6 +19,8 @@ from ragsplat.cli.args import (
     dataset_dir,
     out_file_ending,
     positive_float,
+    uncertainty_arguments,
+    uncertainty_options,
 )
 
 
@@ -34,6 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="water depth map with a colour bar over a hillshade")
     parser.add_argument("--data", type=dataset_dir, metavar="DIR",
                         help="the run's dataset directory (default: the one RUN/config.json names)")
+    uncertainty_arguments(parser, "0: the run's water taken as exact")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -41,11 +47,19 @@ def run(args: argparse.Namespace) -> int:
 
     from ragsplat.export import export_run
 
+    model = uncertainty_options(args)
     bed = export_run(args.run, args.dem, args.resolution, args.las, args.ply, args.png, args.data,
+                     uncertainty=model, level_sigma=args.level_sigma or 0.0, n_sigma=args.n_sigma,
                      **cull_overrides(args))
     depth = bed.depth()[np.isfinite(bed.depth())]
     deepest = f", deepest {depth.max():.3g} m" if len(depth) else ""
     print(f"{len(bed.grid)} cells of {bed.resolution:g} m, {len(depth)} under water{deepest}")
+    if bed.tvu95 is not None:
+        wet = np.isfinite(bed.depth())
+        where = bed.tvu95[wet] if wet.any() else bed.tvu95
+        print(f"TVU95 (band 3): median {100 * np.median(where):.1f} cm, p95 "
+              f"{100 * np.percentile(where, 95):.1f} cm over the {'wet' if wet.any() else 'covered'} cells "
+              f"({args.uncertainty})")
     for path in (args.dem, args.las, args.ply, args.png):
         if path is not None:
             print(f"wrote {path}")

@@ -90,6 +90,8 @@ class Dataset:
     # metres per pixel at the water surface, of every training frame's camera (loaded or not):
     # `camera.ground_sample_distance`; None for a dry scene
     gsd: float | None = None
+    # every training frame's camera, loaded or not (a finished run's views: `ragsplat.uncertainty`)
+    train_cameras: list[Camera] = field(default_factory=list)
 
     def split(self, name: str) -> list[View]:
         if name not in SPLITS:
@@ -320,7 +322,7 @@ def load_dataset(root: str | Path, splits: tuple[str, ...] = SPLITS, load_dry: b
     gsd = None if water is None else ground_sample_distance(train_cameras, float(water.height(
         np.median([c.camera_center[:2] for c in train_cameras], axis=0)))) if train_cameras else None
     return Dataset(root, water, views, bed, region, truth, layout.fingerprint(root), _georef(meta, tpath),
-                   gsd)
+                   gsd, train_cameras)
 
 
 def _georef(meta: dict, path: Path) -> layout.Georef:
