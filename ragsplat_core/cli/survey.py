@@ -5,7 +5,8 @@
 --positions or --gcp the camera positions come from the photos' own metadata (`survey.exif`: EXIF GPS, DJI's
 XMP with its RTK flag and accuracies), converted to the UTM zone of their mean position (or --crs), in which
 the products are then written. A survey larger than a tile trains its tiles as Dask tasks: on --jobs local
-worker processes, or on an existing cluster (--scheduler).
+worker processes, or on an existing cluster (--scheduler). With --uncertainty MODEL.json (a fitted model,
+`python -m tools.fit_uncertainty`) the DEM gets band 3, each cell's TVU95 (docs/uncertainty.md).
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ from ragsplat.cli.args import (
     positive_float,
     positive_int,
     refractive_index,
+    uncertainty_arguments,
+    uncertainty_options,
 )
 
 
@@ -110,6 +113,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scheduler", metavar="ADDRESS",
                         help="train the tiles on the Dask cluster whose scheduler is at ADDRESS "
                              "(tcp://host:8786; its workers need ragsplat and this run's paths)")
+    uncertainty_arguments(parser, "the adjustment's estimate where it estimated the level; a given level: 0")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -147,6 +151,7 @@ def run(args: argparse.Namespace) -> int:
     from ragsplat.cli.progress import deferred_interrupts
     from ragsplat.survey import pipeline
 
+    uncertainty_options(args)  # a sigma without a model, or a file that is not one: refused before any work
     settings = {f.name: getattr(args, f.name) for f in fields(pipeline.SurveyConfig)}
     cfg = pipeline.SurveyConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()})
 

@@ -18,7 +18,9 @@ parses arguments). Before any work, everything that can be refused is (`check_in
    (`survey.tiles`), each imported, trained and extracted on its own in RUN/tiles/K/ (a Dask task each where
    a client is given), and their beds merged: each cell from the tile whose core holds it; the layout and
    the seams' agreement in RUN/tiles.json. A survey of one tile trains in RUN/data and RUN/train, as it
-   always has.
+   always has. With a fitted uncertainty model (`SurveyConfig.uncertainty`) the DEM gets band 3, each cell's
+   TVU95, and the LAZ an extra dimension `tvu95` (`export.cell_tvu95`; a tiled survey's merged like the
+   heights), the level's standard deviation the adjustment's where it estimated the level (`level_sigma`).
 """
 
 from __future__ import annotations
@@ -104,6 +106,9 @@ class SurveyConfig:
     stop_after: str | None = None
     tile_size: float | None = None  # m; None: TILE_GSD ground sample distances
     tile_overlap: float | None = None  # m; None: TILE_OVERLAP of the side
+    uncertainty: Path | None = None  # a fitted `uncertainty.UncertaintyModel` (JSON): the DEM's band 3
+    level_sigma: float | None = None  # m; None: the adjustment's where it estimated the level, else 0
+    n_sigma: float = 0.0
 
 
 def line(stage: str, text: str, since: float | None = None) -> str:
@@ -332,6 +337,10 @@ def check_inputs(cfg: SurveyConfig, progress: Progress) -> Survey:
     photos = sorted(p for p in cfg.images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if len(photos) < 3:
         raise DatasetError(f"{cfg.images}: {len(photos)} photos (JPEG, PNG or TIFF); at least 3 are needed")
+    if cfg.uncertainty is not None:
+        from ragsplat.export import read_uncertainty
+
+        read_uncertainty(cfg.uncertainty)  # ConfigError before any work
     cfg, where = locate(cfg, photos, progress)
     given = water_as_given(cfg, where, progress)
     if where.positions is not None and given.surface is not None:
@@ -821,8 +830,11 @@ def train_one(cfg: SurveyConfig, water: Water, area: float, progress: Progress) 
 
 def export(cfg: SurveyConfig, water: Water, trained: Path, products: list[Path], stamps: Stamps,
            progress: Progress) -> None:
-    """The products of the training in `trained` (`export.export_run`), kept while its checkpoint is."""
-    key = _digest(water.key, (trained / "point_cloud.ply").stat().st_mtime_ns, cfg.resolution)
+    """The products of the training in `trained` (`export.export_run`, with the TVU95 band where
+    `cfg.uncertainty` names a model), kept while its checkpoint and the uncertainty's settings are."""
+    band = uncertainty_settings(cfg)
+    key = _digest(water.key, (trained / "point_cloud.ply").stat().st_mtime_ns, cfg.resolution,
+                  *([] if band is None else [band]))
     t0 = time.perf_counter()
     if not stamps.done("export", key, *products):
         from ragsplat.export import export_run
@@ -830,9 +842,45 @@ def export(cfg: SurveyConfig, water: Water, trained: Path, products: list[Path],
         dem, las, png = products
         b, on_block = progress.count("[export] bed", "block")
         with b:
-            bed = export_run(trained, dem, cfg.resolution, las, None, png, on_block=on_block)
+            bed = export_run(trained, dem, cfg.resolution, las, None, png, on_block=on_block,
+                             **_uncertainty_kwargs(band))
         stamps.mark("export", key)
-        progress.say("export", f"{len(bed.grid)} cells of {cfg.resolution:g} m", t0)
+        progress.say("export", f"{len(bed.grid)} cells of {cfg.resolution:g} m{_tvu_words(bed)}", t0)
+
+
+def uncertainty_settings(cfg: SurveyConfig) -> dict | None:
+    """What the TVU95 band is made with (None: no band): the model (its JSON), the level's standard deviation
+    (`cfg.level_sigma`, else the adjustment's where it estimated the level, RUN/water.json, as the water
+    stage reports it; else 0: a given level is taken as exact) and n's (`cfg.n_sigma`)."""
+    if cfg.uncertainty is None:
+        return None
+    from ragsplat.export import read_uncertainty
+
+    level = cfg.level_sigma
+    if level is None:
+        check = json.loads((cfg.out / "water.json").read_text())
+        est = check.get("estimated")
+        level = 0.0 if est is None else float(
+            est["sigma_given_cameras_m" if "slope" in est["free"] else "sigma_m"]["level"])
+    return {"model": read_uncertainty(cfg.uncertainty).to_json(), "level_sigma": level,
+            "n_sigma": float(cfg.n_sigma)}
+
+
+def _uncertainty_kwargs(band: dict | None) -> dict:  # `export_run`'s arguments for the band
+    if band is None:
+        return {}
+    from ragsplat.uncertainty import UncertaintyModel
+
+    return {"uncertainty": UncertaintyModel.from_json(band["model"]), "level_sigma": band["level_sigma"],
+            "n_sigma": band["n_sigma"]}
+
+
+def _tvu_words(bed) -> str:
+    if bed.tvu95 is None:
+        return ""
+    import numpy as np
+
+    return f"; TVU95 (band 3) median {100 * float(np.median(bed.tvu95)):.1f} cm"
 
 
 def train_tiles(cfg: SurveyConfig, water: Water, tiling: list[Tile], size: float, overlap: float,
@@ -844,18 +892,20 @@ def train_tiles(cfg: SurveyConfig, water: Water, tiling: list[Tile], size: float
 
     key = _digest(water.key, cfg.variant, cfg.init, cfg.preset, cfg.iterations, cfg.seed, cfg.max_size,
                   cfg.resolution, [t.to_json() for t in tiling])
-    if stamps.done("export", key, *products, cfg.out / "tiles.json"):
+    band = uncertainty_settings(cfg)
+    done_key = key if band is None else _digest(key, band)  # the tiles' models and trainings: `key` alone
+    if stamps.done("export", done_key, *products, cfg.out / "tiles.json"):
         return
     t0 = time.perf_counter()
     progress.say("tiles", f"{len(tiling)} tiles of at most {size:.1f} m, overlapping by {overlap:.1f} m, of "
                  f"{', '.join(str(len(t.photos)) for t in tiling)} photos ...")
-    beds = _tile_beds(cfg, progress, cluster, water.model, water.surface, tiling, water.extent, key)
+    beds = _tile_beds(cfg, progress, cluster, water.model, water.surface, tiling, water.extent, key, band)
     merged = _merge(cfg, water.surface, tiling, beds, products)
     runs = [json.loads((cfg.out / "tiles" / str(t.index) / "tile.json").read_text()) for t in tiling]
     write_json(cfg.out / "tiles.json", {**merged,
                                         "tiles": [t.to_json() | {"run": r} for t, r in zip(tiling, runs)],
                                         "seconds": time.perf_counter() - t0})
-    stamps.mark("export", key)
+    stamps.mark("export", done_key)
     progress.say("export", f"{sum(merged['cells'].values())} cells of {cfg.resolution:g} m from "
                  f"{len(tiling)} tiles; the overlaps agree to {_seams(merged)} (each tile's: "
                  f"{cfg.out / 'tiles.json'})", t0)
@@ -898,11 +948,17 @@ class TileJob:
     area: float  # m^2: the tile's share of the survey's points' box, for the Gaussian budget
     bounds: tuple[float, float, float, float]  # the tile's outer box in the CRS (+-inf: open)
     key: str
+    band: dict | None = None  # `uncertainty_settings`: the bed's TVU95 too (None: none)
+
+    @property
+    def bed_key(self) -> str:  # what the tile's bed.npy was made with
+        return self.key if self.band is None else _digest(self.key, self.band)
 
 
 def train_tile(job: TileJob) -> str:
     """Imports, trains (resuming) and extracts one tile; returns the path of its bed (bed.npy: cell centres
-    and heights [G, 3] in the CRS, float64), written last and atomically, so a rerun of a finished tile (a
+    and heights [G, 3] in the CRS, float64, and with `job.band` each cell's TVU95 as a fourth column), written
+    last and atomically, so a rerun of a finished tile (a
     retried task, a rerun command) only reads it. Its progress goes to its log.txt; its seconds and the
     worker process's peak memory so far (the largest of the tiles it trained) to tile.json."""
     import resource
@@ -915,7 +971,7 @@ def train_tile(job: TileJob) -> str:
 
     folder = Path(job.folder)
     bed_path, stamp = folder / "bed.npy", folder / "key.txt"
-    if bed_path.is_file() and stamp.is_file() and stamp.read_text() == job.key:
+    if bed_path.is_file() and stamp.is_file() and stamp.read_text() == job.bed_key:
         return str(bed_path)
     surface = WaterSurface(**{**job.water, "n": job.cfg.n})
     t0 = time.perf_counter()
@@ -923,14 +979,15 @@ def train_tile(job: TileJob) -> str:
         progress = _Log(log)
         progress.say("tile", f"tile {folder.name} on worker process {os.getpid()}")
         _train(job.cfg, progress, folder / "model", folder / "data", folder / "train", surface, job.area)
-        bed = export_run(folder / "train", folder / "dem.tif", job.cfg.resolution, bounds=job.bounds)
-        progress.say("export", f"{len(bed.grid)} cells", t0)
+        bed = export_run(folder / "train", folder / "dem.tif", job.cfg.resolution, bounds=job.bounds,
+                         **_uncertainty_kwargs(job.band))
+        progress.say("export", f"{len(bed.grid)} cells{_tvu_words(bed)}", t0)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB on Linux -> GiB
     write_json(folder / "tile.json", {"seconds": time.perf_counter() - t0, "worker_peak_gib": peak,
                                       "cells": len(bed.grid), "pid": os.getpid()})
     with atomic_path(bed_path) as tmp, open(tmp, "wb") as f:
-        np.save(f, bed.absolute())
-    stamp.write_text(job.key)
+        np.save(f, bed.absolute() if bed.tvu95 is None else np.column_stack([bed.absolute(), bed.tvu95]))
+    stamp.write_text(job.bed_key)
     return str(bed_path)
 
 
@@ -953,10 +1010,11 @@ class _Log(Progress):
 
 
 def _tile_beds(cfg: SurveyConfig, progress: Progress, cluster, model: Path, surface, tiling: list, extent,
-               key: str) -> list:
-    """Every tile's bed [G_t, 3] (CRS): the tiles' models written here, then `train_tile` for each, as Dask
-    tasks on the client `cluster(len(tiling))` opens, or one after another here without one. `extent`: the
-    survey's points' box (lo, hi), which bounds each tile's area for its Gaussian budget."""
+               key: str, band: dict | None = None) -> list:
+    """Every tile's bed [G_t, 3] (CRS; [G_t, 4] with `band`, the TVU95 fourth): the tiles' models written
+    here, then `train_tile` for each, as Dask tasks on the client `cluster(len(tiling))` opens, or one after
+    another here without one. `extent`: the survey's points' box (lo, hi), which bounds each tile's area for
+    its Gaussian budget."""
     import numpy as np
     import pycolmap
 
@@ -978,7 +1036,7 @@ def _tile_beds(cfg: SurveyConfig, progress: Progress, cluster, model: Path, surf
         box = np.array(tile.outer, float)
         lo, hi = np.maximum(box[:2], extent[0]), np.minimum(box[2:], extent[1])
         area = float(np.prod(np.clip(hi - lo, 0, None)))
-        jobs.append(TileJob(cfg, str(folder), layout.water_json(surface), area, tile.outer, key))
+        jobs.append(TileJob(cfg, str(folder), layout.water_json(surface), area, tile.outer, key, band))
     beds = [None] * len(jobs)
     with progress.bar(len(jobs), "[tiles] trained", "tile") as b:
         if cluster is None:
@@ -1178,9 +1236,10 @@ def _train(cfg: SurveyConfig, progress: Progress, model: Path, data: Path, out: 
 
 
 def _merge(cfg: SurveyConfig, surface, tiling: list, beds: list, products: list[Path]) -> dict:
-    """The tiles' beds merged (`survey.tiles.merge`) and written as the products, in the frame of the first
-    tile's import (its offset; the grid's nodes are on multiples of the resolution in the CRS, the same for
-    every tile); returns the merge's report."""
+    """The tiles' beds merged (`survey.tiles.merge`: each cell, with its TVU95 where the beds have a fourth
+    column, from the tile whose core holds it) and written as the products, in the frame of the first tile's
+    import (its offset; the grid's nodes are on multiples of the resolution in the CRS, the same for every
+    tile); returns the merge's report."""
     import numpy as np
 
     from ragsplat.dataset.load import load_dataset
@@ -1190,7 +1249,8 @@ def _merge(cfg: SurveyConfig, surface, tiling: list, beds: list, products: list[
     grid, _, report = tiles.merge(beds, tiling, cfg.resolution)
     georef = load_dataset(cfg.out / "tiles" / "0" / "data", splits=()).georef
     offset = np.asarray(georef.offset)
-    bed = Bed(grid - offset, cfg.resolution, surface.shifted(offset), georef)
+    tvu = grid[:, 3] if grid.shape[1] > 3 else None
+    bed = Bed(grid[:, :3] - offset, cfg.resolution, surface.shifted(offset), georef, tvu95=tvu)
     for path, write in zip(products, (write_dem, write_las, write_png)):
         write(path, bed)
     return report

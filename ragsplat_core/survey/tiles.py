@@ -109,10 +109,11 @@ def inside(xy: np.ndarray, box) -> np.ndarray:
 def merge(beds: list[np.ndarray], tiles: list[Tile],
           resolution: float) -> tuple[np.ndarray, np.ndarray, dict]:
     """One bed from the tiles' beds (each [G_t, 3] cell centres and heights in the same frame, on one grid of
-    `resolution`): each cell from the tile whose core holds it, or, where that tile left it empty, from the
-    first other tile that made it (the overlap fills a hole at a seam). Returns (grid [G, 3], the tile each
-    cell came from [G], the report: cells per tile, the holes filled, and for each pair of tiles that made
-    common cells their number and the height difference's median, rms and p95 of its absolute value, m)."""
+    `resolution`; further columns, a cell's TVU95, go with their cell): each cell from the tile whose core
+    holds it, or, where that tile left it empty, from the first other tile that made it (the overlap fills a
+    hole at a seam). Returns (grid [G, 3] (as wide as the beds), the tile each cell came from [G], the report:
+    cells per tile, the holes filled, and for each pair of tiles that made common cells their number and the
+    height difference's median, rms and p95 of its absolute value, m)."""
     keys = []  # each bed holds a cell once (one extracted point per cell)
     for bed in beds:
         ij = np.round(bed[:, :2] / resolution).astype(np.int64)  # the cell's integer index on the common grid
