@@ -22,6 +22,11 @@ Gridding, onto the ground truth's nodes (`GroundTruth.nodes`), so that every bed
   Delaunay triangulation (`tracks.tin`). Only the points within the filter's radius of the nodes are read.
 
 A file whose bed covers fewer than `MIN_COVER` of the truth's wet nodes is refused (DatasetError).
+
+A DEM with a TVU95 band (`ragsplat export --uncertainty`: described `export.TVU_BAND`, or the band named) is
+read at the same nodes the same way, and its calibration reported over the wet cells it covers
+(`calibration.tvu_band_summary`: the coverage of |dz| <= TVU95, the median TVU95, the z-scores' variance, the
+IHO orders' shares).
 """
 
 from __future__ import annotations
@@ -183,6 +188,17 @@ def read_ply_points(path: Path) -> np.ndarray:
     return np.column_stack([rows[c] for c in "xyz"]).astype(np.float64)
 
 
+def band_named(path: Path, name: str) -> int | None:
+    """The first band (1-based) of a GeoTIFF whose description is `name`, None for none."""
+    import rasterio
+
+    try:
+        with rasterio.open(path) as tif:
+            return next((k for k, d in enumerate(tif.descriptions, 1) if d == name), None)
+    except rasterio.errors.RasterioIOError as err:
+        raise DatasetError(f"{path}: not a readable GeoTIFF ({err})") from None
+
+
 def read_dem(path: Path, band: int) -> tuple[np.ndarray, object, object]:
     """(values [H, W] float64, NaN where not covered; its affine transform; its CRS or None) of a GeoTIFF's
     `band` (1-based)."""
@@ -250,6 +266,13 @@ def read_bed(path: Path, truth, georef, band: int = 1, depth: bool = False, desp
     survey run from the photos' EXIF writes its products there). Raises ConfigError (unknown kind, no such
     band, unusable `crs`), DatasetError (unreadable, or not over the ground truth: fewer than `MIN_COVER` of
     its wet nodes covered)."""
+    grid, record, _ = _read_bed(path, truth, georef, band, depth, despike, crs, geotags)
+    return grid, record
+
+
+def _read_bed(path: Path, truth, georef, band: int = 1, depth: bool = False, despike: bool = True,
+              crs: str | None = None, geotags=None) -> tuple[np.ndarray, dict, Frame]:
+    """`read_bed`, and the `Frame` the file was read in."""
     from rasterio.crs import CRS
     from rasterio.errors import CRSError
     from scipy.spatial import cKDTree
@@ -307,24 +330,51 @@ def read_bed(path: Path, truth, georef, band: int = 1, depth: bool = False, desp
                "filter": TIN_FILTER if despike else None}
     return grid, {"file": str(path), "kind": kind, "crs": crs_name(file_crs),
                   "values": "depth" if depth else "elevation", "frame": frame.label, **how,
-                  "nodes_covered": len(grid), "wet_nodes_covered": landed, "wet_nodes": len(truth.grid)}
+                  "nodes_covered": len(grid), "wet_nodes_covered": landed,
+                  "wet_nodes": len(truth.grid)}, frame
+
+
+def tvu_band(path: Path, grid: np.ndarray, frame: Frame, truth, band: int) -> dict:
+    """The DEM `path`'s TVU95 band `band` read at the bed's cells `grid` [G', 3] (`read_bed`'s, in the
+    `frame` it was read in, as `dem_at` reads heights) and scored against `truth` over the wet cells where it
+    has a value (`calibration.tvu_band_summary`)."""
+    from ragsplat.eval.calibration import tvu_band_summary
+    from ragsplat.eval.evaluate import height_error
+
+    values, transform, _ = read_dem(path, band)
+    tvu, read = dem_at(values, transform, frame.to_file(grid[:, :2]))
+    dz, true_depth = height_error(grid, truth)
+    use = read & np.isfinite(tvu) & (true_depth > 0)
+    return {"band": band, **tvu_band_summary(tvu[use], dz[use], true_depth[use])}
 
 
 def score_file(path: Path, data: Path, references: bool = False,
-               log: Callable[[str], None] = lambda line: None, **read) -> tuple[dict, np.ndarray, object]:
+               log: Callable[[str], None] = lambda line: None, tvu: int | None = None,
+               **read) -> tuple[dict, np.ndarray, object]:
     """The bed of the file `path` (`read_bed` with `read`) scored against the ground truth of the dataset
     `data` by `ragsplat.eval.evaluate.score_grid`, beside the reference rows that need no training: the oracle
     planes (`references.oracle_grids`) and, with `references`, the tracks' grids (`TrainEval.track_grids`: it
-    triangulates a dataset without a cached triangulation, minutes). Returns (the result, the bed grid
-    [G', 3], the ground truth)."""
+    triangulates a dataset without a cached triangulation, minutes). A DEM's TVU95 band (`tvu`, else the band
+    described `export.TVU_BAND` where it has one) is scored too, under "uncertainty" (`tvu_band`). Returns
+    (the result, the bed grid [G', 3], the ground truth). Raises as `read_bed`, and ConfigError for `tvu` of
+    a file that is no DEM or the band of the heights themselves."""
     from ragsplat.dataset import layout
     from ragsplat.dataset.load import load_dataset
     from ragsplat.eval.ablation import dataset_seed
     from ragsplat.eval.evaluate import score_grid
+    from ragsplat.export import TVU_BAND
 
+    dem = KINDS.get(Path(path).suffix.lower()) == "DEM"
+    if tvu is not None and not dem:
+        raise ConfigError(f"{path}: a TVU95 band (--tvu-band) is a DEM GeoTIFF's; this file is no DEM")
+    if tvu is not None and tvu == read.get("band", 1):
+        raise ConfigError(f"band {tvu} is the heights' band: the TVU95 band is another")
     ds = load_dataset(data, splits=(), ground_truth=True)
     truth = ds.ground_truth
-    grid, record = read_bed(path, truth, ds.georef, geotags=survey_geotags(data), **read)
+    grid, record, frame = _read_bed(path, truth, ds.georef, geotags=survey_geotags(data), **read)
+    if tvu is None and dem:
+        tvu = band_named(path, TVU_BAND)
+        tvu = None if tvu == read.get("band", 1) else tvu  # scoring the band itself (--band K)
     rows = oracle_grids(truth)
     if references:
         from ragsplat.eval.ablation import TrainEval
@@ -335,4 +385,5 @@ def score_file(path: Path, data: Path, references: bool = False,
             "georef": ds.georef.to_json(), "max_depth_m": truth.max_depth,
             "water": layout.water_json(truth.water), "geometry": score_grid(grid, truth),
             "references": {name: score_grid(g, truth) for name, g in rows.items()},
-            "uses_ground_truth": list(USES_GROUND_TRUTH)}, grid, truth
+            "uses_ground_truth": list(USES_GROUND_TRUTH),
+            **({} if tvu is None else {"uncertainty": tvu_band(path, grid, frame, truth, tvu)})}, grid, truth

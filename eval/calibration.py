@@ -163,6 +163,21 @@ def iho_shares(tvu95, depth) -> dict:
     return out
 
 
+def tvu_band_summary(tvu95, err, depth) -> dict:
+    """What `ragsplat score` says of a DEM's TVU95 band over the wet cells it covers (TVU95 [N], errors [N],
+    true depths [N], m): the cells, the coverage of the central `LEVELS` intervals (|e| <= z_p sigma, sigma =
+    TVU95 / Z95; at 0.95 |e| <= TVU95), the median TVU95 (the sharpness), the z-scores' variance, and the IHO
+    orders' shares (`iho_shares`). None for each figure where there is no cell."""
+    tvu95, err = np.asarray(tvu95, float), np.asarray(err, float)
+    if not len(err):
+        return {"cells": 0, "coverage": {f"{p:g}": None for p in LEVELS}, "median_tvu95": None,
+                "z_variance": None, "iho": None}
+    sigma = tvu95 / Z95
+    return {"cells": len(err), "coverage": {f"{p:g}": coverage(sigma, err, p) for p in LEVELS},
+            "median_tvu95": float(np.median(tvu95)), "z_variance": z_variance(sigma, err),
+            "iho": iho_shares(tvu95, depth)}
+
+
 def calibration_report(tvu95, err, seeds, depth, views, xy=None, cell: float = 0.05,
                        max_depth: float | None = None) -> dict:
     """Every figure of the module docstring for cells with TVU95 [N] (m), errors [N] (m), dataset seeds [N],

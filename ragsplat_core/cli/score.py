@@ -1,7 +1,10 @@
 """`ragsplat score FILE --truth DIR [--out FILE.json] [--band K] [--kind elevation|depth] [--crs CRS]
-[--no-filter] [--references]`: any bed (a DEM GeoTIFF, LAS/LAZ, PLY or CSV points, from any software) on the
-ground truth's nodes, scored by the ablation's own measures (`ragsplat.eval.bed_file`); prints its row beside
-the reference rows that need no training, writes the scores as JSON and its error map as PNG."""
+[--no-filter] [--references] [--tvu-band K]`: any bed (a DEM GeoTIFF, LAS/LAZ, PLY or CSV points, from any
+software) on the ground truth's nodes, scored by the ablation's own measures (`ragsplat.eval.bed_file`);
+prints its row beside the reference rows that need no training, writes the scores as JSON and its error map
+as PNG.
+A DEM with a TVU95 band (`ragsplat export --uncertainty`, or --tvu-band K) also gets that band's calibration
+over the wet cells: coverage, median TVU95, z-score variance, IHO orders' shares (docs/uncertainty.md)."""
 
 from __future__ import annotations
 
@@ -32,6 +35,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-filter", action="store_true",
                         help="points: no outlier filter before the TIN (default: filtered as ragsplat's own "
                              "references are, `tracks.track_filter`)")
+    parser.add_argument("--tvu-band", type=positive_int, metavar="K",
+                        help="a DEM's band of TVU95 (m) to check against the truth (default: the band "
+                             "described 'tvu95', as `ragsplat export --uncertainty` writes it, where there "
+                             "is one)")
     parser.add_argument("--references", action="store_true",
                         help="also the tracks' reference rows (TIN of the triangulated tracks, Dietrich's "
                              "correction): triangulates the dataset if not cached yet, minutes")
@@ -49,13 +56,28 @@ def table(result: dict) -> str:
     return geometry_table(["Row", "bed"], rows, T2_COLUMNS + T3_COLUMNS)
 
 
+def uncertainty_lines(u: dict) -> list[str]:
+    """The TVU95 band's figures (`bed_file.tvu_band`) in words."""
+    if not u["cells"]:
+        return [f"- TVU95 (band {u['band']}): no wet cell of the truth has a value"]
+    cover = ", ".join(f"{100 * v:.1f} % in {100 * float(p):g} %" for p, v in u["coverage"].items())
+    iho = ", ".join(f"{k} {100 * v:.1f} %" for k, v in u["iho"].items() if k != "5cm")
+    return [(f"- TVU95 (band {u['band']}), over {u['cells']} wet cells: |dz| <= TVU95 in "
+             f"{100 * u['coverage']['0.95']:.1f} % (target 94-96 %); median TVU95 "
+             f"{100 * u['median_tvu95']:.2f} cm; z-score variance {u['z_variance']:.3f} (sigma = TVU95 / "
+             f"1.96; target 0.8-1.25); the central intervals' coverage {cover}"),
+            (f"- cells whose TVU95 is within each IHO S-44 order's TVU at their depth: {iho}; within 5 cm "
+             f"{100 * u['iho']['5cm']:.1f} %")]
+
+
 def run(args: argparse.Namespace) -> int:
     from ragsplat.eval.bed_file import score_file
     from ragsplat.eval.report import depth_error_map, jsonable, survey_notes
     from ragsplat.outputs import write_json
 
-    result, grid, truth = score_file(args.file, args.truth, args.references, log=print, band=args.band,
-                                     depth=args.kind == "depth", despike=not args.no_filter, crs=args.crs)
+    result, grid, truth = score_file(args.file, args.truth, args.references, log=print, tvu=args.tvu_band,
+                                     band=args.band, depth=args.kind == "depth", despike=not args.no_filter,
+                                     crs=args.crs)
     out = args.out if args.out is not None else args.file.with_name(args.file.stem + "_score.json")
     figure = depth_error_map(grid, truth, out.with_name(out.stem + "_error.png"), args.file.name)
     result["error_map"] = str(figure)
@@ -67,6 +89,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"\n- F1 at 10 / 30 cm and at 1 % / 3 % of the maximum depth ({result['max_depth_m']:g} m).")
     print("\n".join(f"- {note}" for note in survey_notes({"max_depth_m": result["max_depth_m"],
                                                           "water": result["water"]})))
+    if "uncertainty" in result:
+        print("\n".join(uncertainty_lines(result["uncertainty"])))
     if not args.references:
         print("- the tracks' reference rows: add --references (triangulates the dataset if not cached, "
               "minutes)")
