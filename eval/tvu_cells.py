@@ -1,0 +1,122 @@
+"""A finished run's bed cells with their uncertainty features and true errors (issue 52): what the TVU95 model
+is fitted and calibrated on (`python -m tools.fit_uncertainty`, docs/uncertainty.md).
+
+- the bed: the evaluation's (`ablation.extract_config` of the run's preset and seed, on the ground truth's
+  nodes inside its region: the bed `ragsplat eval` scores and the ablation writes as the row's bed.npy), with
+  the extraction's per-cell record (`surface.extract_surface(..., cells=True)`);
+- the features: `uncertainty.cell_features` of those cells from the run's training views through the water
+  the run ended with (`export.run_water`);
+- the errors: `evaluate.height_error` against the ground truth (predicted - true bed height);
+- only the wet cells (true depth > 0) are kept.
+
+The protocol's seeds (`ablation.DATASET_SEEDS`): the evaluation reach (dataset seed 0) and the untouched one
+(7) are only scored, never fitted or calibrated on (`check_development`).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ragsplat.errors import ConfigError, DatasetError, OutputError
+from ragsplat.eval.ablation import DATASET_SEEDS, PRESETS, dataset_seed, extract_config
+from ragsplat.uncertainty import CellFeatures
+
+# The dataset seeds no uncertainty model may be fitted or calibrated on: the reaches the tables are scored on
+HELD_OUT = {DATASET_SEEDS["evaluation"]: "evaluation", DATASET_SEEDS["untouched"]: "untouched"}
+
+
+@dataclass(frozen=True)
+class RunSource:
+    """Where a finished run's cells come from, read from its config.json alone (no dataset loaded)."""
+
+    run: Path
+    data: Path  # the dataset it trained on
+    truth: Path  # the dataset whose ground truth scores it (`data`, or another in the same frame)
+    preset: str
+    seed: int  # the training seed (also the extraction's)
+    data_seed: int | None  # dataset seeds (`ablation.dataset_seed`; None: not rendered by the generator)
+    truth_seed: int | None
+
+
+@dataclass(frozen=True)
+class RunCells:
+    """A run's wet cells: their features, errors (m) and true depths (m)."""
+
+    source: RunSource
+    features: CellFeatures
+    errors: np.ndarray
+    depth: np.ndarray
+
+
+def run_source(run: Path, truth: Path | None = None) -> RunSource:
+    """The run's datasets, preset and seeds from RUN/config.json. Raises OutputError (not a finished run's
+    config)."""
+    run = Path(run)
+    try:
+        meta = json.loads((run / "config.json").read_text())
+        data, preset, seed = Path(meta["dataset"]), str(meta["config"]["preset"]), int(meta["config"]["seed"])
+    except (OSError, ValueError, KeyError, TypeError):
+        raise OutputError(f"{run}: not a finished training run (no config.json naming its dataset, preset "
+                          "and seed)") from None
+    truth = data if truth is None else Path(truth)
+    return RunSource(run, data, truth, preset, seed, dataset_seed(data), dataset_seed(truth))
+
+
+def check_development(source: RunSource) -> None:
+    """Raises ConfigError where the run trained on, or would be scored against, a held-out reach (`HELD_OUT`):
+    fitting or calibrating there would tune the uncertainty on the test."""
+    for what, root, seed in (("trained on", source.data, source.data_seed),
+                             ("scored against", source.truth, source.truth_seed)):
+        if seed in HELD_OUT:
+            raise ConfigError(f"{source.run}: {what} {root}, dataset seed {seed}, the {HELD_OUT[seed]} "
+                              "reach: an uncertainty model is fitted and calibrated on development seeds "
+                              f"only (not {', '.join(str(s) for s in sorted(HELD_OUT))}); see "
+                              "docs/uncertainty.md")
+
+
+def run_cells(source: RunSource, level_sigma: float = 0.0, n_sigma: float = 0.0) -> RunCells:
+    """The wet cells of the run `source` (module docstring); `level_sigma` (m) and `n_sigma`: the systematic
+    term's standard deviations (0: the development seeds render with the true water). Raises OutputError,
+    DatasetError (a dataset missing, changed, without ground truth, or in another frame), ConfigError (a
+    preset without evaluation settings)."""
+    from ragsplat.dataset.load import load_dataset
+    from ragsplat.eval.evaluate import height_error
+    from ragsplat.export import load_run, run_water
+    from ragsplat.surface import extract_surface
+    from ragsplat.uncertainty import cell_features
+
+    if source.preset not in PRESETS:
+        raise ConfigError(f"{source.run}: preset {source.preset!r} has no evaluation settings; known: "
+                          f"{', '.join(PRESETS)}")
+    gaussians, ds, seed = load_run(source.run)
+    tds = load_dataset(source.truth, splits=(), ground_truth=True)
+    if tds.georef.offset != ds.georef.offset:
+        raise DatasetError(f"{source.truth} is in another frame than {ds.root} (offsets {tds.georef.offset} "
+                           f"and {ds.georef.offset})")
+    truth = tds.ground_truth
+    cfg = extract_config(source.preset, len(truth.nodes), seed, ds.gsd)
+    grid, stats = extract_surface(gaussians["means"], gaussians["scales"], gaussians["quats"],
+                                  gaussians["opacities"], cfg, truth.region, tuple(truth.grid[:, :2].min(0)),
+                                  cells=True)
+    meta = json.loads((Path(source.run) / "config.json").read_text())
+    features = cell_features(grid, ds.train_cameras, run_water(meta, ds), stats["cells"], level_sigma,
+                             n_sigma)
+    dz, depth = height_error(grid, truth)
+    wet = depth > 0
+    return RunCells(source, features.select(wet), dz[wet], depth[wet])
+
+
+def pooled(cells: list[RunCells]) -> tuple[CellFeatures, np.ndarray, np.ndarray]:
+    """(the features, errors [N] and truth dataset seeds [N] (-1: none recorded) of every run's cells, in
+    order)."""
+    from dataclasses import fields
+
+    features = CellFeatures(**{f.name: np.concatenate([getattr(c.features, f.name) for c in cells])
+                               for f in fields(CellFeatures)})
+    seeds = np.concatenate([np.full(len(c.errors), -1 if c.source.truth_seed is None else c.source.truth_seed)
+                            for c in cells])
+    return features, np.concatenate([c.errors for c in cells]), seeds
