@@ -64,6 +64,10 @@ def sources(fit_runs: list[Path], calibration_runs: list[Path], truths: dict[Pat
     return fit, cal
 
 
+def _seeds(srcs) -> list:  # the dataset seeds of the runs, each once, in order (None: not recorded)
+    return list(dict.fromkeys(s.truth_seed for s in srcs))
+
+
 def fit_model(fit_sources, calibration_sources, names=FEATURES, log=lambda line: None):
     """The model fitted on `fit_sources`' wet cells and calibrated on `calibration_sources`' (module
     docstring), with the runs, code and each calibration run's coverage in its stats."""
@@ -84,9 +88,9 @@ def fit_model(fit_sources, calibration_sources, names=FEATURES, log=lambda line:
 
     fitted, calibrating = cells_of(fit_sources, "fit"), cells_of(calibration_sources, "calibrate")
     F, e, _ = pooled(fitted)
-    model = fit(F, e, names, seeds=[s.truth_seed for s in fit_sources], commit=git_commit())
+    model = fit(F, e, names, seeds=_seeds(fit_sources), commit=git_commit())
     Fc, ec, _ = pooled(calibrating)
-    model = calibrate(model, Fc, ec, seeds=[s.truth_seed for s in calibration_sources])
+    model = calibrate(model, Fc, ec, seeds=_seeds(calibration_sources))
     per_run = {str(c.source.run): coverage(sigma(model, c.features), c.errors) for c in calibrating}
 
     def record(s):
