@@ -4,6 +4,7 @@ Tests that start Blender carry the `blender` marker (`pytest -m "not blender"` s
 
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -147,3 +148,15 @@ def water_bed_config(variant: str, **overrides):
             "densify": DensifyConfig(refine_start_iter=10**6, refine_stop_iter=10**6, reset_every=10**6)}
     return preset_config("smoke", **{**base, **overrides})
 
+
+def tiny_bed_run(root) -> Path:
+    """A finished 2-iteration smoke run (root/run) on a bed 1 m under water seen by a ring of 5 cameras
+    (root/data), for the tests of what reads a finished run (export, the TVU95 band)."""
+    from ragsplat.cli.main import main
+
+    region = {"xmin": -0.8, "xmax": 0.8, "ymin": -0.8, "ymax": 0.8}
+    cams = ring_cameras(5, 20, 1.5, 0.8, target=(0, 0, -1))
+    render_dataset(root / "data", bed_scene(300, 1.0, 1.0, seed=2), cams, WATER, 1, region)
+    assert main(["train", "--data", str(root / "data"), "--out", str(root / "run"), "--preset", "smoke",
+                 "--iterations", "2", "--init-depth", "1.0", "--no-progress"]) == 0
+    return root / "run"

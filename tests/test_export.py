@@ -10,11 +10,10 @@ import numpy as np
 import pytest
 import rasterio
 import torch
-from conftest import WATER, render_dataset
+from conftest import tiny_bed_run
 from rasterio.crs import CRS
 
 from ragsplat import export
-from ragsplat.bench.synthetic import bed_scene, ring_cameras
 from ragsplat.cli.main import main
 from ragsplat.dataset import load_dataset
 from ragsplat.dataset.layout import LOCAL_CRS, NODATA
@@ -42,12 +41,7 @@ REGION = {"xmin": -0.8, "xmax": 0.8, "ymin": -0.8, "ymax": 0.8}
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     """A finished 2-iteration run on a bed 1 m under water."""
-    root = tmp_path_factory.mktemp("export")
-    cams = ring_cameras(5, 20, 1.5, 0.8, target=(0, 0, -1))
-    render_dataset(root / "data", bed_scene(300, 1.0, 1.0, seed=2), cams, WATER, 1, REGION)
-    assert main(["train", "--data", str(root / "data"), "--out", str(root / "run"), "--preset", "smoke",
-                 "--iterations", "2", "--init-depth", "1.0", "--no-progress"]) == 0
-    return root / "run"
+    return tiny_bed_run(tmp_path_factory.mktemp("export"))
 
 
 def plane_gaussians(z, half=1.0, step=0.05) -> dict:

@@ -13,9 +13,8 @@ import numpy as np
 import pytest
 import rasterio
 import torch
-from conftest import WATER, render_dataset
+from conftest import WATER, tiny_bed_run
 
-from ragsplat.bench.synthetic import bed_scene, ring_cameras
 from ragsplat.cli.main import main
 from ragsplat.dataset import layout
 from ragsplat.dataset.load import load_dataset
@@ -55,13 +54,9 @@ def save_discs(run, z, half=1.0, step=0.05, noise=0.0, seed=0) -> None:
 @pytest.fixture(scope="module")
 def bed_run(tmp_path_factory):
     """A finished 2-iteration run on a bed 1 m under water, its Gaussians replaced by discs on a wavy bed."""
-    root = tmp_path_factory.mktemp("band")
-    cams = ring_cameras(5, 20, 1.5, 0.8, target=(0, 0, -1))
-    render_dataset(root / "data", bed_scene(300, 1.0, 1.0, seed=2), cams, WATER, 1, REGION)
-    assert main(["train", "--data", str(root / "data"), "--out", str(root / "run"), "--preset", "smoke",
-                 "--iterations", "2", "--init-depth", "1.0", "--no-progress"]) == 0
-    save_discs(root / "run", bed_height)
-    return root / "run"
+    run = tiny_bed_run(tmp_path_factory.mktemp("band"))
+    save_discs(run, bed_height)
+    return run
 
 
 @pytest.fixture(scope="module")
