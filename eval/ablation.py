@@ -147,17 +147,20 @@ def default_jobs(device: str | None) -> int:
     return JOBS_PER_GPU if trains_on_cuda(device) else JOBS
 
 
+def _scene(data: Path) -> dict:  # the dataset's scene.json ({} for one the generator did not render)
+    scene = Path(data) / layout.SCENE
+    return json.loads(scene.read_text()) if scene.is_file() else {}
+
+
 def dataset_seed(data: Path) -> int | None:
     """The seed the dataset `data` was rendered with (its scene.json), None for one that was not rendered."""
-    scene = Path(data) / layout.SCENE
-    return json.loads(scene.read_text()).get("seed") if scene.is_file() else None
+    return _scene(data).get("seed")
 
 
 def scene_conditions(data: Path) -> dict | None:
     """The field conditions the dataset `data` was rendered with (its scene.json's "conditions": the water
     body's coefficients, reflection, ripples), None for a clear scene or one that was not rendered."""
-    scene = Path(data) / layout.SCENE
-    return json.loads(scene.read_text()).get("conditions") if scene.is_file() else None
+    return _scene(data).get("conditions")
 
 
 def one_level_water(data: Path, water: WaterSurface | None) -> tuple[WaterSurface, dict]:

@@ -185,18 +185,18 @@ def calibration_report(tvu95, err, seeds, depth, views, xy=None, cell: float = 0
     of `cell` m (None: no oracle). `max_depth`: the depth bands' D (default the deepest cell)."""
     tvu95, err, seeds = np.asarray(tvu95, float), np.asarray(err, float), np.asarray(seeds)
     sigma = tvu95 / Z95
-    pooled = {f"{p:g}": coverage(sigma, err, p) for p in LEVELS}
+    band = tvu_band_summary(tvu95, err, depth)  # cells, pooled coverage, median, z variance, IHO
+    pooled = band["coverage"]
     seeds_cov = {f"{p:g}": per_seed(lambda m, p=p: coverage(sigma[m], err[m], p), seeds) for p in LEVELS}
     achieved = pooled["0.95"]
     width = constant_width(err, achieved)
-    out = {"cells": len(err), "coverage": pooled, "coverage_per_seed": seeds_cov,
+    out = {**band, "coverage_per_seed": seeds_cov,
            "coverage_seed_spread": {p: seed_spread(v.values()) for p, v in seeds_cov.items()},
            "worst_depth_third": worst_bin(sigma, err, depth_bins(depth, max_depth)),
            "worst_view_bin": worst_bin(sigma, err, view_bins(views)),
-           "ence": ence(sigma, err), "z_variance": z_variance(sigma, err),
-           "median_tvu95": float(np.median(tvu95)), "constant_width": width,
+           "ence": ence(sigma, err), "constant_width": width,
            "sharpness_vs_constant": float(np.median(tvu95) / width) if width > 0 else None,
-           "spearman": float(spearmanr(tvu95, np.abs(err)).statistic), "iho": iho_shares(tvu95, depth)}
+           "spearman": float(spearmanr(tvu95, np.abs(err)).statistic)}
     if xy is not None:
         oracle = oracle_tvu95(xy, err, seeds, cell)
         out.update(oracle_median_tvu95=float(np.median(oracle)),

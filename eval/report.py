@@ -72,13 +72,16 @@ def load_published(path: Path = PUBLISHED_FILE) -> dict:
     return json.loads(Path(path).read_text())
 
 
-def values(rows: list[dict], keys: tuple[str, ...], scale: float = 1.0) -> list[float]:
-    """The finite values at `keys` of each seed's row, times `scale`."""
+def values(rows: list[dict], keys: tuple[str | int, ...], scale: float = 1.0) -> list[float]:
+    """The finite values at `keys` of each seed's row, times `scale` (an int key indexes a list)."""
     out = []
     for row in rows:
         value = row
         for k in keys:
-            value = value.get(k) if isinstance(value, dict) else None
+            if isinstance(k, int):
+                value = value[k] if isinstance(value, list) and k < len(value) else None
+            else:
+                value = value.get(k) if isinstance(value, dict) else None
         if isinstance(value, (int, float)) and math.isfinite(value):
             out.append(float(value) * scale)
     return out
@@ -210,25 +213,15 @@ def table4(rows: dict[str, list[dict]], conditions: dict | None) -> str:
     head = ["Row", "seeds", *[f"c {k} (1/m)" for k in rgb], *[f"c/scene {k}" for k in rgb],
             *[f"B_inf {k}" for k in rgb], *[f"c_b {k} (1/m)" for k in rgb]]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-
-    def stat(found: list[dict], keys: tuple, i: int, fmt: str, scale: float = 1.0) -> str:
-        vals = []
-        for r in found:
-            v = r.get("train_stats") or {}
-            for k in keys:
-                v = v.get(k) if isinstance(v, dict) else None
-            if v is not None:
-                vals.append(v[i] * scale)
-        return _cell(vals, fmt)
-
     for name in names:
         found = rows[name]
         cells = [name, str(len(found))]
-        cells += [stat(found, ("attenuation",), i, "{:.3f}") for i in range(3)]
-        cells += [stat(found, ("attenuation",), i, "{:.2f}", 1 / scene[i])
+        cells += [_cell(values(found, ("train_stats", "attenuation", i)), "{:.3f}") for i in range(3)]
+        cells += [_cell(values(found, ("train_stats", "attenuation", i), 1 / scene[i]), "{:.2f}")
                   if scene and scene[i] > 0 else "n/a" for i in range(3)]
-        cells += [stat(found, ("backscatter", "veil"), i, "{:.3f}") for i in range(3)]
-        cells += [stat(found, ("backscatter", "coefficients"), i, "{:.3f}") for i in range(3)]
+        cells += [_cell(values(found, ("train_stats", "backscatter", "veil", i)), "{:.3f}") for i in range(3)]
+        cells += [_cell(values(found, ("train_stats", "backscatter", "coefficients", i)), "{:.3f}")
+                  for i in range(3)]
         lines.append("| " + " | ".join(cells) + " |")
     where = ("the scene's extinction (1/m, R G B): " + " / ".join(f"{c:.3f}" for c in scene) if scene
              else "the scene records no water body (scene.json has no conditions)")
