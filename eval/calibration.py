@@ -17,11 +17,11 @@ error to cover and is counted by the accuracy tables, not here):
   |RMV - RMSE| / RMV. 0 for a calibrated sigma (up to sampling noise).
 - z-score variance: the variance of e / sigma (1 for a calibrated Gaussian sigma).
 - sharpness: the median TVU95, against
-  (i) the oracle (`oracle_tvu95`): per seed, sigma_o(x) = sqrt(sum_j K(x - x_j) e_j^2 / sum_j K(x - x_j)) over
-      that seed's cells j, K a Gaussian of `ORACLE_BANDWIDTH` m truncated at 3 bandwidths (the cell itself
-      included), then the same split-conformal step as the model's (`uncertainty.calibrate`: the
-      ceil((n + 1) 0.95)-th smallest |e| / (Z95 sigma_o)) on that seed's own cells: the sharpest TVU95 of
-      this shape that one could state knowing the errors' local size;
+  (i) the oracle (`oracle_tvu95`): per bed (one run's cells), sigma_o(x) = sqrt(sum_j K(x - x_j) e_j^2 /
+      sum_j K(x - x_j)) over that bed's cells j, K a Gaussian of `ORACLE_BANDWIDTH` m truncated at 3
+      bandwidths (the cell itself included), then the same split-conformal step as the model's
+      (`uncertainty.calibrate`: the ceil((n + 1) 0.95)-th smallest |e| / (Z95 sigma_o)) on that bed's own
+      cells: the sharpest TVU95 of this shape that one could state knowing the errors' local size;
   (ii) the constant width w that covers the same share of the cells as the model's TVU95 does (the
       ceil(coverage N)-th smallest |e|): what one number for the whole bed would need.
   The ratios median TVU95 / median oracle TVU95 and median TVU95 / w.
@@ -135,14 +135,14 @@ def local_rms(xy, err, cell: float, bandwidth: float = ORACLE_BANDWIDTH) -> np.n
     return np.sqrt(num[ij[:, 0], ij[:, 1]] / den[ij[:, 0], ij[:, 1]])
 
 
-def oracle_tvu95(xy, err, seeds, cell: float, bandwidth: float = ORACLE_BANDWIDTH,
+def oracle_tvu95(xy, err, beds, cell: float, bandwidth: float = ORACLE_BANDWIDTH,
                  coverage_level: float = 0.95) -> np.ndarray:
-    """[N] the oracle's TVU95 (module docstring): each seed's locally smoothed errors, scaled by the conformal
-    step on that seed's own cells."""
-    xy, err, seeds = np.asarray(xy, float), np.asarray(err, float), np.asarray(seeds)
+    """[N] the oracle's TVU95 (module docstring): each bed's locally smoothed errors (`beds` [N]: labels),
+    scaled by the conformal step on that bed's own cells."""
+    xy, err, beds = np.asarray(xy, float), np.asarray(err, float), np.asarray(beds)
     out = np.empty(len(err))
-    for s in np.unique(seeds):
-        m = seeds == s
+    for s in np.unique(beds):
+        m = beds == s
         sig = np.maximum(local_rms(xy[m], err[m], cell, bandwidth), 1e-12)
         out[m] = Z95 * conformal_scale(np.abs(err[m]) / (Z95 * sig), coverage_level) * sig
     return out
@@ -179,10 +179,12 @@ def tvu_band_summary(tvu95, err, depth) -> dict:
 
 
 def calibration_report(tvu95, err, seeds, depth, views, xy=None, cell: float = 0.05,
-                       max_depth: float | None = None) -> dict:
+                       max_depth: float | None = None, beds=None) -> dict:
     """Every figure of the module docstring for cells with TVU95 [N] (m), errors [N] (m), dataset seeds [N],
     true depths [N] (m), view counts [N], and, for the oracle, their horizontal positions xy [N, 2] on a grid
-    of `cell` m (None: no oracle). `max_depth`: the depth bands' D (default the deepest cell)."""
+    of `cell` m (None: no oracle) and which bed each cell is of ([N] labels; default `seeds`: several training
+    runs on one dataset seed are several beds over the same cells, each smoothed on its own). `max_depth`:
+    the depth bands' D (default the deepest cell)."""
     tvu95, err, seeds = np.asarray(tvu95, float), np.asarray(err, float), np.asarray(seeds)
     sigma = tvu95 / Z95
     band = tvu_band_summary(tvu95, err, depth)  # cells, pooled coverage, median, z variance, IHO
@@ -198,7 +200,7 @@ def calibration_report(tvu95, err, seeds, depth, views, xy=None, cell: float = 0
            "sharpness_vs_constant": float(np.median(tvu95) / width) if width > 0 else None,
            "spearman": float(spearmanr(tvu95, np.abs(err)).statistic)}
     if xy is not None:
-        oracle = oracle_tvu95(xy, err, seeds, cell)
+        oracle = oracle_tvu95(xy, err, seeds if beds is None else beds, cell)
         out.update(oracle_median_tvu95=float(np.median(oracle)),
                    sharpness_vs_oracle=float(np.median(tvu95) / np.median(oracle)))
     return out

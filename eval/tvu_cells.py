@@ -44,12 +44,15 @@ class RunSource:
 
 @dataclass(frozen=True)
 class RunCells:
-    """A run's wet cells: their features, errors (m) and true depths (m)."""
+    """A run's wet cells: their features, errors (m), true depths (m), and centres xy [N, 2] (m) on the
+    extraction's grid of `cell` m (the oracle's smoothing needs them)."""
 
     source: RunSource
     features: CellFeatures
     errors: np.ndarray
     depth: np.ndarray
+    xy: np.ndarray
+    cell: float
 
 
 def run_source(run: Path, truth: Path | None = None) -> RunSource:
@@ -107,7 +110,7 @@ def run_cells(source: RunSource, level_sigma: float = 0.0, n_sigma: float = 0.0)
                              n_sigma)
     dz, depth = height_error(grid, truth)
     wet = depth > 0
-    return RunCells(source, features.select(wet), dz[wet], depth[wet])
+    return RunCells(source, features.select(wet), dz[wet], depth[wet], grid[wet, :2], cfg.cell)
 
 
 def pooled(cells: list[RunCells]) -> tuple[CellFeatures, np.ndarray, np.ndarray]:

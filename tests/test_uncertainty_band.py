@@ -319,6 +319,26 @@ def test_the_fit_tool_fits_calibrates_and_records(evaluable_dataset, tmp_path, c
     assert covered >= 0.95 and model.stats["calibration_coverage_per_run"][str(runs[1][0])] == covered
     assert "wrote" in capsys.readouterr().out
 
+    # the check on a held-out reach (dataset seed 3, noise between the two), its report and figure
+    from tools.check_uncertainty import main as check_main
+
+    held = tmp_path / "run3"
+    shutil.copytree(tmp_path / "trained", held)
+    save_discs(held, bed_height, half=0.7, noise=0.015, seed=3)
+    held_data = seeded(evaluable_dataset, tmp_path / "s3", 3)
+    report, figure = tmp_path / "check.json", tmp_path / "check.png"
+    assert check_main([str(out), str(held), f"--truth={held}={held_data}", "--out", str(report),
+                       "--figure", str(figure)]) == 0, capsys.readouterr().err
+    r = json.loads(report.read_text())
+    mine = run_cells(run_source(held, held_data))
+    assert r["cells"] == len(mine.errors) and r["runs"][str(held)]["dataset_seed"] == 3
+    assert r["coverage"]["0.95"] == pytest.approx(coverage(sigma(model, mine.features), mine.errors))
+    assert 0 < r["oracle_median_tvu95"] and r["sharpness_vs_oracle"] > 0 and figure.stat().st_size > 0
+    assert "coverage 50/80/95 %" in capsys.readouterr().out
+    # a reach the model was calibrated on is not a test of it
+    assert check_main([str(out), str(runs[1][0]), f"--truth={runs[1][0]}={runs[1][1]}"]) == 1
+    assert "is not held out from the model" in capsys.readouterr().err
+
 
 def test_the_protocol_check_is_a_config_error(evaluable_dataset, tmp_path):
     from ragsplat.eval.tvu_cells import check_development, run_source
