@@ -64,6 +64,14 @@ T3_COLUMNS = [
     ("banks bias (cm)", None, ("geometry", "survey", "banks", "bias"), "{:+.1f}", 100),
     ("banks RMSE (cm)", None, ("geometry", "survey", "banks", "rmse"), "{:.1f}", 100),
 ]
+# with a fitted uncertainty model (`ragsplat ablation --uncertainty`): the rows' TVU95 band (`band_rows`)
+T3_TVU_COLUMNS = [
+    ("TVU95 covers (%)", None, ("geometry", "survey", "tvu", "coverage", "0.95"), "{:.1f}", 100),
+    ("median TVU95 (cm)", None, ("geometry", "survey", "tvu", "median_tvu95"), "{:.2f}", 100),
+    ("TVU95 / oracle", None, ("geometry", "survey", "tvu", "sharpness_vs_oracle"), "{:.2f}", 1),
+    ("TVU95 / constant", None, ("geometry", "survey", "tvu", "sharpness_vs_constant"), "{:.2f}", 1),
+    ("z variance", None, ("geometry", "survey", "tvu", "z_variance"), "{:.2f}", 1),
+]
 PAPER_NAMES = {"3dgs": "3dgs", "position": "position", "position+scale": "position+scale",
                "position+opacity": "position+opacity", "full": "full"}
 
@@ -194,7 +202,13 @@ def table2(rows: dict[str, list[dict]], published: dict, notes: list[str] = ()) 
 def table3(rows: dict[str, list[dict]], notes: list[str] = ()) -> str:
     """The surveyor's figures: dz = predicted - true bed height at each reconstructed cell's centre."""
     text = "### Table 3: vertical error of the bed, the surveyor's figures (cm, mean ± std over seeds)\n\n"
-    return text + _table(rows, {}, None, T3_COLUMNS, tabled(rows), True) + _notes(notes)
+    return text + _table(rows, {}, None, t3_columns(rows), tabled(rows), True) + _notes(notes)
+
+
+def t3_columns(rows: dict[str, list[dict]]) -> list:
+    """Table 3's columns: the TVU95 band's too where a row has one."""
+    banded = any(values(found, T3_TVU_COLUMNS[0][2]) for found in rows.values())
+    return T3_COLUMNS + (T3_TVU_COLUMNS if banded else [])
 
 
 def table4(rows: dict[str, list[dict]], conditions: dict | None) -> str:
@@ -383,7 +397,7 @@ def geometry_notes(header: dict) -> list[str]:
         warn = " THIS IS THE DEVELOPMENT DATASET: these numbers are not an evaluation." \
             if header.get("dataset_seed") == tuning.get("dataset_seed") else ""
         out.append(f"Hyperparameters were chosen on dataset seed {tuning.get('dataset_seed')} (development); "
-                   f"this dataset has seed {header.get('dataset_seed')}.{warn}")
+                  f"this dataset has seed {header.get('dataset_seed')}.{warn}")
     role = header.get("dataset_role")
     if role and role != "other":
         out.append(f"Protocol: dataset seeds {header.get('dataset_seeds')}; this is the {role} reach.")
@@ -419,8 +433,8 @@ def bed_note(header: dict) -> str:
     """What the "bed" column of Tables 2 and 3 means, with the fusion's settings when the header has them."""
     fuse = (header.get("harness_preset") or {}).get("fuse") or {}
     voxel = (f"{fuse['voxel']:g} m" if fuse.get("voxel")
-             else f"{fuse['voxel_gsd']:g} x the views' ground sample "
-             "distance") if fuse else "a few ground sample distances"
+            else f"{fuse['voxel_gsd']:g} x the views' ground sample "
+            "distance") if fuse else "a few ground sample distances"
     trunc = f"{fuse['trunc_voxels']:g} voxels" if fuse else "a few voxels"
     return ("Bed: volume = volume sampling of the Gaussians, noise filter, median height per cell, "
             "despiking; fused = the "
@@ -431,18 +445,30 @@ def bed_note(header: dict) -> str:
 
 def survey_notes(header: dict) -> list[str]:
     depth = header.get("max_depth_m") or 0
-    return [*water_notes(header),
-            ("dz = predicted - true bed height at the centre of each reconstructed 5 cm cell (exact "
-             f"surface); wet = true depth > 0; bands are thirds of the maximum depth ({depth:g} m); banks = "
-             "emerged ground in the evaluation region; wet cover = wet cells reconstructed / wet "
-             "ground-truth cells."),
-            ("Holes count as misses: p95 (of |dz|), within 3 / 5 cm and the IHO columns are over every wet "
-             "ground-truth cell, a cell the bed leaves empty counting as beyond every threshold (p95 n/a "
-             "when more than 5 % are empty); bias and RMSE cannot count a hole and are over the covered "
-             "cells, wet cover beside them. IHO: the share of wet cells within the IHO S-44 (2020) total "
-             "vertical uncertainty at 95 %, sqrt(a^2 + (b d)^2) at the cell's true depth d: "
-             + ", ".join(f"{k} ({a:g} m, {b:g})" for k, (a, b) in reversed(IHO_ORDERS.items()))
-             + " (order 1: 1a and 1b).")]
+    out = [*water_notes(header),
+           ("dz = predicted - true bed height at the centre of each reconstructed 5 cm cell (exact "
+            f"surface); wet = true depth > 0; bands are thirds of the maximum depth ({depth:g} m); banks = "
+            "emerged ground in the evaluation region; wet cover = wet cells reconstructed / wet "
+            "ground-truth cells."),
+           ("Holes count as misses: p95 (of |dz|), within 3 / 5 cm and the IHO columns are over every wet "
+            "ground-truth cell, a cell the bed leaves empty counting as beyond every threshold (p95 n/a "
+            "when more than 5 % are empty); bias and RMSE cannot count a hole and are over the covered "
+            "cells, wet cover beside them. IHO: the share of wet cells within the IHO S-44 (2020) total "
+            "vertical uncertainty at 95 %, sqrt(a^2 + (b d)^2) at the cell's true depth d: "
+            + ", ".join(f"{k} ({a:g} m, {b:g})" for k, (a, b) in reversed(IHO_ORDERS.items()))
+            + " (order 1: 1a and 1b).")]
+    model = header.get("uncertainty")
+    if model:
+        from ragsplat.eval.calibration import ORACLE_BANDWIDTH
+
+        out.append("TVU95 (docs/uncertainty.md): each trained row's band from the model fitted on dataset "
+                   f"seeds {model['fit_seeds']} and calibrated on {model['calibration_seeds']}, over the "
+                   "wet cells its volume bed covers (a hole has no error to cover); covers = the share with "
+                   "|dz| <= TVU95 (target 95); / oracle: its median over that of the same conformal step on "
+                   f"the row's own errors smoothed over {100 * ORACLE_BANDWIDTH:g} cm; / constant: over the "
+                   "one width that covers as many cells; z variance of dz / (TVU95 / 1.96) (1 when "
+                   "calibrated); per row in tvu95.tif.")
+    return out
 
 
 def write_outputs(out: Path, rows: dict[str, list[dict]], header: dict, lpips_reason: str) -> str:
@@ -464,7 +490,7 @@ def write_outputs(out: Path, rows: dict[str, list[dict]], header: dict, lpips_re
                   title=f"error vs training time ({header.get('preset', '')}, "
                   f"seeds {header.get('seeds', '')})", lines=lines)
     summaries = {name: {col: summary(values(rows[name], keys, scale))
-                        for col, _, keys, _, scale in T1_COLUMNS + T2_COLUMNS + T3_COLUMNS}
+                        for col, _, keys, _, scale in T1_COLUMNS + T2_COLUMNS + t3_columns(rows)}
                  for name in ordered(rows)}
     fused = {name: {col: summary(values(found, keys, scale))
                     for col, _, keys, _, scale in T2_COLUMNS + T3_COLUMNS}

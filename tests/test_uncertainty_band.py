@@ -347,3 +347,45 @@ def test_the_protocol_check_is_a_config_error(evaluable_dataset, tmp_path):
     with pytest.raises(ConfigError, match="evaluation reach"):
         check_development(run_source(run))
     check_development(run_source(fake_run(tmp_path / "dev", evaluable_dataset)))  # no seed recorded: not held
+
+
+def test_the_ablation_writes_each_trained_row_s_band_and_table3_reports_it(evaluable_dataset, tmp_path):
+    from dataclasses import replace
+
+    from ragsplat.eval.ablation import band_rows, check_held_out, row_dir
+    from ragsplat.eval.calibration import coverage
+    from ragsplat.eval.report import table3
+    from ragsplat.eval.tvu_cells import run_cells, run_source
+    from ragsplat.uncertainty import Z95
+
+    data = seeded(evaluable_dataset, tmp_path / "data", 3)  # a reach the fixture was not fitted on
+    out = tmp_path / "ablation"
+    run = row_dir(out, "2dgs+full", 0)
+    assert main(["train", "--data", str(data), "--out", str(run), "--preset", "smoke", "--iterations", "2",
+                 "--init-depth", "1.0", "--no-progress"]) == 0
+    save_discs(run, bed_height, half=0.7, noise=0.01)
+    plain = {"seed": 0, "geometry": {"survey": {"coverage": 1.0}}}
+    rows = {"2dgs+full": [dict(plain)], "init": [dict(plain)]}  # a reference row: no band
+    lines = []
+    band_rows(out, data, rows, FIXTURE, lines.append)
+    tvu = rows["2dgs+full"][0]["geometry"]["survey"]["tvu"]
+    cells = run_cells(run_source(run, data))
+    expected = tvu95(FIXTURE, cells.features)
+    assert tvu["cells"] == len(cells.errors) > 100 and "tvu" not in rows["init"][0]["geometry"]["survey"]
+    assert tvu["coverage"]["0.95"] == coverage(expected / Z95, cells.errors)
+    assert tvu["median_tvu95"] == pytest.approx(np.median(expected)) and tvu["sharpness_vs_oracle"] > 0
+    with rasterio.open(run / "tvu95.tif") as tif:  # the band, on the bed's cells
+        assert tif.descriptions[0] == TVU_BAND
+        np.testing.assert_allclose(at_cells(tif, cells.xy)[:, 0], expected, rtol=1e-6, atol=1e-9)
+    assert "TVU95 band" in lines[0]
+    text = table3(rows)
+    assert "TVU95 covers (%)" in text and f"{100 * tvu['coverage']['0.95']:.1f}" in text
+    assert "TVU95" not in table3({"2dgs+full": [plain]})  # no band, no columns
+    check_held_out(FIXTURE, 3)
+    with pytest.raises(ConfigError, match="not held out"):
+        check_held_out(replace(FIXTURE, calibration_seeds=(3,)), 3)
+    seen = tmp_path / "seen.json"
+    seen.write_text(replace(FIXTURE, fit_seeds=(3,)).to_json())
+    assert main(["ablation", "--data", str(data), "--out", str(tmp_path / "refused"), "--preset", "smoke",
+                 "--variants", "2dgs+full", "--seeds", "0", "--jobs", "1", "--uncertainty", str(seen)]) == 2
+    assert not (tmp_path / "refused" / "results.json").exists()

@@ -1,7 +1,9 @@
 """`ragsplat ablation --data DIR --out DIR [--preset smoke|small|paper] [--variants ...] [--seeds S ...]
-[--init ...] [--jobs N] [--one-level]`: every variant trained and evaluated per seed, the reference rows
-scored, Tables 1-3 printed (mean +- std over seeds) beside the paper's (`ragsplat.eval.ablation`, which also
-holds its own defaults; those it shares with `ragsplat survey` are `ragsplat.train.defaults`').
+[--init ...] [--jobs N] [--one-level] [--uncertainty MODEL.json]`: every variant trained and evaluated per
+seed, the reference rows scored, Tables 1-3 printed (mean +- std over seeds) beside the paper's
+(`ragsplat.eval.ablation`, which also holds its own defaults; those it shares with `ragsplat survey` are
+`ragsplat.train.defaults`'). With a fitted uncertainty model each trained row also writes its TVU95 band and
+Table 3 reports its coverage and sharpness (`ragsplat.eval.ablation.band_rows`).
 
 `--one-level` measures what a flat-water tool does on a sloping river: the method and every reference are
 given one level, the mean height of the dataset's surveyed water edge
@@ -23,6 +25,7 @@ from __future__ import annotations
 import argparse
 import time
 from functools import partial
+from pathlib import Path
 
 from ragsplat.cli.args import count, dataset_dir, lpips_arguments, out_dir, positive_int
 from ragsplat.errors import RagsplatError
@@ -62,6 +65,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
                         help="train the rows on the Dask cluster whose scheduler is at ADDRESS "
                              "(tcp://host:8786) instead of local workers")
+    parser.add_argument("--uncertainty", type=Path, metavar="MODEL.json",
+                        help="a fitted uncertainty model (`python -m tools.fit_uncertainty`): each trained "
+                             "row writes its TVU95 band (tvu95.tif) and Table 3 reports its coverage and "
+                             "sharpness (docs/uncertainty.md); refused on a dataset seed the model saw")
 
 
 class JobFailed(RagsplatError):
@@ -141,10 +148,12 @@ def _reason(task) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from ragsplat.cli.progress import deferred_interrupts, training_bar
-    from ragsplat.eval.ablation import ROW_CODE, TrainEval, default_jobs, run_ablation
+    from ragsplat.eval.ablation import ROW_CODE, TrainEval, check_held_out, default_jobs, run_ablation
+    from ragsplat.export import read_uncertainty
     from ragsplat.outputs import source_digest
 
     code = source_digest(*ROW_CODE)  # every row keyed to the code the command started with
+    model = None if args.uncertainty is None else read_uncertainty(args.uncertainty)  # before any work
     if args.jobs is None:
         args.jobs = default_jobs(args.device)
     with deferred_interrupts() as check:  # Ctrl-C: the trainer checkpoints its finished steps, then stops
@@ -152,9 +161,12 @@ def run(args: argparse.Namespace) -> int:
         train_eval = TrainEval(args.data, args.device,
                                training_bar=partial(training_bar, leave=False, check=check),
                                init=args.init, one_level=args.one_level)
+        if model is not None:
+            check_held_out(model, train_eval.dataset_seed)
         if args.jobs > 1 or args.scheduler:
             # then every trained row is on disk, reused below
             run_rows(args, train_eval.fingerprint, code, check)
         run_ablation(args.data, args.out, args.preset, args.variants, args.seeds, train_eval,
-                     vgg16=args.vgg16, download=not args.no_download, log=print, code=code)
+                     vgg16=args.vgg16, download=not args.no_download, log=print, code=code,
+                     uncertainty=model)
     return 0
