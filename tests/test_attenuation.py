@@ -15,6 +15,7 @@ from ragsplat.dataset import Dataset, load_dataset
 from ragsplat.errors import ConfigError
 from ragsplat.export import load_model
 from ragsplat.refraction import (
+    WATERLINE_BAND,
     Profile,
     WaterSurface,
     linear_to_srgb,
@@ -22,6 +23,7 @@ from ragsplat.refraction import (
     refract_gaussians,
     srgb_to_linear,
     water_paths,
+    waterline_weight,
 )
 from ragsplat.train import VARIANTS, TrainConfig, Trainer
 from ragsplat.train import trainer as train_mod
@@ -288,3 +290,85 @@ def test_ablation_row_and_renders_of_a_finished_run(evaluable_dataset, tmp_path,
         for ours, theirs in zip(model.render(ds.test[0].camera, interface),
                                 trainer.render(ds.test[0].camera, interface)):
             assert torch.equal(ours, theirs)
+
+
+# ---- the SH cap under water (`TrainConfig.wet_sh_degree`) -------------------------------------------------
+def _sh_splats(n=40, seed=5):
+    """Degree-3 Gaussians with random view dependence, some above the level, some under it, some in the
+    water line's blend band."""
+    from ragsplat.gaussians import init_points
+
+    g = torch.Generator().manual_seed(seed)
+    z = torch.cat([WATER.level + 1 - 3 * torch.rand(n - 2, generator=g, dtype=f64),
+                   torch.tensor([WATER.level - WATERLINE_BAND / 2, WATER.level], dtype=f64)])
+    points = torch.cat([(torch.rand(n, 2, generator=g, dtype=f64) - 0.5) * 4, z[:, None]], 1)
+    splats = init_points(points, torch.rand(n, 3, generator=g, dtype=f64), None, degree=3)
+    with torch.no_grad():
+        splats["shN"].copy_(0.3 * torch.randn(splats["shN"].shape, generator=g, dtype=f64))
+    return splats
+
+
+@pytest.mark.parametrize("backend", ["torch", "cpu"])
+def test_a_submerged_gaussian_s_colour_stops_at_the_wet_degree(backend):
+    from ragsplat.gaussians import colors_for_view
+
+    splats, other = _sh_splats(), torch.tensor([-3.0, 4.0, 20.0], dtype=f64)
+    depth = WATER.depth(splats["means"].detach())
+    wet, dry = depth >= WATERLINE_BAND, depth <= 0
+    band = ~wet & ~dry
+    assert wet.any() and dry.any() and band.any()
+    full = train_mod.view_gaussians(splats, CAM, 3, WATER, None, backend)
+    same = train_mod.view_gaussians(splats, CAM, 3, WATER, None, backend, wet_degree=3)
+    assert torch.equal(full.colors, same.colors)  # 3: no cap, today's colours
+    capped = [train_mod.view_gaussians(splats, c, 3, WATER, None, backend, wet_degree=0).colors
+              for c in (CAM, other)]
+    flat = colors_for_view(splats, CAM, 0)
+    for colors, centre in zip(capped, (CAM, other)):
+        torch.testing.assert_close(colors[wet], flat[wet], rtol=1e-12, atol=1e-14)  # the same from anywhere
+        torch.testing.assert_close(colors[dry], colors_for_view(splats, centre, 3)[dry], rtol=1e-12,
+                                   atol=1e-14)
+    assert not torch.allclose(capped[0][dry], capped[1][dry])  # above the water the view still matters
+    w = waterline_weight(depth[band])[:, None]  # in the band: blended as the refraction is
+    torch.testing.assert_close(capped[0][band], torch.lerp(full.colors[band], flat[band], w), rtol=1e-12,
+                               atol=1e-14)
+    # the same cap through the water's transform: only the colours it is given change
+    through = train_mod.view_gaussians(splats, CAM, 3, WATER, {"scale": "anisotropic"}, backend, wet_degree=0)
+    plain = train_mod.view_gaussians(splats, CAM, 3, WATER, {"scale": "anisotropic"}, backend)
+    assert torch.equal(through.means, plain.means) and torch.equal(through.opacities, plain.opacities)
+
+
+def test_the_wet_degree_s_gradient_never_reaches_a_submerged_gaussian_s_higher_sh():
+    splats = _sh_splats()
+    depth = WATER.depth(splats["means"].detach())
+    out = train_mod.view_gaussians(splats, CAM, 3, WATER, {"scale": "anisotropic"}, "torch", wet_degree=0)
+    out.colors.sum().backward()
+    grad = splats["shN"].grad.abs().sum((1, 2))
+    assert (grad[depth >= WATERLINE_BAND] == 0).all() and (grad[depth <= 0] > 0).all()
+    assert (splats["sh0"].grad.abs().sum((1, 2)) > 0).all()
+
+
+def test_wet_sh_degree_is_a_degree():
+    assert TrainConfig(wet_sh_degree=0).wet_sh_degree == 0 and TrainConfig().wet_sh_degree == 3
+    with pytest.raises(ConfigError, match="wet_sh_degree"):
+        TrainConfig(wet_sh_degree=4)
+
+
+def test_training_and_a_finished_run_s_renders_use_the_config_s_wet_degree(turbid, monkeypatch):
+    from ragsplat.export import Model
+
+    seen = []
+    real = train_mod.view_gaussians
+
+    def spy(*a, **k):
+        seen.append(a[9] if len(a) > 9 else k.get("wet_degree", 3))
+        return real(*a, **k)
+
+    monkeypatch.setattr(train_mod, "view_gaussians", spy)
+    tr = Trainer(_cfg(iterations=2, sh_degree=3, wet_sh_degree=1), turbid)
+    tr.train()
+    assert seen and set(seen) == {1}
+    seen.clear()
+    model = Model({k: v.detach() for k, v in tr.splats.items()}, tr.cfg, tr.flags, turbid.water,
+                  torch.device("cpu"), "torch", tr.attenuation)
+    model.render(turbid.views[0].camera)
+    assert seen == [1]

@@ -92,6 +92,11 @@ class TrainConfig:
     init_opacity: float = 0.1
     sh_degree: int = 3
     sh_degree_every: int = 1000  # raise the active SH degree by one every this many iterations (at 30k)
+    # The most SH degree a submerged Gaussian uses (blended in over the water line as the refraction is): a
+    # bed of stones and sand looks nearly the same from every side, and what does change with the view under
+    # water (the path's attenuation) is the water's to explain; with its own view dependence a Gaussian
+    # absorbs that dimming and the attenuation coefficients are not identified (issue 50). 3: no cap.
+    wet_sh_degree: int = 3
     # Adam learning rates (3DGS / gsplat defaults); means decays exponentially to lr_means_final
     lr_means: float = 1.6e-4  # x scene scale (camera extent)
     lr_means_final: float = 1.6e-6
@@ -167,6 +172,8 @@ class TrainConfig:
             raise ConfigError("init='points' needs init_points (--init-points: a .npy point cloud)")
         if not 0 <= self.sh_degree <= 3:
             raise ConfigError(f"sh_degree must be 0..3, got {self.sh_degree}")
+        if not 0 <= self.wet_sh_degree <= 3:
+            raise ConfigError(f"wet_sh_degree must be 0..3, got {self.wet_sh_degree}")
         if self.checkpoint_every is not None and self.checkpoint_every < 0:
             raise ConfigError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
         if not (math.isfinite(self.init_fill) and self.init_fill >= 0):

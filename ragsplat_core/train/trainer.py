@@ -60,6 +60,7 @@ from ragsplat.refraction import (
     pixel_water_paths,
     refract_gaussians,
     srgb_to_linear,
+    waterline_weight,
 )
 from ragsplat.snell import footprint
 from ragsplat.ssim import psnr, ssim, ssim_map
@@ -86,15 +87,22 @@ SURFEL_THICKNESS = 1e-5  # metres
 
 def view_gaussians(splats, center: torch.Tensor, sh_degree: int, water: WaterSurface | None,
                    flags: dict | None, backend: str = "torch", surfels: bool = False,
-                   compiled: bool = False, attenuation: torch.Tensor | None = None) -> ApparentGaussians:
+                   compiled: bool = False, attenuation: torch.Tensor | None = None,
+                   wet_degree: int = 3) -> ApparentGaussians:
     """The Gaussians as the rasterizer takes them for the camera at `center` [3]: the true ones (`flags`
     None) or the apparent ones through `water` (RA-GS, `flags` of `refract_gaussians`). With the `cpu`
     backend (what "auto" means on CPU) the view colours come from its SH kernel. `surfels`: no apparent
     covariances (a surfel renders from its mapped tangents, `jacobians`). `compiled`: the transform through
     `compiled_refract_gaussians` (the same values to round-off). `attenuation`: the water's coefficients [3]
-    (1/m) or None, passed to the transform only when given (a variant without it calls it as before)."""
+    (1/m) or None, passed to the transform only when given (a variant without it calls it as before).
+    `wet_degree`: the most SH degree of a Gaussian under `water` (`TrainConfig.wet_sh_degree`), its colour
+    blended from the full degree's to that one's across the water line as the refraction is; 3: no cap."""
     scales, quats, opac = activated(splats)
-    colors = choose_backend(backend, splats["means"].device).colors(splats, center, sh_degree)
+    colors_of = choose_backend(backend, splats["means"].device).colors
+    colors = colors_of(splats, center, sh_degree)  # [N, 3]
+    if water is not None and wet_degree < sh_degree:
+        w = waterline_weight(water.depth(splats["means"]))[:, None]  # [N, 1]: 0 above, 1 under the water
+        colors = torch.lerp(colors, colors_of(splats, center, wet_degree), w)
     if flags is None:
         return ApparentGaussians(splats["means"], scales, quats, opac, colors, None, None)
     transform = compiled_refract_gaussians() if compiled else refract_gaussians
@@ -107,16 +115,16 @@ def render_splats(splats, camera: Camera, center: torch.Tensor, sh_degree: int, 
                   flags: dict | None, surfels: bool, background: torch.Tensor, backend: str,
                   compiled: bool = False,
                   attenuation: torch.Tensor | None = None, backscatter: torch.Tensor | None = None,
-                  reflection: torch.Tensor | None = None):
+                  reflection: torch.Tensor | None = None, wet_degree: int = 3):
     """(image [H,W,3], alpha [H,W,1], depth [H,W,1], meta) of `camera` (centre `center` [3]) as training
     renders it (`view_gaussians`, then `rasterize_view`). `backscatter`: [2, 3] the water's veil B_inf and its
     coefficients c_b (1/m), or None (nothing computed): the veil along each pixel's path in `water` to the
     point it renders is added to the image (`refraction.backscatter_veil`). `reflection`: [S, S, 3] the sky
     map the surface mirrors (`reflection.sky_radiance`, linear radiance), or None (nothing computed): each wet
     pixel becomes (1 - R) x the rest + R x the mirrored sky (`reflection.reflect`). The trainer and a
-    finished run's renders (`export.Model`) share it."""
+    finished run's renders (`export.Model`) share it. `wet_degree`: `view_gaussians`'."""
     img, alpha, depth, meta = rasterize_view(view_gaussians(splats, center, sh_degree, water, flags, backend,
-                                                            surfels, compiled, attenuation),
+                                                            surfels, compiled, attenuation, wet_degree),
                                              camera, surfels, background, backend)
     if backscatter is not None or reflection is not None:
         rays = pixel_rays(camera, depth)  # [H, W, 3]
@@ -441,7 +449,8 @@ class Trainer:
         sky = None if self.log_sky is None or not interface else self.log_sky.exp()
         return render_splats(self.splats, camera, center, self.active_sh_degree, water,
                              self.flags if interface else None, self.cfg.surfels, self.background,
-                             self.cfg.backend, self.cfg.compile_refraction, attenuation, backscatter, sky)
+                             self.cfg.backend, self.cfg.compile_refraction, attenuation, backscatter, sky,
+                             self.cfg.wet_sh_degree)
 
     def render(self, camera: Camera, interface: bool = True):
         """(image [H,W,3], alpha [H,W,1], depth [H,W,1]) of `camera`, no gradients.
