@@ -1,9 +1,11 @@
 """A finished run's bed cells with their uncertainty features and true errors (issue 52): what the TVU95 model
 is fitted and calibrated on (`python -m tools.fit_uncertainty`, docs/uncertainty.md).
 
-- the bed: the evaluation's (`ablation.extract_config` of the run's preset and seed, on the ground truth's
-  nodes inside its region: the bed `ragsplat eval` scores and the ablation writes as the row's bed.npy), with
-  the extraction's per-cell record (`surface.extract_surface(..., cells=True)`);
+- the bed (`BEDS`): the evaluation's (`ablation.extract_config` of the run's preset and seed, on the ground
+  truth's nodes inside its region: the bed `ragsplat eval` scores and the ablation writes as the row's
+  bed.npy), or the product's (`export.extract_bed` at `ragsplat export`'s and the survey's default 5 cm over
+  the dataset's region: the DEM whose band 3 a surveyor reads), with the extraction's per-cell record
+  (`surface.extract_surface(..., cells=True)`);
 - the features: `uncertainty.cell_features` of those cells from the run's training views through the water
   the run ended with (`export.run_water`);
 - the errors: `evaluate.height_error` against the ground truth (predicted - true bed height);
@@ -27,6 +29,8 @@ from ragsplat.uncertainty import CellFeatures
 
 # The dataset seeds no uncertainty model may be fitted or calibrated on: the reaches the tables are scored on
 HELD_OUT = {DATASET_SEEDS["evaluation"]: "evaluation", DATASET_SEEDS["untouched"]: "untouched"}
+BEDS = ("evaluation", "export")  # which extraction's cells (module docstring)
+PRODUCT_CELL = 0.05  # metres: `ragsplat export`'s and `ragsplat survey`'s default DEM cell
 
 
 @dataclass(frozen=True)
@@ -81,17 +85,20 @@ def check_development(source: RunSource) -> None:
                               "docs/uncertainty.md")
 
 
-def run_cells(source: RunSource, level_sigma: float = 0.0, n_sigma: float = 0.0) -> RunCells:
-    """The wet cells of the run `source` (module docstring); `level_sigma` (m) and `n_sigma`: the systematic
-    term's standard deviations (0: the development seeds render with the true water). Raises OutputError,
-    DatasetError (a dataset missing, changed, without ground truth, or in another frame), ConfigError (a
-    preset without evaluation settings)."""
+def run_cells(source: RunSource, level_sigma: float = 0.0, n_sigma: float = 0.0,
+              bed: str = "evaluation") -> RunCells:
+    """The wet cells of the run `source` on the bed `bed` (`BEDS`, module docstring); `level_sigma` (m) and
+    `n_sigma`: the systematic term's standard deviations (0: the development seeds render with the true
+    water). Raises OutputError, DatasetError (a dataset missing, changed, without ground truth, or in another
+    frame), ConfigError (a preset without evaluation settings, an unknown bed)."""
     from ragsplat.dataset.load import load_dataset
     from ragsplat.eval.evaluate import height_error
-    from ragsplat.export import load_run, run_water
+    from ragsplat.export import extract_bed, load_run, run_water
     from ragsplat.surface import extract_surface
     from ragsplat.uncertainty import cell_features
 
+    if bed not in BEDS:
+        raise ConfigError(f"unknown bed {bed!r}; choose one of {', '.join(BEDS)}")
     if source.preset not in PRESETS:
         raise ConfigError(f"{source.run}: preset {source.preset!r} has no evaluation settings; known: "
                           f"{', '.join(PRESETS)}")
@@ -101,16 +108,21 @@ def run_cells(source: RunSource, level_sigma: float = 0.0, n_sigma: float = 0.0)
         raise DatasetError(f"{source.truth} is in another frame than {ds.root} (offsets {tds.georef.offset} "
                            f"and {ds.georef.offset})")
     truth = tds.ground_truth
-    cfg = extract_config(source.preset, len(truth.nodes), seed, ds.gsd)
-    grid, stats = extract_surface(gaussians["means"], gaussians["scales"], gaussians["quats"],
-                                  gaussians["opacities"], cfg, truth.region, tuple(truth.grid[:, :2].min(0)),
-                                  cells=True)
-    meta = json.loads((Path(source.run) / "config.json").read_text())
-    features = cell_features(grid, ds.train_cameras, run_water(meta, ds), stats["cells"], level_sigma,
-                             n_sigma)
+    water = run_water(json.loads((Path(source.run) / "config.json").read_text()), ds)
+    if bed == "evaluation":
+        cfg = extract_config(source.preset, len(truth.nodes), seed, ds.gsd)
+        grid, stats = extract_surface(gaussians["means"], gaussians["scales"], gaussians["quats"],
+                                      gaussians["opacities"], cfg, truth.region,
+                                      tuple(truth.grid[:, :2].min(0)), cells=True)
+        record, cell = stats["cells"], cfg.cell
+    else:
+        product = extract_bed(gaussians, PRODUCT_CELL, water, ds.eval_region, ds.georef, seed, ds.gsd,
+                              cells=True)
+        grid, record, cell = product.grid, product.cells, product.resolution
+    features = cell_features(grid, ds.train_cameras, water, record, level_sigma, n_sigma)
     dz, depth = height_error(grid, truth)
     wet = depth > 0
-    return RunCells(source, features.select(wet), dz[wet], depth[wet], grid[wet, :2], cfg.cell)
+    return RunCells(source, features.select(wet), dz[wet], depth[wet], grid[wet, :2], cell)
 
 
 def pooled(cells: list[RunCells]) -> tuple[CellFeatures, np.ndarray, np.ndarray]:

@@ -389,3 +389,16 @@ def test_the_ablation_writes_each_trained_row_s_band_and_table3_reports_it(evalu
     assert main(["ablation", "--data", str(data), "--out", str(tmp_path / "refused"), "--preset", "smoke",
                  "--variants", "2dgs+full", "--seeds", "0", "--jobs", "1", "--uncertainty", str(seen)]) == 2
     assert not (tmp_path / "refused" / "results.json").exists()
+
+    # the product's bed: the cells of the DEM `ragsplat export` writes, band 3 the same model's TVU95
+    dem = tmp_path / "dem.tif"
+    fixture = tmp_path / "fixture.json"
+    fixture.write_text(FIXTURE.to_json())
+    assert main(["export", str(run), "--dem", str(dem), "--uncertainty", str(fixture)]) == 0
+    product = run_cells(run_source(run, data), bed="export")
+    assert len(product.errors) > 100 and product.cell == 0.05
+    with rasterio.open(dem) as tif:
+        np.testing.assert_allclose(at_cells(tif, product.xy)[:, 2], tvu95(FIXTURE, product.features),
+                                   rtol=1e-6, atol=1e-9)
+    with pytest.raises(ConfigError, match="unknown bed"):
+        run_cells(run_source(run, data), bed="survey")

@@ -1,11 +1,11 @@
 """How well a fitted TVU95 model covers the true errors of held-out runs (issue 52, docs/uncertainty.md).
 
     python -m tools.check_uncertainty MODEL.json RUN [RUN ...] [--truth RUN=DATA ...] [--out REPORT.json]
-        [--figure RELIABILITY.png]
+        [--figure RELIABILITY.png] [--bed evaluation|export]
 
-Each RUN is a finished training run, as for `python -m tools.fit_uncertainty`; its wet cells are the
-evaluation's bed (`ragsplat.eval.tvu_cells`) with the model's TVU95. Every figure of
-`ragsplat.eval.calibration.calibration_report` over the runs pooled: a dataset seed is the unit of the
+Each RUN is a finished training run, as for `python -m tools.fit_uncertainty`; its wet cells are those of the
+bed the model was fitted on (`ragsplat.eval.tvu_cells`; --bed: another) with the model's TVU95. Every figure
+of `ragsplat.eval.calibration.calibration_report` over the runs pooled: a dataset seed is the unit of the
 spread (several training runs on one reach count as one seed), the oracle smooths each run's bed on its own.
 Refused: a run on a dataset seed the model was fitted or calibrated on. Held-out reaches (0, 7) are what this
 is for. Prints one line per run and the pooled figures; --out writes them with the model and runs, --figure
@@ -22,13 +22,14 @@ from pathlib import Path
 import numpy as np
 
 from ragsplat.errors import ConfigError, RagsplatError
+from ragsplat.eval.tvu_cells import BEDS
 from tools.fit_uncertainty import truth_map
 
 
-def check(model, sources, log=lambda line: None) -> tuple[dict, tuple]:
+def check(model, sources, log=lambda line: None, bed: str | None = None) -> tuple[dict, tuple]:
     """(the report: the pooled `calibration_report`, per run's coverage and median; the arrays TVU95, errors,
-    dataset seeds for the figure) of `model` on the runs `sources` (`tvu_cells.RunSource`). Raises
-    ConfigError for a run on a seed the model saw."""
+    dataset seeds for the figure) of `model` on the runs `sources` (`tvu_cells.RunSource`), on the bed `bed`
+    (None: the one the model was fitted on). Raises ConfigError for a run on a seed the model saw."""
     from ragsplat.eval.calibration import calibration_report, coverage
     from ragsplat.eval.tvu_cells import pooled, run_cells
     from ragsplat.uncertainty import Z95, tvu95
@@ -39,7 +40,8 @@ def check(model, sources, log=lambda line: None) -> tuple[dict, tuple]:
             raise ConfigError(f"{s.run}: dataset seed {s.truth_seed} is not held out from the model "
                               f"(fitted on {list(model.fit_seeds)}, calibrated on "
                               f"{list(model.calibration_seeds)})")
-    cells = [run_cells(s) for s in sources]
+    bed = bed or model.stats.get("bed", "evaluation")
+    cells = [run_cells(s, bed=bed) for s in sources]
     if len({c.cell for c in cells}) != 1:
         raise ConfigError(f"the runs' beds are on different grids ({sorted({c.cell for c in cells})} m)")
     per_run = {}
@@ -56,7 +58,7 @@ def check(model, sources, log=lambda line: None) -> tuple[dict, tuple]:
     beds = np.concatenate([np.full(len(c.errors), k) for k, c in enumerate(cells)])
     report = calibration_report(t, errors, seeds, np.concatenate([c.depth for c in cells]), features.views,
                                 np.concatenate([c.xy for c in cells]), cells[0].cell, beds=beds)
-    return {**report, "runs": per_run}, (t, errors, seeds)
+    return {**report, "bed": bed, "runs": per_run}, (t, errors, seeds)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -68,6 +70,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="score RUN against DATA's ground truth (default: the dataset RUN trained on)")
     ap.add_argument("--out", type=Path, metavar="REPORT.json", help="write the figures as JSON")
     ap.add_argument("--figure", type=Path, metavar="PNG", help="write the reliability diagram")
+    ap.add_argument("--bed", choices=BEDS, default=None,
+                    help="the cells: the evaluation's bed or the DEM `ragsplat export` writes (default: the "
+                         "bed the model was fitted on)")
     args = ap.parse_args(argv)
     from ragsplat.eval.calibration import reliability_figure
     from ragsplat.eval.tvu_cells import run_source
@@ -81,12 +86,13 @@ def main(argv: list[str] | None = None) -> int:
         except (OSError, ValueError, KeyError, TypeError) as err:
             raise ConfigError(f"{args.model}: not an uncertainty model ({err})") from None
         report, (t, errors, seeds) = check(model, [run_source(r, truths.get(r.resolve())) for r in args.runs],
-                                           log=print)
+                                           log=print, bed=args.bed)
     except RagsplatError as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
     cov, spread = report["coverage"], report["coverage_seed_spread"]["0.95"]
-    print(f"pooled, {report['cells']} wet cells of {spread['seeds']} dataset seed(s): coverage 50/80/95 % "
+    print(f"pooled ({report['bed']} bed), {report['cells']} wet cells of {spread['seeds']} dataset seed(s): "
+          "coverage 50/80/95 % "
           f"{100 * cov['0.5']:.1f} / {100 * cov['0.8']:.1f} / {100 * cov['0.95']:.1f} % (95 % per seed "
           f"{100 * spread['min']:.1f}-{100 * spread['max']:.1f}); worst depth third "
           f"{100 * report['worst_depth_third']['worst']:.1f} %, worst view-count bin "

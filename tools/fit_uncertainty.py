@@ -1,17 +1,18 @@
 """Fit the per-cell TVU95 model on development seeds, calibrate it on another (issue 52, docs/uncertainty.md).
 
     python -m tools.fit_uncertainty --fit RUN [RUN ...] --calibrate RUN [RUN ...] --out MODEL.json
-        [--truth RUN=DATA ...] [--features one geometry depth spread filled]
+        [--truth RUN=DATA ...] [--features one geometry depth spread filled] [--bed evaluation|export]
 
 Each RUN is a finished training run (`ragsplat train`, an ablation row's seed<S>/ folder) whose dataset has
 its ground truth (as `ragsplat eval RUN` scores it; `--truth RUN=DATA`: another dataset's, in the same frame,
-as `ragsplat eval --truth`). Its wet cells (`ragsplat.eval.tvu_cells`: the evaluation's bed, its features, its
-errors) are pooled: the --fit runs' fit the weights (`uncertainty.fit`, Gaussian likelihood), the --calibrate
-runs' give the conformal scale (`uncertainty.calibrate`) so that the 95 % interval covers 95 % of their cells.
-Refused: a run on the evaluation (dataset seed 0) or untouched (7) reach, a dataset seed both fitted and
-calibrated on, a run in both lists. The model JSON records the features, weights, scale, the dataset seeds of
-both steps, the runs, the commit and the code digest; `ragsplat export` / `ragsplat survey --uncertainty
-MODEL.json` then write the DEM's TVU95 band.
+as `ragsplat eval --truth`). Its wet cells (`ragsplat.eval.tvu_cells`: the evaluation's bed, or with --bed
+export the DEM `ragsplat export` writes, its features, its errors) are pooled: the --fit runs' fit the weights
+(`uncertainty.fit`, Gaussian likelihood), the --calibrate runs' give the conformal scale
+(`uncertainty.calibrate`) so that the 95 % interval covers 95 % of their cells. Refused: a run on the
+evaluation (dataset seed 0) or untouched (7) reach, a dataset seed both fitted and calibrated on, a run in
+both lists. The model JSON records the features, weights, scale, the dataset seeds of both steps, the runs,
+the commit and the code digest; `ragsplat export` / `ragsplat survey --uncertainty MODEL.json` then write the
+DEM's TVU95 band.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ragsplat.errors import ConfigError, RagsplatError
+from ragsplat.eval.tvu_cells import BEDS
 from ragsplat.uncertainty import FEATURES
 
 
@@ -68,9 +70,11 @@ def _seeds(srcs) -> list:  # the dataset seeds of the runs, each once, in order 
     return list(dict.fromkeys(s.truth_seed for s in srcs))
 
 
-def fit_model(fit_sources, calibration_sources, names=FEATURES, log=lambda line: None):
-    """The model fitted on `fit_sources`' wet cells and calibrated on `calibration_sources`' (module
-    docstring), with the runs, code and each calibration run's coverage in its stats."""
+def fit_model(fit_sources, calibration_sources, names=FEATURES, log=lambda line: None,
+              bed: str = "evaluation"):
+    """The model fitted on `fit_sources`' wet cells of the bed `bed` (`tvu_cells.BEDS`) and calibrated on
+    `calibration_sources`' (module docstring), with the bed, runs, code and each calibration run's coverage in
+    its stats."""
     from ragsplat.eval.ablation import CODE
     from ragsplat.eval.calibration import coverage
     from ragsplat.eval.tvu_cells import pooled, run_cells
@@ -80,7 +84,7 @@ def fit_model(fit_sources, calibration_sources, names=FEATURES, log=lambda line:
     def cells_of(srcs, what):
         out = []
         for s in srcs:
-            c = run_cells(s)
+            c = run_cells(s, bed=bed)
             log(f"{what}: {s.run} (dataset seed {s.truth_seed}): {len(c.errors)} wet cells, |dz| median "
                 f"{100 * np.median(np.abs(c.errors)):.2f} cm")
             out.append(c)
@@ -97,7 +101,7 @@ def fit_model(fit_sources, calibration_sources, names=FEATURES, log=lambda line:
         return {"run": str(s.run), "data": str(s.data), "truth": str(s.truth), "preset": s.preset,
                 "training_seed": s.seed, "dataset_seed": s.truth_seed}
 
-    return replace(model, stats={**model.stats, "fit_runs": [record(s) for s in fit_sources],
+    return replace(model, stats={**model.stats, "bed": bed, "fit_runs": [record(s) for s in fit_sources],
                                  "calibration_runs": [record(s) for s in calibration_sources],
                                  "calibration_coverage_per_run": per_run,
                                  "code_digest": source_digest(*CODE)})
@@ -113,13 +117,15 @@ def main(argv: list[str] | None = None) -> int:
                     help="score RUN against DATA's ground truth (default: the dataset RUN trained on)")
     ap.add_argument("--features", nargs="+", default=list(FEATURES), metavar="NAME",
                     help=f"the model's features (default: {' '.join(FEATURES)})")
+    ap.add_argument("--bed", choices=BEDS, default="evaluation",
+                    help="the cells: the evaluation's bed (default) or the DEM `ragsplat export` writes")
     ap.add_argument("--out", type=Path, required=True, metavar="MODEL.json", help="the model to write")
     args = ap.parse_args(argv)
     from ragsplat.outputs import write_bytes
 
     try:
         fit_sources, calibration_sources = sources(args.fit, args.calibrate, truth_map(args.truth))
-        model = fit_model(fit_sources, calibration_sources, tuple(args.features), log=print)
+        model = fit_model(fit_sources, calibration_sources, tuple(args.features), log=print, bed=args.bed)
     except RagsplatError as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
