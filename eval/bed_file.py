@@ -24,9 +24,12 @@ Gridding, onto the ground truth's nodes (`GroundTruth.nodes`), so that every bed
 A file whose bed covers fewer than `MIN_COVER` of the truth's wet nodes is refused (DatasetError).
 
 A DEM with a TVU95 band (`ragsplat export --uncertainty`: described `export.TVU_BAND`, or the band named) is
-read at the same nodes the same way, and its calibration reported over the wet cells it covers
-(`calibration.tvu_band_summary`: the coverage of |dz| <= TVU95, the median TVU95, the z-scores' variance, the
-IHO orders' shares).
+checked at its own cells, not at the truth's nodes: each covered cell's height against the exact bed at the
+cell's centre, inside the truth's region, where the water covers the true bed (`tvu_band`); read bilinearly at
+the nodes, as the heights are scored, four cells' errors would be averaged (a DEM's lattice need not fall on
+the truth's nodes: `ragsplat export`'s does not) and the band would look wider than it is. Its calibration
+is reported over those cells (`calibration.tvu_band_summary`: the coverage of |dz| <= TVU95, the median
+TVU95, the z-scores' variance, the IHO orders' shares).
 """
 
 from __future__ import annotations
@@ -334,18 +337,25 @@ def _read_bed(path: Path, truth, georef, band: int = 1, depth: bool = False, des
                   "wet_nodes": len(truth.grid)}, frame
 
 
-def tvu_band(path: Path, grid: np.ndarray, frame: Frame, truth, band: int) -> dict:
-    """The DEM `path`'s TVU95 band `band` read at the bed's cells `grid` [G', 3] (`read_bed`'s, in the
-    `frame` it was read in, as `dem_at` reads heights) and scored against `truth` over the wet cells where it
-    has a value (`calibration.tvu_band_summary`)."""
+def tvu_band(path: Path, frame: Frame, truth, band: int, heights: int = 1, depth: bool = False) -> dict:
+    """The DEM `path`'s TVU95 band `band` checked at its own cells (module docstring): each cell with a
+    height (band `heights`; `depth`: water depths) and a TVU95, its centre brought into the dataset's frame
+    by `frame`, inside the truth's region and over the true bed where that is submerged, its error against
+    `truth` (`evaluate.height_error`), summarised by `calibration.tvu_band_summary`."""
     from ragsplat.eval.calibration import tvu_band_summary
     from ragsplat.eval.evaluate import height_error
+    from ragsplat.surface import in_region
 
-    values, transform, _ = read_dem(path, band)
-    tvu, read = dem_at(values, transform, frame.to_file(grid[:, :2]))
-    dz, true_depth = height_error(grid, truth)
-    use = read & np.isfinite(tvu) & (true_depth > 0)
-    return {"band": band, **tvu_band_summary(tvu[use], dz[use], true_depth[use])}
+    tvu, transform, _ = read_dem(path, band)
+    z = read_dem(path, heights)[0]
+    rows, cols = np.nonzero(np.isfinite(tvu) & np.isfinite(z))
+    xy = frame.to_local(np.column_stack(transform * (cols + 0.5, rows + 0.5)))
+    z = truth.water.height(xy) - z[rows, cols] if depth else z[rows, cols] - frame.offset[2]
+    inside = in_region(xy, truth.region, tol=1e-6)  # a centre computed a rounding error past an edge
+    dz, true_depth = height_error(np.column_stack([xy, z])[inside], truth)
+    wet = true_depth > 0
+    return {"band": band, "checked_at": "the DEM's own cells",
+            **tvu_band_summary(tvu[rows, cols][inside][wet], dz[wet], true_depth[wet])}
 
 
 def score_file(path: Path, data: Path, references: bool = False,
@@ -386,4 +396,5 @@ def score_file(path: Path, data: Path, references: bool = False,
             "water": layout.water_json(truth.water), "geometry": score_grid(grid, truth),
             "references": {name: score_grid(g, truth) for name, g in rows.items()},
             "uses_ground_truth": list(USES_GROUND_TRUTH),
-            **({} if tvu is None else {"uncertainty": tvu_band(path, grid, frame, truth, tvu)})}, grid, truth
+            **({} if tvu is None else {"uncertainty": tvu_band(path, frame, truth, tvu, read.get("band", 1),
+                                                               read.get("depth", False))})}, grid, truth

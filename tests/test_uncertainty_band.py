@@ -402,3 +402,28 @@ def test_the_ablation_writes_each_trained_row_s_band_and_table3_reports_it(evalu
                                    rtol=1e-6, atol=1e-9)
     with pytest.raises(ConfigError, match="unknown bed"):
         run_cells(run_source(run, data), bed="survey")
+
+
+def test_the_band_is_checked_at_the_dem_s_own_cells_not_read_between_them(evaluable_dataset, tmp_path):
+    """A DEM whose lattice is off the truth's nodes (as `ragsplat export`'s is; 2 of 5 cm, so that no centre
+    is equally near two nodes): each covered cell in the region is checked against the bed at its own centre
+    (here the nearest node's: this truth has no exact surface), its TVU95 as written (no interpolation)."""
+    from ragsplat.eval.bed_file import score_file
+
+    truth = load_dataset(evaluable_dataset, splits=(), ground_truth=True).ground_truth
+    rng = np.random.default_rng(1)
+    xy = truth.grid[:, :2] + 0.02
+    z = truth.grid[:, 2] + rng.normal(0.0, 0.02, len(xy))
+    tvu = rng.uniform(0.01, 0.08, len(xy))
+    bands = [(z, "bed elevation"), (WATER.depth(np.column_stack([xy, z])), "water depth"), (tvu, TVU_BAND)]
+    layout.write_raster(tmp_path / "off.tif", xy, bands, 0.05)
+    u = score_file(tmp_path / "off.tif", evaluable_dataset)[0]["uncertainty"]
+    r = truth.region
+    mine = ((xy[:, 0] <= r["xmax"] + 1e-6) & (xy[:, 1] <= r["ymax"] + 1e-6))  # the offset moves one edge out
+    z32 = z.astype(np.float32).astype(float)  # as the GeoTIFF holds them
+    dz, depth = height_error(np.column_stack([xy, z32])[mine], truth)
+    wet = depth > 0
+    t32 = tvu.astype(np.float32).astype(float)[mine][wet]
+    assert u["checked_at"] == "the DEM's own cells" and u["cells"] == wet.sum() < len(xy)
+    assert u["coverage"]["0.95"] == pytest.approx(np.mean(np.abs(dz[wet]) <= t32), abs=1e-12)
+    assert u["median_tvu95"] == pytest.approx(np.median(t32), abs=1e-9)
