@@ -3,8 +3,9 @@
 [--param lr_means | densify.max_gaussians | ...] [--values ...] [--variants full] [--seed 0]
 [--set PARAM=VALUE ...]` trains each variant at each value (the
 `--set` parameters held fixed), scores the bed like the ablation and prints F1 at 1 % / 3 % of depth, wet
-RMSE, p95 and cover and the training time per value, and the value with the best mean F1 at 3 % over the
-variants. The choice is recorded by hand in ragsplat_core/tuning/small.json (or small_field.json: the values,
+RMSE, p95 and cover and the training time per value (and a trained attenuation over the scene's
+extinction), and the value with the best mean F1 at 3 % over the variants. The choice is recorded by hand in
+ragsplat_core/tuning/small.json (or small_field.json: the values,
 figures, command, commit and dataset seed), which every results.json repeats.
 """
 
@@ -17,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ragsplat.eval.ablation import PRESETS, TrainEval, extract_config, save_row, start_row
+from ragsplat.eval.ablation import PRESETS, TrainEval, extract_config, save_row, scene_conditions, start_row
 from ragsplat.outputs import claim, versions, write_json
 from ragsplat.train.config import DensifyConfig, TrainConfig
 
@@ -53,6 +54,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--set takes PARAM=VALUE with PARAM one of {', '.join(PARAMS)}; got {item!r}")
         fixed[name] = float(value)
     runner = TrainEval(args.data)
+    extinction = (scene_conditions(args.data) or {}).get("extinction_per_m")  # the water's, per channel
     claim(args.out, "tuning")
     ecfg = extract_config(args.preset, len(runner.truth.nodes), args.seed, runner.gsd)
     results = []
@@ -71,14 +73,18 @@ def main(argv: list[str] | None = None) -> int:
                 row, grid, fused = runner.train(cfg, folder, ecfg, PRESETS[args.preset].fuse, checkpoints=1)
                 row = save_row(folder, {**row, "name": variant, "seed": args.seed}, grid, runner.truth, fused)
             g = row["geometry"]
+            c = (row.get("train_stats") or {}).get("attenuation")  # a variant that trains the attenuation
+            ratio = None if c is None or not extinction else [a / e for a, e in zip(c, extinction)]
             results.append({"variant": variant, "value": value, "f1_1%": g["f1"]["1%"],
                             "f1_3%": g["f1"]["3%"],
                             "rmse_wet": g["survey"]["wet"]["rmse"], "p95_wet": g["survey"]["wet"]["p95"],
-                            "cover_wet": g["survey"]["coverage"], "train_s": row["time"]["wall_s"]})
+                            "cover_wet": g["survey"]["coverage"], "train_s": row["time"]["wall_s"],
+                            "attenuation": c, "attenuation_over_scene": ratio})
+            optics = "" if ratio is None else "  c/scene " + " ".join(f"{r:.2f}" for r in ratio)
             print(f"{variant} {args.param}={value:g}: F1@1% {100 * g['f1']['1%']:.1f}  F1@3% "
                   f"{100 * g['f1']['3%']:.1f}  wet RMSE {100 * g['survey']['wet']['rmse']:.1f} cm  p95 "
                   f"{100 * g['survey']['wet']['p95']:.1f} cm  cover {100 * g['survey']['coverage']:.1f} %  "
-                  f"{row['time']['wall_s']:.0f} s", flush=True)
+                  f"{row['time']['wall_s']:.0f} s{optics}", flush=True)
     score = {v: np.mean([r["f1_3%"] for r in results if r["value"] == v]) for v in args.values}
     best = max(score, key=score.get)
     write_json(args.out / "tune.json", {"data": str(args.data.resolve()), "dataset_seed": runner.dataset_seed,
