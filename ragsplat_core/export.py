@@ -403,13 +403,24 @@ def cell_tvu95(bed: Bed, cameras, model: UncertaintyModel, level_sigma: float = 
     return tvu95(model, features)
 
 
-def read_uncertainty(path: Path) -> UncertaintyModel:
-    """The fitted `UncertaintyModel` in the JSON file `path` (`python -m tools.fit_uncertainty` writes one).
-    Raises ConfigError (missing, or not a model)."""
+# The fitted models that ship with ragsplat, by name (ragsplat_core/tuning/tvu_<name>.json,
+# docs/uncertainty.md): "small", fitted and calibrated on development seeds of the `small` preset (4 m up,
+# clear water)
+SHIPPED_MODELS = ("small",)
+
+
+def read_uncertainty(path: Path | str) -> UncertaintyModel:
+    """The fitted `UncertaintyModel` in the JSON file `path` (`python -m tools.fit_uncertainty` writes one),
+    or the shipped model of that name (`SHIPPED_MODELS`) where no such file exists. Raises ConfigError
+    (neither, or not a model)."""
+    from ragsplat.tuning import record
+
     path = Path(path)
+    if not path.is_file() and str(path) in SHIPPED_MODELS:
+        return UncertaintyModel.from_json(json.dumps(record(f"tvu_{path}")))
     if not path.is_file():
         raise ConfigError(f"{path}: no such uncertainty model file (`python -m tools.fit_uncertainty` fits "
-                          "one)")
+                          f"one) and no shipped model of that name ({', '.join(SHIPPED_MODELS)})")
     try:
         return UncertaintyModel.from_json(path.read_text())
     except ConfigError as err:

@@ -427,3 +427,19 @@ def test_the_band_is_checked_at_the_dem_s_own_cells_not_read_between_them(evalua
     assert u["checked_at"] == "the DEM's own cells" and u["cells"] == wet.sum() < len(xy)
     assert u["coverage"]["0.95"] == pytest.approx(np.mean(np.abs(dz[wet]) <= t32), abs=1e-12)
     assert u["median_tvu95"] == pytest.approx(np.median(t32), abs=1e-9)
+
+
+def test_the_shipped_model_is_fitted_on_development_seeds_and_named_small(tmp_path):
+    from ragsplat.eval.ablation import check_held_out
+    from ragsplat.export import SHIPPED_MODELS, read_uncertainty
+
+    model = read_uncertainty("small")
+    assert SHIPPED_MODELS == ("small",) and model.features == FEATURES and model.scale > 0
+    assert model.fit_seeds == (1,) and model.calibration_seeds == (2,) and model.stats["bed"] == "evaluation"
+    assert "tools.fit_uncertainty" in model.stats["command"] and model.commit
+    for seed in (0, 3, 7):  # the held-out reaches it may be checked on
+        check_held_out(model, seed)
+    with pytest.raises(ConfigError, match="not held out"):
+        check_held_out(model, 1)
+    with pytest.raises(ConfigError, match="no shipped model of that name"):
+        read_uncertainty(tmp_path / "nothing.json")

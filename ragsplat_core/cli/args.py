@@ -143,10 +143,11 @@ def lpips_arguments(parser: argparse.ArgumentParser) -> None:
 
 def uncertainty_arguments(parser: argparse.ArgumentParser, level_default: str) -> None:
     """--uncertainty, --level-sigma, --n-sigma (`ragsplat export`, `ragsplat survey`)."""
-    parser.add_argument("--uncertainty", type=Path, metavar="MODEL.json",
-                        help="a fitted uncertainty model (`python -m tools.fit_uncertainty`): the DEM gets "
-                             "band 3, each cell's total vertical uncertainty at 95 %% (TVU95, m, described "
-                             "'tvu95'), the LAS/LAZ an extra dimension tvu95 (docs/uncertainty.md)")
+    parser.add_argument("--uncertainty", type=Path, metavar="MODEL.json|small",
+                        help="a fitted uncertainty model (`python -m tools.fit_uncertainty`), or 'small', "
+                             "the one shipped (fitted on the `small` preset's development seeds): the DEM "
+                             "gets band 3, each cell's total vertical uncertainty at 95 %% (TVU95, m, "
+                             "described 'tvu95'), the LAS/LAZ an extra dimension tvu95 (docs/uncertainty.md)")
     parser.add_argument("--level-sigma", type=non_negative_float, metavar="M",
                         help="with --uncertainty: the water level's standard deviation (m), added to TVU95 "
                              f"as a systematic term (default: {level_default})")
