@@ -337,7 +337,7 @@ def test_the_fit_tool_fits_calibrates_and_records(evaluable_dataset, tmp_path, c
     assert "coverage 50/80/95 %" in capsys.readouterr().out
     # a reach the model was calibrated on is not a test of it
     assert check_main([str(out), str(runs[1][0]), f"--truth={runs[1][0]}={runs[1][1]}"]) == 1
-    assert "is not held out from the model" in capsys.readouterr().err
+    assert "is not held out from the uncertainty model" in capsys.readouterr().err
 
 
 def test_the_protocol_check_is_a_config_error(evaluable_dataset, tmp_path):

@@ -30,16 +30,16 @@ def check(model, sources, log=lambda line: None, bed: str | None = None) -> tupl
     """(the report: the pooled `calibration_report`, per run's coverage and median; the arrays TVU95, errors,
     dataset seeds for the figure) of `model` on the runs `sources` (`tvu_cells.RunSource`), on the bed `bed`
     (None: the one the model was fitted on). Raises ConfigError for a run on a seed the model saw."""
+    from ragsplat.eval.ablation import check_held_out
     from ragsplat.eval.calibration import calibration_report, coverage
     from ragsplat.eval.tvu_cells import pooled, run_cells
     from ragsplat.uncertainty import Z95, tvu95
 
-    seen = set(model.fit_seeds) | set(model.calibration_seeds)
     for s in sources:
-        if s.truth_seed is None or s.truth_seed in seen:
-            raise ConfigError(f"{s.run}: dataset seed {s.truth_seed} is not held out from the model "
-                              f"(fitted on {list(model.fit_seeds)}, calibrated on "
-                              f"{list(model.calibration_seeds)})")
+        try:
+            check_held_out(model, s.truth_seed)
+        except ConfigError as err:
+            raise ConfigError(f"{s.run}: {err}") from None
     bed = bed or model.stats.get("bed", "evaluation")
     cells = [run_cells(s, bed=bed) for s in sources]
     if len({c.cell for c in cells}) != 1:
