@@ -64,7 +64,8 @@ def check(model, sources, log=lambda line: None, bed: str | None = None) -> tupl
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m tools.check_uncertainty",
                                  description=__doc__.splitlines()[0])
-    ap.add_argument("model", type=Path, metavar="MODEL.json", help="a fitted model (tools.fit_uncertainty)")
+    ap.add_argument("model", type=Path, metavar="MODEL.json|small",
+                    help="a fitted model (tools.fit_uncertainty), or 'small', the one shipped")
     ap.add_argument("runs", type=Path, nargs="+", metavar="RUN", help="finished runs on held-out seeds")
     ap.add_argument("--truth", action="append", default=[], metavar="RUN=DATA",
                     help="score RUN against DATA's ground truth (default: the dataset RUN trained on)")
@@ -76,15 +77,12 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     from ragsplat.eval.calibration import reliability_figure
     from ragsplat.eval.tvu_cells import run_source
+    from ragsplat.export import read_uncertainty
     from ragsplat.outputs import write_bytes
-    from ragsplat.uncertainty import UncertaintyModel
 
     try:
         truths = truth_map(args.truth)
-        try:
-            model = UncertaintyModel.from_json(args.model.read_text())
-        except (OSError, ValueError, KeyError, TypeError) as err:
-            raise ConfigError(f"{args.model}: not an uncertainty model ({err})") from None
+        model = read_uncertainty(args.model)
         report, (t, errors, seeds) = check(model, [run_source(r, truths.get(r.resolve())) for r in args.runs],
                                            log=print, bed=args.bed)
     except RagsplatError as err:
