@@ -297,7 +297,7 @@ def save_row(folder: Path, row: dict, grid: np.ndarray, truth, fused: np.ndarray
 def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds: list[int], runner,
                  vgg16: str | None = None, download: bool = True,
                  log: Callable[[str], None] = lambda line: None, code: str | None = None,
-                 rows_only: bool = False, uncertainty=None) -> dict[str, list[dict]]:
+                 rows_only: bool = False, band: Callable | None = None) -> dict[str, list[dict]]:
     """Rows for `variants` x `seeds` and the reference rows, reused from `out` when their key matches, else
     computed with `runner` (a `TrainEval`, or anything with its `truth`, `fingerprint`, `dataset_seed`, `gsd`,
     `config`, `initial` and `train`); then all outputs. Returns {name: [row per seed]}.
@@ -306,8 +306,8 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
     a run without it then reuses those rows and writes the rest).
     `code`: the source digest the command started with; ConfigError if the sources are no longer those (an
     edit during a long run would otherwise key its rows to two versions of the code).
-    `uncertainty`: a fitted `UncertaintyModel`: each trained row gets its TVU95 band (`band_rows`); refused
-    (ConfigError, before any work) on a dataset seed the model was fitted or calibrated on.
+    `band`: with a fitted uncertainty model, `band(out, data, rows)` adds each trained row's TVU95 band before
+    the tables are written and returns what results.json records of the model (`tvu_cells.band_rows`).
     """
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
@@ -316,8 +316,6 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
         raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
     if not seeds or len(set(seeds)) != len(seeds):
         raise ConfigError(f"seeds must be distinct and at least one, got {seeds}")
-    if uncertainty is not None:
-        check_held_out(uncertainty, runner.dataset_seed)
     claim_out(out)
     stamp = versions("torch", "scipy")  # the code that runs now, not the checkout at the end of a long run
     truth = runner.truth
@@ -361,8 +359,7 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
             rows.setdefault(name, []).append(row)
     if rows_only:
         return rows
-    if uncertainty is not None:
-        band_rows(out, data, rows, uncertainty, log)
+    banded = None if band is None else band(out, data, rows)
     header = {"data": str(Path(data).resolve()), "dataset_fingerprint": runner.fingerprint,
               "dataset_seed": runner.dataset_seed, "dataset_seeds": DATASET_SEEDS,
               "dataset_role": dataset_role(runner.dataset_seed, preset), "tuning": TUNING,
@@ -375,57 +372,13 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
               "conditions": scene_conditions(data),
               "max_depth_m": truth.max_depth, "water": layout.water_json(truth.water), "one_level": one_level,
               "lpips_network": getattr(lpips_metric, "network", None),
-              "uncertainty": None if uncertainty is None else {
-                  "fit_seeds": list(uncertainty.fit_seeds),
-                  "calibration_seeds": list(uncertainty.calibration_seeds),
-                  "features": list(uncertainty.features), "weights": list(uncertainty.weights),
-                  "scale": uncertainty.scale, "commit": uncertainty.commit},
+              "uncertainty": banded,
               "references": {"names": list(REFERENCES), "use_ground_truth": list(USES_GROUND_TRUTH),
                              "tin_filter": TIN_FILTER, "dietrich_tracks": DIETRICH_TRACKS,
                              "dietrich_3dgs_max_angle_deg": DIETRICH_MAX_ANGLE,
                              "dietrich_3dgs_reduce": DIETRICH_DENSE_REDUCE}}
     log(write_outputs(out, rows, header, lpips_reason))
     return rows
-
-
-def check_held_out(model, seed: int | None) -> None:
-    """Raises ConfigError where the dataset (its seed `seed`) is not held out from the uncertainty model: a
-    band scored on the cells it was fitted or calibrated on says nothing of its coverage."""
-    seen = set(model.fit_seeds) | set(model.calibration_seeds)
-    if seed is None or seed in seen:
-        raise ConfigError(f"the dataset (seed {seed}) is not held out from the uncertainty model (fitted on "
-                          f"{list(model.fit_seeds)}, calibrated on {list(model.calibration_seeds)})")
-
-
-def band_rows(out: Path, data: Path, rows: dict[str, list[dict]], model, log: Callable[[str], None]) -> None:
-    """Each trained row's TVU95 band from the fitted `model` (docs/uncertainty.md): over the wet cells of its
-    volume bed (`tvu_cells.run_cells`, the extraction Table 3 scores), written as `tvu95.tif` in the row's
-    folder (one float32 band, the cells' TVU95 in m, on the bed's grid) and scored against the truth
-    (`calibration.calibration_report`, the row's cells one seed and one bed) under
-    row["geometry"]["survey"]["tvu"], which Table 3 shows. Computed each time from the finished rows (an
-    extraction and the cells' view geometry per row), not kept in row.json: the model is not part of a row's
-    key."""
-    from ragsplat.eval.calibration import calibration_report
-    from ragsplat.eval.tvu_cells import run_cells, run_source
-    from ragsplat.export import TVU_BAND
-    from ragsplat.uncertainty import tvu95
-
-    for name, found in rows.items():
-        if name not in VARIANTS:
-            continue
-        for k, row in enumerate(found):
-            folder = row_dir(out, name, row["seed"])
-            cells = run_cells(run_source(folder, data))
-            t = tvu95(model, cells.features)
-            seeds = np.full(len(t), -1 if cells.source.truth_seed is None else cells.source.truth_seed)
-            report = calibration_report(t, cells.errors, seeds, cells.depth, cells.features.views, cells.xy,
-                                        cells.cell)
-            layout.write_raster(folder / "tvu95.tif", cells.xy, [(t, TVU_BAND)], cells.cell)
-            survey = {**row["geometry"].get("survey", {}), "tvu": report}
-            found[k] = {**row, "geometry": {**row["geometry"], "survey": survey},
-                        "outputs": {**row.get("outputs", {}), "tvu95": str(folder / "tvu95.tif")}}
-            log(f"[{name} seed {row['seed']}] TVU95 band: {100 * report['coverage']['0.95']:.1f} % of "
-                f"{report['cells']} wet cells within it, median {100 * report['median_tvu95']:.2f} cm")
 
 
 def reference_rows(out: Path, runner, preset: str, seed: int, ecfg: ExtractConfig, base: dict,

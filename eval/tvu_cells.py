@@ -135,3 +135,48 @@ def pooled(cells: list[RunCells]) -> tuple[CellFeatures, np.ndarray, np.ndarray]
     seeds = np.concatenate([np.full(len(c.errors), -1 if c.source.truth_seed is None else c.source.truth_seed)
                             for c in cells])
     return features, np.concatenate([c.errors for c in cells]), seeds
+
+
+def check_held_out(model, seed: int | None) -> None:
+    """Raises ConfigError where the dataset (its seed `seed`) is not held out from the uncertainty model: a
+    band scored on the cells it was fitted or calibrated on says nothing of its coverage."""
+    seen = set(model.fit_seeds) | set(model.calibration_seeds)
+    if seed is None or seed in seen:
+        raise ConfigError(f"the dataset (seed {seed}) is not held out from the uncertainty model (fitted on "
+                          f"{list(model.fit_seeds)}, calibrated on {list(model.calibration_seeds)})")
+
+
+def band_rows(out: Path, data: Path, rows: dict[str, list[dict]], model, log=lambda line: None) -> dict:
+    """Each trained row's TVU95 band from the fitted `model` (docs/uncertainty.md): over the wet cells of its
+    volume bed (`tvu_cells.run_cells`, the extraction Table 3 scores), written as `tvu95.tif` in the row's
+    folder (one float32 band, the cells' TVU95 in m, on the bed's grid) and scored against the truth
+    (`calibration.calibration_report`, the row's cells one seed and one bed) under
+    row["geometry"]["survey"]["tvu"], which Table 3 shows. Computed each time from the finished rows (an
+    extraction and the cells' view geometry per row), not kept in row.json: the model is not part of a row's
+    key. Returns what results.json records of the model. `run_ablation(band=...)` calls it."""
+    from ragsplat.dataset import layout
+    from ragsplat.eval.ablation import row_dir
+    from ragsplat.eval.calibration import calibration_report
+    from ragsplat.export import TVU_BAND
+    from ragsplat.train.config import VARIANTS
+    from ragsplat.uncertainty import tvu95
+
+    for name, found in rows.items():
+        if name not in VARIANTS:
+            continue
+        for k, row in enumerate(found):
+            folder = row_dir(out, name, row["seed"])
+            cells = run_cells(run_source(folder, data))
+            t = tvu95(model, cells.features)
+            seeds = np.full(len(t), -1 if cells.source.truth_seed is None else cells.source.truth_seed)
+            report = calibration_report(t, cells.errors, seeds, cells.depth, cells.features.views, cells.xy,
+                                        cells.cell)
+            layout.write_raster(folder / "tvu95.tif", cells.xy, [(t, TVU_BAND)], cells.cell)
+            survey = {**row["geometry"].get("survey", {}), "tvu": report}
+            found[k] = {**row, "geometry": {**row["geometry"], "survey": survey},
+                        "outputs": {**row.get("outputs", {}), "tvu95": str(folder / "tvu95.tif")}}
+            log(f"[{name} seed {row['seed']}] TVU95 band: {100 * report['coverage']['0.95']:.1f} % of "
+                f"{report['cells']} wet cells within it, median {100 * report['median_tvu95']:.2f} cm")
+    return {"fit_seeds": list(model.fit_seeds), "calibration_seeds": list(model.calibration_seeds),
+            "features": list(model.features), "weights": list(model.weights), "scale": model.scale,
+            "commit": model.commit}

@@ -352,10 +352,10 @@ def test_the_protocol_check_is_a_config_error(evaluable_dataset, tmp_path):
 def test_the_ablation_writes_each_trained_row_s_band_and_table3_reports_it(evaluable_dataset, tmp_path):
     from dataclasses import replace
 
-    from ragsplat.eval.ablation import band_rows, check_held_out, row_dir
+    from ragsplat.eval.ablation import row_dir
     from ragsplat.eval.calibration import coverage
     from ragsplat.eval.report import table3
-    from ragsplat.eval.tvu_cells import run_cells, run_source
+    from ragsplat.eval.tvu_cells import band_rows, check_held_out, run_cells, run_source
     from ragsplat.uncertainty import Z95
 
     data = seeded(evaluable_dataset, tmp_path / "data", 3)  # a reach the fixture was not fitted on
@@ -430,7 +430,7 @@ def test_the_band_is_checked_at_the_dem_s_own_cells_not_read_between_them(evalua
 
 
 def test_the_shipped_model_is_fitted_on_development_seeds_and_named_small(tmp_path):
-    from ragsplat.eval.ablation import check_held_out
+    from ragsplat.eval.tvu_cells import check_held_out
     from ragsplat.export import SHIPPED_MODELS, read_uncertainty
 
     model = read_uncertainty("small")

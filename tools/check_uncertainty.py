@@ -30,9 +30,8 @@ def check(model, sources, log=lambda line: None, bed: str | None = None) -> tupl
     """(the report: the pooled `calibration_report`, per run's coverage and median; the arrays TVU95, errors,
     dataset seeds for the figure) of `model` on the runs `sources` (`tvu_cells.RunSource`), on the bed `bed`
     (None: the one the model was fitted on). Raises ConfigError for a run on a seed the model saw."""
-    from ragsplat.eval.ablation import check_held_out
     from ragsplat.eval.calibration import calibration_report, coverage
-    from ragsplat.eval.tvu_cells import pooled, run_cells
+    from ragsplat.eval.tvu_cells import check_held_out, pooled, run_cells
     from ragsplat.uncertainty import Z95, tvu95
 
     for s in sources:

@@ -3,7 +3,7 @@
 seed, the reference rows scored, Tables 1-3 printed (mean +- std over seeds) beside the paper's
 (`ragsplat.eval.ablation`, which also holds its own defaults; those it shares with `ragsplat survey` are
 `ragsplat.train.defaults`'). With a fitted uncertainty model each trained row also writes its TVU95 band and
-Table 3 reports its coverage and sharpness (`ragsplat.eval.ablation.band_rows`).
+Table 3 reports its coverage and sharpness (`ragsplat.eval.tvu_cells.band_rows`).
 
 `--one-level` measures what a flat-water tool does on a sloping river: the method and every reference are
 given one level, the mean height of the dataset's surveyed water edge
@@ -149,7 +149,8 @@ def _reason(task) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from ragsplat.cli.progress import deferred_interrupts, training_bar
-    from ragsplat.eval.ablation import ROW_CODE, TrainEval, check_held_out, default_jobs, run_ablation
+    from ragsplat.eval.ablation import ROW_CODE, TrainEval, default_jobs, run_ablation
+    from ragsplat.eval.tvu_cells import band_rows, check_held_out
     from ragsplat.export import read_uncertainty
     from ragsplat.outputs import source_digest
 
@@ -169,5 +170,5 @@ def run(args: argparse.Namespace) -> int:
             run_rows(args, train_eval.fingerprint, code, check)
         run_ablation(args.data, args.out, args.preset, args.variants, args.seeds, train_eval,
                      vgg16=args.vgg16, download=not args.no_download, log=print, code=code,
-                     uncertainty=model)
+                     band=None if model is None else partial(band_rows, model=model, log=print))
     return 0
