@@ -168,7 +168,7 @@ def band_rows(out: Path, data: Path, rows: dict[str, list[dict]], model, log=lam
             folder = row_dir(out, name, row["seed"])
             cells = run_cells(run_source(folder, data))
             t = tvu95(model, cells.features)
-            seeds = np.full(len(t), -1 if cells.source.truth_seed is None else cells.source.truth_seed)
+            seeds = pooled([cells])[2]  # [N] the run's dataset seed
             report = calibration_report(t, cells.errors, seeds, cells.depth, cells.features.views, cells.xy,
                                         cells.cell)
             layout.write_raster(folder / "tvu95.tif", cells.xy, [(t, TVU_BAND)], cells.cell)

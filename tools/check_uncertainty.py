@@ -43,9 +43,10 @@ def check(model, sources, log=lambda line: None, bed: str | None = None) -> tupl
     cells = [run_cells(s, bed=bed) for s in sources]
     if len({c.cell for c in cells}) != 1:
         raise ConfigError(f"the runs' beds are on different grids ({sorted({c.cell for c in cells})} m)")
-    per_run = {}
+    per_run, each = {}, []
     for c in cells:
         t = tvu95(model, c.features)
+        each.append(t)
         row = {"dataset_seed": c.source.truth_seed, "training_seed": c.source.seed, "cells": len(c.errors),
                "coverage_95": coverage(t / Z95, c.errors), "median_tvu95": float(np.median(t))}
         per_run[str(c.source.run)] = row
@@ -53,7 +54,7 @@ def check(model, sources, log=lambda line: None, bed: str | None = None) -> tupl
             f"{len(c.errors)} wet cells, 95 % coverage {100 * row['coverage_95']:.1f} %, median TVU95 "
             f"{100 * row['median_tvu95']:.2f} cm")
     features, errors, seeds = pooled(cells)
-    t = tvu95(model, features)
+    t = np.concatenate(each)  # pooled in the same order
     beds = np.concatenate([np.full(len(c.errors), k) for k, c in enumerate(cells)])
     report = calibration_report(t, errors, seeds, np.concatenate([c.depth for c in cells]), features.views,
                                 np.concatenate([c.xy for c in cells]), cells[0].cell, beds=beds)
