@@ -35,6 +35,12 @@ def with_value(cfg: TrainConfig | DensifyConfig, param: str, value: float) -> Tr
     return replace(cfg, **{param: int(value) if kind == "int" else value})
 
 
+def cm(x: float | None) -> str:
+    """x x 100 to one decimal (cm from m, % from a share); n/a where the bed gives none (p95 with more than
+    5 % of the wet cells holes, every figure of an empty bed)."""
+    return "n/a" if x is None else f"{100 * x:.1f}"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m tools.tune", description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, required=True)
@@ -81,10 +87,9 @@ def main(argv: list[str] | None = None) -> int:
                             "cover_wet": g["survey"]["coverage"], "train_s": row["time"]["wall_s"],
                             "attenuation": c, "attenuation_over_scene": ratio})
             optics = "" if ratio is None else "  c/scene " + " ".join(f"{r:.2f}" for r in ratio)
-            print(f"{variant} {args.param}={value:g}: F1@1% {100 * g['f1']['1%']:.1f}  F1@3% "
-                  f"{100 * g['f1']['3%']:.1f}  wet RMSE {100 * g['survey']['wet']['rmse']:.1f} cm  p95 "
-                  f"{100 * g['survey']['wet']['p95']:.1f} cm  cover {100 * g['survey']['coverage']:.1f} %  "
-                  f"{row['time']['wall_s']:.0f} s{optics}", flush=True)
+            print(f"{variant} {args.param}={value:g}: F1@1% {cm(g['f1']['1%'])}  F1@3% {cm(g['f1']['3%'])}  "
+                  f"wet RMSE {cm(g['survey']['wet']['rmse'])} cm  p95 {cm(g['survey']['wet']['p95'])} cm  "
+                  f"cover {cm(g['survey']['coverage'])} %  {row['time']['wall_s']:.0f} s{optics}", flush=True)
     score = {v: np.mean([r["f1_3%"] for r in results if r["value"] == v]) for v in args.values}
     best = max(score, key=score.get)
     write_json(args.out / "tune.json", {"data": str(args.data.resolve()), "dataset_seed": runner.dataset_seed,
