@@ -5,6 +5,7 @@ folders install as one package, `ragsplat` (pyproject.toml's package-dir), so th
 by their installed names: `ragsplat.X` for ragsplat_core/X.py, `ragsplat.eval.X` for eval/X.py, ..."""
 
 import ast
+import os
 import subprocess
 import sys
 import tomllib
@@ -218,6 +219,18 @@ def test_data_contract_and_generator_import_without_torch():
             "import ragsplat; ragsplat.dataset; "
             "assert 'torch' not in sys.modules, 'torch was imported'")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+
+
+@pytest.mark.parametrize("env, spin", [({}, "2000"), ({"GOMP_SPINCOUNT": "50"}, "50"),
+                                       ({"OMP_WAIT_POLICY": "PASSIVE"}, None)])
+def test_commands_and_tools_set_the_openmp_wait_before_torch(env, spin):
+    # a tool run beside others (tools.tune's rows on one machine) waits as the `ragsplat` command does; the
+    # user's own setting wins
+    code = "import os, sys, tools; assert 'torch' not in sys.modules; print(os.environ.get('GOMP_SPINCOUNT'))"
+    clean = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")}
+    out = subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT, capture_output=True, text=True,
+                         env={**clean, **env}).stdout.split()
+    assert out == [str(spin)]
 
 
 @pytest.mark.parametrize("pattern", [

@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import os
 import signal
 import sys
+
+from ragsplat.threads import openmp_waits
 
 # name -> (its module, one line of help), in workflow order: make data, train, look at and score a run, the
 # ablation, export; then the diagnostics. Every command is a module of this package (`cli/__init__.py`).
@@ -47,14 +48,7 @@ def _version() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    # How OpenMP threads (torch's and numba's, one libgomp) wait between parallel regions; it only takes
-    # effect if set before torch is imported, and the user's own setting wins. Spinning long (libgomp's
-    # default) made jobs that share the cores 2-80x slower; sleeping at once (OMP_WAIT_POLICY=PASSIVE)
-    # makes every small tensor op wait for its threads to wake: a 2-thread `full` step at 40k Gaussians
-    # took 0.107 s so, 0.071 s with a spin of 2 000 iterations, which costs jobs sharing the cores 1.1-1.3x
-    # (`ragsplat bench train-step`, measured).
-    if "OMP_WAIT_POLICY" not in os.environ:
-        os.environ.setdefault("GOMP_SPINCOUNT", "2000")
+    openmp_waits()
     argv = sys.argv[1:] if argv is None else list(argv)
     top = argparse.ArgumentParser(prog="ragsplat", description="Refraction-aware Gaussian splatting toolkit")
     top.add_argument("--version", action="version", version=f"ragsplat {_version()}")
