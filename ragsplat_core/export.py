@@ -405,8 +405,9 @@ def cell_tvu95(bed: Bed, cameras, model: UncertaintyModel, level_sigma: float = 
 
 # The fitted models that ship with ragsplat, by name (ragsplat_core/tuning/tvu_<name>.json,
 # docs/uncertainty.md): "small", fitted and calibrated on development seeds of the `small` preset (4 m up,
-# clear water)
-SHIPPED_MODELS = ("small",)
+# clear water); "small-field", the same features with the scale calibrated on the `small-field` preset's
+# development seed (water that absorbs and scatters, sky, glint and ripples)
+SHIPPED_MODELS = ("small", "small-field")
 
 
 def read_uncertainty(path: Path | str) -> UncertaintyModel:

@@ -434,7 +434,7 @@ def test_the_shipped_model_is_fitted_on_development_seeds_and_named_small(tmp_pa
     from ragsplat.export import SHIPPED_MODELS, read_uncertainty
 
     model = read_uncertainty("small")
-    assert SHIPPED_MODELS == ("small",) and model.features == FEATURES and model.scale > 0
+    assert SHIPPED_MODELS == ("small", "small-field") and model.features == FEATURES and model.scale > 0
     assert model.fit_seeds == (1,) and model.calibration_seeds == (2,) and model.stats["bed"] == "evaluation"
     assert "tools.fit_uncertainty" in model.stats["command"] and model.commit
     for seed in (0, 3, 7):  # the held-out reaches it may be checked on
@@ -443,3 +443,7 @@ def test_the_shipped_model_is_fitted_on_development_seeds_and_named_small(tmp_pa
         check_held_out(model, 1)
     with pytest.raises(ConfigError, match="no shipped model of that name"):
         read_uncertainty(tmp_path / "nothing.json")
+    field = read_uncertainty("small-field")  # clear water's weights, the field development seed's scale
+    assert field.features == FEATURES and field.fit_seeds == (2,) and field.calibration_seeds == (1,)
+    assert field.scale > model.scale and "small-field-s1" in field.stats["command"]
+    check_held_out(field, 7)

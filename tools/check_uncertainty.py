@@ -64,8 +64,8 @@ def check(model, sources, log=lambda line: None, bed: str | None = None) -> tupl
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m tools.check_uncertainty",
                                  description=__doc__.splitlines()[0])
-    ap.add_argument("model", type=Path, metavar="MODEL.json|small",
-                    help="a fitted model (tools.fit_uncertainty), or 'small', the one shipped")
+    ap.add_argument("model", type=Path, metavar="MODEL.json|small|small-field",
+                    help="a fitted model (tools.fit_uncertainty), or a shipped one ('small', 'small-field')")
     ap.add_argument("runs", type=Path, nargs="+", metavar="RUN", help="finished runs on held-out seeds")
     ap.add_argument("--truth", action="append", default=[], metavar="RUN=DATA",
                     help="score RUN against DATA's ground truth (default: the dataset RUN trained on)")

@@ -65,11 +65,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
                         help="train the rows on the Dask cluster whose scheduler is at ADDRESS "
                              "(tcp://host:8786) instead of local workers")
-    parser.add_argument("--uncertainty", type=Path, metavar="MODEL.json|small",
-                        help="a fitted uncertainty model (`python -m tools.fit_uncertainty`, or 'small', the "
-                             "one shipped): each trained row writes its TVU95 band (tvu95.tif) and Table 3 "
-                             "reports its coverage and sharpness (docs/uncertainty.md); refused on a dataset "
-                             "seed the model saw")
+    parser.add_argument("--uncertainty", type=Path, metavar="MODEL.json|small|small-field",
+                        help="a fitted uncertainty model (`python -m tools.fit_uncertainty`), or a shipped "
+                             "one ('small', clear water; 'small-field', field conditions): each trained row "
+                             "writes its TVU95 band (tvu95.tif) and Table 3 reports its coverage and "
+                             "sharpness (docs/uncertainty.md); refused on a dataset seed the model saw")
 
 
 class JobFailed(RagsplatError):

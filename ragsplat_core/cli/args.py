@@ -143,9 +143,9 @@ def lpips_arguments(parser: argparse.ArgumentParser) -> None:
 
 def uncertainty_arguments(parser: argparse.ArgumentParser, level_default: str) -> None:
     """--uncertainty, --level-sigma, --n-sigma (`ragsplat export`, `ragsplat survey`)."""
-    parser.add_argument("--uncertainty", type=Path, metavar="MODEL.json|small",
-                        help="a fitted uncertainty model (`python -m tools.fit_uncertainty`), or 'small', "
-                             "the one shipped (fitted on the `small` preset's development seeds): the DEM "
+    parser.add_argument("--uncertainty", type=Path, metavar="MODEL.json|small|small-field",
+                        help="a fitted uncertainty model (`python -m tools.fit_uncertainty`), or a shipped "
+                             "one: 'small' (clear water) or 'small-field' (field conditions): the DEM "
                              "gets band 3, each cell's total vertical uncertainty at 95 %% (TVU95, m, "
                              "described 'tvu95'), the LAS/LAZ an extra dimension tvu95 (docs/uncertainty.md)")
     parser.add_argument("--level-sigma", type=non_negative_float, metavar="M",
