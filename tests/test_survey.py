@@ -80,6 +80,7 @@ def test_photos_to_dem_and_a_rerun_skips_every_stage(survey, finished, capsys):
         assert (out / name).stat().st_size > 0
     poses = pose_errors(out / "model", survey / "truth")
     assert poses["images"] == 18 and poses["centre_m"]["median"] < 0.02
+    assert json.loads((out / "survey.json").read_text())["variant"] == "2dgs+full"  # the preset's, resolved
     water = json.loads((out / "water.json").read_text())
     assert water["adjusted"] and water["rms_px"] < 1.0 and water["points_below"] > 1000
     stamps = (out / "stages.json").read_text()

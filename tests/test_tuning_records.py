@@ -40,3 +40,15 @@ def test_the_presets_hold_the_recorded_choices():
     assert (value(field, "densify.refine_stop_iter")
             == FIELD_TUNING["refine_stop"]["kept"]["densify.refine_stop_iter"])
     assert TUNING["dataset_seed"] == FIELD_TUNING["dataset_seed"] == 1
+
+
+def test_the_field_survey_trains_the_recorded_water_terms():
+    from ragsplat.train.config import FIELD_TUNING, PRESETS, VARIANTS, survey_variant
+
+    rec = FIELD_TUNING["water_terms"]
+    f1_3 = rec["columns"].index("F1@3% (%)")
+    best = max(rec["tried"], key=lambda k: rec["tried"][k][f1_3])
+    assert survey_variant("small-field") == rec["chosen"] == best
+    assert rec["chosen"] in VARIANTS and survey_variant("small") == "2dgs+full"
+    assert PRESETS["small-field"].wet_sh_degree == rec["kept"]["wet_sh_degree"]
+    assert rec["commit"] and "python -m tools.tune" in rec["command"]

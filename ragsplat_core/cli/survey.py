@@ -89,7 +89,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         metavar=("H", "V"),
                         help="accuracy of positions from the photos without RTK fix (consumer GPS), "
                              "horizontal and vertical (m; default %(default)s)")
-    parser.add_argument("--variant", default="2dgs+full", choices=list(VARIANTS), help="(default: 2dgs+full)")
+    parser.add_argument("--variant", choices=list(VARIANTS),
+                        help="(default: the preset's best, 2dgs+full; with --preset small-field "
+                             "2dgs+full+reflection)")
     parser.add_argument("--init", default=INIT, choices=["triangulated", "refracted"],
                         help=f"(default: {INIT})")
     parser.add_argument("--preset", default="small", choices=list(PRESETS), help="training preset (small)")

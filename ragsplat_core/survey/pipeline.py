@@ -31,7 +31,7 @@ import json
 import os
 import shutil
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -96,7 +96,7 @@ class SurveyConfig:
     no_water_adjustment: bool = False
     rtk_sigma: tuple[float, float] | None = None
     gps_sigma: tuple[float, float] = CONSUMER_SIGMA
-    variant: str = "2dgs+full"
+    variant: str | None = None  # None: the preset's (`train.config.survey_variant`)
     init: str = INIT
     preset: str = "small"
     iterations: int | None = None
@@ -337,6 +337,10 @@ def check_inputs(cfg: SurveyConfig, progress: Progress) -> Survey:
     photos = sorted(p for p in cfg.images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if len(photos) < 3:
         raise DatasetError(f"{cfg.images}: {len(photos)} photos (JPEG, PNG or TIFF); at least 3 are needed")
+    if cfg.variant is None:
+        from ragsplat.train.config import survey_variant
+
+        cfg = replace(cfg, variant=survey_variant(cfg.preset))
     if cfg.uncertainty is not None:
         from ragsplat.export import read_uncertainty
 
@@ -360,8 +364,6 @@ def locate(cfg: SurveyConfig, photos: list[Path], progress: Progress) -> tuple[S
     """What will fix the photos' frame: the positions file, or the photos' EXIF GPS and DJI XMP (the CRS
     they choose set in the returned config), or the ground control points with their pixels. ConfigError
     for a half-given ground control, DatasetError unless enough of the names are photos."""
-    from dataclasses import replace
-
     from ragsplat.dataset import layout
     from ragsplat.errors import ConfigError, DatasetError
 
@@ -714,7 +716,6 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
     among the model's points; where the positions fix no tilt (consumer GPS) the slope too, and then the
     frame levelled by the water's plane."""
     import math
-    from dataclasses import replace
 
     import torch
 
@@ -1143,7 +1144,6 @@ def _check_sizes(cfg: SurveyConfig, progress: Progress, photos: list[Path], cent
     `export.sample_count` at --resolution (the area is known only after structure from motion; here its lower
     bound: the cameras' extent, grown by each one's nadir footprint where the water level is given)."""
     import os
-    from dataclasses import replace
 
     import numpy as np
     from PIL import Image
@@ -1200,8 +1200,6 @@ def _train(cfg: SurveyConfig, progress: Progress, model: Path, data: Path, out: 
     """The survey (or a tile's) model imported into `data` (`dataset.colmap`), then trained in `out`
     (resumes), with a Gaussian budget for its `area` (m^2) at its ground sample distance
     (`GAUSSIANS_PER_GSD2`)."""
-    from dataclasses import replace
-
     from ragsplat.dataset import layout
     from ragsplat.dataset.colmap import import_colmap
     from ragsplat.dataset.load import load_dataset
