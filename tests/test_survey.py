@@ -167,6 +167,22 @@ def reuse_sfm(finished, out):
         shutil.copy(finished[0] / name, out / name)
 
 
+def test_the_preset_names_the_variant_and_a_water_term_trains_through_the_survey(survey, finished, tmp_path,
+                                                                                   capsys):
+    """`--preset small-field` trains its recorded variant (the surface's reflection) unless `--variant` says
+    otherwise, and that variant's sky map trains through the survey's path to the products."""
+    out = tmp_path / "run"
+    reuse_sfm(finished, out)
+    assert main(args(survey, out, "--preset", "small-field", "--stop-after", "sfm")) == 0
+    assert json.loads((out / "survey.json").read_text())["variant"] == "2dgs+full+reflection"
+    out = tmp_path / "run2"
+    reuse_sfm(finished, out)
+    assert main(args(survey, out, "--variant", "2dgs+full+reflection")) == 0
+    assert "[train] 2dgs+full+reflection, 150 iterations" in capsys.readouterr().err
+    assert json.loads((out / "train" / "config.json").read_text())["reflection_final"] is not None
+    assert (out / "dem.tif").stat().st_size > 0
+
+
 def test_ground_control_instead_of_positions(survey, finished, tmp_path, capsys):
     out = tmp_path / "run"
     reuse_sfm(finished, out)
