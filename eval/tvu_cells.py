@@ -125,15 +125,19 @@ def run_cells(source: RunSource, level_sigma: float = 0.0, n_sigma: float = 0.0,
     return RunCells(source, features.select(wet), dz[wet], depth[wet], grid[wet, :2], cell)
 
 
+def truth_seeds(cells: RunCells) -> np.ndarray:
+    """[N] the dataset seed of the truth each of the run's cells is scored against (-1: none recorded)."""
+    return np.full(len(cells.errors), -1 if cells.source.truth_seed is None else cells.source.truth_seed)
+
+
 def pooled(cells: list[RunCells]) -> tuple[CellFeatures, np.ndarray, np.ndarray]:
-    """(the features, errors [N] and truth dataset seeds [N] (-1: none recorded) of every run's cells, in
+    """(the features, errors [N] and truth dataset seeds [N] (`truth_seeds`) of every run's cells, in
     order)."""
     from dataclasses import fields
 
     features = CellFeatures(**{f.name: np.concatenate([getattr(c.features, f.name) for c in cells])
                                for f in fields(CellFeatures)})
-    seeds = np.concatenate([np.full(len(c.errors), -1 if c.source.truth_seed is None else c.source.truth_seed)
-                            for c in cells])
+    seeds = np.concatenate([truth_seeds(c) for c in cells])
     return features, np.concatenate([c.errors for c in cells]), seeds
 
 
@@ -168,9 +172,8 @@ def band_rows(out: Path, data: Path, rows: dict[str, list[dict]], model, log=lam
             folder = row_dir(out, name, row["seed"])
             cells = run_cells(run_source(folder, data))
             t = tvu95(model, cells.features)
-            seeds = pooled([cells])[2]  # [N] the run's dataset seed
-            report = calibration_report(t, cells.errors, seeds, cells.depth, cells.features.views, cells.xy,
-                                        cells.cell)
+            report = calibration_report(t, cells.errors, truth_seeds(cells), cells.depth,
+                                        cells.features.views, cells.xy, cells.cell)
             layout.write_raster(folder / "tvu95.tif", cells.xy, [(t, TVU_BAND)], cells.cell)
             survey = {**row["geometry"].get("survey", {}), "tvu": report}
             found[k] = {**row, "geometry": {**row["geometry"], "survey": survey},
