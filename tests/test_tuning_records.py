@@ -43,7 +43,8 @@ def test_the_presets_hold_the_recorded_choices():
 
 
 def test_the_field_survey_trains_the_recorded_water_terms():
-    from ragsplat.train.config import FIELD_TUNING, PRESETS, VARIANTS, survey_variant
+    from ragsplat.train.config import FIELD_TUNING, PRESETS, VARIANTS
+    from ragsplat.train.defaults import survey_variant
 
     rec = FIELD_TUNING["water_terms"]
     f1_3 = rec["columns"].index("F1@3% (%)")

@@ -39,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ragsplat.survey.exif import CONSUMER_SIGMA
     from ragsplat.survey.pipeline import STAGES
     from ragsplat.train.config import INIT, PRESETS, VARIANTS
-    from ragsplat.train.defaults import JOBS
+    from ragsplat.train.defaults import JOBS, SURVEY_VARIANTS, survey_variant
 
     parser.add_argument("images", type=Path, metavar="IMAGES",
                         help="the folder of the survey's photos (JPEG/PNG)")
@@ -90,8 +90,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="accuracy of positions from the photos without RTK fix (consumer GPS), "
                              "horizontal and vertical (m; default %(default)s)")
     parser.add_argument("--variant", choices=list(VARIANTS),
-                        help="(default: the preset's best, 2dgs+full; with --preset small-field "
-                             "2dgs+full+reflection)")
+                        help=f"(default: the preset's best, {survey_variant('small')}; "
+                             + "; ".join(f"with --preset {p} {v}" for p, v in SURVEY_VARIANTS.items()) + ")")
     parser.add_argument("--init", default=INIT, choices=["triangulated", "refracted"],
                         help=f"(default: {INIT})")
     parser.add_argument("--preset", default="small", choices=list(PRESETS), help="training preset (small)")

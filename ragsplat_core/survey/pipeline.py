@@ -96,7 +96,7 @@ class SurveyConfig:
     no_water_adjustment: bool = False
     rtk_sigma: tuple[float, float] | None = None
     gps_sigma: tuple[float, float] = CONSUMER_SIGMA
-    variant: str | None = None  # None: the preset's (`train.config.survey_variant`)
+    variant: str | None = None  # None: the preset's (`train.defaults.survey_variant`)
     init: str = INIT
     preset: str = "small"
     iterations: int | None = None
@@ -338,7 +338,7 @@ def check_inputs(cfg: SurveyConfig, progress: Progress) -> Survey:
     if len(photos) < 3:
         raise DatasetError(f"{cfg.images}: {len(photos)} photos (JPEG, PNG or TIFF); at least 3 are needed")
     if cfg.variant is None:
-        from ragsplat.train.config import survey_variant
+        from ragsplat.train.defaults import survey_variant
 
         cfg = replace(cfg, variant=survey_variant(cfg.preset))
     if cfg.uncertainty is not None:

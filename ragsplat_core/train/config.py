@@ -322,18 +322,6 @@ PRESETS["small-3dgs"] = replace(PRESETS["small"], preset="small-3dgs", ssim_lamb
                                 densify=DensifyConfig(max_gaussians=40_000))
 
 
-# The variant `ragsplat survey` trains under each preset unless told (`--variant`): the best on the preset's
-# development seed. small-field: with the surface's reflection, ahead of `2dgs+full` at 1 % and 3 % of depth
-# with a lower RMSE and the same cover there, where all three water terms lose cover (small_field.json,
-# "water_terms").
-SURVEY_VARIANTS = {"small-field": FIELD_TUNING["water_terms"]["chosen"]}
-
-
-def survey_variant(preset: str) -> str:
-    """The variant a survey under `preset` trains by default (`SURVEY_VARIANTS`, else `2dgs+full`)."""
-    return SURVEY_VARIANTS.get(preset, "2dgs+full")
-
-
 def preset_config(name: str, **overrides) -> TrainConfig:
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
