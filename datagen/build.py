@@ -487,3 +487,57 @@ def overhead_fraction(summary: dict) -> float:
     """Time outside Cycles' render calls as a fraction of the time inside them."""
     return ((summary["wall_s"] - summary["render_s"]) / summary["render_s"] if summary["render_s"]
             else math.nan)
+
+
+def stretch(spec: SceneSpec, out: Path, core: tuple[float, float], margin: float | None = None,
+            progress: Callable[[dict], None] | None = None) -> Path:
+    """A stretch of a reach as its own small dataset, for development work that cannot wait for the whole
+    reach (the `long` reach renders in over an hour; a stretch of it in minutes): the wet pass of the
+    training views whose camera centre lies within `margin` (default: half a nadir footprint) of the core
+    x-range `core` (m), rendered into `out`'s own paths (a later `generate` renders only the rest), and
+    out/stretch_X0_X1/ holding those views (transforms.json), their survey (survey/, as `generate` writes it,
+    the edge points along the flown x-range), and the ground truth cut to the core (gt/, scene.json: scored
+    by `ragsplat score --truth`, at the whole reach's maximum depth). Resumes. Returns the stretch's
+    folder."""
+    validate(spec)
+    if spec.water is None or spec.reach is None:
+        raise OutputError("a stretch is part of a reach under water: this spec has no reach or no water")
+    x0, x1 = core
+    region = flight.eval_region(spec)
+    if not region["xmin"] <= x0 < x1 <= region["xmax"]:
+        raise OutputError(f"the core x {x0:g} to {x1:g} m must lie inside the evaluated region's x "
+                          f"{region['xmin']:.2f} to {region['xmax']:.2f} m")
+    margin = flight.footprint(spec) / 2 if margin is None else margin
+    out = Path(out)
+    _prepare_out(spec, out)
+    _write_bed_assets(spec, out)
+    poses = flight.plan(spec)
+    views = [p for p in poses
+             if p.split == "train" and x0 - margin <= p.camera.camera_center[0] <= x1 + margin]
+    tasks = [_task(spec, "wet", p, layout.output_path(out, "wet", p.name)) for p in views
+             if not layout.intact(layout.output_path(out, "wet", p.name), None)]
+    if tasks:
+        if progress is not None:
+            progress({"event": "plan", "images": len(tasks), "views": len(views), "passes": 1})
+        run_blender(render_job(spec, out, poses[0].camera, tasks), out / "scene", progress)
+    root = out / f"stretch_{x0:g}_{x1:g}"
+    (root / "gt").mkdir(parents=True, exist_ok=True)
+    if not (root / "images").exists():
+        os.symlink(os.path.relpath(out / "images", root), root / "images")
+    inside = {"xmin": x0, "xmax": x1, "ymin": region["ymin"], "ymax": region["ymax"]}
+    for name in (layout.GT_GRID, layout.GT_BANKS):
+        nodes = np.load(out / name)
+        layout.write_npy(root / name, nodes[(nodes[:, 0] >= x0) & (nodes[:, 0] < x1)])
+    for name in (layout.GT_SURFACE, layout.GT_MESH, layout.GT_WATERLINE):  # the whole reach's: exact anywhere
+        (root / name).write_bytes((out / name).read_bytes())
+    frames = [layout.frame(p.name, p.camera, p.split, p.kind, layout.relative_path("wet", p.name))
+              for p in views]
+    write_json(root / layout.TRANSFORMS, layout.transforms_json(views[0].camera, frames, spec.water))
+    scene = scene_metadata(spec, views, np.load(root / layout.GT_GRID))
+    write_json(root / layout.SCENE, {**scene, "eval_region": inside, "passes": ["wet"],
+                                     "stretch": {"core_x": [x0, x1], "margin_m": margin, "of": str(out)}})
+    lines = json.loads((out / layout.GT_WATERLINE).read_text())["geometry"]["coordinates"]
+    write_survey(root, views, spec.water, seed=spec.seed, banks=np.load(root / layout.GT_BANKS),
+                 waterline=[np.asarray(line, np.float64)[:, :2] for line in lines],
+                 region={**inside, "xmin": x0 - margin, "xmax": x1 + margin})
+    return root

@@ -373,3 +373,38 @@ def test_smoke_long_renders_a_survey_along_the_reach(tmp_path):
     assert "survey/images-lens" not in json.loads((survey / "survey.json").read_text())["geo"]
     edge = np.loadtxt(survey / "water_edge.csv", delimiter=",", skiprows=1)
     assert len(edge) == 30 and (edge[:, 1] < 0).sum() == 15  # 15 a bank
+
+
+def test_a_stretch_is_a_small_dataset_that_the_whole_one_resumes_from(tmp_path, capsys):
+    """`--stretch X0 X1`: the wet training photos within half a footprint of the core, their survey, the
+    truth cut to the core (scored by `ragsplat score`: the truth's own points score 100 % with full cover);
+    the whole dataset later renders only what the stretch left (about 30 s)."""
+    from ragsplat.datagen import flight
+    from ragsplat.datagen.spec import preset
+
+    out = tmp_path / "smoke-long"
+    argv = ["dataset", "--preset", "smoke-long", "--out", str(out), "--quiet"]
+    assert main([*argv, "--stretch", "-2", "2"]) == 0
+    root = out / "stretch_-2_2"
+    spec = preset("smoke-long")
+    half = flight.footprint(spec) / 2
+    near = [p.name for p in flight.plan(spec)
+            if p.split == "train" and -2 - half <= p.camera.camera_center[0] <= 2 + half]
+    assert 0 < len(near) < 72
+    assert sorted(p.stem for p in (out / "images" / "wet").glob("*.png")) == sorted(near)
+    assert not (out / "transforms.json").exists()  # the dataset itself is not complete
+    assert sorted(p.stem for p in (root / "survey" / "images").glob("*.jpg")) == sorted(near)
+    scene = json.loads((root / "scene.json").read_text())
+    assert (scene["eval_region"]["xmin"], scene["eval_region"]["xmax"]) == (-2, 2)
+    grid = np.load(root / "gt" / "bed_grid.npy")
+    assert grid[:, 0].min() >= -2 and grid[:, 0].max() < 2
+    points = root / "truth.csv"
+    np.savetxt(points, grid, delimiter=",", header="x,y,z", comments="")
+    assert main(["score", str(points), "--truth", str(root), "--no-filter"]) == 0
+    result = json.loads((root / "truth_score.json").read_text())
+    assert result["geometry"]["f1"]["1%"] == 1.0 and result["geometry"]["survey"]["coverage"] == 1.0
+    wet = {p.name: p.stat().st_mtime_ns for p in (out / "images" / "wet").glob("*.png")}
+    capsys.readouterr()
+    assert main(argv) == 0
+    assert "complete" in capsys.readouterr().out
+    assert all((out / "images" / "wet" / name).stat().st_mtime_ns == t for name, t in wet.items())

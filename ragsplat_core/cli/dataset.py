@@ -29,6 +29,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--shard", default=(0, 1), type=shard, metavar="i/N",
                         help="render only views k with k mod N == i (0 <= i < N); merge when all are done")
     parser.add_argument("--seed", type=count, default=0, help="scene seed (default 0): same seed, same data")
+    parser.add_argument("--stretch", type=float, nargs=2, metavar=("X0", "X1"),
+                        help="only a stretch of a reach, for development work: the wet training photos "
+                             "within half a footprint of x in [X0, X1) (m), then OUT/stretch_X0_X1/ with "
+                             "their survey and the ground truth of that core (`ragsplat score --truth` reads "
+                             "it)")
     parser.add_argument("--no-water", action="store_true", help="dry scene: render only the dry set")
     parser.add_argument("--water-slope", type=float, metavar="S",
                         help="the water surface falls by the fraction S downstream (+x; 0.01: 1 %%), the bed "
@@ -55,7 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ragsplat.cli.progress import bar
     from ragsplat.datagen import flight
-    from ragsplat.datagen.build import generate, overhead_fraction
+    from ragsplat.datagen.build import generate, overhead_fraction, stretch
     from ragsplat.datagen.spec import preset, validate, with_conditions, with_slope
 
     spec = preset(args.preset, seed=args.seed)
@@ -87,6 +92,10 @@ def run(args: argparse.Namespace) -> int:
             bars[-1].update(1)
 
     try:
+        if args.stretch is not None:
+            print(f"{stretch(spec, args.out, tuple(args.stretch), progress=progress)}: the stretch's photos, "
+                  "survey and ground truth")
+            return 0
         summary = generate(spec, args.out, shard=args.shard, progress=progress)
     finally:
         for b in bars:
