@@ -33,7 +33,7 @@ from ragsplat.outputs import atomic_path, claim
 from ragsplat.ply import load_ply
 from ragsplat.rasterize import choose_backend
 from ragsplat.refraction import WaterSurface
-from ragsplat.surface import ExtractConfig, extract_surface, extract_surface_blocks
+from ragsplat.surface import ExtractConfig, extract_surface, extract_surface_blocks, max_scale
 from ragsplat.train.config import TrainConfig
 from ragsplat.train.trainer import (
     PLY,
@@ -384,8 +384,7 @@ def extract_bed(gaussians: dict, resolution: float, water: WaterSurface | None, 
                                              cells=cells)
     if not len(grid):
         raise OutputError(f"no bed surface: no Gaussian is opaque enough (>= {cfg.min_opacity}) and small "
-                          f"enough (<= {cfg.max_scale_gsd:g} ground sample distances), or the noise filter "
-                          "removed every sample")
+                          f"enough (<= {max_scale(cfg):.3g} m), or the noise filter removed every sample")
     return Bed(grid, resolution, water, georef, cells=stats["cells"] if cells else None)
 
 

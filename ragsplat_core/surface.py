@@ -3,7 +3,8 @@
 
 Extraction (the paper's Section 3, "Geometry Extraction"):
 1. cull Gaussians below an opacity threshold, those whose largest standard deviation exceeds
-   `max_scale_gsd` ground sample distances of the views (`gsd`, `Dataset.gsd`), and, when a region is
+   `max_scale_gsd` ground sample distances of the views (`gsd`, `Dataset.gsd`) or `max_scale_m` metres
+   (`max_scale`), and, when a region is
    given, those whose centre lies more than `region_margin` outside it (samples spent far away say nothing
    about the bed);
 2. draw `n_samples` points, split between Gaussians in proportion to their volume (product of the three
@@ -58,6 +59,12 @@ class ExtractConfig:
     # 6 as chosen with the opacity (tuning/extract.json, "both"; the paper: no limit). In pixels, not cells:
     # the DEM's cell is the user's choice.
     max_scale_gsd: float = 6.0
+    # ...and at most this many metres, but never below `RELIEF_FLOOR_GSD` pixels: a flat surfel wider than
+    # the bed's relief cannot follow it, however coarse the pixels. 6 pixels are 14 cm on `small` (2.33 cm a
+    # pixel, so this changes nothing there); on the long reach's development stretch (4.66 cm) the same 14
+    # cm, 3 pixels, was the best of 2-12 pixels, and 6 pixels left a speckle of wide surfels 10-15 cm too
+    # deep (tuning/extract.json, "long"). inf: the pixels alone.
+    max_scale_m: float = 0.14
     gsd: float | None = None  # metres per pixel (`Dataset.gsd`); needed when max_scale_gsd is finite
     n_samples: int = 200_000
     sigma_cut: float = 2.0
@@ -118,16 +125,22 @@ def truncated_normal(n: int, cut: float, rng: np.random.Generator) -> np.ndarray
     return out
 
 
+# Below 3 pixels the bed has holes: on the long reach's development stretch 2.5 pixels kept 86 % and 2 pixels
+# 66 % of the wet cells, 3 pixels 96 % (tuning/extract.json, "long").
+RELIEF_FLOOR_GSD = 3.0
+
+
 def max_scale(cfg: ExtractConfig) -> float:
-    """The size cull in metres (inf: none). Raises ConfigError when it needs a ground sample distance and
-    has none (a dry scene: no water surface to measure it at)."""
+    """The size cull in metres (inf: none): `max_scale_gsd` pixels, or `max_scale_m` where that is smaller
+    and still at least `RELIEF_FLOOR_GSD` pixels. Raises ConfigError when it needs a ground sample distance
+    and has none (a dry scene: no water surface to measure it at)."""
     if math.isinf(cfg.max_scale_gsd):
         return math.inf
     if cfg.gsd is None or not cfg.gsd > 0:
         raise ConfigError(f"the size cull ({cfg.max_scale_gsd:g} ground sample distances) needs the views' "
                           f"ground sample distance, got {cfg.gsd}; pass it, or lift the cull (max_scale_gsd "
                           "= inf)")
-    return cfg.max_scale_gsd * cfg.gsd
+    return min(cfg.max_scale_gsd, max(cfg.max_scale_m / cfg.gsd, RELIEF_FLOOR_GSD)) * cfg.gsd
 
 
 def culled(scales: np.ndarray, opacities: np.ndarray, means: np.ndarray, cfg: ExtractConfig,

@@ -260,6 +260,23 @@ def test_wide_gaussians_are_not_sampled():
         extract_surface(means, scales, quats, opac, replace(cfg, gsd=None), region)
 
 
+def test_the_size_cull_is_six_pixels_or_the_relief_whichever_is_smaller_but_three_pixels_at_least():
+    """6 ground sample distances on `small` (2.33 cm: 14 cm, the relief's limit lies just above it), the
+    relief's 14 cm on the long reach (4.66 cm: 3 pixels), 3 pixels where 14 cm would be fewer (smoke, 7 cm);
+    an explicit smaller K stands, inf lifts either limit."""
+    from ragsplat.surface import max_scale
+
+    def cull(gsd, **kw):
+        return max_scale(ExtractConfig(gsd=gsd, **kw))
+
+    assert cull(0.023286) == pytest.approx(6 * 0.023286, rel=1e-12)
+    assert cull(0.046572) == pytest.approx(0.14, rel=1e-12)
+    assert cull(0.07) == pytest.approx(0.21, rel=1e-12)
+    assert cull(0.046572, max_scale_gsd=2.0) == pytest.approx(2 * 0.046572, rel=1e-12)
+    assert cull(0.046572, max_scale_m=math.inf) == pytest.approx(6 * 0.046572, rel=1e-12)
+    assert cull(0.046572, max_scale_gsd=math.inf) == math.inf
+
+
 def test_fill_holes_recovers_a_plane_and_leaves_wide_gaps():
     # A plane on a 5 cm lattice with one-cell holes and a hole 5 cells wide: filling 1 cell gives back the
     # plane's exact height in the small holes and leaves the wide one empty; 0 changes nothing.

@@ -102,12 +102,12 @@ def dataset_dir(text: str) -> Path:
 
 
 # what a command may change of the bed
-CULLS = ("min_opacity", "max_scale_gsd", "despike_radius", "despike_tol", "fill_gap_cells")
+CULLS = ("min_opacity", "max_scale_gsd", "max_scale_m", "despike_radius", "despike_tol", "fill_gap_cells")
 
 
 def cull_arguments(parser: argparse.ArgumentParser) -> None:
-    """--min-opacity, --max-scale-gsd, --despike-radius, --despike-tol and --fill-gap-cells: the volume
-    bed's culls and hole filling (`ExtractConfig`); read them back with `cull_overrides`."""
+    """--min-opacity, --max-scale-gsd, --max-scale-m, --despike-radius, --despike-tol and --fill-gap-cells:
+    the volume bed's culls and hole filling (`ExtractConfig`); read them back with `cull_overrides`."""
     parser.add_argument("--min-opacity", type=positive_float, metavar="A",
                         help="only Gaussians at least this opaque make the bed (default: the evaluation's, "
                              "chosen on the development reach; lower it for a short or sparse run)")
@@ -116,6 +116,10 @@ def cull_arguments(parser: argparse.ArgumentParser) -> None:
                              "distances of the views (at the water surface) make the bed (default: the "
                              "evaluation's, chosen on the development reach; inf: no limit, needed for a dry "
                              "scene)")
+    parser.add_argument("--max-scale-m", type=limit, metavar="M",
+                        help="and at most M metres, where that is at least 3 ground sample distances "
+                             "(default: the evaluation's 0.14, chosen on the long reach's development "
+                             "stretch; inf: the ground sample distances alone)")
     parser.add_argument("--despike-radius", type=positive_float, metavar="M",
                         help="a DEM cell is compared with the median of the cells within M metres (default: "
                              "the evaluation's, chosen on the development reach)")
