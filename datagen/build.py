@@ -51,7 +51,7 @@ from ragsplat.datagen.job import (
 from ragsplat.datagen.spec import SceneSpec, validate
 from ragsplat.datagen.survey import LENS, lens_polynomial, write_survey
 from ragsplat.dataset import layout
-from ragsplat.errors import OutputError, RagsplatError
+from ragsplat.errors import ConfigError, OutputError, RagsplatError
 from ragsplat.outputs import atomic_path, versions, write_json
 from ragsplat.scoring import geometry_metrics, plane_scores, thresholds
 
@@ -501,11 +501,11 @@ def stretch(spec: SceneSpec, out: Path, core: tuple[float, float], margin: float
     folder."""
     validate(spec)
     if spec.water is None or spec.reach is None:
-        raise OutputError("a stretch is part of a reach under water: this spec has no reach or no water")
+        raise ConfigError("a stretch is part of a reach under water: this spec has no reach or no water")
     x0, x1 = core
     region = flight.eval_region(spec)
     if not region["xmin"] <= x0 < x1 <= region["xmax"]:
-        raise OutputError(f"the core x {x0:g} to {x1:g} m must lie inside the evaluated region's x "
+        raise ConfigError(f"the core x {x0:g} to {x1:g} m must lie inside the evaluated region's x "
                           f"{region['xmin']:.2f} to {region['xmax']:.2f} m")
     margin = flight.footprint(spec) / 2 if margin is None else margin
     out = Path(out)
@@ -514,6 +514,9 @@ def stretch(spec: SceneSpec, out: Path, core: tuple[float, float], margin: float
     poses = flight.plan(spec)
     views = [p for p in poses
              if p.split == "train" and x0 - margin <= p.camera.camera_center[0] <= x1 + margin]
+    if len(views) < 3:
+        raise ConfigError(f"{len(views)} training photos within {margin:g} m of x {x0:g} to {x1:g}: a survey "
+                          "needs 3 at least; widen the stretch")
     tasks = [_task(spec, "wet", p, layout.output_path(out, "wet", p.name)) for p in views
              if not layout.intact(layout.output_path(out, "wet", p.name), None)]
     if tasks:

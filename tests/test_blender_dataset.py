@@ -384,6 +384,7 @@ def test_a_stretch_is_a_small_dataset_that_the_whole_one_resumes_from(tmp_path, 
 
     out = tmp_path / "smoke-long"
     argv = ["dataset", "--preset", "smoke-long", "--out", str(out), "--quiet"]
+    assert main([*argv, "--stretch", "5", "100"]) == 2 and not out.exists()  # beyond the evaluated reach
     assert main([*argv, "--stretch", "-2", "2"]) == 0
     root = out / "stretch_-2_2"
     spec = preset("smoke-long")
