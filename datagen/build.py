@@ -410,12 +410,17 @@ def _merge(spec: SceneSpec, out: Path, poses) -> None:
     if surveyed(spec):  # what a surveyor would hand over (`ragsplat survey`)
         banks = np.load(out / layout.GT_BANKS) if (out / layout.GT_BANKS).is_file() else None
         targets = np.load(out / layout.GT_TARGETS) if (out / layout.GT_TARGETS).is_file() else None
-        edges = None
-        if (out / layout.GT_WATERLINE).is_file():
-            lines = json.loads((out / layout.GT_WATERLINE).read_text())["geometry"]["coordinates"]
-            edges = [np.asarray(line, np.float64)[:, :2] for line in lines]
-        write_survey(out, poses, spec.water, seed=spec.seed, banks=banks, targets=targets, waterline=edges,
+        write_survey(out, poses, spec.water, seed=spec.seed, banks=banks, targets=targets,
+                     waterline=_waterline_xy(out),
                      region=flight.eval_region(spec))
+
+
+def _waterline_xy(out: Path) -> list[np.ndarray] | None:
+    """The dataset's waterline polylines as [K, 2] horizontal points (None: a scene without one)."""
+    if not (out / layout.GT_WATERLINE).is_file():
+        return None
+    lines = json.loads((out / layout.GT_WATERLINE).read_text())["geometry"]["coordinates"]
+    return [np.asarray(line, np.float64)[:, :2] for line in lines]
 
 
 def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
@@ -539,8 +544,7 @@ def stretch(spec: SceneSpec, out: Path, core: tuple[float, float], margin: float
     scene = scene_metadata(spec, views, np.load(root / layout.GT_GRID))
     write_json(root / layout.SCENE, {**scene, "eval_region": inside, "passes": ["wet"],
                                      "stretch": {"core_x": [x0, x1], "margin_m": margin, "of": str(out)}})
-    lines = json.loads((out / layout.GT_WATERLINE).read_text())["geometry"]["coordinates"]
     write_survey(root, views, spec.water, seed=spec.seed, banks=np.load(root / layout.GT_BANKS),
-                 waterline=[np.asarray(line, np.float64)[:, :2] for line in lines],
+                 waterline=_waterline_xy(out),
                  region={**inside, "xmin": x0 - margin, "xmax": x1 + margin})
     return root
