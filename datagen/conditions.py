@@ -27,6 +27,9 @@ _WAVES, _PHASES, _TARGETS = 1, 2, 3
 TARGET_LIFT = 0.005  # m: a target lies this far above the highest ground under it (no z-fighting)
 TARGET_TILT = 20.0  # deg: the steepest ground a (level) target is laid on
 TARGET_ALBEDO = (0.04, 0.85)  # the targets' black and white (linear diffuse albedo)
+# The Secchi-like depth: where the bed's contrast seen from above has fallen to this share of its contrast at
+# the surface (5 %: three e-foldings of the two-way path)
+CONTRAST_SHARE = 0.05
 
 
 def ripple_waves(c: FieldConditions, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -153,14 +156,30 @@ def target_meshes(c: FieldConditions, centres: np.ndarray) -> dict[str, tuple[np
     return out
 
 
+def secchi_depth(extinction, sun_elevation_deg: float) -> np.ndarray:
+    """The Secchi-like depth (m) per channel [3]: the depth at which a nadir view's contrast of the bed (the
+    radiance difference between two albedos) falls to CONTRAST_SHARE of its value at the surface. The
+    sunlight reaches the bed along the straight shadow ray, as the renderer attenuates it (z / sin of the
+    sun's elevation; docs/benchmark.md), and the view leaves it along z, both dimmed by exp(-c L), c the
+    extinction (absorption plus scattering, 1/m); light scattered into the paths is left out, so this is the
+    beam's depth. inf where c = 0."""
+    c = np.asarray(extinction, float)  # [3]
+    path = 1.0 + 1.0 / math.sin(math.radians(sun_elevation_deg))  # metres of path per metre of depth
+    with np.errstate(divide="ignore"):
+        return np.where(c > 0, math.log(1.0 / CONTRAST_SHARE) / (c * path), np.inf)
+
+
 def figures(spec: SceneSpec) -> dict:
     """What scene.json records of the conditions, for a reader of the dataset's figures: the coefficients
     in force and the ripples' slope, beside the spec's own settings."""
     c = spec.conditions
     absorption, scattering = attenuation(c)
     k, amplitude = ripple_waves(c, spec.seed)
+    secchi = secchi_depth(absorption + scattering, spec.light.sun_elevation)
     return {"absorption_per_m": absorption.tolist(), "scattering_per_m": scattering.tolist(),
-            "extinction_per_m": (absorption + scattering).tolist(), "reflection": c.reflection,
+            "extinction_per_m": (absorption + scattering).tolist(),
+            "secchi_like_depth_m": [float(v) if math.isfinite(v) else None for v in secchi],
+            "reflection": c.reflection,
             "ripple_rms_m": c.ripple_amplitude, "ripple_wavelengths_m": list(c.ripple_wavelengths),
             "ripple_rms_slope_deg": math.degrees(ripple_slope(k, amplitude)), "targets": c.targets,
             "sun_elevation_deg": spec.light.sun_elevation, "sun_azimuth_deg": spec.light.sun_azimuth}

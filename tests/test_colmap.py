@@ -2,6 +2,7 @@
 through the data contract."""
 
 import json
+import shutil
 
 import cv2
 import numpy as np
@@ -161,6 +162,13 @@ def test_a_second_import_reuses_the_directory_and_refuses_other_inputs(tmp_path)
     assert (tmp_path / "data" / IMPORT).stat().st_mtime_ns == stamp
     with pytest.raises(DatasetError, match="level changed"):
         import_colmap(tmp_path / "model", tmp_path / "img", tmp_path / "data", WaterSurface(0.3))
+    # the model known by its content: a copy elsewhere (a run folder moved) is the same input, another not
+    shutil.copytree(tmp_path / "model", tmp_path / "moved")
+    assert import_colmap(tmp_path / "moved", tmp_path / "img", tmp_path / "data", WaterSurface(0.0)).reused
+    with open(tmp_path / "moved" / "points3D.txt", "a") as f:
+        f.write("# edited\n")
+    with pytest.raises(DatasetError, match="model_digest changed"):
+        import_colmap(tmp_path / "moved", tmp_path / "img", tmp_path / "data", WaterSurface(0.0))
 
 
 @pytest.mark.parametrize("case, phrase", [

@@ -166,3 +166,21 @@ def test_bad_conditions_are_refused(change, message):
         validate(replace(spec, light=replace(spec.light, sun_azimuth=math.inf)))
     with pytest.raises(SpecError, match="finite and >= 0"):  # NaN passes every comparison
         validate(with_conditions(spec, ripple_amplitude=math.nan))
+
+
+def test_the_secchi_like_depth_from_the_beams_down_and_up():
+    """Clear water: no depth; the sun overhead: the path down equals the path up, so the contrast share
+    exp(-2 c z) is reached at ln(1 / share) / 2c; a sun 30 degrees up doubles the path down (the renderer's
+    straight shadow ray); turbidity scales the depth down as 1 / T."""
+    share = conditions.CONTRAST_SHARE
+    c = np.array([0.0, 0.5, 2.0])
+    z = conditions.secchi_depth(c, 90.0)
+    assert np.isinf(z[0])
+    np.testing.assert_allclose(z[1:], math.log(1 / share) / (2 * c[1:]))
+    np.testing.assert_allclose(np.exp(-c[1] * z[1] * 2), share)
+    np.testing.assert_allclose(conditions.secchi_depth(c, 30.0)[1], math.log(1 / share) / (0.5 * 3))
+    field = conditions.figures(preset("small-field"))
+    murkier = conditions.figures(with_conditions(preset("small-field"), turbidity=2.0))
+    np.testing.assert_allclose(murkier["secchi_like_depth_m"], np.array(field["secchi_like_depth_m"]) / 2)
+    assert conditions.figures(with_conditions(preset("small-field"), turbidity=0.0))["secchi_like_depth_m"] \
+        == [None, None, None]

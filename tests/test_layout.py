@@ -249,8 +249,8 @@ def test_version_and_command_order(capsys):
     with pytest.raises(SystemExit) as done:
         main(["--version"])
     assert done.value.code == 0 and capsys.readouterr().out.startswith("ragsplat ")
-    assert list(COMMANDS) == ["dataset", "train", "render", "eval", "score", "ablation", "export", "survey",
-                             "stability", "bench"]
+    assert list(COMMANDS) == ["dataset", "train", "render", "eval", "score", "ablation", "sweep", "export",
+                             "survey", "stability", "bench"]
 
 
 def test_library_error_is_one_line_and_exit_2(tmp_path, capsys):

@@ -155,6 +155,24 @@ def test_tiles_on_dask_workers_one_killed_give_the_same_products(survey, tiled, 
     np.testing.assert_allclose(ours.z, theirs.z, atol=0.002)
 
 
+def test_a_rerun_with_other_culls_extracts_again_without_training_again(survey, tiled, tmp_path):  # noqa: F811
+    """The culls (`--max-scale-gsd`, ...) reach every tile's extraction and are recorded: a rerun of a
+    finished tiled survey, copied to another folder, with a tighter cull trains nothing again, and its DEM
+    keeps fewer cells."""
+    import laspy
+
+    out = tmp_path / "run"
+    shutil.copytree(tiled[0], out)
+    before = {p: p.stat().st_mtime_ns for p in out.glob("tiles/*/train/point_cloud.ply")}
+    assert len(before) == 4
+    assert main(args(survey, out, "--tile-size", "3", "--jobs", "1", "--max-scale-gsd", "3")) == 0
+    assert {p: p.stat().st_mtime_ns for p in before} == before  # no tile trained again
+    assert all(log.read_text().count("iterations from the") == 1 for log in out.glob("tiles/*/log.txt"))
+    assert json.loads((out / "survey.json").read_text())["culls"] == {"max_scale_gsd": 3.0}
+    report = json.loads((out / "tiles.json").read_text())
+    assert 0 < sum(report["cells"].values()) < 0.9 * len(laspy.read(tiled[0] / "bed.laz").x)
+
+
 def test_seam_distance_counts_only_edges_between_tiles():
     """tools.seams: a point's distance is to its own core's finite edges; the survey's open outside is no
     seam."""

@@ -30,6 +30,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
               "score any bed (DEM, LAS/LAZ, PLY, CSV) against a dataset's ground truth"),
     "ablation": ("ragsplat.cli.ablation",
                  "train every variant, evaluate, and print Tables 1 and 2 beside the paper's"),
+    "sweep": ("ragsplat.cli.sweep", "a reach at several turbidities, the method against the references"),
     "export": ("ragsplat.cli.export",
                "a trained run's bed as survey products: DEM GeoTIFF, LAS/LAZ, PLY, PNG"),
     "survey": ("ragsplat.cli.survey", "from a survey's photos, RTK positions and water level to a DEM"),
@@ -74,12 +75,18 @@ def main(argv: list[str] | None = None) -> int:
         signal.signal(signal.SIGTERM, previous)
 
 
-def _run(name: str, argv: list[str]) -> int:
+def command(name: str, argv: list[str]):
+    """The module of command `name` and its arguments parsed from `argv` (a command that runs others, as
+    `ragsplat sweep` does, calls `module.run(args)` itself)."""
     module = importlib.import_module(COMMANDS[name][0])
     parser = argparse.ArgumentParser(prog=f"ragsplat {name}", description=COMMANDS[name][1])
     module.add_arguments(parser)
     parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
-    args = parser.parse_args(argv)
+    return module, parser.parse_args(argv)
+
+
+def _run(name: str, argv: list[str]) -> int:
+    module, args = command(name, argv)
     from ragsplat.errors import RagsplatError
 
     try:

@@ -18,6 +18,8 @@ from pathlib import Path
 
 from ragsplat.cli.args import (
     count,
+    cull_arguments,
+    cull_overrides,
     finite_float,
     non_negative_float,
     out_dir,
@@ -115,6 +117,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scheduler", metavar="ADDRESS",
                         help="train the tiles on the Dask cluster whose scheduler is at ADDRESS "
                              "(tcp://host:8786; its workers need ragsplat and this run's paths)")
+    cull_arguments(parser)
     uncertainty_arguments(parser, "the adjustment's estimate where it estimated the level; a given level: 0")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -154,6 +157,7 @@ def run(args: argparse.Namespace) -> int:
     from ragsplat.survey import pipeline
 
     uncertainty_options(args)  # a sigma without a model, or a file that is not one: refused before any work
+    args.culls = cull_overrides(args)  # a rerun with other culls extracts again, without training again
     settings = {f.name: getattr(args, f.name) for f in fields(pipeline.SurveyConfig)}
     cfg = pipeline.SurveyConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()})
 

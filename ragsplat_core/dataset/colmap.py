@@ -161,7 +161,9 @@ def import_colmap(model: Path, images: Path, out: Path, water, masks: Path | Non
     reuses `out`; other inputs are refused. Raises DatasetError (model, images, frame), ConfigError (CRS)."""
     model, images, out = Path(model), Path(images), Path(out)
     sources = sorted(p for p in model.iterdir() if p.is_file()) if model.is_dir() else []
-    key = {"model": str(model.resolve()), "model_digest": _digest(sources), "images": str(images.resolve()),
+    # the model by its content, not its path: a run folder moved or copied (its tiles' models with it)
+    # resumes
+    key = {"model_digest": _digest(sources), "images": str(images.resolve()),
            **layout.water_json(water), "masks": None if masks is None else str(Path(masks).resolve()),
            "crs": crs, "max_size": max_size}
     if (out / IMPORT).is_file():
@@ -203,8 +205,8 @@ def _reuse(out: Path, key: dict) -> Imported:
     """The import already in `out`, where it was made from the inputs `key`; DatasetError naming what
     changed where it was not."""
     done = json.loads((out / IMPORT).read_text())
-    if done.get("key") != key:
-        changed = [k for k in key if done.get("key", {}).get(k) != key[k]]
+    changed = [k for k in key if done.get("key", {}).get(k) != key[k]]  # an older import's "model": unread
+    if changed:
         raise DatasetError(f"{out} holds an import of other inputs ({', '.join(changed)} changed); use "
                            "another --out")
     return Imported(out, done["images"], done["cameras"], done["points"], done["undistorted"],

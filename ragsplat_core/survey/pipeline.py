@@ -31,7 +31,7 @@ import json
 import os
 import shutil
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -109,6 +109,7 @@ class SurveyConfig:
     uncertainty: Path | None = None  # a fitted `uncertainty.UncertaintyModel` (JSON): the DEM's band 3
     level_sigma: float | None = None  # m; None: the adjustment's where it estimated the level, else 0
     n_sigma: float = 0.0
+    culls: dict = field(default_factory=dict)  # `ExtractConfig` fields to change ({}: the evaluation's)
 
 
 def line(stage: str, text: str, since: float | None = None) -> str:
@@ -832,10 +833,11 @@ def train_one(cfg: SurveyConfig, water: Water, area: float, progress: Progress) 
 def export(cfg: SurveyConfig, water: Water, trained: Path, products: list[Path], stamps: Stamps,
            progress: Progress) -> None:
     """The products of the training in `trained` (`export.export_run`, with the TVU95 band where
-    `cfg.uncertainty` names a model), kept while its checkpoint and the uncertainty's settings are."""
+    `cfg.uncertainty` names a model), kept while its checkpoint, the uncertainty's settings and the culls
+    are."""
     band = uncertainty_settings(cfg)
-    key = _digest(water.key, (trained / "point_cloud.ply").stat().st_mtime_ns, cfg.resolution,
-                  *([] if band is None else [band]))
+    key = _bed_key(_digest(water.key, (trained / "point_cloud.ply").stat().st_mtime_ns, cfg.resolution), band,
+                   cfg.culls)
     t0 = time.perf_counter()
     if not stamps.done("export", key, *products):
         from ragsplat.export import export_run
@@ -844,7 +846,7 @@ def export(cfg: SurveyConfig, water: Water, trained: Path, products: list[Path],
         b, on_block = progress.count("[export] bed", "block")
         with b:
             bed = export_run(trained, dem, cfg.resolution, las, None, png, on_block=on_block,
-                             **_uncertainty_kwargs(band))
+                             **_uncertainty_kwargs(band), **cfg.culls)
         stamps.mark("export", key)
         progress.say("export", f"{len(bed.grid)} cells of {cfg.resolution:g} m{_tvu_words(bed)}", t0)
 
@@ -894,7 +896,7 @@ def train_tiles(cfg: SurveyConfig, water: Water, tiling: list[Tile], size: float
     key = _digest(water.key, cfg.variant, cfg.init, cfg.preset, cfg.iterations, cfg.seed, cfg.max_size,
                   cfg.resolution, [t.to_json() for t in tiling])
     band = uncertainty_settings(cfg)
-    done_key = key if band is None else _digest(key, band)  # the tiles' models and trainings: `key` alone
+    done_key = _bed_key(key, band, cfg.culls)  # the tiles' models and trainings: `key` alone
     if stamps.done("export", done_key, *products, cfg.out / "tiles.json"):
         return
     t0 = time.perf_counter()
@@ -953,7 +955,14 @@ class TileJob:
 
     @property
     def bed_key(self) -> str:  # what the tile's bed.npy was made with
-        return self.key if self.band is None else _digest(self.key, self.band)
+        return _bed_key(self.key, self.band, self.cfg.culls)
+
+
+def _bed_key(key: str, band: dict | None, culls: dict) -> str:
+    """The key of a bed extracted from the trainings of `key`: the uncertainty's settings and the culls
+    added where given (a rerun with other culls extracts again without training again)."""
+    extra = [*([] if band is None else [band]), *([culls] if culls else [])]
+    return _digest(key, *extra) if extra else key
 
 
 def train_tile(job: TileJob) -> str:
@@ -981,7 +990,7 @@ def train_tile(job: TileJob) -> str:
         progress.say("tile", f"tile {folder.name} on worker process {os.getpid()}")
         _train(job.cfg, progress, folder / "model", folder / "data", folder / "train", surface, job.area)
         bed = export_run(folder / "train", folder / "dem.tif", job.cfg.resolution, bounds=job.bounds,
-                         **_uncertainty_kwargs(job.band))
+                         **_uncertainty_kwargs(job.band), **job.cfg.culls)
         progress.say("export", f"{len(bed.grid)} cells{_tvu_words(bed)}", t0)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB on Linux -> GiB
     write_json(folder / "tile.json", {"seconds": time.perf_counter() - t0, "worker_peak_gib": peak,
