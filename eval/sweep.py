@@ -118,7 +118,10 @@ def figure(rows: list[dict], path: Path) -> Path:
             ax.errorbar([x[i] for i in keep], [y[i] for i in keep], yerr=[e[i] for i in keep], marker="o",
                         capsize=3, label=name, linestyle="--" if name == "best reference" else "-")
         ax.set_xscale("log")
-        ax.set_xlabel("Secchi-like depth (m, green; rightmost: clear water)")
+        ax.set_xticks(x, ["clear" if r["secchi_like_depth_m"][GREEN] is None else f"{v:.2g}"
+                          for r, v in zip(rows, x)])
+        ax.minorticks_off()
+        ax.set_xlabel("Secchi-like depth (m, green)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
