@@ -204,15 +204,18 @@ RIFFLE = WaterSurface(0.0, 1.33, (-0.01, 0.0),
 
 def fermat(P, C, water):
     """The interface point of the true light path from P under the surface to the camera C: the point of the
-    surface where the optical length |I - C| + n |P - I| is least (Fermat's principle), found numerically."""
+    surface where the optical length |I - C| + n |P - I| is least (Fermat's principle), found by BFGS on its
+    exact gradient. It reads only the surface's height and slope from the library, and agrees with a
+    derivative-free Nelder-Mead search (this test's tracer until 70dbca0, 15x slower) to 1e-7 m."""
     from scipy.optimize import minimize
 
-    def length(xy):
+    def length(xy):  # the optical length and its gradient in the interface point's x, y
         I = np.array([xy[0], xy[1], float(water.height(np.asarray(xy)[None])[0])])
-        return np.linalg.norm(I - C) + water.n * np.linalg.norm(P - I)
+        g = water.gradient(np.asarray(xy)[None])[0]  # the surface's slope: dI/dxy = [[1, 0, gx], [0, 1, gy]]
+        d = (I - C) / np.linalg.norm(I - C) + water.n * (I - P) / np.linalg.norm(P - I)
+        return np.linalg.norm(I - C) + water.n * np.linalg.norm(P - I), d[:2] + d[2] * g
 
-    r = minimize(length, P[:2] + (C[:2] - P[:2]) * 0.3, method="Nelder-Mead",
-                 options={"xatol": 1e-11, "fatol": 1e-15, "maxiter": 20000})
+    r = minimize(length, P[:2] + (C[:2] - P[:2]) * 0.3, jac=True, method="BFGS", options={"gtol": 1e-12})
     return np.array([*r.x, float(water.height(r.x[None])[0])])
 
 
@@ -241,7 +244,7 @@ def test_a_flat_profile_is_the_plane():
 
 def test_curved_surface_against_a_ray_trace():
     """Under the riffle, the tangent plane above each point puts its apparent point on the true light path's
-    air ray within 1e-3 rad (0.2 px of a 256 px, 70 degree view; measured 0.08 px at most), several times
+    air ray within 1e-3 rad (0.2 px of a 256 px, 70 degree view; measured 0.09 px at most), several times
     closer than one plane through the mean fall; under a plane the same trace agrees to round-off (the
     tracer's check)."""
     rng = np.random.default_rng(0)
