@@ -104,11 +104,16 @@ def summary(vals: list[float]) -> dict | None:
 
 
 def _cell(vals: list[float], fmt: str) -> str:
-    s = summary(vals)
-    if s is None:
+    return summary_text(summary(vals), fmt)
+
+
+def summary_text(s: dict | None, fmt: str) -> str:
+    """A `summary` as a table cell: "mean ± std" in `fmt` (the std unsigned), the mean alone for one value,
+    n/a for none."""
+    if s is None or s.get("mean") is None:
         return "n/a"
     text = fmt.format(s["mean"])
-    return text if s["std"] is None else f"{text} ± {fmt.format(s['std']).lstrip('+')}"
+    return text if s.get("std") is None else f"{text} ± {fmt.format(s['std']).lstrip('+')}"
 
 
 def _paper(published: dict, table: str, name: str, column: str, fmt: str) -> str:

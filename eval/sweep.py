@@ -19,6 +19,7 @@ import numpy as np
 from ragsplat.datagen.conditions import CONTRAST_SHARE, secchi_depth
 from ragsplat.errors import OutputError
 from ragsplat.eval.references import NOT_IN_TABLES, REFERENCES, USES_GROUND_TRUTH
+from ragsplat.eval.report import summary_text
 from ragsplat.outputs import write_bytes, write_json
 
 LEVELS = (0.0, 0.5, 1.0, 2.0, 4.0)  # the turbidities (1: the `small-field` water)
@@ -56,11 +57,8 @@ def level_row(turbidity: float, results: dict, methods: list[str]) -> dict:
             "best_reference": best, "reference": None if best is None else _figures(summary[best])}
 
 
-def _cell(figure: dict | None, digits: int = 1) -> str:
-    if not figure or figure.get("mean") is None:
-        return "n/a"
-    std = figure.get("std")
-    return f"{figure['mean']:.{digits}f}" + ("" if std is None else f" ± {std:.{digits}f}")
+def _cell(figure: dict | None) -> str:
+    return summary_text(figure, "{:.1f}")
 
 
 def _depth(row: dict) -> str:
