@@ -78,7 +78,7 @@ def test_a_slim_copy_scores_a_row_as_the_whole_dataset(evaluable_dataset, tmp_pa
     assert slim.main([str(tmp_path / "nothing"), str(tmp_path / "new")]) == 2
 
 
-def test_the_rasterio_stand_in_writes_empty_geotiffs_and_reads_none(tmp_path):
+def test_the_rasterio_stand_in_reads_none_and_its_rasters_unpack_to_the_geotiffs_rasterio_writes(tmp_path):
     package = slim.write_stand_ins(tmp_path / "stand-ins")
     script = """
 import sys
@@ -90,9 +90,10 @@ from ragsplat.errors import DatasetError
 assert rasterio.__file__.startswith(sys.argv[1]), rasterio.__file__
 georef = layout.Georef()
 assert georef.wkt() == layout.LOCAL_CRS
-xy = np.array([[0.0, 0.0], [0.05, 0.0]])
+xy = np.array([[0.0, 0.0], [0.05, 0.0], [0.05, 0.1]])
 path = sys.argv[2]
-layout.write_raster(path, xy, [(np.array([1.0, 2.0]), "bed")], 0.05)
+bands = [(np.array([1.0, 2.0, np.nan]), "bed"), (np.array([3.0, 4.0, 5.0]), "tvu")]
+layout.write_raster(path, xy, bands, 0.05)
 try:
     dem_points(path, georef)
 except DatasetError as err:
@@ -103,4 +104,16 @@ except DatasetError as err:
     done = subprocess.run([sys.executable, "-c", script, str(package), str(tif)], env=env,
                           capture_output=True, text=True, cwd=tmp_path, check=False)
     assert done.returncode == 0, done.stderr
-    assert tif.stat().st_size == 0 and "refused:" in done.stdout and "reads no raster" in done.stdout
+    assert "refused:" in done.stdout and "reads no raster" in done.stdout
+    # brought back here (rasterio): the same GeoTIFF as rasterio's own writer makes of the same bands
+    import rasterio
+
+    assert slim.main(["--unpack", str(tif)]) == 0
+    direct = tmp_path / "direct.tif"
+    layout.write_raster(direct, np.array([[0.0, 0.0], [0.05, 0.0], [0.05, 0.1]]),
+                        [(np.array([1.0, 2.0, np.nan]), "bed"), (np.array([3.0, 4.0, 5.0]), "tvu")], 0.05)
+    with rasterio.open(tif) as a, rasterio.open(direct) as b:
+        assert (a.count, a.shape, a.transform, a.nodata, a.descriptions) == (
+            b.count, b.shape, b.transform, b.nodata, b.descriptions)
+        assert a.crs == b.crs and np.array_equal(a.read(), b.read())
+    assert slim.main(["--unpack", str(direct)]) == 2  # a real GeoTIFF is no stand-in's file

@@ -15,8 +15,10 @@ which the copy keeps byte for byte.
 
 `--stand-ins DIR` also copies a package `rasterio` (`tools/stand_ins/rasterio/`) into DIR for a machine
 without GDAL (rasterio's wheel is 39 MB): put DIR first on PYTHONPATH there. It parses no CRS (returns the
-text it is given) and its GeoTIFF writer writes an empty file, so each row's `bed.tif` is empty there; no
-score reads one (`--dem` does, and is refused). Never install it beside a real rasterio."""
+text it is given) and its GeoTIFF writer writes the bands and the profile as a numpy .npz under the .tif's
+name; no score reads one (`--dem` does, and is refused). `python -m tools.slim --unpack FILE.tif ...` turns
+such files, brought back, into GeoTIFFs in place (here, with rasterio). Never install the stand-in beside a
+real rasterio."""
 
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ from pathlib import Path
 from ragsplat.dataset import layout
 from ragsplat.dataset.colmap import STAMP, TRACKS, TRIANGULATED, triangulated_points
 from ragsplat.errors import DatasetError, RagsplatError
-from ragsplat.outputs import write_json
+from ragsplat.outputs import atomic_path, write_json
 
 TRUTH = (layout.GT_GRID, layout.GT_BANKS, layout.GT_SURFACE, layout.GT_WATERLINE)
 FRAME_FILES = ("file_path", "dry_file_path", "mask_path")  # not gt_depth_file_path: no score reads the EXRs
@@ -77,7 +79,40 @@ def write_stand_ins(folder: Path) -> Path:
     return package
 
 
+def unpack(path: Path) -> None:
+    """A raster the stand-in wrote (an .npz under a .tif's name) -> the GeoTIFF `layout.write_raster` writes
+    where rasterio is, in place. Raises OSError where `path` is no such file."""
+    import numpy as np
+    import rasterio
+    from rasterio.transform import Affine
+
+    try:
+        with np.load(path) as f:
+            saved = {k: f[k] for k in f.files}
+    except ValueError as err:
+        raise OSError(f"{path}: not a raster of the rasterio stand-in ({err})") from None
+    bands = saved["bands"]
+    with atomic_path(Path(path)) as tmp, rasterio.open(
+            tmp, "w", driver="GTiff", width=bands.shape[2], height=bands.shape[1], count=len(bands),
+            dtype=str(saved["dtype"]), crs=str(saved["crs"]), transform=Affine(*saved["transform"][:6]),
+            nodata=float(saved["nodata"]), compress="deflate") as r:
+        for k, (image, text) in enumerate(zip(bands, saved["descriptions"]), start=1):
+            r.write(image, k)
+            r.set_band_description(k, str(text))
+
+
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:
+        argv = sys.argv[1:]
+    if argv[:1] == ["--unpack"]:
+        try:
+            for name in argv[1:]:
+                unpack(Path(name))
+        except OSError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+        print(f"{len(argv) - 1} GeoTIFFs written")
+        return 0
     parser = argparse.ArgumentParser(prog="python -m tools.slim", description=__doc__.split("\n\n")[0])
     parser.add_argument("data", type=Path, help="the dataset (its tracks are made there first if missing)")
     parser.add_argument("out", type=Path, help="a new folder for the copy")
