@@ -298,3 +298,23 @@ def test_edge_points_in_another_frame_are_refused(survey, tmp_path, capsys):
     assert main(argv) == 2
     assert "m from the photos' positions: give them in the same frame" in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
+
+
+def test_retrain_trains_and_exports_as_the_survey_does(finished, tmp_path):
+    """`tools.retrain` (the survey's training again, for choices on a development survey or a lent GPU):
+    with the survey's preset, seed and logged budget it gives the survey's own DEM (one process, one code
+    path: equal to round-off)."""
+    import re
+
+    import rasterio
+
+    from tools import retrain
+
+    out, err = finished
+    budget = re.search(r"at most (\d+) Gaussians for", err).group(1)
+    again = tmp_path / "again"
+    assert retrain.main([str(out / "data"), str(again), "--budget", budget, "--preset", "smoke"]) == 0
+    with rasterio.open(out / "dem.tif") as a, rasterio.open(again / "dem.tif") as b:
+        assert a.shape == b.shape and a.transform == b.transform
+        np.testing.assert_allclose(b.read(1), a.read(1), atol=1e-5)
+    assert json.loads((again / "times.json").read_text())["cells"] > 0
