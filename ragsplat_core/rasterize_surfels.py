@@ -1,14 +1,16 @@
 """Differentiable 2D Gaussian surfel rasterizer (2DGS, Huang et al. SIGGRAPH 2024), several backends.
 
 `rasterize_surfels(means, quats, scales, opacities, colors, camera, background, tangents=None,
-backend="auto")` renders surfels with the ray-splat intersection and low-pass filter of 2DGS (see
+backend="auto", depth="ray")` renders surfels with the ray-splat intersection and low-pass filter of 2DGS (see
 `raster/reference/surfel_project.py`) and the compositing of `rasterize` (alpha = min(0.99, o G), skipped
 below 1/255, front to back by centre depth, a pixel stops before the surfel that would take its transmittance
 below 1e-4; 16 px tiles; surfels whose centre has camera z < 0.01 culled). Outputs:
 - image [H, W, 3] = sum_i w_i c_i + T background, with w_i = alpha_i T_i;
 - alpha [H, W, 1] = 1 - T;
 - depth [H, W, 1] = sum_i w_i z_i / alpha, z_i the camera z of the pixel's ray-plane intersection with
-  surfel i (of its centre where the low-pass filter wins); 0 where nothing was composited;
+  surfel i (of its centre where the low-pass filter wins); with depth="centre" z_i is always the surfel's
+  centre z, as gsplat composites it (median depth and distortion then use it too); 0 where nothing was
+  composited;
 - meta: `normals` [H, W, 3] = sum_i w_i n_i, n_i the unit world normal of surfel i turned towards the
   camera (not divided by alpha); `median_depth` [H, W, 1] z_i of the surfel at which the transmittance
   first falls to 0.5 or below (0 where it never does); `distortion` [H, W, 1] the 2DGS depth distortion
@@ -40,15 +42,20 @@ from ragsplat.raster.backends import choose_backend
 from ragsplat.raster.reference.surfel_project import project_surfels
 from ragsplat.rasterize import check_shapes, resolve
 
+# a sample's z: where the pixel's ray meets the surfel (2DGS) or the surfel's centre (gsplat's, always)
+DEPTHS = ("ray", "centre")
+
 
 def rasterize_surfels(means, quats, scales, opacities, colors, camera: Camera, background, tangents=None,
-                      backend: str = "auto"):
+                      backend: str = "auto", depth: str = "ray"):
     """Renders surfels; returns (image [H, W, 3], alpha [H, W, 1], depth [H, W, 1], meta dict).
 
     means [N, 3] world; quats [N, 4] (w, x, y, z), normalised here; scales [N, 2] linear; opacities [N] in
     [0, 1]; colors [N, 3]; background [3] (tensor or sequence); tangents [N, 3, 2] scaled world tangents.
     """
     _check(means, quats, scales, opacities, colors, tangents, means.shape[0])
+    if depth not in DEPTHS:
+        raise ValueError(f"depth must be one of {DEPTHS}, got {depth!r}")
     background = torch.as_tensor(background, dtype=colors.dtype, device=colors.device).reshape(3)
     b = choose_backend(backend, means.device)
     if tangents is None:
@@ -69,7 +76,7 @@ def rasterize_surfels(means, quats, scales, opacities, colors, camera: Camera, b
         return image.to(dtype), alpha[..., None].to(dtype), depth[..., None].to(dtype), meta
     bins = b.bin_tiles(proj, camera.width, camera.height)
     sums, trans, distortion, median = b.surfel_composite(proj, opacities, colors, bins, camera.width,
-                                                         camera.height)
+                                                         camera.height, centre=depth == "centre")
     image, alpha, depth = resolve(sums[..., :3], trans, sums[..., 6], background)
     meta.update(normals=sums[..., 3:6], median_depth=median[..., None], distortion=distortion[..., None],
                 tiles_touched=bins.tiles_touched)

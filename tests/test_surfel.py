@@ -24,9 +24,10 @@ def nadir(width=40, height=30, fov=60.0, height_m=2.0):
     return Camera.from_fov(width, height, fov, NADIR_R, -NADIR_R @ np.array([0.0, 0.0, height_m]))
 
 
-def render(params, cam, bg, backend, tangents=None):
+def render(params, cam, bg, backend, tangents=None, depth="ray"):
     """rasterize_surfels -> ({output name: tensor}, meta); params: means, quats, scales, opacities, colors."""
-    image, alpha, depth, meta = rasterize_surfels(*params, cam, bg, tangents=tangents, backend=backend)
+    image, alpha, depth, meta = rasterize_surfels(*params, cam, bg, tangents=tangents, backend=backend,
+                                                  depth=depth)
     outs = {"image": image, "alpha": alpha, "depth": depth}
     outs.update({k: meta[k] for k in OUTPUTS[3:]})
     return outs, meta
@@ -70,13 +71,13 @@ def refracted_scene(n=150, seed=1):
 SCENES = {"oblique": oblique_scene, "refracted": refracted_scene}
 
 
-def grads_per_output(backend, cam, params, tangents, dtype, device="cpu"):
+def grads_per_output(backend, cam, params, tangents, dtype, device="cpu", depth="ray"):
     """Outputs and, for each output, the gradients of sum(output * weights) with respect to every input
     (means, quats and scales or tangents, opacities, colors, background) and means2d; on the CPU."""
     params = [None if p is None else p.to(device, dtype).clone().requires_grad_(True) for p in params]
     tangents = None if tangents is None else tangents.to(device, dtype).clone().requires_grad_(True)
     bg = torch.tensor([0.2, 0.4, 0.6], dtype=dtype, device=device, requires_grad=True)
-    outs, meta = render(params, cam, bg, backend, tangents)
+    outs, meta = render(params, cam, bg, backend, tangents, depth)
     geometry = params[1:3] if tangents is None else [tangents]
     inputs = [params[0], *geometry, *params[3:], bg]  # means, then quats and scales or tangents, ...
     g = torch.Generator().manual_seed(7)
@@ -111,19 +112,23 @@ def assert_gradients_close(grads, ref_grads, rel, outputs=OUTPUTS, inputs=None):
             assert_close_scaled(grads[name][i], ref_grads[name][i], rel, f"d {name} / d input {i}", floor)
 
 
+@pytest.mark.parametrize("depth", ["ray", "centre"])
 @pytest.mark.parametrize("scene", SCENES)
-def test_cpu_matches_torch_outputs_and_every_gradient(scene):
+def test_cpu_matches_torch_outputs_and_every_gradient(scene, depth):
     # float64 inputs: both backends project alike, so this compares the float32 kernels with the twin.
     cam, params, tangents = SCENES[scene]()
-    ref_out, ref_grads, ref_meta = grads_per_output("torch", cam, params, tangents, torch.float64)
-    out, grads, meta = grads_per_output("cpu", cam, params, tangents, torch.float64)
+    f64 = torch.float64
+    ref_out, ref_grads, ref_meta = grads_per_output("torch", cam, params, tangents, f64, "cpu", depth)
+    out, grads, meta = grads_per_output("cpu", cam, params, tangents, f64, "cpu", depth)
     for name in OUTPUTS:
         assert_close_scaled(out[name], ref_out[name], 5e-5, name)
     assert_gradients_close(grads, ref_grads, 2e-4)
     for i in range(len(ref_grads["image"])):  # every input gets a gradient from the image
         assert float(ref_grads["image"][i].abs().max()) > 0, i
-    for name in ("depth", "normals", "median_depth", "distortion"):  # the geometry gets one from each
-        assert all(float(ref_grads[name][i].abs().max()) > 0 for i in (0, 1, -1)), name
+    # the geometry gets one from each (a median depth at the centres moves with the means alone)
+    for name in ("depth", "normals", "median_depth", "distortion"):
+        inputs = (0,) if depth == "centre" and name == "median_depth" else (0, 1, -1)
+        assert all(float(ref_grads[name][i].abs().max()) > 0 for i in inputs), name
     # integers from float64 boxes of the same projection (tangents: numba vs torch, ~1e-16 apart): the nearest
     # box edge is 2e-4 px from a pixel boundary here (measured), far beyond round-off
     assert torch.equal(meta["radii"], ref_meta["radii"])
@@ -487,6 +492,34 @@ def test_gsplat_matches_torch_outputs_and_every_gradient(scene):
     assert torch.equal(meta["radii"].cpu(), ref_meta["radii"])
     for i in range(len(ref_grads["image"])):
         assert float(grads["image"][i].abs().max()) > 0, i
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_centre_depth_is_each_surfels_centre_z(backend):
+    # One tilted surfel: with depth="ray" its depth map is the tilted plane's (it varies across the disk),
+    # with depth="centre" the centre's camera z wherever it is drawn, as gsplat composites it; image and alpha
+    # do not change, and the median depth and the distortion (0 for one surfel) follow the depth.
+    cam = nadir(60, 60)
+    quat = torch.tensor([[np.cos(0.3), np.sin(0.3), 0.0, 0.0]], dtype=torch.float64)  # 34 degrees about x
+    params = [torch.tensor([[0.05, -0.02, 0.1]], dtype=torch.float64), quat,
+              torch.tensor([[0.3, 0.2]], dtype=torch.float64), torch.tensor([0.9], dtype=torch.float64),
+              torch.tensor([[0.5, 0.5, 0.5]], dtype=torch.float64)]
+    ray, _ = render(params, cam, [0.0, 0.0, 0.0], backend)
+    centre, meta = render(params, cam, [0.0, 0.0, 0.0], backend, depth="centre")
+    drawn = ray["alpha"][..., 0] > 0.05
+    assert int(drawn.sum()) > 200
+    assert float(ray["depth"][..., 0][drawn].std()) > 0.05  # the tilted plane
+    zc = float(meta["depths"][0])  # the centre's camera z: 2 m - 0.1 m
+    assert abs(zc - 1.9) < 1e-9
+    assert torch.allclose(centre["depth"][..., 0][drawn], torch.full_like(centre["depth"][..., 0][drawn], zc),
+                          atol=1e-5)
+    for name in ("image", "alpha", "normals"):
+        assert torch.equal(centre[name], ray[name]), name
+    median = centre["median_depth"][..., 0]
+    assert torch.allclose(median[median > 0], torch.full_like(median[median > 0], zc), atol=1e-5)
+    assert float(centre["distortion"].abs().max()) < 1e-6
+    with pytest.raises(ValueError, match="depth must be one of"):
+        render(params, cam, [0.0, 0.0, 0.0], backend, depth="mean")
 
 
 @CUDA_GSPLAT

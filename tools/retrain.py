@@ -1,7 +1,7 @@
 """Train a survey's imported photos again as `ragsplat survey` trains them, and export its products as the
 survey does, for choices on a development survey (or a lent GPU, which has no pycolmap to run the survey):
 `python -m tools.retrain RUN/data OUT --budget N [--iterations N] [--seed S] [--preset small]
-[--variant V] [--set PARAM=VALUE ...]`.
+[--variant V] [--set PARAM=VALUE ...] [--surfel-depth ray|centre]`.
 
 RUN/data is the folder a survey imported its model into (`dataset.colmap.import_colmap`: the undistorted
 photos, the cameras and the cached refracted tracks); `--budget` is the Gaussian budget the survey's log
@@ -21,6 +21,7 @@ from pathlib import Path
 from ragsplat.dataset.load import load_dataset
 from ragsplat.export import export_run
 from ragsplat.outputs import write_json
+from ragsplat.rasterize_surfels import DEPTHS
 from ragsplat.train import Trainer, preset_config
 from ragsplat.train.defaults import survey_variant
 from tools.tune import PARAMS, with_value  # (the package `tools` sets the OpenMP wait first)
@@ -36,9 +37,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preset", default="small")
     parser.add_argument("--variant", default=None, help="(the preset's survey variant)")
     parser.add_argument("--set", nargs="+", default=[], metavar="PARAM=VALUE")
+    parser.add_argument("--surfel-depth", choices=DEPTHS, default=None, help="(the preset's)")
     args = parser.parse_args(argv)
     overrides = {"variant": args.variant or survey_variant(args.preset), "seed": args.seed,
                  "init": "refracted"}
+    if args.surfel_depth is not None:
+        overrides["surfel_depth"] = args.surfel_depth
     if args.iterations is not None:
         overrides["iterations"] = args.iterations
     train = preset_config(args.preset, **overrides)

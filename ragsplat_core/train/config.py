@@ -10,6 +10,7 @@ import math
 from dataclasses import asdict, dataclass, field, fields, replace
 
 from ragsplat.errors import ConfigError
+from ragsplat.rasterize_surfels import DEPTHS
 from ragsplat.train.strategy import PAPER_ITERATIONS, DensifyConfig
 from ragsplat.tuning import record
 
@@ -113,6 +114,9 @@ class TrainConfig:
     lambda_normal: float = 0.05
     distortion_from: float = 0.1
     normal_from: float = 0.23
+    # The z those terms (and the rendered depth) give a surfel's sample: "ray", where the pixel's ray meets
+    # it (2DGS), or "centre", its centre's z, as gsplat composites it (on CUDA always)
+    surfel_depth: str = "ray"
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     densify: DensifyConfig = field(default_factory=DensifyConfig)  # at 30k iterations; scaled to `iterations`
     backend: str = "auto"
@@ -174,6 +178,8 @@ class TrainConfig:
             raise ConfigError(f"sh_degree must be 0..3, got {self.sh_degree}")
         if not 0 <= self.wet_sh_degree <= 3:
             raise ConfigError(f"wet_sh_degree must be 0..3, got {self.wet_sh_degree}")
+        if self.surfel_depth not in DEPTHS:
+            raise ConfigError(f"surfel_depth must be one of {', '.join(DEPTHS)}, got {self.surfel_depth!r}")
         if self.checkpoint_every is not None and self.checkpoint_every < 0:
             raise ConfigError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
         if not (math.isfinite(self.init_fill) and self.init_fill >= 0):

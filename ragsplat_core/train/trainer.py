@@ -115,17 +115,18 @@ def render_splats(splats, camera: Camera, center: torch.Tensor, sh_degree: int, 
                   flags: dict | None, surfels: bool, background: torch.Tensor, backend: str,
                   compiled: bool = False,
                   attenuation: torch.Tensor | None = None, backscatter: torch.Tensor | None = None,
-                  reflection: torch.Tensor | None = None, wet_degree: int = 3):
+                  reflection: torch.Tensor | None = None, wet_degree: int = 3, surfel_depth: str = "ray"):
     """(image [H,W,3], alpha [H,W,1], depth [H,W,1], meta) of `camera` (centre `center` [3]) as training
     renders it (`view_gaussians`, then `rasterize_view`). `backscatter`: [2, 3] the water's veil B_inf and its
     coefficients c_b (1/m), or None (nothing computed): the veil along each pixel's path in `water` to the
     point it renders is added to the image (`refraction.backscatter_veil`). `reflection`: [S, S, 3] the sky
     map the surface mirrors (`reflection.sky_radiance`, linear radiance), or None (nothing computed): each wet
     pixel becomes (1 - R) x the rest + R x the mirrored sky (`reflection.reflect`). The trainer and a
-    finished run's renders (`export.Model`) share it. `wet_degree`: `view_gaussians`'."""
+    finished run's renders (`export.Model`) share it. `wet_degree`: `view_gaussians`'; `surfel_depth`:
+    `rasterize_surfels`' depth."""
     img, alpha, depth, meta = rasterize_view(view_gaussians(splats, center, sh_degree, water, flags, backend,
                                                             surfels, compiled, attenuation, wet_degree),
-                                             camera, surfels, background, backend)
+                                             camera, surfels, background, backend, depth=surfel_depth)
     if backscatter is not None or reflection is not None:
         rays = pixel_rays(camera, depth)  # [H, W, 3]
         lin = srgb_to_linear(img)  # the terms add light in linear light: converted once (a pair costs ~7 ms)
@@ -151,10 +152,10 @@ def pixel_rays(camera: Camera, like: torch.Tensor) -> torch.Tensor:
 
 
 def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, background: torch.Tensor,
-                   backend: str, median: bool = False):
+                   backend: str, median: bool = False, depth: str = "ray"):
     """`rasterize` the Gaussians `g`, or `rasterize_surfels` them as surfels (the first two scales span the
     disk; with `g.jacobians` the tangents are mapped through the water, t' = J t). `median`: also
-    meta["median_depth"] (surfels always have it)."""
+    meta["median_depth"] (surfels always have it). `depth`: the surfels' (`rasterize_surfels`)."""
     if not surfels:
         return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, camera, background,
                          covars=g.covars, backend=backend, median=median)
@@ -162,7 +163,7 @@ def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, backgrou
     tangents = None if g.jacobians is None else (
         g.jacobians @ choose_backend(backend, g.means.device).tangents(g.quats, g.scales[:, :2]))
     return rasterize_surfels(g.means, g.quats, g.scales[:, :2], g.opacities, g.colors, camera, background,
-                             tangents=tangents, backend=backend)
+                             tangents=tangents, backend=backend, depth=depth)
 
 
 def backscatter_json(backscatter: torch.Tensor) -> dict:
@@ -450,7 +451,7 @@ class Trainer:
         return render_splats(self.splats, camera, center, self.active_sh_degree, water,
                              self.flags if interface else None, self.cfg.surfels, self.background,
                              self.cfg.backend, self.cfg.compile_refraction, attenuation, backscatter, sky,
-                             self.cfg.wet_sh_degree)
+                             self.cfg.wet_sh_degree, self.cfg.surfel_depth)
 
     def render(self, camera: Camera, interface: bool = True):
         """(image [H,W,3], alpha [H,W,1], depth [H,W,1]) of `camera`, no gradients.

@@ -93,7 +93,7 @@ def _sample(q0, q1, q2, rho2, zc, c2):
 
 
 @njit(cache=True, parallel=True)
-def _forward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height, tiles_x,
+def _forward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height, tiles_x, centre,
              out_feat, out_t, out_dist, out_med, out_last, out_medk):
     for t in prange(offsets.shape[0] - 1):
         x0, y0, x1, y1 = _tile_box(t, tiles_x, width, height)
@@ -129,6 +129,8 @@ def _forward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height, 
                     q0, q1, q2 = a0 * dx + q0y, a1 * dx + q1y, a2 * dx + q2y
                     rho2 = _TWO * (dx * dx + dy2)
                     rho, _, z, _, _, _ = _sample(q0, q1, q2, rho2, zc, c2)
+                    if centre:
+                        z = zc
                     a = min(_AMAX, o * np.exp(-_HALF * rho))
                     if a < _AMIN:
                         continue
@@ -167,7 +169,7 @@ def _forward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height, 
 
 
 @njit(cache=True, parallel=True)
-def _backward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height, tiles_x,
+def _backward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height, tiles_x, centre,
               sums, final_t, last, medk, g_feat, g_t, g_dist, g_med, out):
     for t in prange(offsets.shape[0] - 1):
         x0, y0, x1, y1 = _tile_box(t, tiles_x, width, height)
@@ -226,6 +228,8 @@ def _backward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height,
                     q0, q1, q2 = a0 * dx + q0y, a1 * dx + q1y, a2 * dx + q2y
                     rho2 = _TWO * (dx * dx + dy2)
                     rho, on_plane, z, inv2, s, tt = _sample(q0, q1, q2, rho2, zc, c2)
+                    if centre:
+                        z = zc
                     vis = np.exp(-_HALF * rho)
                     a = min(_AMAX, o * vis)
                     if a < _AMIN:
@@ -277,7 +281,7 @@ def _backward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height,
                         else:  # rho = 2 (dx^2 + dy^2), dx = px - mx
                             gmx -= _TWO * _TWO * dx * g_rho
                             gmy -= _TWO * _TWO * dy * g_rho
-                    if on_plane:  # z = zc C2 / q2
+                    if on_plane and not centre:  # z = zc C2 / q2
                         gzc += g_z * c2 * inv2
                         gc2 += g_z * zc * inv2
                         gq2 -= g_z * z * inv2
@@ -301,10 +305,11 @@ def _backward(mean2d, rays, zcs, opac, feat, box, gauss, offsets, width, height,
 
 class _Composite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, rays, depths, opacities, feats, box, gauss, offsets, width, height, tiles_x):
+    def forward(ctx, means2d, rays, depths, opacities, feats, box, gauss, offsets, width, height, tiles_x,
+                centre):
         args = (_np32(means2d), _np32(rays), _np32(depths), _np32(opacities), _np32(feats),
                 np.ascontiguousarray(box.numpy()), np.ascontiguousarray(gauss.numpy()),
-                np.ascontiguousarray(offsets.numpy()), width, height, tiles_x)
+                np.ascontiguousarray(offsets.numpy()), width, height, tiles_x, centre)
         out_feat = np.empty((height, width, _NO), np.float32)
         out_t = np.empty((height, width), np.float32)
         out_dist = np.empty((height, width), np.float32)
@@ -334,13 +339,14 @@ class _Composite(torch.autograd.Function):
         grads.index_add_(0, torch.from_numpy(gauss), torch.from_numpy(slots))
         m2, ry, zc, op, ft = ctx.dtypes
         return (grads[:, 0:2].to(m2), grads[:, 2:9].to(ry), grads[:, 9].to(zc), grads[:, 10].to(op),
-                grads[:, 11:].to(ft), None, None, None, None, None, None)
+                grads[:, 11:].to(ft), None, None, None, None, None, None, None)
 
 
 def composite(proj: SurfelsProjected, opacities: torch.Tensor, colors: torch.Tensor, bins: Bins, width: int,
-              height: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+              height: int, centre: bool = False
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """(sums [H, W, 7]: colour, normal, z, without background; final transmittance [H, W];
-    distortion [H, W]; median depth [H, W])."""
+    distortion [H, W]; median depth [H, W]). `centre`: each sample's z is its surfel's centre z (gsplat's)."""
     feats = torch.cat([colors, proj.normals.to(colors.dtype)], -1)  # [N, 6]
     return _Composite.apply(proj.means2d, proj.rays, proj.depths, opacities, feats, proj.box, bins.gauss,
-                            bins.offsets, width, height, bins.tiles_x)
+                            bins.offsets, width, height, bins.tiles_x, bool(centre))

@@ -24,20 +24,22 @@ _NOUT = 10  # per pixel: colour (3), normal (3), z sum, transmittance, distortio
 
 
 def composite(proj: SurfelsProjected, opacities: torch.Tensor, colors: torch.Tensor, bins: Bins, width: int,
-              height: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+              height: int, centre: bool = False
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """(sums [H, W, 7]: colour, normal, z, without background; final transmittance [H, W];
-    distortion [H, W]; median depth [H, W])."""
+    distortion [H, W]; median depth [H, W]). `centre`: each sample's z is its surfel's centre z, as gsplat
+    composites it, instead of the z where the pixel's ray meets the surfel."""
     device = colors.device
     feats = torch.cat([colors, proj.normals.to(colors.dtype)], -1)  # [N, 6]: composited per surfel
     if len(bins.gauss) == 0:  # nothing on screen; the empty sums keep the outputs in the graph
         zero = feats[:0].sum() + proj.means2d[:0].sum() + proj.rays[:0].sum() + proj.depths[:0].sum()
         empty = torch.zeros(height, width, dtype=colors.dtype, device=device) + zero
         return empty[..., None].expand(height, width, 7), empty + 1, empty, empty
-    res = over_tiles(_composite_tiles, bins, width, height, proj, opacities, feats, bins)  # [H, W, 10]
+    res = over_tiles(_composite_tiles, bins, width, height, proj, opacities, feats, bins, centre)  # [H,W,10]
     return res[..., :7], res[..., 7], res[..., 8], res[..., 9]
 
 
-def _composite_tiles(tiles, k, px, py, proj, opacities, feats, bins):
+def _composite_tiles(tiles, k, px, py, proj, opacities, feats, bins, centre):
     """Composites tiles [t] with lists padded to k. Returns [t, 256, 10] (see `_NOUT`)."""
     slot = torch.arange(k, device=tiles.device)
     first = bins.offsets[tiles]  # [t]
@@ -62,7 +64,7 @@ def _composite_tiles(tiles, k, px, py, proj, opacities, feats, bins):
     rho2 = 2 * (dx * dx + dy * dy)
     on_plane = rho3 <= rho2  # the ray-splat intersection, else the low-pass filter
     rho = torch.where(on_plane, rho3, rho2)
-    z = torch.where(on_plane, zc * ray[..., 6] / q2, zc)  # [t, 256, k] the sample's camera z
+    z = zc.expand_as(rho) if centre else torch.where(on_plane, zc * ray[..., 6] / q2, zc)  # [t, 256, k] its z
     alpha = torch.clamp(opacities[idx][:, None, :] * torch.exp(-0.5 * rho), max=ALPHA_MAX)
     use = valid[:, None, :] & (alpha >= ALPHA_MIN)
     trans, before, weights = front_to_back(torch.where(use, alpha, torch.zeros_like(alpha)))
