@@ -520,6 +520,11 @@ def test_centre_depth_is_each_surfels_centre_z(backend):
     assert float(centre["distortion"].abs().max()) < 1e-6
     with pytest.raises(ValueError, match="depth must be one of"):
         render(params, cam, [0.0, 0.0, 0.0], backend, depth="mean")
+    from ragsplat.errors import ConfigError
+    from ragsplat.train.config import TrainConfig
+
+    with pytest.raises(ConfigError, match="surfel_depth"):
+        TrainConfig(surfel_depth="mean")
 
 
 @CUDA_GSPLAT
