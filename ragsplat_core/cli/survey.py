@@ -38,6 +38,7 @@ def level_or_auto(text: str) -> float | str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ragsplat.rasterize_surfels import DEPTHS
     from ragsplat.survey.exif import CONSUMER_SIGMA
     from ragsplat.survey.pipeline import STAGES
     from ragsplat.train.config import INIT, PRESETS, VARIANTS
@@ -98,6 +99,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"(default: {INIT})")
     parser.add_argument("--preset", default="small", choices=list(PRESETS), help="training preset (small)")
     parser.add_argument("--iterations", type=positive_int, help="override the preset's iteration count")
+    parser.add_argument("--surfel-depth", choices=DEPTHS,
+                        help="a surfel sample's z in training: where the pixel's ray meets it (ray, the "
+                             "preset's) or its centre's (centre, as gsplat does on a GPU)")
     parser.add_argument("--seed", type=count, default=0, help="training seed (default 0)")
     parser.add_argument("--resolution", type=positive_float, default=0.05, metavar="M",
                         help="DEM cell (0.05 m)")

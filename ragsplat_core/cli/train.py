@@ -29,6 +29,7 @@ from ragsplat.errors import TrainingDiverged
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ragsplat.rasterize import BACKENDS
+    from ragsplat.rasterize_surfels import DEPTHS
     from ragsplat.train.config import INITS, PRESETS, VARIANTS
 
     source = parser.add_mutually_exclusive_group(required=True)
@@ -49,6 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="small", choices=list(PRESETS), help="training preset")
     parser.add_argument("--seed", type=count, default=0, help="random seed (written into config.json)")
     parser.add_argument("--iterations", type=positive_int, help="override the preset's iteration count")
+    parser.add_argument("--surfel-depth", choices=DEPTHS,
+                        help="a surfel sample's z: where the pixel's ray meets it (ray, the preset's) or its "
+                             "centre's (centre, as gsplat does on a GPU)")
     parser.add_argument("--init", choices=list(INITS),
                         help="initialisation (default: the preset's, grid; with --colmap: the model's "
                              "points, else triangulated)")
@@ -89,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
 
     overrides = {"variant": args.variant, "seed": args.seed}
     for key in ("iterations", "init", "init_depth", "init_count", "init_fill", "init_points", "water_level",
-                "water_n", "optimize_water", "checkpoint_every", "backend", "device", "compile_refraction"):
+                "water_n", "optimize_water", "checkpoint_every", "backend", "device", "compile_refraction",
+                "surfel_depth"):
         if getattr(args, key) is not None:
             overrides[key] = getattr(args, key)
     data = args.data if args.colmap is None else _import(args, overrides)

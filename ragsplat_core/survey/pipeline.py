@@ -100,6 +100,7 @@ class SurveyConfig:
     init: str = INIT
     preset: str = "small"
     iterations: int | None = None
+    surfel_depth: str | None = None  # None: the preset's (`TrainConfig.surfel_depth`)
     seed: int = 0
     resolution: float = 0.05
     max_size: int | None = None
@@ -894,7 +895,8 @@ def train_tiles(cfg: SurveyConfig, water: Water, tiling: list[Tile], size: float
     from ragsplat.outputs import write_json
 
     key = _digest(water.key, cfg.variant, cfg.init, cfg.preset, cfg.iterations, cfg.seed, cfg.max_size,
-                  cfg.resolution, [t.to_json() for t in tiling])
+                  cfg.resolution, [t.to_json() for t in tiling],
+                  *([] if cfg.surfel_depth is None else [cfg.surfel_depth]))  # (runs from before it stay)
     band = uncertainty_settings(cfg)
     done_key = _bed_key(key, band, cfg.culls)  # the tiles' models and trainings: `key` alone
     if stamps.done("export", done_key, *products, cfg.out / "tiles.json"):
@@ -1221,6 +1223,8 @@ def _train(cfg: SurveyConfig, progress: Progress, model: Path, data: Path, out: 
     overrides = {"variant": cfg.variant, "seed": cfg.seed, "init": cfg.init}
     if cfg.iterations is not None:
         overrides["iterations"] = cfg.iterations
+    if cfg.surfel_depth is not None:
+        overrides["surfel_depth"] = cfg.surfel_depth
     train = preset_config(cfg.preset, **overrides)
     ds = load_dataset(done.root, splits=("train",), load_dry=False)
     budget = min(max(round(GAUSSIANS_PER_GSD2 * area / ds.gsd**2), train.densify.max_gaussians),
