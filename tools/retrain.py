@@ -15,14 +15,15 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 from ragsplat.dataset.load import load_dataset
 from ragsplat.export import export_run
 from ragsplat.outputs import write_json
 from ragsplat.rasterize_surfels import DEPTHS
-from ragsplat.train import Trainer, preset_config
+from ragsplat.survey.pipeline import train_config
+from ragsplat.train import Trainer
+from ragsplat.train.config import INIT
 from ragsplat.train.defaults import survey_variant
 from tools.tune import PARAMS, with_value  # (the package `tools` sets the OpenMP wait first)
 
@@ -39,14 +40,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", nargs="+", default=[], metavar="PARAM=VALUE")
     parser.add_argument("--surfel-depth", choices=DEPTHS, default=None, help="(the preset's)")
     args = parser.parse_args(argv)
-    overrides = {"variant": args.variant or survey_variant(args.preset), "seed": args.seed,
-                 "init": "refracted"}
-    if args.surfel_depth is not None:
-        overrides["surfel_depth"] = args.surfel_depth
-    if args.iterations is not None:
-        overrides["iterations"] = args.iterations
-    train = preset_config(args.preset, **overrides)
-    train = replace(train, densify=replace(train.densify, max_gaussians=args.budget))
+    train = train_config(args.preset, args.variant or survey_variant(args.preset), args.seed, INIT,
+                         args.iterations, args.surfel_depth, args.budget)
     for item in args.set:
         name, _, value = item.partition("=")
         if name not in PARAMS or not value:

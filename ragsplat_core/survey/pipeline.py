@@ -1206,6 +1206,20 @@ def _fresh(folder: Path) -> Path:
     return folder
 
 
+def train_config(preset: str, variant: str, seed: int, init: str, iterations: int | None,
+                 surfel_depth: str | None, budget: int | None = None):
+    """The `TrainConfig` a survey trains with: the preset's, with the variant, seed and start, the iterations
+    and surfel depth where given (None: the preset's), and at most `budget` Gaussians (None: the preset's)."""
+    from ragsplat.train import preset_config
+
+    given = {"iterations": iterations, "surfel_depth": surfel_depth}
+    train = preset_config(preset, variant=variant, seed=seed, init=init,
+                          **{k: v for k, v in given.items() if v is not None})
+    if budget is None:
+        return train
+    return replace(train, densify=replace(train.densify, max_gaussians=budget))
+
+
 def _train(cfg: SurveyConfig, progress: Progress, model: Path, data: Path, out: Path, surface,
            area: float) -> None:
     """The survey (or a tile's) model imported into `data` (`dataset.colmap`), then trained in `out`
@@ -1214,22 +1228,17 @@ def _train(cfg: SurveyConfig, progress: Progress, model: Path, data: Path, out: 
     from ragsplat.dataset import layout
     from ragsplat.dataset.colmap import import_colmap
     from ragsplat.dataset.load import load_dataset
-    from ragsplat.train import Trainer, preset_config
+    from ragsplat.train import Trainer
 
     done = import_colmap(model, cfg.images, data, surface, cfg.masks, cfg.crs or layout.LOCAL_CRS,
                          cfg.max_size)
     progress.say("train", f"{'reusing the' if done.reused else 'imported'} survey in {done.root}: "
                           f"{done.images} images")
-    overrides = {"variant": cfg.variant, "seed": cfg.seed, "init": cfg.init}
-    if cfg.iterations is not None:
-        overrides["iterations"] = cfg.iterations
-    if cfg.surfel_depth is not None:
-        overrides["surfel_depth"] = cfg.surfel_depth
-    train = preset_config(cfg.preset, **overrides)
     ds = load_dataset(done.root, splits=("train",), load_dry=False)
-    budget = min(max(round(GAUSSIANS_PER_GSD2 * area / ds.gsd**2), train.densify.max_gaussians),
-                 MAX_GAUSSIANS)
-    train = replace(train, densify=replace(train.densify, max_gaussians=budget))
+    given = (cfg.preset, cfg.variant, cfg.seed, cfg.init, cfg.iterations, cfg.surfel_depth)
+    preset_cap = train_config(*given).densify.max_gaussians
+    budget = min(max(round(GAUSSIANS_PER_GSD2 * area / ds.gsd**2), preset_cap), MAX_GAUSSIANS)
+    train = train_config(*given, budget)
     progress.say("train", f"at most {budget} Gaussians for {area:.0f} m^2 at a ground sample distance of "
                  f"{100 * ds.gsd:.2f} cm ({GAUSSIANS_PER_GSD2} per GSD^2, at least the {cfg.preset} "
                  f"preset's, at most {MAX_GAUSSIANS})")
