@@ -356,6 +356,11 @@ def test_tune_sets_nested_and_top_level_parameters():
     longer = with_value(cfg, "iterations", 4500.0)
     assert longer.iterations == 4500 and isinstance(longer.iterations, int)
     assert {"lr_means", "iterations", "densify.max_gaussians", "densify.grow_grad2d"} <= set(PARAMS)
+    # a choice is tuned by its word, and the config still refuses a word it does not know
+    assert with_value(cfg, "surfel_depth", "centre").surfel_depth == "centre" and "surfel_depth" in PARAMS
+    assert "variant" not in PARAMS and "preset" not in PARAMS  # the tool's own options
+    with pytest.raises(ConfigError):
+        with_value(cfg, "surfel_depth", "middle")
 
 
 def test_default_jobs_and_the_gpus_they_share(monkeypatch):

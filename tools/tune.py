@@ -1,7 +1,8 @@
 """Choose a training hyperparameter on a development dataset (never the evaluation one):
 `python -m tools.tune --data DEV_DIR --out DIR [--preset small]
 [--param lr_means | densify.max_gaussians | ...] [--values ...] [--variants full] [--seed 0]
-[--set PARAM=VALUE ...]` trains each variant at each value (the
+[--set PARAM=VALUE ...]` trains each variant at each value (a number, or a word for a choice such as
+`--param surfel_depth --values ray centre`) (the
 `--set` parameters held fixed), scores the bed like the ablation and prints F1 at 1 % / 3 % of depth, wet
 RMSE, p95 and cover and the training time per value (and a trained attenuation over the scene's
 extinction), and the value with the best mean F1 at 3 % over the variants. The choice is recorded by hand in
@@ -23,16 +24,29 @@ from ragsplat.outputs import claim, versions, write_json
 from ragsplat.train.config import DensifyConfig, TrainConfig
 
 NUMBERS = ("float", "int")
-PARAMS = [f.name for f in fields(TrainConfig) if f.type in NUMBERS] + \
+# The word-valued choices (the config checks their values); the variant and preset are the tool's own options.
+WORDS = [f.name for f in fields(TrainConfig) if f.type == "str" and f.name not in ("variant", "preset")]
+PARAMS = [f.name for f in fields(TrainConfig) if f.type in NUMBERS] + WORDS + \
     [f"densify.{f.name}" for f in fields(DensifyConfig) if f.type in NUMBERS]
 
 
-def with_value(cfg: TrainConfig | DensifyConfig, param: str, value: float) -> TrainConfig | DensifyConfig:
+def typed(param: str, value: str | float) -> str | float:
+    """`value` as `param` takes it: a word for a choice, else a float (`with_value` casts ints)."""
+    return str(value) if param in WORDS else float(value)
+
+
+def label(param: str, value: str | float) -> str:
+    return str(value) if param in WORDS else f"{float(value):g}"
+
+
+def with_value(cfg: TrainConfig | DensifyConfig, param: str,
+               value: str | float) -> TrainConfig | DensifyConfig:
     """`cfg` with `param` (a field, or densify.FIELD) set to `value` (cast to the field's type)."""
     if param.startswith("densify."):
         return replace(cfg, densify=with_value(cfg.densify, param.split(".", 1)[1], value))
     kind = {f.name: f.type for f in fields(cfg)}[param]
-    return replace(cfg, **{param: int(value) if kind == "int" else value})
+    cast = {"int": lambda v: int(float(v)), "float": float, "str": str}[kind]
+    return replace(cfg, **{param: cast(value)})
 
 
 def cm(x: float | None) -> str:
@@ -47,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--preset", default="small")
     parser.add_argument("--param", default="lr_means", choices=PARAMS)
-    parser.add_argument("--values", type=float, nargs="+", default=[1.6e-4, 5e-4, 1.6e-3, 5e-3])
+    parser.add_argument("--values", nargs="+", default=["1.6e-4", "5e-4", "1.6e-3", "5e-3"])
     parser.add_argument("--variants", nargs="+", default=["full"])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--set", nargs="+", default=[], metavar="PARAM=VALUE",
@@ -58,19 +72,20 @@ def main(argv: list[str] | None = None) -> int:
         name, _, value = item.partition("=")
         if name not in PARAMS or not value:
             parser.error(f"--set takes PARAM=VALUE with PARAM one of {', '.join(PARAMS)}; got {item!r}")
-        fixed[name] = float(value)
+        fixed[name] = typed(name, value)
+    values = [typed(args.param, v) for v in args.values]
     runner = TrainEval(args.data)
     extinction = (scene_conditions(args.data) or {}).get("extinction_per_m")  # the water's, per channel
     claim(args.out, "tuning")
     ecfg = extract_config(args.preset, len(runner.truth.nodes), args.seed, runner.gsd)
     results = []
-    for value in args.values:
+    for value in values:
         for variant in args.variants:
             cfg = runner.config(variant, args.preset, args.seed)
             for name, held in fixed.items():
                 cfg = with_value(cfg, name, held)
             cfg = with_value(cfg, args.param, value)
-            folder = args.out / f"{variant}-{args.param}-{value:g}"
+            folder = args.out / f"{variant}-{args.param}-{label(args.param, value)}"
             done = folder / "row.json"
             if done.is_file():
                 row = json.loads(done.read_text())
@@ -87,17 +102,18 @@ def main(argv: list[str] | None = None) -> int:
                             "cover_wet": g["survey"]["coverage"], "train_s": row["time"]["wall_s"],
                             "attenuation": c, "attenuation_over_scene": ratio})
             optics = "" if ratio is None else "  c/scene " + " ".join(f"{r:.2f}" for r in ratio)
-            print(f"{variant} {args.param}={value:g}: F1@1% {cm(g['f1']['1%'])}  F1@3% {cm(g['f1']['3%'])}  "
+            print(f"{variant} {args.param}={label(args.param, value)}: F1@1% {cm(g['f1']['1%'])}  "
+                  f"F1@3% {cm(g['f1']['3%'])}  "
                   f"wet RMSE {cm(g['survey']['wet']['rmse'])} cm  p95 {cm(g['survey']['wet']['p95'])} cm  "
                   f"cover {cm(g['survey']['coverage'])} %  {row['time']['wall_s']:.0f} s{optics}", flush=True)
-    score = {v: np.mean([r["f1_3%"] for r in results if r["value"] == v]) for v in args.values}
+    score = {v: np.mean([r["f1_3%"] for r in results if r["value"] == v]) for v in values}
     best = max(score, key=score.get)
     write_json(args.out / "tune.json", {"data": str(args.data.resolve()), "dataset_seed": runner.dataset_seed,
                                         "param": args.param, "fixed": fixed, "results": results,
                                         "chosen": best,
                                         "rule": "max mean F1@3% over the variants",
                                         "versions": versions("torch")})
-    print(f"chosen {args.param} = {best:g} (mean F1@3% {100 * score[best]:.1f} over "
+    print(f"chosen {args.param} = {label(args.param, best)} (mean F1@3% {100 * score[best]:.1f} over "
           f"{', '.join(args.variants)}) on dataset seed {runner.dataset_seed}")
     return 0
 
