@@ -31,7 +31,7 @@ from pathlib import Path
 from ragsplat.dataset import layout
 from ragsplat.dataset.colmap import STAMP, TRACKS, TRIANGULATED, triangulated_points
 from ragsplat.errors import DatasetError, RagsplatError
-from ragsplat.outputs import atomic_path, write_json
+from ragsplat.outputs import write_json
 
 TRUTH = (layout.GT_GRID, layout.GT_BANKS, layout.GT_SURFACE, layout.GT_WATERLINE)
 FRAME_FILES = ("file_path", "dry_file_path", "mask_path")  # not gt_depth_file_path: no score reads the EXRs
@@ -83,22 +83,14 @@ def unpack(path: Path) -> None:
     """A raster the stand-in wrote (an .npz under a .tif's name) -> the GeoTIFF `layout.write_raster` writes
     where rasterio is, in place. Raises OSError where `path` is no such file."""
     import numpy as np
-    import rasterio
-    from rasterio.transform import Affine
 
     try:
         with np.load(path) as f:
             saved = {k: f[k] for k in f.files}
     except ValueError as err:
         raise OSError(f"{path}: not a raster of the rasterio stand-in ({err})") from None
-    bands = saved["bands"]
-    with atomic_path(Path(path)) as tmp, rasterio.open(
-            tmp, "w", driver="GTiff", width=bands.shape[2], height=bands.shape[1], count=len(bands),
-            dtype=str(saved["dtype"]), crs=str(saved["crs"]), transform=Affine(*saved["transform"][:6]),
-            nodata=float(saved["nodata"]), compress="deflate") as r:
-        for k, (image, text) in enumerate(zip(bands, saved["descriptions"]), start=1):
-            r.write(image, k)
-            r.set_band_description(k, str(text))
+    layout.write_image(Path(path), saved["bands"], [str(text) for text in saved["descriptions"]],
+                tuple(saved["transform"][:6]), str(saved["crs"]), float(saved["nodata"]))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -430,18 +430,26 @@ def write_raster(path: Path, xy: np.ndarray, bands: list[tuple[np.ndarray, str]]
     """Values at horizontal points xy [N, 2] (coordinates in `crs`) on a regular `step` lattice -> float32
     GeoTIFF with one band per (values [N], description), north up, pixel centres on the lattice nodes,
     `nodata` where the lattice has no point or the value is NaN."""
+    images = [raster(xy, values, step) for values, _ in bands]
+    west, north = images[0][1]
+    stack = np.stack([np.where(np.isnan(image), nodata, image) for image, _ in images]).astype(np.float32)
+    write_image(path, stack, [description for _, description in bands], (step, 0.0, west, 0.0, -step, north),
+                crs, nodata)
+
+
+def write_image(path: Path, bands: np.ndarray, descriptions: list[str], transform: tuple, crs: str,
+                nodata: float) -> None:
+    """Bands [B, H, W] (their dtype, `nodata` already in place) -> a deflated GeoTIFF, atomically;
+    `transform`: the affine's first six coefficients (a, b, c, d, e, f)."""
     import rasterio
     from rasterio.transform import Affine
 
-    images = [raster(xy, values, step) for values, _ in bands]
-    height, width = images[0][0].shape
-    west, north = images[0][1]
     with atomic_path(path) as tmp, rasterio.open(
-            tmp, "w", driver="GTiff", width=width, height=height, count=len(bands), dtype="float32",
-            crs=crs, transform=Affine(step, 0.0, west, 0.0, -step, north), nodata=nodata,
+            tmp, "w", driver="GTiff", width=bands.shape[2], height=bands.shape[1], count=len(bands),
+            dtype=str(bands.dtype), crs=crs, transform=Affine(*transform), nodata=nodata,
             compress="deflate") as r:
-        for k, ((image, _), (_, description)) in enumerate(zip(images, bands), start=1):
-            r.write(np.where(np.isnan(image), nodata, image).astype(np.float32), k)
+        for k, (image, description) in enumerate(zip(bands, descriptions), start=1):
+            r.write(image, k)
             r.set_band_description(k, description)
 
 
