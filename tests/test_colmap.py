@@ -245,9 +245,12 @@ def test_survey_to_dem_and_laz_in_the_survey_crs(tmp_path):
     assert abs(float(np.median(las.x)) - east) < 1 and abs(float(np.median(las.z)) - 99.0) < 0.15
 
 
-def test_triangulation_with_known_poses_finds_a_plane(tmp_path):
+def test_triangulation_with_known_poses_finds_a_plane(tmp_path, monkeypatch):
     """A textured plane at z = 1 (dry: the water is at 0) photographed by six nadir cameras at z = 5 (each
-    image an exact homography of one texture): the triangulated points lie on the plane."""
+    image an exact homography of one texture): the triangulated points lie on the plane; matched by the
+    views' neighbours instead of every pair (above `TRACKS_EXHAUSTIVE_MAX`: here every pair again, six views
+    being fewer than NEIGHBOURS), the same plane."""
+    from ragsplat.dataset import colmap
     from ragsplat.dataset.colmap import triangulate
 
     rng = np.random.default_rng(1)
@@ -284,3 +287,23 @@ def test_triangulation_with_known_poses_finds_a_plane(tmp_path):
         assert np.median(np.abs(px - obs[rows, 2:])) < 0.5
     assert (np.median(np.abs(pts[:, 2] - z_plane)) < 0.005
             and np.percentile(np.abs(pts[:, 2] - z_plane), 90) < 0.02)
+    monkeypatch.setattr(colmap, "TRACKS_EXHAUSTIVE_MAX", 5)
+    near, _, near_names = triangulate(tmp_path / "data", tmp_path / "work3")
+    listed = (tmp_path / "work3" / "pairs.txt").read_text().splitlines()
+    assert len(listed) == 15 and all(len(line.split()) == 2 for line in listed) and near_names == names
+    assert abs(len(near) - len(pts)) <= 0.02 * len(pts)  # the same pairs (round-off in SIFT's matching aside)
+    assert np.median(np.abs(near[:, 2] - z_plane)) < 0.005
+
+
+def test_footprint_is_where_the_optical_axis_meets_the_water():
+    from ragsplat.camera import Camera
+    from ragsplat.dataset.colmap import footprint
+
+    nadir = Camera.look_at((1.0, 2.0, 12.0), (1.0, 2.0, 0.0), 64, 64, 60.0)
+    assert np.allclose(footprint(nadir, WaterSurface(0.5)), (1.0, 2.0, 0.5))
+    # 40 degrees off nadir towards +x, 11.5 m above the water: 11.5 tan(40 deg) ahead
+    oblique = Camera.look_at((1.0, 2.0, 12.0), (1.0 + 12 * np.tan(np.radians(40)), 2.0, 0.0), 64, 64, 60.0)
+    assert np.allclose(footprint(oblique, WaterSurface(0.5)), (1.0 + 11.5 * np.tan(np.radians(40)), 2.0, 0.5))
+    assert np.allclose(footprint(oblique, None), (1.0, 2.0, 12.0))  # no water: the camera's centre
+    level = Camera.look_at((0.0, 0.0, 12.0), (10.0, 0.0, 12.0), 64, 64, 60.0, up=(0.0, 0.0, 1.0))
+    assert np.allclose(footprint(level, WaterSurface(0.5)), (0.0, 0.0, 12.0))  # the axis never descends

@@ -13,8 +13,9 @@ What the import does, once per run directory:
   of the loss, like the user's own masks (COLMAP's convention: DIR/<image name>.png, zero = ignore);
 - keeps the model's 3D points (local frame, colours in [0, 1]) for the initialisation, where the trainer
   multiplies submerged depths by n (`gaussians.init_points`); `triangulate` makes them for a dataset that has
-  none (a model without points, or a rendered benchmark dataset): SIFT features, exhaustive matching and
-  triangulation with the known poses, all pycolmap on the CPU.
+  none (a model without points, or a rendered benchmark dataset): SIFT features, matching (every pair up to
+  `TRACKS_EXHAUSTIVE_MAX` views, else each view with its `NEIGHBOURS` nearest) and triangulation with the
+  known poses, all pycolmap on the CPU.
 """
 
 from __future__ import annotations
@@ -49,6 +50,46 @@ class Imported:
     undistorted: int  # images resampled (distortion or downscaling); the others were copied as they are
     georef: layout.Georef
     reused: bool  # True: the directory already held this import
+
+
+# A photo is matched with this many nearest (`neighbour_pairs`), as COLMAP's spatial matcher does (its
+# default: 50), so that the pairs grow with the photos, not with their square (1 000 photos: about 20 000
+# pairs instead of 499 500).
+NEIGHBOURS = 30
+# A dataset's tracks match every pair of its training views up to this many: every dataset the tables were
+# made on keeps its tracks (the `small` reaches' 107 views, the long development stretch's 103); above it,
+# each view with its NEIGHBOURS nearest by its footprint (the long reach's 321 views: 5 259 pairs instead of
+# 51 360; its middle tile's 206: 3 445 instead of 21 115).
+TRACKS_EXHAUSTIVE_MAX = 120
+
+
+def neighbour_pairs(centres: np.ndarray, k: int = NEIGHBOURS) -> np.ndarray:
+    """[P, 2] the pairs (i < j, sorted) of photos to match: each photo with its `k` nearest by the horizontal
+    distance between the points `centres` [N, 3] (metres: the camera centres, or where the views' optical axes
+    meet the water, `footprint`; a drone's overlap is horizontal), each pair once; every pair when there are
+    k + 1 photos or fewer."""
+    from scipy.spatial import cKDTree
+
+    n = len(centres)
+    if n <= k + 1:
+        i, j = np.triu_indices(n, 1)
+        return np.column_stack([i, j])
+    _, near = cKDTree(centres[:, :2]).query(centres[:, :2], k + 1)  # [N, k + 1], itself among them
+    i, j = np.repeat(np.arange(n), k + 1), near.ravel()
+    pairs = np.sort(np.column_stack([i, j])[i != j], axis=1)
+    return np.unique(pairs, axis=0)
+
+
+def footprint(camera: Camera, water) -> np.ndarray:
+    """[3] where the camera's optical axis meets the water (the surface's height under the camera): the centre
+    of what it sees, obliques included; the camera centre when the axis does not descend or there is no
+    water."""
+    centre = camera.camera_center
+    axis = camera.R[2]  # the optical axis in the world: R^T (0, 0, 1)
+    if water is None or axis[2] > -1e-6:
+        return centre
+    level = float(water.height(centre[None, :2])[0])
+    return centre + axis * (level - centre[2]) / axis[2]
 
 
 def read_model(model: Path):
@@ -324,16 +365,18 @@ def _points(rec, shift: np.ndarray) -> np.ndarray:  # [P, 6]: the model's 3D poi
 def triangulate(root: Path, work: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """(points [P, 6] (x, y, z, r, g, b in [0, 1]), observations [M, 4] (point index, image index, pixel x,
     pixel y; centres at i + 0.5), image names) triangulated from the training images of the dataset `root`
-    with its known cameras: pycolmap SIFT, exhaustive matching, `triangulate_points` (poses and intrinsics
-    fixed). Points under water come out at their apparent depths, as in any photogrammetry through the water;
-    the observations let `refracted_points` intersect the same tracks through it. `work` holds the feature
-    database (kept: a rerun reuses nothing, it is a scratch folder). Raises DatasetError when nothing can be
-    triangulated (no texture, no overlap)."""
+    with its known cameras: pycolmap SIFT, matching (every pair up to `TRACKS_EXHAUSTIVE_MAX` views, else the
+    `neighbour_pairs` of their footprints), `triangulate_points` (poses and intrinsics fixed). Points under
+    water come out at their apparent depths, as in any photogrammetry through the water; the observations let
+    `refracted_points` intersect the same tracks through it. `work` holds the feature database (kept: a rerun
+    reuses nothing, it is a scratch folder). Raises DatasetError when nothing can be triangulated (no texture,
+    no overlap)."""
     import pycolmap
 
     from ragsplat.dataset.load import load_dataset
 
-    views = load_dataset(root, splits=("train",), load_dry=False).train
+    ds = load_dataset(root, splits=("train",), load_dry=False)
+    views = ds.train
     work = Path(work)
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
@@ -367,7 +410,14 @@ def triangulate(root: Path, work: Path) -> tuple[np.ndarray, np.ndarray, list[st
         pycolmap.extract_features(db, root, group, camera_mode=pycolmap.CameraMode.SINGLE,
                                   reader_options=reader, extraction_options=extraction,
                                   device=pycolmap.Device.cpu)
-    pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+    if len(views) <= TRACKS_EXHAUSTIVE_MAX:
+        pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+    else:
+        pairs = neighbour_pairs(np.stack([footprint(v.camera, ds.water) for v in views]))
+        listed = work / "pairs.txt"
+        listed.write_text("".join(f"{views[i].file_path} {views[j].file_path}\n" for i, j in pairs))
+        pycolmap.match_image_pairs(db, matching_options=matching, device=pycolmap.Device.cpu,
+                                   pairing_options=pycolmap.ImportedPairingOptions(match_list_path=str(listed)))
     with pycolmap.Database.open(db) as d:
         cams, images = d.read_all_cameras(), d.read_all_images()
     rec = pycolmap.Reconstruction()

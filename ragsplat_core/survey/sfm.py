@@ -24,30 +24,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+# the pairing a dataset's tracks share; the survey's stage reads them here (`sfm.NEIGHBOURS`)
+from ragsplat.dataset.colmap import NEIGHBOURS, neighbour_pairs  # noqa: F401
 from ragsplat.errors import DatasetError
 
 CAMERA_MODEL = "SIMPLE_PINHOLE"  # one focal length, the principal point at the centre, no distortion
 # Every pair is matched up to this many photos (4 950 pairs, a few minutes on 2 cores); a larger survey
-# matches each photo with its NEIGHBOURS nearest, as COLMAP's spatial matcher does (its default: 50), so that
-# the pairs grow with the photos, not with their square (1 000 photos: about 20 000 pairs instead of 499 500).
+# matches each photo with its NEIGHBOURS nearest by the positions (`colmap.neighbour_pairs`)
 EXHAUSTIVE_MAX = 100
-NEIGHBOURS = 30
-
-
-def neighbour_pairs(centres: np.ndarray, k: int = NEIGHBOURS) -> np.ndarray:
-    """[P, 2] the pairs (i < j, sorted) of photos to match: each photo with its `k` nearest by the horizontal
-    distance between the camera centres `centres` [N, 3] (metres; a drone's overlap is horizontal), each pair
-    once; every pair when there are k + 1 photos or fewer."""
-    from scipy.spatial import cKDTree
-
-    n = len(centres)
-    if n <= k + 1:
-        i, j = np.triu_indices(n, 1)
-        return np.column_stack([i, j])
-    _, near = cKDTree(centres[:, :2]).query(centres[:, :2], k + 1)  # [N, k + 1], itself among them
-    i, j = np.repeat(np.arange(n), k + 1), near.ravel()
-    pairs = np.sort(np.column_stack([i, j])[i != j], axis=1)
-    return np.unique(pairs, axis=0)
 
 
 def reconstruct(images: Path, names: list[str], work: Path, camera_model: str = CAMERA_MODEL,
