@@ -496,15 +496,17 @@ class TrainEval:
     `training_bar(total, desc, initial) -> (bar, on_step)` shows training progress (None: nothing shown).
     `one_level`: every row and reference is given one flat level at the mean of the surveyed edge points
     instead of the dataset's surface (`one_level_water`; `water` is what they are given, `one_level` its
-    record or None); the scoring keeps the ground truth's surface.
+    record or None); the scoring keeps the ground truth's surface. `held_out`: refuse a dataset without test
+    views (the rows score them); False for the tracks' reference rows alone (`track_grids`), which read the
+    training views only (a stretch of the long reach has no test views).
     """
 
     def __init__(self, data: Path, device: str | None = None, training_bar: Callable | None = None,
-                 init: str = INIT, one_level: bool = False):
+                 init: str = INIT, one_level: bool = False, held_out: bool = True):
         from ragsplat.dataset.load import load_dataset
 
         self.ds = load_dataset(data, ground_truth=True)
-        if not self.ds.test:
+        if held_out and not self.ds.test:
             raise DatasetError(f"{data / layout.TRANSFORMS}: no frame has split 'test' "
                                "(held-out views are needed)")
         self.truth = self.ds.ground_truth

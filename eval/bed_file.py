@@ -389,7 +389,7 @@ def score_file(path: Path, data: Path, references: bool = False,
     if references:
         from ragsplat.eval.ablation import TrainEval
 
-        rows.update(TrainEval(data).track_grids(log))
+        rows.update(TrainEval(data, held_out=False).track_grids(log))
     return {**record, "data": str(Path(data).resolve()), "dataset_fingerprint": ds.fingerprint,
             "dataset_seed": dataset_seed(data),
             "georef": ds.georef.to_json(), "max_depth_m": truth.max_depth,

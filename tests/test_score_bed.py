@@ -203,6 +203,13 @@ def test_the_references_option_adds_the_tracks_rows(evaluable_dataset, tmp_path,
     assert result["references"]["triangulation (refracted)"]["f1"]["1%"] == 1.0
     out = capsys.readouterr().out
     assert "| triangulation (refracted) | TIN |" in out and "add --references" not in out
+    # a dataset without held-out views (a stretch of the long reach): the tracks read the training views only
+    shutil.copytree(evaluable_dataset, tmp_path / "no-test")
+    meta = json.loads((tmp_path / "no-test" / layout.TRANSFORMS).read_text())
+    meta["frames"] = [f for f in meta["frames"] if f.get("split") != "test"]
+    (tmp_path / "no-test" / layout.TRANSFORMS).write_text(json.dumps(meta))
+    result = score(tmp_path / "bed.csv", tmp_path / "no-test", "--references")
+    assert result["references"]["triangulation (refracted)"]["f1"]["1%"] == 1.0
 
 
 @pytest.mark.parametrize("name, text, message", [
