@@ -25,7 +25,7 @@ from ragsplat.survey.pipeline import train_config
 from ragsplat.train import Trainer
 from ragsplat.train.config import INIT
 from ragsplat.train.defaults import survey_variant
-from tools.tune import PARAMS, with_value  # (the package `tools` sets the OpenMP wait first)
+from tools.tune import held, with_value  # (the package `tools` sets the OpenMP wait first)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,11 +42,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     train = train_config(args.preset, args.variant or survey_variant(args.preset), args.seed, INIT,
                          args.iterations, args.surfel_depth, args.budget)
-    for item in args.set:
-        name, _, value = item.partition("=")
-        if name not in PARAMS or not value:
-            parser.error(f"--set takes PARAM=VALUE with PARAM one of {', '.join(PARAMS)}; got {item!r}")
-        train = with_value(train, name, float(value))
+    for name, value in held(parser, args.set).items():
+        train = with_value(train, name, value)
     ds = load_dataset(args.data, splits=("train",), load_dry=False)
     t0 = time.perf_counter()
     trainer = Trainer(train, ds, args.out)

@@ -35,6 +35,17 @@ def typed(param: str, value: str | float) -> str | float:
     return str(value) if param in WORDS else float(value)
 
 
+def held(parser: argparse.ArgumentParser, items: list[str]) -> dict[str, str | float]:
+    """`--set PARAM=VALUE ...` as {param: value (`typed`)}; a parser error for an unknown or empty one."""
+    fixed = {}
+    for item in items:
+        name, _, value = item.partition("=")
+        if name not in PARAMS or not value:
+            parser.error(f"--set takes PARAM=VALUE with PARAM one of {', '.join(PARAMS)}; got {item!r}")
+        fixed[name] = typed(name, value)
+    return fixed
+
+
 def label(param: str, value: str | float) -> str:
     return str(value) if param in WORDS else f"{float(value):g}"
 
@@ -67,12 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", nargs="+", default=[], metavar="PARAM=VALUE",
                         help="other parameters held at these values in every run (e.g. iterations=3000)")
     args = parser.parse_args(argv)
-    fixed = {}
-    for item in args.set:
-        name, _, value = item.partition("=")
-        if name not in PARAMS or not value:
-            parser.error(f"--set takes PARAM=VALUE with PARAM one of {', '.join(PARAMS)}; got {item!r}")
-        fixed[name] = typed(name, value)
+    fixed = held(parser, args.set)
     values = [typed(args.param, v) for v in args.values]
     runner = TrainEval(args.data)
     extinction = (scene_conditions(args.data) or {}).get("extinction_per_m")  # the water's, per channel
@@ -82,8 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     for value in values:
         for variant in args.variants:
             cfg = runner.config(variant, args.preset, args.seed)
-            for name, held in fixed.items():
-                cfg = with_value(cfg, name, held)
+            for name, value_held in fixed.items():
+                cfg = with_value(cfg, name, value_held)
             cfg = with_value(cfg, args.param, value)
             folder = args.out / f"{variant}-{args.param}-{label(args.param, value)}"
             done = folder / "row.json"
