@@ -115,7 +115,9 @@ class TrainConfig:
     distortion_from: float = 0.1
     normal_from: float = 0.23
     # The z those terms (and the rendered depth) give a surfel's sample: "ray", where the pixel's ray meets
-    # it (2DGS), or "centre", its centre's z, as gsplat composites it (on CUDA always)
+    # it (2DGS), or "centre", its centre's z, as gsplat composites it (on CUDA always). The ray's on `small`
+    # (1.5 points ahead at 1 % of depth), the centre's on the long reach's 4.65 cm pixels (8.5 ahead):
+    # tuning/small.json, "surfel_depth"; docs/performance.md
     surfel_depth: str = "ray"
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     densify: DensifyConfig = field(default_factory=DensifyConfig)  # at 30k iterations; scaled to `iterations`
