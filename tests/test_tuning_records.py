@@ -31,8 +31,8 @@ def test_the_presets_hold_the_recorded_choices():
                 else getattr(cfg, name))
 
     small, field = PRESETS["small"], PRESETS["small-field"]
-    for rec in (TUNING, *(TUNING[k] for k in ("surfel_terms", "ssim_lambda", "refine_stop", "length",
-                                                    "surfel_depth"))):
+    steps = ("surfel_terms", "ssim_lambda", "refine_stop", "length", "surfel_depth")
+    for rec in (TUNING, *(TUNING[k] for k in steps)):
         assert all(value(small, k) == v for k, v in rec["chosen"].items()), rec["chosen"]
         assert rec["commit"] and "python -m tools.tune" in rec["command"]
     assert all(value(field, k) == v for k, v in FIELD_TUNING["chosen"].items())
