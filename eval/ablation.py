@@ -73,8 +73,8 @@ from ragsplat.eval.report import depth_error_map, jsonable, write_outputs
 from ragsplat.fusion import FuseConfig, height_mesh
 from ragsplat.outputs import claim, source_digest, versions, write_json
 from ragsplat.refraction import WaterSurface
-from ragsplat.surface import EXTRACT_TUNING, ExtractConfig
-from ragsplat.train.config import FIELD_TUNING, INIT, SURFELS, TUNING, VARIANTS
+from ragsplat.surface import EXTRACT_TUNING, ExtractConfig, size_cap_m
+from ragsplat.train.config import FIELD_TUNING, INIT, LONG_TUNING, SURFELS, TUNING, VARIANTS
 from ragsplat.train.defaults import JOBS
 
 
@@ -96,6 +96,7 @@ PRESETS = {
 }
 PRESETS["small-field"] = replace(PRESETS["small"], name="small-field")
 PRESETS["small-3dgs"] = replace(PRESETS["small"], name="small-3dgs")
+PRESETS["long"] = replace(PRESETS["small"], name="long")
 CODE = ("ragsplat_core", "eval")  # the sources whose digest stamps results.json
 # The sources a row's numbers come from, whose digest is part of every row key: training, extraction and
 # scoring (the references' own code joins a reference row's key; the tables are written anew every run).
@@ -334,6 +335,7 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
 
     def trained_row(seed: int, variant: str, ecfg: ExtractConfig) -> dict:
         cfg = runner.config(variant, preset, seed)
+        ecfg = replace(ecfg, max_scale_m=size_cap_m(cfg))
         key = {**base, "train": cfg.to_dict(), "extract": ecfg.to_dict()}
         folder = row_dir(out, variant, seed)
         row = cached_row(folder, key, log)
@@ -364,6 +366,7 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
               "dataset_seed": runner.dataset_seed, "dataset_seeds": DATASET_SEEDS,
               "dataset_role": dataset_role(runner.dataset_seed, preset), "tuning": TUNING,
               **({"field_tuning": FIELD_TUNING} if preset == "small-field" else {}),
+              **({"long_tuning": LONG_TUNING} if preset == "long" else {}),
               "extract_tuning": EXTRACT_TUNING, "preset": preset, "seeds": list(seeds),
               "init": getattr(runner, "init", "grid"),
               "harness_preset": asdict(PRESETS[preset]), "code_digest": source_digest(*CODE),

@@ -18,7 +18,7 @@ The protocol's seeds (`ablation.DATASET_SEEDS`): the evaluation reach (dataset s
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -94,7 +94,8 @@ def run_cells(source: RunSource, level_sigma: float = 0.0, n_sigma: float = 0.0,
     from ragsplat.dataset.load import load_dataset
     from ragsplat.eval.evaluate import height_error
     from ragsplat.export import extract_bed, load_run, run_water
-    from ragsplat.surface import extract_surface
+    from ragsplat.surface import extract_surface, size_cap_m
+    from ragsplat.train.config import TrainConfig
     from ragsplat.uncertainty import cell_features
 
     if bed not in BEDS:
@@ -108,16 +109,17 @@ def run_cells(source: RunSource, level_sigma: float = 0.0, n_sigma: float = 0.0,
         raise DatasetError(f"{source.truth} is in another frame than {ds.root} (offsets {tds.georef.offset} "
                            f"and {ds.georef.offset})")
     truth = tds.ground_truth
-    water = run_water(json.loads((Path(source.run) / "config.json").read_text()), ds)
+    meta = json.loads((Path(source.run) / "config.json").read_text())
+    water, cap = run_water(meta, ds), size_cap_m(TrainConfig.from_dict(meta["config"]))
     if bed == "evaluation":
-        cfg = extract_config(source.preset, len(truth.nodes), seed, ds.gsd)
+        cfg = replace(extract_config(source.preset, len(truth.nodes), seed, ds.gsd), max_scale_m=cap)
         grid, stats = extract_surface(gaussians["means"], gaussians["scales"], gaussians["quats"],
                                       gaussians["opacities"], cfg, truth.region,
                                       tuple(truth.grid[:, :2].min(0)), cells=True)
         record, cell = stats["cells"], cfg.cell
     else:
         product = extract_bed(gaussians, PRODUCT_CELL, water, ds.eval_region, ds.georef, seed, ds.gsd,
-                              cells=True)
+                              cells=True, max_scale_m=cap)
         grid, record, cell = product.grid, product.cells, product.resolution
     features = cell_features(grid, ds.train_cameras, water, record, level_sigma, n_sigma)
     dz, depth = height_error(grid, truth)

@@ -33,7 +33,7 @@ from ragsplat.outputs import atomic_path, claim
 from ragsplat.ply import load_ply
 from ragsplat.rasterize import choose_backend
 from ragsplat.refraction import WaterSurface
-from ragsplat.surface import ExtractConfig, extract_surface, extract_surface_blocks, max_scale
+from ragsplat.surface import ExtractConfig, extract_surface, extract_surface_blocks, max_scale, size_cap_m
 from ragsplat.train.config import TrainConfig
 from ragsplat.train.trainer import (
     PLY,
@@ -99,13 +99,15 @@ def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None 
                bounds=None, uncertainty: UncertaintyModel | None = None, level_sigma: float = 0.0,
                n_sigma: float = 0.0, **extract) -> Bed:
     """Extract the bed of a finished run (`load_run`, `extract_bed`, `extract`: its `ExtractConfig` fields to
-    change) and write the DEM and each other product given a path, in the dataset's georeference (an
-    imported survey's CRS and offset), depths below the water the run ended with (`run_water`). `bounds`
+    change; the size cap in metres, unless given, the run's training's: `surface.size_cap_m`) and write the
+    DEM and each other product given a path, in the dataset's georeference (an imported survey's CRS and
+    offset), depths below the water the run ended with (`run_water`). `bounds`
     (xmin, ymin, xmax, ymax in the CRS, +-inf where open: a survey's tile) cuts the bed to that box, within
     what it would cover without. `uncertainty`: a fitted model, whose TVU95 of each cell (`cell_tvu95`, from
     the run's training views; `level_sigma` m and `n_sigma`: the standard deviations of the water's level
     and index, the systematic term) the DEM and the LAS then carry. Returns the bed."""
     meta, ds, splats, seed = _read_run(Path(run), data, splits=())
+    extract = {"max_scale_m": size_cap_m(TrainConfig.from_dict(meta["config"])), **extract}
     water = run_water(meta, ds)
     gaussians, region = activated_dict(splats), ds.eval_region
     if bounds is not None:

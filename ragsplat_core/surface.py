@@ -63,7 +63,8 @@ class ExtractConfig:
     # the bed's relief cannot follow it, however coarse the pixels. 6 pixels are 14 cm on `small` (2.33 cm a
     # pixel, so this changes nothing there); on the long reach's development stretch (4.66 cm) the same 14
     # cm, 3 pixels, was the best of 2-12 pixels, and 6 pixels left a speckle of wide surfels 10-15 cm too
-    # deep (tuning/extract.json, "long"). inf: the pixels alone.
+    # deep (tuning/extract.json, "long"). inf: the pixels alone. That is for surfels trained with the ray's z;
+    # a run's extraction takes its own training's (`size_cap_m`).
     max_scale_m: float = 0.14
     gsd: float | None = None  # metres per pixel (`Dataset.gsd`); needed when max_scale_gsd is finite
     n_samples: int = 200_000
@@ -128,6 +129,19 @@ def truncated_normal(n: int, cut: float, rng: np.random.Generator) -> np.ndarray
 # Below 3 pixels the bed has holes: on the long reach's development stretch 2.5 pixels kept 86 % and 2 pixels
 # 66 % of the wet cells, 3 pixels 96 % (tuning/extract.json, "long").
 RELIEF_FLOOR_GSD = 3.0
+
+
+# `ExtractConfig.max_scale_m` by the z a model's surfels were trained with (`TrainConfig.surfel_depth`): the
+# ray's keeps the 14 cm cap (tuning/extract.json, "long"); with the centre's z the same development stretch
+# picks the pixels alone, 6 of them, over six training seeds (extract.json, "long" / "centre").
+SIZE_CAP_M = {"ray": EXTRACT_TUNING["long"]["chosen"]["max_scale_m"],
+              "centre": float(EXTRACT_TUNING["long"]["centre"]["picks"]["max_scale_m"])}
+
+
+def size_cap_m(train) -> float:
+    """`ExtractConfig.max_scale_m` for a model trained under `train` (a `TrainConfig`): its surfels' depth's
+    (`SIZE_CAP_M`); the ray's for 3D Gaussians, which the choice of depth does not touch."""
+    return SIZE_CAP_M[train.surfel_depth if train.surfels else "ray"]
 
 
 def max_scale(cfg: ExtractConfig) -> float:

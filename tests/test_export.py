@@ -122,6 +122,34 @@ def test_flat_bed_at_known_depth(run, tmp_path):
     assert np.abs(depth - 1.5).max() < 0.005 and np.abs(elevation + 1.5).max() < 0.005
 
 
+def test_the_size_cap_follows_the_runs_surfel_depth(run, tmp_path, capsys):
+    """A run whose surfels took the centre's z is exported without the 14 cm cap (6 pixels alone,
+    `surface.SIZE_CAP_M`), one that took the ray's with it, unless the command gives the cap. Discs of
+    sigma 45 cm at 11 cm a pixel: within 6 pixels (66 cm), beyond the ray's cap (3 pixels, 33 cm, its floor)."""
+    g = plane_gaussians(lambda x, y: np.full_like(x, -1.5), step=0.1)
+    g["scales"] = torch.tensor([[0.45, 0.45, 0.005]] * len(g["means"]))
+    gsd = load_run(run)[1].gsd
+    assert 3 * gsd < 0.45 <= 6 * gsd
+    exported = {}
+    for depth in ("ray", "centre"):
+        folder = tmp_path / depth
+        shutil.copytree(run, folder)
+        save_ply(folder / "point_cloud.ply", {"means": g["means"], "sh0": torch.zeros(len(g["means"]), 1, 3),
+                                               "opacities": torch.logit(g["opacities"]),
+                                               "scales": g["scales"].log(), "quats": g["quats"]})
+        meta = json.loads((folder / "config.json").read_text())
+        meta["config"].update(variant="2dgs+full", surfel_depth=depth)
+        (folder / "config.json").write_text(json.dumps(meta))
+        exported[depth] = main(["export", str(folder), "--dem", str(tmp_path / f"{depth}.tif"),
+                                "--resolution", "0.1"])
+    assert exported == {"ray": 2, "centre": 0}  # 2: an output error (nothing to export)
+    assert "no bed surface" in capsys.readouterr().err
+    with rasterio.open(tmp_path / "centre.tif") as tif:
+        assert np.abs(tif.read(1)[tif.read(1) != NODATA] + 1.5).max() < 0.01
+    assert main(["export", str(tmp_path / "centre"), "--dem", str(tmp_path / "capped.tif"),
+                 "--max-scale-m", "0.14"]) == 2  # the cap as given
+
+
 def test_export_extracts_the_bed_that_eval_scores(evaluable_dataset):
     """At the evaluation's 5 cm the export samples as `ragsplat eval` does (`extract_config`: 16 per node of
     the ground-truth grid, 21 x 21 here, all under water): the same bed, cell for cell (the count by area of

@@ -54,3 +54,28 @@ def test_the_field_survey_trains_the_recorded_water_terms():
     assert rec["chosen"] in VARIANTS and survey_variant("small") == "2dgs+full"
     assert PRESETS["small-field"].wet_sh_degree == rec["kept"]["wet_sh_degree"]
     assert rec["commit"] and "python -m tools.tune" in rec["command"]
+
+
+def test_the_long_preset_is_small_with_its_recorded_depth_and_cap():
+    """`long` is `small` but for what long.json chose by its rule on the long reach's development stretch;
+    the extraction's size cap follows the surfels' depth as extract.json's two records chose it."""
+    import math
+    from dataclasses import replace
+
+    from ragsplat.surface import SIZE_CAP_M, size_cap_m
+    from ragsplat.train.config import LONG_TUNING, PRESETS
+
+    rec = LONG_TUNING
+    assert rec["dataset_preset"] == "long" and rec["dataset_seed"] == 1 and rec["commit"]
+    assert "python -m tools.retrain" in rec["command"]
+    f1_1, f1_3 = rec["columns"].index("F1@1% (%)"), rec["columns"].index("F1@3% (%)")
+    best3 = max(v[f1_3] for v in rec["tried"].values())
+    near = {k: v for k, v in rec["tried"].items() if v[f1_3] >= best3 - 0.5}
+    assert max(near, key=lambda k: near[k][f1_1]) == f"surfel_depth {rec['chosen']['surfel_depth']}"
+    assert PRESETS["long"] == replace(PRESETS["small"], preset="long", **rec["chosen"])
+    assert SIZE_CAP_M == {"ray": ExtractConfig().max_scale_m, "centre": math.inf}
+    assert EXTRACT_TUNING["long"]["centre"]["picks"] == {"max_scale_gsd": ExtractConfig().max_scale_gsd,
+                                                         "max_scale_m": "inf"}
+    surfels = replace(PRESETS["long"], variant="2dgs+full")
+    assert size_cap_m(surfels) == math.inf and size_cap_m(replace(surfels, surfel_depth="ray")) == 0.14
+    assert size_cap_m(replace(surfels, variant="full")) == 0.14  # 3D Gaussians: the depth does not touch them

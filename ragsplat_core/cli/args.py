@@ -118,8 +118,9 @@ def cull_arguments(parser: argparse.ArgumentParser) -> None:
                              "scene)")
     parser.add_argument("--max-scale-m", type=limit, metavar="M",
                         help="and at most M metres, where that is at least 3 ground sample distances "
-                             "(default: the evaluation's 0.14, chosen on the long reach's development "
-                             "stretch; inf: the ground sample distances alone)")
+                             "(default: by the run's surfel depth, chosen on the long reach's development "
+                             "stretch: 0.14 with the ray's, inf with the centre's; inf: the ground sample "
+                             "distances alone)")
     parser.add_argument("--despike-radius", type=positive_float, metavar="M",
                         help="a DEM cell is compared with the median of the cells within M metres (default: "
                              "the evaluation's, chosen on the development reach)")

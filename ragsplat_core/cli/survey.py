@@ -97,7 +97,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              + "; ".join(f"with --preset {p} {v}" for p, v in SURVEY_VARIANTS.items()) + ")")
     parser.add_argument("--init", default=INIT, choices=["triangulated", "refracted"],
                         help=f"(default: {INIT})")
-    parser.add_argument("--preset", default="small", choices=list(PRESETS), help="training preset (small)")
+    parser.add_argument("--preset", default="small", choices=list(PRESETS),
+                        help="training preset (small; long for river-scale photos of a few cm a pixel)")
     parser.add_argument("--iterations", type=positive_int, help="override the preset's iteration count")
     parser.add_argument("--surfel-depth", choices=DEPTHS,
                         help="a surfel sample's z in training: where the pixel's ray meets it (ray, the "

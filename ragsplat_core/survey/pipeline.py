@@ -60,6 +60,10 @@ PRODUCTS = ("dem.tif", "bed.laz", "depth.png")
 # a smaller survey keeps the preset's budget. MAX_GAUSSIANS bounds memory (about 1 kB each while training).
 GAUSSIANS_PER_GSD2 = 0.17
 MAX_GAUSSIANS = 3_000_000
+# Photos coarser than this (m a pixel), trained with the surfels' ray z, are told of the `long` preset: the
+# geometric mean of `small`'s 2.33 cm, where the ray's z is right, and the long reach's 4.65 cm, where the
+# centre's z was 8.5 points ahead at 1 % of depth (tuning/small.json and long.json, "surfel_depth").
+COARSE_GSD = 0.033
 IMAGE_MEMORY = 0.4  # the training's images (uint8) may take this share of the machine's memory
 # With the level free, points that cross it as it moves make the cost slightly rough: on `small` (seed 7) it
 # settles within 0.01 mm in 6-9 iterations and then creeps on by 1e-7 relative per step, so stop at 1e-7.
@@ -1242,6 +1246,9 @@ def _train(cfg: SurveyConfig, progress: Progress, model: Path, data: Path, out: 
     progress.say("train", f"at most {budget} Gaussians for {area:.0f} m^2 at a ground sample distance of "
                  f"{100 * ds.gsd:.2f} cm ({GAUSSIANS_PER_GSD2} per GSD^2, at least the {cfg.preset} "
                  f"preset's, at most {MAX_GAUSSIANS})")
+    if ds.gsd > COARSE_GSD and train.surfels and train.surfel_depth == "ray":
+        progress.say("train", f"photos of {100 * ds.gsd:.1f} cm a pixel: river-scale photos train better "
+                     "with --preset long (the surfels' centre z; docs/performance.md)")
     t0 = time.perf_counter()
     trainer = Trainer(train, ds, out)  # the start (the refracted tracks: triangulated once, cached in `data`)
     if trainer.step >= train.iterations:

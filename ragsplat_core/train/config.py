@@ -116,8 +116,8 @@ class TrainConfig:
     normal_from: float = 0.23
     # The z those terms (and the rendered depth) give a surfel's sample: "ray", where the pixel's ray meets
     # it (2DGS), or "centre", its centre's z, as gsplat composites it (on CUDA always). The ray's on `small`
-    # (1.5 points ahead at 1 % of depth), the centre's on the long reach's 4.65 cm pixels (8.5 ahead):
-    # tuning/small.json, "surfel_depth"; docs/performance.md
+    # (1.5 points ahead at 1 % of depth), the centre's on the long reach's 4.65 cm pixels (8.5 ahead, the
+    # `long` preset): tuning/small.json and tuning/long.json, "surfel_depth"; docs/performance.md
     surfel_depth: str = "ray"
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     densify: DensifyConfig = field(default_factory=DensifyConfig)  # at 30k iterations; scaled to `iterations`
@@ -286,12 +286,13 @@ class TrainConfig:
 
 
 # Presets: smoke (CI, seconds), small (the 2-core CPU default of `make ablation`), small-field (small for
-# field conditions), paper (30k, a GPU). `small` and `small-field` were tuned on their development reach
-# (dataset seed 1), never on a reach a table reports: each value below with its reason and its record in
-# ragsplat_core/tuning/ (small.json, small_field.json: values tried, figures, rule, command, commit), which
-# every results.json repeats.
+# field conditions), long (small for river-scale surveys), paper (30k, a GPU). `small`, `small-field` and
+# `long` were tuned on their development reach (dataset seed 1), never on a reach a table reports: each value
+# below with its reason and its record in ragsplat_core/tuning/ (small.json, small_field.json, long.json:
+# values tried, figures, rule, command, commit), which every results.json repeats.
 TUNING = record("small")
 FIELD_TUNING = record("small_field")
+LONG_TUNING = record("long")
 # The short presets start the position rate higher than 3DGS's 1.6e-4: squeezed into 1 500 steps that rate
 # lets a Gaussian travel at most about 0.3 m, less than the refraction shift it must follow (0.74 m at 3 m
 # depth).
@@ -328,6 +329,10 @@ PRESETS["small-field"] = replace(PRESETS["small"], preset="small-field", init="r
 # weight 0.2) and densification stop (half the run) instead of the values tuned for `2dgs+full`.
 PRESETS["small-3dgs"] = replace(PRESETS["small"], preset="small-3dgs", ssim_lambda=TrainConfig.ssim_lambda,
                                 densify=DensifyConfig(max_gaussians=40_000))
+# long: `small` for a river survey's photos of a few centimetres a pixel (the long reach's 4.65 cm), whose
+# surfels take their centre's z (long.json: 8.5 points at 1 % of depth on its development stretch); the
+# extraction's size cap follows the depth (`surface.size_cap_m`). The survey's budget grows with its area.
+PRESETS["long"] = replace(PRESETS["small"], preset="long", **LONG_TUNING["chosen"])
 
 
 def preset_config(name: str, **overrides) -> TrainConfig:
