@@ -73,6 +73,18 @@ def test_schedules_scale_with_iterations():
     assert tr_lr(Fake, 1500) == pytest.approx(2.0 * math.sqrt(cfg.lr_means * cfg.lr_means_final))
 
 
+def test_a_given_scene_scale_replaces_the_cameras_extent(wet):
+    """`scene_scale` (m) is what the position rate and the densification's thresholds scale with; None: the
+    training cameras' extent, as 3DGS. A scale that is not a positive length is refused."""
+    assert Trainer(_cfg(), wet).scene_scale == pytest.approx(wet.camera_extent(), rel=1e-12)
+    given = Trainer(_cfg(scene_scale=7.5), wet)
+    assert given.scene_scale == 7.5 and given.strat_state["scene_scale"] == 7.5
+    assert given.means_lr(0) == pytest.approx(7.5 * given.cfg.lr_means, rel=1e-12)
+    for bad in (0.0, -1.0, math.inf):
+        with pytest.raises(ValueError, match="scene_scale"):
+            _cfg(scene_scale=bad)
+
+
 def test_footprint_through_water():
     cam = Camera.look_at([0.0, 0.0, 2.0], [0.0, 0.0, -1.0], 10, 10, 90.0)  # corner rays at 54.7 deg
     theta = math.atan(math.sqrt(2))  # corner ray angle from the vertical

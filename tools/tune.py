@@ -23,7 +23,7 @@ from ragsplat.eval.ablation import PRESETS, TrainEval, extract_config, save_row,
 from ragsplat.outputs import claim, versions, write_json
 from ragsplat.train.config import DensifyConfig, TrainConfig
 
-NUMBERS = ("float", "int")
+NUMBERS = ("float", "int", "float | None", "int | None")  # None: what the run derives (e.g. scene_scale)
 # The word-valued choices (the config checks their values); the variant and preset are the tool's own options.
 WORDS = [f.name for f in fields(TrainConfig) if f.type == "str" and f.name not in ("variant", "preset")]
 PARAMS = [f.name for f in fields(TrainConfig) if f.type in NUMBERS] + WORDS + \
@@ -56,7 +56,7 @@ def with_value(cfg: TrainConfig | DensifyConfig, param: str,
     if param.startswith("densify."):
         return replace(cfg, densify=with_value(cfg.densify, param.split(".", 1)[1], value))
     kind = {f.name: f.type for f in fields(cfg)}[param]
-    cast = {"int": lambda v: int(float(v)), "float": float, "str": str}[kind]
+    cast = {"int": lambda v: int(float(v)), "float": float, "str": str}[kind.removesuffix(" | None")]
     return replace(cfg, **{param: cast(value)})
 
 

@@ -99,7 +99,7 @@ class TrainConfig:
     # absorbs that dimming and the attenuation coefficients are not identified (issue 50). 3: no cap.
     wet_sh_degree: int = 3
     # Adam learning rates (3DGS / gsplat defaults); means decays exponentially to lr_means_final
-    lr_means: float = 1.6e-4  # x scene scale (camera extent)
+    lr_means: float = 1.6e-4  # x scene scale (`scene_scale`)
     lr_means_final: float = 1.6e-6
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3
@@ -120,6 +120,11 @@ class TrainConfig:
     # `long` preset): tuning/small.json and tuning/long.json, "surfel_depth"; docs/performance.md
     surfel_depth: str = "ray"
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # The length (m) that scales the position rate and the densification's size thresholds (clone or split at
+    # `densify.grow_scale3d` of it, prune above `prune_scale3d`); None: 3DGS's, 1.1 x the largest distance of
+    # a training camera from their centre (`Dataset.camera_extent`). That grows with a survey tile's length:
+    # 4.6 m on `small`, 19.8 m on the long reach's development stretch, 48-55 m on its tiles.
+    scene_scale: float | None = None
     densify: DensifyConfig = field(default_factory=DensifyConfig)  # at 30k iterations; scaled to `iterations`
     backend: str = "auto"
     device: str = "auto"  # "auto": CUDA when available, else CPU
@@ -189,6 +194,8 @@ class TrainConfig:
         if self.init_fill > 0 and self.init == "grid":
             raise ConfigError("init_fill fills the gaps between a start's points; init='grid' has none "
                               "(--init-fill 0)")
+        if self.scene_scale is not None and not (math.isfinite(self.scene_scale) and self.scene_scale > 0):
+            raise ConfigError(f"scene_scale is a length in metres and must be > 0, got {self.scene_scale}")
         if self.init_depth is not None and not self.init_depth > 0:
             raise ConfigError("init_depth is a depth below the water level and must be > 0, got "
                               f"{self.init_depth}")

@@ -267,7 +267,7 @@ class Trainer:
         self.centers = [torch.tensor(v.camera.camera_center, dtype=torch.float32, device=self.device)
                         for v in self.views]
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
-        self.scene_scale = dataset.camera_extent()
+        self.scene_scale = dataset.camera_extent() if cfg.scene_scale is None else cfg.scene_scale
         self.schedule = cfg.schedule
         self.gen = torch.Generator().manual_seed(cfg.seed)  # view order and split samples
         # pruning and resets test the opacity as rendered (through the water for a variant that fades it)
