@@ -125,7 +125,8 @@ def test_flat_bed_at_known_depth(run, tmp_path):
 def test_the_size_cap_follows_the_runs_surfel_depth(run, tmp_path, capsys):
     """A run whose surfels took the centre's z is exported without the 14 cm cap (6 pixels alone,
     `surface.SIZE_CAP_M`), one that took the ray's with it, unless the command gives the cap. Discs of
-    sigma 45 cm at 11 cm a pixel: within 6 pixels (66 cm), beyond the ray's cap (3 pixels, 33 cm, its floor)."""
+    sigma 45 cm at 11 cm a pixel: within 6 pixels (66 cm), beyond the ray's cap (its floor, 3 pixels, 33
+    cm)."""
     g = plane_gaussians(lambda x, y: np.full_like(x, -1.5), step=0.1)
     g["scales"] = torch.tensor([[0.45, 0.45, 0.005]] * len(g["means"]))
     gsd = load_run(run)[1].gsd
