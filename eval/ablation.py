@@ -74,7 +74,7 @@ from ragsplat.fusion import FuseConfig, height_mesh
 from ragsplat.outputs import claim, source_digest, versions, write_json
 from ragsplat.refraction import WaterSurface
 from ragsplat.surface import EXTRACT_TUNING, ExtractConfig, size_cap_m
-from ragsplat.train.config import FIELD_TUNING, INIT, LONG_TUNING, SURFELS, TUNING, VARIANTS
+from ragsplat.train.config import FIELD_TUNING, INIT, LONG_TUNING, SURFELS, TUNING, VARIANTS, TrainConfig
 from ragsplat.train.defaults import JOBS
 
 
@@ -192,11 +192,13 @@ def dataset_role(seed: int | None, preset: str) -> str:
     return next((role for role, s in DATASET_SEEDS.items() if s == seed), "other")
 
 
-def extract_config(preset: str, n_nodes: int, seed: int, gsd: float | None) -> ExtractConfig:
-    """The table's extraction over a region of `n_nodes` ground-truth nodes (`GroundTruth.nodes`: wet and
-    banks, the cells `ragsplat export` counts over the same region) with views of `gsd` m per pixel
-    (`Dataset.gsd`)."""
-    return replace(ExtractConfig(), n_samples=PRESETS[preset].samples_per_cell * n_nodes, seed=seed, gsd=gsd)
+def extract_config(train: TrainConfig, n_nodes: int, gsd: float | None) -> ExtractConfig:
+    """The table's extraction of a model trained under `train` (its preset's samples, its seed, the size cap
+    of its surfels' depth: `surface.size_cap_m`) over a region of `n_nodes` ground-truth nodes
+    (`GroundTruth.nodes`: wet and banks, the cells `ragsplat export` counts over the same region) with views
+    of `gsd` m per pixel (`Dataset.gsd`)."""
+    return replace(ExtractConfig(), n_samples=PRESETS[train.preset].samples_per_cell * n_nodes,
+                   max_scale_m=size_cap_m(train), seed=train.seed, gsd=gsd)
 
 
 def eval_steps(iterations: int, checkpoints: int, reset_every: int = 0, reset_stop: int = 0) -> list[int]:
@@ -333,9 +335,9 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
         log(f"LPIPS n/a: {lpips_reason}")
     rows: dict[str, list[dict]] = {}
 
-    def trained_row(seed: int, variant: str, ecfg: ExtractConfig) -> dict:
+    def trained_row(seed: int, variant: str) -> dict:
         cfg = runner.config(variant, preset, seed)
-        ecfg = replace(ecfg, max_scale_m=size_cap_m(cfg))
+        ecfg = extract_config(cfg, len(truth.nodes), runner.gsd)
         key = {**base, "train": cfg.to_dict(), "extract": ecfg.to_dict()}
         folder = row_dir(out, variant, seed)
         row = cached_row(folder, key, log)
@@ -352,12 +354,11 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
         return save_row(folder, row, grid, truth, fused)
 
     for seed in seeds:
-        ecfg = extract_config(preset, len(truth.nodes), seed, runner.gsd)
         for variant in variants:
-            rows.setdefault(variant, []).append(trained_row(seed, variant, ecfg))
+            rows.setdefault(variant, []).append(trained_row(seed, variant))
         if rows_only:
             continue
-        for name, row in reference_rows(out, runner, preset, seed, ecfg, base, rows, log).items():
+        for name, row in reference_rows(out, runner, preset, seed, base, rows, log).items():
             rows.setdefault(name, []).append(row)
     if rows_only:
         return rows
@@ -384,12 +385,13 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
     return rows
 
 
-def reference_rows(out: Path, runner, preset: str, seed: int, ecfg: ExtractConfig, base: dict,
-                   rows: dict[str, list[dict]], log) -> dict[str, dict]:
+def reference_rows(out: Path, runner, preset: str, seed: int, base: dict, rows: dict[str, list[dict]],
+                   log) -> dict[str, dict]:
     """The reference rows of one seed (the oracle plane, which has no seed, with the first)."""
     truth, found = runner.truth, {}
     base = {**base, "references_code": REFERENCES_CODE}
     cfg = runner.config("3dgs", preset, seed)  # the initialisation does not depend on the variant
+    ecfg = extract_config(cfg, len(truth.nodes), runner.gsd)
     init_key = {**base, "init": {k: v for k, v in cfg.to_dict().items() if k.startswith("init") or k in
                                  ("seed", "sh_degree", "preset")}, "extract": ecfg.to_dict()}
     todo = [("init", row_dir(out, "init", seed), init_key,

@@ -25,7 +25,6 @@ from ragsplat.eval.references import USES_GROUND_TRUTH, oracle_grids, start_extr
 from ragsplat.eval.report import T2_COLUMNS, T3_COLUMNS, geometry_table, water_notes
 from ragsplat.export import load_model
 from ragsplat.outputs import source_digest, versions
-from ragsplat.surface import size_cap_m
 
 # The short table: the ablation's CD and F1 columns (Table 2) and the wet and banks bias and errors (Table 3)
 COLUMNS = [c for c in T2_COLUMNS if c[0].startswith(("CD", "F1"))] + \
@@ -54,8 +53,7 @@ def score_run(run: Path, data: Path | None = None, vgg16: str | None = None, dow
         raise DatasetError(f"{runner.ds.root} is in another frame than {ds.root} (offsets "
                            f"{runner.ds.georef.offset} and {ds.georef.offset})")
     truth = runner.truth
-    ecfg = replace(extract_config(cfg.preset, len(truth.nodes), cfg.seed, ds.gsd),
-                   max_scale_m=size_cap_m(cfg), **(extract or {}))
+    ecfg = replace(extract_config(cfg, len(truth.nodes), ds.gsd), **(extract or {}))
     lpips_metric, lpips_reason = metrics.load_lpips(vgg16, download=download, log=log)
     if lpips_reason:
         log(f"LPIPS n/a: {lpips_reason}")

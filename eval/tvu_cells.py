@@ -18,7 +18,7 @@ The protocol's seeds (`ablation.DATASET_SEEDS`): the evaluation reach (dataset s
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -110,16 +110,16 @@ def run_cells(source: RunSource, level_sigma: float = 0.0, n_sigma: float = 0.0,
                            f"and {ds.georef.offset})")
     truth = tds.ground_truth
     meta = json.loads((Path(source.run) / "config.json").read_text())
-    water, cap = run_water(meta, ds), size_cap_m(TrainConfig.from_dict(meta["config"]))
+    water, train = run_water(meta, ds), TrainConfig.from_dict(meta["config"])
     if bed == "evaluation":
-        cfg = replace(extract_config(source.preset, len(truth.nodes), seed, ds.gsd), max_scale_m=cap)
+        cfg = extract_config(train, len(truth.nodes), ds.gsd)
         grid, stats = extract_surface(gaussians["means"], gaussians["scales"], gaussians["quats"],
                                       gaussians["opacities"], cfg, truth.region,
                                       tuple(truth.grid[:, :2].min(0)), cells=True)
         record, cell = stats["cells"], cfg.cell
     else:
         product = extract_bed(gaussians, PRODUCT_CELL, water, ds.eval_region, ds.georef, seed, ds.gsd,
-                              cells=True, max_scale_m=cap)
+                              cells=True, max_scale_m=size_cap_m(train))
         grid, record, cell = product.grid, product.cells, product.resolution
     features = cell_features(grid, ds.train_cameras, water, record, level_sigma, n_sigma)
     dz, depth = height_error(grid, truth)

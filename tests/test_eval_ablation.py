@@ -308,7 +308,7 @@ def test_evaluate_geometry_flat_bed():
     region = {"xmin": 0.3, "xmax": 1.2, "ymin": 0.3, "ymax": 1.2}
     gt = bed[(np.abs(bed[:, :2] - 0.75) < 0.451).all(1)]  # nodes 6 .. 24 on both axes
     res, grid = evaluate_geometry(g, GroundTruth(gt, region, 2.0, WATER),
-                                  ablation.extract_config("small", 19 * 19, 0, 0.01))
+                                  ablation.extract_config(preset_config("small"), 19 * 19, 0.01))
     assert res["n_gt"] == 19 * 19 and res["f1"]["10cm"] == 1.0 and res["chamfer"] < 0.005 and len(grid) > 350
     assert res["extraction"]["config"]["n_samples"] == 16 * 19 * 19
 

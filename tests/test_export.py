@@ -34,6 +34,7 @@ from ragsplat.export import (
 )
 from ragsplat.ply import save_ply
 from ragsplat.refraction import WaterSurface
+from ragsplat.train import preset_config
 
 REGION = {"xmin": -0.8, "xmax": 0.8, "ymin": -0.8, "ymax": 0.8}
 
@@ -158,7 +159,8 @@ def test_export_extracts_the_bed_that_eval_scores(evaluable_dataset):
     ds = load_dataset(evaluable_dataset, splits=(), ground_truth=True)
     truth = ds.ground_truth
     g = plane_gaussians(lambda x, y: -1.0 + 0.1 * np.sin(2.0 * x) * np.cos(1.5 * y))
-    _, scored = evaluate_geometry(g, truth, extract_config("small", len(truth.grid), 3, ds.gsd))
+    _, scored = evaluate_geometry(g, truth, extract_config(preset_config("small", seed=3), len(truth.grid),
+                                                           ds.gsd))
     bed = extract_bed(g, 0.05, ds.water.level, ds.eval_region, seed=3, gsd=ds.gsd)
     assert len(truth.grid) == 441 and len(scored) > 400
 

@@ -146,8 +146,8 @@ def test_eval_matches_the_ablation_and_the_library(run, ablated, evaluable_datas
     gaussians, _, seed = load_run(run)
     ds = load_dataset(evaluable_dataset, splits=(), ground_truth=True)
     truth, ds_gsd = ds.ground_truth, ds.gsd
-    geometry, _ = evaluate_geometry(gaussians, truth,
-                                    ablation.extract_config("smoke", len(truth.nodes), seed, ds_gsd))
+    table = ablation.extract_config(train.preset_config("smoke", seed=seed), len(truth.nodes), ds_gsd)
+    geometry, _ = evaluate_geometry(gaussians, truth, table)
     assert res["geometry"] == json.loads(json.dumps(jsonable(geometry)))
     assert res["references"]["oracle plane"] == json.loads(
         json.dumps(jsonable(score_grid(oracle_grids(truth)["oracle plane"], truth))))
@@ -156,8 +156,7 @@ def test_eval_matches_the_ablation_and_the_library(run, ablated, evaluable_datas
     # the volume bed's culls changed: recorded with its scores, and the same as the library's
     assert main(["eval", str(run), "--no-download", "--min-opacity", "0.05", "--max-scale-gsd", "inf"]) == 0
     loose = json.loads((run / "eval.json").read_text())["geometry"]
-    cfg = replace(ablation.extract_config("smoke", len(truth.nodes), seed, ds_gsd), min_opacity=0.05,
-                  max_scale_gsd=math.inf)
+    cfg = replace(table, min_opacity=0.05, max_scale_gsd=math.inf)
     assert loose["extraction"]["config"] == {**res["geometry"]["extraction"]["config"], "min_opacity": 0.05,
                                              "max_scale_gsd": None}  # JSON has no inf
     assert loose == json.loads(json.dumps(jsonable(evaluate_geometry(gaussians, truth, cfg)[0])))

@@ -83,7 +83,6 @@ def main(argv: list[str] | None = None) -> int:
     runner = TrainEval(args.data)
     extinction = (scene_conditions(args.data) or {}).get("extinction_per_m")  # the water's, per channel
     claim(args.out, "tuning")
-    ecfg = extract_config(args.preset, len(runner.truth.nodes), args.seed, runner.gsd)
     results = []
     for value in values:
         for variant in args.variants:
@@ -97,6 +96,7 @@ def main(argv: list[str] | None = None) -> int:
                 row = json.loads(done.read_text())
             else:
                 start_row(folder, {"dataset": runner.fingerprint, "train": cfg.to_dict()})
+                ecfg = extract_config(cfg, len(runner.truth.nodes), runner.gsd)
                 row, grid, fused = runner.train(cfg, folder, ecfg, PRESETS[args.preset].fuse, checkpoints=1)
                 row = save_row(folder, {**row, "name": variant, "seed": args.seed}, grid, runner.truth, fused)
             g = row["geometry"]
