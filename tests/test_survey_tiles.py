@@ -2,6 +2,8 @@
 plane, the merge's one cell per tile and its seams, and `ragsplat survey --tile-size` end to end, in this
 process and as Dask tasks on a local cluster whose worker is killed mid-task."""
 
+import contextlib
+import io
 import json
 import math
 import shutil
@@ -82,9 +84,6 @@ def test_the_merge_takes_each_cell_from_its_core_and_measures_the_overlap():
 def tiled(survey, finished, tmp_path_factory):  # noqa: F811
     """The synthetic survey again from the finished run's poses, in tiles of 3 m (2 x 2 over its 5.8 m)
     trained here one after another, and what it printed."""
-    import contextlib
-    import io
-
     out = tmp_path_factory.mktemp("tiled") / "run"
     _reuse_poses(finished[0], out)
     err = io.StringIO()
@@ -181,3 +180,40 @@ def test_seam_distance_counts_only_edges_between_tiles():
     cores = [[None, None, 10.0, None], [10.0, None, None, None]]  # two tiles split at x = 10
     xy = np.array([[9.0, -50.0], [10.5, 3.0], [-100.0, 0.0], [40.0, 1e6]])
     np.testing.assert_allclose(border_distance(xy, cores), [1.0, 0.5, 110.0, 30.0])
+
+
+def test_a_survey_trains_at_most_at_its_scene_scale(survey, finished, tmp_path, monkeypatch):  # noqa: F811
+    """3DGS's scene scale (the cameras' extent) grows with a tile's length; a survey caps it at
+    `SCENE_SCALE_GSD` ground sample distances, and `tools.retrain` trains as the survey does. Here the cap is
+    lowered below the synthetic survey's extent so that it applies; a smaller survey keeps its extent."""
+    import re
+
+    from ragsplat.dataset.load import load_dataset
+    from ragsplat.survey import pipeline
+    from ragsplat.train.config import TrainConfig
+    from tools import retrain
+
+    ds = load_dataset(finished[0] / "data", splits=("train",), load_dry=False)
+    extent, gsd = ds.camera_extent(), ds.gsd
+    assert json.loads((finished[0] / "train" / "config.json").read_text())["config"]["scene_scale"] is None
+    below = TrainConfig(scene_scale=None)
+    monkeypatch.setattr(pipeline, "SCENE_SCALE_GSD", 1.01 * extent / gsd)
+    assert pipeline.at_survey_scale(below, extent, gsd) is below
+    monkeypatch.setattr(pipeline, "SCENE_SCALE_GSD", 0.5 * extent / gsd)
+    assert pipeline.at_survey_scale(below, extent, gsd).scene_scale == pytest.approx(0.5 * extent)
+    given = TrainConfig(scene_scale=7.0)
+    assert pipeline.at_survey_scale(given, extent, gsd) is given
+
+    out = tmp_path / "run"
+    _reuse_poses(finished[0], out)
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        assert main(args(survey, out, "--iterations", "20")) == 0, err.getvalue()
+    cfg = json.loads((out / "train" / "config.json").read_text())
+    assert cfg["config"]["scene_scale"] == cfg["scene_scale"] == pytest.approx(0.5 * extent, rel=1e-6)
+    assert f"scene scale {0.5 * extent:.1f} m" in err.getvalue()
+    budget = re.search(r"at most (\d+) Gaussians for", err.getvalue()).group(1)
+    again = tmp_path / "again"
+    assert retrain.main([str(out / "data"), str(again), "--budget", budget, "--preset", "smoke",
+                         "--iterations", "20"]) == 0
+    assert json.loads((again / "config.json").read_text())["scene_scale"] == cfg["scene_scale"]

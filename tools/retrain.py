@@ -21,7 +21,7 @@ from ragsplat.dataset.load import load_dataset
 from ragsplat.export import export_run
 from ragsplat.outputs import write_json
 from ragsplat.rasterize_surfels import DEPTHS
-from ragsplat.survey.pipeline import train_config
+from ragsplat.survey.pipeline import at_survey_scale, train_config
 from ragsplat.train import Trainer
 from ragsplat.train.config import INIT
 from ragsplat.train.defaults import survey_variant
@@ -45,6 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     for name, value in held(parser, args.set).items():
         train = with_value(train, name, value)
     ds = load_dataset(args.data, splits=("train",), load_dry=False)
+    train = at_survey_scale(train, ds.camera_extent(), ds.gsd)  # (a scale given with --set stays)
     t0 = time.perf_counter()
     trainer = Trainer(train, ds, args.out)
     t1 = time.perf_counter()

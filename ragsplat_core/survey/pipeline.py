@@ -78,6 +78,11 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 # cells near a seam a full view from both tiles.
 TILE_GSD = 1000
 TILE_OVERLAP = 0.1
+# 3DGS scales the position rate and the densification's sizes by the cameras' extent, which grows with a
+# tile's length (48-55 m on the long reach's tiles). A survey trains at most at the scale the `long` preset
+# was chosen at: its development stretch's 19.82 m at 4.654 cm, 426 ground sample distances (`small`'s 4.6 m
+# are 198; both keep their own). Larger tiles trained at it like the stretch (docs/performance.md).
+SCENE_SCALE_GSD = 426
 
 
 @dataclass(frozen=True)
@@ -1224,6 +1229,13 @@ def train_config(preset: str, variant: str, seed: int, init: str, iterations: in
     return replace(train, densify=replace(train.densify, max_gaussians=budget))
 
 
+def at_survey_scale(train, extent: float, gsd: float):
+    """`train` at the scene scale a survey trains with: the cameras' `extent` (m), at most `SCENE_SCALE_GSD`
+    ground sample distances of `gsd` (m); a scale `train` sets stays."""
+    cap = SCENE_SCALE_GSD * gsd
+    return train if train.scene_scale is not None or extent <= cap else replace(train, scene_scale=cap)
+
+
 def _train(cfg: SurveyConfig, progress: Progress, model: Path, data: Path, out: Path, surface,
            area: float) -> None:
     """The survey (or a tile's) model imported into `data` (`dataset.colmap`), then trained in `out`
@@ -1242,10 +1254,13 @@ def _train(cfg: SurveyConfig, progress: Progress, model: Path, data: Path, out: 
     given = (cfg.preset, cfg.variant, cfg.seed, cfg.init, cfg.iterations, cfg.surfel_depth)
     preset_cap = train_config(*given).densify.max_gaussians
     budget = min(max(round(GAUSSIANS_PER_GSD2 * area / ds.gsd**2), preset_cap), MAX_GAUSSIANS)
-    train = train_config(*given, budget)
+    extent = ds.camera_extent()
+    train = at_survey_scale(train_config(*given, budget), extent, ds.gsd)
+    capped = "" if train.scene_scale is None else f" ({SCENE_SCALE_GSD} GSD; the cameras span {extent:.1f} m)"
     progress.say("train", f"at most {budget} Gaussians for {area:.0f} m^2 at a ground sample distance of "
                  f"{100 * ds.gsd:.2f} cm ({GAUSSIANS_PER_GSD2} per GSD^2, at least the {cfg.preset} "
-                 f"preset's, at most {MAX_GAUSSIANS})")
+                 f"preset's, at most {MAX_GAUSSIANS}); scene scale "
+                 f"{train.scene_scale or extent:.1f} m{capped}")
     if ds.gsd > COARSE_GSD and train.surfels and train.surfel_depth == "ray":
         progress.say("train", f"photos of {100 * ds.gsd:.1f} cm a pixel: river-scale photos train better "
                      "with --preset long (the surfels' centre z; docs/performance.md)")
