@@ -208,12 +208,11 @@ def test_a_survey_trains_at_most_at_its_scene_scale(survey, finished, tmp_path, 
     _reuse_poses(finished[0], out)
     err = io.StringIO()
     with contextlib.redirect_stderr(err):
-        assert main(args(survey, out, "--iterations", "20")) == 0, err.getvalue()
+        assert main(args(survey, out)) == 0, err.getvalue()
     cfg = json.loads((out / "train" / "config.json").read_text())
     assert cfg["config"]["scene_scale"] == cfg["scene_scale"] == pytest.approx(0.5 * extent, rel=1e-6)
     assert f"scene scale {0.5 * extent:.1f} m" in err.getvalue()
     budget = re.search(r"at most (\d+) Gaussians for", err.getvalue()).group(1)
     again = tmp_path / "again"
-    assert retrain.main([str(out / "data"), str(again), "--budget", budget, "--preset", "smoke",
-                         "--iterations", "20"]) == 0
+    assert retrain.main([str(out / "data"), str(again), "--budget", budget, "--preset", "smoke"]) == 0
     assert json.loads((again / "config.json").read_text())["scene_scale"] == cfg["scene_scale"]

@@ -1256,7 +1256,8 @@ def _train(cfg: SurveyConfig, progress: Progress, model: Path, data: Path, out: 
     budget = min(max(round(GAUSSIANS_PER_GSD2 * area / ds.gsd**2), preset_cap), MAX_GAUSSIANS)
     extent = ds.camera_extent()
     train = at_survey_scale(train_config(*given, budget), extent, ds.gsd)
-    capped = "" if train.scene_scale is None else f" ({SCENE_SCALE_GSD} GSD; the cameras span {extent:.1f} m)"
+    capped = "" if train.scene_scale is None else \
+        f" ({SCENE_SCALE_GSD:g} GSD; the cameras span {extent:.1f} m)"
     progress.say("train", f"at most {budget} Gaussians for {area:.0f} m^2 at a ground sample distance of "
                  f"{100 * ds.gsd:.2f} cm ({GAUSSIANS_PER_GSD2} per GSD^2, at least the {cfg.preset} "
                  f"preset's, at most {MAX_GAUSSIANS}); scene scale "
