@@ -435,8 +435,7 @@ def _place(loc: _Local, rho, d_app):  # [M, 3] apparent points from r'/r and d'
     return torch.cat([loc.origin + rho[:, None] * loc.v, (loc.level - d_app)[:, None]], -1)
 
 
-# under torch.compile: a graph break (it reads a value), not a traced float() and a warning
-@torch.compiler.disable
+# under torch.compile: a graph break (it reads a value), not a traced float() and a warning (_GRAPH_BREAKS)
 def _check_camera(camera_center, water) -> None:
     C = torch.as_tensor(camera_center).detach().double().reshape(-1, 3)  # one camera, or one per row
     if not len(C):
@@ -575,8 +574,7 @@ def _abs_det(loc: _Local, der: _Derivatives):  # [M]: tangential rho times the r
     return torch.abs(der.rho * (j11 * der.dapp_d - 2 * loc.r2 * der.rho_d * der.dapp_r2))
 
 
-# data-dependent: under torch.compile a graph break, not a traced bool() and a warning
-@torch.compiler.disable
+# data-dependent: under torch.compile a graph break, not a traced bool() and a warning (_GRAPH_BREAKS)
 def _wet_rows(wet):  # [M] indices of the True entries of wet [N], None when all are
     return None if bool(wet.all()) else wet.nonzero().squeeze(1)
 
@@ -696,6 +694,13 @@ def _refract_in_frames(R, p0, means, scales, quats, opacities, colors, camera_ce
     return ApparentGaussians(means, out.scales, quats, out.opacities, out.colors, covars, jacobians)
 
 
+# marked for torch.compile when a compile is first asked for, not at import: torch.compiler.disable imports
+# torch._dynamo, 3 s of CPU on the 2-core machine at the start of every command that imports this module,
+# where only a training needs it (torch.optim's Adam imports it then): `ragsplat score`, `export`, a survey's
+# first stages
+_GRAPH_BREAKS = ("_check_camera", "_wet_rows")
+
+
 @functools.cache
 def compiled_refract_gaussians():
     """`refract_gaussians` through `torch.compile` (dynamic shapes): its few dozen small elementwise ops
@@ -703,4 +708,6 @@ def compiled_refract_gaussians():
     transform is launch-bound (the same 7-10 ms at 40k and 200k Gaussians, docs/performance.md). Values and
     gradients equal the eager ones to round-off (tests/test_refraction.py); each new family of shapes compiles
     first (tens of seconds on a CPU)."""
+    for name in _GRAPH_BREAKS:  # the compiled trace reads them here, as module globals
+        globals()[name] = torch.compiler.disable(globals()[name])
     return torch.compile(refract_gaussians, dynamic=True)

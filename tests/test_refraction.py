@@ -1,6 +1,9 @@
 """Refraction transform, tested from physics (Snell's law, geometry) rather than from its own formulas."""
 
+import logging
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -372,9 +375,16 @@ def test_compiled_transform_matches_eager_in_values_and_gradients(flags):
               torch.rand(n, generator=g), torch.rand(n, 3, generator=g)]
     cam = torch.tensor([2.0, -1.0, 6.0])
     outs = {}
+    # the value-reading helpers are graph breaks (refraction._GRAPH_BREAKS): the first trace logs no dynamo
+    # warning of a traced float() or bool()
+    warned = _Warnings()
     for name, transform in (("eager", refract_gaussians), ("compiled", compiled_refract_gaussians())):
         leaves = [t.clone().requires_grad_(True) for t in inputs]
-        a = transform(*leaves, cam, WATER, **flags)
+        logging.getLogger("torch._dynamo").addHandler(warned)
+        try:
+            a = transform(*leaves, cam, WATER, **flags)
+        finally:
+            logging.getLogger("torch._dynamo").removeHandler(warned)
         values = [t for t in (a.means, a.scales, a.opacities, a.colors, a.covars, a.jacobians)
                   if t is not None]
         # a fixed random weighting of every output, so each output's gradient reaches the inputs
@@ -386,3 +396,22 @@ def test_compiled_transform_matches_eager_in_values_and_gradients(flags):
             assert compiled is None
             continue
         torch.testing.assert_close(compiled, eager, rtol=1e-4, atol=1e-5)
+    assert warned.messages == []
+
+
+class _Warnings(logging.Handler):
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.messages = []
+
+    def emit(self, record):
+        self.messages.append(record.getMessage()[:200])
+
+
+def test_importing_the_commands_leaves_torch_compile_unloaded():
+    # torch._dynamo (torch.compile's tracer, with sympy) costs a command about 3 s of CPU at its start; a
+    # compile (compiled_refract_gaussians) or a training's optimiser loads it, an import does not
+    code = ("import sys, ragsplat.cli.main, ragsplat.eval.ablation, ragsplat.survey.pipeline; "
+            "print('torch._dynamo' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

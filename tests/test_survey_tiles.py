@@ -6,6 +6,7 @@ import contextlib
 import io
 import json
 import math
+import re
 import shutil
 
 import numpy as np
@@ -17,6 +18,7 @@ from ragsplat.camera import Camera
 from ragsplat.cli.main import main
 from ragsplat.refraction import WaterSurface
 from ragsplat.survey import tiles
+from ragsplat.survey.pipeline import seen_area
 
 
 def test_a_nadir_footprint_is_the_field_of_view_at_the_water():
@@ -124,6 +126,19 @@ def test_a_tiled_survey_gives_one_cell_per_tile_and_seams_that_agree(survey, fin
     assert report["overlap"] and all(p["rms_m"] < 2 * spread + 0.01 for p in report["overlap"])
 
 
+def test_a_tile_s_gaussian_budget_is_for_the_ground_its_photos_see(tiled):
+    # a tile's photos see past its core on every side: its budget is for the box of its own points (the same
+    # density as a survey of one tile), which together cover more than the survey's box
+    out, _ = tiled
+    folders = sorted((out / "tiles").iterdir())
+    seen = [seen_area(folder / "data") for folder in folders]
+    for folder, area in zip(folders, seen, strict=True):
+        logged = re.search(r"Gaussians for (\d+) m\^2", (folder / "log.txt").read_text()).group(1)
+        assert logged == f"{area:.0f}"
+    lo, hi = np.array(json.loads((out / "water.json").read_text())["extent_m"])
+    assert len(seen) == 4 and sum(seen) > 1.2 * np.prod(hi - lo)
+
+
 def test_tiles_on_dask_workers_one_killed_give_the_same_products(survey, tiled, tmp_path):  # noqa: F811
     """`--jobs 2` for real (a local cluster of two worker processes): a SIGKILL of a worker training a tile
     does not end the command: Dask runs the tile again on a worker, which resumes from its checkpoint; the
@@ -186,8 +201,6 @@ def test_a_survey_trains_at_most_at_its_scene_scale(survey, finished, tmp_path, 
     """3DGS's scene scale (the cameras' extent) grows with a tile's length; a survey caps it at
     `SCENE_SCALE_GSD` ground sample distances, and `tools.retrain` trains as the survey does. Here the cap is
     lowered below the synthetic survey's extent so that it applies; a smaller survey keeps its extent."""
-    import re
-
     from ragsplat.dataset.load import load_dataset
     from ragsplat.survey import pipeline
     from ragsplat.train.config import TrainConfig
