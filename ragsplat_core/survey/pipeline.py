@@ -778,7 +778,7 @@ def _water_report(survey: Survey, fit: Adjusted) -> dict:
                 "edge_fit": given.edge.report(),
                 "along_the_reach": water_fit.profile(P.numpy(), fit.water.height(P.numpy()[:, :2]),
                                                      given.edge_points - origin)}),
-            "extent_m": (np.percentile(P.numpy()[:, :2], [1, 99], axis=0) + origin[:2]).tolist(),
+            "extent_m": (points_box(P.numpy()) + origin[:2]).tolist(),
             "points_above": int((z >= 0).sum()),
             "points_below": int((z < 0).sum()),
             "lowest_above_m": float(np.percentile(above, 1)) if len(above) else None,
@@ -1224,10 +1224,17 @@ def train_config(preset: str, variant: str, seed: int, init: str, iterations: in
     return replace(train, densify=replace(train.densify, max_gaussians=budget))
 
 
+def points_box(points):
+    """[2, 2] the (lo, hi) corners in x, y of points [P, >=2]: their 1 and 99 %, so that a few stray points
+    do not stretch it. The survey's extent (`water.json`'s extent_m) and a tile's area (`seen_area`)."""
+    import numpy as np
+
+    return np.percentile(points[:, :2], [1, 99], axis=0)
+
+
 def seen_area(data: Path) -> float:
-    """m^2 of the box of an imported dataset's points (`dataset.colmap.POINTS`) between their 1 and 99 %
-    in x and y: the ground its photos see, bounded as the survey's own extent is (`water.json`'s extent_m).
-    0 for a dataset without points."""
+    """m^2 of the `points_box` of an imported dataset's points (`dataset.colmap.POINTS`): the ground its
+    photos see, bounded as the survey's own extent is. 0 for a dataset without points."""
     import numpy as np
 
     from ragsplat.dataset.colmap import POINTS
@@ -1235,7 +1242,7 @@ def seen_area(data: Path) -> float:
     path = Path(data) / POINTS
     if not path.is_file():
         return 0.0
-    lo, hi = np.percentile(np.load(path)[:, :2], [1, 99], axis=0)
+    lo, hi = points_box(np.load(path))
     return float(np.prod(hi - lo))
 
 
