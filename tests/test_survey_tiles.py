@@ -187,6 +187,19 @@ def test_a_rerun_with_other_culls_extracts_again_without_training_again(survey, 
     assert 0 < sum(report["cells"].values()) < 0.9 * len(laspy.read(tiled[0] / "bed.laz").x)
 
 
+def test_a_survey_s_tiles_get_a_worker_each_until_they_fill_two_rounds():
+    """Without --jobs: fewer tiles than two per `JOBS` worker each get a worker (3 tiles on 2 cores share
+    them instead of leaving one idle in a second round); more go to `JOBS` workers; --jobs is obeyed."""
+    from ragsplat.cli.main import command
+    from ragsplat.train.defaults import JOBS, tile_workers
+
+    assert [tile_workers(k) for k in range(1, 2 * JOBS)] == list(range(1, 2 * JOBS))
+    assert all(tile_workers(k) == JOBS for k in range(2 * JOBS, 6 * JOBS))
+    given = ["photos", "--positions", "p.csv", "--water-level", "0", "--out", "run"]
+    assert command("survey", given)[1].jobs is None
+    assert command("survey", [*given, "--jobs", "3"])[1].jobs == 3
+
+
 def test_seam_distance_counts_only_edges_between_tiles():
     """tools.seams: a point's distance is to its own core's finite edges; the survey's open outside is no
     seam."""

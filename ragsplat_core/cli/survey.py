@@ -116,9 +116,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "survey that fits is one tile)")
     parser.add_argument("--tile-overlap", type=non_negative_float, metavar="M",
                         help="each tile's overlap with its neighbours (m; default: a tenth of the side)")
-    parser.add_argument("--jobs", type=positive_int, default=JOBS, metavar="N",
+    parser.add_argument("--jobs", type=positive_int, metavar="N",
                         help=f"train the tiles on N local Dask workers at once, each with cores / N threads "
-                             f"(default {JOBS}; 1: one after another in this process)")
+                             f"(default: one per tile up to {2 * JOBS - 1} tiles, the cores shared, else "
+                             f"{JOBS}; 1: one after another in this process)")
     parser.add_argument("--scheduler", metavar="ADDRESS",
                         help="train the tiles on the Dask cluster whose scheduler is at ADDRESS "
                              "(tcp://host:8786; its workers need ragsplat and this run's paths)")
@@ -160,6 +161,7 @@ def run(args: argparse.Namespace) -> int:
     from ragsplat.cli.cluster import client
     from ragsplat.cli.progress import deferred_interrupts
     from ragsplat.survey import pipeline
+    from ragsplat.train.defaults import tile_workers
 
     uncertainty_options(args)  # a sigma without a model, or a file that is not one: refused before any work
     args.culls = cull_overrides(args)  # a rerun with other culls extracts again, without training again
@@ -168,14 +170,15 @@ def run(args: argparse.Namespace) -> int:
 
     @contextlib.contextmanager
     def cluster(tasks: int):
-        with client(min(args.jobs, tasks), args.scheduler) as (c, where):
+        workers = min(args.jobs, tasks) if args.jobs else tile_workers(tasks)
+        with client(workers, args.scheduler) as (c, where):
             print(f"[tiles] on {where}; each tile's log: {args.out / 'tiles' / 'K' / 'log.txt'}",
                   file=sys.stderr, flush=True)
             yield c
 
     with deferred_interrupts() as check:  # Ctrl-C: the trainer checkpoints its finished steps, then stops
         products = pipeline.run(cfg, _Printed(args.no_progress, check),
-                                cluster if args.jobs > 1 or args.scheduler else None)
+                                cluster if args.jobs != 1 or args.scheduler else None)
     for path in products:
         print(path)
     return 0
