@@ -23,6 +23,8 @@ def tile_workers(tiles: int) -> int:
     the 2-core CPU did 0.70-0.75 s a step each against 0.43 s alone (two at once: 0.44-0.45): 1.7 tiles' time
     instead of 2 (docs/performance.md, "The whole reach from nothing")."""
     return tiles if tiles < 2 * JOBS else JOBS
+
+
 # The variant `ragsplat survey` trains under each preset unless told (`--variant`): the best on the preset's
 # development seed. small-field: with the surface's reflection, ahead of `2dgs+full` at 1 % and 3 % of depth
 # with a lower RMSE and the same cover there, where all three water terms lose cover (small_field.json,
