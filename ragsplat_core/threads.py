@@ -3,6 +3,11 @@ the maintainers' tools, which run several at once on shared cores, both call it 
 
 import os
 
+# What each threading library reads for its thread count at its start: a worker process that shares the cores
+# sets them all (`cli.cluster`), or numba alone spins one thread per core beside the others' (two one-thread
+# trainings ran 7x slower so, docs/performance.md).
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
 
 def openmp_waits() -> None:
     """How OpenMP threads (torch's and numba's, one libgomp) wait between parallel regions; it only takes

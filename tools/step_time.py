@@ -18,20 +18,15 @@ import tempfile
 import time
 from pathlib import Path
 
-THREADS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+from ragsplat.threads import THREAD_VARIABLES
 
 
 def one(data: Path, train: Path, budget: int, preset: str, steps: int) -> float:
     """Seconds a step of the training in `train` (resumed from its checkpoint), after 3 to warm up."""
-    from ragsplat.dataset.load import load_dataset
-    from ragsplat.survey.pipeline import at_survey_scale, train_config
     from ragsplat.train import Trainer
-    from ragsplat.train.config import INIT
-    from ragsplat.train.defaults import survey_variant
+    from tools.retrain import survey_training
 
-    cfg = train_config(preset, survey_variant(preset), 0, INIT, None, None, budget)
-    ds = load_dataset(data, splits=("train",), load_dry=False)
-    trainer = Trainer(at_survey_scale(cfg, ds.camera_extent(), ds.gsd), ds, train)
+    trainer = Trainer(*survey_training(data, budget, preset), train)
     for _ in range(3):
         trainer.train_step()
     t0 = time.perf_counter()
@@ -53,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.one:
         print(f"{one(args.data, args.train, args.budget, args.preset, args.steps):.4f}")
         return 0
-    env = {**os.environ, **{name: "1" for name in THREADS}}
+    env = {**os.environ, **{name: "1" for name in THREAD_VARIABLES}}
     with tempfile.TemporaryDirectory() as tmp:
         children = []
         for k in range(args.at_once):

@@ -15,6 +15,8 @@ def client(jobs: int, scheduler: str | None = None):
     import dask
     from dask.distributed import Client, LocalCluster
 
+    from ragsplat.threads import THREAD_VARIABLES
+
     if scheduler:
         with Client(scheduler) as c:
             yield c, f"the Dask cluster at {scheduler}"
@@ -24,8 +26,7 @@ def client(jobs: int, scheduler: str | None = None):
     # 64 KiB (memory handed back to the system at once) made a smoke ablation's rows spend a third of their
     # time in the kernel: 1.63x the wall time of the same rows without Dask
     with dask.config.set({"distributed.nanny.pre-spawn-environ": {
-            name: threads for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS",
-                                       "OPENBLAS_NUM_THREADS")}}), \
+            name: threads for name in THREAD_VARIABLES}}), \
             LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None,
                          silence_logs=logging.CRITICAL) as cluster, Client(cluster) as c:
         yield c, f"{jobs} local Dask workers of {threads} thread(s)"
