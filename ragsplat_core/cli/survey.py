@@ -40,7 +40,7 @@ def level_or_auto(text: str) -> float | str:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ragsplat.rasterize_surfels import DEPTHS
     from ragsplat.survey.exif import CONSUMER_SIGMA
-    from ragsplat.survey.pipeline import STAGES
+    from ragsplat.survey.pipeline import STAGES, TILE_GSD
     from ragsplat.train.config import INIT, PRESETS, VARIANTS
     from ragsplat.train.defaults import JOBS, SURVEY_VARIANTS, survey_variant
 
@@ -112,8 +112,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stop after this stage (sfm, georef or water: the poses without training)")
     parser.add_argument("--tile-size", type=positive_float, metavar="M",
                         help="split a larger survey into tiles of at most M metres a side, each trained on "
-                             "its own and their DEMs merged (default: 1 000 ground sample distances; a "
-                             "survey that fits is one tile)")
+                             f"its own and their DEMs merged (default: {TILE_GSD:,} ground sample "
+                             "distances; a survey that fits is one tile)")
     parser.add_argument("--tile-overlap", type=non_negative_float, metavar="M",
                         help="each tile's overlap with its neighbours (m; default: a tenth of the side)")
     parser.add_argument("--jobs", type=positive_int, metavar="N",

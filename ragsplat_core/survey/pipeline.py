@@ -73,10 +73,14 @@ LEVEL_TOL = 1e-7
 # linearised uncertainty read 6.6 cm; on `small`, with banks and pools, it read 0.44 cm and was 0.3 cm off.
 LEVEL_WARN = 0.02
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
-# A tile's side in ground sample distances: 1 000 keeps `small` (470 of them) one tile, and a tile's budget
-# (GAUSSIANS_PER_GSD2) at 170 000 Gaussians; its overlap with each neighbour, a share of the side, gives the
-# cells near a seam a full view from both tiles.
-TILE_GSD = 1000
+# A tile's side in ground sample distances. Every tile trains the preset's steps however many photos it holds,
+# so the tiles' count sets the training's time: 1 500 makes the long reach's 110 m two tiles of 213 photos,
+# one per worker on the 2-core CPU: 37 min from nothing against 53 for the three of 1 000, for 1.6 points at
+# 1 % of depth (76.2 against 77.8; chosen on the development seed by the issue's targets, docs/performance.md,
+# "Two tiles"). It keeps `small` (470 of them) one tile, and a square core's budget (GAUSSIANS_PER_GSD2) near
+# 380 000 Gaussians. The overlap with each neighbour, a share of the side, gives the cells near a seam a full
+# view from both.
+TILE_GSD = 1500
 TILE_OVERLAP = 0.1
 # 3DGS scales the position rate and the densification's sizes by the cameras' extent, which grows with a
 # tile's length (48-55 m on the long reach's tiles). A survey trains at most at the scale the `long` preset
