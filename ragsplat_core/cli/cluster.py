@@ -7,6 +7,20 @@ import contextlib
 import logging
 import os
 
+# A local worker's own threads wake less often than Dask's defaults, which take the GIL from the task 50 times
+# a second (the event loop's tick, 20 ms), sample its stack every 10 ms (the statistical profiler, for a
+# dashboard we do not start) and read the process's memory and CPU every 100-500 ms. With them, 81 smoke rows
+# took 1.12x the wall time of the same rows in plain processes; so, 1.02-1.07x, and today's code 0.92x of its
+# time with the defaults (docs/performance.md, "Quieter workers"). The workers' environment is set from their
+# start (`pre-spawn-environ` below) instead of Dask's default, whose MALLOC_TRIM_THRESHOLD_ of 64 KiB (memory
+# handed back to the system at once) made the rows spend a third of their time in the kernel (1.63x).
+QUIET_WORKERS = {
+    "distributed.admin.tick.interval": "1s",
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.system-monitor.interval": "10s",
+    "distributed.worker.memory.monitor-interval": "1s",
+}
+
 
 @contextlib.contextmanager
 def client(jobs: int, scheduler: str | None = None):
@@ -22,10 +36,7 @@ def client(jobs: int, scheduler: str | None = None):
             yield c, f"the Dask cluster at {scheduler}"
         return
     threads = str(max(1, (os.cpu_count() or 1) // jobs))
-    # the workers' environment from their start, instead of Dask's default, whose MALLOC_TRIM_THRESHOLD_ of
-    # 64 KiB (memory handed back to the system at once) made a smoke ablation's rows spend a third of their
-    # time in the kernel: 1.63x the wall time of the same rows without Dask
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": {
+    with dask.config.set(QUIET_WORKERS), dask.config.set({"distributed.nanny.pre-spawn-environ": {
             name: threads for name in THREAD_VARIABLES}}), \
             LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None,
                          silence_logs=logging.CRITICAL) as cluster, Client(cluster) as c:

@@ -1,0 +1,25 @@
+"""The local Dask cluster the commands start (`cli.cluster.client`): its workers get the thread counts and
+the quieter periodic callbacks, in the worker processes themselves (set in the parent, passed on by the
+nannies)."""
+
+import os
+
+from ragsplat.cli.cluster import QUIET_WORKERS, client
+from ragsplat.threads import THREAD_VARIABLES
+
+
+def _worker_settings(names):
+    import dask
+
+    return {name: dask.config.get(name) for name in names}, {v: os.environ.get(v) for v in THREAD_VARIABLES}
+
+
+def test_local_workers_run_with_the_thread_counts_and_the_quiet_callbacks():
+    with client(2) as (c, where):
+        seen = c.run(_worker_settings, list(QUIET_WORKERS))
+    assert where.startswith("2 local Dask workers")
+    assert len(seen) == 2
+    threads = str(max(1, (os.cpu_count() or 1) // 2))
+    for config, env in seen.values():
+        assert config == QUIET_WORKERS
+        assert env == {v: threads for v in THREAD_VARIABLES}
