@@ -83,9 +83,10 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 TILE_GSD = 1500
 TILE_OVERLAP = 0.1
 # 3DGS scales the position rate and the densification's sizes by the cameras' extent, which grows with a
-# tile's length (48-55 m on the long reach's tiles). A survey trains at most at the scale the `long` preset
-# was chosen at: its development stretch's 19.82 m at 4.654 cm, 426 ground sample distances (`small`'s 4.6 m
-# are 198; both keep their own). Larger tiles trained at it like the stretch (docs/performance.md).
+# tile's length (55-57 m on the long reach's two tiles). A survey trains at most at the scale the `long`
+# preset was chosen at: its development stretch's 19.82 m at 4.654 cm, 426 ground sample distances
+# (`small`'s 4.6 m are 198; both keep their own). Larger tiles trained at it like the stretch
+# (docs/performance.md).
 SCENE_SCALE_GSD = 426
 
 

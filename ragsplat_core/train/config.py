@@ -123,7 +123,8 @@ class TrainConfig:
     # The length (m) that scales the position rate and the densification's size thresholds (clone or split at
     # `densify.grow_scale3d` of it, prune above `prune_scale3d`); None: 3DGS's, 1.1 x the largest distance of
     # a training camera from their centre (`Dataset.camera_extent`). That grows with a survey tile's length:
-    # 4.6 m on `small`, 19.8 m on the long reach's development stretch, 48-55 m on its tiles.
+    # 4.6 m on `small`, 19.8 m on the long reach's development stretch, 55-57 m on its two tiles (48-55 m on
+    # three).
     scene_scale: float | None = None
     densify: DensifyConfig = field(default_factory=DensifyConfig)  # at 30k iterations; scaled to `iterations`
     backend: str = "auto"
