@@ -15,8 +15,11 @@ def _worker_settings(names):
 
 
 def test_local_workers_run_with_the_thread_counts_and_the_quiet_callbacks():
+    before = dict(os.environ)
     with client(2) as (c, where):
+        assert dict(os.environ) == before  # the nannies' settings are the workers', not this process's
         seen = c.run(_worker_settings, list(QUIET_WORKERS))
+    assert dict(os.environ) == before
     assert where.startswith("2 local Dask workers")
     assert len(seen) == 2
     threads = str(max(1, (os.cpu_count() or 1) // 2))

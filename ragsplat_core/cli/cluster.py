@@ -36,8 +36,24 @@ def client(jobs: int, scheduler: str | None = None):
             yield c, f"the Dask cluster at {scheduler}"
         return
     threads = str(max(1, (os.cpu_count() or 1) // jobs))
-    with dask.config.set(QUIET_WORKERS), dask.config.set({"distributed.nanny.pre-spawn-environ": {
-            name: threads for name in THREAD_VARIABLES}}), \
-            LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None,
-                         silence_logs=logging.CRITICAL) as cluster, Client(cluster) as c:
-        yield c, f"{jobs} local Dask workers of {threads} thread(s)"
+    saved = dict(os.environ)
+    try:
+        with dask.config.set(QUIET_WORKERS), dask.config.set({"distributed.nanny.pre-spawn-environ": {
+                name: threads for name in THREAD_VARIABLES}}), \
+                LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None,
+                             silence_logs=logging.CRITICAL) as cluster, Client(cluster) as c:
+            _restore(saved)
+            yield c, f"{jobs} local Dask workers of {threads} thread(s)"
+    finally:
+        _restore(saved)
+
+
+def _restore(saved: dict) -> None:
+    """This process's environment back to `saved`. A local cluster's nannies run in this process and set their
+    `pre-spawn-environ` in its environment before each worker starts, and leave it there: the command's own
+    numba, whose threads started under one NUMBA_NUM_THREADS, then refused to compile under another."""
+    for name in set(os.environ) - set(saved):
+        del os.environ[name]
+    for name, value in saved.items():
+        if os.environ.get(name) != value:
+            os.environ[name] = value
