@@ -38,7 +38,7 @@ def client(jobs: int, scheduler: str | None = None):
     threads = str(max(1, (os.cpu_count() or 1) // jobs))
     saved = dict(os.environ)
     try:
-        with dask.config.set(QUIET_WORKERS), dask.config.set({"distributed.nanny.pre-spawn-environ": {
+        with dask.config.set({**QUIET_WORKERS, "distributed.nanny.pre-spawn-environ": {
                 name: threads for name in THREAD_VARIABLES}}), \
                 LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None,
                              silence_logs=logging.CRITICAL) as cluster, Client(cluster) as c:
