@@ -424,8 +424,13 @@ def _waterline_xy(out: Path) -> list[np.ndarray] | None:
 
 
 def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
-             progress: Callable[[dict], None] | None = None, retries: int = 1) -> dict:
+             progress: Callable[[dict], None] | None = None, retries: int = 1,
+             share: Path | None = None) -> dict:
     """Render the missing images of this shard, then merge metadata if the whole dataset is present.
+
+    `share`: a dataset of the same scene under other water (`shares_dry_passes`): its dry and depth images,
+    which never see the water, are hard-linked (or copied) here instead of rendered again (the turbidity
+    sweep renders one reach at several turbidities).
 
     `progress(event)` gets {"event": "plan", "images", "views", "passes"} before rendering starts and the
     renderer's {"event": "done", ...} after each image. A renderer that crashes (a signal in CRASH_SIGNALS) is
@@ -441,6 +446,8 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
     _write_bed_assets(spec, out)
     kinds = passes_for(spec)
     mine = [p for k, p in enumerate(poses) if k % count == index]
+    if share is not None:
+        _link_dry_passes(spec, Path(share), out, mine)
     # Files present are checked before they are skipped (against the manifest once there is one, else by
     # decoding them): a damaged one is rendered again.
     manifest = json.loads((out / layout.MANIFEST).read_text()) if (out / layout.MANIFEST).is_file() else {}
@@ -486,6 +493,42 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
                         "per_image": [event_json(e) for e in stats.done]})
         write_json(runs, history)
     return summary
+
+
+DRY_PASSES = ("dry", "depth")  # the passes rendered with the water hidden (blender_scenes.render)
+
+
+def shares_dry_passes(a: SceneSpec, b: SceneSpec) -> bool:
+    """Whether two specs render the same dry and depth images: the same scene, flight and render settings,
+    differing at most in the water body's turbidity, the ripples and the survey's lens photos (the water
+    surface and body are hidden in those passes; the sky's reflection is the water's too)."""
+    def scene(spec: SceneSpec) -> dict:
+        d = spec.to_dict()
+        d["render"].pop("lens", None)
+        for k in ("turbidity", "ripple_amplitude", "ripple_wavelengths", "ripple_waves", "ripple_cell",
+                  "reflection"):
+            (d.get("conditions") or {}).pop(k, None)
+        return d
+    return a.water is not None and b.water is not None and scene(a) == scene(b)
+
+
+def _link_dry_passes(spec: SceneSpec, source: Path, out: Path, poses) -> None:
+    saved = source / "scene" / "spec.json"
+    if not saved.is_file():
+        raise OutputError(f"{source} holds no ragsplat dataset to share dry images from")
+    if not shares_dry_passes(spec, SceneSpec.from_dict(json.loads(saved.read_text()))):
+        raise OutputError(f"{source} holds another scene (see {saved}): its dry images are not this one's")
+    for kind in DRY_PASSES:
+        for p in poses:
+            src, dst = layout.output_path(source, kind, p.name), layout.output_path(out, kind, p.name)
+            if dst.exists() or not layout.intact(src):
+                continue
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                os.link(src, dst)
+            except OSError:  # another file system
+                with atomic_path(dst) as tmp:
+                    tmp.write_bytes(src.read_bytes())
 
 
 def overhead_fraction(summary: dict) -> float:

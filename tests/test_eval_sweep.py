@@ -46,26 +46,31 @@ def test_the_report_takes_the_best_reference_that_does_not_read_the_answer(tmp_p
 
 
 def test_the_command_renders_and_ablates_each_level_then_reports(tmp_path, monkeypatch, capsys):
-    """`ragsplat sweep` as a user runs it, with the dataset and ablation commands stood in for (they render
-    and train: tested on their own): each level's dataset at its turbidity, its ablation with the sweep's
-    variants and seeds, then the report from their results."""
+    """`ragsplat sweep` as a user runs it, with the renderer and the ablation command stood in for (they
+    render and train: tested on their own, the sharing in tests/test_blender_sweep.py): each level's dataset
+    at its turbidity without lens photos, the dry passes shared from the first level, its ablation with the
+    sweep's variants and seeds, then the report from their results."""
     from types import SimpleNamespace
 
     from ragsplat.cli import main as cli
+    from ragsplat.datagen import build
     from ragsplat.train.defaults import survey_variant
 
     calls = []
 
+    def render(spec, out, share=None):
+        calls.append(("dataset", str(out), spec, share))
+        return {"rendered": 1, "skipped": 0, "wall_s": 0.0}
+
     def fake(name, argv):
-        calls.append((name, argv))
+        calls.append((name, argv[argv.index("--out") + 1], argv, None))
 
         def run(args):
-            if name == "ablation":
-                out = tmp_path / "runs" / argv[argv.index("--out") + 1].rsplit("/", 1)[1]
-                t = float(out.name.split("-", 1)[1])
-                out.mkdir(parents=True, exist_ok=True)
-                (out / "results.json").write_text(json.dumps(
-                    _results([0.44 * t, 0.17 * t, 0.21 * t], 95.0 - t, {"triangulation (refracted)": 90.0})))
+            out = tmp_path / "runs" / argv[argv.index("--out") + 1].rsplit("/", 1)[1]
+            t = float(out.name.split("-", 1)[1])
+            out.mkdir(parents=True, exist_ok=True)
+            (out / "results.json").write_text(json.dumps(
+                _results([0.44 * t, 0.17 * t, 0.21 * t], 95.0 - t, {"triangulation (refracted)": 90.0})))
             return 0
 
         return SimpleNamespace(run=run), None
@@ -73,17 +78,20 @@ def test_the_command_renders_and_ablates_each_level_then_reports(tmp_path, monke
     sweep_cmd, args = cli.command("sweep", ["--data", str(tmp_path / "data"), "--out", str(tmp_path / "runs"),
                                             "--turbidity", "0", "2", "--seeds", "0", "1", "--jobs", "2"])
     monkeypatch.setattr(cli, "command", fake)
+    monkeypatch.setattr(build, "generate", render)
     assert sweep_cmd.run(args) == 0
     want = [(name, str(tmp_path / root / f"turbidity-{t}")) for t in (0, 2)
             for name, root in (("dataset", "data"), ("ablation", "runs"))]
-    assert [(n, a[a.index("--out") + 1]) for n, a in calls] == want
-    dataset, ablation = calls[2][1], calls[3][1]
+    assert [c[:2] for c in calls] == want
+    (_, _, clear, first), (_, _, murky, shared), ablation = calls[0], calls[2], calls[3][2]
+    assert (clear.conditions.turbidity, murky.conditions.turbidity) == (0.0, 2.0)
+    assert murky.preset == "small-field" and murky.seed == 0 and not murky.render.lens
+    assert first is None and shared == tmp_path / "data" / "turbidity-0"
 
     def after(argv, option, until=None):
         i = argv.index(option) + 1
         return argv[i:argv.index(until)] if until else argv[i]
 
-    assert after(dataset, "--turbidity") == "2" and after(dataset, "--preset") == "small-field"
     assert after(ablation, "--variants", "--seeds") == [survey_variant("small-field"), "2dgs+full"]
     assert after(ablation, "--seeds", "--jobs") == ["0", "1"] and after(ablation, "--preset") == "small-field"
     assert "| 2 | 3.97 |" in capsys.readouterr().out and (tmp_path / "runs" / "sweep.png").is_file()

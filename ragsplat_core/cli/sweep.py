@@ -1,7 +1,9 @@
 """`ragsplat sweep --data DIR --out DIR [--turbidity T ...] [--preset small-field] [--seed S] [--variants ...]
-[--seeds S ...] [--jobs N | --scheduler ADDRESS]`: the turbidity sweep. Each level is `ragsplat dataset
---preset PRESET --seed S --turbidity T --out DIR/turbidity-T` (rendered once, resumable) and `ragsplat
-ablation --data DIR/turbidity-T --out OUT/turbidity-T` (its rows and every reference, resumable), then
+[--seeds S ...] [--jobs N | --scheduler ADDRESS]`: the turbidity sweep. Each level is the dataset of
+`ragsplat dataset --preset PRESET --seed S --turbidity T --out DIR/turbidity-T` less its lens photos
+(rendered once, resumable; the dry and depth images, which never see the water, rendered at the first level
+only and linked into the others) and `ragsplat ablation --data DIR/turbidity-T --out OUT/turbidity-T` (its
+rows and every reference, resumable), then
 `ragsplat.eval.sweep.report` writes OUT/sweep.json, sweep.md and sweep.png: the method (the first of
 --variants) and the best reference at each level, against the water's Secchi-like depth.
 """
@@ -41,25 +43,37 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-download", action="store_true", help="`ragsplat ablation --no-download`")
 
 
+def level_spec(name: str, seed: int, turbidity: float):
+    """A level's scene: the preset's reach with the water's turbidity set, and no lens photos (the sweep
+    ablates; it does not survey)."""
+    from dataclasses import replace
+
+    from ragsplat.datagen.spec import preset, with_conditions
+
+    spec = with_conditions(preset(name, seed=seed), turbidity=turbidity)
+    return replace(spec, render=replace(spec.render, lens=False))
+
+
 def run(args: argparse.Namespace) -> int:
     from ragsplat.cli.main import command
+    from ragsplat.datagen.build import generate
     from ragsplat.eval.sweep import level_name, report
 
     train_preset = {"small-field": "small-field", "smoke-field": "smoke"}[args.preset]
+    first = None  # the first level rendered: its dry and depth images serve every level
     for t in args.turbidity:
         data, out = args.data / level_name(t), args.out / level_name(t)
-        print(f"turbidity {t:g}: {data}, {out}", flush=True)
-        for name, argv in (
-                ("dataset", ["--preset", args.preset, "--seed", str(args.seed), "--turbidity", f"{t:g}",
-                             "--out", str(data)]),
-                ("ablation", ["--data", str(data), "--out", str(out), "--preset", train_preset,
-                              "--variants", *args.variants, "--seeds", *map(str, args.seeds),
-                              *(["--jobs", str(args.jobs)] if args.jobs else []),
-                              *(["--scheduler", args.scheduler] if args.scheduler else []),
-                              *(["--no-download"] if args.no_download else [])])):
-            module, sub = command(name, argv)
-            status = module.run(sub)
-            if status:
-                return status
+        done = generate(level_spec(args.preset, args.seed, t), data, share=first)
+        print(f"turbidity {t:g}: {data} ({done['rendered']} images rendered in {done['wall_s']:.0f} s, "
+              f"{done['skipped']} present), {out}", flush=True)
+        first = first or data
+        module, sub = command("ablation", [
+            "--data", str(data), "--out", str(out), "--preset", train_preset, "--variants", *args.variants,
+            "--seeds", *map(str, args.seeds), *(["--jobs", str(args.jobs)] if args.jobs else []),
+            *(["--scheduler", args.scheduler] if args.scheduler else []),
+            *(["--no-download"] if args.no_download else [])])
+        status = module.run(sub)
+        if status:
+            return status
     print(report(args.out, args.turbidity, args.variants))
     return 0

@@ -1,0 +1,52 @@
+"""The turbidity sweep renders the dry and depth passes once: they never see the water, so a reach at another
+turbidity gets them linked from the first level. Cycles renders them byte for byte the same at either
+turbidity (the claim the sharing rests on), and a dataset of another scene is refused as the source."""
+
+import os
+
+import pytest
+
+from ragsplat.cli.sweep import level_spec
+from ragsplat.datagen import flight
+from ragsplat.datagen.build import DRY_PASSES, generate, shares_dry_passes
+from ragsplat.datagen.spec import preset, with_conditions
+from ragsplat.dataset import layout
+from ragsplat.errors import OutputError
+from ragsplat.outputs import write_json
+
+SHARD = (0, 6)
+
+
+def test_only_the_water_may_differ_between_levels_that_share():
+    clear, murky = level_spec("smoke-field", 0, 0.0), level_spec("smoke-field", 0, 2.0)
+    assert murky.conditions.turbidity == 2.0 and not murky.render.lens
+    assert shares_dry_passes(clear, murky)
+    assert shares_dry_passes(clear, with_conditions(murky, reflection=False, ripple_amplitude=0.0))
+    assert not shares_dry_passes(clear, level_spec("smoke-field", 1, 2.0))  # another reach
+    assert not shares_dry_passes(preset("smoke"), preset("smoke-field"))  # the targets are on the bank
+
+
+def test_a_source_of_another_scene_is_refused(tmp_path):
+    other = tmp_path / "other"
+    write_json(other / "scene" / "spec.json", level_spec("smoke-field", 1, 0.0).to_dict())
+    with pytest.raises(OutputError, match="another scene"):
+        generate(level_spec("smoke-field", 0, 2.0), tmp_path / "level", share=other)
+    with pytest.raises(OutputError, match="no ragsplat dataset"):
+        generate(level_spec("smoke-field", 0, 2.0), tmp_path / "level2", share=tmp_path / "none")
+
+
+@pytest.mark.blender
+def test_the_dry_passes_are_linked_and_equal_to_a_render_at_that_turbidity(tmp_path):
+    first, linked, rendered = tmp_path / "t0", tmp_path / "t2", tmp_path / "t2-rendered"
+    generate(level_spec("smoke-field", 0, 0.0), first, shard=SHARD)
+    summary = generate(level_spec("smoke-field", 0, 2.0), linked, shard=SHARD, share=first)
+    generate(level_spec("smoke-field", 0, 2.0), rendered, shard=SHARD)
+    views = flight.plan(level_spec("smoke-field", 0, 2.0))[::SHARD[1]]
+    assert summary["rendered"] == len(views)  # the wet pass only
+    for p in views:
+        for kind in DRY_PASSES:
+            shared = layout.output_path(linked, kind, p.name)
+            assert os.path.samefile(shared, layout.output_path(first, kind, p.name))
+            assert shared.read_bytes() == layout.output_path(rendered, kind, p.name).read_bytes(), (kind, p.name)
+        wet = [layout.output_path(root, "wet", p.name).read_bytes() for root in (first, linked, rendered)]
+        assert wet[0] != wet[1] and wet[1] == wet[2]  # the water differs; Cycles repeats itself
