@@ -58,7 +58,7 @@ def test_the_command_renders_and_ablates_each_level_then_reports(tmp_path, monke
 
     calls = []
 
-    def render(spec, out, share=None):
+    def render(spec, out, progress=None, share=None):
         calls.append(("dataset", str(out), spec, share))
         return {"rendered": 1, "skipped": 0, "wall_s": 0.0}
 

@@ -19,6 +19,27 @@ def shard(text: str) -> tuple[int, int]:
     return i, n
 
 
+def render_progress(label: str, quiet: bool = False):
+    """`datagen.build.generate`'s progress callback drawing a bar per render job, and the list of its bars
+    (close them when done)."""
+    from ragsplat.cli.progress import bar
+
+    bars = []
+
+    def progress(event: dict) -> None:
+        if event["event"] == "plan":
+            bars.append(bar(event["images"], f"{label}: {event['views']} views x {event['passes']}", "img",
+                            disable=quiet))
+        elif event["event"] == "retry":
+            bars[-1].close()
+            print(f"the renderer crashed (signal {event['signal']}, see {event['log']}); "
+                  "starting it again from the finished images", flush=True)
+        else:
+            bars[-1].update(1)
+
+    return progress, bars
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ragsplat.datagen.spec import PRESETS
 
@@ -58,7 +79,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ragsplat.cli.progress import bar
     from ragsplat.datagen import flight
     from ragsplat.datagen.build import generate, overhead_fraction, stretch
     from ragsplat.datagen.spec import preset, validate, with_conditions, with_slope
@@ -78,19 +98,7 @@ def run(args: argparse.Namespace) -> int:
     validate(spec)
     print(f"{spec.preset}: {len(flight.plan(spec))} views, {spec.flight.width} px, ground sample distance "
           f"{flight.gsd(spec) * 100:.2f} cm/px on the bed ({spec.bed.depth:g} m deep), seed {spec.seed}")
-    bars = []
-
-    def progress(event: dict) -> None:
-        if event["event"] == "plan":
-            bars.append(bar(event["images"], f"{spec.preset}: {event['views']} views x {event['passes']}",
-                            "img", disable=args.quiet))
-        elif event["event"] == "retry":
-            bars[-1].close()
-            print(f"the renderer crashed (signal {event['signal']}, see {event['log']}); "
-                  "starting it again from the finished images", flush=True)
-        else:
-            bars[-1].update(1)
-
+    progress, bars = render_progress(spec.preset, args.quiet)
     try:
         if args.stretch is not None:
             print(f"{stretch(spec, args.out, tuple(args.stretch), progress=progress)}: the stretch's photos, "

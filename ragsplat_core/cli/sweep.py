@@ -55,6 +55,7 @@ def level_spec(name: str, seed: int, turbidity: float):
 
 
 def run(args: argparse.Namespace) -> int:
+    from ragsplat.cli.dataset import render_progress
     from ragsplat.cli.main import command
     from ragsplat.datagen.build import generate
     from ragsplat.eval.sweep import level_name, report
@@ -63,7 +64,12 @@ def run(args: argparse.Namespace) -> int:
     first = None  # the first level rendered: its dry and depth images serve every level
     for t in args.turbidity:
         data, out = args.data / level_name(t), args.out / level_name(t)
-        done = generate(level_spec(args.preset, args.seed, t), data, share=first)
+        progress, bars = render_progress(f"turbidity {t:g}")
+        try:
+            done = generate(level_spec(args.preset, args.seed, t), data, progress=progress, share=first)
+        finally:
+            for b in bars:
+                b.close()
         print(f"turbidity {t:g}: {data} ({done['rendered']} images rendered in {done['wall_s']:.0f} s, "
               f"{done['skipped']} present), {out}", flush=True)
         first = first or data
