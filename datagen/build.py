@@ -520,7 +520,7 @@ def _link_dry_passes(spec: SceneSpec, source: Path, out: Path, poses) -> None:
     for kind in DRY_PASSES:
         for p in poses:
             src, dst = layout.output_path(source, kind, p.name), layout.output_path(out, kind, p.name)
-            if dst.exists() or not layout.intact(src):
+            if dst.exists() or not src.is_file():  # a damaged one is found and rendered again by generate
                 continue
             dst.parent.mkdir(parents=True, exist_ok=True)
             try:
