@@ -205,7 +205,7 @@ class Model:
                 attenuation=self.attenuation if interface else None,
                 backscatter=self.backscatter if interface else None,
                 reflection=self.reflection if interface else None, wet_degree=self.cfg.wet_sh_degree,
-                surfel_depth=self.cfg.surfel_depth)
+                surfel_depth=self.cfg.surfel_depth, downwelling=self.cfg.downwelling)
         return img.clamp(0, 1), alpha, depth
 
     def median_depth(self, camera: Camera) -> torch.Tensor:  # [H, W], see `trainer.median_depth`

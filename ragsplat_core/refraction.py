@@ -33,7 +33,11 @@ Water absorbs along the light's path (issue 50): from P to the interface the ben
 cos(theta_w) in the water. With t = r alpha = tan(theta_a), sin(theta_w) = t / (n sqrt(1 + t^2)), so
 cos(theta_w) = D / (n sqrt(1 + t^2)) and L = d n sqrt(1 + t^2) / D (`water_paths`), the solve's alpha reused;
 at n = 1 it is the straight ray's share below the level, d sqrt(1 + t^2). `refract_gaussians(attenuation=c)`
-multiplies a submerged Gaussian's radiance by exp(-c L) per channel.
+multiplies a submerged Gaussian's radiance by exp(-c L) per channel. The daylight that lights the point has
+crossed the water too, k d of it on the way down (`downwelling` k: 1 / sin of the sun's elevation for the
+direct sun): with k, by exp(-c (L + k d)). That factor does not change with the view, so a Gaussian's colour
+can absorb it; it matters where the colour is kept from trending with depth (the trainer's `detrend_albedo`),
+and then fixes c at the water's own coefficient, not c (1 + k d / L).
 
 The water column in front of what a pixel renders adds a veil B_inf (1 - exp(-c_b L)) (backscatter, SeaThru's
 model), L the pixel's path in the water. The rendered depth gives the APPARENT point on the pixel's ray, and
@@ -594,7 +598,7 @@ class ApparentGaussians(NamedTuple):
 def refract_gaussians(means, scales, quats, opacities, colors, camera_center, water: WaterSurface,
                       position: bool = True, scale: str = "isotropic", opacity: bool = True,
                       color: bool = False, steps: int | None = None, covariances: bool = True,
-                      attenuation: torch.Tensor | None = None) -> ApparentGaussians:
+                      attenuation: torch.Tensor | None = None, downwelling: float = 0.0) -> ApparentGaussians:
     """Map true Gaussians to the apparent ones one camera sees through the water (RA-GS, per view).
 
     means [N, 3], scales [N, 3] (linear), quats [N, 4] (wxyz), opacities [N] in [0, 1], colors [N, ...]
@@ -607,6 +611,8 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
     `attenuation`: the water's attenuation coefficients c [3] (1/m, per channel of linear RGB) or None
     (nothing computed): each submerged Gaussian's radiance times exp(-c L) in linear light, L its in-water
     path (`water_paths`), which tends to 0 at the level and needs no blend; at n = 1 it alone applies.
+    `downwelling` k (with `attenuation`): the daylight's path down to the Gaussian per metre of its depth d;
+    the radiance is then times exp(-c (L + k d)) (module docstring).
     """
     if scale not in SCALE_MODES:
         raise ValueError(f"scale must be one of {SCALE_MODES}, got {scale!r}")
@@ -623,7 +629,7 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
     if water.tilted or water.curved:
         return _refract_in_frames(*_frames(water, means), means, scales, quats, opacities, colors,
                                   camera_center, water, position, scale, opacity, color, steps, covars,
-                                  attenuation)
+                                  attenuation, downwelling)
     wet = _submerged(means, water)
     rows = _wet_rows(wet)  # found once: a boolean index searches every time
     all_wet = rows is None
@@ -662,14 +668,16 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
         lin = srgb_to_linear(take(colors))
         if color:
             lin = lin * fade.reshape(-1, *[1] * (lin.dim() - 1))
-        if attenuation is not None:  # Beer-Lambert along the bent ray
-            lin = lin * torch.exp(-attenuation * _path_lengths(loc, alpha)[:, None])
+        if attenuation is not None:  # Beer-Lambert along the bent ray, and the daylight's way down
+            path = _path_lengths(loc, alpha)
+            path = path + downwelling * loc.d if downwelling else path
+            lin = lin * torch.exp(-attenuation * path[:, None])
         colors = put(colors, linear_to_srgb(lin))
     return ApparentGaussians(means, scales, quats, opacities, colors, covars, jacobians)
 
 
 def _refract_in_frames(R, p0, means, scales, quats, opacities, colors, camera_center, water, position, scale,
-                       opacity, color, steps, covars, attenuation) -> ApparentGaussians:
+                       opacity, color, steps, covars, attenuation, downwelling) -> ApparentGaussians:
     """`refract_gaussians` under a tilted or curved surface, in its frame(s) (`_frames`): the flat transform
     there, positions and Jacobians rotated back (J_world = R^T J_frame R; covariances J Sigma J^T in the
     world). The isotropic and determinant scale factors are the frame's (the determinant is the same in any
@@ -683,7 +691,8 @@ def _refract_in_frames(R, p0, means, scales, quats, opacities, colors, camera_ce
     local = _into(R, p0, means)
     C = _into(R, p0, torch.as_tensor(camera_center, dtype=means.dtype, device=means.device))
     out = refract_gaussians(local, scales, quats, opacities, colors, C, _flat_in_plane(water), position,
-                            scale, opacity, color, steps, covariances=False, attenuation=attenuation)
+                            scale, opacity, color, steps, covariances=False, attenuation=attenuation,
+                            downwelling=downwelling)
     if position:  # rows above the surface keep their coordinates exactly, not rotated there and back
         means = torch.where((local[:, 2] < 0)[:, None], _out_of(R, p0, out.means), means)
     jacobians = None

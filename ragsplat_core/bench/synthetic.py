@@ -85,10 +85,11 @@ def bed_scene(count: int, half: float, depth: float, seed: int = 0, dtype=torch.
 
 def render_views(scene: dict[str, torch.Tensor], cameras: list[Camera], water: WaterSurface | None,
                  backend: str = "auto", background=(0.0, 0.0, 0.0), attenuation=None,
-                 backscatter=None, reflection=None) -> list[dict]:
+                 backscatter=None, reflection=None, downwelling: float = 0.0) -> list[dict]:
     """Render `scene` (from `bed_scene`) from each camera: `image` through the water with the full RA-GS
     transform (position, isotropic scale, opacity; `attenuation`: the water's coefficients [3] in 1/m, or
-    None; `backscatter`: [2, 3] its veil B_inf and coefficients c_b, added as the trainer does, or None;
+    None, with the daylight's `downwelling` path per metre of depth; `backscatter`: [2, 3] its veil B_inf
+    and coefficients c_b, added as the trainer does, or None;
     `reflection`: [S, S, 3] the sky map the surface mirrors, composited as the trainer does, or None), `dry`
     without it, and the dry expected `depth`."""
     from ragsplat.rasterize import rasterize
@@ -106,7 +107,7 @@ def render_views(scene: dict[str, torch.Tensor], cameras: list[Camera], water: W
             if water is not None:
                 c = torch.as_tensor(cam.camera_center, dtype=s["means"].dtype, device=s["means"].device)
                 a = refract_gaussians(s["means"], s["scales"], s["quats"], s["opacities"], s["colors"], c,
-                                      water, attenuation=attenuation)
+                                      water, attenuation=attenuation, downwelling=downwelling)
                 wet, alpha, z, _ = rasterize(a.means, a.quats, a.scales, a.opacities, a.colors, cam,
                                              background, backend=backend)
                 if backscatter is not None:

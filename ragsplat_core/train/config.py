@@ -52,6 +52,12 @@ WATER_TERMS: dict[str, tuple[str, ...]] = {"2dgs+full+attenuation": ("attenuatio
 # The attenuation coefficients' range (1/m), kept by a clamp: natural waters from clear ocean water's blue
 # (about 0.02) to a turbid river's red (a few per metre).
 ATTENUATION_RANGE = (0.01, 5.0)
+# Metres of the daylight's path in the water per metre of depth on its way down to the bed: about 1 / the mean
+# cosine of the light under a calm surface. The sun 40 to 70 degrees high gives 1.56 to 1.06 (1 / sin of its
+# elevation; the benchmark's default sun, 55 degrees, 1.22), an even sky refracted into the water's 49-degree
+# cone about 1.2. A wrong k biases c by (k + L/d) / (k_true + L/d), L/d = 1 to 1.15 for these views: 1.06 or
+# 1.56 against 1.22 moves c by 8 % and -13 %. The depths do not depend on it.
+DOWNWELLING = 1.2
 # The backscatter's ranges, kept by clamps: c_b (1/m) as the attenuation's, and B_inf (linear radiance, the
 # images' white = 1) from nearly black ocean water to a milky river's bright veil.
 BACKSCATTER_RANGE = (0.01, 5.0)
@@ -158,6 +164,13 @@ class TrainConfig:
     # within about 1 % a step of where the images put it.
     attenuation_start: float = 0.1
     lr_attenuation: float = 1e-2
+    # With the attenuation: the daylight's path down to a submerged Gaussian per metre of its depth
+    # (`refract_gaussians`' downwelling; `DOWNWELLING`), and the Gaussians' colours kept from trending with
+    # depth (`trainer.detrend_albedo`, after every step). A colour may absorb any depth-wise dimming, and then
+    # the coefficients are not identified (3-9 % of the scene's on the field reach without this): a bed's
+    # stones and sand do not darken with depth, the water does (SeaThru's and Sea-thru-NeRF's assumption too).
+    downwelling: float = DOWNWELLING
+    detrend_albedo: bool = True
     # The backscatter (variants with "backscatter" in `WATER_TERMS`), trained as log B_inf and log c_b, every
     # channel from the same start: a faint veil (0.05 linear, a dark river's; with 0.1 1/m, 0.006 at 1 m
     # depth, under two 8-bit steps at the bed's mid-greys) that the images raise; the Adam rate as the
@@ -226,6 +239,9 @@ class TrainConfig:
                               f"{self.attenuation_start}")
         if not (math.isfinite(self.lr_attenuation) and self.lr_attenuation > 0):
             raise ConfigError(f"lr_attenuation must be > 0, got {self.lr_attenuation}")
+        if not (math.isfinite(self.downwelling) and self.downwelling >= 0):
+            raise ConfigError(f"downwelling is metres of path per metre of depth and must be >= 0, got "
+                              f"{self.downwelling}")
         for name, (lo, hi) in (("veil_start", VEIL_RANGE), ("backscatter_start", BACKSCATTER_RANGE)):
             if not lo <= getattr(self, name) <= hi:
                 raise ConfigError(f"{name} must lie within [{lo:g}, {hi:g}], got {getattr(self, name)}")
@@ -287,7 +303,8 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, d: dict) -> TrainConfig:
         names = {f.name for f in fields(cls)}
-        kw = {k: v for k, v in d.items() if k in names}
+        # a config.json from before these fields trained without them
+        kw = {"downwelling": 0.0, "detrend_albedo": False} | {k: v for k, v in d.items() if k in names}
         kw["densify"] = DensifyConfig(**kw.get("densify", {}))
         kw["background"] = tuple(kw.get("background", (0.0, 0.0, 0.0)))
         return cls(**kw)

@@ -44,7 +44,7 @@ from ragsplat.camera import Camera
 from ragsplat.dataset import layout
 from ragsplat.dataset.load import Dataset
 from ragsplat.errors import ConfigError, DatasetError, OutputError, TrainingDiverged
-from ragsplat.gaussians import PARAM_NAMES, activated, init_grid, init_points
+from ragsplat.gaussians import PARAM_NAMES, SH_C0, activated, init_grid, init_points
 from ragsplat.outputs import atomic_path, claim, versions, write_json
 from ragsplat.ply import save_ply
 from ragsplat.rasterize import choose_backend, rasterize
@@ -80,6 +80,11 @@ CHECKPOINT = "ckpt.pt"
 # not geometry, limits photogrammetric bathymetry to a few tens of metres).
 MAX_DEPTH_PER_HEIGHT = 10
 PLY = "point_cloud.ply"
+# The least spread (standard deviation, m) of the submerged Gaussians' depths over which their colours' trend
+# with depth is taken for the water's (`Trainer._detrend_albedo`): over a narrower range (a riffle, or a bed
+# with one depth) the trend is as much the bed's pattern's, and the attenuation is left to the views (the
+# field development reach's wet cells: 0.80 m).
+TREND_SPREAD = 0.25
 # Kept as the third scale of a surfel so that code written for three axes (a split's offsets, the volume
 # sampling of `surface.py`) treats it as the flat disk it renders as.
 SURFEL_THICKNESS = 1e-5  # metres
@@ -88,13 +93,14 @@ SURFEL_THICKNESS = 1e-5  # metres
 def view_gaussians(splats, center: torch.Tensor, sh_degree: int, water: WaterSurface | None,
                    flags: dict | None, backend: str = "torch", surfels: bool = False,
                    compiled: bool = False, attenuation: torch.Tensor | None = None,
-                   wet_degree: int = 3) -> ApparentGaussians:
+                   wet_degree: int = 3, downwelling: float = 0.0) -> ApparentGaussians:
     """The Gaussians as the rasterizer takes them for the camera at `center` [3]: the true ones (`flags`
     None) or the apparent ones through `water` (RA-GS, `flags` of `refract_gaussians`). With the `cpu`
     backend (what "auto" means on CPU) the view colours come from its SH kernel. `surfels`: no apparent
     covariances (a surfel renders from its mapped tangents, `jacobians`). `compiled`: the transform through
     `compiled_refract_gaussians` (the same values to round-off). `attenuation`: the water's coefficients [3]
-    (1/m) or None, passed to the transform only when given (a variant without it calls it as before).
+    (1/m) or None, passed to the transform only when given (a variant without it calls it as before), with
+    its `downwelling`.
     `wet_degree`: the most SH degree of a Gaussian under `water` (`TrainConfig.wet_sh_degree`), its colour
     blended from the full degree's to that one's across the water line as the refraction is; 3: no cap."""
     scales, quats, opac = activated(splats)
@@ -106,7 +112,7 @@ def view_gaussians(splats, center: torch.Tensor, sh_degree: int, water: WaterSur
     if flags is None:
         return ApparentGaussians(splats["means"], scales, quats, opac, colors, None, None)
     transform = compiled_refract_gaussians() if compiled else refract_gaussians
-    terms = {} if attenuation is None else {"attenuation": attenuation}
+    terms = {} if attenuation is None else {"attenuation": attenuation, "downwelling": downwelling}
     return transform(splats["means"], scales, quats, opac, colors, center, water, **flags,
                      covariances=not surfels, **terms)
 
@@ -115,17 +121,19 @@ def render_splats(splats, camera: Camera, center: torch.Tensor, sh_degree: int, 
                   flags: dict | None, surfels: bool, background: torch.Tensor, backend: str,
                   compiled: bool = False,
                   attenuation: torch.Tensor | None = None, backscatter: torch.Tensor | None = None,
-                  reflection: torch.Tensor | None = None, wet_degree: int = 3, surfel_depth: str = "ray"):
+                  reflection: torch.Tensor | None = None, wet_degree: int = 3, surfel_depth: str = "ray",
+                  downwelling: float = 0.0):
     """(image [H,W,3], alpha [H,W,1], depth [H,W,1], meta) of `camera` (centre `center` [3]) as training
     renders it (`view_gaussians`, then `rasterize_view`). `backscatter`: [2, 3] the water's veil B_inf and its
     coefficients c_b (1/m), or None (nothing computed): the veil along each pixel's path in `water` to the
     point it renders is added to the image (`refraction.backscatter_veil`). `reflection`: [S, S, 3] the sky
     map the surface mirrors (`reflection.sky_radiance`, linear radiance), or None (nothing computed): each wet
     pixel becomes (1 - R) x the rest + R x the mirrored sky (`reflection.reflect`). The trainer and a
-    finished run's renders (`export.Model`) share it. `wet_degree`: `view_gaussians`'; `surfel_depth`:
-    `rasterize_surfels`' depth."""
+    finished run's renders (`export.Model`) share it. `wet_degree`, `downwelling`: `view_gaussians`';
+    `surfel_depth`: `rasterize_surfels`' depth."""
     img, alpha, depth, meta = rasterize_view(view_gaussians(splats, center, sh_degree, water, flags, backend,
-                                                            surfels, compiled, attenuation, wet_degree),
+                                                            surfels, compiled, attenuation, wet_degree,
+                                                            downwelling),
                                              camera, surfels, background, backend, depth=surfel_depth)
     if backscatter is not None or reflection is not None:
         rays = pixel_rays(camera, depth)  # [H, W, 3]
@@ -164,6 +172,20 @@ def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, backgrou
         g.jacobians @ choose_backend(backend, g.means.device).tangents(g.quats, g.scales[:, :2]))
     return rasterize_surfels(g.means, g.quats, g.scales[:, :2], g.opacities, g.colors, camera, background,
                              tangents=tangents, backend=backend, depth=depth)
+
+
+def albedo_trend(sh0, depth, weight):
+    """(b [3], spread [3]): the weighted least-squares slope b (1/m) of the log of the Gaussians' linear
+    degree-0 colours against their depth, and the weighted standard deviation of the depths it was fitted
+    over (m). sh0 [M, 1, 3], depth [M] (m), weight [M] >= 0. Colours under 1e-3 (linear) are left out of the
+    fit; b = 0 where the depths do not spread."""
+    lin = srgb_to_linear(SH_C0 * sh0[:, 0] + 0.5)  # [M, 3]
+    w = weight[:, None] * (lin > 1e-3)  # [M, 3]
+    total = w.sum(0).clamp_min(1e-12)
+    dx = depth[:, None] - (w * depth[:, None]).sum(0) / total  # [M, 3] from the weighted mean depth
+    var = (w * dx * dx).sum(0)
+    b = (w * dx * lin.clamp_min(1e-3).log()).sum(0) / var.clamp_min(1e-12)
+    return torch.where(var > 1e-12, b, torch.zeros_like(b)), (var / total).sqrt()
 
 
 def backscatter_json(backscatter: torch.Tensor) -> dict:
@@ -451,7 +473,7 @@ class Trainer:
         return render_splats(self.splats, camera, center, self.active_sh_degree, water,
                              self.flags if interface else None, self.cfg.surfels, self.background,
                              self.cfg.backend, self.cfg.compile_refraction, attenuation, backscatter, sky,
-                             self.cfg.wet_sh_degree, self.cfg.surfel_depth)
+                             self.cfg.wet_sh_degree, self.cfg.surfel_depth, self.cfg.downwelling)
 
     def render(self, camera: Camera, interface: bool = True):
         """(image [H,W,3], alpha [H,W,1], depth [H,W,1]) of `camera`, no gradients.
@@ -511,6 +533,8 @@ class Trainer:
             opt.zero_grad(set_to_none=True)
         if self.attenuation_opt is not None:
             self._attenuation_step()
+            if self.cfg.detrend_albedo:
+                self._detrend_albedo()
         if self.backscatter_opt is not None:
             self._backscatter_step()
         if self.sky_opt is not None:
@@ -562,6 +586,31 @@ class Trainer:
         self.attenuation_opt.zero_grad(set_to_none=True)
         with torch.no_grad():  # natural waters' range: no black water, none clearer than the clearest ocean
             self.log_attenuation.clamp_(*(math.log(c) for c in ATTENUATION_RANGE))
+
+    def _detrend_albedo(self) -> None:
+        """Moves the submerged Gaussians' colours' trend with depth into the attenuation (`detrend_albedo`):
+        the trend b [3] (log colour per metre, `albedo_trend`, weighted by opacity and the water line's
+        blend) is what c (1 + k) d dims, k the downwelling, so c rises by -b / (1 + k) (within
+        `ATTENUATION_RANGE`) and each colour is raised by exp(dc (1 + k) d): a nadir view renders the same,
+        and what is left of the trend is the range's; only where the depths spread by `TREND_SPREAD` or
+        more. Without it a colour that starts from the images' (a
+        track's) already holds the water's dimming, and c stays where it started."""
+        with torch.no_grad():
+            depth = self.water.depth(self.splats["means"])  # [N], > 0 under the surface
+            wet = torch.nonzero(depth > 0)[:, 0]
+            if len(wet) < 2:
+                return
+            d, sh0 = depth[wet], self.splats["sh0"][wet]
+            weight = torch.sigmoid(self.splats["opacities"][wet]) * waterline_weight(d)
+            b, spread = albedo_trend(sh0, d, weight)
+            if not bool((spread >= TREND_SPREAD).any()):  # too narrow: the bed's pattern, not the water
+                return
+            k = 1 + self.cfg.downwelling  # metres of path per metre of depth, seen from above
+            c = self.log_attenuation.exp()
+            raised = torch.where(spread >= TREND_SPREAD, c - b / k, c).clamp(*ATTENUATION_RANGE)
+            self.log_attenuation.copy_(raised.log())
+            lin = srgb_to_linear(SH_C0 * sh0[:, 0] + 0.5) * torch.exp((raised - c) * k * d[:, None])
+            self.splats["sh0"][wet] = ((linear_to_srgb(lin) - 0.5) / SH_C0)[:, None]
 
     def _backscatter_step(self) -> None:
         self.backscatter_opt.step()
