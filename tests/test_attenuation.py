@@ -28,7 +28,7 @@ from ragsplat.refraction import (
 from ragsplat.train import VARIANTS, TrainConfig, Trainer
 from ragsplat.train import trainer as train_mod
 from ragsplat.train.config import ATTENUATION_RANGE, DOWNWELLING
-from ragsplat.train.trainer import albedo_trend
+from ragsplat.train.trainer import albedo_trend, nadir_colors
 
 f64 = torch.float64
 CAM = torch.tensor([1.0, -2.0, 30.0], dtype=f64)
@@ -224,8 +224,8 @@ def test_gradients_reach_the_coefficients_and_the_gaussians():
 VARIANT = "2dgs+full+attenuation"
 
 
-def _dataset(c):  # `water_bed` through the water's attenuation, the daylight's way down included
-    return water_bed(attenuation=torch.tensor(c), downwelling=DOWNWELLING)
+def _dataset(c):  # `water_bed` through the water's attenuation
+    return water_bed(attenuation=torch.tensor(c))
 
 
 def _cfg(**kw):
@@ -279,7 +279,7 @@ def test_the_colours_trend_with_depth_goes_into_the_attenuation(tmp_path):
     found = {}
     for detrend in (False, True):
         tr = Trainer(_cfg(iterations=300, init="points", init_points=str(tmp_path / "bed.npy"),
-                          detrend_albedo=detrend), ds)
+                          detrend_albedo=detrend, downwelling=DOWNWELLING), ds)
         tr.train()
         found[detrend] = tr.attenuation / torch.tensor(truth)
     assert bool((found[True] > 0.75).all() and (found[True] < 1.25).all()), found
@@ -290,7 +290,7 @@ def test_detrending_keeps_a_nadir_render_and_leaves_no_trend(turbid):
     """One `_detrend_albedo`: c rises by -b / (1 + k) per channel, and each submerged colour times the
     nadir dimming exp(-c (1 + k) d) is what it was (to round-off); the colours' trend is then 0 (to round-off,
     as the coefficients stay inside the range); above the water nothing changes."""
-    tr = Trainer(_cfg(iterations=1), turbid)
+    tr = Trainer(_cfg(iterations=1, detrend_albedo=True, downwelling=DOWNWELLING), turbid)
     g = torch.Generator().manual_seed(4)
     with torch.no_grad():  # colours that darken with depth, and Gaussians at several depths
         tr.splats["means"][:, 2] = tr.water.level - 2 * torch.rand(tr.num_gaussians, generator=g)
@@ -311,17 +311,42 @@ def test_detrending_keeps_a_nadir_render_and_leaves_no_trend(turbid):
                                rtol=1e-5, atol=1e-7)
     assert torch.equal(tr.splats["sh0"].detach()[~wet], before[~wet])
     weight = torch.sigmoid(tr.splats["opacities"].detach()[wet]) * waterline_weight(depth[wet])
-    assert float(albedo_trend(tr.splats["sh0"].detach()[wet], depth[wet], weight)[0].abs().max()) < 1e-4
+    seen = 0.28209479177387814 * tr.splats["sh0"].detach()[wet][:, 0] + 0.5
+    assert float(albedo_trend(seen, depth[wet], weight)[0].abs().max()) < 1e-4
+
+
+def test_a_trend_held_in_the_sh_seen_from_above_is_moved_too(turbid):
+    """Every view of a bed is from above, so the SH's z term shifts every view's colour alike and can hold
+    the trend as well as sh0 can: the trend is fitted on the colours seen from straight above, and moved out
+    of them through sh0."""
+    tr = Trainer(_cfg(iterations=1, sh_degree=1, detrend_albedo=True, downwelling=DOWNWELLING), turbid)
+    tr.step = 5  # degree 1 active
+    g = torch.Generator().manual_seed(2)
+    with torch.no_grad():
+        tr.splats["means"][:, 2] = tr.water.level - 0.1 - 2 * torch.rand(tr.num_gaussians, generator=g)
+        depth = tr.water.depth(tr.splats["means"])
+        tr.splats["sh0"][:, 0] = (0.45 - 0.5) / 0.28209479177387814
+        tr.splats["shN"].zero_()
+        tr.splats["shN"][:, 1] = 0.1 * depth[:, None]  # z term: darker from above the deeper it is
+    seen = nadir_colors(tr.splats["sh0"].detach(), tr.splats["shN"].detach(), 1)
+    weight = torch.sigmoid(tr.splats["opacities"].detach()) * waterline_weight(depth)
+    assert float(albedo_trend(seen, depth, weight)[0].max()) < -0.2
+    c0 = tr.attenuation
+    tr._detrend_albedo()
+    assert bool((tr.attenuation > c0).all())
+    seen = nadir_colors(tr.splats["sh0"].detach(), tr.splats["shN"].detach(), 1)
+    assert float(albedo_trend(seen, depth, weight)[0].abs().max()) < 1e-4
 
 
 def test_the_trend_is_the_slope_of_log_colour_against_depth():
     depth = torch.linspace(0.1, 3.0, 50, dtype=f64)
     colour = 0.4 * torch.exp(torch.tensor([-0.7, -0.2, 0.1], dtype=f64) * depth[:, None])
     sh0 = ((linear_to_srgb(colour) - 0.5) / 0.28209479177387814)[:, None]
-    b, spread = albedo_trend(sh0, depth, torch.ones_like(depth))
+    b, spread = albedo_trend(0.28209479177387814 * sh0[:, 0] + 0.5, depth, torch.ones_like(depth))
     torch.testing.assert_close(b, torch.tensor([-0.7, -0.2, 0.1], dtype=f64), rtol=1e-9, atol=1e-12)
     torch.testing.assert_close(spread, depth.std(correction=0).expand(3))
-    b, _ = albedo_trend(sh0, torch.full_like(depth, 1.0), torch.ones_like(depth))  # no spread: no trend
+    b, _ = albedo_trend(0.28209479177387814 * sh0[:, 0] + 0.5, torch.full_like(depth, 1.0),
+                        torch.ones_like(depth))  # no spread: no trend
     assert torch.equal(b, torch.zeros(3, dtype=f64))
 
 

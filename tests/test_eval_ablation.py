@@ -361,6 +361,11 @@ def test_tune_sets_nested_and_top_level_parameters():
     assert "variant" not in PARAMS and "preset" not in PARAMS  # the tool's own options
     with pytest.raises(ConfigError):
         with_value(cfg, "surfel_depth", "middle")
+    # a switch by true or false
+    assert with_value(cfg, "detrend_albedo", "true").detrend_albedo is True and "detrend_albedo" in PARAMS
+    assert with_value(cfg, "detrend_albedo", "false").detrend_albedo is False
+    with pytest.raises(ValueError, match="true or false"):
+        with_value(cfg, "detrend_albedo", "yes")
 
 
 def test_default_jobs_and_the_gpus_they_share(monkeypatch):

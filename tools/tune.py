@@ -25,7 +25,9 @@ from ragsplat.train.config import DensifyConfig, TrainConfig
 
 NUMBERS = ("float", "int", "float | None", "int | None")  # None: what the run derives (e.g. scene_scale)
 # The word-valued choices (the config checks their values); the variant and preset are the tool's own options.
-WORDS = [f.name for f in fields(TrainConfig) if f.type == "str" and f.name not in ("variant", "preset")]
+# (and the switches, `--set detrend_albedo=true`)
+WORDS = [f.name for f in fields(TrainConfig)
+         if f.type in ("str", "bool") and f.name not in ("variant", "preset")]
 PARAMS = [f.name for f in fields(TrainConfig) if f.type in NUMBERS] + WORDS + \
     [f"densify.{f.name}" for f in fields(DensifyConfig) if f.type in NUMBERS]
 
@@ -46,6 +48,12 @@ def held(parser: argparse.ArgumentParser, items: list[str]) -> dict[str, str | f
     return fixed
 
 
+def switch(value: str) -> bool:
+    if value not in ("true", "false"):
+        raise ValueError(f"a switch is true or false, got {value!r}")
+    return value == "true"
+
+
 def label(param: str, value: str | float) -> str:
     return str(value) if param in WORDS else f"{float(value):g}"
 
@@ -56,7 +64,8 @@ def with_value(cfg: TrainConfig | DensifyConfig, param: str,
     if param.startswith("densify."):
         return replace(cfg, densify=with_value(cfg.densify, param.split(".", 1)[1], value))
     kind = {f.name: f.type for f in fields(cfg)}[param]
-    cast = {"int": lambda v: int(float(v)), "float": float, "str": str}[kind.removesuffix(" | None")]
+    cast = {"int": lambda v: int(float(v)), "float": float, "str": str,
+            "bool": switch}[kind.removesuffix(" | None")]
     return replace(cfg, **{param: cast(value)})
 
 

@@ -165,12 +165,14 @@ class TrainConfig:
     attenuation_start: float = 0.1
     lr_attenuation: float = 1e-2
     # With the attenuation: the daylight's path down to a submerged Gaussian per metre of its depth
-    # (`refract_gaussians`' downwelling; `DOWNWELLING`), and the Gaussians' colours kept from trending with
-    # depth (`trainer.detrend_albedo`, after every step). A colour may absorb any depth-wise dimming, and then
-    # the coefficients are not identified (3-9 % of the scene's on the field reach without this): a bed's
-    # stones and sand do not darken with depth, the water does (SeaThru's and Sea-thru-NeRF's assumption too).
-    downwelling: float = DOWNWELLING
-    detrend_albedo: bool = True
+    # (`refract_gaussians`' downwelling; `DOWNWELLING` with the detrending), and the Gaussians' colours kept
+    # from trending with depth (`Trainer._detrend_albedo`, after every step). A colour may absorb any
+    # depth-wise dimming, and then the coefficients are not identified (3-9 % of the scene's on the field
+    # reach without this): a bed's stones and sand do not darken with depth, the water does (SeaThru's too).
+    # Off by default: on the field reach at twice its turbidity the transfer drove green's c to the range's
+    # floor and lost the pool (docs/results.md, "The attenuation's identification").
+    downwelling: float = 0.0
+    detrend_albedo: bool = False
     # The backscatter (variants with "backscatter" in `WATER_TERMS`), trained as log B_inf and log c_b, every
     # channel from the same start: a faint veil (0.05 linear, a dark river's; with 0.1 1/m, 0.006 at 1 m
     # depth, under two 8-bit steps at the bed's mid-greys) that the images raise; the Adam rate as the
@@ -303,8 +305,7 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, d: dict) -> TrainConfig:
         names = {f.name for f in fields(cls)}
-        # a config.json from before these fields trained without them
-        kw = {"downwelling": 0.0, "detrend_albedo": False} | {k: v for k, v in d.items() if k in names}
+        kw = {k: v for k, v in d.items() if k in names}
         kw["densify"] = DensifyConfig(**kw.get("densify", {}))
         kw["background"] = tuple(kw.get("background", (0.0, 0.0, 0.0)))
         return cls(**kw)
