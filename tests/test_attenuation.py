@@ -28,7 +28,7 @@ from ragsplat.refraction import (
 from ragsplat.train import VARIANTS, TrainConfig, Trainer
 from ragsplat.train import trainer as train_mod
 from ragsplat.train.config import ATTENUATION_RANGE, DOWNWELLING
-from ragsplat.train.trainer import albedo_trend, nadir_colors
+from ragsplat.train.trainer import albedo_trend
 
 f64 = torch.float64
 CAM = torch.tensor([1.0, -2.0, 30.0], dtype=f64)
@@ -313,29 +313,6 @@ def test_detrending_keeps_a_nadir_render_and_leaves_no_trend(turbid):
     weight = torch.sigmoid(tr.splats["opacities"].detach()[wet]) * waterline_weight(depth[wet])
     seen = 0.28209479177387814 * tr.splats["sh0"].detach()[wet][:, 0] + 0.5
     assert float(albedo_trend(seen, depth[wet], weight)[0].abs().max()) < 1e-4
-
-
-def test_a_trend_held_in_the_sh_seen_from_above_is_moved_too(turbid):
-    """Every view of a bed is from above, so the SH's z term shifts every view's colour alike and can hold
-    the trend as well as sh0 can: the trend is fitted on the colours seen from straight above, and moved out
-    of them through sh0."""
-    tr = Trainer(_cfg(iterations=1, sh_degree=1, detrend_albedo=True, downwelling=DOWNWELLING), turbid)
-    tr.step = 5  # degree 1 active
-    g = torch.Generator().manual_seed(2)
-    with torch.no_grad():
-        tr.splats["means"][:, 2] = tr.water.level - 0.1 - 2 * torch.rand(tr.num_gaussians, generator=g)
-        depth = tr.water.depth(tr.splats["means"])
-        tr.splats["sh0"][:, 0] = (0.45 - 0.5) / 0.28209479177387814
-        tr.splats["shN"].zero_()
-        tr.splats["shN"][:, 1] = 0.1 * depth[:, None]  # z term: darker from above the deeper it is
-    seen = nadir_colors(tr.splats["sh0"].detach(), tr.splats["shN"].detach(), 1)
-    weight = torch.sigmoid(tr.splats["opacities"].detach()) * waterline_weight(depth)
-    assert float(albedo_trend(seen, depth, weight)[0].max()) < -0.2
-    c0 = tr.attenuation
-    tr._detrend_albedo()
-    assert bool((tr.attenuation > c0).all())
-    seen = nadir_colors(tr.splats["sh0"].detach(), tr.splats["shN"].detach(), 1)
-    assert float(albedo_trend(seen, depth, weight)[0].abs().max()) < 1e-4
 
 
 def test_the_trend_is_the_slope_of_log_colour_against_depth():
