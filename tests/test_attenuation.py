@@ -315,6 +315,31 @@ def test_detrending_keeps_a_nadir_render_and_leaves_no_trend(turbid):
     assert float(albedo_trend(seen, depth[wet], weight)[0].abs().max()) < 1e-4
 
 
+def test_a_faint_haze_at_depth_does_not_count(turbid):
+    """Gaussians fainter than the extraction keeps (a haze where the bed is lost in turbid water) are left out
+    of the trend: bright ones at depth do not lower c, and their colours are moved as every other's."""
+    from ragsplat.surface import ExtractConfig
+
+    def transfer(haze: bool):
+        tr = Trainer(_cfg(iterations=1, detrend_albedo=True, downwelling=DOWNWELLING), turbid)
+        g = torch.Generator().manual_seed(4)
+        with torch.no_grad():
+            tr.splats["means"][:, 2] = tr.water.level - 0.1 - 2 * torch.rand(tr.num_gaussians, generator=g)
+            depth = tr.water.depth(tr.splats["means"])
+            tr.splats["sh0"][:, 0] = (linear_to_srgb(0.3 * torch.exp(-0.5 * depth)[:, None].expand(-1, 3))
+                                      - 0.5) / 0.28209479177387814
+            if haze:  # the deepest tenth: faint and bright
+                deep = depth > depth.quantile(0.9)
+                tr.splats["sh0"][deep, 0] = (0.9 - 0.5) / 0.28209479177387814
+                opacity = torch.full_like(depth[deep], ExtractConfig.min_opacity / 2)
+                tr.splats["opacities"][deep] = torch.log(opacity / (1 - opacity))
+        tr._detrend_albedo()
+        return tr.attenuation
+
+    torch.testing.assert_close(transfer(True), transfer(False), rtol=0.05, atol=0)
+    assert bool((transfer(True) > 0.2).all())
+
+
 def test_the_trend_is_the_slope_of_log_colour_against_depth():
     depth = torch.linspace(0.1, 3.0, 50, dtype=f64)
     colour = 0.4 * torch.exp(torch.tensor([-0.7, -0.2, 0.1], dtype=f64) * depth[:, None])

@@ -589,9 +589,10 @@ class Trainer:
 
     def _detrend_albedo(self) -> None:
         """Moves the submerged Gaussians' colours' trend with depth into the attenuation (`detrend_albedo`):
-        the trend b [3] of their degree-0 colours (log colour per metre, `albedo_trend`, weighted by opacity
-        and the water line's blend) is what c (1 + k) d dims, k the downwelling, so c rises by -b / (1 + k)
-        (within `ATTENUATION_RANGE`) and each degree-0 colour is raised by exp(dc (1 + k) d): a nadir view of
+        the trend b [3] of their degree-0 colours (log colour per metre, `albedo_trend`, over the Gaussians
+        as opaque as the extraction keeps, weighted by opacity and the water line's blend) is what c (1 + k) d
+        dims, k the downwelling, so c rises by -b / (1 + k) (within `ATTENUATION_RANGE`) and each degree-0
+        colour is raised by exp(dc (1 + k) d): a nadir view of
         a degree-0 bed renders the same, and what is left of the trend is the range's; only where the depths
         spread by `TREND_SPREAD` or more. Without it a colour that starts from the images' (a track's) already
         holds the water's dimming, and c stays where it started. (Fitted on the colours seen from straight
@@ -601,9 +602,13 @@ class Trainer:
             wet = torch.nonzero(depth > 0)[:, 0]
             if len(wet) < 2:
                 return
+            from ragsplat.surface import ExtractConfig
+
             d = depth[wet]
             seen = SH_C0 * self.splats["sh0"][wet][:, 0] + 0.5  # [M, 3] the degree-0 colours
-            weight = torch.sigmoid(self.splats["opacities"][wet]) * waterline_weight(d)
+            opacity = torch.sigmoid(self.splats["opacities"][wet])
+            # the bed the extraction keeps: a faint haze where the bed is lost does not count
+            weight = opacity * (opacity >= ExtractConfig.min_opacity) * waterline_weight(d)
             b, spread = albedo_trend(seen, d, weight)
             if not bool((spread >= TREND_SPREAD).any()):  # too narrow: the bed's pattern, not the water
                 return
