@@ -14,6 +14,7 @@ from ragsplat.cli.main import main
 from ragsplat.dataset import Dataset, load_dataset
 from ragsplat.errors import ConfigError
 from ragsplat.export import load_model
+from ragsplat.gaussians import SH_C0
 from ragsplat.refraction import (
     WATERLINE_BAND,
     Profile,
@@ -297,21 +298,21 @@ def test_detrending_keeps_a_nadir_render_and_leaves_no_trend(turbid):
         tr.splats["means"][:5, 2] = tr.water.level + 0.1
         depth = tr.water.depth(tr.splats["means"])
         tr.splats["sh0"][:, 0] = (linear_to_srgb(0.3 * torch.exp(-0.5 * depth.clamp(min=0))[:, None]
-                                                 * torch.tensor([1.0, 0.8, 0.6])) - 0.5) / 0.28209479177387814
+                                                 * torch.tensor([1.0, 0.8, 0.6])) - 0.5) / SH_C0
     before, c0 = tr.splats["sh0"].detach().clone(), tr.attenuation
     tr._detrend_albedo()
     k = 1 + DOWNWELLING
     wet = depth > 0
     c1 = tr.attenuation
     torch.testing.assert_close(c1, c0 + 0.5 / k, rtol=1e-4, atol=0)
-    lin = srgb_to_linear(0.28209479177387814 * tr.splats["sh0"].detach()[:, 0] + 0.5)
-    lin0 = srgb_to_linear(0.28209479177387814 * before[:, 0] + 0.5)
+    lin = srgb_to_linear(SH_C0 * tr.splats["sh0"].detach()[:, 0] + 0.5)
+    lin0 = srgb_to_linear(SH_C0 * before[:, 0] + 0.5)
     d = depth[wet][:, None]
     torch.testing.assert_close(lin[wet] * torch.exp(-c1 * k * d), lin0[wet] * torch.exp(-c0 * k * d),
                                rtol=1e-5, atol=1e-7)
     assert torch.equal(tr.splats["sh0"].detach()[~wet], before[~wet])
     weight = torch.sigmoid(tr.splats["opacities"].detach()[wet]) * waterline_weight(depth[wet])
-    seen = 0.28209479177387814 * tr.splats["sh0"].detach()[wet][:, 0] + 0.5
+    seen = srgb_to_linear(SH_C0 * tr.splats["sh0"].detach()[wet][:, 0] + 0.5)
     assert float(albedo_trend(seen, depth[wet], weight)[0].abs().max()) < 1e-4
 
 
@@ -327,10 +328,10 @@ def test_a_faint_haze_at_depth_does_not_count(turbid):
             tr.splats["means"][:, 2] = tr.water.level - 0.1 - 2 * torch.rand(tr.num_gaussians, generator=g)
             depth = tr.water.depth(tr.splats["means"])
             tr.splats["sh0"][:, 0] = (linear_to_srgb(0.3 * torch.exp(-0.5 * depth)[:, None].expand(-1, 3))
-                                      - 0.5) / 0.28209479177387814
+                                      - 0.5) / SH_C0
             if haze:  # the deepest tenth: faint and bright
                 deep = depth > depth.quantile(0.9)
-                tr.splats["sh0"][deep, 0] = (0.9 - 0.5) / 0.28209479177387814
+                tr.splats["sh0"][deep, 0] = (0.9 - 0.5) / SH_C0
                 opacity = torch.full_like(depth[deep], ExtractConfig.min_opacity / 2)
                 tr.splats["opacities"][deep] = torch.log(opacity / (1 - opacity))
         tr._detrend_albedo()
@@ -343,11 +344,11 @@ def test_a_faint_haze_at_depth_does_not_count(turbid):
 def test_the_trend_is_the_slope_of_log_colour_against_depth():
     depth = torch.linspace(0.1, 3.0, 50, dtype=f64)
     colour = 0.4 * torch.exp(torch.tensor([-0.7, -0.2, 0.1], dtype=f64) * depth[:, None])
-    sh0 = ((linear_to_srgb(colour) - 0.5) / 0.28209479177387814)[:, None]
-    b, spread = albedo_trend(0.28209479177387814 * sh0[:, 0] + 0.5, depth, torch.ones_like(depth))
+    sh0 = ((linear_to_srgb(colour) - 0.5) / SH_C0)[:, None]
+    b, spread = albedo_trend(srgb_to_linear(SH_C0 * sh0[:, 0] + 0.5), depth, torch.ones_like(depth))
     torch.testing.assert_close(b, torch.tensor([-0.7, -0.2, 0.1], dtype=f64), rtol=1e-9, atol=1e-12)
     torch.testing.assert_close(spread, depth.std(correction=0).expand(3))
-    b, _ = albedo_trend(0.28209479177387814 * sh0[:, 0] + 0.5, torch.full_like(depth, 1.0),
+    b, _ = albedo_trend(srgb_to_linear(SH_C0 * sh0[:, 0] + 0.5), torch.full_like(depth, 1.0),
                         torch.ones_like(depth))  # no spread: no trend
     assert torch.equal(b, torch.zeros(3, dtype=f64))
 

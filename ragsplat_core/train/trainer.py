@@ -174,12 +174,11 @@ def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, backgrou
                              tangents=tangents, backend=backend, depth=depth)
 
 
-def albedo_trend(colors, depth, weight):
+def albedo_trend(lin, depth, weight):
     """(b [3], spread [3]): the weighted least-squares slope b (1/m) of the log of the Gaussians' linear
-    colours against their depth, and the weighted standard deviation of the depths it was fitted over (m).
-    colors [M, 3] (sRGB-encoded, as the SH give them), depth [M] (m), weight [M] >= 0. Colours under 1e-3
-    (linear) are left out of the fit; b = 0 where the depths do not spread."""
-    lin = srgb_to_linear(colors)  # [M, 3]
+    colours lin [M, 3] against their depth [M] (m), and the weighted standard deviation of the depths it was
+    fitted over (m); weight [M] >= 0. Colours under 1e-3 are left out of the fit; b = 0 where the depths do
+    not spread."""
     w = weight[:, None] * (lin > 1e-3)  # [M, 3]
     total = w.sum(0).clamp_min(1e-12)
     dx = depth[:, None] - (w * depth[:, None]).sum(0) / total  # [M, 3] from the weighted mean depth
@@ -592,10 +591,10 @@ class Trainer:
         the trend b [3] of their degree-0 colours (log colour per metre, `albedo_trend`, over the Gaussians
         as opaque as the extraction keeps, weighted by opacity and the water line's blend) is what c (1 + k) d
         dims, k the downwelling, so c rises by -b / (1 + k) (within `ATTENUATION_RANGE`) and each degree-0
-        colour is raised by exp(dc (1 + k) d): a nadir view of
-        a degree-0 bed renders the same, and what is left of the trend is the range's; only where the depths
-        spread by `TREND_SPREAD` or more. Without it a colour that starts from the images' (a track's) already
-        holds the water's dimming, and c stays where it started. (Fitted on the colours seen from straight
+        colour is raised by exp(dc (1 + k) d): a nadir view of a degree-0 bed renders the same, and what is
+        left of the trend is the range's; only where the depths spread by `TREND_SPREAD` or more. Without it
+        a colour that starts from the images' (a track's) already holds the water's dimming, and c stays where
+        it started. (Fitted on the colours seen from straight
         above, sh0 with the SH's z terms, it lost 9.5 points of cover on the field's development reach.)"""
         with torch.no_grad():
             depth = self.water.depth(self.splats["means"])  # [N], > 0 under the surface
@@ -609,14 +608,15 @@ class Trainer:
             opacity = torch.sigmoid(self.splats["opacities"][wet])
             # the bed the extraction keeps: a faint haze where the bed is lost does not count
             weight = opacity * (opacity >= ExtractConfig.min_opacity) * waterline_weight(d)
-            b, spread = albedo_trend(seen, d, weight)
+            lin = srgb_to_linear(seen)  # converted once: the fit and the raise both work in linear light
+            b, spread = albedo_trend(lin, d, weight)
             if not bool((spread >= TREND_SPREAD).any()):  # too narrow: the bed's pattern, not the water
                 return
             k = 1 + self.cfg.downwelling  # metres of path per metre of depth, seen from above
             c = self.log_attenuation.exp()
             raised = torch.where(spread >= TREND_SPREAD, c - b / k, c).clamp(*ATTENUATION_RANGE)
             self.log_attenuation.copy_(raised.log())
-            lin = srgb_to_linear(seen) * torch.exp((raised - c) * k * d[:, None])
+            lin = lin * torch.exp((raised - c) * k * d[:, None])
             self.splats["sh0"][wet] += ((linear_to_srgb(lin) - seen) / SH_C0)[:, None]
 
     def _backscatter_step(self) -> None:
