@@ -29,7 +29,7 @@ from ragsplat.refraction import (
 from ragsplat.train import VARIANTS, TrainConfig, Trainer
 from ragsplat.train import trainer as train_mod
 from ragsplat.train.config import ATTENUATION_RANGE, DOWNWELLING
-from ragsplat.train.trainer import albedo_trend
+from ragsplat.train.trainer import albedo_trend, rasterize_view, view_gaussians, visible_weights
 
 f64 = torch.float64
 CAM = torch.tensor([1.0, -2.0, 30.0], dtype=f64)
@@ -339,6 +339,67 @@ def test_a_faint_haze_at_depth_does_not_count(turbid):
 
     torch.testing.assert_close(transfer(True), transfer(False), rtol=0.05, atol=0)
     assert bool((transfer(True) > 0.2).all())
+
+
+@pytest.mark.parametrize("variant", ["full", "2dgs+full"])
+def test_visible_weights_add_up_to_each_pixel_s_alpha(turbid, variant):
+    """A pixel's compositing weights add up to its alpha, so the Gaussians' weights summed over the image are
+    the alpha map's sum (to round-off); over a mask, its pixels' alpha; none is negative."""
+    tr = Trainer(water_bed_config(variant, iterations=1), turbid)
+    cam = tr.views[0].camera
+    with torch.no_grad():
+        g = view_gaussians(tr.splats, tr.centers[0], 0, tr.water, tr.flags, "torch", tr.cfg.surfels)
+        alpha = rasterize_view(g, cam, tr.cfg.surfels, torch.zeros(3), "torch")[1][..., 0]  # [H, W]
+    w = visible_weights(g, cam, tr.cfg.surfels, "torch")
+    assert bool((w >= 0).all()) and float(alpha.sum()) > 10
+    torch.testing.assert_close(w.sum(), alpha.sum(), rtol=1e-5, atol=0)
+    mask = torch.zeros_like(alpha, dtype=torch.bool)
+    mask[: cam.height // 2] = True
+    half = visible_weights(g, cam, tr.cfg.surfels, "torch", mask)
+    torch.testing.assert_close(half.sum(), alpha[mask].sum(), rtol=1e-5, atol=0)
+
+
+def test_gaussians_hidden_under_the_bed_do_not_count(turbid):
+    """The trend is the visible bed's: opaque Gaussians hidden 20 cm under a skin of wide opaque ones (away
+    from its edge), bright and brightening with depth (where a fit weighted by opacity alone found c at
+    60-70 % of the water's on the field reach), move the transfer's rise of c by under a tenth (5 %) from
+    what the skin alone gives; with every Gaussian counted by its opacity instead, c falls below its start."""
+    def transfer(hidden_bright: bool, by_opacity: bool = False):
+        tr = Trainer(_cfg(iterations=1, detrend_albedo=True, downwelling=DOWNWELLING), turbid)
+        with torch.no_grad():
+            x, y = torch.meshgrid(torch.linspace(-0.9, 0.9, 12), torch.linspace(-0.9, 0.9, 12), indexing="ij")
+            xy = torch.stack([x.reshape(-1), y.reshape(-1)], 1)  # [144, 2]
+            inner = (xy.abs() < 0.8).all(1)  # [144]: 100 under the skin, away from its edge
+            depth = 0.3 + 0.8 * (xy[:, 0] + 0.9)  # 0.3 .. 1.74 m, sloping along x
+            n, m = len(xy), int(inner.sum())
+            tr.splats["means"][:n] = torch.cat([xy, tr.water.level - depth[:, None]], 1)
+            tr.splats["means"][n:n + m] = torch.cat([xy[inner], tr.water.level - depth[inner, None] - 0.2], 1)
+            tr.splats["means"][n + m:, 2] = tr.water.level + 0.5  # the rest above the water
+            tr.splats["scales"][:n, :2] = math.log(0.2)  # wide: they overlap into a skin
+            tr.splats["scales"][n:n + m, :2] = math.log(0.04)
+            tr.splats["opacities"][:n + m] = math.log(0.99 / 0.01)
+            colour = 0.3 * torch.exp(-0.5 * depth)[:, None].expand(-1, 3)
+            under = 0.3 * torch.exp(0.5 * depth[inner] + 0.1) if hidden_bright else colour[inner, 0]
+            tr.splats["sh0"][:n, 0] = (linear_to_srgb(colour) - 0.5) / SH_C0
+            tr.splats["sh0"][n:n + m, 0] = ((linear_to_srgb(under) - 0.5) / SH_C0)[:, None]
+            if by_opacity:
+                tr._visible_weights = lambda: torch.sigmoid(tr.splats["opacities"])
+            tr._detrend_albedo()
+        return tr.attenuation - 0.1  # the rise from the start
+
+    skin = transfer(False)
+    torch.testing.assert_close(skin, torch.full((3,), 0.5 / (1 + DOWNWELLING)), rtol=1e-2, atol=0)
+    torch.testing.assert_close(transfer(True), skin, rtol=0.1, atol=0)
+    assert bool((transfer(True, by_opacity=True) < 0).all())
+
+
+def test_the_transfer_runs_every_trend_every_steps(turbid, monkeypatch):
+    calls = []
+    monkeypatch.setattr(train_mod, "TREND_EVERY", 2)
+    tr = Trainer(_cfg(iterations=5, detrend_albedo=True, downwelling=DOWNWELLING), turbid)
+    monkeypatch.setattr(tr, "_detrend_albedo", lambda: calls.append(tr.step))
+    tr.train()
+    assert calls == [2, 4]
 
 
 def test_the_trend_is_the_slope_of_log_colour_against_depth():

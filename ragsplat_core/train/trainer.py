@@ -85,6 +85,14 @@ PLY = "point_cloud.ply"
 # with one depth) the trend is as much the bed's pattern's, and the attenuation is left to the views (the
 # field development reach's wet cells: 0.80 m).
 TREND_SPREAD = 0.25
+# The fit counts each Gaussian by the share of the images it makes (`visible_weights`, summed over TREND_VIEWS
+# training views spread through the list). Counted by opacity alone, the many Gaussians hidden under the bed's
+# visible skin (brighter at depth) outweighed the visible ones, whose colours still darkened by 0.10-0.15 per
+# metre at the end, and c stopped at 60-70 % of the water's in green and blue (issue 50, the field development
+# reach). The probes cost about 0.2 s a view at 40k Gaussians on one CPU thread, so the transfer runs every
+# TREND_EVERY steps, not every step.
+TREND_VIEWS = 8
+TREND_EVERY = 100
 # Kept as the third scale of a surfel so that code written for three axes (a split's offsets, the volume
 # sampling of `surface.py`) treats it as the flat disk it renders as.
 SURFEL_THICKNESS = 1e-5  # metres
@@ -157,6 +165,20 @@ def pixel_rays(camera: Camera, like: torch.Tensor) -> torch.Tensor:
     y = (torch.arange(camera.height, **kw) + 0.5 - camera.cy) / camera.fy  # [H]
     R = torch.tensor(camera.R, **kw)
     return x[None, :, None] * R[0] + y[:, None, None] * R[1] + R[2]
+
+
+def visible_weights(g: ApparentGaussians, camera: Camera, surfels: bool, backend: str,
+                    mask: torch.Tensor | None = None, depth: str = "ray") -> torch.Tensor:
+    """[N] each Gaussian's compositing weights (its alpha times the transmittance in front of it) summed over
+    the pixels of `camera` (those of `mask` [H, W] only, when given): how much of the image it makes. The
+    gradient of the image's sum with respect to a grey colour, so exact for either rasterizer; `g`'s colours
+    are not used."""
+    probe = torch.ones(len(g.means), 1, device=g.means.device, requires_grad=True)  # [N, 1]
+    with torch.enable_grad():
+        img = rasterize_view(g._replace(colors=probe.expand(-1, 3)), camera, surfels,
+                             torch.zeros(3, device=g.means.device), backend, depth=depth)[0][..., 0]  # [H, W]
+        (img.sum() if mask is None else img[mask].sum()).backward()
+    return probe.grad[:, 0]
 
 
 def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, background: torch.Tensor,
@@ -532,7 +554,7 @@ class Trainer:
             opt.zero_grad(set_to_none=True)
         if self.attenuation_opt is not None:
             self._attenuation_step()
-            if self.cfg.detrend_albedo:
+            if self.cfg.detrend_albedo and step % TREND_EVERY == 0:
                 self._detrend_albedo()
         if self.backscatter_opt is not None:
             self._backscatter_step()
@@ -588,14 +610,15 @@ class Trainer:
 
     def _detrend_albedo(self) -> None:
         """Moves the submerged Gaussians' colours' trend with depth into the attenuation (`detrend_albedo`):
-        the trend b [3] of their degree-0 colours (log colour per metre, `albedo_trend`, over the Gaussians
-        as opaque as the extraction keeps, weighted by opacity and the water line's blend) is what c (1 + k) d
+        the trend b [3] of their degree-0 colours (log colour per metre, `albedo_trend`) is what c (1 + k) d
         dims, k the downwelling, so c rises by -b / (1 + k) (within `ATTENUATION_RANGE`) and each degree-0
         colour is raised by exp(dc (1 + k) d): a nadir view of a degree-0 bed renders the same, and what is
-        left of the trend is the range's; only where the depths spread by `TREND_SPREAD` or more. Without it
-        a colour that starts from the images' (a track's) already holds the water's dimming, and c stays where
-        it started. (Fitted on the colours seen from straight
-        above, sh0 with the SH's z terms, it lost 9.5 points of cover on the field's development reach.)"""
+        left of the trend is the range's; only where the depths spread by `TREND_SPREAD` or more. The fit
+        counts the Gaussians as opaque as the extraction keeps, each by its share of the images
+        (`_visible_weights`) and the water line's blend. Without the transfer a colour that starts from the
+        images' (a track's) already holds the water's dimming, and c stays where it started. (Fitted on the
+        colours seen from straight above, sh0 with the SH's z terms, it lost 9.5 points of cover on the
+        field's development reach.)"""
         with torch.no_grad():
             depth = self.water.depth(self.splats["means"])  # [N], > 0 under the surface
             wet = torch.nonzero(depth > 0)[:, 0]
@@ -606,8 +629,10 @@ class Trainer:
             d = depth[wet]
             seen = SH_C0 * self.splats["sh0"][wet][:, 0] + 0.5  # [M, 3] the degree-0 colours
             opacity = torch.sigmoid(self.splats["opacities"][wet])
-            # the bed the extraction keeps: a faint haze where the bed is lost does not count
-            weight = opacity * (opacity >= ExtractConfig.min_opacity) * waterline_weight(d)
+            # the bed the extraction keeps (a faint haze where the bed is lost does not count), as the images
+            # see it (the Gaussians hidden under its skin do not count)
+            weight = (self._visible_weights()[wet] * (opacity >= ExtractConfig.min_opacity)
+                      * waterline_weight(d))
             lin = srgb_to_linear(seen)  # converted once: the fit and the raise both work in linear light
             b, spread = albedo_trend(lin, d, weight)
             if not bool((spread >= TREND_SPREAD).any()):  # too narrow: the bed's pattern, not the water
@@ -618,6 +643,19 @@ class Trainer:
             self.log_attenuation.copy_(raised.log())
             lin = lin * torch.exp((raised - c) * k * d[:, None])
             self.splats["sh0"][wet] += ((linear_to_srgb(lin) - seen) / SH_C0)[:, None]
+
+    def _visible_weights(self) -> torch.Tensor:
+        """[N] `visible_weights` of the Gaussians through the water, summed over `TREND_VIEWS` training views
+        spread evenly through the list (the used pixels of each)."""
+        picks = torch.linspace(0, len(self.views) - 1, min(TREND_VIEWS, len(self.views))).round().long()
+        total = torch.zeros(self.num_gaussians, device=self.device)
+        for i in picks.tolist():
+            with torch.no_grad():
+                g = view_gaussians(self.splats, self.centers[i], 0, self.water, self.flags, self.cfg.backend,
+                                   self.cfg.surfels, self.cfg.compile_refraction)
+            total += visible_weights(g, self.views[i].camera, self.cfg.surfels, self.cfg.backend,
+                                     self.masks[i], self.cfg.surfel_depth)
+        return total
 
     def _backscatter_step(self) -> None:
         self.backscatter_opt.step()
