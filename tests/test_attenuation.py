@@ -393,13 +393,23 @@ def test_gaussians_hidden_under_the_bed_do_not_count(turbid):
     assert bool((transfer(True, by_opacity=True) < 0).all())
 
 
-def test_the_transfer_runs_every_trend_every_steps(turbid, monkeypatch):
-    calls = []
+def test_the_transfer_runs_every_step_and_takes_the_weights_every_trend_every(turbid, monkeypatch):
+    """The weights are taken on the first step of every `TREND_EVERY` and again once the strategy has replaced
+    the Gaussians; the transfer runs after every step."""
+    taken, moved = [], []
     monkeypatch.setattr(train_mod, "TREND_EVERY", 2)
-    tr = Trainer(_cfg(iterations=5, detrend_albedo=True, downwelling=DOWNWELLING), turbid)
-    monkeypatch.setattr(tr, "_detrend_albedo", lambda: calls.append(tr.step))
-    tr.train()
-    assert calls == [2, 4]
+    tr = Trainer(_cfg(iterations=6, detrend_albedo=True, downwelling=DOWNWELLING), turbid)
+    visible, detrend = tr._visible_weights, tr._detrend_albedo
+    monkeypatch.setattr(tr, "_visible_weights", lambda: taken.append(tr.step) or visible())
+    monkeypatch.setattr(tr, "_detrend_albedo", lambda: moved.append(tr.step) or detrend())
+    for _ in range(3):
+        tr.train_step()
+    new = torch.nn.Parameter(tr.splats["means"].detach().clone())  # replaced, as a refinement does
+    tr.splats["means"], tr.optimizers["means"].param_groups[0]["params"] = new, [new]
+    for _ in range(3):
+        tr.train_step()
+    assert moved == [1, 2, 3, 4, 5, 6]
+    assert taken == [1, 3, 4, 5]
 
 
 def test_the_trend_is_the_slope_of_log_colour_against_depth():

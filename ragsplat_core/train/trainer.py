@@ -89,8 +89,11 @@ TREND_SPREAD = 0.25
 # training views spread through the list). Counted by opacity alone, the many Gaussians hidden under the bed's
 # visible skin (brighter at depth) outweighed the visible ones, whose colours still darkened by 0.10-0.15 per
 # metre at the end, and c stopped at 60-70 % of the water's in green and blue (issue 50, the field development
-# reach). The probes cost about 0.2 s a view at 40k Gaussians on one CPU thread, so the transfer runs every
-# TREND_EVERY steps, not every step.
+# reach). The probes cost about 0.2 s a view at 40k Gaussians on one CPU thread, so the weights are taken
+# every TREND_EVERY steps (and after the strategy changes the Gaussians) while the transfer runs every step.
+# (Moved every 100 steps instead, at 68eef96, the development reach at twice the field's turbidity lost its
+# pool to faint, bright Gaussians: 76.9 at 3 %, cover 62 %; c and the colours jumping at each move was the
+# suspect.)
 TREND_VIEWS = 8
 TREND_EVERY = 100
 # Kept as the third scale of a surfel so that code written for three axes (a split's offsets, the volume
@@ -291,6 +294,7 @@ class Trainer:
                                                                  device=self.device))
         self.attenuation_opt = None if self.log_attenuation is None else \
             torch.optim.Adam([self.log_attenuation], lr=cfg.lr_attenuation, eps=1e-15)
+        self._seen = None  # (the means parameter they were taken for, [N] `_visible_weights`) of the transfer
         # The backscatter, log [B_inf, c_b] [2, 3] (both > 0), on the same terms.
         self.log_backscatter = None
         if self.flags is not None and "backscatter" in cfg.water_terms:
@@ -554,7 +558,7 @@ class Trainer:
             opt.zero_grad(set_to_none=True)
         if self.attenuation_opt is not None:
             self._attenuation_step()
-            if self.cfg.detrend_albedo and step % TREND_EVERY == 0:
+            if self.cfg.detrend_albedo:
                 self._detrend_albedo()
         if self.backscatter_opt is not None:
             self._backscatter_step()
@@ -615,7 +619,7 @@ class Trainer:
         colour is raised by exp(dc (1 + k) d): a nadir view of a degree-0 bed renders the same, and what is
         left of the trend is the range's; only where the depths spread by `TREND_SPREAD` or more. The fit
         counts the Gaussians as opaque as the extraction keeps, each by its share of the images
-        (`_visible_weights`) and the water line's blend. Without the transfer a colour that starts from the
+        (`_seen_weights`) and the water line's blend. Without the transfer a colour that starts from the
         images' (a track's) already holds the water's dimming, and c stays where it started. (Fitted on the
         colours seen from straight above, sh0 with the SH's z terms, it lost 9.5 points of cover on the
         field's development reach.)"""
@@ -631,7 +635,7 @@ class Trainer:
             opacity = torch.sigmoid(self.splats["opacities"][wet])
             # the bed the extraction keeps (a faint haze where the bed is lost does not count), as the images
             # see it (the Gaussians hidden under its skin do not count)
-            weight = (self._visible_weights()[wet] * (opacity >= ExtractConfig.min_opacity)
+            weight = (self._seen_weights()[wet] * (opacity >= ExtractConfig.min_opacity)
                       * waterline_weight(d))
             lin = srgb_to_linear(seen)  # converted once: the fit and the raise both work in linear light
             b, spread = albedo_trend(lin, d, weight)
@@ -643,6 +647,15 @@ class Trainer:
             self.log_attenuation.copy_(raised.log())
             lin = lin * torch.exp((raised - c) * k * d[:, None])
             self.splats["sh0"][wet] += ((linear_to_srgb(lin) - seen) / SH_C0)[:, None]
+
+    def _seen_weights(self) -> torch.Tensor:
+        """[N] `_visible_weights`, taken again on the first step of every `TREND_EVERY` and whenever the
+        strategy has replaced the Gaussians (a refinement, a reset), else kept: a resumed run (from a
+        checkpoint at a multiple of `TREND_EVERY`) takes them on the same steps as the uninterrupted one."""
+        means = self.splats["means"]
+        if self._seen is None or self._seen[0] is not means or (self.step - 1) % TREND_EVERY == 0:
+            self._seen = (means, self._visible_weights())
+        return self._seen[1]
 
     def _visible_weights(self) -> torch.Tensor:
         """[N] `visible_weights` of the Gaussians through the water, summed over `TREND_VIEWS` training views
