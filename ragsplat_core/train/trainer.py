@@ -616,9 +616,8 @@ class Trainer:
         """Moves the submerged Gaussians' colours' trend with depth into the attenuation (`detrend_albedo`):
         the trend b [3] of their degree-0 colours (log colour per metre, `albedo_trend`) is what c (1 + k) d
         dims, k the downwelling, so c rises by -b / (1 + k) (within `ATTENUATION_RANGE`) and each degree-0
-        colour the views show is raised by exp(dc (1 + k) d): a nadir view of a degree-0 bed renders the
-        same, and what is left of the trend is the range's; only where the depths spread by `TREND_SPREAD`
-        or more. The fit
+        colour is raised by exp(dc (1 + k) d): a nadir view of a degree-0 bed renders the same, and what is
+        left of the trend is the range's; only where the depths spread by `TREND_SPREAD` or more. The fit
         counts the Gaussians as opaque as the extraction keeps, each by its share of the images
         (`_seen_weights`) and the water line's blend. Without the transfer a colour that starts from the
         images' (a track's) already holds the water's dimming, and c stays where it started. (Fitted on the
@@ -636,8 +635,8 @@ class Trainer:
             opacity = torch.sigmoid(self.splats["opacities"][wet])
             # the bed the extraction keeps (a faint haze where the bed is lost does not count), as the images
             # see it (the Gaussians hidden under its skin do not count)
-            shown = self._seen_weights()[wet]  # [M]
-            weight = shown * (opacity >= ExtractConfig.min_opacity) * waterline_weight(d)
+            weight = (self._seen_weights()[wet] * (opacity >= ExtractConfig.min_opacity)
+                      * waterline_weight(d))
             lin = srgb_to_linear(seen)  # converted once: the fit and the raise both work in linear light
             b, spread = albedo_trend(lin, d, weight)
             if not bool((spread >= TREND_SPREAD).any()):  # too narrow: the bed's pattern, not the water
@@ -646,9 +645,7 @@ class Trainer:
             c = self.log_attenuation.exp()
             raised = torch.where(spread >= TREND_SPREAD, c - b / k, c).clamp(*ATTENUATION_RANGE)
             self.log_attenuation.copy_(raised.log())
-            # Only the colours the images show are raised: one they do not show has no gradient to pull it
-            # back, and raised by every rise of c it brightens without bound.
-            lin = torch.where(shown[:, None] > 0, lin * torch.exp((raised - c) * k * d[:, None]), lin)
+            lin = lin * torch.exp((raised - c) * k * d[:, None])
             self.splats["sh0"][wet] += ((linear_to_srgb(lin) - seen) / SH_C0)[:, None]
 
     def _seen_weights(self) -> torch.Tensor:
