@@ -446,6 +446,23 @@ def test_coefficients_are_trained_and_resumed(turbid, tmp_path):
     assert torch.equal(c.splats["sh0"], a.splats["sh0"])
 
 
+def test_a_run_with_the_transfer_resumes_as_the_uninterrupted_one(tmp_path, monkeypatch):
+    """Killed after 4 steps and resumed from step 3 (a multiple of `TREND_EVERY`, here 3), the run takes the
+    weights on the same steps and ends where the uninterrupted one does, bit for bit (the same process)."""
+    monkeypatch.setattr(train_mod, "TREND_EVERY", 3)
+    ds, points = _sloping_bed((0.6, 0.4, 0.3))
+    np.save(tmp_path / "bed.npy", points)
+    cfg = _cfg(iterations=7, checkpoint_every=3, init="points", init_points=str(tmp_path / "bed.npy"),
+               detrend_albedo=True, downwelling=DOWNWELLING)
+    a = Trainer(cfg, ds, tmp_path / "a")
+    a.train()
+    assert not torch.allclose(a.attenuation, torch.full((3,), 0.1), rtol=0.2)  # the transfer moved c
+    _, c = killed_and_resumed(cfg, ds, tmp_path / "b")
+    c.train()
+    assert torch.equal(c.attenuation, a.attenuation)
+    assert torch.equal(c.splats["sh0"], a.splats["sh0"])
+
+
 def test_variants_without_the_term_have_none_and_call_the_transform_as_before(turbid, monkeypatch):
     calls = []
     real = train_mod.refract_gaussians

@@ -86,14 +86,14 @@ PLY = "point_cloud.ply"
 # field development reach's wet cells: 0.80 m).
 TREND_SPREAD = 0.25
 # The fit counts each Gaussian by the share of the images it makes (`visible_weights`, summed over TREND_VIEWS
-# training views spread through the list). Counted by opacity alone, the many Gaussians hidden under the bed's
-# visible skin (brighter at depth) outweighed the visible ones, whose colours still darkened by 0.10-0.15 per
-# metre at the end, and c stopped at 60-70 % of the water's in green and blue (issue 50, the field development
-# reach). The probes cost about 0.2 s a view at 40k Gaussians on one CPU thread, so the weights are taken
-# every TREND_EVERY steps (and after the strategy changes the Gaussians) while the transfer runs every step.
-# (Moved every 100 steps instead, at 68eef96, the development reach at twice the field's turbidity lost its
-# pool to faint, bright Gaussians: 76.9 at 3 %, cover 62 %; c and the colours jumping at each move was the
-# suspect.)
+# training views spread through the list). Counted by opacity alone, the Gaussians the images hardly see
+# (brighter at depth) balanced the seen ones, whose colours still darkened by 0.10-0.11 per metre at the end,
+# and c stopped at 70 % of the water's in green and 82 % in blue (issue 50, the field development reach;
+# `python -m tools.attenuation`). The probes cost about 0.2 s a view at 40k Gaussians on one CPU thread, so
+# the weights are taken every TREND_EVERY steps (and after the strategy changes the Gaussians) while the
+# transfer runs every step. (Moved every 100 steps instead, at 68eef96, the development reach at twice the
+# field's turbidity lost its pool to faint, bright Gaussians: 76.9 at 3 %, cover 62 %; c and the colours
+# jumping at each move was the suspect.)
 TREND_VIEWS = 8
 TREND_EVERY = 100
 # Kept as the third scale of a surfel so that code written for three axes (a split's offsets, the volume
