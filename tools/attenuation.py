@@ -10,7 +10,7 @@ view's and the daylight's (`TrainConfig.downwelling` k is the second).
 
 A run: its c against the scene's, and the trend with depth of its opaque submerged Gaussians' degree-0
 colours (`trainer.albedo_trend`) counted by opacity and by their share of the images
-(`trainer.visible_weights`, summed over the training views the trainer's `_visible_weights` picks), with
+(`trainer.visible_weights`, summed over the `trainer.trend_views` of the training views), with
 the c each would give if moved into it (c - b / (1 + k)).
 """
 
@@ -28,7 +28,7 @@ from ragsplat.export import load_model
 from ragsplat.gaussians import SH_C0
 from ragsplat.refraction import WaterSurface, apparent_points, srgb_to_linear
 from ragsplat.surface import ExtractConfig
-from ragsplat.train.trainer import TREND_VIEWS, albedo_trend, view_gaussians, visible_weights
+from ragsplat.train.trainer import albedo_trend, trend_views, view_gaussians, visible_weights
 
 BIN = 0.2  # metres of depth
 
@@ -73,9 +73,8 @@ def photos(root: Path) -> np.ndarray:
 def run_trends(run: Path, root: Path) -> dict:
     model, ds = load_model(run, root, splits=("train",))
     views = ds.split("train")
-    picks = torch.linspace(0, len(views) - 1, min(TREND_VIEWS, len(views))).round().long().tolist()
     seen = torch.zeros(len(model.splats["means"]))
-    for i in picks:
+    for i in trend_views(len(views)):
         center = torch.tensor(views[i].camera.camera_center, dtype=torch.float32)
         with torch.no_grad():
             g = view_gaussians(model.splats, center, 0, model.water, model.flags, model.backend,

@@ -184,6 +184,12 @@ def visible_weights(g: ApparentGaussians, camera: Camera, surfels: bool, backend
     return probe.grad[:, 0]
 
 
+def trend_views(count: int) -> list[int]:
+    """The indices of the `TREND_VIEWS` views, spread evenly through a list of `count`, whose
+    `visible_weights` the trend transfer sums."""
+    return torch.linspace(0, count - 1, min(TREND_VIEWS, count)).round().long().tolist()
+
+
 def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, background: torch.Tensor,
                    backend: str, median: bool = False, depth: str = "ray"):
     """`rasterize` the Gaussians `g`, or `rasterize_surfels` them as surfels (the first two scales span the
@@ -658,11 +664,10 @@ class Trainer:
         return self._seen[1]
 
     def _visible_weights(self) -> torch.Tensor:
-        """[N] `visible_weights` of the Gaussians through the water, summed over `TREND_VIEWS` training views
-        spread evenly through the list (the used pixels of each)."""
-        picks = torch.linspace(0, len(self.views) - 1, min(TREND_VIEWS, len(self.views))).round().long()
+        """[N] `visible_weights` of the Gaussians through the water, summed over the `trend_views` of the
+        training views (the used pixels of each)."""
         total = torch.zeros(self.num_gaussians, device=self.device)
-        for i in picks.tolist():
+        for i in trend_views(len(self.views)):
             with torch.no_grad():
                 g = view_gaussians(self.splats, self.centers[i], 0, self.water, self.flags, self.cfg.backend,
                                    self.cfg.surfels, self.cfg.compile_refraction)
