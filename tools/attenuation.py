@@ -10,7 +10,7 @@ view's and the daylight's (`TrainConfig.downwelling` k is the second).
 
 A run: its c against the scene's, and the trend with depth of its opaque submerged Gaussians' degree-0
 colours (`trainer.albedo_trend`) counted by opacity and by their share of the images
-(`trainer.visible_weights`, summed over the `trainer.trend_views` of the training views), with
+(`trainer.image_shares` over the training views, as the trainer counts them), with
 the c each would give if moved into it (c - b / (1 + k)).
 """
 
@@ -23,40 +23,35 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ragsplat.dataset.layout import read_depth, read_png
+from ragsplat.dataset import load_dataset
+from ragsplat.dataset.layout import NO_HIT, read_depth
 from ragsplat.export import load_model
 from ragsplat.gaussians import SH_C0
-from ragsplat.refraction import WaterSurface, apparent_points, srgb_to_linear
+from ragsplat.refraction import apparent_points, srgb_to_linear
 from ragsplat.surface import ExtractConfig
-from ragsplat.train.trainer import albedo_trend, trend_views, view_gaussians, visible_weights
+from ragsplat.train.trainer import albedo_trend, image_shares
 
 BIN = 0.2  # metres of depth
 
 
 def photos(root: Path) -> np.ndarray:
     """[3] the log transmission's fall per metre of depth, per channel, in the nadir training photos."""
-    tj = json.loads((root / "transforms.json").read_text())
-    K = np.array([[tj["fl_x"], 0, tj["cx"]], [0, tj["fl_y"], tj["cy"]], [0, 0, 1]])
-    water = WaterSurface(tj["water"]["level"], tj["water"]["n"])
+    ds = load_dataset(root, splits=("train",))
     pairs = []
-    for f in tj["frames"]:
-        if f.get("kind") != "nadir" or f.get("split") != "train":
+    for view in ds.train:
+        if view.kind != "nadir":
             continue
-        wet, dry = (srgb_to_linear(torch.from_numpy(read_png(root / f[k])).double() / 255).numpy()
-                    for k in ("file_path", "dry_file_path"))
-        z = read_depth(root / f["gt_depth_file_path"]).astype(np.float64)  # [H, W]
-        h, w = z.shape
-        w2c = np.array(f["w2c"])
-        R, t = w2c[:3, :3], w2c[:3, 3]
-        u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-        rays = np.linalg.solve(K, np.stack([u, v, np.ones_like(u)], -1).reshape(-1, 3).T).T  # [HW, 3]
-        points = (rays * z.reshape(-1, 1) - t) @ R  # world
-        wet_px = (z.reshape(-1) < 1e3) & (points[:, 2] < water.level - 0.05)
-        seen = apparent_points(torch.from_numpy(points[wet_px]), torch.from_numpy(-R.T @ t), water).numpy()
-        q = (seen @ R.T + t) @ K.T
-        col, row = (np.round(q[:, i] / q[:, 2] - 0.5).astype(int) for i in (0, 1))  # the nearest pixel
-        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
-        pairs.append(np.column_stack([water.level - points[wet_px, 2][inside],
+        cam = view.camera
+        wet, dry = (srgb_to_linear(img.double() / 255).numpy() for img in (view.rgb, view.dry_rgb))
+        z = read_depth(root / view.gt_depth_file_path).astype(np.float64).reshape(-1)  # [H W]
+        u, v = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+        points = cam.unproject(np.stack([u.reshape(-1), v.reshape(-1)], -1), z)  # [H W, 3] world
+        wet_px = (z < NO_HIT) & (points[:, 2] < ds.water.level - 0.05)
+        seen = apparent_points(torch.from_numpy(points[wet_px]), torch.from_numpy(cam.camera_center),
+                               ds.water).numpy()
+        col, row = np.floor(cam.project(seen)[0]).astype(int).T  # the pixel that shows it
+        inside = (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+        pairs.append(np.column_stack([ds.water.level - points[wet_px, 2][inside],
                                       dry.reshape(-1, 3)[wet_px][inside], wet[row[inside], col[inside]]]))
     d, dry, wet = np.split(np.concatenate(pairs), [1, 4], axis=1)
     d = d[:, 0]
@@ -73,14 +68,9 @@ def photos(root: Path) -> np.ndarray:
 def run_trends(run: Path, root: Path) -> dict:
     model, ds = load_model(run, root, splits=("train",))
     views = ds.split("train")
-    seen = torch.zeros(len(model.splats["means"]))
-    for i in trend_views(len(views)):
-        center = torch.tensor(views[i].camera.camera_center, dtype=torch.float32)
-        with torch.no_grad():
-            g = view_gaussians(model.splats, center, 0, model.water, model.flags, model.backend,
-                               model.cfg.surfels)
-        seen += visible_weights(g, views[i].camera, model.cfg.surfels, model.backend,
-                                depth=model.cfg.surfel_depth)
+    centers = [torch.tensor(v.camera.camera_center, dtype=torch.float32) for v in views]
+    seen = image_shares(model.splats, [v.camera for v in views], centers, model.water, model.flags,
+                        model.cfg.surfels, model.backend, depth=model.cfg.surfel_depth)
     with torch.no_grad():
         depth = model.water.depth(model.splats["means"])
         opacity = torch.sigmoid(model.splats["opacities"])

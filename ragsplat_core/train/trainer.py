@@ -184,10 +184,18 @@ def visible_weights(g: ApparentGaussians, camera: Camera, surfels: bool, backend
     return probe.grad[:, 0]
 
 
-def trend_views(count: int) -> list[int]:
-    """The indices of the `TREND_VIEWS` views, spread evenly through a list of `count`, whose
-    `visible_weights` the trend transfer sums."""
-    return torch.linspace(0, count - 1, min(TREND_VIEWS, count)).round().long().tolist()
+def image_shares(splats, cameras: list[Camera], centers: list[torch.Tensor], water: WaterSurface,
+                 flags: dict | None, surfels: bool, backend: str, compiled: bool = False,
+                 masks: list[torch.Tensor | None] | None = None, depth: str = "ray") -> torch.Tensor:
+    """[N] each Gaussian's share of the images the trend transfer counts it by: its `visible_weights` through
+    `water` (`view_gaussians`' apparent Gaussians), summed over `TREND_VIEWS` of `cameras` spread evenly
+    through the list (centres `centers`; over the pixels of `masks`, when given)."""
+    total = torch.zeros(len(splats["means"]), device=splats["means"].device)
+    for i in torch.linspace(0, len(cameras) - 1, min(TREND_VIEWS, len(cameras))).round().long().tolist():
+        with torch.no_grad():
+            g = view_gaussians(splats, centers[i], 0, water, flags, backend, surfels, compiled)
+        total += visible_weights(g, cameras[i], surfels, backend, None if masks is None else masks[i], depth)
+    return total
 
 
 def rasterize_view(g: ApparentGaussians, camera: Camera, surfels: bool, background: torch.Tensor,
@@ -637,13 +645,13 @@ class Trainer:
             from ragsplat.surface import ExtractConfig
 
             d = depth[wet]
-            seen = SH_C0 * self.splats["sh0"][wet][:, 0] + 0.5  # [M, 3] the degree-0 colours
+            srgb = SH_C0 * self.splats["sh0"][wet][:, 0] + 0.5  # [M, 3] the degree-0 colours
             opacity = torch.sigmoid(self.splats["opacities"][wet])
             # the bed the extraction keeps (a faint haze where the bed is lost does not count), as the images
             # see it (the Gaussians hidden under its skin do not count)
             weight = (self._seen_weights()[wet] * (opacity >= ExtractConfig.min_opacity)
                       * waterline_weight(d))
-            lin = srgb_to_linear(seen)  # converted once: the fit and the raise both work in linear light
+            lin = srgb_to_linear(srgb)  # converted once: the fit and the raise both work in linear light
             b, spread = albedo_trend(lin, d, weight)
             if not bool((spread >= TREND_SPREAD).any()):  # too narrow: the bed's pattern, not the water
                 return
@@ -652,7 +660,7 @@ class Trainer:
             raised = torch.where(spread >= TREND_SPREAD, c - b / k, c).clamp(*ATTENUATION_RANGE)
             self.log_attenuation.copy_(raised.log())
             lin = lin * torch.exp((raised - c) * k * d[:, None])
-            self.splats["sh0"][wet] += ((linear_to_srgb(lin) - seen) / SH_C0)[:, None]
+            self.splats["sh0"][wet] += ((linear_to_srgb(lin) - srgb) / SH_C0)[:, None]
 
     def _seen_weights(self) -> torch.Tensor:
         """[N] `_visible_weights`, taken again on the first step of every `TREND_EVERY` and whenever the
@@ -664,16 +672,10 @@ class Trainer:
         return self._seen[1]
 
     def _visible_weights(self) -> torch.Tensor:
-        """[N] `visible_weights` of the Gaussians through the water, summed over the `trend_views` of the
-        training views (the used pixels of each)."""
-        total = torch.zeros(self.num_gaussians, device=self.device)
-        for i in trend_views(len(self.views)):
-            with torch.no_grad():
-                g = view_gaussians(self.splats, self.centers[i], 0, self.water, self.flags, self.cfg.backend,
-                                   self.cfg.surfels, self.cfg.compile_refraction)
-            total += visible_weights(g, self.views[i].camera, self.cfg.surfels, self.cfg.backend,
-                                     self.masks[i], self.cfg.surfel_depth)
-        return total
+        """[N] `image_shares` over the training views (the used pixels of each)."""
+        return image_shares(self.splats, [v.camera for v in self.views], self.centers, self.water, self.flags,
+                            self.cfg.surfels, self.cfg.backend, self.cfg.compile_refraction, self.masks,
+                            self.cfg.surfel_depth)
 
     def _backscatter_step(self) -> None:
         self.backscatter_opt.step()
