@@ -55,6 +55,11 @@ def ripple_height(xy: np.ndarray, k: np.ndarray, amplitude: np.ndarray, phases: 
     return np.cos(xy @ k.T + phases) @ amplitude
 
 
+def ripple_gradient(xy: np.ndarray, k: np.ndarray, amplitude: np.ndarray, phases: np.ndarray) -> np.ndarray:
+    """[N, 2] (dz/dx, dz/dy) of `ripple_height`'s surface at points xy [N, 2]."""
+    return -(np.sin(xy @ k.T + phases) * amplitude) @ k
+
+
 def ripple_slope(k: np.ndarray, amplitude: np.ndarray) -> float:
     """rms slope (rad, small angles) of the spectrum: sqrt(sum (a |k|)^2 / 2)."""
     return float(np.sqrt(0.5 * np.sum((amplitude * np.linalg.norm(k, axis=1)) ** 2)))

@@ -557,13 +557,13 @@ class TrainEval:
 
         return model_gaussians(Trainer(cfg, self.ds, None))
 
-    def train(self, cfg, out: Path, ecfg: ExtractConfig, fcfg: FuseConfig, checkpoints: int, lpips_metric=None
-              ) -> tuple[dict, np.ndarray, np.ndarray]:
+    def train(self, cfg, out: Path, ecfg: ExtractConfig, fcfg: FuseConfig, checkpoints: int,
+              lpips_metric=None, view_ripples: Callable | None = None) -> tuple[dict, np.ndarray, np.ndarray]:
         """Train `cfg` in `out` (resuming its checkpoint), with the curve's evaluation points; returns the
-        row and the two extracted bed grids (volume, fused)."""
+        row and the two extracted bed grids (volume, fused). `view_ripples`: the `Trainer`'s."""
         from ragsplat.train import Trainer
 
-        trainer = Trainer(cfg, self.ds, out)
+        trainer = Trainer(cfg, self.ds, out, view_ripples=view_ripples)
         curve_file = out / "curve.json"
         curve = []
         if curve_file.is_file() and trainer.step > 0:  # points recorded before the kill, up to the checkpoint

@@ -386,6 +386,38 @@ def water_paths(points, camera_center, water: WaterSurface, steps: int | None = 
     return torch.zeros_like(points[:, 0]).index_put((wet,), L)
 
 
+def facet_offsets(points, camera_center, water: WaterSurface, gradient):
+    """[N, 2] how far, horizontally, a rippled surface moves where the ray from camera_center [3] to each
+    true point [N, 3] lands at the point's depth: the ray crosses the flat surface at p [2] and is bent there
+    by the facet of gradient(p) [M, 2] (dz/dx, dz/dy of the ripples at p [M, 2]) instead of by the flat one,
+    on which it lands on the point. Exact in the facet's slope, first order in its height (the facet passes
+    through the flat crossing); points at or above the level get 0. The bed point a photo sees through its
+    ripples where it sees this point is the point plus the offset; so the photo shows the point where the
+    flat surface shows the point minus it. A horizontal surface only (ValueError otherwise, or for a camera
+    not above the water)."""
+    _check_camera(camera_center, water)
+    if water.tilted or water.curved:
+        raise ValueError("facet_offsets: a horizontal water surface only")
+    wet = _submerged(points, water)
+    loc = _local(points[wet], camera_center, water)
+    reach = loc.H * solve_alpha(loc.r2, loc.d, loc.H, loc.n)[:, None] * loc.v  # [M, 2] H tan(theta_a) along v
+    down = torch.cat([reach, -loc.H.expand(len(loc.d))[:, None]], -1)  # [M, 3] camera -> crossing
+    down = down / torch.linalg.vector_norm(down, dim=-1, keepdim=True)
+    g = gradient(loc.origin + reach)
+    facet = torch.cat([-g, torch.ones_like(g[:, :1])], -1)  # [M, 3] upward normals
+    flat = torch.zeros_like(facet)
+    flat[:, 2] = 1
+
+    def landing(normal):  # [M, 2] from the crossing to depth d, along the refracted ray (Snell, vector form)
+        normal = normal / torch.linalg.vector_norm(normal, dim=-1, keepdim=True)
+        cos_i = -(down * normal).sum(-1, keepdim=True)
+        cos_t = torch.sqrt(1 - (1 - cos_i * cos_i) / (loc.n * loc.n))
+        t = down / loc.n + (cos_i / loc.n - cos_t) * normal
+        return t[:, :2] * (loc.d / -t[:, 2])[:, None]
+
+    return torch.zeros_like(points[:, :2]).index_put((wet,), landing(facet) - landing(flat))
+
+
 GRAZING_COS = 1e-3  # `pixel_water_paths`' floor on cos(theta_a)
 
 

@@ -36,6 +36,10 @@ def test_ripples_have_the_rms_height_asked_and_zero_mean():
     dy = (conditions.ripple_height(xy + [0, e], k, amplitude, conditions.ripple_phases(c, 0, 0))
           - conditions.ripple_height(xy - [0, e], k, amplitude, conditions.ripple_phases(c, 0, 0))) / (2 * e)
     assert np.sqrt(np.mean(dx**2 + dy**2)) == pytest.approx(conditions.ripple_slope(k, amplitude), rel=0.1)
+    # the surface's gradient (what a photo's refraction turns on) is the height's (central differences:
+    # their error ~ e^2 |k|^3 a, under 1e-7 here)
+    grad = conditions.ripple_gradient(xy, k, amplitude, conditions.ripple_phases(c, 0, 0))
+    np.testing.assert_allclose(grad, np.stack([dx, dy], -1), atol=1e-6)
 
 
 def test_every_photo_its_own_surface_and_a_rerun_the_same():

@@ -15,6 +15,7 @@ from ragsplat.refraction import (
     apparent_points,
     compiled_refract_gaussians,
     covariance,
+    facet_offsets,
     refract_gaussians,
 )
 
@@ -415,3 +416,66 @@ def test_importing_the_commands_leaves_torch_compile_unloaded():
             "print('torch._dynamo' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def _tilt(g):  # a facet of one gradient g [2] everywhere: `facet_offsets`' gradient callable
+    return lambda xy: torch.as_tensor(g, dtype=xy.dtype).expand(len(xy), 2)
+
+
+def test_a_flat_facet_moves_nothing_and_air_points_never_move():
+    p = random_points(50)
+    assert torch.equal(facet_offsets(p, CAM, WATER, _tilt([0.0, 0.0])), torch.zeros(50, 2, dtype=f64))
+    above = p.clone()
+    above[:, 2] = WATER.level + 0.3
+    assert torch.equal(facet_offsets(above, CAM, WATER, _tilt([0.1, -0.2])), torch.zeros(50, 2, dtype=f64))
+    # n = 1: a tilted facet bends nothing (round-off)
+    moved = facet_offsets(p, CAM, WaterSurface(WATER.level, 1.0), _tilt([0.1, -0.2]))
+    assert moved.abs().max() < 1e-12
+
+
+@pytest.mark.parametrize("slope", [0.02, 0.3])
+def test_a_facet_under_a_nadir_camera_bends_the_ray_by_snell(slope):
+    # the vertical ray meets a facet rising along +x at incidence a = atan(s), leaves at b = asin(sin a / n)
+    # from its normal: it turns a - b from the vertical, towards +x (into the water, along the inward normal)
+    d = 1.7
+    point = torch.tensor([[CAM[0], CAM[1], WATER.level - d]], dtype=f64)
+    a = math.atan(slope)
+    b = math.asin(math.sin(a) / WATER.n)
+    for g, along in (([slope, 0.0], [1.0, 0.0]), ([0.0, -slope], [0.0, -1.0])):
+        moved = facet_offsets(point, CAM, WATER, _tilt(g))[0]
+        want = d * math.tan(a - b) * torch.tensor(along, dtype=f64)
+        assert torch.allclose(moved, want, rtol=1e-12, atol=1e-14)
+
+
+def test_the_ray_through_a_tilted_facet_lands_by_snell_at_the_points_depth():
+    # Independent of the function's own path: the crossing from `apparent_points` (the apparent point lies
+    # on the air ray), the landing from the offset; the bend there obeys sin i = n sin t about the facet's
+    # normal, in the plane of the ray and the normal.
+    p = random_points(200, depth=(0.1, 5.0), radius=15.0)
+    g = torch.Generator().manual_seed(3)
+    slopes = (torch.rand(200, 2, generator=g, dtype=f64) - 0.5) * 0.4
+    lookup = {}
+
+    def gradient(xy):  # the slope of each point's own facet, by the order the wet points are passed in
+        lookup["xy"] = xy
+        return slopes[: len(xy)]
+
+    moved = facet_offsets(p, CAM, WATER, gradient)
+    app = apparent_points(p, CAM, WATER)
+    H = CAM[2] - WATER.level
+    cross = CAM + (app - CAM) * (H / (CAM[2] - app[:, 2]))[:, None]  # [N, 3] on the flat surface
+    assert torch.allclose(lookup["xy"], cross[:, :2], atol=1e-9)  # the facets are asked for at the crossings
+    land = torch.cat([p[:, :2] + moved, p[:, 2:]], -1)
+    down = torch.nn.functional.normalize(cross - CAM, dim=-1)
+    under = torch.nn.functional.normalize(land - cross, dim=-1)
+    normal = torch.nn.functional.normalize(torch.cat([-slopes, torch.ones(200, 1, dtype=f64)], -1), dim=-1)
+    sin_i = torch.linalg.cross(down, normal).norm(dim=-1)
+    sin_t = torch.linalg.cross(under, normal).norm(dim=-1)
+    assert torch.allclose(sin_i, WATER.n * sin_t, atol=1e-9)
+    assert ((torch.linalg.cross(down, normal) * under).sum(-1).abs() < 1e-9).all()  # coplanar
+    assert ((under * normal).sum(-1) < 0).all()  # into the water
+
+
+def test_facet_offsets_refuse_a_tilted_surface():
+    with pytest.raises(ValueError, match="horizontal"):
+        facet_offsets(random_points(3), CAM, WaterSurface(WATER.level, 1.33, (0.01, 0.0)), _tilt([0.0, 0.0]))

@@ -1,6 +1,7 @@
 """Masked loss, water overrides and water calibration in the trainer, on tiny scenes rendered in memory."""
 
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -45,9 +46,10 @@ def _cfg(**kw):
 
 # ---- masked loss
 # --------------------------------------------------------------------------------------------
-def _grads(ds: Dataset) -> tuple[dict, float]:
-    """The gradient of every Gaussian parameter in the first training step, and that step's loss."""
-    tr = Trainer(_cfg(), ds)
+def _grads(ds: Dataset, **kw) -> tuple[dict, float]:
+    """The gradient of every Gaussian parameter in the first training step, and that step's loss (`kw`: the
+    Trainer's)."""
+    tr = Trainer(_cfg(), ds, **kw)
     grads = {}
     for name in PARAM_NAMES:
         tr.splats[name].register_hook(lambda g, name=name: grads.__setitem__(name, g.clone()))
@@ -247,3 +249,54 @@ def test_cli_water_arguments(tmp_path, capsys):
         assert done.value.code == 2
         assert bad[0] in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
+
+
+# ---- each view through its own surface (`Trainer.view_ripples`: the ripples' bound)
+# --------------------------------------------------------------------------------------------
+def test_a_flat_surface_per_view_trains_as_the_shared_one(wet):
+    asked = []
+
+    def flat(name, xy):
+        asked.append((name, len(xy)))
+        return torch.zeros_like(xy)
+
+    base, loss = _grads(wet)
+    same, same_loss = _grads(wet, view_ripples=flat)
+    # the means minus zero offsets: the same numbers rendered; the gradient reaches the means through one more
+    # node (round-off at most)
+    assert same_loss == loss
+    for name in PARAM_NAMES:
+        assert torch.allclose(same[name], base[name], rtol=1e-6, atol=1e-12), name
+    assert len(asked) == 1 and asked[0][0] in {v.name for v in wet.views}  # the trained view's own surface
+    assert 0 < asked[0][1] <= 150  # at the submerged Gaussians' crossings
+
+
+def test_a_rippled_view_moves_what_it_shows(wet):
+    def tilted(name, xy):  # one view's surface tilted, the others flat
+        return torch.tensor([0.05, 0.0]).expand_as(xy) if name == "0000" else torch.zeros_like(xy)
+
+    tr = Trainer(_cfg(), wet, view_ripples=tilted)
+    flat = Trainer(_cfg(), wet)
+    i = [v.name for v in wet.views].index("0000")
+    water = tr._water(False)
+    shown = tr._rippled(i, water)["means"]
+    moved = (shown - tr.splats["means"]).detach()
+    wet_ones = water.depth(tr.splats["means"]) > 0
+    # a facet rising along +x turns the rays towards +x (an oblique ray a little across too): the photo
+    # shows the bed moved by +offset, so the render moves the Gaussians back, along -x, never up or down
+    assert (moved[wet_ones, 0] < 0).all() and (moved[wet_ones, 1].abs() < 0.2 * -moved[wet_ones, 0]).all()
+    assert (moved[:, 2] == 0).all() and (moved[~wet_ones] == 0).all()
+    # about what the facet bends a vertical ray by at their depth (d tan(a - b), a = atan 0.05, sin b = sin a
+    # / n), more for an oblique ray that meets it in its plane of incidence
+    a = math.atan(0.05)
+    nadir = water.depth(tr.splats["means"])[wet_ones] * math.tan(a - math.asin(math.sin(a) / N))
+    assert (-moved[wet_ones, 0] > 0.5 * nadir).all() and (-moved[wet_ones, 0] < 2 * nadir).all()
+    other = tr._rippled((i + 1) % len(wet.views), water)["means"]
+    assert torch.equal(other, tr.splats["means"])  # a flat view renders the Gaussians as they are
+    assert torch.equal(flat.splats["means"], tr.splats["means"])
+
+
+def test_a_surface_per_view_needs_a_horizontal_water(wet):
+    tilted = Dataset(wet.root, WaterSurface(LEVEL, N, (0.01, 0.0)), wet.views, wet.bed)
+    with pytest.raises(ConfigError, match="horizontal"):
+        Trainer(_cfg(), tilted, view_ripples=lambda name, xy: torch.zeros_like(xy))

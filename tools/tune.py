@@ -1,12 +1,13 @@
 """Choose a training hyperparameter on a development dataset (never the evaluation one):
 `python -m tools.tune --data DEV_DIR --out DIR [--preset small]
 [--param lr_means | densify.max_gaussians | ...] [--values ...] [--variants full] [--seed 0]
-[--set PARAM=VALUE ...]` trains each variant at each value (a number, or a word for a choice such as
-`--param surfel_depth --values ray centre`) (the
-`--set` parameters held fixed), scores the bed like the ablation and prints F1 at 1 % / 3 % of depth, wet
-RMSE, p95 and cover and the training time per value (and a trained attenuation over the scene's
-extinction), and the value with the best mean F1 at 3 % over the variants. The choice is recorded by hand in
-ragsplat_core/tuning/small.json (or small_field.json: the values,
+[--set PARAM=VALUE ...] [--true-ripples]` trains each variant at each value (a number, or a word for a
+choice such as `--param surfel_depth --values ray centre`) (the `--set` parameters held fixed), scores the
+bed like the ablation and prints F1 at 1 % / 3 % of depth, wet RMSE, p95 and cover and the training time
+per value (and a trained attenuation over the scene's extinction), and the value with the best mean F1 at
+3 % over the variants. `--true-ripples`: every training render through its photo's own rippled surface,
+read from the scene (`Trainer.view_ripples`): a bound on what modelling the ripples could buy, not a method.
+The choice is recorded by hand in ragsplat_core/tuning/small.json (or small_field.json: the values,
 figures, command, commit and dataset seed), which every results.json repeats.
 """
 
@@ -18,6 +19,7 @@ from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from ragsplat.eval.ablation import PRESETS, TrainEval, extract_config, save_row, scene_conditions, start_row
 from ragsplat.outputs import claim, versions, write_json
@@ -75,6 +77,27 @@ def cm(x: float | None) -> str:
     return "n/a" if x is None else f"{100 * x:.1f}"
 
 
+def true_ripples(data: Path):
+    """`Trainer.view_ripples` of the surfaces the photos of the dataset `data` were rendered through (its
+    scene.json's spec, `ragsplat.datagen.conditions`), without their fade over the bed's border (beyond the
+    scored region). Raises ValueError for a dataset rendered without ripples."""
+    from ragsplat.datagen.conditions import ripple_gradient, ripple_phases, ripple_waves
+    from ragsplat.datagen.spec import SceneSpec
+    from ragsplat.dataset import layout
+
+    spec = SceneSpec.from_dict(json.loads((data / layout.SCENE).read_text())["spec"])
+    c = spec.conditions
+    if c is None or not c.rippled:
+        raise ValueError(f"{data}: rendered without ripples")
+    k, amplitude = ripple_waves(c, spec.seed)
+
+    def gradient(name: str, xy: torch.Tensor) -> torch.Tensor:  # [M, 2] at xy [M, 2], photo `name`'s phases
+        g = ripple_gradient(xy.detach().cpu().double().numpy(), k, amplitude,
+                            ripple_phases(c, spec.seed, int(name)))
+        return torch.as_tensor(g, dtype=xy.dtype, device=xy.device)
+    return gradient
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m tools.tune", description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, required=True)
@@ -86,10 +109,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--set", nargs="+", default=[], metavar="PARAM=VALUE",
                         help="other parameters held at these values in every run (e.g. iterations=3000)")
+    parser.add_argument("--true-ripples", action="store_true",
+                        help="train through each photo's true rippled surface (a bound, read from the scene)")
     args = parser.parse_args(argv)
     fixed = held(parser, args.set)
     values = [typed(args.param, v) for v in args.values]
     runner = TrainEval(args.data)
+    ripples = true_ripples(args.data) if args.true_ripples else None
     extinction = (scene_conditions(args.data) or {}).get("extinction_per_m")  # the water's, per channel
     claim(args.out, "tuning")
     results = []
@@ -99,14 +125,16 @@ def main(argv: list[str] | None = None) -> int:
             for name, value_held in fixed.items():
                 cfg = with_value(cfg, name, value_held)
             cfg = with_value(cfg, args.param, value)
-            folder = args.out / f"{variant}-{args.param}-{label(args.param, value)}"
+            folder = args.out / (f"{variant}-{args.param}-{label(args.param, value)}"
+                                 + "-true-ripples" * (ripples is not None))
             done = folder / "row.json"
             if done.is_file():
                 row = json.loads(done.read_text())
             else:
                 start_row(folder, {"dataset": runner.fingerprint, "train": cfg.to_dict()})
                 ecfg = extract_config(cfg, len(runner.truth.nodes), runner.gsd)
-                row, grid, fused = runner.train(cfg, folder, ecfg, PRESETS[args.preset].fuse, checkpoints=1)
+                row, grid, fused = runner.train(cfg, folder, ecfg, PRESETS[args.preset].fuse, checkpoints=1,
+                                                view_ripples=ripples)
                 row = save_row(folder, {**row, "name": variant, "seed": args.seed}, grid, runner.truth, fused)
             g = row["geometry"]
             c = (row.get("train_stats") or {}).get("attenuation")  # a variant that trains the attenuation

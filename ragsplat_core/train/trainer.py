@@ -55,6 +55,7 @@ from ragsplat.refraction import (
     WaterSurface,
     backscatter_veil,
     compiled_refract_gaussians,
+    facet_offsets,
     linear_to_srgb,
     opacity_factor,
     pixel_water_paths,
@@ -270,11 +271,18 @@ def median_depth(splats, camera: Camera, surfels: bool, fade: WaterSurface | Non
 
 
 class Trainer:
-    """Holds the Gaussians, their optimisers and the densification state for one run (one variant)."""
+    """Holds the Gaussians, their optimisers and the densification state for one run (one variant).
+
+    `view_ripples(name, xy [M, 2]) -> [M, 2]`: the gradient of training view `name`'s own water surface at
+    horizontal points, given (a bound: `tools.tune --true-ripples` gives the photos' true ripples); each
+    training render then shows the Gaussians as that surface would (`facet_offsets`). None: the one surface
+    every view shares. A horizontal surface only."""
 
     def __init__(self, cfg: TrainConfig, dataset: Dataset, out_dir: str | Path | None = None,
-                 resume: bool = True):
+                 resume: bool = True,
+                 view_ripples: Callable[[str, torch.Tensor], torch.Tensor] | None = None):
         self.cfg = cfg
+        self.view_ripples = view_ripples
         self.ds = dataset
         self.out = None if out_dir is None else Path(out_dir)
         try:
@@ -289,6 +297,8 @@ class Trainer:
         if not self.views:
             raise DatasetError(f"{dataset.root}: the dataset has no training views")
         self._water0 = self._start_water()
+        if view_ripples is not None and (self._water0 is None or self._water0.tilted or self._water0.curved):
+            raise ConfigError("view_ripples: a dataset with a horizontal water surface only")
         # The calibrated fields of the water (float64: Adam's late steps are far below a float32 ulp of a
         # level given in survey heights); a resumed run overwrites their values.
         self.water_params = {k: torch.nn.Parameter(torch.tensor(float(getattr(self._water0, k)),
@@ -505,12 +515,13 @@ class Trainer:
         return int(self.splats["means"].shape[0])
 
     # ---- rendering ----------------------------------------------------------------------------------
-    def _render(self, camera: Camera, center: torch.Tensor, interface: bool, water: WaterSurface | None):
+    def _render(self, camera: Camera, center: torch.Tensor, interface: bool, water: WaterSurface | None,
+                splats: dict | None = None):  # splats: the Gaussians to render, self.splats when None
         attenuation = None if self.log_attenuation is None or not interface else self.log_attenuation.exp()
         backscatter = None if self.log_backscatter is None or not interface else self.log_backscatter.exp()
         sky = None if self.log_sky is None or not interface else self.log_sky.exp()
-        return render_splats(self.splats, camera, center, self.active_sh_degree, water,
-                             self.flags if interface else None, self.cfg.surfels, self.background,
+        return render_splats(self.splats if splats is None else splats, camera, center, self.active_sh_degree,
+                             water, self.flags if interface else None, self.cfg.surfels, self.background,
                              self.cfg.backend, self.cfg.compile_refraction, attenuation, backscatter, sky,
                              self.cfg.wet_sh_degree, self.cfg.surfel_depth, self.cfg.downwelling)
 
@@ -538,7 +549,8 @@ class Trainer:
         i = self._next_view()
         cam, gt, mask = self.views[i].camera, self.targets[i], self.masks[i]
         calibrate = self.water_opt is not None and step > self.cfg.water_start
-        img, _, depth, info = self._render(cam, self.centers[i], True, self._water(calibrate))
+        water = self._water(calibrate)
+        img, _, depth, info = self._render(cam, self.centers[i], True, water, self._rippled(i, water))
         lam = self.cfg.ssim_lambda
         if mask is None:
             l1 = torch.abs(img - gt).mean()
@@ -588,6 +600,18 @@ class Trainer:
         shown = (img.detach(), gt) if mask is None else (img.detach()[mask], gt[mask])
         self.last = {"loss": float(loss.detach()), "psnr": float(psnr(*shown)), "n": self.num_gaussians}
         return self.last
+
+    def _rippled(self, i: int, water: WaterSurface) -> dict | None:
+        """The Gaussians as training view i's own surface (`view_ripples`) shows them: each submerged mean
+        moved back by its `facet_offsets` (the surface is given: no gradient through the offsets); None
+        without `view_ripples`."""
+        if self.view_ripples is None:
+            return None
+        means = self.splats["means"]
+        with torch.no_grad():
+            moved = facet_offsets(means, self.centers[i], water,
+                                  lambda xy: self.view_ripples(self.views[i].name, xy))
+        return {**self.splats, "means": means - torch.cat([moved, torch.zeros_like(moved[:, :1])], -1)}
 
     def _flatten_surfels(self) -> None:
         """The third axis of a surfel is its normal: no thickness, no gradient. Kept at `SURFEL_THICKNESS`
