@@ -368,6 +368,29 @@ def test_tune_sets_nested_and_top_level_parameters():
         with_value(cfg, "detrend_albedo", "yes")
 
 
+def test_true_ripples_are_each_photos_surface_from_the_scene(tmp_path):
+    from ragsplat.datagen import conditions
+    from ragsplat.datagen.spec import preset
+    from tools.tune import true_ripples
+
+    spec = preset("small-field")
+    (tmp_path / "scene.json").write_text(json.dumps({"spec": spec.to_dict()}))
+    gradient = true_ripples(tmp_path)
+    xy = torch.tensor([[0.3, -1.2], [2.0, 0.5]])
+    k, amplitude = conditions.ripple_waves(spec.conditions, spec.seed)
+    for view in (0, 3):  # the photo's own phases, by its frame name
+        want = conditions.ripple_gradient(xy.double().numpy(), k, amplitude,
+                                          conditions.ripple_phases(spec.conditions, spec.seed, view))
+        got = gradient(f"{view:04d}", xy)
+        assert got.dtype == xy.dtype and np.allclose(got.numpy(), want, atol=1e-7)
+    assert not torch.allclose(gradient("0000", xy), gradient("0003", xy))
+    (tmp_path / "scene.json").write_text(json.dumps({"spec": preset("small").to_dict()}))
+    with pytest.raises(ValueError, match="without ripples"):
+        true_ripples(tmp_path)
+    with pytest.raises(ValueError, match="no such file"):
+        true_ripples(tmp_path / "elsewhere")
+
+
 def test_default_jobs_and_the_gpus_they_share(monkeypatch):
     # `--jobs` left out: 2 processes on the CPU, JOBS_PER_GPU per GPU on CUDA, shared out round the GPUs.
     import torch

@@ -80,12 +80,15 @@ def cm(x: float | None) -> str:
 def true_ripples(data: Path):
     """`Trainer.view_ripples` of the surfaces the photos of the dataset `data` were rendered through (its
     scene.json's spec, `ragsplat.datagen.conditions`), without their fade over the bed's border (beyond the
-    scored region). Raises ValueError for a dataset rendered without ripples."""
+    scored region). Raises ValueError for a dataset rendered without ripples, or not rendered here."""
     from ragsplat.datagen.conditions import ripple_gradient, ripple_phases, ripple_waves
     from ragsplat.datagen.spec import SceneSpec
     from ragsplat.dataset import layout
 
-    spec = SceneSpec.from_dict(json.loads((data / layout.SCENE).read_text())["spec"])
+    scene = data / layout.SCENE
+    if not scene.is_file():
+        raise ValueError(f"{scene}: no such file (the spec of a dataset the generator rendered)")
+    spec = SceneSpec.from_dict(json.loads(scene.read_text())["spec"])
     c = spec.conditions
     if c is None or not c.rippled:
         raise ValueError(f"{data}: rendered without ripples")
@@ -114,8 +117,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     fixed = held(parser, args.set)
     values = [typed(args.param, v) for v in args.values]
+    try:
+        ripples = true_ripples(args.data) if args.true_ripples else None
+    except ValueError as err:
+        parser.error(str(err))
     runner = TrainEval(args.data)
-    ripples = true_ripples(args.data) if args.true_ripples else None
     extinction = (scene_conditions(args.data) or {}).get("extinction_per_m")  # the water's, per channel
     claim(args.out, "tuning")
     results = []
@@ -135,7 +141,8 @@ def main(argv: list[str] | None = None) -> int:
                 ecfg = extract_config(cfg, len(runner.truth.nodes), runner.gsd)
                 row, grid, fused = runner.train(cfg, folder, ecfg, PRESETS[args.preset].fuse, checkpoints=1,
                                                 view_ripples=ripples)
-                row = save_row(folder, {**row, "name": variant, "seed": args.seed}, grid, runner.truth, fused)
+                row = save_row(folder, {**row, "name": variant, "seed": args.seed,
+                                        "true_ripples": ripples is not None}, grid, runner.truth, fused)
             g = row["geometry"]
             c = (row.get("train_stats") or {}).get("attenuation")  # a variant that trains the attenuation
             ratio = None if c is None or not extinction else [a / e for a, e in zip(c, extinction)]
@@ -153,6 +160,7 @@ def main(argv: list[str] | None = None) -> int:
     best = max(score, key=score.get)
     write_json(args.out / "tune.json", {"data": str(args.data.resolve()), "dataset_seed": runner.dataset_seed,
                                         "param": args.param, "fixed": fixed, "results": results,
+                                        "true_ripples": args.true_ripples,
                                         "chosen": best,
                                         "rule": "max mean F1@3% over the variants",
                                         "versions": versions("torch")})
