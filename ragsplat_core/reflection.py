@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import torch
 
-from ragsplat.refraction import GRAZING_COS, WaterSurface, linear_to_srgb, srgb_to_linear
+from ragsplat.refraction import GRAZING_COS, WaterSurface, linear_to_srgb, srgb_to_linear, upward_normals
 
 # Texels per side of the sky map. A map, not spherical harmonics: what the water mirrors is a smooth sky
 # gradient plus the sun's glint, which ripples of a few mm widen into a lobe of some 10-20 degrees (the
@@ -65,9 +65,7 @@ def surface_reflection(rays, depth, camera_center, water: WaterSurface):
     if water.tilted or water.curved:
         v = rays / torch.linalg.vector_norm(rays, dim=-1, keepdim=True)  # [..., 3] unit
         p = C + depth[..., None].detach() * rays.detach()  # [..., 3] the apparent point the pixel renders
-        g = water.gradient(p[..., :2])  # [..., 2]
-        normal = torch.cat([-g, torch.ones_like(g[..., :1])], -1)
-        normal = normal / torch.sqrt(1 + (g * g).sum(-1, keepdim=True))  # [..., 3] the upward unit normal
+        normal = upward_normals(water.gradient(p[..., :2]))  # [..., 3]
         vn = (v * normal).sum(-1)  # [...] = -cos theta_i for a ray meeting the water
         mirrored = v - 2 * vn[..., None] * normal
         wet = water.depth(p) > 0  # [...] bool

@@ -386,6 +386,11 @@ def water_paths(points, camera_center, water: WaterSurface, steps: int | None = 
     return torch.zeros_like(points[:, 0]).index_put((wet,), L)
 
 
+def upward_normals(g):
+    """[..., 3] the upward unit normals of a surface with gradients g [..., 2] (dz/dx, dz/dy)."""
+    return torch.cat([-g, torch.ones_like(g[..., :1])], -1) / torch.sqrt(1 + (g * g).sum(-1, keepdim=True))
+
+
 def facet_offsets(points, camera_center, water: WaterSurface, gradient):
     """[N, 2] how far, horizontally, a rippled surface moves where the ray from camera_center [3] to each
     true point [N, 3] lands at the point's depth: the ray crosses the flat surface at p [2] and is bent there
@@ -403,13 +408,11 @@ def facet_offsets(points, camera_center, water: WaterSurface, gradient):
     reach = loc.H * solve_alpha(loc.r2, loc.d, loc.H, loc.n)[:, None] * loc.v  # [M, 2] H tan(theta_a) along v
     down = torch.cat([reach, -loc.H.expand(len(loc.d))[:, None]], -1)  # [M, 3] camera -> crossing
     down = down / torch.linalg.vector_norm(down, dim=-1, keepdim=True)
-    g = gradient(loc.origin + reach)
-    facet = torch.cat([-g, torch.ones_like(g[:, :1])], -1)  # [M, 3] upward normals
+    facet = upward_normals(gradient(loc.origin + reach))  # [M, 3]
     flat = torch.zeros_like(facet)
     flat[:, 2] = 1
 
     def landing(normal):  # [M, 2] from the crossing to depth d, along the refracted ray (Snell, vector form)
-        normal = normal / torch.linalg.vector_norm(normal, dim=-1, keepdim=True)
         cos_i = -(down * normal).sum(-1, keepdim=True)
         cos_t = torch.sqrt(1 - (1 - cos_i * cos_i) / (loc.n * loc.n))
         t = down / loc.n + (cos_i / loc.n - cos_t) * normal
@@ -436,9 +439,7 @@ def pixel_water_paths(rays, depth, camera_center, water: WaterSurface):
     C = torch.as_tensor(camera_center, dtype=rays.dtype, device=rays.device)
     p = C + depth[..., None] * rays  # [..., 3] the apparent point
     if water.tilted or water.curved:
-        g = water.gradient(p[..., :2])  # [..., 2]
-        normal = (torch.cat([-g, torch.ones_like(g[..., :1])], -1)
-                  / torch.sqrt(1 + (g * g).sum(-1, keepdim=True)))
+        normal = upward_normals(water.gradient(p[..., :2]))  # [..., 3]
         d_app = water.depth(p) * normal[..., 2]  # [...] to the (tangent) plane along its normal
         down = -(rays * normal).sum(-1)
     else:
