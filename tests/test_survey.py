@@ -23,7 +23,12 @@ WATER = WaterSurface(0.0, 1.33)
 def survey(tmp_path_factory):
     """A gravel bed 0.8 m under water seen by 12 nadir and 6 oblique photos from 4 m: the survey folder
     (photos, positions.csv with 5 / 8 mm noise) and, for scoring only, the same views as a dataset."""
-    root = tmp_path_factory.mktemp("survey")
+    return write_survey(tmp_path_factory.mktemp("survey"))
+
+
+def write_survey(root, seed: int = 0, targets_at_feet: bool = False):
+    """`survey`'s folder in `root`, its positions', targets' and pixels' noise drawn with `seed`;
+    `targets_at_feet`: the targets' heights surveyed as 0 (a wrong survey, for `tools.gcp_spread`)."""
     scene = bed_scene(30000, half=3.0, depth=0.8, seed=0)
     # speckled, like gravel
     scene["colors"] = torch.rand(30000, 3, generator=torch.Generator().manual_seed(1))
@@ -37,7 +42,7 @@ def survey(tmp_path_factory):
         image = (np.clip(v["image"].numpy(), 0, 1) * 255 + 0.5).astype(np.uint8)
         layout.write_jpeg(root / "images" / name, image, v["camera"].fx)
     centres = np.array([c.camera_center for c in cams])
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seed)
     layout.write_positions(root / "positions.csv", names,
                            centres + rng.normal(size=centres.shape) * [0.005, 0.005, 0.008])
     # ground control: five targets on posts above the water (the pixels given, as a surveyor picks them)
@@ -50,8 +55,9 @@ def survey(tmp_path_factory):
         inside = (z > 0) & (uv >= 0).all(1) & (uv[:, 0] < cam.width) & (uv[:, 1] < cam.height)
         rows += [(name, f"T{k}", *uv[k]) for k in np.flatnonzero(inside)]
     layout.write_gcp_pixels(root / "gcp_pixels.csv", rows)
+    surveyed = targets * [1, 1, 0] if targets_at_feet else targets
     layout.write_positions(root / "gcp.csv", [f"T{k}" for k in range(5)],
-                           targets + rng.normal(size=(5, 3)) * 0.005)
+                           surveyed + rng.normal(size=(5, 3)) * 0.005)
     return root
 
 
@@ -188,8 +194,13 @@ def test_ground_control_instead_of_positions(survey, finished, tmp_path, capsys)
     reuse_sfm(finished, out)
     assert main(gcp_args(survey, out)) == 0
     assert "similarity to 5 ground control points" in capsys.readouterr().err
+    # Five targets 0.15-0.3 m high hold the frame; a small tilt, carried 4 m up to the cameras, sets their
+    # error. `python -m tools.gcp_spread --seeds 0 1 2 3 4` measured the median centre error at 2.10-3.04 cm
+    # over the noise's seeds, within 0.2 mm between 1 and 2 threads (0.35 mm between two machines at seed
+    # 0); the largest target residual 0.47-1.16 cm, the median rotation 0.23-0.39 degrees. Targets surveyed
+    # at their posts' feet (--targets-at-feet) give 21 cm, 3.5 cm and 1.1 degrees.
     poses = pose_errors(out / "model", survey / "truth")
-    assert poses["centre_m"]["median"] < 0.03 and poses["rotation_deg"]["median"] < 1.0
+    assert poses["centre_m"]["median"] < 0.05 and poses["rotation_deg"]["median"] < 1.0
     water = json.loads((out / "water.json").read_text())
     assert max(abs(v) for r in water["gcp_residual_m"].values() for v in r) < 0.03
     assert not (out / "train").exists()  # --stop-after water
@@ -279,12 +290,13 @@ def test_a_sloping_surface_from_the_edge_points(tmp_path, capsys):
     # float32 bands
     np.testing.assert_allclose(depth[rows, cols], surface.height(xy) - z[rows, cols], atol=1e-3)
     # the depths are right below the sloping surface along the whole reach: no trend from one end to the other
-    # (one level at the mean would be 4 cm off at each end, in opposite directions)
+    # beyond the smoke training's own. The ends' medians differ by 2.19 cm on 2 threads and 2.93 cm on 1; the
+    # survey given one level at the mean instead of the edge points gives 5.27 cm.
     true = 0.8 - 0.08 * np.sin(2 * xy[:, 0] / 3.0) * np.cos(1.5 * xy[:, 1] / 3.0)  # `bed_scene`'s relief
     err = depth[rows, cols] - true
     upstream, downstream = xy[:, 0] < -1, xy[:, 0] > 1
     assert np.median(np.abs(err)) < 0.08  # 4.2 cm after the smoke preset's 150 steps
-    assert abs(np.median(err[upstream]) - np.median(err[downstream])) < 0.04
+    assert abs(np.median(err[upstream]) - np.median(err[downstream])) < 0.045
 
 
 def test_edge_points_in_another_frame_are_refused(survey, tmp_path, capsys):

@@ -1,0 +1,61 @@
+"""The spread of the figures tests/test_survey.py's ground-control test bounds: the synthetic survey written
+with each noise seed, then `ragsplat survey` with ground control only (structure from motion included) on
+1 and 2 threads; prints a JSON line per run (the median camera centre and rotation errors, the largest and
+rms target residual). `--targets-at-feet`: the targets' heights surveyed as 0, a wrong survey the bounds
+must fail.
+
+    python -m tools.gcp_spread --seeds 0 1 2 3 4 --threads 1 2
+"""
+
+import argparse
+import contextlib
+import io
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--targets-at-feet", action="store_true")
+    args = parser.parse_args()
+
+    import torch
+    from test_survey import gcp_args, write_survey
+
+    from ragsplat.cli.main import main as ragsplat
+    from ragsplat.survey import sfm
+    from tools.poses import pose_errors
+
+    defaults = list(sfm.reconstruct.__defaults__)  # camera_model, threads, ...
+    for seed in args.seeds:
+        with tempfile.TemporaryDirectory() as tmp:
+            root = write_survey(Path(tmp), seed, args.targets_at_feet)
+            for threads in args.threads:
+                sfm.reconstruct.__defaults__ = (defaults[0], threads, *defaults[2:])
+                torch.set_num_threads(threads)
+                out = root / f"run{threads}"
+                t0 = time.perf_counter()
+                with contextlib.redirect_stderr(io.StringIO()):
+                    rc = ragsplat(gcp_args(root, out))
+                water = json.loads((out / "water.json").read_text())
+                res = np.array(list(water["gcp_residual_m"].values()))
+                poses = pose_errors(out / "model", root / "truth")
+                print(json.dumps({"seed": seed, "threads": threads, "rc": rc,
+                                  "centre_median_m": poses["centre_m"]["median"],
+                                  "rotation_median_deg": poses["rotation_deg"]["median"],
+                                  "residual_max_m": float(np.abs(res).max()),
+                                  "residual_rms_m": float(np.sqrt((res**2).mean())),
+                                  "seconds": time.perf_counter() - t0}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
