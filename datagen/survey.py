@@ -32,6 +32,7 @@ EDGE_SPACING = 2.0  # ... or one every this many metres of the evaluated reach's
 _EDGE_STREAM = 4  # the edge points' noise: a random stream apart from the survey's and the conditions' (1-3)
 _GPS_STREAM = 5  # consumer GPS: each flight line's bias and each photo's scatter
 _ANGLE_STREAM = 6  # the gimbal angles' noise
+_BAROMETER_STREAM = 7  # consumer photos' barometric heights: the flight's drift and each photo's scatter
 # the drone takes off from the bank this far above the water (RelativeAltitude's zero)
 TAKEOFF_ABOVE_WATER = 1.0
 
@@ -54,6 +55,11 @@ class ConsumerGPS:
     line_bias: tuple[float, float] = (1.0, 1.5)
     line_bias_z: float = 0.5  # each flight line's vertical offset, standard deviation (m)
     jitter: float = 0.5  # each photo's own scatter about its line's offset, each axis (m)
+    # the barometer's RelativeAltitude (above the take-off point): a drift growing linearly from the first
+    # photo to the last, its end's standard deviation, and each photo's own scatter (m); independent of the
+    # GPS's errors
+    barometer_drift: float = 0.2
+    barometer_jitter: float = 0.03
 
 
 GIMBAL_NOISE_DEG = (2.0, 0.5, 0.5)  # the recorded gimbal yaw (a compass), pitch and roll, standard deviation
@@ -169,9 +175,9 @@ def write_geotags(root: Path, train, names: list[str], water, seed: int, noise: 
     with the positions.csv centres as EXIF GPS and DJI-style XMP (AbsoluteAltitude, RelativeAltitude, gimbal
     and flight angles, RtkFlag 50 with RtkStdLon / RtkStdLat / RtkStdHgt), and into `survey/images-gps/`
     with a consumer drone's GPS instead (the true centres plus a bias per flight line and scatter, `gps`;
-    no RTK tags), and with `lens` into `survey/images-lens/`: the photos rendered through a lens with radial
-    distortion (`LENS`; the dataset's images/lens/), with the RTK tags. Returns survey.json's "geo"
-    (`geo_record`)."""
+    no RTK tags; the RelativeAltitude its barometer's, the true height plus a drift and scatter), and with
+    `lens` into `survey/images-lens/`: the photos rendered through a lens with radial distortion (`LENS`;
+    the dataset's images/lens/), with the RTK tags. Returns survey.json's "geo" (`geo_record`)."""
     from ragsplat.survey import exif
 
     record = geo_record(train, names, water, seed, noise, origin, gps, lens)
@@ -183,6 +189,10 @@ def write_geotags(root: Path, train, names: list[str], water, seed: int, noise: 
     consumer = (np.array([p.camera.camera_center for p in train])
                 + _line_bias(len(set(lines)), seed, gps)[lines])
     consumer += scatter
+    baro = np.random.default_rng([seed, _BAROMETER_STREAM]).normal(size=len(train) + 1)
+    relative = {layout.SURVEY_IMAGES_GPS: np.array([p.camera.camera_center[2] for p in train])
+                + baro[0] * gps.barometer_drift * np.linspace(0.0, 1.0, len(train))
+                + baro[1:] * gps.barometer_jitter}
     angles = gimbal_angles([p.camera for p in train], shift, crs)
     angles += np.random.default_rng([seed, _ANGLE_STREAM]).normal(size=angles.shape) * GIMBAL_NOISE_DEG
     angles[:, 0] = (angles[:, 0] + 180) % 360 - 180
@@ -192,7 +202,9 @@ def write_geotags(root: Path, train, names: list[str], water, seed: int, noise: 
     folders = [(layout.SURVEY_IMAGES, rtk, rtk_tags), (layout.SURVEY_IMAGES_GPS, consumer, {})]
     for folder, xyz, tags in folders + ([(layout.SURVEY_IMAGES_LENS, rtk, rtk_tags)] if lens else []):
         geographic = exif.to_geographic(xyz + shift, crs)
-        for p, name, (lat, lon, h), z, (yaw, pitch, roll) in zip(train, names, geographic, xyz[:, 2], angles):
+        for k, (p, name, (lat, lon, h), z, (yaw, pitch, roll)) in enumerate(zip(train, names, geographic,
+                                                                              xyz[:, 2], angles)):
+            z = relative[folder][k] if folder in relative else z
             xmp = {"AbsoluteAltitude": round(h, 3), "RelativeAltitude": round(z - record["takeoff_z"], 3),
                    "GimbalRollDegree": round(roll, 2), "GimbalYawDegree": round(yaw, 2),
                    "GimbalPitchDegree": round(pitch, 2), "FlightRollDegree": 0.0,

@@ -330,3 +330,30 @@ def test_retrain_trains_and_exports_as_the_survey_does(finished, tmp_path):
         assert a.shape == b.shape and a.transform == b.transform
         np.testing.assert_allclose(b.read(1), a.read(1), atol=1e-5)
     assert json.loads((again / "times.json").read_text())["cells"] > 0
+
+
+def test_features_at_a_capped_size_keep_the_photos_pixels(survey, tmp_path, monkeypatch):
+    """SIFT runs on photos scaled to `FEATURE_MAX_SIZE` on their longer side; the keypoints come back in the
+    full photo's pixels: capped at 160 px, the 240 x 180 photos still register, their tracks reach past 160
+    px and reproject to the photos' own pixels (the model's cameras are the photos' size)."""
+    from ragsplat.survey import sfm
+
+    monkeypatch.setattr(sfm, "FEATURE_MAX_SIZE", 160)
+    names = sorted(p.name for p in (survey / "images").iterdir())
+    rec = sfm.reconstruct(survey / "images", names, tmp_path / "sfm")
+    trk = sfm.tracks(rec)
+    assert rec.num_reg_images() == 18 and rec.compute_mean_reprojection_error() < 1.0
+    assert float(trk.pixels[:, 0].max()) > 200 and all(c.width == 240 for c in rec.cameras.values())
+    monkeypatch.setattr(sfm, "FEATURE_MAX_SIZE", 240)  # the photos' own size: more features, more points
+    assert sfm.reconstruct(survey / "images", names, tmp_path / "full").num_points3D() > 1.2 * len(trk.points)
+
+
+def test_the_library_runs_without_a_progress(survey, tmp_path):
+    """`survey.pipeline.run` called as a library, with no progress to tell: its silent bars are context
+    managers that count, as the command's are."""
+    from ragsplat.survey import pipeline
+
+    cfg = pipeline.SurveyConfig(images=survey / "images", out=tmp_path / "run", gcp=survey / "gcp.csv",
+                                gcp_pixels=survey / "gcp_pixels.csv", water_level=0.0, preset="smoke",
+                                lens="pinhole", stop_after="water")
+    assert pipeline.run(cfg) == [] and (tmp_path / "run" / "water.json").is_file()

@@ -154,6 +154,30 @@ def test_the_noise_follows_the_source():
                     None)
     np.testing.assert_allclose(s, [[0.012, exif.MIN_STD], [0.02, 0.03], [2.0, 3.0], [2.0, 3.0]])
     np.testing.assert_allclose(exif.sigmas([fixed], (0.05, 0.06)), [[0.05, 0.06]])  # --rtk-sigma wins
+    baro = replace(photo("b", 46.0, 13.0), relative_altitude=40.0)
+    rtk_baro = replace(photo("rb", 46.0, 13.0, 50), relative_altitude=40.0)  # RTK: its own height
+    np.testing.assert_allclose(exif.sigmas([baro, rtk_baro], None, barometer=0.1), [[2.0, 0.1], [0.02, 0.03]])
+
+
+def test_consumer_heights_come_from_the_barometer():
+    """A consumer drone's GPS heights scatter by metres; where its photos carry DJI's RelativeAltitude,
+    each is put at the take-off point's height (the median of GPS height less relative altitude) plus its
+    own; RTK-fixed photos and photos without one keep their height."""
+    rng = np.random.default_rng(0)
+    truth = 140.0 + np.array([40.0, 40.1, 39.9, 40.0, 40.05])  # take-off 140 m, flown at about 40 m
+    photos = [replace(photo(f"{k}", 46.0, 13.0 + 1e-4 * k), altitude=float(z + rng.normal(0, 3)),
+                      relative_altitude=float(z - 140.0)) for k, z in enumerate(truth)]
+    heights = exif.barometric_heights(photos)
+    takeoff = np.median([p.altitude - p.relative_altitude for p in photos])
+    np.testing.assert_allclose(heights, takeoff + truth - 140.0)
+    np.testing.assert_allclose(np.diff(heights), np.diff(truth))  # the GPS's metres gone from the tilt
+    xyz, _ = exif.positions(photos)
+    np.testing.assert_allclose([xyz[p.name][2] for p in photos], heights)
+    others = [photo("g", 46.0, 13.0), replace(photo("r", 46.0, 13.0, 50), relative_altitude=3.0)]
+    # alone, a photo's take-off point is its own: its height as given
+    np.testing.assert_allclose(exif.barometric_heights(others + photos[:1]),
+                               [100.0, 100.0, photos[0].altitude])
+    assert [p.barometric for p in others] == [False, False] and photos[0].barometric
 
 
 def test_gimbal_angles_are_true_north_headings():
@@ -172,7 +196,10 @@ def test_gimbal_angles_are_true_north_headings():
 
 
 ORIGIN = GeoOrigin()
-CONSUMER = ConsumerGPS(line_bias=(0.4, 0.6), line_bias_z=0.2, jitter=0.2)  # to the 4 m flight's scale
+# to the 4 m flight's scale (its 2.4 m against a real flight's 84 m, for the barometer)
+CONSUMER = ConsumerGPS(line_bias=(0.4, 0.6), line_bias_z=0.2, jitter=0.2, barometer_drift=0.006,
+                       barometer_jitter=0.001)
+BAROMETER = ["--barometer-sigma", "0.003"]
 
 
 def lens_photo(scene: dict, cam: Camera, water: WaterSurface, k1: float, k2: float) -> np.ndarray:
@@ -238,10 +265,12 @@ def test_the_generator_geotags_its_photos(geotagged):
             assert all(p.rtk_fixed and p.std_vertical == 0.008 for p in photos)
             # above the take-off point
             assert photos[0].relative_altitude == pytest.approx(4.0 - 1.0, abs=0.05)
-        else:  # each line off by its bias, plus scatter
+        else:  # each line off by its bias, plus scatter; the heights the barometer's, to millimetres here
             assert all(p.rtk_flag is None for p in photos)
             off = np.linalg.norm((got - truth)[:, :2], axis=1)
             assert 0.1 < np.median(off) < 1.0
+            relative = np.array([p.relative_altitude for p in photos]) - (truth[:, 2] - 1.0)
+            assert np.abs(relative).max() < 0.012 and np.abs(got[:, 2] - truth[:, 2]).max() > 0.1
         nadir = np.array([p.gimbal for p in photos[:12]])
         assert np.abs(nadir[:, 1] + 90).max() < 2 and np.abs(nadir[:, 0]).max() < 8  # north-up, 2 deg noise
     record_bytes = (root / layout.SURVEY_RECORD).read_bytes()
@@ -321,11 +350,14 @@ def test_photos_alone_with_consumer_gps_keep_every_camera(geotagged, tmp_path, c
                                  np.array([cams[int(n[:4])].camera_center for n in names]))
     assert abs(report["scale"] / to_truth.scale - 1) < stated["relative"]
     noise = report["noise"]
-    assert noise["consumer_gps"]["count"] == 18 and noise["consumer_gps"]["sigma_m"] == [2.0, 3.0]
-    assert noise["threshold_m"] == 30.0 and "per-line bias" in noise["consumer_gps"]["bias"]
+    # the heights the barometer's (the generator's photos carry it)
+    assert noise["consumer_gps"]["count"] == 18
+    assert noise["consumer_gps"]["sigma_m"] == [2.0, exif.BAROMETER_SIGMA]
+    assert noise["threshold_m"] == 20.0 and "per-line bias" in noise["consumer_gps"]["bias"]
     assert 0.05 < report["rms_m"] < 1.0 and noise["rms_m_by_source"]["rtk_fixed"] is None
     # held to centimetres as if they were RTK, the same photos lose cameras as "outliers": issue 48's point 3
-    assert main(survey_args(root, layout.SURVEY_IMAGES_GPS, out, "--gps-sigma", "0.02", "0.03")) == 0
+    assert main(survey_args(root, layout.SURVEY_IMAGES_GPS, out, "--gps-sigma", "0.02", "0.03",
+                            "--barometer-sigma", "0.03")) == 0
     assert json.loads((out / "georef.json").read_text())["inliers"] < 18
 
 
@@ -386,30 +418,51 @@ def channel_geotagged(tmp_path_factory):
     return root, cams
 
 
-def test_consumer_gps_is_levelled_by_the_water(channel_geotagged, tmp_path, capsys):
-    """Consumer GPS fixes no tilt (its lines' biases over a few metres of baseline): with no level given,
-    the water's plane is estimated with its slope in the adjustment through the water and the frame is
-    levelled by it, the model's surface then level. On `small`'s 87 photos that took the frame's tilt to
-    0.12 degrees (docs/survey.md); on these 18 photos the plane is fixed to about a degree only (its sigma
-    with the cameras held reads 0.14 degrees), about the GPS's own tilt here, so the test asks no worse."""
+def test_consumer_gps_is_levelled_by_the_water_unless_the_barometer_holds_it(channel_geotagged, tmp_path,
+                                                                              capsys, monkeypatch):
+    """Consumer GPS heights fix no tilt (its lines' biases over a few metres of baseline): without the
+    barometer's heights (photos with no RelativeAltitude) and with no level given, the water's plane is
+    estimated with its slope in the adjustment through the water and the frame is levelled by it, the
+    model's surface then level. On `small`'s 87 photos that took the frame's tilt to 0.12 degrees
+    (docs/survey.md); on these 18 photos the plane is fixed to about a degree only (its sigma with the
+    cameras held reads 0.14 degrees), about the GPS's own tilt here, so the test asks no worse. With the
+    barometer's heights the positions hold the tilt: the level alone is estimated and nothing is levelled."""
     root, cams = channel_geotagged
-    tilt = {}
-    for name in ("given", "auto"):
+    tilt, water = {}, {}
+    read = exif.read_photo
+    for name in ("given", "auto", "barometer", "held"):
         argv = survey_args(root, layout.SURVEY_IMAGES_GPS, tmp_path / name)
         argv[argv.index("--stop-after") + 1] = "water"
-        if name == "auto":
+        if name == "barometer":
+            monkeypatch.setattr(exif, "read_photo", read)
+            argv += BAROMETER
+        else:
+            monkeypatch.setattr(exif, "read_photo", lambda path: replace(read(path), relative_altitude=None))
+        if name == "held":  # GPS heights said to be good to 1 cm: they forbid a turn of a degree
+            argv += ["--gps-sigma", "2", "0.01"]
+        if name != "given":
             del argv[argv.index("--water-level"): argv.index("--water-level") + 2]
             shutil.copytree(tmp_path / "given" / "sfm", tmp_path / name / "sfm")  # the same photos' model
             for kept in (".ragsplat", "stages.json"):
                 shutil.copy(tmp_path / "given" / kept, tmp_path / name / kept)
         assert main(argv) == 0, capsys.readouterr().err
         tilt[name] = frame_tilt_deg(tmp_path / name / "model", cams)
-    water = json.loads((tmp_path / "auto" / "water.json").read_text())
-    estimated = water["estimated"]
+        water[name] = json.loads((tmp_path / name / "water.json").read_text())
+    estimated = water["auto"]["estimated"]
     assert estimated["free"] == ["level", "slope"] and estimated["levelled_deg"] > 0.5
-    assert "slope" not in water["surface"] and estimated["frame"] == "consumer GPS (metres)"
+    assert "slope" not in water["auto"]["surface"] and estimated["frame"] == "consumer GPS (metres)"
     assert 0 < estimated["sigma_given_cameras_m"]["level"] < 0.02 < estimated["sigma_m"]["level"]
     assert tilt["given"] > 0.5 and tilt["auto"] < tilt["given"] + 0.1, tilt
+    estimated = water["barometer"]["estimated"]
+    assert estimated["free"] == ["level"] and "levelled_deg" not in estimated
+    assert estimated["frame"] == "held by the barometer's heights (decimetres)"
+    assert tilt["barometer"] < 0.3, tilt  # 0.16 degrees measured, against 0.93 from the GPS heights
+    estimated = water["held"]["estimated"]
+    refused = estimated["slope_refused"]
+    assert estimated["free"] == ["level"] and "levelled_deg" not in estimated
+    # the frame stays where the GPS heights (0.2 m off by line here) hold it: 1.8 degrees measured
+    assert math.hypot(*refused["slope"]) > refused["allowed"] and tilt["held"] > 0.5
+    assert "not levelled by the water's plane" in capsys.readouterr().err
 
 
 def test_the_renderers_lens_polynomial_is_the_radial_model():

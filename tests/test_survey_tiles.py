@@ -61,8 +61,63 @@ def test_the_tiles_partition_the_plane_and_hold_the_photos_that_see_them():
     assert set().union(*(t.photos for t in plan)) == set(names)
 
 
+def consumer_flight(lines=(-12.0, 12.0), photos=9):
+    """A consumer drone's nadir flight as the real one that broke the ground-only plan: lines of `photos`
+    photos 10.5 m apart, 40 m up, a DJI FC300S at 4000 x 2250 (3.61 mm on 6.17 mm: fx 2 340 px, a GSD of
+    1.71 cm): their names, footprints (68 x 38 m) and the points' box (about 86 x 119 m)."""
+    fx, height = 3.61 / 6.17 * 4000, 40.0
+    centres = np.array([(x, 10.5 * k) for x in lines for k in range(photos)])
+    half = height * np.array([2000, 1125]) / fx
+    names = [f"DJI_{k:04d}.JPG" for k in range(len(centres))]
+    return names, np.column_stack([centres - half, centres + half]), centres.min(0) - 0.9 * half, \
+        centres.max(0) + 0.9 * half, height / fx
+
+
+def test_tiles_are_planned_by_photos_as_well_as_ground():
+    """18 photos of a consumer flight at 1.71 cm cut by ground alone (1 500 GSD) make 20 tiles of 2-10
+    photos; planned by photos too, the grid is coarser until every tile holds `MIN_TILE_PHOTOS`, and still
+    partitions the plane; a tile no photo sees is left out."""
+    names, boxes, lo, hi, gsd = consumer_flight()
+    size = 1500 * gsd
+    by_ground = tiles.plan(lo, hi, boxes, names, size, 0.1 * size, min_photos=1)
+    assert len(by_ground) == 20 and min(len(t.photos) for t in by_ground) == 2
+    plan = tiles.plan(lo, hi, boxes, names, size, 0.1 * size)
+    assert len(plan) > 1 and all(len(t.photos) >= tiles.MIN_TILE_PHOTOS for t in plan)
+    assert [t.index for t in plan] == list(range(len(plan)))
+    points = np.random.default_rng(0).uniform(lo - 50, hi + 50, (10_000, 2))
+    assert (np.stack([tiles.inside(points, t.core) for t in plan]).sum(0) == 1).all()
+    assert set().union(*(t.photos for t in plan)) == set(names)
+    one_line = consumer_flight(lines=(-12.0,), photos=12)  # a line of 12: no cut leaves 12 either side
+    assert len(tiles.plan(*one_line[2:4], one_line[1], one_line[0], size, 0.1 * size)) == 1
+    # an L: the corner far from both legs is seen by no photo, and left out
+    legs = np.array([(10.0 * k, 0.0) for k in range(10)] + [(0.0, 10.0 * k) for k in range(1, 10)])
+    boxes = np.column_stack([legs - 4.0, legs + 4.0])
+    plan = tiles.plan([-4, -4], [94, 94], boxes, [str(k) for k in range(19)], 50.0, 2.0, min_photos=1)
+    assert [t.grid for t in plan] == [(0, 0), (1, 0), (0, 1)]
+
+
+def test_a_survey_that_one_worker_trains_is_one_tile(survey, finished, monkeypatch):  # noqa: F811
+    """Without --tile-size, 18 photos are one tile however small `TILE_GSD` makes a tile's ground; with it,
+    the size is obeyed."""
+    from dataclasses import replace
+
+    from ragsplat.refraction import WaterSurface
+    from ragsplat.survey import pipeline
+
+    out = finished[0]
+    lo, hi = np.array(json.loads((out / "water.json").read_text())["extent_m"])
+    cfg = pipeline.SurveyConfig(images=survey / "images", out=out)
+    monkeypatch.setattr(pipeline, "TILE_GSD", 10)  # about 20 cm: a grid of 30 x 30 by ground
+    water = WaterSurface(0.0, 1.33)
+    assert len(pipeline._tiles(cfg, out / "model", water, lo, hi)[0]) == 1
+    assert len(pipeline._tiles(replace(cfg, tile_size=3.0), out / "model", water, lo, hi)[0]) == 4
+    monkeypatch.setattr(pipeline, "ONE_TILE_PHOTOS", 17)
+    assert len(pipeline._tiles(cfg, out / "model", water, lo, hi)[0]) > 1
+
+
 def test_the_merge_takes_each_cell_from_its_core_and_measures_the_overlap():
-    plan = tiles.plan([0, 0], [2, 1], np.zeros((0, 4)), [], 1.0, 0.25)  # two tiles, x = 1 between them
+    boxes = np.array([[0.0, 0.0, 1.0, 1.0], [1.0, 0.0, 2.0, 1.0]])  # a photo over each half
+    plan = tiles.plan([0, 0], [2, 1], boxes, ["a", "b"], 1.0, 0.25, min_photos=1)  # two tiles split at x = 1
     step = 0.05
     xs = np.arange(-10, 50) * step
     left = np.array([(x, 0.5, 0.0) for x in xs if x < 1.25 + 1e-9])
@@ -242,3 +297,42 @@ def test_a_survey_trains_at_most_at_its_scene_scale(survey, finished, tmp_path, 
     again = tmp_path / "again"
     assert retrain.main([str(out / "data"), str(again), "--budget", budget, "--preset", "smoke"]) == 0
     assert json.loads((again / "config.json").read_text())["scene_scale"] == cfg["scene_scale"]
+
+
+def test_a_tile_that_cannot_train_is_left_out_with_a_line(survey, tiled, tmp_path, monkeypatch,  # noqa: F811
+                                                          capsys):
+    """A tile whose training raises (a tile of one photo: pycolmap's "Need at least two images") is left out
+    with one line naming it and its log; the other tiles' products are made, tiles.json records the failure,
+    and a rerun tries that tile again. Every tile failing is one error."""
+    from ragsplat.survey import pipeline
+
+    out = tmp_path / "run"
+    shutil.copytree(tiled[0], out)
+    (out / "dem.tif").unlink()
+    trained = pipeline.train_tile
+
+    def one_fails(job):
+        if job.folder.endswith("/1"):
+            raise ValueError("Need at least two images for triangulation")
+        return trained(job)
+
+    monkeypatch.setattr(pipeline, "train_tile", one_fails)
+    assert main(args(survey, out, "--tile-size", "3", "--jobs", "1")) == 0
+    err = capsys.readouterr().err
+    assert "tile 1 (17 photos) left out: ValueError: Need at least two images" in err
+    assert "from 3 tiles" in err and (out / "dem.tif").stat().st_size > 0
+    report = json.loads((out / "tiles.json").read_text())
+    assert "Need at least two" in report["tiles"][1]["run"]["failed"] and "1" not in report["cells"]
+    monkeypatch.setattr(pipeline, "train_tile", trained)
+    assert main(args(survey, out, "--tile-size", "3", "--jobs", "1")) == 0  # tried again: all four
+    assert "from 4 tiles" in capsys.readouterr().err
+    monkeypatch.setattr(pipeline, "train_tile", lambda job: one_fails(replace_folder(job)))
+    (out / "dem.tif").unlink()
+    assert main(args(survey, out, "--tile-size", "3", "--jobs", "1")) == 2
+    assert "every tile failed" in capsys.readouterr().err
+
+
+def replace_folder(job):  # the job as tile 1's: its training fails
+    from dataclasses import replace
+
+    return replace(job, folder=job.folder.rsplit("/", 1)[0] + "/1")

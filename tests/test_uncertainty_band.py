@@ -142,7 +142,8 @@ def test_a_tiled_survey_merges_the_band_with_the_heights(evaluable_dataset, tmp_
     # the merge of `ragsplat survey`'s tiles (pipeline._merge), two tiles with x = 1 between their cores
     cfg = pipeline.SurveyConfig(images=tmp_path, out=tmp_path / "run", resolution=0.05)
     shutil.copytree(evaluable_dataset, cfg.out / "tiles" / "0" / "data")  # the first tile's frame
-    plan = tiles.plan([0, 0], [2, 1], np.zeros((0, 4)), [], 1.0, 0.25)
+    boxes = np.array([[0.0, 0.0, 1.0, 1.0], [1.0, 0.0, 2.0, 1.0]])  # a photo over each half
+    plan = tiles.plan([0, 0], [2, 1], boxes, ["a", "b"], 1.0, 0.25, min_photos=1)
     xs = np.arange(-10, 50) * 0.05
     cells = [(x, y) for x in xs for y in (0.45, 0.5, 0.55)]  # three rows (the PNG's hillshade needs two)
     left = np.array([(x, y, -0.5, 0.02) for x, y in cells if x < 1.25 + 1e-9])

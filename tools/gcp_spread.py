@@ -1,6 +1,7 @@
 """The spread of the figures tests/test_survey.py's ground-control test bounds: the synthetic survey written
 with each noise seed, then `ragsplat survey` with ground control only (structure from motion included) on
-1 and 2 threads; prints a JSON line per run (the median camera centre and rotation errors, the largest and
+1 and 2 threads (`survey.pipeline.run` with the test's settings); prints a JSON line per run (the median
+camera centre and rotation errors, the largest and
 rms target residual). `--targets-at-feet`: the targets' heights surveyed as 0, a wrong survey the bounds
 must fail.
 
@@ -8,8 +9,6 @@ must fail.
 """
 
 import argparse
-import contextlib
-import io
 import json
 import sys
 import tempfile
@@ -29,10 +28,9 @@ def main() -> None:
     args = parser.parse_args()
 
     import torch
-    from test_survey import gcp_args, write_survey
+    from test_survey import write_survey
 
-    from ragsplat.cli.main import main as ragsplat
-    from ragsplat.survey import sfm
+    from ragsplat.survey import pipeline, sfm
     from tools.poses import pose_errors
 
     defaults = list(sfm.reconstruct.__defaults__)  # camera_model, threads, ...
@@ -44,12 +42,14 @@ def main() -> None:
                 torch.set_num_threads(threads)
                 out = root / f"run{threads}"
                 t0 = time.perf_counter()
-                with contextlib.redirect_stderr(io.StringIO()):
-                    rc = ragsplat(gcp_args(root, out))
+                # the test's `gcp_args`: ground control only, the level 0, a pinhole, up to the water
+                pipeline.run(pipeline.SurveyConfig(
+                    images=root / "images", out=out, gcp=root / "gcp.csv", gcp_pixels=root / "gcp_pixels.csv",
+                    water_level=0.0, preset="smoke", lens="pinhole", stop_after="water"))
                 water = json.loads((out / "water.json").read_text())
                 res = np.array(list(water["gcp_residual_m"].values()))
                 poses = pose_errors(out / "model", root / "truth")
-                print(json.dumps({"seed": seed, "threads": threads, "rc": rc,
+                print(json.dumps({"seed": seed, "threads": threads,
                                   "centre_median_m": poses["centre_m"]["median"],
                                   "rotation_median_deg": poses["rotation_deg"]["median"],
                                   "residual_max_m": float(np.abs(res).max()),

@@ -39,7 +39,7 @@ def level_or_auto(text: str) -> float | str:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ragsplat.rasterize_surfels import DEPTHS
-    from ragsplat.survey.exif import CONSUMER_SIGMA
+    from ragsplat.survey.exif import BAROMETER_SIGMA, CONSUMER_SIGMA
     from ragsplat.survey.pipeline import STAGES, TILE_GSD
     from ragsplat.train.config import INIT, PRESETS, VARIANTS
     from ragsplat.train.defaults import JOBS, SURVEY_VARIANTS, survey_variant
@@ -92,6 +92,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         metavar=("H", "V"),
                         help="accuracy of positions from the photos without RTK fix (consumer GPS), "
                              "horizontal and vertical (m; default %(default)s)")
+    parser.add_argument("--barometer-sigma", type=positive_float, default=BAROMETER_SIGMA, metavar="M",
+                        help="accuracy of those photos' heights where they come from the drone's barometer "
+                             "(DJI RelativeAltitude, above the take-off point) (m; default %(default)s)")
     parser.add_argument("--variant", choices=list(VARIANTS),
                         help=f"(default: the preset's best, {survey_variant('small')}; "
                              + "; ".join(f"with --preset {p} {v}" for p, v in SURVEY_VARIANTS.items()) + ")")

@@ -5,6 +5,7 @@ positions, or ground control points), robust to a few wrong correspondences. num
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -75,3 +76,16 @@ def levelling(water) -> Similarity:
 
     Q, p0 = (t.numpy() for t in plane_frame(water, torch.zeros((), dtype=torch.float64)))
     return Similarity(1.0, Q, p0 - Q @ p0)
+
+
+def tilt_allowed(xy: np.ndarray, sigma_z: np.ndarray, k: float = 3.0) -> float:
+    """The largest tilt (a slope, rise over run) that heights of accuracy `sigma_z` [N] (m) at horizontal
+    positions `xy` [N, 2] leave undetermined: k standard deviations of the steepest slope of the plane
+    fitted to them by weighted least squares, sqrt of the largest eigenvalue of its slopes' covariance
+    (sum of w (xy - mean)(xy - mean)^T)^-1, w = 1 / sigma_z^2. Inf for positions on a line."""
+    w = 1.0 / np.asarray(sigma_z, float) ** 2
+    xy = np.asarray(xy, float)
+    d = xy - (w[:, None] * xy).sum(0) / w.sum()
+    normal = (w[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0)  # [2, 2]
+    smallest = float(np.linalg.eigvalsh(normal)[0])
+    return k / math.sqrt(smallest) if smallest > 1e-12 * max(float(np.trace(normal)), 1e-300) else math.inf

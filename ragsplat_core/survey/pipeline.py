@@ -35,7 +35,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ragsplat.survey.exif import CONSUMER_SIGMA
+from ragsplat.survey.exif import BAROMETER_SIGMA, CONSUMER_SIGMA
 from ragsplat.train.config import INIT
 
 if TYPE_CHECKING:
@@ -82,6 +82,10 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 # view from both.
 TILE_GSD = 1500
 TILE_OVERLAP = 0.1
+# Without --tile-size, a survey of at most this many photos is one tile whatever ground it covers: one worker
+# trains the long reach's tiles of 213 photos, and tiles cut by ground alone cut a 40 m high flight's 18
+# photos into tiles of one or two.
+ONE_TILE_PHOTOS = 200
 # 3DGS scales the position rate and the densification's sizes by the cameras' extent, which grows with a
 # tile's length (55-57 m on the long reach's two tiles). A survey trains at most at the scale the `long`
 # preset was chosen at: its development stretch's 19.82 m at 4.654 cm, 426 ground sample distances
@@ -110,6 +114,7 @@ class SurveyConfig:
     no_water_adjustment: bool = False
     rtk_sigma: tuple[float, float] | None = None
     gps_sigma: tuple[float, float] = CONSUMER_SIGMA
+    barometer_sigma: float = BAROMETER_SIGMA
     variant: str | None = None  # None: the preset's (`train.defaults.survey_variant`)
     init: str = INIT
     preset: str = "small"
@@ -153,10 +158,16 @@ class Progress:
 
 
 class _Silent(contextlib.nullcontext):
+    def __enter__(self):  # the bar itself, as tqdm's
+        return self
+
     def update(self, n: int = 1) -> None:
         pass
 
     def set_postfix(self, *args, **kwargs) -> None:
+        pass
+
+    def refresh(self) -> None:
         pass
 
     def close(self) -> None:
@@ -187,6 +198,13 @@ class Stamps:
             return
         self.keys = {**{s: k for s, k in self.keys.items() if STAGES.index(s) < STAGES.index(stage)},
                      stage: key}
+        write_json(self.path, self.keys)
+
+    def clear(self, stage: str) -> None:
+        """Records `stage` and every later one as not made (a rerun makes them again)."""
+        from ragsplat.outputs import write_json
+
+        self.keys = {s: k for s, k in self.keys.items() if STAGES.index(s) < STAGES.index(stage)}
         write_json(self.path, self.keys)
 
 
@@ -233,6 +251,12 @@ class Positions:
     def rtk_fixed(self) -> int:
         """How many photos' GPS is RTK fixed (positions from the photos)."""
         return sum(p.rtk_fixed for p in self.tagged)
+
+    @property
+    def holds_tilt(self) -> bool:
+        """Whether the positions fix the frame's tilt: given, ground control, RTK, or heights from the
+        barometer; consumer GPS heights alone (metres from photo to photo) do not."""
+        return self.tagged is None or any(p.rtk_fixed or p.barometric for p in self.tagged)
 
 
 @dataclass(frozen=True)
@@ -397,13 +421,17 @@ def locate(cfg: SurveyConfig, photos: list[Path], progress: Progress) -> tuple[S
         tagged = exif.read_photos(photos)
         positions, crs = exif.positions(tagged, cfg.crs)
         cfg = replace(cfg, crs=cfg.crs or exif.crs_label(crs))
-        sigma = dict(zip(names, exif.sigmas(tagged, cfg.rtk_sigma, tuple(cfg.gps_sigma))))
+        sigma = dict(zip(names, exif.sigmas(tagged, cfg.rtk_sigma, tuple(cfg.gps_sigma),
+                                            cfg.barometer_sigma)))
         control, known, source = None, positions, cfg.images
         fixed = sum(p.rtk_fixed for p in tagged)
-        heights = sorted({p.altitude_source for p in tagged})
+        baro = sum(p.barometric for p in tagged)
+        heights = sorted({p.altitude_source for p in tagged if not p.barometric})
+        said = ([f"{baro} from the barometer (DJI RelativeAltitude, to {cfg.barometer_sigma:g} m)"] if baro
+                else []) + ([f"as the photos give them ({', '.join(heights)})"] if heights else [])
         progress.say("check", f"positions from the photos: {len(tagged)} of {len(photos)} have GPS "
                      f"({fixed} RTK fixed, {len(tagged) - fixed} consumer GPS), in {exif.describe_crs(crs)}; "
-                     f"heights as the photos give them ({', '.join(heights)})")
+                     f"heights {', '.join(said)}")
     else:
         if cfg.gcp_pixels is None:
             raise ConfigError("--gcp needs --gcp-pixels (where each target is in the photos)")
@@ -467,7 +495,7 @@ def structure_from_motion(survey: Survey, stamps: Stamps, progress: Progress) ->
     from ragsplat.survey import sfm
 
     cfg, photos, names, positions = survey.cfg, survey.photos, survey.names, survey.where.positions
-    key = _digest({p.name: layout.file_digest(p) for p in photos}, sfm.CAMERA_MODEL)
+    key = _digest({p.name: layout.file_digest(p) for p in photos}, sfm.CAMERA_MODEL, sfm.FEATURE_MAX_SIZE)
     work = cfg.out / "sfm"
     t0 = time.perf_counter()
     if not stamps.done("sfm", key, work / "model"):
@@ -560,7 +588,7 @@ def _camera_pairs(survey: Survey, trk: Tracks) -> Correspondences:
     what = (f"{len(have)} positions from the photos ({int(rtk.sum())} RTK fixed, {int((~rtk).sum())} "
             "consumer GPS)")
     noise = _noise_model(where.tagged, where.sigma, labels)
-    return Correspondences(src, dst, labels, what, 10 * ours[:, 1], noise, have, rtk)
+    return Correspondences(src, dst, labels, what, 10 * ours.max(1), noise, have, rtk)
 
 
 def _control_pairs(survey: Survey, rec, trk: Tracks) -> Correspondences:
@@ -730,7 +758,8 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
                     step) -> tuple[Bundle, WaterSurface, dict]:
     """(the adjustment, the water (local frame), water.json's account of it) with the level free, started
     among the model's points; where the positions fix no tilt (consumer GPS) the slope too, and then the
-    frame levelled by the water's plane."""
+    frame levelled by the water's plane, unless that plane tilts more than the positions' heights leave open
+    (`georef.tilt_allowed`): then the level alone, the frame as the positions hold it."""
     import math
 
     import torch
@@ -741,9 +770,8 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
 
     cfg, trk, origin, P = survey.cfg, geo.tracks, survey.origin, problem.points
     start = water_fit.start_level(P[: len(trk.points)].numpy())
-    # positions that fix no tilt (consumer GPS): the water's slope too, then the frame levelled by it
-    free = ("level", "slope") if survey.where.tagged is not None and not survey.where.rtk_fixed \
-        else ("level",)
+    # positions that fix no tilt (consumer GPS heights): the water's slope too, then the frame levelled by it
+    free = ("level",) if survey.where.holds_tilt else ("level", "slope")
     adj = bundle.adjust(problem.R, problem.C, trk.intrinsics, P, problem.point, problem.image, problem.pixels,
                         WaterSurface(start, cfg.n), free=free + lens, tol=LEVEL_TOL, on_iteration=step,
                         **problem.held)
@@ -753,9 +781,20 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
 
     estimated = {"free": list(free), "start_m": start + origin[2], "sigma_m": of_water(adj.sigma),
                  "sigma_given_cameras_m": of_water(adj.sigma_given_cameras),
-                 "frame": "consumer GPS (metres)" if "slope" in free else "held by the positions"}
+                 "frame": "consumer GPS (metres)" if "slope" in free else _frame_holder(survey.where)}
     water = adj.water
-    if water.tilted:
+    if water.tilted:  # the frame levelled by the water's plane, unless the positions' heights forbid the turn
+        known = ~torch.isnan(problem.held["prior_C"][:, 0])
+        allowed = georef.tilt_allowed(problem.held["prior_C"][known, :2].numpy(),
+                                      problem.held["prior_sigma"][known, 2].numpy())
+        if math.hypot(*water.slope) > allowed:
+            estimated["slope_refused"] = {"slope": list(water.slope), "allowed": allowed}
+            adj = bundle.adjust(problem.R, problem.C, trk.intrinsics, P, problem.point, problem.image,
+                                problem.pixels, WaterSurface(start, cfg.n), free=("level",) + lens,
+                                tol=LEVEL_TOL, on_iteration=step, **problem.held)
+            estimated.update(free=["level"], sigma_m=of_water(adj.sigma),
+                             sigma_given_cameras_m=of_water(adj.sigma_given_cameras))
+            return adj, adj.water, estimated
         level = georef.levelling(water)
         adj = replace(adj, R=adj.R @ torch.as_tensor(level.R.T), C=torch.as_tensor(level.apply(adj.C)),
                       points=torch.as_tensor(level.apply(adj.points)))
@@ -763,6 +802,13 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
         estimated["slope_before_levelling"] = list(water.slope)
         water = WaterSurface(water.level, cfg.n)
     return adj, water, estimated
+
+
+def _frame_holder(where: Positions) -> str:
+    """What holds the frame's tilt, in words (the positions hold it)."""
+    if where.tagged is not None and not where.rtk_fixed:
+        return "held by the barometer's heights (decimetres)"
+    return "held by the positions"
 
 
 def _water_report(survey: Survey, fit: Adjusted) -> dict:
@@ -795,6 +841,8 @@ def _water_report(survey: Survey, fit: Adjusted) -> dict:
 
 def _say_water(progress: Progress, surface: WaterSurface, check: dict, t0: float) -> None:
     """Stage 3's lines: the estimated level and its uncertainty, the points around the surface, the fit."""
+    import math
+
     if "estimated" in check:  # in a frame held only to metres, its uncertainty relative to the model matters
         est = check["estimated"]
         sigma = est["sigma_given_cameras_m" if "slope" in est["free"] else "sigma_m"]["level"]
@@ -805,6 +853,12 @@ def _say_water(progress: Progress, surface: WaterSurface, check: dict, t0: float
                      + ")"
                      + ("" if "levelled_deg" not in est else
                         f"; the frame levelled by the water's plane, {est['levelled_deg']:.2f} degrees")
+                     + ("" if "slope_refused" not in est else
+                        "; not levelled by the water's plane, tilted "
+                        f"{math.degrees(math.atan(math.hypot(*est['slope_refused']['slope']))):.2f} degrees, "
+                        "more than the positions' heights leave open ("
+                        f"{math.degrees(math.atan(est['slope_refused']['allowed'])):.2f}): give photos with "
+                        "the drone's barometric heights, ground control or --water-surface EDGE.csv")
                      + ("" if sigma <= LEVEL_WARN else "; poorly determined (a flat bed, little depth "
                         "variation or no oblique views hide it): measure it and give --water-level, or "
                         "--water-surface EDGE.csv"))
@@ -919,14 +973,20 @@ def train_tiles(cfg: SurveyConfig, water: Water, tiling: list[Tile], size: float
     progress.say("tiles", f"{len(tiling)} tiles of at most {size:.1f} m, overlapping by {overlap:.1f} m, of "
                  f"{', '.join(str(len(t.photos)) for t in tiling)} photos ...")
     beds = _tile_beds(cfg, progress, cluster, water.model, water.surface, tiling, key, band)
-    merged = _merge(cfg, water.surface, tiling, beds, products)
-    runs = [json.loads((cfg.out / "tiles" / str(t.index) / "tile.json").read_text()) for t in tiling]
+    made = [k for k, bed in enumerate(beds) if not isinstance(bed, str)]
+    merged = _merge(cfg, water.surface, [tiling[k] for k in made], [beds[k] for k in made], products)
+    runs = [{"failed": bed} if isinstance(bed, str) else
+            json.loads((cfg.out / "tiles" / str(t.index) / "tile.json").read_text())
+            for t, bed in zip(tiling, beds)]
     write_json(cfg.out / "tiles.json", {**merged,
                                         "tiles": [t.to_json() | {"run": r} for t, r in zip(tiling, runs)],
                                         "seconds": time.perf_counter() - t0})
-    stamps.mark("export", done_key)
+    if len(made) == len(tiling):
+        stamps.mark("export", done_key)
+    else:  # a rerun tries the tiles left out again
+        stamps.clear("export")
     progress.say("export", f"{sum(merged['cells'].values())} cells of {cfg.resolution:g} m from "
-                 f"{len(tiling)} tiles; the overlaps agree to {_seams(merged)} (each tile's: "
+                 f"{len(made)} tiles; the overlaps agree to {_seams(merged)} (each tile's: "
                  f"{cfg.out / 'tiles.json'})", t0)
 
 
@@ -942,7 +1002,8 @@ def _seams(merged: dict) -> str:
 def _tiles(cfg: SurveyConfig, model: Path, surface, lo, hi) -> tuple[list, float, float]:
     """(the survey's tiles (`survey.tiles.plan`) over the model's points' box [lo, hi] (CRS, m), from the
     cameras' footprints on the water, their side, their overlap): the side `cfg.tile_size` or `TILE_GSD`
-    ground sample distances (the median camera's height above the water over its focal length)."""
+    ground sample distances (the median camera's height above the water over its focal length); without
+    `cfg.tile_size`, one tile for at most `ONE_TILE_PHOTOS` photos."""
     import numpy as np
     import pycolmap
 
@@ -954,6 +1015,8 @@ def _tiles(cfg: SurveyConfig, model: Path, surface, lo, hi) -> tuple[list, float
     gsd = float(np.median(-surface.depth(C)) / np.median(K[:, 0]))
     size = cfg.tile_size or TILE_GSD * gsd
     overlap = TILE_OVERLAP * size if cfg.tile_overlap is None else cfg.tile_overlap
+    if cfg.tile_size is None and len(names) <= ONE_TILE_PHOTOS:
+        size = max(size, float(np.max(np.asarray(hi) - np.asarray(lo))))
     return tiles.plan(lo, hi, tiles.footprints(R, C, K, sizes, surface), names, size, overlap), size, overlap
 
 
@@ -1038,7 +1101,9 @@ def _tile_beds(cfg: SurveyConfig, progress: Progress, cluster, model: Path, surf
                band: dict | None = None) -> list:
     """Every tile's bed [G_t, 3] (CRS; [G_t, 4] with `band`, the TVU95 fourth): the tiles' models written
     here, then `train_tile` for each, as Dask tasks on the client `cluster(len(tiling))` opens, or one after
-    another here without one."""
+    another here without one. A tile whose training fails is left out with a line (its bed: the error, in
+    words; its core's cells come from its neighbours' overlap where they reach); OutputError when every tile
+    fails."""
     import numpy as np
     import pycolmap
 
@@ -1058,11 +1123,21 @@ def _tile_beds(cfg: SurveyConfig, progress: Progress, cluster, model: Path, surf
             rec.write_text(str(_fresh(sub)))
             (sub / "key.txt").write_text(key)
         jobs.append(TileJob(cfg, str(folder), layout.water_json(surface), tile.outer, key, band))
-    beds = [None] * len(jobs)
+    beds: list = [None] * len(jobs)
+
+    def failed(k: int, err: BaseException) -> None:
+        beds[k] = f"{type(err).__name__}: {err}"
+        progress.say("tiles", f"tile {k} ({len(tiling[k].photos)} photos) left out: {beds[k]} (log: "
+                     f"{cfg.out / 'tiles' / str(k) / 'log.txt'}); its neighbours' overlap fills what it "
+                     "reaches, a rerun tries it again")
+
     with progress.bar(len(jobs), "[tiles] trained", "tile") as b:
         if cluster is None:
             for k, job in enumerate(jobs):
-                beds[k] = np.load(train_tile(job))
+                try:
+                    beds[k] = np.load(train_tile(job))
+                except Exception as err:  # noqa: BLE001 (whatever a tile's structure or training raises)
+                    failed(k, err)
                 b.update(1)
         else:
             from dask.distributed import as_completed
@@ -1073,12 +1148,14 @@ def _tile_beds(cfg: SurveyConfig, progress: Progress, cluster, model: Path, surf
                 for future in as_completed(futures):
                     k = futures[future]
                     if future.status != "finished":
-                        err = future.exception()
-                        raise OutputError(f"tile {k} failed: {type(err).__name__}: {err} (log: "
-                                          f"{cfg.out / 'tiles' / str(k) / 'log.txt'}); finished tiles are "
-                                          "kept, rerun to resume")
-                    beds[k] = np.load(future.result())
+                        failed(k, future.exception())
+                    else:
+                        beds[k] = np.load(future.result())
                     b.update(1)
+    if all(isinstance(bed, str) for bed in beds):
+        log = cfg.out / "tiles" / "0" / "log.txt"
+        raise OutputError(f"every tile failed, tile 0 with {beds[0]} (log: {log}); give --tile-size larger "
+                          "than the survey to train it as one tile")
     return beds
 
 
@@ -1317,7 +1394,7 @@ def _merge(cfg: SurveyConfig, surface, tiling: list, beds: list, products: list[
     from ragsplat.survey import tiles
 
     grid, _, report = tiles.merge(beds, tiling, cfg.resolution)
-    georef = load_dataset(cfg.out / "tiles" / "0" / "data", splits=()).georef
+    georef = load_dataset(cfg.out / "tiles" / str(tiling[0].index) / "data", splits=()).georef
     offset = np.asarray(georef.offset)
     tvu = grid[:, 3] if grid.shape[1] > 3 else None
     bed = Bed(grid[:, :3] - offset, cfg.resolution, surface.shifted(offset), georef, tvu95=tvu)

@@ -29,6 +29,11 @@ from ragsplat.dataset.colmap import NEIGHBOURS, neighbour_pairs  # noqa: F401
 from ragsplat.errors import DatasetError
 
 CAMERA_MODEL = "SIMPLE_PINHOLE"  # one focal length, the principal point at the centre, no distortion
+# SIFT runs on each photo scaled to at most this many pixels on its longer side (OpenDroneMap's default
+# feature size), its keypoints scaled back to the photo's pixels. Uncapped, pycolmap's SIFT doubles the photo
+# first (its first octave is -1): a 12 MP drone photo then costs seconds to minutes on 2 cores
+# (docs/survey.md).
+FEATURE_MAX_SIZE = 2048
 # Every pair is matched up to this many photos (4 950 pairs, a few minutes on 2 cores); a larger survey
 # matches each photo with its NEIGHBOURS nearest by the positions (`colmap.neighbour_pairs`)
 EXHAUSTIVE_MAX = 100
@@ -54,6 +59,7 @@ def reconstruct(images: Path, names: list[str], work: Path, camera_model: str = 
     pycolmap.set_random_seed(0)
     extraction, matching = pycolmap.FeatureExtractionOptions(), pycolmap.FeatureMatchingOptions()
     extraction.num_threads = matching.num_threads = threads
+    extraction.max_image_size = FEATURE_MAX_SIZE
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
     db = work / "database.db"
