@@ -268,7 +268,7 @@ def describe_crs(crs) -> str:
 
 CONSUMER_SIGMA = (2.0, 3.0)  # a consumer drone's GPS, horizontal and vertical (m): see `sigmas`
 # A drone's barometric height along one flight, relative to its take-off (m): DJI's RelativeAltitude holds
-# decimetres (a Phantom 3's 18 photos of one 84 m flight read 39.8-40.1 m at a nominal 40 m).
+# decimetres (docs/survey.md, "A consumer drone's nadir flight").
 BAROMETER_SIGMA = 0.15
 MIN_STD = 0.005  # the smallest RTK accuracy taken from a photo's own report (m)
 

@@ -82,9 +82,9 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 # view from both.
 TILE_GSD = 1500
 TILE_OVERLAP = 0.1
-# Without --tile-size, a survey of at most this many photos is one tile whatever ground it covers: one worker
-# trains the long reach's tiles of 213 photos, and tiles cut by ground alone cut a 40 m high flight's 18
-# photos into tiles of one or two.
+# Without --tile-size, a survey of at most this many photos is one tile whatever ground it covers: about
+# what one worker trains in a `long` tile, while tiles cut by ground alone cut a high flight's few photos into
+# tiles too small to triangulate (docs/survey.md, stage 5).
 ONE_TILE_PHOTOS = 200
 # 3DGS scales the position rate and the densification's sizes by the cameras' extent, which grows with a
 # tile's length (55-57 m on the long reach's two tiles). A survey trains at most at the scale the `long`
