@@ -190,21 +190,22 @@ def write_geotags(root: Path, train, names: list[str], water, seed: int, noise: 
                 + _line_bias(len(set(lines)), seed, gps)[lines])
     consumer += scatter
     baro = np.random.default_rng([seed, _BAROMETER_STREAM]).normal(size=len(train) + 1)
-    relative = {layout.SURVEY_IMAGES_GPS: np.array([p.camera.camera_center[2] for p in train])
-                + baro[0] * gps.barometer_drift * np.linspace(0.0, 1.0, len(train))
-                + baro[1:] * gps.barometer_jitter}
+    barometer = (np.array([p.camera.camera_center[2] for p in train])
+                 + baro[0] * gps.barometer_drift * np.linspace(0.0, 1.0, len(train))
+                 + baro[1:] * gps.barometer_jitter)  # the consumer photos' heights for RelativeAltitude
     angles = gimbal_angles([p.camera for p in train], shift, crs)
     angles += np.random.default_rng([seed, _ANGLE_STREAM]).normal(size=angles.shape) * GIMBAL_NOISE_DEG
     angles[:, 0] = (angles[:, 0] + 180) % 360 - 180
     angles[:, 1] = np.clip(angles[:, 1], -90, 30)  # a gimbal's range
     rtk_tags = {"RtkFlag": exif.RTK_FIXED, "RtkStdLon": noise.horizontal, "RtkStdLat": noise.horizontal,
                 "RtkStdHgt": noise.vertical}
-    folders = [(layout.SURVEY_IMAGES, rtk, rtk_tags), (layout.SURVEY_IMAGES_GPS, consumer, {})]
-    for folder, xyz, tags in folders + ([(layout.SURVEY_IMAGES_LENS, rtk, rtk_tags)] if lens else []):
+    # (folder, positions, heights for RelativeAltitude, tags)
+    folders = [(layout.SURVEY_IMAGES, rtk, rtk[:, 2], rtk_tags),
+               (layout.SURVEY_IMAGES_GPS, consumer, barometer, {})]
+    for folder, xyz, heights, tags in folders + ([(layout.SURVEY_IMAGES_LENS, rtk, rtk[:, 2], rtk_tags)]
+                                                 if lens else []):
         geographic = exif.to_geographic(xyz + shift, crs)
-        for k, (p, name, (lat, lon, h), z, (yaw, pitch, roll)) in enumerate(zip(train, names, geographic,
-                                                                              xyz[:, 2], angles)):
-            z = relative[folder][k] if folder in relative else z
+        for p, name, (lat, lon, h), z, (yaw, pitch, roll) in zip(train, names, geographic, heights, angles):
             xmp = {"AbsoluteAltitude": round(h, 3), "RelativeAltitude": round(z - record["takeoff_z"], 3),
                    "GimbalRollDegree": round(roll, 2), "GimbalYawDegree": round(yaw, 2),
                    "GimbalPitchDegree": round(pitch, 2), "FlightRollDegree": 0.0,

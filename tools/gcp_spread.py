@@ -1,14 +1,14 @@
 """The spread of the figures tests/test_survey.py's ground-control test bounds: the synthetic survey written
 with each noise seed, then `ragsplat survey` with ground control only (structure from motion included) on
 1 and 2 threads (`survey.pipeline.run` with the test's settings); prints a JSON line per run (the median
-camera centre and rotation errors, the largest and
-rms target residual). `--targets-at-feet`: the targets' heights surveyed as 0, a wrong survey the bounds
-must fail.
+camera centre and rotation errors, the largest and rms target residual). `--targets-at-feet`: the targets'
+heights surveyed as 0, a wrong survey the bounds must fail.
 
     python -m tools.gcp_spread --seeds 0 1 2 3 4 --threads 1 2
 """
 
 import argparse
+import functools
 import json
 import sys
 import tempfile
@@ -33,12 +33,12 @@ def main() -> None:
     from ragsplat.survey import pipeline, sfm
     from tools.poses import pose_errors
 
-    defaults = list(sfm.reconstruct.__defaults__)  # camera_model, threads, ...
+    reconstruct = sfm.reconstruct  # the survey's structure from motion, on every core by default
     for seed in args.seeds:
         with tempfile.TemporaryDirectory() as tmp:
             root = write_survey(Path(tmp), seed, args.targets_at_feet)
             for threads in args.threads:
-                sfm.reconstruct.__defaults__ = (defaults[0], threads, *defaults[2:])
+                sfm.reconstruct = functools.partial(reconstruct, threads=threads)
                 torch.set_num_threads(threads)
                 out = root / f"run{threads}"
                 t0 = time.perf_counter()

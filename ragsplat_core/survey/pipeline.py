@@ -772,9 +772,13 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
     start = water_fit.start_level(P[: len(trk.points)].numpy())
     # positions that fix no tilt (consumer GPS heights): the water's slope too, then the frame levelled by it
     free = ("level",) if survey.where.holds_tilt else ("level", "slope")
-    adj = bundle.adjust(problem.R, problem.C, trk.intrinsics, P, problem.point, problem.image, problem.pixels,
-                        WaterSurface(start, cfg.n), free=free + lens, tol=LEVEL_TOL, on_iteration=step,
-                        **problem.held)
+
+    def adjusted(free: tuple[str, ...]) -> Bundle:
+        return bundle.adjust(problem.R, problem.C, trk.intrinsics, P, problem.point, problem.image,
+                             problem.pixels, WaterSurface(start, cfg.n), free=free + lens, tol=LEVEL_TOL,
+                             on_iteration=step, **problem.held)
+
+    adj = adjusted(free)
 
     def of_water(sigma):  # the water's parameters' (the lens's go to "lens")
         return {k: v for k, v in sigma.items() if k not in ("k1", "k2")}
@@ -789,9 +793,7 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
                                       problem.held["prior_sigma"][known, 2].numpy())
         if math.hypot(*water.slope) > allowed:
             estimated["slope_refused"] = {"slope": list(water.slope), "allowed": allowed}
-            adj = bundle.adjust(problem.R, problem.C, trk.intrinsics, P, problem.point, problem.image,
-                                problem.pixels, WaterSurface(start, cfg.n), free=("level",) + lens,
-                                tol=LEVEL_TOL, on_iteration=step, **problem.held)
+            adj = adjusted(("level",))
             estimated.update(free=["level"], sigma_m=of_water(adj.sigma),
                              sigma_given_cameras_m=of_water(adj.sigma_given_cameras))
             return adj, adj.water, estimated
@@ -1128,7 +1130,7 @@ def _tile_beds(cfg: SurveyConfig, progress: Progress, cluster, model: Path, surf
     def failed(k: int, err: BaseException) -> None:
         beds[k] = f"{type(err).__name__}: {err}"
         progress.say("tiles", f"tile {k} ({len(tiling[k].photos)} photos) left out: {beds[k]} (log: "
-                     f"{cfg.out / 'tiles' / str(k) / 'log.txt'}); its neighbours' overlap fills what it "
+                     f"{Path(jobs[k].folder) / 'log.txt'}); its neighbours' overlap fills what it "
                      "reaches, a rerun tries it again")
 
     with progress.bar(len(jobs), "[tiles] trained", "tile") as b:
@@ -1153,9 +1155,8 @@ def _tile_beds(cfg: SurveyConfig, progress: Progress, cluster, model: Path, surf
                         beds[k] = np.load(future.result())
                     b.update(1)
     if all(isinstance(bed, str) for bed in beds):
-        log = cfg.out / "tiles" / "0" / "log.txt"
-        raise OutputError(f"every tile failed, tile 0 with {beds[0]} (log: {log}); give --tile-size larger "
-                          "than the survey to train it as one tile")
+        raise OutputError(f"every tile failed, tile 0 with {beds[0]} (log: {Path(jobs[0].folder) / 'log.txt'}"
+                          "); give --tile-size larger than the survey to train it as one tile")
     return beds
 
 
