@@ -785,7 +785,9 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
 
     estimated = {"free": list(free), "start_m": start + origin[2], "sigma_m": of_water(adj.sigma),
                  "sigma_given_cameras_m": of_water(adj.sigma_given_cameras),
-                 "frame": "consumer GPS (metres)" if "slope" in free else _frame_holder(survey.where)}
+                 "frame": "consumer GPS (metres)" if "slope" in free else _frame_holder(survey.where),
+                 # the frame's height a consumer drone's, to metres: the level matters relative to the model
+                 "relative_level": survey.where.tagged is not None and not survey.where.rtk_fixed}
     water = adj.water
     if water.tilted:  # the frame levelled by the water's plane, unless the positions' heights forbid the turn
         known = ~torch.isnan(problem.held["prior_C"][:, 0])
@@ -804,6 +806,15 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
         estimated["slope_before_levelling"] = list(water.slope)
         water = WaterSurface(water.level, cfg.n)
     return adj, water, estimated
+
+
+def level_sigma(est: dict) -> tuple[float, bool]:
+    """(the estimated level's standard deviation that the depths feel, whether it is relative to the model)
+    from water.json's "estimated": in a frame whose height is a consumer drone's (GPS or barometer, held to
+    metres), the level's uncertainty with the cameras held; else its own. A record without
+    "relative_level" is one whose frame was consumer GPS exactly when the slope was free."""
+    relative = est.get("relative_level", "slope" in est["free"])
+    return float(est["sigma_given_cameras_m" if relative else "sigma_m"]["level"]), relative
 
 
 def _frame_holder(where: Positions) -> str:
@@ -847,10 +858,10 @@ def _say_water(progress: Progress, surface: WaterSurface, check: dict, t0: float
 
     if "estimated" in check:  # in a frame held only to metres, its uncertainty relative to the model matters
         est = check["estimated"]
-        sigma = est["sigma_given_cameras_m" if "slope" in est["free"] else "sigma_m"]["level"]
+        sigma, relative = level_sigma(est)
         progress.say("water", f"the level estimated from the photos: {surface.level:.3f} m +- "
                      f"{100 * sigma:.1f} cm (1 sigma"
-                     + ("" if "slope" not in est["free"]
+                     + ("" if not relative
                         else ", relative to the model; the frame's height is the GPS's")
                      + ")"
                      + ("" if "levelled_deg" not in est else
@@ -934,8 +945,7 @@ def uncertainty_settings(cfg: SurveyConfig) -> dict | None:
     if level is None:
         check = json.loads((cfg.out / "water.json").read_text())
         est = check.get("estimated")
-        level = 0.0 if est is None else float(
-            est["sigma_given_cameras_m" if "slope" in est["free"] else "sigma_m"]["level"])
+        level = 0.0 if est is None else level_sigma(est)[0]
     return {"model": read_uncertainty(cfg.uncertainty).to_json(), "level_sigma": level,
             "n_sigma": float(cfg.n_sigma)}
 
