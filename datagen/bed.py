@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ragsplat.datagen.spec import SceneSpec
+from ragsplat.datagen.spec import SceneSpec, ShoreSpec
 from ragsplat.dataset.layout import Surface
 
 
@@ -84,7 +84,8 @@ def make_bed(spec: SceneSpec) -> Bed:
         relief = _wave_field(rng, gx, gy, b.wavelength) * (b.undulation / 3.0)
         classes = list(b.stones)
     else:
-        relief, profile = _reach_relief(reach, gx, gy, coords, rng)  # heights above the water level
+        relief, profile = (_shore_relief(reach, b, gx, gy, coords, rng) if isinstance(reach, ShoreSpec)
+                           else _reach_relief(reach, gx, gy, coords, rng))  # heights above the water level
         classes = [reach.boulders, *b.stones]
 
     # Stones: half-ellipsoids sunk 30 % into the relief, merged by maximum; `owner` remembers the top stone.
@@ -99,10 +100,10 @@ def make_bed(spec: SceneSpec) -> Bed:
             bb = a * rng.uniform(0.55, 1.0)
             rot = rng.uniform(0, math.pi)
             h = cls.height * bb * rng.uniform(0.8, 1.2)
-            if reach is not None:  # boulders in the channel, gravel in the channel and on the bars
+            if reach is not None:  # boulders in the water, gravel in it and on the bars (the beach)
                 ground = relief[np.searchsorted(coords, cy).clip(0, m - 1),
                                 np.searchsorted(coords, cx).clip(0, m - 1)]
-                if ground >= (-0.3 if cls is reach.boulders else reach.bar_height + 0.05):
+                if ground >= (-0.3 if cls is reach.boulders else reach.gravel_top + 0.05):
                     continue
             stones.append((cx, cy, a, bb, rot, h))
     for sid, (cx, cy, a, bb, rot, h) in enumerate(stones):
@@ -144,12 +145,12 @@ def make_bed(spec: SceneSpec) -> Bed:
     speckle = _periodic_noise(rng, m, 1.0)[..., None]  # [M, M, 1] texel-scale grain
     mottle = _periodic_noise(rng, m, 0.05 / b.texel)[..., None]  # 5 cm blotches in the sand
     sand = np.array([0.38, 0.34, 0.27]) * (1 + 0.25 * mottle + 0.15 * speckle)
-    if reach is not None:  # soil and grass above the bars, reaching full cover at the bank top
+    if reach is not None:  # soil and grass above the bars (the beach), full cover at the bank top
         patches = _periodic_noise(rng, m, 0.5 / b.texel)[..., None]  # 50 cm patches of grass and soil
         green = _smoothstep(0.5 + patches)  # [M, M, 1] share of grass
         land = (green * np.array([0.10, 0.16, 0.05]) + (1 - green) * np.array([0.22, 0.17, 0.11])) \
             * (1 + 0.2 * mottle + 0.15 * speckle)
-        dry = _smoothstep((heights - spec.level - reach.bar_height) / (reach.bank_height - reach.bar_height))
+        dry = _smoothstep((heights - spec.level - reach.gravel_top) / (reach.land_top - reach.gravel_top))
         sand = (1 - dry[..., None]) * sand + dry[..., None] * land
     stone_col = palette[np.maximum(owner, 0)] * (1 + 0.2 * speckle)
     w = (owner >= 0)[..., None] * fade[..., None]
@@ -199,6 +200,29 @@ def _reach_relief(r, gx: np.ndarray, gy: np.ndarray, coords: np.ndarray, rng: np
     relief += np.where(relief > 0, land, 0.0)
     profile = heights(np.zeros_like(coords), np.zeros_like(coords), coords)
     return relief, profile
+
+
+def _shore_relief(s: ShoreSpec, b, gx: np.ndarray, gy: np.ndarray, coords: np.ndarray,
+                  rng: np.random.Generator):
+    """(heights above the water [M, M], border cross-section [M] by row) of a lake shore along x.
+
+    The waterline bends as wander * sin(2 pi x / wander_wavelength + phase) about y = shoreline. At u metres
+    beyond it (towards +y) the land rises as land_height (1 - exp(-land_slope u / land_height)); at u < 0 the
+    beach falls as depth (exp(beach_slope u / depth) - 1): the given slopes at the waterline, levelling out
+    far from it. Gentle relief (the bed's `undulation` at its `wavelength`) fades in over the first 0.3 m of
+    height either side, so that the waterline stays where the bends put it. The border cross-section is the
+    same without bends or relief.
+    """
+    phase = rng.uniform(0, 2 * math.pi)
+    relief = _wave_field(rng, gx, gy, b.wavelength) * (b.undulation / 3.0)
+
+    def heights(u: np.ndarray) -> np.ndarray:
+        land = s.land_height * (1 - np.exp(-s.land_slope * np.maximum(u, 0.0) / s.land_height))
+        return np.where(u >= 0, land, s.depth * (np.exp(s.beach_slope * np.minimum(u, 0.0) / s.depth) - 1))
+
+    line = s.shoreline + s.wander * np.sin(2 * math.pi * gx / s.wander_wavelength + phase)
+    ground = heights(gy - line)
+    return ground + relief * _smoothstep(np.abs(ground) / 0.3), heights(coords - s.shoreline)
 
 
 def _wave_field(rng: np.random.Generator, gx: np.ndarray, gy: np.ndarray, wavelength: float) -> np.ndarray:

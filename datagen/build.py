@@ -48,7 +48,7 @@ from ragsplat.datagen.job import (
     event_json,
     parse_event,
 )
-from ragsplat.datagen.spec import SceneSpec, validate
+from ragsplat.datagen.spec import CAMERAS, SceneSpec, validate
 from ragsplat.datagen.survey import LENS, lens_polynomial, write_survey
 from ragsplat.dataset import layout
 from ragsplat.errors import ConfigError, OutputError, RagsplatError
@@ -365,7 +365,9 @@ def scene_metadata(spec: SceneSpec, poses, gt: np.ndarray) -> dict:
         water=layout.water_json(spec.water),
         radiance={"refraction_color": radiance_factor(spec),
                   "model": "1/n^2 (etendue)" if radiance_factor(spec) != 1.0 else "none"},
-        flight={"footprint_m": flight.footprint(spec), "spacing_m": flight.spacing(spec),
+        flight={"footprint_m": list(flight.footprint(spec)), "spacing_m": list(flight.spacing(spec)),
+                **({"camera": CAMERAS[spec.flight.camera].record(spec.flight.width)} if spec.flight.camera
+                   else {}),
                 "gsd_m": flight.gsd(spec), "nadir_views_at_eval_corners": int(
                     flight.nadir_views_covering(spec, corners).min()),
                 "train_views": sum(p.split == "train" for p in poses),
@@ -540,8 +542,8 @@ def stretch(spec: SceneSpec, out: Path, core: tuple[float, float], margin: float
             progress: Callable[[dict], None] | None = None) -> Path:
     """A stretch of a reach as its own small dataset, for development work that cannot wait for the whole
     reach (the `long` reach renders in over an hour; a stretch of it in minutes): the wet pass of the
-    training views whose camera centre lies within `margin` (default: half a nadir footprint) of the core
-    x-range `core` (m), rendered into `out`'s own paths (a later `generate` renders only the rest), and
+    training views whose camera centre lies within `margin` (default: half a nadir footprint along x) of the
+    core x-range `core` (m), rendered into `out`'s own paths (a later `generate` renders only the rest), and
     out/stretch_X0_X1/ holding those views (transforms.json), their survey (survey/, as `generate` writes it,
     the edge points along the flown x-range), and the ground truth cut to the core (gt/, scene.json: scored
     by `ragsplat score --truth`, at the whole reach's maximum depth). Resumes. Returns the stretch's
@@ -554,7 +556,7 @@ def stretch(spec: SceneSpec, out: Path, core: tuple[float, float], margin: float
     if not region["xmin"] <= x0 < x1 <= region["xmax"]:
         raise ConfigError(f"the core x {x0:g} to {x1:g} m must lie inside the evaluated region's x "
                           f"{region['xmin']:.2f} to {region['xmax']:.2f} m")
-    margin = flight.footprint(spec) / 2 if margin is None else margin
+    margin = flight.footprint(spec)[0] / 2 if margin is None else margin
     out = Path(out)
     _prepare_out(spec, out)
     _write_bed_assets(spec, out)

@@ -58,6 +58,47 @@ class ReachSpec:
     bar_width: float = 2.0  # width of an exposed point bar at a bend (m)
     boulders: StoneClass = StoneClass(0.4, 0.06, 0.55)  # in the channel only
 
+    @property
+    def gravel_top(self) -> float:
+        """Height above the water (m) up to which gravel lies and the ground is the bed's: the bars'."""
+        return self.bar_height
+
+    @property
+    def land_top(self) -> float:
+        """Height above the water (m) from which the ground is soil and grass: the banks' top."""
+        return self.bank_height
+
+
+@dataclass(frozen=True)
+class ShoreSpec:
+    """A lake shore along x: dry land towards +y rising from the waterline to `land_height`, and towards -y a
+    beach that slopes into the water and levels out on the lake's floor `depth` below it. The waterline
+    bends about y = `shoreline` along x. Boulders lie in the water; the bed's gravel classes cover the
+    floor, the beach and the sand above the water. Heights are relative to the water level. It takes a
+    reach's place in `SceneSpec.reach` (both are ground with dry land beside the water)."""
+
+    depth: float = 1.5  # the lake's floor below the water (m)
+    beach_slope: float = 0.1  # the submerged beach's slope at the waterline (dz / dy), levelling to the floor
+    land_slope: float = 0.06  # the dry beach's rise at the waterline (dz / dy), levelling to land_height
+    land_height: float = 1.2  # the land beyond the beach above the water (m)
+    sand_height: float = 0.3  # sand and gravel above the water up to this height (m); soil and grass above
+    shoreline: float = 0.0  # y of the waterline's mean (m)
+    wander: float = 2.0  # amplitude (m) of the waterline's bends along x
+    wander_wavelength: float = 40.0  # length (m) of one bend and back
+    boulders: StoneClass = StoneClass(0.5, 0.02, 0.55)  # in the water only
+
+    @property
+    def max_depth(self) -> float:
+        return self.depth
+
+    @property
+    def gravel_top(self) -> float:
+        return self.sand_height
+
+    @property
+    def land_top(self) -> float:
+        return self.land_height
+
 
 @dataclass(frozen=True)
 class WaterSpec:
@@ -82,21 +123,66 @@ class WaterSpec:
 
 
 @dataclass(frozen=True)
+class CameraModel:
+    """A drone camera's optics: a mapping preset's photos take its field of view and aspect, rendered at
+    fewer pixels (the ground sample distance grows with the ratio of the widths)."""
+
+    name: str
+    focal_mm: float
+    sensor_mm: tuple[float, float]  # width, height
+    pixels: tuple[int, int]  # the photos' width, height
+
+    @property
+    def fov_deg(self) -> float:
+        """Horizontal field of view (degrees)."""
+        return math.degrees(2 * math.atan(self.sensor_mm[0] / 2 / self.focal_mm))
+
+    def record(self, width: int) -> dict:
+        """scene.json's account of photos rendered `width` pixels wide with this camera's optics."""
+        return {"name": self.name, "focal_mm": self.focal_mm, "sensor_mm": list(self.sensor_mm),
+                "pixels": list(self.pixels), "fov_deg": self.fov_deg, "rendered_width": width,
+                "gsd_scale": self.pixels[0] / width,
+                "meaning": "the camera's field of view and aspect at fewer pixels: the ground sample "
+                           "distance is gsd_scale times the real camera's at the same altitude"}
+
+
+# The consumer drones' cameras a mapping preset stands for (FlightSpec.camera names one).
+CAMERAS = {"FC300S": CameraModel("DJI FC300S (Phantom 3 Professional)", 3.61, (6.17, 4.55), (4000, 3000))}
+
+
+@dataclass(frozen=True)
 class FlightSpec:
-    width: int = 800  # image width = height (px): square images
-    fov_deg: float = 70.0  # horizontal field of view
+    width: int = 800  # image width (px)
+    fov_deg: float = 70.0  # horizontal field of view (along the image's width)
     altitude: float = 12.0  # flight height above the water level (m)
-    overlap: float = 0.85  # forward and side overlap of the nadir grid, on the bed
+    # overlap of neighbouring nadirs along each row (x; `mapping`: along each flight line, the forward one),
+    # on the bed; and between the rows (y; `mapping`: between the lines, the side one), 0: the same
+    overlap: float = 0.85
+    side_overlap: float = 0.0
     grid: tuple[int, int] = (4, 4)  # nadir rows (along y) x columns (along x)
+    height: int = 0  # image height (px); 0: square images
+    camera: str = ""  # a consumer camera of `CAMERAS` whose field of view and aspect these are; "": none
     tilts: tuple[float, ...] = (20.0, 40.0)  # obliques: optical axis angle from the vertical (deg)
     azimuth_step: float = 10.0  # training azimuth step on each ring (at each station) (deg)
     test_azimuth_offset: float = 5.0  # held-out obliques sit between training azimuths
     # held-out ring views every this many degrees (strips: from station to station)
     test_azimuth_step: float = 60.0
     # Obliques: "rings" about the scene centre, or "strips": at `stations` points along the reach's axis
-    # (y = 0), from the first nadir column to the last, as a survey of a long reach flies them.
+    # (y = 0), from the first nadir column to the last, as a survey of a long reach flies them. "mapping":
+    # the nadir lawnmower a planning app flies (DJI Pilot, Pix4Dcapture): each row a flight line along x,
+    # flown back and forth, the image's top ahead and its width across the line; its obliques (`tilts`; a
+    # mapping preset has none) are taken from the same grid points, tilted towards each azimuth.
     pattern: str = "rings"
     stations: int = 0  # strips only
+
+    @property
+    def image_height(self) -> int:
+        return self.height or self.width
+
+    @property
+    def side(self) -> float:
+        """The overlap between the grid's rows (the side overlap)."""
+        return self.side_overlap or self.overlap
 
 
 @dataclass(frozen=True)
@@ -151,7 +237,7 @@ class FieldConditions:
 
 # Fields added after datasets were made, written to spec.json only away from their defaults: the older
 # datasets' spec.json, and so their fingerprints, stay as they were.
-_LATER = {"flight": ("pattern", "stations"), "render": ("lens",)}
+_LATER = {"flight": ("pattern", "stations", "side_overlap", "height", "camera"), "render": ("lens",)}
 
 
 @dataclass(frozen=True)
@@ -159,7 +245,8 @@ class SceneSpec:
     preset: str
     seed: int = 0
     bed: BedSpec = field(default_factory=BedSpec)
-    reach: ReachSpec | None = None  # None: the paper's gravel bed, flat on average at bed.depth
+    # None: the paper's gravel bed, flat on average at bed.depth; a river reach or a lake shore
+    reach: ReachSpec | ShoreSpec | None = None
     water: WaterSpec | None = field(default_factory=WaterSpec)
     flight: FlightSpec = field(default_factory=FlightSpec)
     light: LightSpec = field(default_factory=LightSpec)
@@ -197,7 +284,8 @@ class SceneSpec:
         flight["tilts"] = tuple(flight["tilts"])
         reach = d.get("reach")
         if reach is not None:
-            reach = ReachSpec(**{**reach, "boulders": StoneClass(**reach["boulders"])})
+            kind = ShoreSpec if "beach_slope" in reach else ReachSpec
+            reach = kind(**{**reach, "boulders": StoneClass(**reach["boulders"])})
         return cls(preset=d["preset"], seed=int(d["seed"]), bed=BedSpec(**bed), reach=reach,
                    water=None if d["water"] is None else WaterSpec(**{
                        k: tuple(v) if isinstance(v, list) else v for k, v in d["water"].items()}),
@@ -301,6 +389,40 @@ PRESETS["smoke-long"] = with_slope(replace(
 ), 0.003)
 
 
+# The flight people fly (issue 79's): a planning app's nadir lawnmower at 80 % forward and 70 % side
+# overlap with a DJI Phantom 3's camera (FC300S: 81 degrees across its 4:3 photos), rendered 1200 x 900 px
+# (the real 4000 x 3000's field of view, the ground sample distance 3.3 times as coarse), no obliques.
+# `lake-mapping`: a lake shore 40 m below the drone, 21 photos in three lines: a beach sloping into water that
+# levels out 1.5 m deep, boulders in it. `river-mapping`: the `long` reach's river, 20 photos in two lines
+# 30 m up. Their `smoke-` twins: the same kind of flight at CI scale, photos large enough for structure from
+# motion (320 x 240 px). None renders the lens photos.
+MAPPING = FlightSpec(width=1200, height=900, fov_deg=CAMERAS["FC300S"].fov_deg, altitude=40.0, overlap=0.8,
+                     side_overlap=0.7, grid=(3, 7), tilts=(), pattern="mapping", camera="FC300S")
+LAKE_GRAVEL = (StoneClass(0.25, 1.0, 0.5), StoneClass(0.12, 4.0, 0.55))
+PRESETS["lake-mapping"] = SceneSpec(
+    preset="lake-mapping",
+    bed=BedSpec(size=124.0, cell=0.08, texel=0.04, depth=1.0, undulation=0.15, wavelength=12.0, taper=3.0,
+                stones=LAKE_GRAVEL),
+    reach=ShoreSpec(shoreline=10.0),
+    flight=MAPPING,
+    render=RenderSpec(samples=24, device="CPU", lens=False),
+)
+PRESETS["river-mapping"] = replace(
+    PRESETS["long"], preset="river-mapping", flight=replace(MAPPING, altitude=30.0, grid=(2, 10)))
+PRESETS["smoke-lake-mapping"] = SceneSpec(
+    preset="smoke-lake-mapping",
+    bed=BedSpec(size=26.0, cell=0.05, texel=0.025, depth=0.5, undulation=0.1, wavelength=4.0, taper=1.0,
+                stones=PRESETS["smoke"].bed.stones),
+    reach=ShoreSpec(depth=0.8, beach_slope=0.15, land_slope=0.15, land_height=0.6, sand_height=0.2,
+                    shoreline=3.0, wander=0.8, wander_wavelength=15.0, boulders=StoneClass(0.3, 0.1, 0.55)),
+    flight=replace(MAPPING, width=320, height=240, altitude=10.0, grid=(2, 5)),
+    render=RenderSpec(samples=16, device="CPU", lens=False),
+)
+PRESETS["smoke-river-mapping"] = replace(
+    PRESETS["smoke-long"], preset="smoke-river-mapping",
+    flight=replace(MAPPING, width=320, height=240, altitude=6.0, grid=(2, 6)))
+
+
 def with_conditions(spec: SceneSpec, turbidity: float | None = None, reflection: bool | None = None,
                     ripple_amplitude: float | None = None) -> SceneSpec:
     """`spec` with these field conditions changed (None: as the spec has them). An ideal spec starts from
@@ -339,14 +461,20 @@ def validate(spec: SceneSpec) -> None:
         if b.undulation + max((s.radius * s.height for s in b.stones), default=0.0) >= b.depth:
             raise SpecError("bed relief reaches the water surface: reduce undulation/stones or increase "
                             "depth")
+    elif isinstance(spec.reach, ShoreSpec):
+        _validate_shore(spec)
     else:
         _validate_reach(spec)
-    if not (0.0 < f.overlap < 1.0):
-        raise SpecError(f"overlap must be in (0, 1), got {f.overlap} (zero overlap leaves nothing to match)")
+    if not (0.0 < f.overlap < 1.0 and 0.0 <= f.side_overlap < 1.0):
+        raise SpecError(f"overlap must be in (0, 1), got {f.overlap} forward and {f.side_overlap} side (0: "
+                        "the forward one); zero overlap leaves nothing to match")
     if not (0.0 < f.fov_deg < 180.0):
         raise SpecError(f"field of view must be in (0, 180) degrees, got {f.fov_deg}")
-    if f.width < 8:
-        raise SpecError(f"image width must be at least 8 px, got {f.width}")
+    if min(f.width, f.image_height) < 8 or f.height < 0:
+        raise SpecError(f"image width and height must be at least 8 px, got {f.width} x {f.height} "
+                        "(0: square)")
+    if f.camera:
+        _validate_camera(f)
     if min(f.grid) < 1:
         raise SpecError(f"nadir grid must have at least 1 x 1 views, got {f.grid}")
     if any(not (0.0 < t < 90.0 - f.fov_deg / 2) for t in f.tilts):
@@ -354,9 +482,9 @@ def validate(spec: SceneSpec) -> None:
                         "the horizon")
     if not (0.0 < f.azimuth_step <= 360.0 and 0.0 < f.test_azimuth_step <= 360.0):
         raise SpecError("azimuth steps must be in (0, 360] degrees")
-    if f.pattern not in ("rings", "strips"):
-        raise SpecError(f"flight pattern must be 'rings' or 'strips', got {f.pattern!r}")
-    if f.pattern == "rings" and f.stations != 0 or f.pattern == "strips" and min(f.stations, f.grid[1]) < 2:
+    if f.pattern not in ("rings", "strips", "mapping"):
+        raise SpecError(f"flight pattern must be 'rings', 'strips' or 'mapping', got {f.pattern!r}")
+    if f.pattern != "strips" and f.stations != 0 or f.pattern == "strips" and min(f.stations, f.grid[1]) < 2:
         raise SpecError("oblique stations belong to the strips pattern, which needs at least 2 of them and "
                         f"2 nadir columns: got {f.stations} stations and {f.grid[1]} columns for {f.pattern}")
     if b.texel <= 0 or b.cell <= 0 or abs(b.cell / b.texel - round(b.cell / b.texel)) > 1e-9:
@@ -403,6 +531,30 @@ def _validate_conditions(spec: SceneSpec) -> None:
                         f"({shortest} m): with fewer vertices per wave the mesh facets it")
     if c.targets and (spec.reach is None or c.target_size <= 0):
         raise SpecError("ground control targets need a reach with banks, and a positive target size")
+
+
+def _validate_camera(f: FlightSpec) -> None:
+    model = CAMERAS.get(f.camera)
+    if model is None:
+        raise SpecError(f"unknown camera {f.camera!r}; choose one of {', '.join(CAMERAS)}")
+    w, h = model.pixels
+    if abs(f.fov_deg - model.fov_deg) > 1e-6 or abs(f.image_height * w / h - f.width) > 1:
+        raise SpecError(f"the {f.camera}'s photos are {w} x {h} px with a {model.fov_deg:.2f} deg field of "
+                        f"view: {f.width} x {f.image_height} px at {f.fov_deg:g} deg is not that camera's at "
+                        "fewer pixels")
+
+
+def _validate_shore(spec: SceneSpec) -> None:
+    s, b = spec.reach, spec.bed
+    if not all(v > 0 for v in (s.depth, s.beach_slope, s.land_slope, s.land_height, s.wander_wavelength)):
+        raise SpecError("shore depth, beach_slope, land_slope, land_height and wander_wavelength must be > 0")
+    if not (0 <= s.sand_height < s.land_height and s.wander >= 0):
+        raise SpecError("a shore needs 0 <= sand_height < land_height and wander >= 0")
+    if abs(s.shoreline) + s.wander >= b.size / 2 - b.taper:
+        raise SpecError(f"the shoreline (y {s.shoreline:g} m, bending {s.wander:g} m) does not lie in the "
+                        f"{b.size} m bed minus its {b.taper} m border")
+    if not 0 < b.depth <= s.depth:
+        raise SpecError(f"bed.depth {b.depth} m (the flight plan's reference) must be in (0, depth]")
 
 
 def _validate_reach(spec: SceneSpec) -> None:

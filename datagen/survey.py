@@ -4,7 +4,7 @@ focal length in EXIF (`survey/images/`), the camera centres as an RTK drone reco
 a geographic origin of the scene, `GeoOrigin`; the same photos again in `survey/images-gps/` with a consumer
 drone's GPS instead: a bias per flight line and scatter, metres, no RTK flag; and in `survey/images-lens/`
 the photos the renderer took through a lens with radial distortion, `LENS`), the water level as measured at
-the edge, with noise (`survey/water_level.txt`), points on the water's edge along both banks as a surveyor
+the edge, with noise (`survey/water_level.txt`), points on the water's edge along each bank as a surveyor
 measures them with RTK (`survey/water_edge.csv`, header x,y,z, with noise on z) and ground control on the
 banks with the targets' pixels (`survey/gcp.csv`, `survey/gcp_pixels.csv`). On a sloping surface
 water_level.txt holds one level at the mean of the edge points' heights: what a tool that takes one flat water
@@ -296,14 +296,17 @@ def edge_count(length: float) -> int:
 
 
 def edge_points(lines: list[np.ndarray], xmin: float, xmax: float, count: int = EDGE_POINTS) -> np.ndarray:
-    """[2 count, 2] points on the water's edge, `count` along each bank: the banks are the two waterline
-    polylines [K, >= 2] that run farthest along x (the others ring bars and boulders); each is cut to its
-    longest stretch within xmin..xmax and the vertices nearest `count` even steps along it are taken (the
-    polylines' vertices lie exactly on the waterline, on the mesh's edges)."""
+    """[B count, 2] points on the water's edge, `count` along each bank: the banks are the (at most two)
+    waterline polylines [K, >= 2] that run along x at least half as far as the farthest (a river's two, a
+    lake shore's one; the others ring bars and boulders); each is cut to its longest stretch within
+    xmin..xmax and the vertices nearest `count` even steps along it are taken (the polylines' vertices lie
+    exactly on the waterline, on the mesh's edges)."""
     lines = [np.asarray(line, np.float64)[:, :2] for line in lines]
-    banks = sorted(lines, key=lambda line: -np.ptp(line[:, 0]))[:2]
-    if len(banks) < 2:
-        raise ValueError(f"the waterline has {len(banks)} polylines, not two banks")
+    if not lines:
+        raise ValueError("the waterline has no polyline: no bank")
+    longest = max(np.ptp(line[:, 0]) for line in lines)
+    banks = [line for line in sorted(lines, key=lambda line: -np.ptp(line[:, 0]))[:2]
+             if np.ptp(line[:, 0]) >= longest / 2]
     banks.sort(key=lambda line: line[:, 1].mean())  # the -y bank first
     out = []
     for line in banks:

@@ -388,7 +388,7 @@ def test_a_stretch_is_a_small_dataset_that_the_whole_one_resumes_from(tmp_path, 
     assert main([*argv, "--stretch", "-2", "2"]) == 0
     root = out / "stretch_-2_2"
     spec = preset("smoke-long")
-    half = flight.footprint(spec) / 2
+    half = flight.footprint(spec)[0] / 2
     near = [p.name for p in flight.plan(spec)
             if p.split == "train" and -2 - half <= p.camera.camera_center[0] <= 2 + half]
     assert 0 < len(near) < 72
