@@ -10,8 +10,9 @@ export GOMP_SPINCOUNT ?= 2000
 endif
 PRESET ?= small
 # The training preset of a dataset preset: small-bed -> small, paper-reach -> paper, smoke-long -> smoke;
-# small-field and long have their own.
-TRAIN_PRESET ?= $(if $(filter small-field,$(PRESET)),small-field,$(firstword $(subst -, ,$(PRESET))))
+# small-field and long have their own; the mapping flights' photos of a few cm a pixel train with long's.
+TRAIN_PRESET ?= $(if $(filter small-field,$(PRESET)),small-field,$(if $(filter lake-mapping river-mapping,\
+	$(PRESET)),long,$(firstword $(subst -, ,$(PRESET)))))
 SEED ?= 0
 # The ablation's training seeds (e.g. SEEDS="0 1"), variants (VARIANTS="3dgs full"), start (INIT=grid |
 # triangulated | refracted), processes (JOBS=1) and training device (DEVICE=cuda | cpu): empty means

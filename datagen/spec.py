@@ -395,7 +395,7 @@ PRESETS["smoke-long"] = with_slope(replace(
 # `lake-mapping`: a lake shore 40 m below the drone, 21 photos in three lines: a beach sloping into water that
 # levels out 1.5 m deep, boulders in it. `river-mapping`: the `long` reach's river, 20 photos in two lines
 # 30 m up. Their `smoke-` twins: the same kind of flight at CI scale, photos large enough for structure from
-# motion (320 x 240 px). None renders the lens photos.
+# motion (240 x 180 px). None renders the lens photos.
 MAPPING = FlightSpec(width=1200, height=900, fov_deg=CAMERAS["FC300S"].fov_deg, altitude=40.0, overlap=0.8,
                      side_overlap=0.7, grid=(3, 7), tilts=(), pattern="mapping", camera="FC300S")
 LAKE_GRAVEL = (StoneClass(0.25, 1.0, 0.5), StoneClass(0.12, 4.0, 0.55))
@@ -415,12 +415,12 @@ PRESETS["smoke-lake-mapping"] = SceneSpec(
                 stones=PRESETS["smoke"].bed.stones),
     reach=ShoreSpec(depth=0.8, beach_slope=0.15, land_slope=0.15, land_height=0.6, sand_height=0.2,
                     shoreline=3.0, wander=0.8, wander_wavelength=15.0, boulders=StoneClass(0.3, 0.1, 0.55)),
-    flight=replace(MAPPING, width=320, height=240, altitude=10.0, grid=(2, 5)),
+    flight=replace(MAPPING, width=240, height=180, altitude=10.0, grid=(2, 5)),
     render=RenderSpec(samples=16, device="CPU", lens=False),
 )
 PRESETS["smoke-river-mapping"] = replace(
     PRESETS["smoke-long"], preset="smoke-river-mapping",
-    flight=replace(MAPPING, width=320, height=240, altitude=6.0, grid=(2, 6)))
+    flight=replace(MAPPING, width=240, height=180, altitude=6.0, grid=(2, 6)))
 
 
 def with_conditions(spec: SceneSpec, turbidity: float | None = None, reflection: bool | None = None,

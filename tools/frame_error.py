@@ -1,0 +1,71 @@
+"""How well a survey's frame and water level came out against the synthetic truth, as a consumer-GPS survey
+is judged: its cameras (RUN/model, after the adjustment through the water) fitted to the true ones by a
+similarity, whose tilt (degrees), scale error and remaining centre error say what the positions left wrong;
+and the estimated level (RUN/water.json) carried through that similarity against the true surface, the
+error that the depths take. The absolute offset of a consumer GPS frame (metres) is left out: it moves the
+bed and the water alike.
+
+    python -m tools.frame_error RUN DATA          # DATA: the dataset (or its stretch) the photos came from
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """(s, R, t) minimising |s R src + t - dst|^2 over points [N, 3] (Umeyama)."""
+    ms, md = src.mean(0), dst.mean(0)
+    a, b = src - ms, dst - md
+    u, d, vt = np.linalg.svd(b.T @ a / len(src))
+    e = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    R = u @ e @ vt
+    s = float(np.trace(np.diag(d) @ e) / (a**2).sum(1).mean())
+    return s, R, md - s * R @ ms
+
+
+def frame_error(run: Path, truth: Path) -> dict:
+    import pycolmap
+
+    from ragsplat.dataset.load import load_dataset
+    from ragsplat.eval.bed_file import survey_geotags
+
+    views = load_dataset(truth, splits=("train",), load_dry=False)
+    cams = {Path(v.file_path).stem: v.camera for v in views.train}
+    rec = pycolmap.Reconstruction(str(run / "model"))
+    geotags = survey_geotags(truth)
+    offset = np.asarray(geotags.offset) if geotags is not None else np.zeros(3)
+    names = [rec.images[i].name for i in rec.reg_image_ids() if Path(rec.images[i].name).stem in cams]
+    model = np.array([rec.images[i].projection_center() for i in rec.reg_image_ids()
+                      if Path(rec.images[i].name).stem in cams]) - offset
+    true = np.array([cams[Path(n).stem].camera_center for n in names])
+    s, R, t = similarity(model, true)
+    fitted = s * model @ R.T + t
+    tilt = float(np.degrees(np.arccos(np.clip(R[2, 2], -1, 1))))
+    water = json.loads((run / "water.json").read_text())["surface"]
+    level = float(water["level"]) - offset[2]
+    centre = np.array([*model[:, :2].mean(0), level])  # the level under the flight's middle
+    scene = json.loads((truth / "scene.json").read_text())
+    w = scene["water"]
+    at = s * R @ centre + t
+    true_level = w["level"] + sum(k * v for k, v in zip(w.get("slope", [0, 0]), at[:2]))
+    return {"photos": len(names), "tilt_deg": tilt, "scale_error": s - 1.0,
+            "centre_rms_after_similarity_m": float(np.sqrt(((fitted - true) ** 2).sum(1).mean())),
+            "centre_median_m": float(np.median(np.linalg.norm(model - true, axis=1))),
+            "level_error_m": float(at[2] - true_level)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run", type=Path)
+    parser.add_argument("data", type=Path)
+    args = parser.parse_args()
+    print(json.dumps(frame_error(args.run, args.data), indent=1))
+
+
+if __name__ == "__main__":
+    main()
