@@ -40,7 +40,7 @@ def level_or_auto(text: str) -> float | str:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ragsplat.rasterize_surfels import DEPTHS
     from ragsplat.survey.exif import BAROMETER_SIGMA, CONSUMER_SIGMA
-    from ragsplat.survey.pipeline import STAGES, TILE_GSD
+    from ragsplat.survey.pipeline import COARSE_GSD, STAGES, TILE_GSD
     from ragsplat.train.config import INIT, PRESETS, VARIANTS
     from ragsplat.train.defaults import JOBS, SURVEY_VARIANTS, survey_variant
 
@@ -101,11 +101,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--init", default=INIT, choices=["triangulated", "refracted"],
                         help=f"(default: {INIT})")
     parser.add_argument("--preset", default="small", choices=list(PRESETS),
-                        help="training preset (small; long for river-scale photos of a few cm a pixel)")
+                        help="training preset (small; long for river-scale photos of a few cm a pixel, whose "
+                             "surfels' centre z the default takes for them)")
     parser.add_argument("--iterations", type=positive_int, help="override the preset's iteration count")
     parser.add_argument("--surfel-depth", choices=DEPTHS,
-                        help="a surfel sample's z in training: where the pixel's ray meets it (ray, the "
-                             "preset's) or its centre's (centre, as gsplat does on a GPU)")
+                        help="a surfel sample's z in training: where the pixel's ray meets it (ray) or its "
+                             "centre's (centre, as gsplat does on a GPU); default: the preset's, the "
+                             f"centre's for photos coarser than {100 * COARSE_GSD:g} cm a pixel")
     parser.add_argument("--seed", type=count, default=0, help="training seed (default 0)")
     parser.add_argument("--resolution", type=positive_float, default=0.05, metavar="M",
                         help="DEM cell (0.05 m)")

@@ -60,9 +60,10 @@ PRODUCTS = ("dem.tif", "bed.laz", "depth.png")
 # a smaller survey keeps the preset's budget. MAX_GAUSSIANS bounds memory (about 1 kB each while training).
 GAUSSIANS_PER_GSD2 = 0.17
 MAX_GAUSSIANS = 3_000_000
-# Photos coarser than this (m a pixel), trained with the surfels' ray z, are told of the `long` preset: the
-# geometric mean of `small`'s 2.33 cm, where the ray's z is right, and the long reach's 4.65 cm, where the
-# centre's z was 8.5 points ahead at 1 % of depth (tuning/small.json and long.json, "surfel_depth").
+# Photos coarser than this (m a pixel) train with the surfels' centre z where neither --surfel-depth nor the
+# preset chose it (the `long` preset's choice): the geometric mean of `small`'s 2.33 cm, where the ray's z is
+# right, and the long reach's 4.65 cm, where the centre's z was 8.5 points ahead at 1 % of depth
+# (tuning/small.json and long.json, "surfel_depth"). A consumer drone's mapping flight is such a survey.
 COARSE_GSD = 0.033
 IMAGE_MEMORY = 0.4  # the training's images (uint8) may take this share of the machine's memory
 # With the level free, points that cross it as it moves make the cost slightly rough: on `small` (seed 7) it
@@ -1366,7 +1367,12 @@ def _train(cfg: SurveyConfig, progress: Progress, model: Path, data: Path, out: 
     ds = load_dataset(done.root, splits=("train",), load_dry=False)
     if area is None:
         area = seen_area(done.root)
-    given = (cfg.preset, cfg.variant, cfg.seed, cfg.init, cfg.iterations, cfg.surfel_depth)
+    depth = cfg.surfel_depth
+    base = train_config(cfg.preset, cfg.variant, cfg.seed, cfg.init, cfg.iterations, depth)
+    coarse = depth is None and ds.gsd > COARSE_GSD and base.surfels and base.surfel_depth == "ray"
+    if coarse:
+        depth = "centre"
+    given = (cfg.preset, cfg.variant, cfg.seed, cfg.init, cfg.iterations, depth)
     preset_cap = train_config(*given).densify.max_gaussians
     budget = min(max(round(GAUSSIANS_PER_GSD2 * area / ds.gsd**2), preset_cap), MAX_GAUSSIANS)
     extent = ds.camera_extent()
@@ -1377,9 +1383,9 @@ def _train(cfg: SurveyConfig, progress: Progress, model: Path, data: Path, out: 
                  f"{100 * ds.gsd:.2f} cm ({GAUSSIANS_PER_GSD2} per GSD^2, at least the {cfg.preset} "
                  f"preset's, at most {MAX_GAUSSIANS}); scene scale "
                  f"{train.scene_scale or extent:.1f} m{capped}")
-    if ds.gsd > COARSE_GSD and train.surfels and train.surfel_depth == "ray":
-        progress.say("train", f"photos of {100 * ds.gsd:.1f} cm a pixel: river-scale photos train better "
-                     "with --preset long (the surfels' centre z; docs/performance.md)")
+    if coarse:
+        progress.say("train", f"photos of {100 * ds.gsd:.1f} cm a pixel: trained with the surfels' centre z, "
+                     "as the long preset does (river-scale photos; --surfel-depth ray for the ray's)")
     t0 = time.perf_counter()
     trainer = Trainer(train, ds, out)  # the start (the refracted tracks: triangulated once, cached in `data`)
     if trainer.step >= train.iterations:
