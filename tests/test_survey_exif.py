@@ -548,3 +548,17 @@ def test_a_large_survey_matches_neighbours_not_every_pair(geotagged, tmp_path, c
     assert 18 * 8 / 2 <= timings["pairs"] < 18 * 17 / 2
     assert "18 of 18 photos registered" in err
     assert (out / "sfm" / "pairs.txt").read_text().count("\n") == timings["pairs"]
+
+
+def test_coarse_photos_train_with_the_surfels_centre_z_unless_told():
+    """A consumer drone's mapping flight (5.8 cm a pixel at 40 m with the benchmark's FC300S photos) trains
+    as the long preset does; `small`'s 2.3 cm keep the preset's ray z; --surfel-depth and a preset's own
+    choice stand; a variant without surfels is left alone."""
+    from ragsplat.survey.pipeline import COARSE_GSD, surfel_depth_for
+
+    assert surfel_depth_for("small", "2dgs+full", None, 0.058) == "centre"
+    assert surfel_depth_for("small", "2dgs+full", None, 0.023) is None
+    assert surfel_depth_for("small", "2dgs+full", None, COARSE_GSD) is None  # coarser than, not at
+    assert surfel_depth_for("small", "2dgs+full", "ray", 0.058) == "ray"
+    assert surfel_depth_for("long", "2dgs+full", None, 0.058) is None  # its own centre's z
+    assert surfel_depth_for("small", "3dgs", None, 0.058) is None

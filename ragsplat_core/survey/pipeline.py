@@ -1318,6 +1318,17 @@ def train_config(preset: str, variant: str, seed: int, init: str, iterations: in
     return replace(train, densify=replace(train.densify, max_gaussians=budget))
 
 
+def surfel_depth_for(preset: str, variant: str, given: str | None, gsd: float) -> str | None:
+    """The surfel depth a survey trains with: `given` (--surfel-depth) where given; else the centre's z for
+    photos coarser than `COARSE_GSD` (m a pixel) where the preset takes the ray's for a surfel variant; else
+    None (the preset's)."""
+    from ragsplat.train import preset_config
+
+    train = preset_config(preset, variant=variant)
+    coarse = given is None and gsd > COARSE_GSD and train.surfels and train.surfel_depth == "ray"
+    return "centre" if coarse else given
+
+
 def points_box(points):
     """[2, 2] the (lo, hi) corners in x, y of points [P, >=2]: their 1 and 99 %, so that a few stray points
     do not stretch it. The survey's extent (`water.json`'s extent_m) and a tile's area (`seen_area`)."""
@@ -1367,11 +1378,8 @@ def _train(cfg: SurveyConfig, progress: Progress, model: Path, data: Path, out: 
     ds = load_dataset(done.root, splits=("train",), load_dry=False)
     if area is None:
         area = seen_area(done.root)
-    depth = cfg.surfel_depth
-    base = train_config(cfg.preset, cfg.variant, cfg.seed, cfg.init, cfg.iterations, depth)
-    coarse = depth is None and ds.gsd > COARSE_GSD and base.surfels and base.surfel_depth == "ray"
-    if coarse:
-        depth = "centre"
+    depth = surfel_depth_for(cfg.preset, cfg.variant, cfg.surfel_depth, ds.gsd)
+    coarse = depth != cfg.surfel_depth
     given = (cfg.preset, cfg.variant, cfg.seed, cfg.init, cfg.iterations, depth)
     preset_cap = train_config(*given).densify.max_gaussians
     budget = min(max(round(GAUSSIANS_PER_GSD2 * area / ds.gsd**2), preset_cap), MAX_GAUSSIANS)
