@@ -17,22 +17,12 @@ from pathlib import Path
 import numpy as np
 
 
-def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """(s, R, t) minimising |s R src + t - dst|^2 over points [N, 3] (Umeyama)."""
-    ms, md = src.mean(0), dst.mean(0)
-    a, b = src - ms, dst - md
-    u, d, vt = np.linalg.svd(b.T @ a / len(src))
-    e = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    R = u @ e @ vt
-    s = float(np.trace(np.diag(d) @ e) / (a**2).sum(1).mean())
-    return s, R, md - s * R @ ms
-
-
 def frame_error(run: Path, truth: Path) -> dict:
     import pycolmap
 
     from ragsplat.dataset.load import load_dataset
     from ragsplat.eval.bed_file import survey_geotags
+    from ragsplat.survey.georef import fit_similarity
 
     views = load_dataset(truth, splits=("train",), load_dry=False)
     cams = {Path(v.file_path).stem: v.camera for v in views.train}
@@ -43,17 +33,17 @@ def frame_error(run: Path, truth: Path) -> dict:
     model = np.array([rec.images[i].projection_center() for i in rec.reg_image_ids()
                       if Path(rec.images[i].name).stem in cams]) - offset
     true = np.array([cams[Path(n).stem].camera_center for n in names])
-    s, R, t = similarity(model, true)
-    fitted = s * model @ R.T + t
-    tilt = float(np.degrees(np.arccos(np.clip(R[2, 2], -1, 1))))
+    fit = fit_similarity(model, true)
+    fitted = fit.apply(model)
+    tilt = float(np.degrees(np.arccos(np.clip(fit.R[2, 2], -1, 1))))
     water = json.loads((run / "water.json").read_text())["surface"]
     level = float(water["level"]) - offset[2]
     centre = np.array([*model[:, :2].mean(0), level])  # the level under the flight's middle
     scene = json.loads((truth / "scene.json").read_text())
     w = scene["water"]
-    at = s * R @ centre + t
+    at = fit.apply(centre[None])[0]
     true_level = w["level"] + sum(k * v for k, v in zip(w.get("slope", [0, 0]), at[:2]))
-    return {"photos": len(names), "tilt_deg": tilt, "scale_error": s - 1.0,
+    return {"photos": len(names), "tilt_deg": tilt, "scale_error": fit.scale - 1.0,
             "centre_rms_after_similarity_m": float(np.sqrt(((fitted - true) ** 2).sum(1).mean())),
             "centre_median_m": float(np.median(np.linalg.norm(model - true, axis=1))),
             "level_error_m": float(at[2] - true_level)}
