@@ -366,6 +366,11 @@ def with_slope(spec: SceneSpec, fall: float, name: str | None = None) -> SceneSp
 PRESETS["small-slope"] = with_slope(PRESETS["small"], 0.01, "small-slope")
 PRESETS["smoke-slope"] = with_slope(PRESETS["smoke"], 0.01, "smoke-slope")
 
+# `small` flown as its nadir grid alone (the 15 photos without the 72 obliques, the same reach and nadirs):
+# what the obliques buy a surveyor.
+PRESETS["small-nadir"] = replace(PRESETS["small"], preset="small-nadir",
+                                 flight=replace(PRESETS["small"].flight, tilts=()))
+
 # River scale (issue 49): `long`, a reach of 110 m (evaluated; the bed 120 m) falling 0.3 %, 10 m wide with a
 # pool every 20 m, flown as a survey flies it: 12 m above the water, 384 px (4.4 cm a pixel at the water,
 # 4.8 cm on the bed 1.5 m down), three nadir strips along it and obliques at 27 stations along its axis

@@ -1,10 +1,11 @@
-"""The water surface from the edge points a surveyor measures (`survey.water.fit_edge`)."""
+"""The water surface from the edge points a surveyor measures (`survey.water.fit_edge`), and its level from
+the shoreline in a pinhole model's points (`survey.water.shoreline_level`)."""
 
 import numpy as np
 import pytest
 
 from ragsplat.errors import DatasetError
-from ragsplat.survey.water import fit_edge, profile
+from ragsplat.survey.water import fit_edge, profile, shoreline_level
 
 
 def banks(slope=(-0.01, 0.0), level=100.0, noise=0.01, count=15, seed=0, length=40.0, width=7.0):
@@ -79,3 +80,68 @@ def test_a_riffle_is_a_profile_and_a_plane_stays_a_plane():
     plane = WaterSurface(fit.level, 1.33, fit.slope)
     assert np.abs(plane.height(xs) - truth).max() > 0.02
     assert fit_edge(banks()).kind == "plane"  # a straight fall stays a plane
+
+
+def shore(level=0.3, slope=0.15, raised=1.33, noise=0.02, count=6000, seed=2):
+    """A pinhole model's points over a lake shore: a beach rising in y (wavy along x) into dry land, a flat
+    floor 1 m down, the ground under water raised to `level` + depth / `raised`, plus SfM noise."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-20, 20, (count, 2))
+    z = np.maximum(-0.1 + slope * xy[:, 1] + 0.1 * np.sin(xy[:, 0] / 6), -1.0)
+    return np.column_stack([xy, np.where(z < level, level + (z - level) / raised, z) + rng.normal(0, noise,
+                                                                                                   count)])
+
+
+@pytest.mark.parametrize("raised", [1.33, 1.5, 1.65])
+def test_the_shoreline_gives_the_level_where_the_ground_bends(raised):
+    # oblique rays raise the ground more than nadir's 1 / n: the bend still starts at the level
+    found = shoreline_level(shore(raised=raised), 1.33, 0.15, 0.4)
+    assert found is not None and found.straddling >= 300
+    assert abs(found.level - 0.3) < 0.035 and abs(found.level - 0.3) < 4 * found.sigma + 0.005
+    assert found.sigma < 0.02
+
+
+def test_a_gentle_beach_in_noise_gives_an_honest_spread():
+    found = shoreline_level(shore(slope=0.05), 1.33, 0.15, 0.4)
+    assert found is None or found.sigma > 0.05  # never a sure level from a bend the noise hides
+
+
+@pytest.mark.parametrize("kind", ["flat bed", "dry slope"])
+def test_ground_that_does_not_bend_at_the_water_gives_no_shoreline(kind):
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-20, 20, (6000, 2))
+    z = np.full(6000, -0.5) if kind == "flat bed" else 0.15 * xy[:, 1]
+    found = shoreline_level(np.column_stack([xy, z + rng.normal(0, 0.02, 6000)]), 1.33, 0.3, 0.4)
+    assert found is None or found.sigma > 0.05
+
+
+def test_a_poorly_determined_level_is_taken_from_a_surer_shoreline():
+    from types import SimpleNamespace
+
+    from ragsplat.refraction import WaterSurface
+    from ragsplat.survey.pipeline import LEVEL_WARN, _by_shoreline, level_sigma
+
+    points = shore()
+    calls = []
+
+    def adjusted(free, level):
+        calls.append((free, level))
+        return SimpleNamespace(water=WaterSurface(level, 1.33))
+
+    def estimate(sigma):
+        return {"free": ["level"], "relative_level": False, "sigma_m": {"level": sigma},
+                "sigma_given_cameras_m": {"level": sigma}}
+
+    sure = estimate(0.005)
+    adj = SimpleNamespace(water=WaterSurface(0.2, 1.33))
+    assert _by_shoreline(points, 1.33, adj, sure, adjusted)[1].level == 0.2 and not calls
+    assert "shoreline" not in sure  # a determined level is not looked for at the shore
+    poor = estimate(0.1)
+    _, water, est = _by_shoreline(points, 1.33, adj, poor, adjusted)
+    assert calls == [((), water.level)] and abs(water.level - 0.3) < 0.035
+    assert est["by"] == "shoreline" and est["adjustment"] == {"level": 0.2, "sigma_m": 0.1}
+    assert level_sigma(est)[0] == est["shoreline"]["sigma_m"] < LEVEL_WARN
+    flat = np.column_stack([points[:, :2], np.full(len(points), -0.5)])
+    calls.clear()
+    kept = _by_shoreline(flat, 1.33, adj, estimate(0.1), adjusted)
+    assert kept[1].level == 0.2 and not calls and kept[2]["shoreline"] is None

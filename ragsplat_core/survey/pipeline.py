@@ -73,6 +73,8 @@ LEVEL_TOL = 1e-7
 # (a synthetic survey of 18 photos from 4 m) the level could move 0.5 m for 0.2 % of the cost while its
 # linearised uncertainty read 6.6 cm; on `small`, with banks and pools, it read 0.44 cm and was 0.3 cm off.
 LEVEL_WARN = 0.02
+# Such a level is looked for at the shoreline within 3 of its sigmas, at least this far (m).
+SHORE_SPAN = 0.2
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 # A tile's side in ground sample distances. Every tile trains the preset's steps however many photos it holds,
 # so the tiles' count sets the training's time: 1 500 makes the long reach's 110 m two tiles of 213 photos,
@@ -774,9 +776,9 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
     # positions that fix no tilt (consumer GPS heights): the water's slope too, then the frame levelled by it
     free = ("level",) if survey.where.holds_tilt else ("level", "slope")
 
-    def adjusted(free: tuple[str, ...]) -> Bundle:
+    def adjusted(free: tuple[str, ...], level: float = start) -> Bundle:
         return bundle.adjust(problem.R, problem.C, trk.intrinsics, P, problem.point, problem.image,
-                             problem.pixels, WaterSurface(start, cfg.n), free=free + lens, tol=LEVEL_TOL,
+                             problem.pixels, WaterSurface(level, cfg.n), free=free + lens, tol=LEVEL_TOL,
                              on_iteration=step, **problem.held)
 
     adj = adjusted(free)
@@ -799,14 +801,37 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
             adj = adjusted(("level",))
             estimated.update(free=["level"], sigma_m=of_water(adj.sigma),
                              sigma_given_cameras_m=of_water(adj.sigma_given_cameras))
-            return adj, adj.water, estimated
+            return _by_shoreline(P[: len(trk.points)].numpy(), cfg.n, adj, estimated, adjusted)
         level = georef.levelling(water)
         adj = replace(adj, R=adj.R @ torch.as_tensor(level.R.T), C=torch.as_tensor(level.apply(adj.C)),
                       points=torch.as_tensor(level.apply(adj.points)))
         estimated["levelled_deg"] = math.degrees(math.atan(math.hypot(*water.slope)))
         estimated["slope_before_levelling"] = list(water.slope)
         water = WaterSurface(water.level, cfg.n)
-    return adj, water, estimated
+        return adj, water, estimated
+    return _by_shoreline(P[: len(trk.points)].numpy(), cfg.n, adj, estimated, adjusted)
+
+
+def _by_shoreline(pinhole: np.ndarray, n: float, adj: Bundle, estimated: dict,
+                  adjusted) -> tuple[Bundle, WaterSurface, dict]:
+    """The adjustment's level, or, where it is poorly determined and the model's points [P, 3] (pinhole,
+    the frame held level by the positions) find the shoreline more surely (`water.shoreline_level`), the
+    adjustment again (`adjusted(free, level)`) with the level held at the shoreline's; `estimated` says
+    which."""
+    from ragsplat.survey import water as water_fit
+
+    sigma = level_sigma(estimated)[0]
+    if sigma <= LEVEL_WARN:
+        return adj, adj.water, estimated
+    shore = water_fit.shoreline_level(pinhole, n, adj.water.level, min(max(3 * sigma, SHORE_SPAN), 1.0))
+    if shore is None or shore.sigma >= sigma:
+        estimated["shoreline"] = None if shore is None else shore.report()
+        return adj, adj.water, estimated
+    from_photos = {"level": adj.water.level, "sigma_m": sigma}
+    adj = adjusted((), shore.level)
+    estimated.update(by="shoreline", shoreline=shore.report(), adjustment=from_photos,
+                     sigma_m={"level": shore.sigma}, sigma_given_cameras_m={"level": shore.sigma})
+    return adj, adj.water, estimated
 
 
 def level_sigma(est: dict) -> tuple[float, bool]:
@@ -860,8 +885,11 @@ def _say_water(progress: Progress, surface: WaterSurface, check: dict, t0: float
     if "estimated" in check:  # in a frame held only to metres, its uncertainty relative to the model matters
         est = check["estimated"]
         sigma, relative = level_sigma(est)
-        progress.say("water", f"the level estimated from the photos: {surface.level:.3f} m +- "
-                     f"{100 * sigma:.1f} cm (1 sigma"
+        shore = est.get("by") == "shoreline"
+        progress.say("water", ("the level from the shoreline, where the model's ground bends into the water "
+                               f"({est['shoreline']['straddling']} places)" if shore
+                               else "the level estimated from the photos")
+                     + f": {surface.level:.3f} m +- {100 * sigma:.1f} cm (1 sigma"
                      + ("" if not relative
                         else ", relative to the model; the frame's height is the GPS's")
                      + ")"
@@ -873,9 +901,12 @@ def _say_water(progress: Progress, surface: WaterSurface, check: dict, t0: float
                         "more than the positions' heights leave open ("
                         f"{math.degrees(math.atan(est['slope_refused']['allowed'])):.2f}): give photos with "
                         "the drone's barometric heights, ground control or --water-surface EDGE.csv")
+                     + ("" if not shore else "; through the water alone "
+                        f"{100 * est['adjustment']['sigma_m']:.1f} cm")
                      + ("" if sigma <= LEVEL_WARN else "; poorly determined (a flat bed, little depth "
-                        "variation or no oblique views hide it): measure it and give --water-level, or "
-                        "--water-surface EDGE.csv"))
+                        "variation or no oblique views hide it"
+                        + (", and no shoreline was found" if est.get("shoreline") is None else "")
+                        + "): measure it and give --water-level, or --water-surface EDGE.csv"))
     lowest = check["lowest_above_m"]
     progress.say("water", f"{check['described']}: {check['points_below']} points below it, "
                  f"{check['points_above']} above"

@@ -149,3 +149,79 @@ def start_level(points: np.ndarray) -> float:
     tenth are mostly dry ground near it; the adjustment converged from 0.8 m below and 3.7 m above on
     `small`."""
     return float(np.percentile(points[:, 2], 90))
+
+
+# The shoreline's level: each point's neighbourhood and the heights searched around the start.
+SHORE_NEIGHBOURS = 30  # a point's neighbours (horizontally) for its local plane
+SHORE_STEP = 0.002  # m between the levels tried
+SHORE_STRADDLING = 30  # neighbourhoods with points on both sides of the level: fewer find no shoreline
+SHORE_RESAMPLES = 200  # bootstrap resamples of the neighbourhoods for the level's uncertainty
+SHORE_BLOCK = 4.0  # the bootstrap's blocks, in neighbourhood radii
+
+
+@dataclass(frozen=True)
+class Shoreline:
+    """The level at which the model's points stop bending, and how sure it is."""
+
+    level: float
+    sigma: float  # the bootstrap's standard deviation of `level` (m), at least one step
+    straddling: int  # neighbourhoods with points above and below `level`
+    span: tuple[float, float]  # the heights searched
+
+    def report(self) -> dict:
+        return {"level": self.level, "sigma_m": self.sigma, "straddling": self.straddling,
+                "searched_m": list(self.span)}
+
+
+def shoreline_level(points: np.ndarray, n: float, start: float, span: float) -> Shoreline | None:
+    """The water's level from the shoreline in a pinhole model's points [P, 3] (z up, the frame level),
+    searched within `start` +- `span`; None where too few points lie across the shore to find it.
+
+    A camera that ignores refraction sees the ground under water raised: a point d below the level appears
+    about d / n below it (near nadir). So the model's ground bends where it enters the water, its slope
+    divided by n, and only the true level takes that bend out: for each level L tried, the points below L
+    are put back to L + n (z - L), and the local planes (each point with its `SHORE_NEIGHBOURS` nearest,
+    a point put back weighted 1 / n, as its noise grew n) fit best at the L the shore gives. Away from the
+    shore a wrong L shifts whole neighbourhoods alike and costs nothing, so the minimum is set by ground
+    that crosses the waterline, a beach or a bank, not by a flat bed. Oblique rays raise the ground more
+    than 1 / n; the bend still starts at the level. The uncertainty is the spread of the minimum over the
+    neighbourhoods resampled in blocks of ground (neighbouring ones share points).
+    """
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, dtype=np.float64)
+    levels = np.arange(start - span, start + span + SHORE_STEP / 2, SHORE_STEP)  # [L]
+    near = (pts[:, 2] > levels[0] - span) & (pts[:, 2] < levels[-1] + span)
+    if near.sum() <= SHORE_NEIGHBOURS:
+        return None
+    idx = cKDTree(pts[:, :2]).query(pts[near, :2], k=SHORE_NEIGHBOURS)[1]  # [Q, k], each point its own first
+    xy = pts[idx, :2] - pts[near, None, :2]
+    A = np.concatenate([np.ones(idx.shape + (1,)), xy], axis=2)  # [Q, k, 3]
+    z = pts[idx, 2]  # [Q, k]
+    cost = np.empty((len(idx), len(levels)))  # [Q, L]: each neighbourhood's squared residual at each level
+    for j, L in enumerate(levels):
+        below = z < L
+        zt = np.where(below, L + n * (z - L), z)
+        w = np.where(below, 1.0 / n, 1.0)  # residuals in the photos' terms: put back, a point's noise grows n
+        Aw = A * w[..., None]
+        c = np.linalg.solve(np.einsum("qki,qkj->qij", Aw, Aw), np.einsum("qki,qk->qi", Aw, zt * w))
+        r = w * (zt - np.einsum("qki,qi->qk", A, c))
+        cost[:, j] = np.sum(r * r, axis=1)
+    # neighbourhoods whose residual does not depend on the level (all above or below every level) say nothing
+    informative = np.ptp(cost, axis=1) > 0
+    best = int(np.argmin(cost[informative].sum(0)))
+    level = float(levels[best])
+    straddling = int(np.sum((z.min(1) < level) & (z.max(1) > level)))
+    if straddling < SHORE_STRADDLING or best in (0, len(levels) - 1):
+        return None
+    # neighbourhoods overlap, so they are resampled in blocks of ground several neighbourhoods wide
+    rows = np.flatnonzero(informative)
+    extent = np.sqrt(np.mean(np.sum(xy[rows, -1] ** 2, axis=1)))  # a neighbourhood's radius
+    cell = np.floor(pts[near][rows, :2] / (SHORE_BLOCK * max(extent, 1e-6))).astype(np.int64)
+    block = np.unique(cell, axis=0, return_inverse=True)[1].ravel()
+    per_block = np.stack([cost[rows[block == b]].sum(0) for b in range(block.max() + 1)])  # [B, L]
+    rng = np.random.default_rng(0)
+    picks = [levels[np.argmin(per_block[rng.integers(0, len(per_block), len(per_block))].sum(0))]
+             for _ in range(SHORE_RESAMPLES)]
+    return Shoreline(level, max(float(np.std(picks)), SHORE_STEP), straddling,
+                     (float(levels[0]), float(levels[-1])))
