@@ -132,6 +132,27 @@ def test_sizes_are_refused_before_any_work(survey, finished, tmp_path, capsys, m
     assert "training on them downscaled to at most" in capsys.readouterr().err
 
 
+def test_photos_finer_than_the_dem_needs_train_downscaled(survey, finished, tmp_path, capsys):
+    """Two pixels a DEM cell where that halves the pixels at least: the tests' 240 px photos of 1.92 cm (4 m
+    up, a focal of 207.8 px) for a 10 cm DEM train at 96 px; for the default 5 cm they would keep 59 % and
+    stay; a --max-size given stays."""
+    from ragsplat.survey.pipeline import dem_size
+
+    assert dem_size(4000, 0.0171, 0.05) == 2736  # a 12 MP consumer photo 40 m up: 47 % of its pixels
+    assert dem_size(240, 4 / 207.846, 0.05) is None and dem_size(256, 0.0233, 0.05) is None  # small's
+    out = tmp_path / "run"
+    reuse_sfm(finished, out)
+    assert main(args(survey, out, "--resolution", "0.1", "--stop-after", "sfm")) == 0
+    assert "for a DEM of 10 cm cells: training on them downscaled to at most 96 px" in capsys.readouterr().err
+    assert json.loads((out / "survey.json").read_text())["max_size"] == 96
+    given = tmp_path / "given"
+    reuse_sfm(finished, given)
+    assert main(args(survey, given, "--resolution", "0.1", "--max-size", "200", "--stop-after", "sfm")) == 0
+    assert "DEM of" not in capsys.readouterr().err
+    assert json.loads((given / "survey.json").read_text())["max_size"] == 200
+    assert json.loads((finished[0] / "survey.json").read_text())["max_size"] is None
+
+
 def test_too_few_photos_registered(tmp_path, capsys):
     rng = np.random.default_rng(0)
     for k in range(4):  # noise: nothing matches

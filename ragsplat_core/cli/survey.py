@@ -112,7 +112,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resolution", type=positive_float, default=0.05, metavar="M",
                         help="DEM cell (0.05 m)")
     parser.add_argument("--max-size", type=positive_int, metavar="PX",
-                        help="downscale images for training so their longer side is at most PX pixels")
+                        help="downscale images for training so their longer side is at most PX pixels "
+                             "(default: full size, or two pixels a DEM cell where that halves the pixels, or "
+                             "the largest that fits the memory)")
     parser.add_argument("--stop-after", choices=STAGES[:3], metavar="STAGE",
                         help="stop after this stage (sfm, georef or water: the poses without training)")
     parser.add_argument("--tile-size", type=positive_float, metavar="M",

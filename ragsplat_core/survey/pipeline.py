@@ -28,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import math
 import os
 import shutil
 import time
@@ -65,6 +66,12 @@ MAX_GAUSSIANS = 3_000_000
 # right, and the long reach's 4.65 cm, where the centre's z was 8.5 points ahead at 1 % of depth
 # (tuning/small.json and long.json, "surfel_depth"). A consumer drone's mapping flight is such a survey.
 COARSE_GSD = 0.033
+# Photos finer than the DEM needs train downscaled to this many pixels across a DEM cell: two samples a
+# cell resolve it, and the training's time goes with the pixels (OpenDroneMap's default dense cloud,
+# --pc-quality medium, likewise works on photos at half their size). A downscale that would keep more than
+# DEM_KEEP of the pixels is not made: it would save little time for the detail it loses.
+DEM_SAMPLES = 2
+DEM_KEEP = 0.5
 IMAGE_MEMORY = 0.4  # the training's images (uint8) may take this share of the machine's memory
 # With the level free, points that cross it as it moves make the cost slightly rough: on `small` (seed 7) it
 # settles within 0.01 mm in 6-9 iterations and then creeps on by 1e-7 relative per step, so stop at 1e-7.
@@ -393,7 +400,8 @@ def check_inputs(cfg: SurveyConfig, progress: Progress) -> Survey:
     if where.positions is not None and given.surface is not None:
         _check_above(given.surface, np.array([where.positions[n] for n in where.located]))
     sized = where.located if where.positions else where.control
-    cfg = _check_sizes(cfg, progress, photos, np.array([where.frame[n] for n in sized]), given.surface)
+    cfg = _check_sizes(cfg, progress, photos, np.array([where.frame[n] for n in sized]), given.surface,
+                       where.tagged)
     claim(cfg.out, "survey run")
     write_json(cfg.out / "survey.json",
                {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()})
@@ -763,8 +771,6 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
     among the model's points; where the positions fix no tilt (consumer GPS) the slope too, and then the
     frame levelled by the water's plane, unless that plane tilts more than the positions' heights leave open
     (`georef.tilt_allowed`): then the level alone, the frame as the positions hold it."""
-    import math
-
     import torch
 
     from ragsplat.refraction import WaterSurface
@@ -880,8 +886,6 @@ def _water_report(survey: Survey, fit: Adjusted) -> dict:
 
 def _say_water(progress: Progress, surface: WaterSurface, check: dict, t0: float) -> None:
     """Stage 3's lines: the estimated level and its uncertainty, the points around the surface, the fit."""
-    import math
-
     if "estimated" in check:  # in a frame held only to metres, its uncertainty relative to the model matters
         est = check["estimated"]
         sigma, relative = level_sigma(est)
@@ -1277,10 +1281,12 @@ def _check_above(water, centres) -> None:
                           f"{float(water.height(centres[top, :2])):g} m there)")
 
 
-def _check_sizes(cfg: SurveyConfig, progress: Progress, photos: list[Path], centres, surface) -> SurveyConfig:
+def _check_sizes(cfg: SurveyConfig, progress: Progress, photos: list[Path], centres, surface,
+                 tagged: list[PhotoPosition] | None = None) -> SurveyConfig:
     """Every size refusal before any work, each in one line with advice that works: the training's images
     must fit `IMAGE_MEMORY` of this machine's memory (without --max-size, the largest that fits is chosen,
-    said and returned in the config), and the DEM's grid over the cameras' footprints must pass
+    said and returned in the config; smaller still where the photos are finer than the DEM needs,
+    `dem_size`), and the DEM's grid over the cameras' footprints must pass
     `export.sample_count` at --resolution (the area is known only after structure from motion; here its lower
     bound: the cameras' extent, grown by each one's nadir footprint where the water level is given)."""
     import os
@@ -1297,17 +1303,31 @@ def _check_sizes(cfg: SurveyConfig, progress: Progress, photos: list[Path], cent
             sizes.append(im.size)
     sizes = np.array(sizes, dtype=np.float64)  # [N, 2] width, height
     longest = sizes.max(1)
+    asked = cfg.max_size
 
     def image_bytes(max_size):
         scale = np.minimum(1.0, max_size / longest) if max_size else 1.0
         return float((3 * np.prod(sizes, 1) * scale * scale).sum())
 
+    if cfg.max_size is None:
+        from ragsplat.survey.exif import focal_pixels
+
+        heights = [p.relative_altitude for p in tagged or () if p.relative_altitude]
+        height = (float(np.median(-surface.depth(centres))) if surface is not None
+                  else float(np.median(heights)) if heights else None)
+        focal = focal_pixels(photos[0]) if height else None
+        size = dem_size(int(longest.max()), height / focal, cfg.resolution) if focal else None
+        if size is not None:
+            cfg = replace(cfg, max_size=size)
+            progress.say("check", f"photos of about {100 * height / focal:.1f} cm a pixel for a DEM of "
+                         f"{100 * cfg.resolution:g} cm cells: training on them downscaled to at most "
+                         f"{size} px ({DEM_SAMPLES} pixels a cell; --max-size to choose)")
     budget = IMAGE_MEMORY * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     if image_bytes(cfg.max_size) > budget:
         fits = int(longest.max() * (budget / image_bytes(None)) ** 0.5) // 16 * 16  # bytes go as size^2
         while fits > 16 and image_bytes(fits) > budget:
             fits -= 16
-        if cfg.max_size is not None:
+        if asked is not None:
             raise ConfigError(f"{len(photos)} photos at --max-size {cfg.max_size} take "
                               f"{image_bytes(cfg.max_size) / 1e9:.1f} GB in training, over "
                               f"{budget / 1e9:.1f} GB ({IMAGE_MEMORY:.0%} of this machine's memory); give "
@@ -1347,6 +1367,14 @@ def train_config(preset: str, variant: str, seed: int, init: str, iterations: in
     if budget is None:
         return train
     return replace(train, densify=replace(train.densify, max_gaussians=budget))
+
+
+def dem_size(longest: int, gsd: float, resolution: float) -> int | None:
+    """The longest side (px, a multiple of 16) to train photos of `longest` px at `gsd` (m a pixel) with for
+    a DEM of `resolution` (m), `DEM_SAMPLES` pixels across a cell; None where that would keep more than
+    `DEM_KEEP` of their pixels."""
+    scale = gsd * DEM_SAMPLES / resolution
+    return None if scale * scale > DEM_KEEP else max(16, math.ceil(longest * scale / 16) * 16)
 
 
 def surfel_depth_for(preset: str, variant: str, given: str | None, gsd: float) -> str | None:
