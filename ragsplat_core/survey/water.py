@@ -156,7 +156,8 @@ SHORE_NEIGHBOURS = 30  # a point's neighbours (horizontally) for its local plane
 SHORE_STEP = 0.002  # m between the levels tried
 SHORE_STRADDLING = 30  # neighbourhoods with points on both sides of the level: fewer find no shoreline
 SHORE_RESAMPLES = 200  # bootstrap resamples of the neighbourhoods for the level's uncertainty
-SHORE_BLOCK = 4.0  # the bootstrap's blocks, in neighbourhood radii
+SHORE_BLOCK = 2.0  # the bootstrap's blocks, in neighbourhood radii
+SHORE_SIGNIFICANCE = 3.0  # the bend's gain over the ground as seen, in standard errors, to be a shoreline
 
 
 @dataclass(frozen=True)
@@ -207,21 +208,23 @@ def shoreline_level(points: np.ndarray, n: float, start: float, span: float) -> 
         c = np.linalg.solve(np.einsum("qki,qkj->qij", Aw, Aw), np.einsum("qki,qk->qi", Aw, zt * w))
         r = w * (zt - np.einsum("qki,qi->qk", A, c))
         cost[:, j] = np.sum(r * r, axis=1)
-    # neighbourhoods whose residual does not depend on the level (all above or below every level) say nothing
-    informative = np.ptp(cost, axis=1) > 0
-    best = int(np.argmin(cost[informative].sum(0)))
+    unbent = np.sum((z - np.einsum("qki,qi->qk", A, np.einsum("qik,qk->qi", np.linalg.pinv(A), z))) ** 2, 1)
+    # neighbourhoods overlap, so they are judged and resampled in blocks of ground several of them wide
+    radius = np.sqrt(np.mean(np.sum(xy[:, -1] ** 2, axis=1)))  # to a neighbourhood's farthest point
+    cell = np.floor(pts[near, :2] / (SHORE_BLOCK * max(radius, 1e-6))).astype(np.int64)
+    block = np.unique(cell, axis=0, return_inverse=True)[1].ravel()
+    per_block = np.stack([cost[block == b].sum(0) for b in range(block.max() + 1)])  # [B, L]
+    gain = np.array([unbent[block == b].sum() for b in range(len(per_block))])[:, None] - per_block  # [B, L]
+    gain = gain[np.ptp(gain, axis=1) > 1e-9 * max(float(unbent.sum()), 1e-300)]  # blocks the level touches
+    best = int(np.argmax(gain.sum(0)))
     level = float(levels[best])
     straddling = int(np.sum((z.min(1) < level) & (z.max(1) > level)))
-    if straddling < SHORE_STRADDLING or best in (0, len(levels) - 1):
+    # a bend the blocks agree on: the gain over the ground as seen, in its blocks' standard errors
+    significance = gain[:, best].sum() / max(gain[:, best].std() * np.sqrt(len(gain)), 1e-300)
+    if straddling < SHORE_STRADDLING or best in (0, len(levels) - 1) or significance < SHORE_SIGNIFICANCE:
         return None
-    # neighbourhoods overlap, so they are resampled in blocks of ground several neighbourhoods wide
-    rows = np.flatnonzero(informative)
-    extent = np.sqrt(np.mean(np.sum(xy[rows, -1] ** 2, axis=1)))  # a neighbourhood's radius
-    cell = np.floor(pts[near][rows, :2] / (SHORE_BLOCK * max(extent, 1e-6))).astype(np.int64)
-    block = np.unique(cell, axis=0, return_inverse=True)[1].ravel()
-    per_block = np.stack([cost[rows[block == b]].sum(0) for b in range(block.max() + 1)])  # [B, L]
     rng = np.random.default_rng(0)
-    picks = [levels[np.argmin(per_block[rng.integers(0, len(per_block), len(per_block))].sum(0))]
+    picks = [levels[np.argmax(gain[rng.integers(0, len(gain), len(gain))].sum(0))]
              for _ in range(SHORE_RESAMPLES)]
     return Shoreline(level, max(float(np.std(picks)), SHORE_STEP), straddling,
                      (float(levels[0]), float(levels[-1])))
