@@ -216,6 +216,8 @@ def shoreline_level(points: np.ndarray, n: float, start: float, span: float) -> 
     per_block = np.stack([cost[block == b].sum(0) for b in range(block.max() + 1)])  # [B, L]
     gain = np.array([unbent[block == b].sum() for b in range(len(per_block))])[:, None] - per_block  # [B, L]
     gain = gain[np.ptp(gain, axis=1) > 1e-9 * max(float(unbent.sum()), 1e-300)]  # blocks the level touches
+    if len(gain) < 2:
+        return None
     best = int(np.argmax(gain.sum(0)))
     level = float(levels[best])
     straddling = int(np.sum((z.min(1) < level) & (z.max(1) > level)))
