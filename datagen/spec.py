@@ -371,7 +371,7 @@ PRESETS["smoke-slope"] = with_slope(PRESETS["smoke"], 0.01, "smoke-slope")
 PRESETS["small-nadir"] = replace(PRESETS["small"], preset="small-nadir",
                                  flight=replace(PRESETS["small"].flight, tilts=()))
 
-# River scale (issue 49): `long`, a reach of 110 m (evaluated; the bed 120 m) falling 0.3 %, 10 m wide with a
+# River scale: `long`, a reach of 110 m (evaluated; the bed 120 m) falling 0.3 %, 10 m wide with a
 # pool every 20 m, flown as a survey flies it: 12 m above the water, 384 px (4.4 cm a pixel at the water,
 # 4.8 cm on the bed 1.5 m down), three nadir strips along it and obliques at 27 stations along its axis
 # looking up, down and across the river: 321 training photos, to test what a survey of a real reach asks of
@@ -394,7 +394,7 @@ PRESETS["smoke-long"] = with_slope(replace(
 ), 0.003)
 
 
-# The flight people fly (issue 79's): a planning app's nadir lawnmower at 80 % forward and 70 % side
+# The flight people fly: a planning app's nadir lawnmower at 80 % forward and 70 % side
 # overlap with a DJI Phantom 3's camera (FC300S: 81 degrees across its 4:3 photos), rendered 1200 x 900 px
 # (the real 4000 x 3000's field of view, the ground sample distance 3.3 times as coarse), no obliques.
 # `lake-mapping`: a lake shore 40 m below the drone, 21 photos in three lines: a beach sloping into water that

@@ -102,9 +102,9 @@ CODE = ("ragsplat_core", "eval")  # the sources whose digest stamps results.json
 # scoring (the references' own code joins a reference row's key; the tables are written anew every run).
 ROW_CODE = ("ragsplat_core", "eval/ablation.py", "eval/evaluate.py", "eval/metrics.py")
 # The protocol's reach seeds (dataset seeds of `small`): hyperparameters and the references' settings chosen
-# on the development reach; the evaluation reach measured after every tuning round until issue 46 (so partly a
-# validation set); the untouched reach rendered and measured once, with the presets frozen (results.json:
-# "dataset_role").
+# on the development reach; the evaluation reach measured after every tuning round until the presets were
+# frozen (so partly a validation set); the untouched reach rendered and measured once, with the presets
+# frozen (results.json: "dataset_role").
 DATASET_SEEDS = {"development": 1, "evaluation": 0, "untouched": 7}
 # The main job's defaults, here only (`ragsplat ablation` takes them; the Makefile passes nothing unless
 # told): every row starts from the refracted tracks (`INIT`, the training's own default start, shared with

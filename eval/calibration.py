@@ -1,4 +1,4 @@
-"""Is a per-cell vertical uncertainty right? The calibration figures of issue 52 on arrays: the predicted
+"""Is a per-cell vertical uncertainty right? The calibration figures on arrays: the predicted
 uncertainty of each cell (a calibrated standard deviation sigma, or TVU95 = Z95 sigma), its error e =
 predicted - true bed height, the dataset seed it came from, its true depth and how many views see it.
 

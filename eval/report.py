@@ -217,7 +217,7 @@ def t3_columns(rows: dict[str, list[dict]]) -> list:
 
 
 def table4(rows: dict[str, list[dict]], conditions: dict | None) -> str:
-    """The water's optics the rows trained (issue 50), against the scene's: the attenuation c per linear RGB
+    """The water's optics the rows trained, against the scene's: the attenuation c per linear RGB
     channel (1/m) and its ratio to the scene's extinction (absorption + scattering, scene.json's
     "conditions"), and the backscatter's veil B_inf and coefficient c_b. Empty when no row trained a term."""
     def trained(r: dict) -> bool:
@@ -246,7 +246,7 @@ def table4(rows: dict[str, list[dict]], conditions: dict | None) -> str:
              else "the scene records no water body (scene.json has no conditions)")
     title = "### Table 4: the water's optics the rows trained, against the scene's (mean ± std over seeds)"
     return (title + "\n\n"
-            + "\n".join(lines) + "\n" + _notes([where + "; c/scene 1.00 is the scene's value (the issue's "
+            + "\n".join(lines) + "\n" + _notes([where + "; c/scene 1.00 is the scene's value (the "
                                               "target: within 0.75-1.25 in every channel)."]))
 
 

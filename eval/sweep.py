@@ -1,4 +1,4 @@
-"""The turbidity sweep's report (issue 50): one reach rendered at several turbidities (the field water's
+"""The turbidity sweep's report: one reach rendered at several turbidities (the field water's
 coefficients scaled, `ragsplat dataset --turbidity T`), each level's ablation run as `ragsplat ablation` runs
 it (`ragsplat sweep` does both), then, from each level's results.json, the method's rows and the best
 reference's against the water's Secchi-like depth (`datagen.conditions.secchi_depth`, green channel, the one
@@ -22,7 +22,7 @@ from ragsplat.eval.references import NOT_IN_TABLES, REFERENCES, USES_GROUND_TRUT
 from ragsplat.eval.report import summary_text
 from ragsplat.outputs import write_bytes, write_json
 
-LEVELS = (0.0, 0.5, 1.0, 2.0, 4.0)  # the issue's turbidities (1: the `small-field` water)
+LEVELS = (0.0, 0.5, 1.0, 2.0, 4.0)  # the sweep's turbidities (1: the `small-field` water)
 GREEN = 1
 # (results.json's summary column, the sweep's key)
 COLUMNS = (("F1@1% (%)", "f1_1"), ("F1@3% (%)", "f1_3"), ("p95 (cm)", "p95_cm"), ("wet cover (%)", "cover"))

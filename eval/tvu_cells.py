@@ -1,4 +1,4 @@
-"""A finished run's bed cells with their uncertainty features and true errors (issue 52): what the TVU95 model
+"""A finished run's bed cells with their uncertainty features and true errors: what the TVU95 model
 is fitted and calibrated on (`python -m tools.fit_uncertainty`, docs/uncertainty.md).
 
 - the bed (`BEDS`): the evaluation's (`ablation.extract_config` of the run's preset and seed, on the ground

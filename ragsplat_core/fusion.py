@@ -1,6 +1,6 @@
 """The bed from rendered depth: depth maps of the training views fused into a projective TSDF (truncated
 signed distance), then read as a height grid on the ground truth's nodes and as a triangle mesh. The second
-geometry extraction beside `surface.py`'s volume sampling of the Gaussians (issue 12; the paper's field
+geometry extraction beside `surface.py`'s volume sampling of the Gaussians (the paper's field
 pipeline fuses depth the same way, with a voxel of about 3x the ground sample distance and a truncation of
 about 3 voxels).
 

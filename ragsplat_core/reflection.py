@@ -1,4 +1,4 @@
-"""The water surface's reflection of sky and sun (issue 50): a Fresnel-weighted layer over the wet pixels.
+"""The water surface's reflection of sky and sun: a Fresnel-weighted layer over the wet pixels.
 
 A camera ray meeting the water (unit direction v, the surface's upward unit normal N) splits: the share R of
 the light arriving along the mirrored direction m = v - 2 (v . N) N is reflected into the camera, the share

@@ -29,7 +29,7 @@ depends on the interface's normal alone, so the tilted transform is the flat one
 exactly: rotate the world so that the normal is +z, transform, rotate back (`plane_frame`). Gradients reach
 the slope through the rotation as they reach the level.
 
-Water absorbs along the light's path (issue 50): from P to the interface the bent ray runs L = d /
+Water absorbs along the light's path: from P to the interface the bent ray runs L = d /
 cos(theta_w) in the water. With t = r alpha = tan(theta_a), sin(theta_w) = t / (n sqrt(1 + t^2)), so
 cos(theta_w) = D / (n sqrt(1 + t^2)) and L = d n sqrt(1 + t^2) / D (`water_paths`), the solve's alpha reused;
 at n = 1 it is the straight ray's share below the level, d sqrt(1 + t^2). `refract_gaussians(attenuation=c)`

@@ -1,5 +1,5 @@
 """A per-cell vertical uncertainty of the bed at 95 % (TVU95, IHO S-44's measure) from what a finished run
-has: the views, the water, the extraction's samples (issue 52). numpy and torch, no I/O.
+has: the views, the water, the extraction's samples. numpy and torch, no I/O.
 
 Features of each cell of the bed's grid (`cell_features`, `CellFeatures`):
 - geometry: the vertical standard deviation (m) of the cell's bed point triangulated from the views that see

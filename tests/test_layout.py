@@ -204,6 +204,16 @@ def test_only_the_renderer_imports_bpy():
     assert users == {"blender_scenes/render.py"}
 
 
+def test_code_names_no_issue():
+    # a comment says why; which issue asked for it is history, kept in docs and the log
+    import re
+
+    said = re.compile(r"\bissues? \d|\bissue's\b", re.IGNORECASE)
+    bad = [f"{p.relative_to(ROOT).as_posix()}:{k}" for p in SOURCES
+           for k, line in enumerate(p.read_text().splitlines(), 1) if said.search(line)]
+    assert not bad, f"issue references in code: {bad}"
+
+
 def test_the_generator_imports_nothing_from_the_renderer():
     # the renderer reads datagen's job (`ragsplat.datagen.job`) and runs as its own process; datagen never
     # imports it

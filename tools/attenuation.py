@@ -1,5 +1,5 @@
 """What the water does to the bed's light in a dataset's photos, and where a finished run put it:
-`python -m tools.attenuation DATA [RUN ...]` (issue 50).
+`python -m tools.attenuation DATA [RUN ...]`.
 
 The photos: for each nadir training view, every submerged pixel of the dry photo is paired with where the
 wet photo shows its bed point through the flat water (the refraction transform), and, per 20 cm depth bin

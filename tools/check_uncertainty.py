@@ -1,4 +1,4 @@
-"""How well a fitted TVU95 model covers the true errors of held-out runs (issue 52, docs/uncertainty.md).
+"""How well a fitted TVU95 model covers the true errors of held-out runs (docs/uncertainty.md).
 
     python -m tools.check_uncertainty MODEL.json RUN [RUN ...] [--truth RUN=DATA ...] [--out REPORT.json]
         [--figure RELIABILITY.png] [--bed evaluation|export]

@@ -1,4 +1,4 @@
-"""Fit the per-cell TVU95 model on development seeds, calibrate it on another (issue 52, docs/uncertainty.md).
+"""Fit the per-cell TVU95 model on development seeds, calibrate it on another (docs/uncertainty.md).
 
     python -m tools.fit_uncertainty --fit RUN [RUN ...] --calibrate RUN [RUN ...] --out MODEL.json
         [--truth RUN=DATA ...] [--features one geometry depth spread filled] [--bed evaluation|export]

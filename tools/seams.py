@@ -1,4 +1,4 @@
-"""A tiled survey's DEM error by distance to the nearest border between two tiles' cores (issue 49).
+"""A tiled survey's DEM error by distance to the nearest border between two tiles' cores.
 
     python -m tools.seams RUN --truth DATA [--bands 0 1 2 5 10]
 

@@ -10,7 +10,7 @@ median(full) / median(3dgs) and median(2dgs+full) / median(full).
 The two do not rasterize the same work (the apparent Gaussians are smaller, fainter and closer to the
 axis), so the transform's own cost, forward + backward of `refract_gaussians`, is printed beside it
 (`refr`, and as a share of the 3dgs iteration). `--attenuation` also times `2dgs+full+attenuation` (the
-water's attenuation, issue 50) in the same loop, beside `2dgs+full` and as a ratio to it (of the medians, and
+water's attenuation) in the same loop, beside `2dgs+full` and as a ratio to it (of the medians, and
 the median of the step-by-step ratios, which a busy machine moves less); `--backscatter` likewise
 `2dgs+full+backscatter` (the water column's veil) and `2dgs+full+water` (all three terms); `--reflection`
 `2dgs+full+reflection` (the surface's reflection of the sky).

@@ -279,7 +279,7 @@ def sigmas(photos: list[PhotoPosition], rtk: tuple[float, float] | None,
     (RtkFlag 50): `rtk` when given, else the photo's own RtkStdLon / RtkStdLat / RtkStdHgt (at least
     MIN_STD), else 2 / 3 cm. Anything else (no RTK flag, or a single-point or float solution): `consumer`,
     metres: a consumer drone's single-point GNSS is good to 1-2 m horizontally within a flight and each
-    flight line can be 1-1.5 m off the others (the strip offsets of issue 48's Phantom 3), worse
+    flight line can be 1-1.5 m off the others (the strip offsets of a real Phantom 3 flight), worse
     vertically; its height `barometer` where it is the barometer's (`barometric_heights`)."""
     out = np.empty((len(photos), 2))
     for k, p in enumerate(photos):

@@ -86,7 +86,7 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 # A tile's side in ground sample distances. Every tile trains the preset's steps however many photos it holds,
 # so the tiles' count sets the training's time: 1 500 makes the long reach's 110 m two tiles of 213 photos,
 # one per worker on the 2-core CPU: 37 min from nothing against 53 for the three of 1 000, for 1.6 points at
-# 1 % of depth (76.2 against 77.8; chosen on the development seed by the issue's targets, docs/performance.md,
+# 1 % of depth (76.2 against 77.8; chosen on the development seed by the tiles' targets, docs/performance.md,
 # "Two tiles"). It keeps `small` (470 of them) one tile, and a square core's budget (GAUSSIANS_PER_GSD2) near
 # 380 000 Gaussians. The overlap with each neighbour, a share of the side, gives the cells near a seam a full
 # view from both.

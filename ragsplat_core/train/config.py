@@ -27,7 +27,7 @@ VARIANTS: dict[str, dict | None] = {
     # vectors by the refraction Jacobian (t' = J t, the exact first-order map), hence scale="anisotropic".
     "2dgs": None,
     "2dgs+full": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
-    # 2dgs+full with the water's own optics on top (issue 50, `WATER_TERMS`)
+    # 2dgs+full with the water's own optics on top (`WATER_TERMS`)
     "2dgs+full+attenuation": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
     "2dgs+full+backscatter": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
     "2dgs+full+reflection": {"position": True, "scale": "anisotropic", "opacity": True, "color": False},
@@ -36,7 +36,7 @@ VARIANTS: dict[str, dict | None] = {
 # rendered as surfels (`rasterize_surfels`)
 SURFELS = frozenset({"2dgs", "2dgs+full", "2dgs+full+attenuation", "2dgs+full+backscatter",
                      "2dgs+full+reflection", "2dgs+full+water"})
-# variant -> the terms of the water's optics it trains besides the refraction (issue 50); a variant not named
+# variant -> the terms of the water's optics it trains besides the refraction; a variant not named
 # here computes none of them. "attenuation": each submerged Gaussian's radiance x exp(-c L) per channel of
 # linear RGB, L its path in the water along the bent ray (`refraction.water_paths`), c optimised per scene.
 # "backscatter": each pixel + the water column's veil B_inf (1 - exp(-c_b L)) in linear RGB, L its path in the
@@ -102,7 +102,7 @@ class TrainConfig:
     # The most SH degree a submerged Gaussian uses (blended in over the water line as the refraction is): a
     # bed of stones and sand looks nearly the same from every side, and what does change with the view under
     # water (the path's attenuation) is the water's to explain; with its own view dependence a Gaussian
-    # absorbs that dimming and the attenuation coefficients are not identified (issue 50). 3: no cap.
+    # absorbs that dimming and the attenuation coefficients are not identified. 3: no cap.
     wet_sh_degree: int = 3
     # Adam learning rates (3DGS / gsplat defaults); means decays exponentially to lr_means_final
     lr_means: float = 1.6e-4  # x scene scale (`scene_scale`)
@@ -136,8 +136,7 @@ class TrainConfig:
     backend: str = "auto"
     device: str = "auto"  # "auto": CUDA when available, else CPU
     # The refraction transform through torch.compile (`compiled_refract_gaussians`): fewer kernel launches on
-    # a GPU, where the eager transform is launch-bound; a compile at the start. Not yet timed on a GPU (issue
-    # 29).
+    # a GPU, where the eager transform is launch-bound; a compile at the start. Not yet timed on a GPU.
     compile_refraction: bool = False
     checkpoint_every: int | None = None  # None: every 10 % of the run; 0: only at the end (and on interrupt)
     # The water plane: the dataset's unless overridden (on a dataset without water, water_level adds one with
@@ -351,7 +350,7 @@ PRESETS: dict[str, TrainConfig] = {
 # keeps 3DGS's densification stop: `SMALL_REFINE_STOP` gained nothing on its development seed ("refine_stop")
 PRESETS["small-field"] = replace(PRESETS["small"], preset="small-field", init="refracted",
                                  densify=DensifyConfig(max_gaussians=40_000), **FIELD_TUNING["chosen"])
-# The `3dgs` row as its own field would train it (issue 46): `small`'s size and length, but 3DGS's loss (SSIM
+# The `3dgs` row as its own field would train it: `small`'s size and length, but 3DGS's loss (SSIM
 # weight 0.2) and densification stop (half the run) instead of the values tuned for `2dgs+full`.
 PRESETS["small-3dgs"] = replace(PRESETS["small"], preset="small-3dgs", ssim_lambda=TrainConfig.ssim_lambda,
                                 densify=DensifyConfig(max_gaussians=40_000))

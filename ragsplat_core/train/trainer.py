@@ -19,7 +19,7 @@ attenuation, backscatter and sky).
 
 The water is the dataset's unless the config overrides its level or n; `optimize_water` calibrates it (own
 Adam, frozen for the warm-up), and `trainer.water` is always the current one. A variant with water terms
-(`WATER_TERMS`, issue 50) also trains the water's attenuation coefficients (`trainer.attenuation`, own Adam on
+(`WATER_TERMS`) also trains the water's attenuation coefficients (`trainer.attenuation`, own Adam on
 log c, clamped to `ATTENUATION_RANGE`) and the water column's backscatter (`trainer.backscatter`: B_inf and
 c_b, own Adam on their logs, clamped to `VEIL_RANGE` and `BACKSCATTER_RANGE`; the veil is added to the render,
 `render_splats`) and the sky the surface mirrors (`trainer.reflection`: a map of linear radiance, own Adam on
@@ -89,7 +89,7 @@ TREND_SPREAD = 0.25
 # The fit counts each Gaussian by the share of the images it makes (`visible_weights`, summed over TREND_VIEWS
 # training views spread through the list). Counted by opacity alone, the Gaussians the images hardly see
 # (brighter at depth) balanced the seen ones, whose colours still darkened by 0.10-0.11 per metre at the end,
-# and c stopped at 70 % of the water's in green and 82 % in blue (issue 50, the field development reach;
+# and c stopped at 70 % of the water's in green and 82 % in blue (the field development reach;
 # `python -m tools.attenuation`). The probes cost about 0.2 s a view at 40k Gaussians on one CPU thread, so
 # the weights are taken every TREND_EVERY steps (and after the strategy changes the Gaussians) while the
 # transfer runs every step. (Moved every 100 steps instead, at 68eef96, the development reach at twice the
