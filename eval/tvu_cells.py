@@ -185,3 +185,14 @@ def band_rows(out: Path, data: Path, rows: dict[str, list[dict]], model, log=lam
     return {"fit_seeds": list(model.fit_seeds), "calibration_seeds": list(model.calibration_seeds),
             "features": list(model.features), "weights": list(model.weights), "scale": model.scale,
             "commit": model.commit}
+
+
+def truth_map(pairs: list[str]) -> dict[Path, Path]:
+    """{RUN: DATA} of --truth RUN=DATA options (paths resolved). Raises ConfigError for a malformed one."""
+    out = {}
+    for pair in pairs:
+        run, sep, data = pair.partition("=")
+        if not sep or not run or not data:
+            raise ConfigError(f"--truth {pair!r}: expected RUN=DATA")
+        out[Path(run).resolve()] = Path(data)
+    return out

@@ -33,16 +33,16 @@ from ragsplat.outputs import atomic_path, claim
 from ragsplat.ply import load_ply
 from ragsplat.rasterize import choose_backend
 from ragsplat.refraction import WaterSurface
-from ragsplat.surface import ExtractConfig, extract_surface, extract_surface_blocks, max_scale, size_cap_m
-from ragsplat.train.config import TrainConfig
-from ragsplat.train.trainer import (
-    PLY,
+from ragsplat.rendering import (
     backscatter_tensor,
     fades_opacity,
     median_depth,
     reflection_tensor,
     render_splats,
 )
+from ragsplat.surface import ExtractConfig, extract_surface, extract_surface_blocks, max_scale, size_cap_m
+from ragsplat.train.config import TrainConfig
+from ragsplat.train.trainer import PLY
 from ragsplat.uncertainty import UncertaintyModel, cell_features, tvu95
 
 TVU_BAND = "tvu95"  # the DEM band's description and the LAS extra dimension's name of the cells' TVU95
@@ -208,7 +208,7 @@ class Model:
                 surfel_depth=self.cfg.surfel_depth, downwelling=self.cfg.downwelling)
         return img.clamp(0, 1), alpha, depth
 
-    def median_depth(self, camera: Camera) -> torch.Tensor:  # [H, W], see `trainer.median_depth`
+    def median_depth(self, camera: Camera) -> torch.Tensor:  # [H, W], see `rendering.median_depth`
         return median_depth(self.splats, camera, self.cfg.surfels,
                             self.water if fades_opacity(self.flags) else None, self.backend)
 

@@ -58,7 +58,7 @@ def surface_reflection(rays, depth, camera_center, water: WaterSurface):
     (0 on dry pixels: the module docstring) and the unit mirrored direction (the upper hemisphere's for a ray
     that meets the water; defined everywhere).
 
-    rays [..., 3] the pixels' world ray directions (any length, e.g. `trainer.pixel_rays`' unit camera z),
+    rays [..., 3] the pixels' world ray directions (any length, e.g. `rendering.pixel_rays`' unit camera z),
     depth [...] the rendered camera z-depth along them, camera_center [3]. Differentiable in the rays, the
     camera and the water (n, level, slope); not in the depth, which only decides which pixels are wet."""
     C = torch.as_tensor(camera_center, dtype=rays.dtype, device=rays.device)

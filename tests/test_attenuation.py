@@ -10,6 +10,7 @@ import pytest
 import torch
 from conftest import killed_and_resumed, tiny_smoke, water_bed, water_bed_config
 
+from ragsplat import rendering
 from ragsplat.cli.main import main
 from ragsplat.dataset import Dataset, load_dataset
 from ragsplat.errors import ConfigError
@@ -26,10 +27,11 @@ from ragsplat.refraction import (
     water_paths,
     waterline_weight,
 )
+from ragsplat.rendering import rasterize_view, view_gaussians, visible_weights
 from ragsplat.train import VARIANTS, TrainConfig, Trainer
 from ragsplat.train import trainer as train_mod
 from ragsplat.train.config import ATTENUATION_RANGE, DOWNWELLING
-from ragsplat.train.trainer import albedo_trend, rasterize_view, view_gaussians, visible_weights
+from ragsplat.train.trainer import albedo_trend
 
 f64 = torch.float64
 CAM = torch.tensor([1.0, -2.0, 30.0], dtype=f64)
@@ -465,8 +467,8 @@ def test_a_run_with_the_transfer_resumes_as_the_uninterrupted_one(tmp_path, monk
 
 def test_variants_without_the_term_have_none_and_call_the_transform_as_before(turbid, monkeypatch):
     calls = []
-    real = train_mod.refract_gaussians
-    monkeypatch.setattr(train_mod, "refract_gaussians", lambda *a, **k: calls.append(k) or real(*a, **k))
+    real = rendering.refract_gaussians
+    monkeypatch.setattr(rendering, "refract_gaussians", lambda *a, **k: calls.append(k) or real(*a, **k))
     plain = Trainer(_cfg(variant="2dgs+full", iterations=1), turbid)
     assert plain.log_attenuation is None and plain.attenuation_opt is None and plain.attenuation is None
     plain.train()
@@ -537,10 +539,10 @@ def test_a_submerged_gaussian_s_colour_stops_at_the_wet_degree(backend):
     wet, dry = depth >= WATERLINE_BAND, depth <= 0
     band = ~wet & ~dry
     assert wet.any() and dry.any() and band.any()
-    full = train_mod.view_gaussians(splats, CAM, 3, WATER, None, backend)
-    same = train_mod.view_gaussians(splats, CAM, 3, WATER, None, backend, wet_degree=3)
+    full = rendering.view_gaussians(splats, CAM, 3, WATER, None, backend)
+    same = rendering.view_gaussians(splats, CAM, 3, WATER, None, backend, wet_degree=3)
     assert torch.equal(full.colors, same.colors)  # 3: no cap, today's colours
-    capped = [train_mod.view_gaussians(splats, c, 3, WATER, None, backend, wet_degree=0).colors
+    capped = [rendering.view_gaussians(splats, c, 3, WATER, None, backend, wet_degree=0).colors
               for c in (CAM, other)]
     flat = colors_for_view(splats, CAM, 0)
     for colors, centre in zip(capped, (CAM, other)):
@@ -552,15 +554,15 @@ def test_a_submerged_gaussian_s_colour_stops_at_the_wet_degree(backend):
     torch.testing.assert_close(capped[0][band], torch.lerp(full.colors[band], flat[band], w), rtol=1e-12,
                                atol=1e-14)
     # the same cap through the water's transform: only the colours it is given change
-    through = train_mod.view_gaussians(splats, CAM, 3, WATER, {"scale": "anisotropic"}, backend, wet_degree=0)
-    plain = train_mod.view_gaussians(splats, CAM, 3, WATER, {"scale": "anisotropic"}, backend)
+    through = rendering.view_gaussians(splats, CAM, 3, WATER, {"scale": "anisotropic"}, backend, wet_degree=0)
+    plain = rendering.view_gaussians(splats, CAM, 3, WATER, {"scale": "anisotropic"}, backend)
     assert torch.equal(through.means, plain.means) and torch.equal(through.opacities, plain.opacities)
 
 
 def test_the_wet_degree_s_gradient_never_reaches_a_submerged_gaussian_s_higher_sh():
     splats = _sh_splats()
     depth = WATER.depth(splats["means"].detach())
-    out = train_mod.view_gaussians(splats, CAM, 3, WATER, {"scale": "anisotropic"}, "torch", wet_degree=0)
+    out = rendering.view_gaussians(splats, CAM, 3, WATER, {"scale": "anisotropic"}, "torch", wet_degree=0)
     out.colors.sum().backward()
     grad = splats["shN"].grad.abs().sum((1, 2))
     assert (grad[depth >= WATERLINE_BAND] == 0).all() and (grad[depth <= 0] > 0).all()
@@ -577,13 +579,13 @@ def test_training_and_a_finished_run_s_renders_use_the_config_s_wet_degree(turbi
     from ragsplat.export import Model
 
     seen = []
-    real = train_mod.view_gaussians
+    real = rendering.view_gaussians
 
     def spy(*a, **k):
         seen.append(a[9] if len(a) > 9 else k.get("wet_degree", 3))
         return real(*a, **k)
 
-    monkeypatch.setattr(train_mod, "view_gaussians", spy)
+    monkeypatch.setattr(rendering, "view_gaussians", spy)
     tr = Trainer(_cfg(iterations=2, sh_degree=3, wet_sh_degree=1), turbid)
     tr.train()
     assert seen and set(seen) == {1}

@@ -11,6 +11,7 @@ import pytest
 import torch
 from conftest import killed_and_resumed, tiny_smoke, water_bed, water_bed_config
 
+from ragsplat import rendering
 from ragsplat.cli.main import main
 from ragsplat.dataset import Dataset, load_dataset
 from ragsplat.errors import ConfigError
@@ -26,7 +27,6 @@ from ragsplat.refraction import (
     water_paths,
 )
 from ragsplat.train import VARIANTS, TrainConfig, Trainer
-from ragsplat.train import trainer as train_mod
 from ragsplat.train.config import BACKSCATTER_RANGE, VEIL_RANGE
 
 f64 = torch.float64
@@ -215,8 +215,8 @@ def test_backscatter_is_trained_and_resumed(turbid, tmp_path):
 
 def test_variants_without_the_term_compute_no_veil(turbid, monkeypatch):
     calls = []
-    real = train_mod.pixel_water_paths
-    monkeypatch.setattr(train_mod, "pixel_water_paths", lambda *a: calls.append(1) or real(*a))
+    real = rendering.pixel_water_paths
+    monkeypatch.setattr(rendering, "pixel_water_paths", lambda *a: calls.append(1) or real(*a))
     for variant in ("2dgs+full", "2dgs+full+attenuation"):
         plain = Trainer(_cfg(variant=variant, iterations=1), turbid)
         assert plain.log_backscatter is None and plain.backscatter_opt is None and plain.backscatter is None

@@ -346,7 +346,7 @@ def test_published_rows_are_the_papers_variants():
 
 def test_tune_sets_nested_and_top_level_parameters():
     from ragsplat.train import preset_config
-    from tools.tune import PARAMS, with_value
+    from ragsplat.train.settings import PARAMS, with_value
 
     cfg = preset_config("small")
     capped = with_value(cfg, "densify.max_gaussians", 20000.0)

@@ -110,6 +110,14 @@ def test_the_installed_packages_import_no_tool():
     assert not bad, f"{sorted(bad)} import tools"
 
 
+def test_no_tool_imports_another():
+    # what two tools share is the library's (the package `tools` itself only sets the OpenMP wait)
+    tools = [p for p in SOURCES if p.relative_to(ROOT).parts[0] == "tools" and p.name != "__init__.py"]
+    bad = {p.relative_to(ROOT).as_posix() for p in tools
+           if any(within(m, "tools") and m != "tools" for m in imported_modules(p))}
+    assert not bad, f"{sorted(bad)} import another tool"
+
+
 def test_every_command_is_one_module_of_the_command_layer():
     helpers = {"__init__", "main", "args", "progress", "cluster"}  # the entry point and what commands share
     modules = {name: module for name, (module, _) in COMMANDS.items()}

@@ -10,6 +10,7 @@ import pytest
 import torch
 from conftest import killed_and_resumed, water_bed, water_bed_config
 
+from ragsplat import rendering
 from ragsplat.dataset import Dataset, load_dataset
 from ragsplat.errors import ConfigError
 from ragsplat.export import load_model
@@ -24,7 +25,6 @@ from ragsplat.reflection import (
 )
 from ragsplat.refraction import WaterSurface, linear_to_srgb, plane_frame, srgb_to_linear
 from ragsplat.train import VARIANTS, TrainConfig, Trainer
-from ragsplat.train import trainer as train_mod
 from ragsplat.train.config import SKY_RANGE, WATER_TERMS
 
 f64 = torch.float64
@@ -261,8 +261,8 @@ def test_sky_is_trained_and_resumed(skyward_views, tmp_path):
 
 def test_variants_without_the_term_compute_no_reflection(skyward_views, monkeypatch):
     calls = []
-    real = train_mod.surface_reflection
-    monkeypatch.setattr(train_mod, "surface_reflection", lambda *a: calls.append(1) or real(*a))
+    real = rendering.surface_reflection
+    monkeypatch.setattr(rendering, "surface_reflection", lambda *a: calls.append(1) or real(*a))
     for variant in ("2dgs+full", "2dgs+full+attenuation", "2dgs+full+backscatter"):
         plain = Trainer(_cfg(variant=variant, iterations=1), skyward_views)
         assert plain.log_sky is None and plain.sky_opt is None and plain.reflection is None

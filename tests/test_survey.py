@@ -13,8 +13,8 @@ from conftest import channel_scene, survey_cameras
 from ragsplat.bench.synthetic import bed_scene, render_views, write_dataset
 from ragsplat.cli.main import main
 from ragsplat.dataset import layout
+from ragsplat.eval.poses import pose_errors
 from ragsplat.refraction import WaterSurface
-from tools.poses import pose_errors
 
 WATER = WaterSurface(0.0, 1.33)
 

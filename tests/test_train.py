@@ -8,6 +8,7 @@ import pytest
 import torch
 from conftest import WATER, render_dataset
 
+from ragsplat import rendering
 from ragsplat.bench.synthetic import bed_scene, render_views, ring_cameras, write_dataset
 from ragsplat.camera import Camera
 from ragsplat.cli.main import main
@@ -156,7 +157,7 @@ def test_dry_scene_never_calls_refraction(tmp_path, monkeypatch):
     def boom(*a, **k):
         raise AssertionError("refract_gaussians called for a scene without water")
 
-    monkeypatch.setattr(train_mod, "refract_gaussians", boom)
+    monkeypatch.setattr(rendering, "refract_gaussians", boom)
     dry = load_dataset(_tiny(tmp_path / "dry", water=None))
     tr = Trainer(_cfg(variant="full", iterations=3), dry)
     assert tr.flags is None
@@ -167,8 +168,8 @@ def test_dry_scene_never_calls_refraction(tmp_path, monkeypatch):
 
 def test_variant_3dgs_skips_refraction(wet, monkeypatch):
     calls = []
-    real = train_mod.refract_gaussians
-    monkeypatch.setattr(train_mod, "refract_gaussians", lambda *a, **k: calls.append(k) or real(*a, **k))
+    real = rendering.refract_gaussians
+    monkeypatch.setattr(rendering, "refract_gaussians", lambda *a, **k: calls.append(k) or real(*a, **k))
     Trainer(_cfg(variant="3dgs", iterations=2), wet).train()
     assert calls == []
     Trainer(_cfg(variant="position+opacity", iterations=2), wet).train()
@@ -224,8 +225,8 @@ def test_surfel_variants_render_surfels_and_map_their_tangents(wet):
     args = (tr.splats, cam, center, tr.active_sh_degree, WaterSurface(level=WATER.level, n=1.0), tr.flags,
             True, tr.background, "cpu")
     with torch.no_grad():
-        torch.testing.assert_close(train_mod.render_splats(*args)[0], want)
-        wet_img = train_mod.render_splats(*args[:4], WATER, *args[5:])[0]
+        torch.testing.assert_close(rendering.render_splats(*args)[0], want)
+        wet_img = rendering.render_splats(*args[:4], WATER, *args[5:])[0]
     assert (wet_img - want).abs().max() > 1e-3
 
 

@@ -22,8 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ragsplat.errors import ConfigError, RagsplatError
-from ragsplat.eval.tvu_cells import BEDS
-from tools.fit_uncertainty import truth_map
+from ragsplat.eval.tvu_cells import BEDS, truth_map
 
 
 def check(model, sources, log=lambda line: None, bed: str | None = None) -> tuple[dict, tuple]:

@@ -25,19 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from ragsplat.errors import ConfigError, RagsplatError
-from ragsplat.eval.tvu_cells import BEDS
+from ragsplat.eval.tvu_cells import BEDS, truth_map
 from ragsplat.uncertainty import FEATURES
-
-
-def truth_map(pairs: list[str]) -> dict[Path, Path]:
-    """{RUN: DATA} of --truth RUN=DATA options (paths resolved). Raises ConfigError for a malformed one."""
-    out = {}
-    for pair in pairs:
-        run, sep, data = pair.partition("=")
-        if not sep or not run or not data:
-            raise ConfigError(f"--truth {pair!r}: expected RUN=DATA")
-        out[Path(run).resolve()] = Path(data)
-    return out
 
 
 def sources(fit_runs: list[Path], calibration_runs: list[Path], truths: dict[Path, Path]):

@@ -30,8 +30,8 @@ def main() -> None:
     import torch
     from test_survey import write_survey
 
+    from ragsplat.eval.poses import pose_errors
     from ragsplat.survey import pipeline, sfm
-    from tools.poses import pose_errors
 
     reconstruct = sfm.reconstruct  # the survey's structure from motion, on every core by default
     for seed in args.seeds:

@@ -17,29 +17,15 @@ import sys
 import time
 from pathlib import Path
 
-from ragsplat.dataset.load import Dataset, load_dataset
+from ragsplat.dataset.load import load_dataset
+from ragsplat.errors import ConfigError
 from ragsplat.export import export_run
 from ragsplat.outputs import write_json
 from ragsplat.rasterize_surfels import DEPTHS
-from ragsplat.survey.pipeline import at_survey_scale, train_config
-from ragsplat.train import Trainer
-from ragsplat.train.config import INIT, TrainConfig
+from ragsplat.survey.pipeline import survey_training
+from ragsplat.train import Trainer, settings
+from ragsplat.train.config import INIT
 from ragsplat.train.defaults import survey_variant
-from tools.tune import held, with_value  # (the package `tools` sets the OpenMP wait first)
-
-
-def survey_training(data: Path, budget: int, preset: str = "small", variant: str | None = None, seed: int = 0,
-                    iterations: int | None = None, surfel_depth: str | None = None,
-                    overrides: dict | None = None) -> tuple[TrainConfig, Dataset]:
-    """(config, dataset) of a survey's imported `data` as `ragsplat survey` trains it: the preset's config
-    with the variant (None: the preset's survey variant), seed, iterations, surfel depth and Gaussian
-    `budget`, `overrides` ({field: value}, `tools.tune.held`) on top, at the survey's scene scale."""
-    train = train_config(preset, variant or survey_variant(preset), seed, INIT, iterations, surfel_depth,
-                         budget)
-    for name, value in (overrides or {}).items():
-        train = with_value(train, name, value)
-    ds = load_dataset(data, splits=("train",), load_dry=False)
-    return at_survey_scale(train, ds.camera_extent(), ds.gsd), ds  # (a scale given with --set stays)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -54,8 +40,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", nargs="+", default=[], metavar="PARAM=VALUE")
     parser.add_argument("--surfel-depth", choices=DEPTHS, default=None, help="(the preset's)")
     args = parser.parse_args(argv)
-    train, ds = survey_training(args.data, args.budget, args.preset, args.variant, args.seed, args.iterations,
-                                args.surfel_depth, held(parser, args.set))
+    try:
+        overrides = settings.parse(args.set)
+    except ConfigError as e:
+        parser.error(str(e))
+    ds = load_dataset(args.data, splits=("train",), load_dry=False)
+    train = survey_training(ds, args.preset, args.variant or survey_variant(args.preset), args.seed, INIT,
+                            args.iterations, args.surfel_depth, budget=args.budget, overrides=overrides)
     t0 = time.perf_counter()
     trainer = Trainer(train, ds, args.out)
     t1 = time.perf_counter()

@@ -23,10 +23,13 @@ from ragsplat.threads import THREAD_VARIABLES
 
 def one(data: Path, train: Path, budget: int, preset: str, steps: int) -> float:
     """Seconds a step of the training in `train` (resumed from its checkpoint), after 3 to warm up."""
+    from ragsplat.dataset.load import load_dataset
+    from ragsplat.survey.pipeline import survey_training
     from ragsplat.train import Trainer
-    from tools.retrain import survey_training
+    from ragsplat.train.defaults import survey_variant
 
-    trainer = Trainer(*survey_training(data, budget, preset), train)
+    ds = load_dataset(data, splits=("train",), load_dry=False)
+    trainer = Trainer(survey_training(ds, preset, survey_variant(preset), budget=budget), ds, train)
     for _ in range(3):
         trainer.train_step()
     t0 = time.perf_counter()

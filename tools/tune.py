@@ -15,60 +15,28 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from ragsplat.errors import ConfigError
 from ragsplat.eval.ablation import PRESETS, TrainEval, extract_config, save_row, scene_conditions, start_row
 from ragsplat.outputs import claim, versions, write_json
-from ragsplat.train.config import DensifyConfig, TrainConfig
-
-NUMBERS = ("float", "int", "float | None", "int | None")  # None: what the run derives (e.g. scene_scale)
-# The word-valued choices (the config checks their values); the variant and preset are the tool's own options.
-# (and the switches, `--set detrend_albedo=true`)
-WORDS = [f.name for f in fields(TrainConfig)
-         if f.type in ("str", "bool") and f.name not in ("variant", "preset")]
-PARAMS = [f.name for f in fields(TrainConfig) if f.type in NUMBERS] + WORDS + \
-    [f"densify.{f.name}" for f in fields(DensifyConfig) if f.type in NUMBERS]
-
-
-def typed(param: str, value: str | float) -> str | float:
-    """`value` as `param` takes it: a word for a choice, else a float (`with_value` casts ints)."""
-    return str(value) if param in WORDS else float(value)
+from ragsplat.train.settings import PARAMS, WORDS, parse, typed, with_value
 
 
 def held(parser: argparse.ArgumentParser, items: list[str]) -> dict[str, str | float]:
-    """`--set PARAM=VALUE ...` as {param: value (`typed`)}; a parser error for an unknown or empty one."""
-    fixed = {}
-    for item in items:
-        name, _, value = item.partition("=")
-        if name not in PARAMS or not value:
-            parser.error(f"--set takes PARAM=VALUE with PARAM one of {', '.join(PARAMS)}; got {item!r}")
-        fixed[name] = typed(name, value)
-    return fixed
-
-
-def switch(value: str) -> bool:
-    if value not in ("true", "false"):
-        raise ValueError(f"a switch is true or false, got {value!r}")
-    return value == "true"
+    """`--set PARAM=VALUE ...` as {param: value} (`settings.parse`); a parser error for an unknown or empty
+    one."""
+    try:
+        return parse(items)
+    except ConfigError as e:
+        parser.error(str(e))
 
 
 def label(param: str, value: str | float) -> str:
     return str(value) if param in WORDS else f"{float(value):g}"
-
-
-def with_value(cfg: TrainConfig | DensifyConfig, param: str,
-               value: str | float) -> TrainConfig | DensifyConfig:
-    """`cfg` with `param` (a field, or densify.FIELD) set to `value` (cast to the field's type)."""
-    if param.startswith("densify."):
-        return replace(cfg, densify=with_value(cfg.densify, param.split(".", 1)[1], value))
-    kind = {f.name: f.type for f in fields(cfg)}[param]
-    cast = {"int": lambda v: int(float(v)), "float": float, "str": str,
-            "bool": switch}[kind.removesuffix(" | None")]
-    return replace(cfg, **{param: cast(value)})
 
 
 def cm(x: float | None) -> str:

@@ -95,7 +95,7 @@ def render_views(scene: dict[str, torch.Tensor], cameras: list[Camera], water: W
     from ragsplat.rasterize import rasterize
     from ragsplat.reflection import add_reflection, sky_radiance, surface_reflection
     from ragsplat.refraction import add_backscatter, pixel_water_paths, refract_gaussians
-    from ragsplat.train.trainer import pixel_rays
+    from ragsplat.rendering import pixel_rays
 
     out = []
     for cam in cameras:

@@ -23,7 +23,6 @@ which names it and its log (`OUT/logs/`); the same command then resumes.
 from __future__ import annotations
 
 import argparse
-import time
 from functools import partial
 from pathlib import Path
 
@@ -108,6 +107,7 @@ def run_rows(args: argparse.Namespace, fingerprint: str, code: str, check) -> No
     from ragsplat.cli.cluster import client as dask_client
     from ragsplat.cli.progress import bar
     from ragsplat.eval.ablation import RowJob, claim_out, row_log, row_order, train_row, visible_gpus
+    from ragsplat.scheduling import submitted
 
     claim_out(args.out)
     prepare(args, fingerprint)
@@ -119,27 +119,16 @@ def run_rows(args: argparse.Namespace, fingerprint: str, code: str, check) -> No
     with dask_client(args.jobs, args.scheduler) as (client, where):
         print(f"training {len(rows)} row{'s' if len(rows) > 1 else ''} on {where}; each row's log: "
               f"{args.out / 'logs'}", flush=True)
-        tasks = {client.submit(train_row, job, variant, seed, key=f"row-{variant}-seed{seed}", pure=False):
-                 (variant, seed) for variant, seed in rows}
-        done = bar(len(tasks), "rows", "row")
-        pending = set(tasks)
-        try:
-            while pending:
-                check()
-                time.sleep(0.2)
-                for task in [t for t in pending if t.done()]:
-                    pending.discard(task)
-                    variant, seed = tasks[task]
-                    if task.status != "finished":
-                        raise JobFailed(f"training {variant} seed {seed} failed: {_reason(task)} (log: "
-                                        f"{row_log(args.out, variant, seed)}); finished rows and checkpoints "
-                                        "are kept, rerun the same command to resume")
-                    done.update(1)
-        except BaseException:
-            client.cancel(list(pending))
-            raise
-        finally:
-            done.close()
+        calls = {f"row-{variant}-seed{seed}": (train_row, (job, variant, seed)) for variant, seed in rows}
+        named = dict(zip(calls, rows))
+        with bar(len(calls), "rows", "row") as done:
+            for key, task in submitted(client, calls, check):
+                variant, seed = named[key]
+                if task.status != "finished":
+                    raise JobFailed(f"training {variant} seed {seed} failed: {_reason(task)} (log: "
+                                    f"{row_log(args.out, variant, seed)}); finished rows and checkpoints "
+                                    "are kept, rerun the same command to resume")
+                done.update(1)
 
 
 def _reason(task) -> str:

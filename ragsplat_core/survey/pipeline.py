@@ -44,6 +44,7 @@ if TYPE_CHECKING:
     import pycolmap
     import torch
 
+    from ragsplat.dataset.load import Dataset
     from ragsplat.refraction import WaterSurface
     from ragsplat.survey.bundle import Bundle
     from ragsplat.survey.exif import PhotoPosition
@@ -1188,13 +1189,12 @@ def _tile_beds(cfg: SurveyConfig, progress: Progress, cluster, model: Path, surf
                     failed(k, err)
                 b.update(1)
         else:
-            from dask.distributed import as_completed
+            from ragsplat.scheduling import submitted
 
             with cluster(len(jobs)) as client:
-                futures = {client.submit(train_tile, job, key=f"tile-{k}-{key}", pure=False): k
-                           for k, job in enumerate(jobs)}
-                for future in as_completed(futures):
-                    k = futures[future]
+                calls = {f"tile-{k}-{key}": (train_tile, (job,)) for k, job in enumerate(jobs)}
+                for name, future in submitted(client, calls):
+                    k = int(name.split("-")[1])
                     if future.status != "finished":
                         failed(k, future.exception())
                     else:
@@ -1369,6 +1369,26 @@ def train_config(preset: str, variant: str, seed: int, init: str, iterations: in
     return replace(train, densify=replace(train.densify, max_gaussians=budget))
 
 
+def survey_training(ds: Dataset, preset: str, variant: str, seed: int = 0, init: str = INIT,
+                    iterations: int | None = None, surfel_depth: str | None = None, area: float | None = None,
+                    budget: int | None = None, overrides: dict | None = None):
+    """The `TrainConfig` a survey trains its imported photos `ds` with (`train_config`): the surfel depth
+    `surfel_depth_for` its ground sample distance; at most `budget` Gaussians, or where None, the budget of
+    `area` m^2 (`GAUSSIANS_PER_GSD2`, at least the preset's, at most `MAX_GAUSSIANS`); `overrides` ({field:
+    value}, `train.settings.with_value`) on top; at the survey's scene scale (`at_survey_scale`; a scale
+    among the overrides stays)."""
+    from ragsplat.train.settings import with_value
+
+    given = (preset, variant, seed, init, iterations, surfel_depth_for(preset, variant, surfel_depth, ds.gsd))
+    if budget is None:
+        preset_cap = train_config(*given).densify.max_gaussians
+        budget = min(max(round(GAUSSIANS_PER_GSD2 * area / ds.gsd**2), preset_cap), MAX_GAUSSIANS)
+    train = train_config(*given, budget)
+    for name, value in (overrides or {}).items():
+        train = with_value(train, name, value)
+    return at_survey_scale(train, ds.camera_extent(), ds.gsd)
+
+
 def dem_size(longest: int, gsd: float, resolution: float) -> int | None:
     """The longest side (px, a multiple of 16) to train photos of `longest` px at `gsd` (m a pixel) with for
     a DEM of `resolution` (m), `DEM_SAMPLES` pixels across a cell; None where that would keep more than
@@ -1437,13 +1457,10 @@ def _train(cfg: SurveyConfig, progress: Progress, model: Path, data: Path, out: 
     ds = load_dataset(done.root, splits=("train",), load_dry=False)
     if area is None:
         area = seen_area(done.root)
-    depth = surfel_depth_for(cfg.preset, cfg.variant, cfg.surfel_depth, ds.gsd)
-    coarse = depth != cfg.surfel_depth
-    given = (cfg.preset, cfg.variant, cfg.seed, cfg.init, cfg.iterations, depth)
-    preset_cap = train_config(*given).densify.max_gaussians
-    budget = min(max(round(GAUSSIANS_PER_GSD2 * area / ds.gsd**2), preset_cap), MAX_GAUSSIANS)
-    extent = ds.camera_extent()
-    train = at_survey_scale(train_config(*given, budget), extent, ds.gsd)
+    coarse = surfel_depth_for(cfg.preset, cfg.variant, cfg.surfel_depth, ds.gsd) != cfg.surfel_depth
+    train = survey_training(ds, cfg.preset, cfg.variant, cfg.seed, cfg.init, cfg.iterations, cfg.surfel_depth,
+                            area=area)
+    budget, extent = train.densify.max_gaussians, ds.camera_extent()
     capped = "" if train.scene_scale is None else \
         f" ({SCENE_SCALE_GSD:g} GSD; the cameras span {extent:.1f} m)"
     progress.say("train", f"at most {budget} Gaussians for {area:.0f} m^2 at a ground sample distance of "
