@@ -38,11 +38,14 @@ def level_or_auto(text: str) -> float | str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from dataclasses import fields
+
     from ragsplat.rasterize_surfels import DEPTHS
-    from ragsplat.survey.exif import BAROMETER_SIGMA, CONSUMER_SIGMA
-    from ragsplat.survey.pipeline import COARSE_GSD, STAGES, TILE_GSD
-    from ragsplat.train.config import INIT, PRESETS, VARIANTS
+    from ragsplat.survey.pipeline import COARSE_GSD, STAGES, TILE_GSD, SurveyConfig
+    from ragsplat.train.config import PRESETS, VARIANTS
     from ragsplat.train.defaults import JOBS, SURVEY_VARIANTS, survey_variant
+
+    default = {f.name: f.default for f in fields(SurveyConfig)}  # each option's default is its field's
 
     parser.add_argument("images", type=Path, metavar="IMAGES",
                         help="the folder of the survey's photos (JPEG/PNG)")
@@ -58,10 +61,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gcp-pixels", type=Path, metavar="CSV",
                         help="where each target is in the photos: CSV with header image,name,u,v (pixels, "
                              "the image's top-left corner at 0,0)")
-    parser.add_argument("--gcp-sigma", type=positive_float, default=0.01, metavar="M",
-                        help="ground control accuracy, each axis (m; default 0.01)")
+    parser.add_argument("--gcp-sigma", type=positive_float, default=default["gcp_sigma"], metavar="M",
+                        help="ground control accuracy, each axis (m; default %(default)s)")
     surface = parser.add_mutually_exclusive_group()
-    surface.add_argument("--water-level", type=level_or_auto, default="auto", metavar="Z|auto",
+    surface.add_argument("--water-level", type=level_or_auto, default=default["water_level"],
+                         metavar="Z|auto",
                          help="height of the calm, flat water surface in the positions' frame (m), or auto "
                               "(the default without --water-surface): the level estimated from the photos, "
                               "in the adjustment through the water")
@@ -70,47 +74,49 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                               "header x,y,z, the positions' frame; a river's sloping surface is fitted to "
                               "them")
     parser.add_argument("--out", required=True, type=out_dir, help="run directory (a rerun resumes)")
-    parser.add_argument("--n", type=refractive_index, default=1.33,
-                        help="refractive index of the water (1.33)")
+    parser.add_argument("--n", type=refractive_index, default=default["n"],
+                        help="refractive index of the water (%(default)s)")
     parser.add_argument("--crs", metavar="CRS",
                         help="the positions' CRS for the products, e.g. EPSG:32633; with positions from the "
                              "photos the projected CRS (metres) they are converted to (default: the UTM zone "
                              "of their mean position)")
     parser.add_argument("--masks", type=Path, metavar="DIR",
                         help="masks named <image name>.png, zero where pixels are left out of training")
-    parser.add_argument("--lens", choices=["radial", "pinhole"], default="radial",
-                        help="radial (default): the lens's radial distortion k1, k2 estimated in the "
-                             "adjustment through the water (one lens for all photos) and the photos "
-                             "undistorted for training; pinhole: none (photos already undistorted)")
+    parser.add_argument("--lens", choices=["radial", "pinhole"], default=default["lens"],
+                        help="radial: the lens's radial distortion k1, k2 estimated in the adjustment "
+                             "through the water (one lens for all photos) and the photos undistorted for "
+                             "training; pinhole: none (photos already undistorted); default %(default)s")
     parser.add_argument("--no-water-adjustment", action="store_true",
                         help="keep the pinhole structure-from-motion poses (only for comparison: through "
                              "water they are tilted and the bed comes out too deep)")
     parser.add_argument("--rtk-sigma", type=positive_float, nargs=2, metavar=("H", "V"),
                         help="RTK position accuracy, horizontal and vertical (m; default 0.02 0.03, or with "
                              "positions from the photos each RTK-fixed photo's own reported accuracy)")
-    parser.add_argument("--gps-sigma", type=positive_float, nargs=2, default=CONSUMER_SIGMA,
+    parser.add_argument("--gps-sigma", type=positive_float, nargs=2, default=default["gps_sigma"],
                         metavar=("H", "V"),
                         help="accuracy of positions from the photos without RTK fix (consumer GPS), "
                              "horizontal and vertical (m; default %(default)s)")
-    parser.add_argument("--barometer-sigma", type=positive_float, default=BAROMETER_SIGMA, metavar="M",
+    parser.add_argument("--barometer-sigma", type=positive_float, default=default["barometer_sigma"],
+                        metavar="M",
                         help="accuracy of those photos' heights where they come from the drone's barometer "
                              "(DJI RelativeAltitude, above the take-off point) (m; default %(default)s)")
     parser.add_argument("--variant", choices=list(VARIANTS),
-                        help=f"(default: the preset's best, {survey_variant('small')}; "
+                        help=f"(default: the preset's best, {survey_variant(default['preset'])}; "
                              + "; ".join(f"with --preset {p} {v}" for p, v in SURVEY_VARIANTS.items()) + ")")
-    parser.add_argument("--init", default=INIT, choices=["triangulated", "refracted"],
-                        help=f"(default: {INIT})")
-    parser.add_argument("--preset", default="small", choices=list(PRESETS),
-                        help="training preset (small; long for river-scale photos of a few cm a pixel, whose "
-                             "surfels' centre z the default takes for them)")
+    parser.add_argument("--init", default=default["init"], choices=["triangulated", "refracted"],
+                        help="(default: %(default)s)")
+    parser.add_argument("--preset", default=default["preset"], choices=list(PRESETS),
+                        help="training preset (%(default)s; long for river-scale photos of a few cm a "
+                             "pixel, whose surfels' centre z the default takes for them)")
     parser.add_argument("--iterations", type=positive_int, help="override the preset's iteration count")
     parser.add_argument("--surfel-depth", choices=DEPTHS,
                         help="a surfel sample's z in training: where the pixel's ray meets it (ray) or its "
                              "centre's (centre, as gsplat does on a GPU); default: the preset's, the "
                              f"centre's for photos coarser than {100 * COARSE_GSD:g} cm a pixel")
-    parser.add_argument("--seed", type=count, default=0, help="training seed (default 0)")
-    parser.add_argument("--resolution", type=positive_float, default=0.05, metavar="M",
-                        help="DEM cell (0.05 m)")
+    parser.add_argument("--seed", type=count, default=default["seed"],
+                        help="training seed (default %(default)s)")
+    parser.add_argument("--resolution", type=positive_float, default=default["resolution"], metavar="M",
+                        help="DEM cell (%(default)s m)")
     parser.add_argument("--max-size", type=positive_int, metavar="PX",
                         help="downscale images for training so their longer side is at most PX pixels "
                              "(default: full size, or two pixels a DEM cell where that halves the pixels, or "
