@@ -1309,14 +1309,15 @@ def _check_sizes(cfg: SurveyConfig, progress: Progress, photos: list[Path], cent
         scale = np.minimum(1.0, max_size / longest) if max_size else 1.0
         return float((3 * np.prod(sizes, 1) * scale * scale).sum())
 
-    if cfg.max_size is None:
-        from ragsplat.survey.exif import focal_pixels
+    from ragsplat.survey.exif import focal_pixels
 
-        heights = [p.relative_altitude for p in tagged or () if p.relative_altitude]
-        height = (float(np.median(-surface.depth(centres))) if surface is not None
-                  else float(np.median(heights)) if heights else None)
-        focal = focal_pixels(photos[0]) if height else None
-        size = dem_size(int(longest.max()), height / focal, cfg.resolution) if focal else None
+    focal = focal_pixels(photos[0])
+    # the cameras' height above the water: the given surface's, else the barometer's above the take-off
+    above = float(np.median(-surface.depth(centres))) if surface is not None else None
+    heights = [p.relative_altitude for p in tagged or () if p.relative_altitude]
+    height = above if above is not None else float(np.median(heights)) if heights else None
+    if cfg.max_size is None and height and focal:
+        size = dem_size(int(longest.max()), height / focal, cfg.resolution)
         if size is not None:
             cfg = replace(cfg, max_size=size)
             progress.say("check", f"photos of about {100 * height / focal:.1f} cm a pixel for a DEM of "
@@ -1338,13 +1339,9 @@ def _check_sizes(cfg: SurveyConfig, progress: Progress, photos: list[Path], cent
                      f"({image_bytes(fits) / 1e9:.1f} GB; --max-size to choose)")
     lo, hi = centres[:, :2].min(0), centres[:, :2].max(0)
     # the nadir footprint's half width: height over the water x half the sensor / focal
-    if surface is not None:
-        from ragsplat.survey.exif import focal_pixels
-
-        focal = focal_pixels(photos[0])
-        if focal:
-            reach = float(np.median(-surface.depth(centres))) * 0.5 * sizes[0].max() / focal
-            lo, hi = lo - max(reach, 0.0), hi + max(reach, 0.0)
+    if above is not None and focal:
+        reach = above * 0.5 * sizes[0].max() / focal
+        lo, hi = lo - max(reach, 0.0), hi + max(reach, 0.0)
     sample_count(lo, hi, cfg.resolution)  # ConfigError with the resolution that passes
     return cfg
 
