@@ -110,9 +110,8 @@ DATASET_SEEDS = {"development": 1, "evaluation": 0, "untouched": 7}
 # told): every row starts from the refracted tracks (`INIT`, the training's own default start, shared with
 # `ragsplat survey`), the clear-water variants (`CLEAR_VARIANTS`), three training seeds (tables: mean +- std),
 # and on the CPU `JOBS` processes of cores / JOBS threads (`train.defaults`, shared with the survey's tiles).
-# On CUDA six processes per GPU: a `small` row leaves one H100 mostly idle (launch-bound), and six at once
-# trained all 27 rows of the 1 500-step preset of then in 6.7 min where one alone took 61 s for its longest
-# row (docs/performance.md; not measured at today's 3 000 steps).
+# On CUDA six processes per GPU: one `small` row leaves a GPU mostly idle (launch-bound), six at once keep it
+# busy (docs/lab/performance.md, "On a GPU").
 SEEDS = (0, 1, 2)
 # The water's edge as a surveyor measures it (header x,y,z; the generator writes it into every reach dataset):
 # where one level (`--one-level`) is taken from.

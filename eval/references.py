@@ -57,7 +57,7 @@ EXTRACTION = {"init": "volume", "3dgs x n": "volume", "oracle plane": "-", "orac
               "triangulation (refracted)": "TIN", "triangulation x n": "TIN", "dietrich (tracks)": "TIN",
               "dietrich (3dgs)": "volume"}
 # The references' own settings, chosen on the development reach by the method's rule (`python -m
-# tools.tune_references data/small-dev`; the figures in docs/history.md, "The references' settings"): the
+# tools.tune_references data/small-dev`; the figures in docs/lab/history.md, "The references' settings"): the
 # tracks' outlier filter before the TIN (`tracks.track_filter`), and Dietrich's per-camera angle filter and
 # reduction (pyBathySfM's defaults, 35 degrees and the mean, as the starting point).
 TIN_FILTER = {"radius": 1.0, "tol": 0.3, "min_neighbours": 8}

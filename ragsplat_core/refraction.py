@@ -747,9 +747,9 @@ _GRAPH_BREAKS = ("_check_camera", "_wet_rows")
 def compiled_refract_gaussians():
     """`refract_gaussians` through `torch.compile` (dynamic shapes): its few dozen small elementwise ops
     become a handful of fused kernels. That matters where every op is a kernel launch: on a GPU the eager
-    transform is launch-bound (the same 7-10 ms at 40k and 200k Gaussians, docs/performance.md). Values and
-    gradients equal the eager ones to round-off (tests/test_refraction.py); each new family of shapes compiles
-    first (tens of seconds on a CPU)."""
+    transform is launch-bound (docs/lab/performance.md). Values and gradients equal the eager ones to
+    round-off (tests/test_refraction.py); each new family of shapes compiles first (tens of seconds on a
+    CPU)."""
     for name in _GRAPH_BREAKS:  # the compiled trace reads them here, as module globals
         globals()[name] = torch.compiler.disable(globals()[name])
     return torch.compile(refract_gaussians, dynamic=True)

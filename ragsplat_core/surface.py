@@ -45,7 +45,7 @@ from ragsplat.gaussians import quat_to_rotmat
 from ragsplat.tuning import record
 
 # The culls, despiking and fill were chosen on the development reach (dataset seed 1), each by a rule fixed
-# before its sweep: ragsplat_core/tuning/extract.json (docs/history.md, "The extraction's settings").
+# before its sweep: ragsplat_core/tuning/extract.json (docs/lab/history.md, "The extraction's settings").
 EXTRACT_TUNING = record("extract")
 
 

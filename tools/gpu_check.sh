@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU figures of docs/performance.md ("On a GPU"), in stages that end inside 10 minutes on one H100
+# The GPU figures of docs/lab/performance.md ("On a GPU"), in stages that end inside 10 minutes on one H100
 # (a lent machine's limit for one command); what they print also goes to OUT/STAGE.log.
 #   bash tools/gpu_check.sh tests OUT         the CUDA and gsplat tests, then `ragsplat bench train-step`
 #                                             with the compiled transform (OUT/train_step.json)
@@ -9,7 +9,7 @@
 #                                             the ablation gets what is left of LIMIT_S after the tests
 # Needs a CUDA torch, gsplat and ragsplat itself installed where PYTHON runs: ragsplat from its wheel, built
 # here into .gpu/whl (`.venv/bin/pip wheel --no-deps --no-build-isolation -w .gpu/whl .`) and installed there
-# with the other wheels (docs/performance.md, "The GPU checks in one command"); the checkout gives the tests
+# with the other wheels (docs/lab/performance.md, "The GPU checks in one command"); the checkout gives the tests
 # and the commands run from the installed package. Settings (environment): PYTHON (python3), DEVICE (cuda),
 # BACKENDS (gsplat:cuda), PRESET (small), VARIANTS ("full 2dgs+full"), SEEDS ("0 1 2"), RUNS (OUT/runs:
 # the ablation's folder; elsewhere, a rerun on the same machine resumes), LIMIT_S (540 s: the ablation, or

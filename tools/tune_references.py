@@ -12,7 +12,7 @@ point of the best F1 at 3 %), so that the field's practice gets the care the met
 `python -m tools.tune_references DATA [OUT.json] [--bed BED.npy]`: DATA is the development reach
 (`data/small-dev`, dataset seed 1); prints one Markdown table per step with the chosen row marked, and writes
 every figure as JSON. The chosen values go into `ragsplat.eval.references` (`TIN_FILTER`, `DIETRICH_TRACKS`,
-`DIETRICH_MAX_ANGLE`, `DIETRICH_DENSE_REDUCE`) by hand, with the tables in docs/history.md.
+`DIETRICH_MAX_ANGLE`, `DIETRICH_DENSE_REDUCE`) by hand, with the tables in docs/lab/history.md.
 """
 
 from __future__ import annotations

@@ -7,13 +7,12 @@ import contextlib
 import logging
 import os
 
-# A local worker's own threads wake less often than Dask's defaults, which take the GIL from the task 50 times
-# a second (the event loop's tick, 20 ms), sample its stack every 10 ms (the statistical profiler, for a
-# dashboard we do not start) and read the process's memory and CPU every 100-500 ms. With them, 81 smoke rows
-# took 1.12x the wall time of the same rows in plain processes; so, 1.02-1.07x, and today's code 0.92x of its
-# time with the defaults (docs/performance.md, "Quieter workers"). The workers' environment is set from their
-# start (`pre-spawn-environ` below) instead of Dask's default, whose MALLOC_TRIM_THRESHOLD_ of 64 KiB (memory
-# handed back to the system at once) made the rows spend a third of their time in the kernel (1.63x).
+# A local worker's own threads wake less often than Dask's defaults, which take the GIL from the task many
+# times a second (the event loop's tick, the statistical profiler for a dashboard we do not start, the
+# process's memory and CPU read): with them the rows ran measurably slower than in plain processes
+# (docs/lab/performance.md, "Quieter workers"). The workers' environment is set from their start
+# (`pre-spawn-environ` below) instead of Dask's default, whose small MALLOC_TRIM_THRESHOLD_ (memory handed
+# back to the system at once) made the rows spend much of their time in the kernel.
 QUIET_WORKERS = {
     "distributed.admin.tick.interval": "1s",
     "distributed.worker.profile.enabled": False,

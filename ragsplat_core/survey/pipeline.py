@@ -85,12 +85,10 @@ LEVEL_WARN = 0.02
 SHORE_SPAN = 0.2
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 # A tile's side in ground sample distances. Every tile trains the preset's steps however many photos it holds,
-# so the tiles' count sets the training's time: 1 500 makes the long reach's 110 m two tiles of 213 photos,
-# one per worker on the 2-core CPU: 37 min from nothing against 53 for the three of 1 000, for 1.6 points at
-# 1 % of depth (76.2 against 77.8; chosen on the development seed by the tiles' targets, docs/performance.md,
-# "Two tiles"). It keeps `small` (470 of them) one tile, and a square core's budget (GAUSSIANS_PER_GSD2) near
-# 380 000 Gaussians. The overlap with each neighbour, a share of the side, gives the cells near a seam a full
-# view from both.
+# so the tiles' count sets the training's time: this side makes the long reach two tiles, one per worker on
+# a 2-core CPU, at a small cost at 1 % of depth against three (chosen on the development seed by the tiles'
+# targets, docs/lab/performance.md, "Two tiles"), and keeps `small` one tile. The overlap with each neighbour,
+# a share of the side, gives the cells near a seam a full view from both.
 TILE_GSD = 1500
 TILE_OVERLAP = 0.1
 # Without --tile-size, a survey of at most this many photos is one tile whatever ground it covers: about
@@ -101,7 +99,7 @@ ONE_TILE_PHOTOS = 200
 # tile's length (55-57 m on the long reach's two tiles). A survey trains at most at the scale the `long`
 # preset was chosen at: its development stretch's 19.82 m at 4.654 cm, 426 ground sample distances
 # (`small`'s 4.6 m are 198; both keep their own). Larger tiles trained at it like the stretch
-# (docs/performance.md).
+# (docs/lab/performance.md).
 SCENE_SCALE_GSD = 426
 
 

@@ -66,7 +66,7 @@ VEIL_RANGE = (1e-3, 1.0)
 # glint that still shows through R = 0.02 at nadir (R x 100 = 2: saturated), where the images clip.
 SKY_RANGE = (1e-3, 100.0)
 # Where the ablation's rows and a survey's training start by default: the training images' tracks, refracted
-# (F1@3% about 20 % from the paper's plane on the reach, which has no single bed depth; docs/history.md)
+# (F1@3% about 20 % from the paper's plane on the reach, which has no single bed depth; docs/lab/history.md)
 INIT = "refracted"
 # Settings of how a run executes, not of what it computes (the same steps, equal to round-off): a checkpoint
 # written under one value resumes under another.
@@ -123,7 +123,7 @@ class TrainConfig:
     # The z those terms (and the rendered depth) give a surfel's sample: "ray", where the pixel's ray meets
     # it (2DGS), or "centre", its centre's z, as gsplat composites it (on CUDA always). The ray's on `small`
     # (1.5 points ahead at 1 % of depth), the centre's on the long reach's 4.65 cm pixels (8.5 ahead, the
-    # `long` preset): tuning/small.json and tuning/long.json, "surfel_depth"; docs/performance.md
+    # `long` preset): tuning/small.json and tuning/long.json, "surfel_depth"; docs/lab/performance.md
     surfel_depth: str = "ray"
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     # The length (m) that scales the position rate and the densification's size thresholds (clone or split at

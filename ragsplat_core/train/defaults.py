@@ -21,7 +21,7 @@ def tile_workers(tiles: int) -> int:
     `JOBS` worker, the cores shared among them, else `JOBS`. The tiles train for the same number of steps, so
     3 tiles on 2 workers take two rounds with a core idle in the second; 3 one-thread trainings at once on
     the 2-core CPU did 0.70-0.75 s a step each against 0.43 s alone (two at once: 0.44-0.45): 1.7 tiles' time
-    instead of 2 (docs/performance.md, "The whole reach from nothing")."""
+    instead of 2 (docs/lab/performance.md, "The whole reach from nothing")."""
     return tiles if tiles < 2 * JOBS else JOBS
 
 

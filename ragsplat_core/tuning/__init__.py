@@ -2,7 +2,7 @@
 per record (`small`, `small_field`, `long`, `extract`): every value tried with its figures, the rule, the
 chosen value, the command, the commit and the dataset seed it was chosen on. The configs hold the chosen
 values (`train/config.py`, `surface.ExtractConfig`); `ragsplat ablation` repeats the records in results.json;
-the sweeps' tables and readings are in docs/history.md."""
+the sweeps' tables and readings are in docs/lab/history.md."""
 
 from __future__ import annotations
 
