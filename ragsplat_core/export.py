@@ -1,6 +1,8 @@
 """Products of a finished training run: the bed surface as a DEM GeoTIFF (elevation and water depth), the bed
-points as LAS/LAZ and PLY and a depth map PNG over a hillshade (`ragsplat export`); and the run rendered at
-its dataset's camera poses, through the water, without it, or as z-depth (`Model`, `ragsplat render`).
+points as LAS/LAZ and PLY, a depth map PNG over a hillshade, and on the DEM's grid two orthophotos: the bed
+as if the water were gone and the photos mosaicked through it (`ragsplat.ortho`; `ragsplat export`); and the
+run rendered at its dataset's camera poses, through the water, without it, or as z-depth (`Model`, `ragsplat
+render`).
 
 The bed is `surface.extract_surface` of the trained Gaussians on a grid of `resolution` metres, cropped to
 the dataset's evaluation region when it has one. Every product is in one coordinate frame: the run's local
@@ -29,6 +31,7 @@ from ragsplat.dataset.layout import Georef
 from ragsplat.dataset.load import Dataset, View, load_dataset
 from ragsplat.errors import ConfigError, DatasetError, OutputError
 from ragsplat.gaussians import activated
+from ragsplat.ortho import OrthoGrid, apparent_mosaic, bed_orthophoto, rgba_bytes
 from ragsplat.outputs import atomic_path, claim
 from ragsplat.ply import load_ply
 from ragsplat.rasterize import choose_backend
@@ -97,7 +100,8 @@ class Bed:
 def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None = None,
                ply: Path | None = None, png: Path | None = None, data: Path | None = None, on_block=None,
                bounds=None, uncertainty: UncertaintyModel | None = None, level_sigma: float = 0.0,
-               n_sigma: float = 0.0, **extract) -> Bed:
+               n_sigma: float = 0.0, ortho: Path | None = None, ortho_apparent: Path | None = None,
+               **extract) -> Bed:
     """Extract the bed of a finished run (`load_run`, `extract_bed`, `extract`: its `ExtractConfig` fields to
     change; the size cap in metres, unless given, the run's training's: `surface.size_cap_m`) and write the
     DEM and each other product given a path, in the dataset's georeference (an imported survey's CRS and
@@ -105,7 +109,8 @@ def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None 
     (xmin, ymin, xmax, ymax in the CRS, +-inf where open: a survey's tile) cuts the bed to that box, within
     what it would cover without. `uncertainty`: a fitted model, whose TVU95 of each cell (`cell_tvu95`, from
     the run's training views; `level_sigma` m and `n_sigma`: the standard deviations of the water's level
-    and index, the systematic term) the DEM and the LAS then carry. Returns the bed."""
+    and index, the systematic term) the DEM and the LAS then carry. `ortho`, `ortho_apparent`: the bed's
+    and the photos' orthophotos on the DEM's grid (`write_orthophotos`). Returns the bed."""
     meta, ds, splats, seed = _read_run(Path(run), data, splits=())
     extract = {"max_scale_m": size_cap_m(TrainConfig.from_dict(meta["config"])), **extract}
     water = run_water(meta, ds)
@@ -123,7 +128,67 @@ def export_run(run: Path, dem: Path, resolution: float = 0.05, las: Path | None 
     for path, write in ((las, write_las), (ply, write_ply), (png, write_png)):
         if path is not None:
             write(path, bed)
+    if ortho is not None or ortho_apparent is not None:
+        run_orthophotos(run, bed, ortho, ortho_apparent, data)
     return bed
+
+
+def run_orthophotos(run: Path, bed: Bed, ortho: Path | None, apparent: Path | None,
+                    data: Path | None = None) -> OrthoGrid:
+    """`write_orthophotos` of a finished run (`load_model`, its training photos) on the grid of its `bed`."""
+    model, photos = load_model(Path(run), data, splits=("train",))
+    return write_orthophotos(model, photos.train, bed, ortho, apparent, photos.gsd)
+
+
+def write_orthophotos(model: Model, views: list[View], bed: Bed, ortho: Path | None = None,
+                      apparent: Path | None = None, gsd: float | None = None) -> OrthoGrid:
+    """The orthophotos on the grid of `bed`'s DEM, as RGBA Cloud-Optimized GeoTIFFs in its georeference
+    (alpha 0 where nothing is drawn): `ortho`, the trained bed rendered straight down without the water
+    (`ortho.bed_orthophoto`, the far pinhole over the bed's median height and its relief, each cell the
+    average of renders at about the photos' ground sample distance `gsd`, m); `apparent`, the
+    `views`' images mosaicked as a refraction-blind orthomosaic does (`ortho.apparent_mosaic`). Returns the
+    grid."""
+    height, corner = layout.raster(bed.grid[:, :2], bed.grid[:, 2], bed.resolution)  # [H, W], NaN: no cell
+    grid = OrthoGrid.of_raster(height, corner, bed.resolution)
+    transform = grid.transform(bed.georef.offset[:2])
+    if ortho is not None:
+        reference = float(np.nanmedian(height))
+        relief = float(np.nanmax(np.abs(height - reference)))
+        samples = max(1, math.ceil(bed.resolution / gsd - 1e-6)) if gsd else 1
+        rgba = bed_orthophoto(lambda cam: model.render(cam, interface=False)[:2], grid, reference, relief,
+                              samples)
+        layout.write_rgba(ortho, rgba_bytes(rgba), transform, bed.georef.crs, "the bed without the water")
+    if apparent is not None:
+        photos = [(v.camera, v.rgb.cpu().numpy()) for v in views]
+        rgba = apparent_mosaic(photos, grid, height, model.water)
+        layout.write_rgba(apparent, rgba_bytes(rgba), transform, bed.georef.crs,
+                          "the photos through the water, mosaicked")
+    return grid
+
+
+def merge_orthophotos(paths: list[Path], out: Path) -> None:
+    """RGBA orthophotos of one CRS on one lattice (a survey's tiles'), pasted into one, the first that draws a
+    pixel (alpha > 0) giving it, and written as `write_orthophotos` writes each."""
+    import rasterio
+
+    images = []
+    for path in paths:
+        with rasterio.open(path) as r:
+            images.append((r.read(), r.transform, r.crs, (r.descriptions[0] or "orthophoto").split(":")[0]))
+    step = images[0][1].a
+    west = min(tr.c for _, tr, _, _ in images)
+    north = max(tr.f for _, tr, _, _ in images)
+    cols = [round((tr.c - west) / step) for _, tr, _, _ in images]
+    rows = [round((north - tr.f) / step) for _, tr, _, _ in images]
+    width = max(c + im.shape[2] for c, (im, *_) in zip(cols, images))
+    height = max(r + im.shape[1] for r, (im, *_) in zip(rows, images))
+    merged = np.zeros((4, height, width), dtype=np.uint8)
+    for r0, c0, (im, *_) in zip(rows, cols, images):
+        view = merged[:, r0:r0 + im.shape[1], c0:c0 + im.shape[2]]
+        take = (view[3] == 0) & (im[3] > 0)
+        view[:, take] = im[:, take]
+    _, _, crs, what = images[0]
+    layout.write_rgba(out, merged, (step, 0.0, west, 0.0, -step, north), crs, what)
 
 
 def load_run(run: Path, data: Path | None = None) -> tuple[dict, Dataset, int]:

@@ -438,19 +438,33 @@ def write_raster(path: Path, xy: np.ndarray, bands: list[tuple[np.ndarray, str]]
 
 
 def write_image(path: Path, bands: np.ndarray, descriptions: list[str], transform: tuple, crs: str,
-                nodata: float) -> None:
-    """Bands [B, H, W] (their dtype, `nodata` already in place) -> a deflated GeoTIFF, atomically;
-    `transform`: the affine's first six coefficients (a, b, c, d, e, f)."""
+                nodata: float | None, colours: tuple[str, ...] | None = None) -> None:
+    """Bands [B, H, W] (their dtype, `nodata` already in place; None: none) -> a deflated Cloud-Optimized
+    GeoTIFF (tiled, with overviews: GIS and web maps open a large one quickly), atomically; `transform`: the
+    affine's first six coefficients (a, b, c, d, e, f); `colours`: the bands' colour interpretations
+    (rasterio's ColorInterp names, e.g. red, green, blue, alpha), else GDAL's default."""
     import rasterio
+    from rasterio.enums import ColorInterp
     from rasterio.transform import Affine
 
     with atomic_path(path) as tmp, rasterio.open(
-            tmp, "w", driver="GTiff", width=bands.shape[2], height=bands.shape[1], count=len(bands),
+            tmp, "w", driver="COG", width=bands.shape[2], height=bands.shape[1], count=len(bands),
             dtype=str(bands.dtype), crs=crs, transform=Affine(*transform), nodata=nodata,
-            compress="deflate") as r:
+            compress="deflate", overviews="auto") as r:
         for k, (image, description) in enumerate(zip(bands, descriptions), start=1):
             r.write(image, k)
             r.set_band_description(k, description)
+        if colours is not None:
+            r.colorinterp = [ColorInterp[c] for c in colours]
+
+
+RGBA = ("red", "green", "blue", "alpha")
+
+
+def write_rgba(path: Path, rgba: np.ndarray, transform: tuple, crs: str, what: str) -> None:
+    """An image [4, H, W] uint8 (red, green, blue, alpha: 0 where nothing is drawn) -> an RGBA
+    Cloud-Optimized GeoTIFF (`write_image`), each band described as `what` and its colour."""
+    write_image(path, rgba, [f"{what}: {c}" for c in RGBA], transform, crs, None, RGBA)
 
 
 def write_waterline(path: Path, lines: list[np.ndarray], level: float) -> None:

@@ -13,7 +13,9 @@ parses arguments). Before any work, everything that can be refused is (`check_in
    it and the cameras held near their positions, or the ground control points at theirs (`survey.bundle`)
    -> RUN/model/ (a COLMAP model), RUN/water.json;
 4. training (`train_and_export`: the imported survey, the best variant and start as `make ablation`
-   measures them) and the products RUN/dem.tif, RUN/bed.laz, RUN/depth.png. A survey larger than a tile
+   measures them) and the products RUN/dem.tif, RUN/bed.laz, RUN/depth.png and, on the DEM's grid, the
+   orthophotos RUN/ortho_bed.tif (the bed without the water) and RUN/ortho_apparent.tif (the photos
+   mosaicked through it; `ragsplat.ortho`). A survey larger than a tile
    (`TILE_GSD` ground sample distances, or `SurveyConfig.tile_size`) is split into overlapping tiles
    (`survey.tiles`), each imported, trained and extracted on its own in RUN/tiles/K/ (a Dask task each where
    a client is given), and their beds merged: each cell from the tile whose core holds it; the layout and
@@ -56,7 +58,8 @@ if TYPE_CHECKING:
 AUTO = "auto"
 STAGES = ("sfm", "georef", "water", "train", "export")
 RTK_SIGMA = (0.02, 0.03)  # an RTK drone's camera centre, horizontal and vertical (m)
-PRODUCTS = ("dem.tif", "bed.laz", "depth.png")
+PRODUCTS = ("dem.tif", "bed.laz", "depth.png", "ortho_bed.tif", "ortho_apparent.tif")
+ORTHOS = PRODUCTS[3:]  # the orthophotos, each tile's in its folder, merged into the survey's
 # The training's Gaussian budget grows with the survey's area in ground sample distances (GSD^2): 0.17 per
 # GSD^2 is the `small` preset's 40 000 on the synthetic survey's 127 m^2 (its points' 1-99 % box) at 2.33 cm;
 # a smaller survey keeps the preset's budget. MAX_GAUSSIANS bounds memory (about 1 kB each while training).
@@ -957,15 +960,19 @@ def export(cfg: SurveyConfig, water: Water, trained: Path, products: list[Path],
                    cfg.culls)
     t0 = time.perf_counter()
     if not stamps.done("export", key, *products):
-        from ragsplat.export import export_run
+        from ragsplat.export import export_run, run_orthophotos
 
-        dem, las, png = products
+        dem, las, png, ortho, apparent = products
         b, on_block = progress.count("[export] bed", "block")
         with b:
             bed = export_run(trained, dem, cfg.resolution, las, None, png, on_block=on_block,
                              **_uncertainty_kwargs(band), **cfg.culls)
-        stamps.mark("export", key)
         progress.say("export", f"{len(bed.grid)} cells of {cfg.resolution:g} m{_tvu_words(bed)}", t0)
+        t1 = time.perf_counter()
+        grid = run_orthophotos(trained, bed, ortho, apparent)
+        stamps.mark("export", key)
+        progress.say("ortho", f"the bed without the water and the photos' mosaic, {grid.width} x "
+                     f"{grid.height} cells", t1)
 
 
 def uncertainty_settings(cfg: SurveyConfig) -> dict | None:
@@ -1115,6 +1122,7 @@ def train_tile(job: TileJob) -> str:
         progress.say("tile", f"tile {folder.name} on worker process {os.getpid()}")
         _train(job.cfg, progress, folder / "model", folder / "data", folder / "train", surface)
         bed = export_run(folder / "train", folder / "dem.tif", job.cfg.resolution, bounds=job.bounds,
+                         ortho=folder / ORTHOS[0], ortho_apparent=folder / ORTHOS[1],
                          **_uncertainty_kwargs(job.band), **job.cfg.culls)
         progress.say("export", f"{len(bed.grid)} cells{_tvu_words(bed)}", t0)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB on Linux -> GiB
@@ -1486,7 +1494,7 @@ def _merge(cfg: SurveyConfig, surface, tiling: list, beds: list, products: list[
     import numpy as np
 
     from ragsplat.dataset.load import load_dataset
-    from ragsplat.export import Bed, write_dem, write_las, write_png
+    from ragsplat.export import Bed, merge_orthophotos, write_dem, write_las, write_png
     from ragsplat.survey import tiles
 
     grid, _, report = tiles.merge(beds, tiling, cfg.resolution)
@@ -1496,4 +1504,8 @@ def _merge(cfg: SurveyConfig, surface, tiling: list, beds: list, products: list[
     bed = Bed(grid[:, :3] - offset, cfg.resolution, surface.shifted(offset), georef, tvu95=tvu)
     for path, write in zip(products, (write_dem, write_las, write_png)):
         write(path, bed)
+    for name, path in zip(ORTHOS, products[3:]):
+        drawn = [p for t in tiling if (p := cfg.out / "tiles" / str(t.index) / name).is_file()]
+        if drawn:
+            merge_orthophotos(drawn, path)
     return report
