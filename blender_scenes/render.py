@@ -233,6 +233,8 @@ def _setup(job: RenderJob) -> tuple[bpy.types.Scene, bpy.types.Object, list[bpy.
         cd.sensor_width, cd.sensor_height = 36.0 * cam.width / size, 36.0 * cam.height / size
         for k, value in enumerate(cam.fisheye_polynomial):
             setattr(cd, f"fisheye_polynomial_k{k}", value)
+    if cam.ortho_scale is not None:  # straight down, the same metres a pixel everywhere
+        cd.type, cd.ortho_scale = "ORTHO", cam.ortho_scale
     cd.clip_start, cd.clip_end = 0.01, 1e5
     camera = bpy.data.objects.new("camera", cd)
     scene.collection.objects.link(camera)

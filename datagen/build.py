@@ -282,9 +282,9 @@ def run_blender(job: RenderJob, workdir: Path, progress: Callable[[dict], None] 
 
 
 def render_job(spec: SceneSpec, out: Path, cam: Camera, tasks: list[Task],
-               lens: tuple[float, float] | None = None) -> RenderJob:
+               lens: tuple[float, float] | None = None, ortho_scale: float | None = None) -> RenderJob:
     """The renderer's job for `tasks` seen by `cam`, through a lens with radial distortion `lens` (k1, k2)
-    when given."""
+    when given, or by an orthographic camera `ortho_scale` metres across (`Intrinsics`)."""
     texture = Texture(str(out / "scene" / "albedo.png"))
     objects = [SceneObject("bed", texture), SceneObject("floor", texture)]
     c = spec.conditions
@@ -309,7 +309,7 @@ def render_job(spec: SceneSpec, out: Path, cam: Camera, tasks: list[Task],
         render=RenderSettings(r.samples, r.device, r.threads, spec.seed, r.filter_width, r.depth_filter,
                               r.exposure),
         camera=Intrinsics(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
-                          lens_polynomial(cam, *lens) if lens else None),
+                          lens_polynomial(cam, *lens) if lens else None, ortho_scale),
         tasks=tuple(tasks), ripples=ripples,
         glossy_bounces=1 if c is not None and c.reflection else 0)  # the mirror ray that sees sky and sun
 
@@ -321,6 +321,32 @@ def _task(spec: SceneSpec, kind: str, pose, out: Path) -> Task:
     rippled = kind == "wet" and c is not None and c.rippled
     return Task(kind, pose.name, pose.camera.c2w_gl, str(out),
                 conditions.ripple_phases(c, spec.seed, int(pose.name)) if rippled else None)
+
+
+def ortho_grid(spec: SceneSpec) -> tuple[float, float, int, int]:
+    """(west, north, width, height) of the orthographic truth (`layout.GT_ORTHO`): `layout.GT_GRID_STEP`
+    pixels over the evaluated region, their centres on the step's multiples (the export grid's nodes in a
+    dataset's own frame)."""
+    step, region = layout.GT_GRID_STEP, flight.eval_region(spec)
+    j0, j1 = math.ceil(region["xmin"] / step), math.floor(region["xmax"] / step)
+    i0, i1 = math.ceil(region["ymin"] / step), math.floor(region["ymax"] / step)
+    return (j0 - 0.5) * step, (i1 + 0.5) * step, j1 - j0 + 1, i1 - i0 + 1
+
+
+# the orthographic camera's height above the water level: above every object of a scene, its clipping far off
+ORTHO_ABOVE = 50.0
+
+
+def ortho_job(spec: SceneSpec, out: Path) -> RenderJob:
+    """The renderer's job for the orthographic truth: the dry pass straight down over `ortho_grid`."""
+    west, north, width, height = ortho_grid(spec)
+    step = layout.GT_GRID_STEP
+    x, y = west + width * step / 2, north - height * step / 2
+    c2w = ((1.0, 0.0, 0.0, x), (0.0, 1.0, 0.0, y), (0.0, 0.0, 1.0, spec.level + ORTHO_ABOVE),
+           (0.0, 0.0, 0.0, 1.0))  # OpenGL axes: looking down -z, image up = north
+    cam = Camera(width, height, 1.0, 1.0, width / 2, height / 2, np.eye(3), np.zeros(3))  # the size only
+    task = Task("dry", "ortho", c2w, str(out / layout.GT_ORTHO))
+    return render_job(spec, out, cam, [task], ortho_scale=max(width, height) * step)
 
 
 def max_depth(spec: SceneSpec) -> float:
@@ -465,14 +491,17 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
     lensed = surveyed(spec) and spec.render.lens
     lens = [_task(spec, "wet", p, layout.output_path(out, "lens", p.name)) for p in mine if lensed
             and p.split == "train" and not layout.intact(layout.output_path(out, "lens", p.name), None)]
+    # the orthographic truth, once per dataset (the first shard's), one view
+    ortho = index == 0 and not layout.intact(out / layout.GT_ORTHO, None)
     stats = RenderStats()
-    if tasks or lens:
+    if tasks or lens or ortho:
         if progress is not None:
-            progress({"event": "plan", "images": len(tasks) + len(lens), "views": len(mine),
+            progress({"event": "plan", "images": len(tasks) + len(lens) + ortho, "views": len(mine),
                       "passes": len(kinds) + bool(lens)})
         try:
             for job in ([render_job(spec, out, poses[0].camera, tasks)] if tasks else []) + \
-                    ([render_job(spec, out, poses[0].camera, lens, LENS)] if lens else []):
+                    ([render_job(spec, out, poses[0].camera, lens, LENS)] if lens else []) + \
+                    ([ortho_job(spec, out)] if ortho else []):
                 stats = stats.add(run_blender(job, out / "scene", progress))
         except RendererCrashed as crash:
             if retries <= 0:
@@ -480,6 +509,9 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
             if progress is not None:
                 progress({"event": "retry", "signal": crash.signum, "log": str(crash.log)})
             return generate(spec, out, shard, progress, retries - 1)
+    if ortho:
+        west, north, _, _ = ortho_grid(spec)
+        layout.write_world_file(out / layout.GT_ORTHO_WORLD, layout.GT_GRID_STEP, west, north)
     complete = all(layout.output_path(out, k, p.name).exists() for k in kinds for p in poses) and \
         all(layout.output_path(out, "lens", p.name).exists() for p in poses if lensed and p.split == "train")
     if complete:

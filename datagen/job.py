@@ -135,7 +135,8 @@ class RenderSettings:
 class Intrinsics:
     """The pinhole every task renders through (square pixels, principal point centred); with
     `fisheye_polynomial` [k0..k4], Cycles' polynomial lens instead: a lens with radial distortion
-    (`ragsplat.datagen.survey.lens_polynomial`)."""
+    (`ragsplat.datagen.survey.lens_polynomial`); with `ortho_scale`, Cycles' orthographic camera, its view
+    `ortho_scale` metres across the image's larger side (fx and fy unused)."""
     width: int
     height: int
     fx: float
@@ -143,6 +144,7 @@ class Intrinsics:
     cx: float
     cy: float
     fisheye_polynomial: tuple[float, ...] | None = None
+    ortho_scale: float | None = None
 
     def __post_init__(self):
         _freeze(self, "fisheye_polynomial")

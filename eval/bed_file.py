@@ -77,7 +77,7 @@ def _warp(src, dst, xy: np.ndarray) -> np.ndarray:
     return np.column_stack(transform(src, dst, xy[:, 0], xy[:, 1]))
 
 
-def _geodetic(crs) -> bool:
+def geodetic(crs) -> bool:
     return crs is not None and (crs.is_projected or crs.is_geographic)
 
 
@@ -87,7 +87,7 @@ def crs_name(crs) -> str | None:
 
 
 def _label(crs) -> str:  # a CRS in a message
-    return "no CRS" if crs is None else crs_name(crs) if _geodetic(crs) else "a local frame"
+    return "no CRS" if crs is None else crs_name(crs) if geodetic(crs) else "a local frame"
 
 
 def survey_geotags(data: Path):
@@ -108,7 +108,7 @@ def frames(crs, georef) -> list[Frame]:
     from rasterio.crs import CRS
 
     mine, offset = CRS.from_user_input(georef.crs), np.asarray(georef.offset, dtype=np.float64)
-    if _geodetic(crs) and _geodetic(mine):
+    if geodetic(crs) and geodetic(mine):
         if crs == mine:
             return [Frame("the dataset's CRS, its offset taken off", offset)]
         return [Frame(f"reprojected from {crs_name(crs)} to the dataset's CRS, its offset taken off", offset,
@@ -302,7 +302,7 @@ def _read_bed(path: Path, truth, georef, band: int = 1, depth: bool = False, des
     nodes, wet = truth.nodes, cKDTree(truth.grid[:, :2])
     best = None
     candidates = frames(file_crs, georef)
-    if geotags is not None and _geodetic(file_crs):
+    if geotags is not None and geodetic(file_crs):
         candidates += [replace(f, label=f"{f.label.replace('dataset', 'survey geotags')} (survey.json's geo)")
                        for f in frames(file_crs, geotags)]
     for frame in candidates:

@@ -409,3 +409,30 @@ def test_a_stretch_is_a_small_dataset_that_the_whole_one_resumes_from(tmp_path, 
     assert main(argv) == 0
     assert "complete" in capsys.readouterr().out
     assert all((out / "images" / "wet" / name).stat().st_mtime_ns == t for name, t in wet.items())
+
+
+def test_the_orthographic_truth_lies_where_the_dry_photos_see_the_bed(smoke):
+    from ragsplat.dataset import layout
+    from ragsplat.dataset.load import load_dataset
+    from ragsplat.eval.ortho import ortho_scores, read_truth
+    from ragsplat.ortho import OrthoGrid, apparent_mosaic
+
+    truth, step, west, north = read_truth(smoke)
+    grid = OrthoGrid(west, north, step, truth.shape[1], truth.shape[0])
+    region = json.loads((smoke / "scene.json").read_text())["eval_region"]
+    assert west <= region["xmin"] < west + step and north - step < region["ymax"] <= north
+    x, y = grid.centres()
+    np.testing.assert_allclose(x / step, np.round(x / step), atol=1e-9)  # centres on the step's multiples
+    xx, yy = np.meshgrid(x, y)
+    heights = layout.Surface.load(smoke / layout.GT_SURFACE).height_at(np.column_stack([xx.ravel(),
+                                                                                      yy.ravel()]))
+    ds = load_dataset(smoke, splits=("train",))
+    photos = [(v.camera, v.dry_rgb.numpy()) for v in ds.train if v.kind == "nadir"]
+    mosaic = apparent_mosaic(photos, grid, heights.reshape(xx.shape), None)  # the dry photos, exact heights
+    cells = mosaic[..., 3] > 0
+    score = ortho_scores(mosaic[..., :3], truth, cells)
+    print(f"\northographic truth against the dry nadir photos mosaicked: {score}")
+    assert cells.mean() > 0.8 and np.abs(score["shift_cells"]).max() < 0.25 and score["psnr"] > 20
+    # the mosaic drawn one cell east: the scorer finds it there
+    moved = ortho_scores(np.roll(mosaic[..., :3], 1, axis=1), truth, cells & np.roll(cells, 1, axis=1))
+    assert abs(moved["shift_cells"][0] - 1) < 0.25 and abs(moved["shift_cells"][1]) < 0.25

@@ -15,6 +15,9 @@ DIR/
   gt/bank_grid.npy           the same for the emerged ground (banks, bars) over eval_region (a reach)
   gt/bed_elevation.tif       bed_grid as a GeoTIFF raster: local metric CRS, nodata outside the wet area
   gt/waterline.json          GeoJSON MultiLineString where the bed meets the water plane (a reach)
+  gt/ortho_dry.png           the scene without the water seen straight down (Cycles' orthographic camera) over
+                             eval_region, GT_GRID_STEP a pixel, pixel centres on its multiples; its world file
+                             gt/ortho_dry.pgw (local metres); outside the manifest and the fingerprint
   colmap/                    COLMAP text model: cameras.txt (one PINHOLE), images.txt, empty points3D.txt,
                              and the split as image lists train.txt and test.txt
   manifest.json              size and sha256 of every rendered image and depth file (`file_digest`)
@@ -49,6 +52,8 @@ GT_WATERLINE = "gt/waterline.json"
 # field conditions: the rendered ground control targets' centres [T, 3], exact
 GT_TARGETS = "gt/gcp_targets.npy"
 GT_GRID_STEP = 0.05  # metres between ground-truth grid points
+GT_ORTHO = "gt/ortho_dry.png"
+GT_ORTHO_WORLD = "gt/ortho_dry.pgw"
 # Not colmap/sparse/0: nerfstudio's loader finds a model there and stops at an interactive question.
 COLMAP = "colmap"
 PASSES = ("wet", "dry", "depth")
@@ -465,6 +470,26 @@ def write_rgba(path: Path, rgba: np.ndarray, transform: tuple, crs: str, what: s
     """An image [4, H, W] uint8 (red, green, blue, alpha: 0 where nothing is drawn) -> an RGBA
     Cloud-Optimized GeoTIFF (`write_image`), each band described as `what` and its colour."""
     write_image(path, rgba, [f"{what}: {c}" for c in RGBA], transform, crs, None, RGBA)
+
+
+def write_world_file(path: Path, step: float, west: float, north: float) -> None:
+    """An image's world file (ESRI's .pgw / .tfw, what GIS reads beside a PNG): the six lines A, D, B, E, C, F
+    of a north-up grid of `step` m pixels whose outer corner is (west, north); C, F name the first pixel's
+    centre."""
+    values = (step, 0.0, 0.0, -step, west + step / 2, north - step / 2)
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text("".join(f"{v:.10f}\n" for v in values))
+
+
+def read_world_file(path: Path) -> tuple[float, float, float]:
+    """(step, west, north) of a north-up world file (`write_world_file`). Raises DatasetError otherwise."""
+    try:
+        a, d, b, e, c, f = (float(v) for v in Path(path).read_text().split())
+    except (OSError, ValueError):
+        raise DatasetError(f"{path}: not a world file (six numbers)") from None
+    if d or b or not a > 0 or abs(e + a) > 1e-9 * a:
+        raise DatasetError(f"{path}: not a north-up grid of square pixels")
+    return a, c - a / 2, f + a / 2
 
 
 def write_waterline(path: Path, lines: list[np.ndarray], level: float) -> None:
