@@ -378,3 +378,22 @@ def test_the_library_runs_without_a_progress(survey, tmp_path):
                                 gcp_pixels=survey / "gcp_pixels.csv", water_level=0.0, preset="smoke",
                                 lens="pinhole", stop_after="water")
     assert pipeline.run(cfg) == [] and (tmp_path / "run" / "water.json").is_file()
+
+
+def test_a_survey_writes_its_orthophotos_and_a_report_on_one_page(finished):
+    import rasterio
+
+    out, err = finished
+    with rasterio.open(out / "dem.tif") as d:
+        grid = (d.transform, d.crs, d.height, d.width)
+        covered = d.read(1) != layout.NODATA
+    for name in ("ortho_bed.tif", "ortho_apparent.tif"):
+        with rasterio.open(out / name) as r:
+            assert (r.transform, r.crs, r.height, r.width) == grid and r.count == 4
+            assert (r.read(4)[covered] > 0).mean() > 0.9, name
+    assert "[ortho] the bed without the water and the photos' mosaic" in err
+    page = (out / "report.html").read_text()
+    assert page.count('src="data:image/png;base64,') >= 6  # orthophotos, depth, cover, SfM, georef, water
+    assert "src=\"http" not in page and "<link" not in page  # nothing to fetch: it opens offline
+    assert "18 of 18 photos registered" in page and "similarity to 18 RTK positions" in page
+    assert "[report]" in err and str(out / "report.html") in err

@@ -221,12 +221,15 @@ class Stamps:
 
 
 def run(cfg: SurveyConfig, progress: Progress | None = None, cluster=None) -> list[Path]:
-    """The survey `cfg` from its photos to its products (`PRODUCTS` in `cfg.out`, their paths returned; none
-    when `cfg.stop_after` stops it early), every stage cached in `cfg.out`, the resolved config in
+    """The survey `cfg` from its photos to its products (`PRODUCTS` in `cfg.out` and the report on them,
+    `report.REPORT`: their paths returned; none when `cfg.stop_after` stops it early), every stage cached in
+    `cfg.out`, the resolved config in
     RUN/survey.json. `progress` hears of each stage (default: nothing). `cluster(tasks)`, a context manager
     that opens a `dask.distributed.Client`, trains the tiles of a survey of several as Dask tasks; None: one
     after another in this process. Raises DatasetError, ConfigError, OutputError."""
-    progress = progress or Progress()
+    from ragsplat.survey.report import Recorder, write_report
+
+    progress = Recorder(progress or Progress())
     survey = check_inputs(cfg, progress)
     stamps = Stamps(survey.cfg.out)
     structure = structure_from_motion(survey, stamps, progress)
@@ -238,7 +241,11 @@ def run(cfg: SurveyConfig, progress: Progress | None = None, cluster=None) -> li
     water = adjust_through_water(survey, structure, geo, stamps, progress)
     if survey.cfg.stop_after == "water":
         return []
-    return train_and_export(survey, water, stamps, progress, cluster)
+    products = train_and_export(survey, water, stamps, progress, cluster)
+    t0 = time.perf_counter()
+    report = write_report(survey.cfg.out, progress.said)
+    progress.say("report", f"{report}", t0)
+    return [*products, report]
 
 
 @dataclass(frozen=True)
