@@ -498,7 +498,8 @@ def read_uncertainty(path: Path | str) -> UncertaintyModel:
 def write_dem(path: Path, bed: Bed) -> None:
     """GeoTIFF, two float32 bands: 1 = bed elevation (m, z up, + z0), 2 = water depth (m, nodata on
     emerged ground), and a third where the bed has its TVU95 (`Bed.tvu95`, m, description `TVU_BAND`);
-    nodata (`layout.NODATA`) outside the covered cells."""
+    nodata (`layout.NODATA`) outside the covered cells. Beside it, the depth band's QGIS style
+    (`write_depth_style`, the same name ending .qml)."""
     above = ""
     if bed.water is not None:
         w = bed.water.shifted([-v for v in bed.georef.offset])  # in the CRS
@@ -510,6 +511,43 @@ def write_dem(path: Path, bed: Bed) -> None:
     if bed.tvu95 is not None:
         bands.append((bed.tvu95, TVU_BAND))
     layout.write_raster(path, bed.absolute()[:, :2], bands, bed.resolution, crs=bed.georef.crs)
+    depth = bed.depth()[np.isfinite(bed.depth())]
+    write_depth_style(Path(path).with_suffix(".qml"), float(depth.max()) if len(depth) else 1.0)
+
+
+STYLE_STOPS = 6  # colours of the depth band's QGIS ramp
+
+
+def write_depth_style(path: Path, deepest: float) -> None:
+    """A QGIS layer style (.qml; QGIS applies it to the raster of the same name when it opens it): the DEM's
+    depth band (2) in the depth map's colours (`write_png`'s viridis, shallow yellow to deep blue) from 0 to
+    `deepest` m, nodata transparent."""
+    from xml.sax.saxutils import quoteattr
+
+    from matplotlib import colormaps, colors
+
+    ramp = colormaps["viridis_r"]
+    items = "\n".join(
+        f'          <item alpha="255" value="{v:.4f}" label={quoteattr(f"{v:.2f} m")} '
+        f'color="{colors.to_hex(ramp(k / (STYLE_STOPS - 1)))}"/>'
+        for k, v in enumerate(np.linspace(0.0, deepest, STYLE_STOPS)))
+    text = f"""<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>
+<qgis version="3.28" styleCategories="Symbology">
+  <pipe>
+    <rasterrenderer type="singlebandpseudocolor" band="2" opacity="1" alphaBand="-1"
+                    classificationMin="0" classificationMax="{deepest:.4f}">
+      <rastershader>
+        <colorrampshader colorRampType="INTERPOLATED" classificationMode="1" clip="0"
+                         minimumValue="0" maximumValue="{deepest:.4f}">
+{items}
+        </colorrampshader>
+      </rastershader>
+    </rasterrenderer>
+  </pipe>
+</qgis>
+"""
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(text)
 
 
 def write_las(path: Path, bed: Bed) -> None:

@@ -105,6 +105,15 @@ def test_export_writes_every_product(run, tmp_path, capsys):
     assert (las.classification == BATHYMETRIC).all()
     np.testing.assert_array_equal(read_ply(out["ply"]), grid)  # doubles: lossless
     assert out["png"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the depth band's QGIS style beside the DEM: band 2, a ramp from 0 to the deepest cell
+    import xml.etree.ElementTree as ET
+
+    style = ET.parse(out["tif"].with_suffix(".qml")).getroot()
+    renderer = style.find("pipe/rasterrenderer")
+    assert renderer.get("type") == "singlebandpseudocolor" and renderer.get("band") == "2"
+    values = [float(i.get("value")) for i in renderer.iter("item")]
+    assert values[0] == 0 and values[-1] == pytest.approx(float(-grid[:, 2].min()), abs=1e-4)  # level 0
+    assert values == sorted(values)
 
 
 def test_flat_bed_at_known_depth(run, tmp_path):
