@@ -1,6 +1,7 @@
 """The ablation's outputs from its rows: Tables 1 (appearance), 2 (geometry, reference rows first) and 3 (the
 surveyor's figures) as Markdown, our values as mean +- standard deviation over the training seeds beside the
-paper's published ones, the error-against-time plot, per-row depth-error maps, and results.json.
+paper's published ones, the error-against-time plot, per-row depth-error maps, results.json, and all of them
+on one self-contained page, report.html (`ragsplat.pages`).
 
 Rows come as {name: [row per seed]} (see `eval/ablation.py`); a trained row has "appearance", "time",
 "num_gaussians", "geometry" (the volume extraction), "geometry_fused" (the fused one) and "curve", a
@@ -478,7 +479,7 @@ def survey_notes(header: dict) -> list[str]:
 
 def write_outputs(out: Path, rows: dict[str, list[dict]], header: dict, lpips_reason: str) -> str:
     """results.json, table1.md, table2.md, table3.md (table4.md when a row trained the water's optics),
-    error_vs_time.png from the rows; returns the tables."""
+    error_vs_time.png and report.html from the rows; returns the tables."""
     published = load_published()
     t1 = table1(rows, published, notes(rows, header, lpips_reason))
     t2 = table2(rows, published, geometry_notes(header))
@@ -504,7 +505,27 @@ def write_outputs(out: Path, rows: dict[str, list[dict]], header: dict, lpips_re
                "published": published, "summary": summaries, "summary_fused": fused,
                "rows": {n: rows[n] for n in ordered(rows)}}
     write_json(out / "results.json", jsonable(results), indent=1)
+    report_page(out, header, [("Table 1: appearance", t1), ("Table 2: geometry", t2),
+                             ("Table 3: the surveyor's figures", t3), ("Table 4: the water's optics", t4)])
     return t1 + "\n" + t2 + "\n" + t3 + ("\n" + t4 if t4 else "")
+
+
+def report_page(out: Path, header: dict, tables: list[tuple[str, str]]) -> Path:
+    """out/report.html: the tables (title, Markdown; empty ones left out), the error-against-time plot and
+    each row's depth-error map of training seed 0, on one page."""
+    from ragsplat.outputs import versions
+    from ragsplat.pages import file_uri, markdown_blocks, write_page
+
+    maps = [(folder.relative_to(out).parts[0], file_uri(folder / "depth_error.png"))
+            for folder in sorted(out.glob("*/seed0")) if (folder / "depth_error.png").is_file()]
+    maps += [(folder.name, file_uri(folder / "depth_error.png"))
+             for folder in sorted(out.glob("*")) if (folder / "depth_error.png").is_file()]
+    return write_page(out / "report.html", "ablation.html.j2",
+                      title=f"ragsplat ablation: {header.get('preset', '')} on "
+                            f"{Path(header.get('data', '')).name}",
+                      data=header.get("data", ""), seeds=header.get("seeds", ""), versions=versions("torch"),
+                      curve=file_uri(out / "error_vs_time.png"),
+                      tables=[(name, markdown_blocks(text)) for name, text in tables if text], maps=maps)
 
 
 def jsonable(x):

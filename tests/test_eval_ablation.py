@@ -1,4 +1,5 @@
 import json
+import re
 from types import SimpleNamespace
 
 import numpy as np
@@ -83,6 +84,11 @@ def test_write_outputs_files(tmp_path):
     assert res["lpips"] == {"available": False, "reason": "weights missing"}
     png = (tmp_path / "error_vs_time.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+    # the same on one page: every table's rows as HTML tables, the plot inlined
+    page = (tmp_path / "report.html").read_text()
+    separators = [line for line in text.splitlines() if re.fullmatch(r"\|[\s:|-]+\|", line)]
+    assert page.count("<table>") == len(separators) >= 3
+    assert "<td>3dgs</td>" in page and 'src="data:image/png;base64,' in page and "src=\"http" not in page
 
 
 class FakeRunner:

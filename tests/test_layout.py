@@ -341,3 +341,12 @@ def test_unavailable_benchmark_backend_is_one_line(capsys):
     assert main(["bench", "raster", "--backends", "gsplat-on-abacus"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "gsplat-on-abacus is not available here" in err[0]
+
+
+def test_markdown_tables_become_blocks():
+    from ragsplat.pages import markdown_blocks
+
+    text = "# Table 1\n\nA note\nthat wraps.\n\n| a | b |\n| --- | ---: |\n| 1 | 2 |\n| 3 | 4 |\nAfter.\n"
+    assert markdown_blocks(text) == [{"heading": "Table 1"}, {"text": "A note that wraps."},
+                                     {"table": {"head": ["a", "b"], "rows": [["1", "2"], ["3", "4"]]}},
+                                     {"text": "After."}]

@@ -13,8 +13,6 @@ has no section.
 
 from __future__ import annotations
 
-import base64
-import io
 import json
 import resource
 import time
@@ -23,11 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ragsplat.outputs import atomic_path
+from ragsplat.pages import figure_uri, pyplot, write_page
 
 REPORT = "report.html"
-TEMPLATE = Path(__file__).with_name("report.html.j2")
-FIGURE_DPI = 90
 DEPTH_CONTOURS = 8  # about this many contour lines over the depth range
 
 
@@ -63,25 +59,6 @@ class Recorder:
 
     def training(self, total: int, desc: str, initial: int):
         return self.inner.training(total, desc, initial)
-
-
-def _png(fig) -> str:
-    """A figure as a data URI (closed after)."""
-    import matplotlib.pyplot as plt
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=FIGURE_DPI)
-    plt.close(fig)
-    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode()
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")  # files only, no display
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _read(path: Path):
@@ -121,7 +98,7 @@ def _maps(out: Path, centres: dict[str, np.ndarray]) -> list[dict]:
     """The map figures: [{title, src, note}]."""
     from ragsplat.export import hillshade
 
-    plt = _plt()
+    plt = pyplot()
     dem = _read(out / "dem.tif")
     if dem is None:
         return []
@@ -143,7 +120,7 @@ def _maps(out: Path, centres: dict[str, np.ndarray]) -> list[dict]:
             ax.set_title(name)
             ax.set_xlabel("x (m)")
             ax.set_ylabel("y (m)")
-        figures.append({"title": "Orthophotos", "src": _png(fig),
+        figures.append({"title": "Orthophotos", "src": figure_uri(fig),
                         "note": "Left: the trained bed rendered straight down without the water, at "
                                 "its true positions. Right: what a refraction-blind orthomosaic of the same "
                                 "photos gives (each cell from the nearest photo, at the apparent bed's "
@@ -170,7 +147,7 @@ def _maps(out: Path, centres: dict[str, np.ndarray]) -> list[dict]:
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title(f"water depth over a hillshade of the bed, {step:g} m cells; grey: emerged ground")
-    figures.append({"title": "Depth", "src": _png(fig),
+    figures.append({"title": "Depth", "src": figure_uri(fig),
                     "note": f"{int(np.isfinite(height).sum())} cells, {len(wet)} under water"
                             + (f", deepest {wet.max():.2f} m" if len(wet) else "") + "."})
     covered = np.isfinite(height)
@@ -187,7 +164,7 @@ def _maps(out: Path, centres: dict[str, np.ndarray]) -> list[dict]:
         ax.set_title("cover: grey covered, red holes inside the covered area")
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)")
-        figures.append({"title": "Cover and holes", "src": _png(fig),
+        figures.append({"title": "Cover and holes", "src": figure_uri(fig),
                         "note": f"{100 * covered.sum() / inside.sum():.1f} % of the area the DEM encloses is "
                                 f"covered; {int(holes.sum())} cells are holes."})
     if bands.shape[0] > 2:
@@ -196,13 +173,13 @@ def _maps(out: Path, centres: dict[str, np.ndarray]) -> list[dict]:
         im = ax.imshow(100 * tvu, cmap="magma_r", extent=ext)
         fig.colorbar(im, ax=ax, label="TVU95 (cm)", shrink=0.85)
         ax.set_title("total vertical uncertainty at 95 %")
-        figures.append({"title": "TVU95", "src": _png(fig),
+        figures.append({"title": "TVU95", "src": figure_uri(fig),
                         "note": f"median {100 * np.nanmedian(tvu):.1f} cm over the covered cells."})
     return figures
 
 
 def _bars(labels: list[str], values: list[np.ndarray], names: list[str], ylabel: str, title: str) -> str:
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(max(6.0, 0.12 * len(labels) + 2), 3.5), constrained_layout=True)
     x = np.arange(len(labels))
     width = 0.8 / len(values)
@@ -214,7 +191,7 @@ def _bars(labels: list[str], values: list[np.ndarray], names: list[str], ylabel:
     ax.set_title(title)
     if len(values) > 1:
         ax.legend(fontsize=8)
-    return _png(fig)
+    return figure_uri(fig)
 
 
 def _structure(out: Path, errors: dict[str, float], points: int, photos: int) -> dict:
@@ -252,7 +229,7 @@ def _water(out: Path, rec, n: float) -> dict | None:
     surface = WaterSurface(**{**w["surface"], "n": n})
     src = None
     if rec is not None and len(rec.points3D):
-        plt = _plt()
+        plt = pyplot()
         xyz = np.array([p.xyz for p in rec.points3D.values()])
         dz = xyz[:, 2] - surface.height(xyz[:, :2])
         lo, hi = np.percentile(dz, [1, 99])
@@ -263,7 +240,7 @@ def _water(out: Path, rec, n: float) -> dict | None:
         ax.set_ylabel("points")
         ax.set_title("the points about the water (below it: the bed seen through the water, refraction taken "
                      "out)", fontsize=9)
-        src = _png(fig)
+        src = figure_uri(fig)
     est = w.get("estimated")
     by = None if est is None else ("from the shoreline" if est.get("by") == "shoreline"
                                    else "by the adjustment through the water")
@@ -273,8 +250,6 @@ def _water(out: Path, rec, n: float) -> dict | None:
 
 def write_report(out: Path, said: list[Said]) -> Path:
     """RUN/report.html of the survey in `out`, with the lines it said (`Recorder.said`). Returns its path."""
-    import jinja2
-
     from ragsplat.outputs import versions
 
     out = Path(out)
@@ -284,16 +259,10 @@ def write_report(out: Path, said: list[Said]) -> Path:
                                     or (model / "images.bin").is_file() else ({}, {}, 0, None))
     photos = len([p for p in Path(survey.get("images", "")).iterdir() if p.is_file()]) \
         if survey.get("images") and Path(survey["images"]).is_dir() else len(errors)
-    env = jinja2.Environment(loader=jinja2.FileSystemLoader(TEMPLATE.parent), autoescape=True,
-                             undefined=jinja2.StrictUndefined)
-    page = env.get_template(TEMPLATE.name).render(
-        title=f"ragsplat survey: {survey.get('images', out)}",
-        out=str(out), settings=survey, maps=_maps(out, centres),
-        structure=_structure(out, errors, points, photos) if errors else None,
-        georef=_georef(out), water=_water(out, rec, float(survey["n"])) if "n" in survey else None,
-        said=[asdict(s) for s in said],
-        versions=versions("torch", "pycolmap"))
-    path = out / REPORT
-    with atomic_path(path) as tmp:
-        Path(tmp).write_text(page)
-    return path
+    return write_page(out / REPORT, "survey.html.j2",
+                      title=f"ragsplat survey: {survey.get('images', out)}",
+                      out=str(out), settings=survey, maps=_maps(out, centres),
+                      structure=_structure(out, errors, points, photos) if errors else None,
+                      georef=_georef(out),
+                      water=_water(out, rec, float(survey["n"])) if "n" in survey else None,
+                      said=[asdict(s) for s in said], versions=versions("torch", "pycolmap"))
