@@ -432,7 +432,7 @@ def test_the_orthographic_truth_lies_where_the_dry_photos_see_the_bed(smoke):
     cells = mosaic[..., 3] > 0
     score = ortho_scores(mosaic[..., :3], truth, cells)
     print(f"\northographic truth against the dry nadir photos mosaicked: {score}")
-    assert cells.mean() > 0.8 and np.abs(score["shift_cells"]).max() < 0.25 and score["psnr"] > 20
+    assert cells.mean() > 0.8 and np.abs(score["shift_cells"]).max() < 0.15 and score["psnr"] > 20
     # the mosaic drawn one cell east: the scorer finds it there
     moved = ortho_scores(np.roll(mosaic[..., :3], 1, axis=1), truth, cells & np.roll(cells, 1, axis=1))
     assert abs(moved["shift_cells"][0] - 1) < 0.25 and abs(moved["shift_cells"][1]) < 0.25

@@ -166,3 +166,41 @@ def test_a_runs_orthophotos_share_the_dems_grid(run, tmp_path, capsys):
             image = r.read()
         assert (image[3][covered] > 0).mean() > 0.9  # drawn over the bed
     assert (image[3][~covered] == 0).all()  # the mosaic draws only where the DEM has a height
+
+
+def test_an_orthophoto_is_scored_against_the_truth_where_it_lies(evaluable_dataset, tmp_path, capsys):
+    """A truth of textured blobs over the dataset's region, and orthophotos of it: the truth itself on another
+    lattice scores high and unshifted; moved 2 cells east, the score finds it there (`tools.ortho_score`)."""
+    import shutil
+
+    from ragsplat.eval.ortho import score_orthophoto
+    from tools.ortho_score import main as ortho_score
+
+    data = tmp_path / "data"
+    shutil.copytree(evaluable_dataset, data)
+    step, west, north, size = 0.05, -0.5, 0.5, 20
+
+    def blobs(x, y):  # [.., 3] in [0, 1], features of 5-10 cells
+        grey = 0.5 + 0.2 * np.sin(13 * x + 1) * np.cos(17 * y) + 0.2 * np.sin(19 * x - 11 * y)
+        return np.stack([grey, 0.8 * grey + 0.1, 0.5 + 0.3 * np.sin(9 * y - 14 * x)], -1)
+
+    x = west + (np.arange(size) + 0.5) * step
+    y = north - (np.arange(size) + 0.5) * step
+    xx, yy = np.meshgrid(x, y)
+    layout.write_png(data / layout.GT_ORTHO, np.round(255 * blobs(xx, yy)).astype(np.uint8))
+    layout.write_world_file(data / layout.GT_ORTHO_WORLD, step, west, north)
+    layout.Surface(-2.0, 0.5, np.full((9, 9), -1.0)).save(data / layout.GT_SURFACE)  # 1 m under the water
+    fine = 0.02  # the orthophoto on a finer lattice, 1 cm off the truth's
+    fx = -0.61 + (np.arange(70) + 0.5) * fine
+    fy = 0.61 - (np.arange(70) + 0.5) * fine
+    for name, moved in (("here", 0.0), ("east", 2 * step)):
+        fxx, fyy = np.meshgrid(fx, fy)
+        rgba = np.concatenate([blobs(fxx - moved, fyy), np.ones(fxx.shape + (1,))], -1)
+        layout.write_rgba(tmp_path / f"{name}.tif", np.round(255 * rgba).astype(np.uint8).transpose(2, 0, 1),
+                          (fine, 0, -0.61, 0, -fine, 0.61), layout.LOCAL_CRS, name)
+    here, east = (score_orthophoto(tmp_path / f"{n}.tif", data) for n in ("here", "east"))
+    assert here["drawn"] == 1.0 and here["psnr"] > 35 and np.abs(here["shift_cells"]).max() < 0.1
+    assert abs(east["shift_cells"][0] - 2) < 0.2 and abs(east["shift_cells"][1]) < 0.2
+    assert east["psnr"] < here["psnr"] - 10
+    assert ortho_score([str(data), str(tmp_path / "here.tif")]) == 0
+    assert "| 100.0 % |" in capsys.readouterr().out
