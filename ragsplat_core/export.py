@@ -145,9 +145,12 @@ def write_orthophotos(model: Model, views: list[View], bed: Bed, ortho: Path | N
     """The orthophotos on the grid of `bed`'s DEM, as RGBA Cloud-Optimized GeoTIFFs in its georeference
     (alpha 0 where nothing is drawn): `ortho`, the trained bed rendered straight down without the water
     (`ortho.bed_orthophoto`, the far pinhole over the bed's median height and its relief, each cell the
-    average of renders at about the photos' ground sample distance `gsd`, m); `apparent`, the
+    average of renders at about the photos' ground sample distance `gsd`, m), drawn over the area the bed
+    covers, its holes included; `apparent`, the
     `views`' images mosaicked as a refraction-blind orthomosaic does (`ortho.apparent_mosaic`). Returns the
     grid."""
+    from scipy.ndimage import binary_fill_holes
+
     height, corner = layout.raster(bed.grid[:, :2], bed.grid[:, 2], bed.resolution)  # [H, W], NaN: no cell
     grid = OrthoGrid.of_raster(height, corner, bed.resolution)
     transform = grid.transform(bed.georef.offset[:2])
@@ -157,6 +160,7 @@ def write_orthophotos(model: Model, views: list[View], bed: Bed, ortho: Path | N
         samples = max(1, math.ceil(bed.resolution / gsd - 1e-6)) if gsd else 1
         rgba = bed_orthophoto(lambda cam: model.render(cam, interface=False)[:2], grid, reference, relief,
                               samples)
+        rgba[~binary_fill_holes(np.isfinite(height)), 3] = 0  # the bed's area and its holes, not the floaters
         layout.write_rgba(ortho, rgba_bytes(rgba), transform, bed.georef.crs, "the bed without the water")
     if apparent is not None:
         photos = [(v.camera, v.rgb.cpu().numpy()) for v in views]

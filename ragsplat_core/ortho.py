@@ -33,8 +33,10 @@ TILE_PX = 512  # an orthophoto's tiles' side in pixels: one render each
 # The far pinhole's least height above the reference (m): a flat grid still needs a camera above it.
 MIN_HEIGHT = 100.0
 NADIR = np.diag([1.0, -1.0, -1.0])  # world -> OpenCV camera looking straight down: x east, y south, z down
-# The mosaic looks at this many photos nearest a cell, nearest first, for one that sees it.
-NEAREST_PHOTOS = 8
+# The mosaic looks at this many photos nearest a cell, nearest first, for one that sees it (an oblique's
+# centre can be near a cell it does not see), for this many cells at a time.
+NEAREST_PHOTOS = 32
+MOSAIC_CHUNK = 65536
 
 
 @dataclass(frozen=True)
@@ -130,20 +132,22 @@ def apparent_mosaic(photos: list[tuple[Camera, np.ndarray]], grid: OrthoGrid, be
     xy = np.column_stack([xx[have], yy[have]])  # [P, 2]
     points = np.column_stack([xy, mosaic_height(bed[have], water, xy)])  # [P, 3]
     centres = np.array([cam.camera_center for cam, _ in photos])  # [C, 3]
-    k = min(NEAREST_PHOTOS, len(photos))
-    _, order = cKDTree(centres[:, :2]).query(xy, k=k)
-    order = order.reshape(len(xy), k)  # [P, k] photos, nearest first
-    colour = np.zeros((len(xy), 3), dtype=np.float32)
-    done = np.zeros(len(xy), dtype=bool)
-    for rank in range(k):
-        for c in np.unique(order[~done, rank]):
-            rows = np.flatnonzero(~done & (order[:, rank] == c))
-            cam, image = photos[c]
-            uv, seen = _project(cam, points[rows])
-            colour[rows[seen]] = _bilinear(image, uv[seen])
-            done[rows[seen]] = True
+    tree, k = cKDTree(centres[:, :2]), min(NEAREST_PHOTOS, len(photos))
     rgba = np.zeros((len(xy), 4), dtype=np.float32)
-    rgba[:, :3], rgba[:, 3] = colour, done
+    for start in range(0, len(xy), MOSAIC_CHUNK):
+        part = slice(start, start + MOSAIC_CHUNK)
+        order = tree.query(xy[part], k=k)[1].reshape(-1, k)  # [p, k] photos, nearest first
+        done = np.zeros(len(order), dtype=bool)
+        for rank in range(k):
+            for c in np.unique(order[~done, rank]):
+                rows = np.flatnonzero(~done & (order[:, rank] == c))
+                cam, image = photos[c]
+                uv, seen = _project(cam, points[part][rows])
+                rgba[start + rows[seen], :3] = _bilinear(image, uv[seen])
+                done[rows[seen]] = True
+            if done.all():
+                break
+        rgba[part, 3] = done
     out[have] = rgba
     return out
 
@@ -166,9 +170,8 @@ def _bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     j0 = np.clip(np.floor(u).astype(np.int64), 0, image.shape[1] - 2)
     i0 = np.clip(np.floor(v).astype(np.int64), 0, image.shape[0] - 2)
     a, b = (u - j0)[:, None], (v - i0)[:, None]
-    img = image.astype(np.float32) / 255.0
-    return ((1 - a) * (1 - b) * img[i0, j0] + a * (1 - b) * img[i0, j0 + 1]
-            + (1 - a) * b * img[i0 + 1, j0] + a * b * img[i0 + 1, j0 + 1])
+    at = [image[i0 + di, j0 + dj].astype(np.float32) / 255.0 for di in (0, 1) for dj in (0, 1)]  # gathered
+    return (1 - a) * (1 - b) * at[0] + a * (1 - b) * at[1] + (1 - a) * b * at[2] + a * b * at[3]
 
 
 def rgba_bytes(rgba: np.ndarray) -> np.ndarray:

@@ -312,7 +312,7 @@ def test_a_killed_renderer_and_a_full_disk_are_one_line_and_the_rerun_completes(
     assert "the renderer crashed (signal 11, see " in said.out, said.out  # the retry, told once
     starts.clear()
     monkeypatch.setattr(build.subprocess, "Popen", crashes(1))
-    assert main(argv) == 0 and len(starts) == 3  # the crash, the retry, the lens photos' own renderer
+    assert main(argv) == 0 and len(starts) == 4  # a crash, its retry, the lens photos', the ortho truth
     assert capsys.readouterr().out.count("the renderer crashed (signal 11") == 1
     assert (out / "manifest.json").is_file()
     shutil.rmtree(out)
