@@ -116,14 +116,14 @@ def test_sizes_are_refused_before_any_work(survey, finished, tmp_path, capsys, m
     """A DEM grid too fine for the flight's extent, and training images over the memory share, are refused in
     one line naming what passes, before the run folder is made; without --max-size the size that fits is
     chosen and said."""
-    from ragsplat.survey import pipeline
+    from ragsplat.survey.stages import inputs
 
     out = tmp_path / "run"
     assert main(args(survey, out, "--resolution", "0.0002")) == 2
     err = capsys.readouterr().err
     assert "cells (at most 5e+07); choose a coarser resolution" in err and not out.exists()
     coarser = err.split("resolution, ")[1].split(" m")[0]
-    monkeypatch.setattr(pipeline, "IMAGE_MEMORY", 2e-6)  # about 50 kB here: 18 photos of 240 x 180 are 2.3 MB
+    monkeypatch.setattr(inputs, "IMAGE_MEMORY", 2e-6)  # about 50 kB here: 18 photos of 240 x 180 are 2.3 MB
     assert main(args(survey, out, "--max-size", "200")) == 2
     err = capsys.readouterr().err
     assert "GB in training, over" in err and "give --max-size" in err and not out.exists()
@@ -136,7 +136,7 @@ def test_photos_finer_than_the_dem_needs_train_downscaled(survey, finished, tmp_
     """Two pixels a DEM cell where that halves the pixels at least: the tests' 240 px photos of 1.92 cm (4 m
     up, a focal of 207.8 px) for a 10 cm DEM train at 96 px; for the default 5 cm they would keep 59 % and
     stay; a --max-size given stays."""
-    from ragsplat.survey.pipeline import dem_size
+    from ragsplat.survey.stages.inputs import dem_size
 
     assert dem_size(4000, 0.0171, 0.05) == 2736  # a 12 MP consumer photo 40 m up: 47 % of its pixels
     assert dem_size(240, 4 / 207.846, 0.05) is None and dem_size(256, 0.0233, 0.05) is None  # small's
@@ -373,8 +373,9 @@ def test_the_library_runs_without_a_progress(survey, tmp_path):
     """`survey.pipeline.run` called as a library, with no progress to tell: its silent bars are context
     managers that count, as the command's are."""
     from ragsplat.survey import pipeline
+    from ragsplat.survey.stages.base import SurveyConfig
 
-    cfg = pipeline.SurveyConfig(images=survey / "images", out=tmp_path / "run", gcp=survey / "gcp.csv",
+    cfg = SurveyConfig(images=survey / "images", out=tmp_path / "run", gcp=survey / "gcp.csv",
                                 gcp_pixels=survey / "gcp_pixels.csv", water_level=0.0, preset="smoke",
                                 lens="pinhole", stop_after="water")
     assert pipeline.run(cfg) == [] and (tmp_path / "run" / "water.json").is_file()

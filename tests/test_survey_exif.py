@@ -457,7 +457,7 @@ def test_consumer_gps_is_levelled_by_the_water_unless_the_barometer_holds_it(cha
     assert estimated["free"] == ["level"] and "levelled_deg" not in estimated
     assert estimated["frame"] == "held by the barometer's heights (decimetres)"
     # the frame's height is still the GPS's (metres): the level's sigma that matters is the model's
-    from ragsplat.survey.pipeline import level_sigma
+    from ragsplat.survey.stages.water import level_sigma
 
     assert estimated["relative_level"] and level_sigma(estimated) == (
         estimated["sigma_given_cameras_m"]["level"], True) and estimated["sigma_m"]["level"] > 0.02
@@ -554,7 +554,7 @@ def test_coarse_photos_train_with_the_surfels_centre_z_unless_told():
     """A consumer drone's mapping flight (5.8 cm a pixel at 40 m with the benchmark's FC300S photos) trains
     as the long preset does; `small`'s 2.3 cm keep the preset's ray z; --surfel-depth and a preset's own
     choice stand; a variant without surfels is left alone."""
-    from ragsplat.survey.pipeline import COARSE_GSD, surfel_depth_for
+    from ragsplat.survey.stages.training import COARSE_GSD, surfel_depth_for
 
     assert surfel_depth_for("small", "2dgs+full", None, 0.058) == "centre"
     assert surfel_depth_for("small", "2dgs+full", None, 0.023) is None

@@ -18,7 +18,7 @@ from ragsplat.camera import Camera
 from ragsplat.cli.main import main
 from ragsplat.refraction import WaterSurface
 from ragsplat.survey import tiles
-from ragsplat.survey.pipeline import seen_area
+from ragsplat.survey.stages.training import seen_area
 
 
 def test_a_nadir_footprint_is_the_field_of_view_at_the_water():
@@ -102,17 +102,18 @@ def test_a_survey_that_one_worker_trains_is_one_tile(survey, finished, monkeypat
     from dataclasses import replace
 
     from ragsplat.refraction import WaterSurface
-    from ragsplat.survey import pipeline
+    from ragsplat.survey.stages import tiled
+    from ragsplat.survey.stages.base import SurveyConfig
 
     out = finished[0]
     lo, hi = np.array(json.loads((out / "water.json").read_text())["extent_m"])
-    cfg = pipeline.SurveyConfig(images=survey / "images", out=out)
-    monkeypatch.setattr(pipeline, "TILE_GSD", 10)  # about 20 cm: a grid of 30 x 30 by ground
+    cfg = SurveyConfig(images=survey / "images", out=out)
+    monkeypatch.setattr(tiled, "TILE_GSD", 10)  # about 20 cm: a grid of 30 x 30 by ground
     water = WaterSurface(0.0, 1.33)
-    assert len(pipeline._tiles(cfg, out / "model", water, lo, hi)[0]) == 1
-    assert len(pipeline._tiles(replace(cfg, tile_size=3.0), out / "model", water, lo, hi)[0]) == 4
-    monkeypatch.setattr(pipeline, "ONE_TILE_PHOTOS", 17)
-    assert len(pipeline._tiles(cfg, out / "model", water, lo, hi)[0]) > 1
+    assert len(tiled.plan_tiles(cfg, out / "model", water, lo, hi)[0]) == 1
+    assert len(tiled.plan_tiles(replace(cfg, tile_size=3.0), out / "model", water, lo, hi)[0]) == 4
+    monkeypatch.setattr(tiled, "ONE_TILE_PHOTOS", 17)
+    assert len(tiled.plan_tiles(cfg, out / "model", water, lo, hi)[0]) > 1
 
 
 def test_the_merge_takes_each_cell_from_its_core_and_measures_the_overlap():
@@ -270,7 +271,7 @@ def test_a_survey_trains_at_most_at_its_scene_scale(survey, finished, tmp_path, 
     `SCENE_SCALE_GSD` ground sample distances, and `tools.retrain` trains as the survey does. Here the cap is
     lowered below the synthetic survey's extent so that it applies; a smaller survey keeps its extent."""
     from ragsplat.dataset.load import load_dataset
-    from ragsplat.survey import pipeline
+    from ragsplat.survey.stages import training
     from ragsplat.train.config import TrainConfig
     from tools import retrain
 
@@ -278,12 +279,12 @@ def test_a_survey_trains_at_most_at_its_scene_scale(survey, finished, tmp_path, 
     extent, gsd = ds.camera_extent(), ds.gsd
     assert json.loads((finished[0] / "train" / "config.json").read_text())["config"]["scene_scale"] is None
     below = TrainConfig(scene_scale=None)
-    monkeypatch.setattr(pipeline, "SCENE_SCALE_GSD", 1.01 * extent / gsd)
-    assert pipeline.at_survey_scale(below, extent, gsd) is below
-    monkeypatch.setattr(pipeline, "SCENE_SCALE_GSD", 0.5 * extent / gsd)
-    assert pipeline.at_survey_scale(below, extent, gsd).scene_scale == pytest.approx(0.5 * extent)
+    monkeypatch.setattr(training, "SCENE_SCALE_GSD", 1.01 * extent / gsd)
+    assert training.at_survey_scale(below, extent, gsd) is below
+    monkeypatch.setattr(training, "SCENE_SCALE_GSD", 0.5 * extent / gsd)
+    assert training.at_survey_scale(below, extent, gsd).scene_scale == pytest.approx(0.5 * extent)
     given = TrainConfig(scene_scale=7.0)
-    assert pipeline.at_survey_scale(given, extent, gsd) is given
+    assert training.at_survey_scale(given, extent, gsd) is given
 
     out = tmp_path / "run"
     _reuse_poses(finished[0], out)
@@ -304,29 +305,29 @@ def test_a_tile_that_cannot_train_is_left_out_with_a_line(survey, tiled, tmp_pat
     """A tile whose training raises (a tile of one photo: pycolmap's "Need at least two images") is left out
     with one line naming it and its log; the other tiles' products are made, tiles.json records the failure,
     and a rerun tries that tile again. Every tile failing is one error."""
-    from ragsplat.survey import pipeline
+    from ragsplat.survey.stages import tiled as stage
 
     out = tmp_path / "run"
     shutil.copytree(tiled[0], out)
     (out / "dem.tif").unlink()
-    trained = pipeline.train_tile
+    trained = stage.train_tile
 
     def one_fails(job):
         if job.folder.endswith("/1"):
             raise ValueError("Need at least two images for triangulation")
         return trained(job)
 
-    monkeypatch.setattr(pipeline, "train_tile", one_fails)
+    monkeypatch.setattr(stage, "train_tile", one_fails)
     assert main(args(survey, out, "--tile-size", "3", "--jobs", "1")) == 0
     err = capsys.readouterr().err
     assert "tile 1 (17 photos) left out: ValueError: Need at least two images" in err
     assert "from 3 tiles" in err and (out / "dem.tif").stat().st_size > 0
     report = json.loads((out / "tiles.json").read_text())
     assert "Need at least two" in report["tiles"][1]["run"]["failed"] and "1" not in report["cells"]
-    monkeypatch.setattr(pipeline, "train_tile", trained)
+    monkeypatch.setattr(stage, "train_tile", trained)
     assert main(args(survey, out, "--tile-size", "3", "--jobs", "1")) == 0  # tried again: all four
     assert "from 4 tiles" in capsys.readouterr().err
-    monkeypatch.setattr(pipeline, "train_tile", lambda job: one_fails(replace_folder(job)))
+    monkeypatch.setattr(stage, "train_tile", lambda job: one_fails(replace_folder(job)))
     (out / "dem.tif").unlink()
     assert main(args(survey, out, "--tile-size", "3", "--jobs", "1")) == 2
     assert "every tile failed" in capsys.readouterr().err

@@ -119,7 +119,7 @@ def test_a_poorly_determined_level_is_taken_from_a_surer_shoreline():
     from types import SimpleNamespace
 
     from ragsplat.refraction import WaterSurface
-    from ragsplat.survey.pipeline import LEVEL_WARN, _by_shoreline, level_sigma
+    from ragsplat.survey.stages.water import LEVEL_WARN, _by_shoreline, level_sigma
 
     points = shore()
     calls = []

@@ -23,7 +23,8 @@ from ragsplat.eval.calibration import iho_shares
 from ragsplat.eval.evaluate import height_error
 from ragsplat.export import TVU_BAND, extract_bed, load_run, run_water, write_dem, write_las
 from ragsplat.ply import save_ply
-from ragsplat.survey import pipeline, tiles
+from ragsplat.survey import tiles
+from ragsplat.survey.stages import base, products, tiled
 from ragsplat.uncertainty import FEATURES, UncertaintyModel, cell_features, tvu95
 
 REGION = {"xmin": -0.8, "xmax": 0.8, "ymin": -0.8, "ymax": 0.8}
@@ -139,8 +140,8 @@ def test_a_sigma_without_a_model_or_a_file_that_is_no_model_is_refused(bed_run, 
 
 
 def test_a_tiled_survey_merges_the_band_with_the_heights(evaluable_dataset, tmp_path):
-    # the merge of `ragsplat survey`'s tiles (pipeline._merge), two tiles with x = 1 between their cores
-    cfg = pipeline.SurveyConfig(images=tmp_path, out=tmp_path / "run", resolution=0.05)
+    # the merge of `ragsplat survey`'s tiles (tiled.merge_tiles), two tiles with x = 1 between their cores
+    cfg = base.SurveyConfig(images=tmp_path, out=tmp_path / "run", resolution=0.05)
     shutil.copytree(evaluable_dataset, cfg.out / "tiles" / "0" / "data")  # the first tile's frame
     boxes = np.array([[0.0, 0.0, 1.0, 1.0], [1.0, 0.0, 2.0, 1.0]])  # a photo over each half
     plan = tiles.plan([0, 0], [2, 1], boxes, ["a", "b"], 1.0, 0.25, min_photos=1)
@@ -148,8 +149,8 @@ def test_a_tiled_survey_merges_the_band_with_the_heights(evaluable_dataset, tmp_
     cells = [(x, y) for x in xs for y in (0.45, 0.5, 0.55)]  # three rows (the PNG's hillshade needs two)
     left = np.array([(x, y, -0.5, 0.02) for x, y in cells if x < 1.25 + 1e-9])
     right = np.array([(x, y, -0.49, 0.03) for x, y in cells if x > 0.75 - 1e-9])
-    products = [cfg.out / name for name in pipeline.PRODUCTS]
-    pipeline._merge(cfg, WATER, plan, [left, right], products)
+    products = [cfg.out / name for name in base.PRODUCTS]
+    tiled.merge_tiles(cfg, WATER, plan, [left, right], products)
     with rasterio.open(products[0]) as tif:
         assert tif.count == 3 and tif.descriptions[2] == TVU_BAND
         pts = np.array(cells)
@@ -167,17 +168,17 @@ def test_the_survey_takes_the_adjustment_s_level_sigma(tmp_path, model_file):
     out.mkdir()
     (out / "water.json").write_text(json.dumps({"estimated": {"free": ["level"], "sigma_m": {"level": 0.004},
                                                               "sigma_given_cameras_m": {"level": 0.5}}}))
-    cfg = pipeline.SurveyConfig(images=tmp_path, out=out, uncertainty=model_file, n_sigma=0.002)
-    band = pipeline.uncertainty_settings(cfg)
+    cfg = base.SurveyConfig(images=tmp_path, out=out, uncertainty=model_file, n_sigma=0.002)
+    band = products.uncertainty_settings(cfg)
     assert band["level_sigma"] == 0.004 and band["n_sigma"] == 0.002
     assert UncertaintyModel.from_json(band["model"]) == FIXTURE
-    given = pipeline.uncertainty_settings(pipeline.SurveyConfig(images=tmp_path, out=out,
+    given = products.uncertainty_settings(base.SurveyConfig(images=tmp_path, out=out,
                                                                 uncertainty=model_file, level_sigma=0.01))
     assert given["level_sigma"] == 0.01
     (out / "water.json").write_text(json.dumps({"surface": {}}))  # a level given, not estimated: exact
-    assert pipeline.uncertainty_settings(pipeline.SurveyConfig(images=tmp_path, out=out,
+    assert products.uncertainty_settings(base.SurveyConfig(images=tmp_path, out=out,
                                                                uncertainty=model_file))["level_sigma"] == 0.0
-    assert pipeline.uncertainty_settings(pipeline.SurveyConfig(images=tmp_path, out=out)) is None
+    assert products.uncertainty_settings(base.SurveyConfig(images=tmp_path, out=out)) is None
 
 
 # ---------------------------------------------------------------- ragsplat score

@@ -32,6 +32,7 @@ def main() -> None:
 
     from ragsplat.eval.poses import pose_errors
     from ragsplat.survey import pipeline, sfm
+    from ragsplat.survey.stages.base import SurveyConfig
 
     reconstruct = sfm.reconstruct  # the survey's structure from motion, on every core by default
     for seed in args.seeds:
@@ -43,7 +44,7 @@ def main() -> None:
                 out = root / f"run{threads}"
                 t0 = time.perf_counter()
                 # the test's `gcp_args`: ground control only, the level 0, a pinhole, up to the water
-                pipeline.run(pipeline.SurveyConfig(
+                pipeline.run(SurveyConfig(
                     images=root / "images", out=out, gcp=root / "gcp.csv", gcp_pixels=root / "gcp_pixels.csv",
                     water_level=0.0, preset="smoke", lens="pinhole", stop_after="water"))
                 water = json.loads((out / "water.json").read_text())

@@ -22,7 +22,7 @@ from ragsplat.errors import ConfigError
 from ragsplat.export import export_run
 from ragsplat.outputs import write_json
 from ragsplat.rasterize_surfels import DEPTHS
-from ragsplat.survey.pipeline import survey_training
+from ragsplat.survey.stages.training import survey_training
 from ragsplat.train import Trainer, settings
 from ragsplat.train.config import INIT
 from ragsplat.train.defaults import survey_variant

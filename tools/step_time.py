@@ -24,7 +24,7 @@ from ragsplat.threads import THREAD_VARIABLES
 def one(data: Path, train: Path, budget: int, preset: str, steps: int) -> float:
     """Seconds a step of the training in `train` (resumed from its checkpoint), after 3 to warm up."""
     from ragsplat.dataset.load import load_dataset
-    from ragsplat.survey.pipeline import survey_training
+    from ragsplat.survey.stages.training import survey_training
     from ragsplat.train import Trainer
     from ragsplat.train.defaults import survey_variant
 

@@ -32,7 +32,7 @@ from ragsplat.cli.args import (
 
 
 def level_or_auto(text: str) -> float | str:
-    from ragsplat.survey.pipeline import AUTO
+    from ragsplat.survey.stages.base import AUTO
 
     return AUTO if text.strip().lower() == AUTO else finite_float(text)
 
@@ -41,7 +41,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from dataclasses import fields
 
     from ragsplat.rasterize_surfels import DEPTHS
-    from ragsplat.survey.pipeline import COARSE_GSD, STAGES, TILE_GSD, SurveyConfig
+    from ragsplat.survey.stages.base import STAGES, SurveyConfig
+    from ragsplat.survey.stages.tiled import TILE_GSD
+    from ragsplat.survey.stages.training import COARSE_GSD
     from ragsplat.train.config import PRESETS, VARIANTS
     from ragsplat.train.defaults import JOBS, SURVEY_VARIANTS, survey_variant
 
@@ -148,7 +150,7 @@ class _Printed:
         self.quiet, self.check = quiet, check
 
     def say(self, stage: str, text: str, since: float | None = None) -> None:
-        from ragsplat.survey.pipeline import line
+        from ragsplat.survey.stages.base import line
 
         print(line(stage, text, since), file=sys.stderr, flush=True)
 
@@ -174,12 +176,13 @@ def run(args: argparse.Namespace) -> int:
     from ragsplat.cli.cluster import client
     from ragsplat.cli.progress import deferred_interrupts
     from ragsplat.survey import pipeline
+    from ragsplat.survey.stages.base import SurveyConfig
     from ragsplat.train.defaults import tile_workers
 
     uncertainty_options(args)  # a sigma without a model, or a file that is not one: refused before any work
     args.culls = cull_overrides(args)  # a rerun with other culls extracts again, without training again
-    settings = {f.name: getattr(args, f.name) for f in fields(pipeline.SurveyConfig)}
-    cfg = pipeline.SurveyConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()})
+    settings = {f.name: getattr(args, f.name) for f in fields(SurveyConfig)}
+    cfg = SurveyConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()})
 
     @contextlib.contextmanager
     def cluster(tasks: int):

@@ -40,7 +40,7 @@ class Said:
 
 
 class Recorder:
-    """A `pipeline.Progress` that keeps every line it hears (`said`) and passes everything on to `inner`."""
+    """A `Progress` (`survey.stages.base`) that keeps every line it hears (`said`) and passes all on."""
 
     def __init__(self, inner):
         self.inner, self.said, self.start = inner, [], time.perf_counter()

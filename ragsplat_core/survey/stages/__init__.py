@@ -1,0 +1,1 @@
+"""`ragsplat survey`'s stages, one a module, chained by `survey.pipeline.run`."""
