@@ -551,17 +551,19 @@ def _link_dry_passes(spec: SceneSpec, source: Path, out: Path, poses) -> None:
         raise OutputError(f"{source} holds no ragsplat dataset to share dry images from")
     if not shares_dry_passes(spec, SceneSpec.from_dict(json.loads(saved.read_text()))):
         raise OutputError(f"{source} holds another scene (see {saved}): its dry images are not this one's")
-    for kind in DRY_PASSES:
-        for p in poses:
-            src, dst = layout.output_path(source, kind, p.name), layout.output_path(out, kind, p.name)
-            if dst.exists() or not src.is_file():  # a damaged one is found and rendered again by generate
-                continue
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            try:
-                os.link(src, dst)
-            except OSError:  # another file system
-                with atomic_path(dst) as tmp:
-                    tmp.write_bytes(src.read_bytes())
+    pairs = [(layout.output_path(source, kind, p.name), layout.output_path(out, kind, p.name))
+             for kind in DRY_PASSES for p in poses]
+    # the orthographic truth is a dry render too (its world file with it)
+    pairs += [(source / name, out / name) for name in (layout.GT_ORTHO, layout.GT_ORTHO_WORLD)]
+    for src, dst in pairs:
+        if dst.exists() or not src.is_file():  # a damaged one is found and rendered again by generate
+            continue
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(src, dst)
+        except OSError:  # another file system
+            with atomic_path(dst) as tmp:
+                tmp.write_bytes(src.read_bytes())
 
 
 def overhead_fraction(summary: dict) -> float:

@@ -59,6 +59,8 @@ def test_the_dry_passes_are_linked_and_equal_to_a_render_at_that_turbidity(tmp_p
     generate(level_spec("smoke-field", 0, 2.0), rendered, shard=SHARD)
     views = flight.plan(level_spec("smoke-field", 0, 2.0))[::SHARD[1]]
     assert summary["rendered"] == len(views)  # the wet pass only
+    for name in (layout.GT_ORTHO, layout.GT_ORTHO_WORLD):  # the orthographic truth is dry too
+        assert os.path.samefile(linked / name, first / name)
     for p in views:
         for kind in DRY_PASSES:
             shared = layout.output_path(linked, kind, p.name)
