@@ -50,7 +50,7 @@ from ragsplat.datagen.job import (
 )
 from ragsplat.datagen.spec import CAMERAS, SceneSpec, validate
 from ragsplat.datagen.survey import LENS, lens_polynomial, write_survey
-from ragsplat.dataset import layout
+from ragsplat.dataset import layout, rasters
 from ragsplat.errors import ConfigError, OutputError, RagsplatError
 from ragsplat.outputs import atomic_path, versions, write_json
 from ragsplat.scoring import geometry_metrics, plane_scores, thresholds
@@ -224,7 +224,7 @@ def _write_bed_assets(spec: SceneSpec, out: Path) -> None:
     layout.write_npy(out / layout.GT_GRID, grid)
     if banks is not None:
         layout.write_npy(out / layout.GT_BANKS, shear(spec, banks))
-        layout.write_elevation(out / layout.GT_ELEVATION, grid, layout.GT_GRID_STEP)
+        rasters.write_elevation(out / layout.GT_ELEVATION, grid, layout.GT_GRID_STEP)
         # polylines [K, 2] at the level, or [K, 3] with their heights on a sloping surface
         layout.write_waterline(out / layout.GT_WATERLINE, world_waterline(spec, bed), spec.level)
 
@@ -511,7 +511,7 @@ def generate(spec: SceneSpec, out: Path, shard: tuple[int, int] = (0, 1),
             return generate(spec, out, shard, progress, retries - 1)
     if ortho:
         west, north, _, _ = ortho_grid(spec)
-        layout.write_world_file(out / layout.GT_ORTHO_WORLD, layout.GT_GRID_STEP, west, north)
+        rasters.write_world_file(out / layout.GT_ORTHO_WORLD, layout.GT_GRID_STEP, west, north)
     complete = all(layout.output_path(out, k, p.name).exists() for k in kinds for p in poses) and \
         all(layout.output_path(out, "lens", p.name).exists() for p in poses if lensed and p.split == "train")
     if complete:

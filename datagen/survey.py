@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ragsplat.dataset import layout
+from ragsplat.dataset import layout, photos
 from ragsplat.outputs import write_bytes, write_json
 
 EDGE_POINTS = 15  # edge points measured along each bank
@@ -212,7 +212,7 @@ def write_geotags(root: Path, train, names: list[str], water, seed: int, noise: 
                    "FlightYawDegree": round(yaw, 2), "FlightPitchDegree": 0.0, **tags}
             kind = "lens" if folder == layout.SURVEY_IMAGES_LENS else "wet"
             image = layout.read_png(layout.output_path(root, kind, p.name))
-            layout.write_jpeg(root / folder / name, image, p.camera.fx, gps=(lat, lon, h), xmp=xmp)
+            photos.write_jpeg(root / folder / name, image, p.camera.fx, gps=(lat, lon, h), xmp=xmp)
     return record
 
 

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ragsplat.dataset import layout
+from ragsplat.dataset import layout, rasters
 from ragsplat.errors import ConfigError, DatasetError
 from ragsplat.eval import metrics
 from ragsplat.eval.evaluate import (
@@ -279,7 +279,7 @@ def save_row(folder: Path, row: dict, grid: np.ndarray, truth, fused: np.ndarray
         np.save(folder / f"bed{suffix}.npy", bed)
         outputs[f"bed{suffix}"] = str(folder / f"bed{suffix}.npy")
         if len(bed):
-            layout.write_elevation(folder / f"bed{suffix}.tif", bed, layout.GT_GRID_STEP)
+            rasters.write_elevation(folder / f"bed{suffix}.tif", bed, layout.GT_GRID_STEP)
             title = f"{row['name']} seed {row['seed']}" + (", fused" if suffix else "")
             depth_error_map(bed, truth, folder / f"depth_error{suffix}.png", title=title)
             outputs.update({f"geotiff{suffix}": str(folder / f"bed{suffix}.tif"),

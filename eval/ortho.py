@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ragsplat.dataset import layout
+from ragsplat.dataset import layout, rasters
 from ragsplat.errors import DatasetError
 
 # the least share of the truth's wet cells an orthophoto must draw to be scored
@@ -39,7 +39,7 @@ def read_truth(root: Path) -> tuple[np.ndarray, float, float, float]:
     if not png.is_file() or not world.is_file():
         raise DatasetError(f"{root}: no orthographic truth ({layout.GT_ORTHO}); `ragsplat dataset` with the "
                            "dataset's preset and seed renders it (one view)")
-    step, west, north = layout.read_world_file(world)
+    step, west, north = rasters.read_world_file(world)
     return layout.read_png(png).astype(np.float64) / 255.0, step, west, north
 
 

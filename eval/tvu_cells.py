@@ -160,7 +160,7 @@ def band_rows(out: Path, data: Path, rows: dict[str, list[dict]], model, log=lam
     row["geometry"]["survey"]["tvu"], which Table 3 shows. Computed each time from the finished rows (an
     extraction and the cells' view geometry per row), not kept in row.json: the model is not part of a row's
     key. Returns what results.json records of the model. `run_ablation(band=...)` calls it."""
-    from ragsplat.dataset import layout
+    from ragsplat.dataset import rasters
     from ragsplat.eval.ablation import row_dir
     from ragsplat.eval.calibration import calibration_report
     from ragsplat.export import TVU_BAND
@@ -176,7 +176,7 @@ def band_rows(out: Path, data: Path, rows: dict[str, list[dict]], model, log=lam
             t = tvu95(model, cells.features)
             report = calibration_report(t, cells.errors, truth_seeds(cells), cells.depth,
                                         cells.features.views, cells.xy, cells.cell)
-            layout.write_raster(folder / "tvu95.tif", cells.xy, [(t, TVU_BAND)], cells.cell)
+            rasters.write_raster(folder / "tvu95.tif", cells.xy, [(t, TVU_BAND)], cells.cell)
             survey = {**row["geometry"].get("survey", {}), "tvu": report}
             found[k] = {**row, "geometry": {**row["geometry"], "survey": survey},
                         "outputs": {**row.get("outputs", {}), "tvu95": str(folder / "tvu95.tif")}}

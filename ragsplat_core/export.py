@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from ragsplat.camera import Camera
-from ragsplat.dataset import layout
+from ragsplat.dataset import layout, rasters
 from ragsplat.dataset.layout import Georef
 from ragsplat.dataset.load import Dataset, View, load_dataset
 from ragsplat.errors import ConfigError, DatasetError, OutputError
@@ -151,7 +151,7 @@ def write_orthophotos(model: Model, views: list[View], bed: Bed, ortho: Path | N
     grid."""
     from scipy.ndimage import binary_fill_holes
 
-    height, corner = layout.raster(bed.grid[:, :2], bed.grid[:, 2], bed.resolution)  # [H, W], NaN: no cell
+    height, corner = rasters.raster(bed.grid[:, :2], bed.grid[:, 2], bed.resolution)  # [H, W], NaN: no cell
     grid = OrthoGrid.of_raster(height, corner, bed.resolution)
     transform = grid.transform(bed.georef.offset[:2])
     if ortho is not None:
@@ -161,11 +161,11 @@ def write_orthophotos(model: Model, views: list[View], bed: Bed, ortho: Path | N
         rgba = bed_orthophoto(lambda cam: model.render(cam, interface=False)[:2], grid, reference, relief,
                               samples)
         rgba[~binary_fill_holes(np.isfinite(height)), 3] = 0  # the bed's area and its holes, not the floaters
-        layout.write_rgba(ortho, rgba_bytes(rgba), transform, bed.georef.crs, "the bed without the water")
+        rasters.write_rgba(ortho, rgba_bytes(rgba), transform, bed.georef.crs, "the bed without the water")
     if apparent is not None:
         photos = [(v.camera, v.rgb.cpu().numpy()) for v in views]
         rgba = apparent_mosaic(photos, grid, height, model.water)
-        layout.write_rgba(apparent, rgba_bytes(rgba), transform, bed.georef.crs,
+        rasters.write_rgba(apparent, rgba_bytes(rgba), transform, bed.georef.crs,
                           "the photos through the water, mosaicked")
     return grid
 
@@ -192,7 +192,7 @@ def merge_orthophotos(paths: list[Path], out: Path) -> None:
         take = (view[3] == 0) & (im[3] > 0)
         view[:, take] = im[:, take]
     _, _, crs, what = images[0]
-    layout.write_rgba(out, merged, (step, 0.0, west, 0.0, -step, north), crs, what)
+    rasters.write_rgba(out, merged, (step, 0.0, west, 0.0, -step, north), crs, what)
 
 
 def load_run(run: Path, data: Path | None = None) -> tuple[dict, Dataset, int]:
@@ -514,7 +514,7 @@ def write_dem(path: Path, bed: Bed) -> None:
               "water depth (m, surface - bed where the bed is submerged; nodata on emerged ground)")]
     if bed.tvu95 is not None:
         bands.append((bed.tvu95, TVU_BAND))
-    layout.write_raster(path, bed.absolute()[:, :2], bands, bed.resolution, crs=bed.georef.crs)
+    rasters.write_raster(path, bed.absolute()[:, :2], bands, bed.resolution, crs=bed.georef.crs)
     depth = bed.depth()[np.isfinite(bed.depth())]
     write_depth_style(Path(path).with_suffix(".qml"), float(depth.max()) if len(depth) else 1.0)
 
@@ -603,8 +603,8 @@ def write_png(path: Path, bed: Bed) -> None:
     import matplotlib.pyplot as plt
 
     xy, step = bed.absolute()[:, :2], bed.resolution
-    height, (west, north) = layout.raster(xy, bed.absolute()[:, 2], step)
-    depth, _ = layout.raster(xy, bed.depth(), step)
+    height, (west, north) = rasters.raster(xy, bed.absolute()[:, 2], step)
+    depth, _ = rasters.raster(xy, bed.depth(), step)
     extent = (west, west + height.shape[1] * step, north - height.shape[0] * step, north)
     fig, ax = plt.subplots(figsize=(7, 5.5), constrained_layout=True)
     ax.imshow(hillshade(height, step), cmap="gray", vmin=0, vmax=1, extent=extent)

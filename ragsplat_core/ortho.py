@@ -43,7 +43,7 @@ MOSAIC_CHUNK = 65536
 class OrthoGrid:
     """A north-up grid of `height` rows and `width` columns of `step` m cells, its outer corner at (`west`,
     `north`) in the local frame; cell (row i, column j) is centred at (west + (j + 0.5) step, north - (i +
-    0.5) step), the DEM's nodes (`layout.raster`)."""
+    0.5) step), the DEM's nodes (`rasters.raster`)."""
 
     west: float
     north: float
@@ -53,7 +53,7 @@ class OrthoGrid:
 
     @classmethod
     def of_raster(cls, image: np.ndarray, corner: tuple[float, float], step: float) -> OrthoGrid:
-        """The grid of a `layout.raster` image [H, W] and its (west, north) corner."""
+        """The grid of a `rasters.raster` image [H, W] and its (west, north) corner."""
         return cls(float(corner[0]), float(corner[1]), float(step), int(image.shape[1]), int(image.shape[0]))
 
     def centres(self) -> tuple[np.ndarray, np.ndarray]:

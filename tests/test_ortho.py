@@ -13,7 +13,7 @@ from conftest import tiny_bed_run
 
 from ragsplat.camera import Camera
 from ragsplat.cli.main import main
-from ragsplat.dataset import layout
+from ragsplat.dataset import layout, rasters
 from ragsplat.export import merge_orthophotos
 from ragsplat.gaussians import init_grid, rgb_to_sh
 from ragsplat.ortho import (
@@ -134,8 +134,8 @@ def test_the_tiles_orthophotos_merge_on_their_lattice(tmp_path):
     a = np.zeros((4, 10, 20), np.uint8)
     a[:, :, :12] = 200  # drawn west of column 12
     b = np.full((4, 10, 20), 100, np.uint8)
-    layout.write_rgba(tmp_path / "a.tif", a, (0.5, 0, 100.0, 0, -0.5, 50.0), layout.LOCAL_CRS, "tile")
-    layout.write_rgba(tmp_path / "b.tif", b, (0.5, 0, 105.0, 0, -0.5, 48.0), layout.LOCAL_CRS, "tile")
+    rasters.write_rgba(tmp_path / "a.tif", a, (0.5, 0, 100.0, 0, -0.5, 50.0), layout.LOCAL_CRS, "tile")
+    rasters.write_rgba(tmp_path / "b.tif", b, (0.5, 0, 105.0, 0, -0.5, 48.0), layout.LOCAL_CRS, "tile")
     merge_orthophotos([tmp_path / "a.tif", tmp_path / "b.tif"], tmp_path / "m.tif")
     with rasterio.open(tmp_path / "m.tif") as r:
         m = r.read()
@@ -162,7 +162,7 @@ def test_a_runs_orthophotos_share_the_dems_grid(run, tmp_path, capsys):
         with rasterio.open(path) as r:
             assert r.transform == transform and r.crs == crs and (r.height, r.width) == shape
             assert r.count == 4 and r.dtypes[0] == "uint8"
-            assert [c.name for c in r.colorinterp] == list(layout.RGBA)
+            assert [c.name for c in r.colorinterp] == list(rasters.RGBA)
             image = r.read()
         assert (image[3][covered] > 0).mean() > 0.9  # drawn over the bed
     assert (image[3][~covered] == 0).all()  # the mosaic draws only where the DEM has a height
@@ -188,7 +188,7 @@ def test_an_orthophoto_is_scored_against_the_truth_where_it_lies(evaluable_datas
     y = north - (np.arange(size) + 0.5) * step
     xx, yy = np.meshgrid(x, y)
     layout.write_png(data / layout.GT_ORTHO, np.round(255 * blobs(xx, yy)).astype(np.uint8))
-    layout.write_world_file(data / layout.GT_ORTHO_WORLD, step, west, north)
+    rasters.write_world_file(data / layout.GT_ORTHO_WORLD, step, west, north)
     layout.Surface(-2.0, 0.5, np.full((9, 9), -1.0)).save(data / layout.GT_SURFACE)  # 1 m under the water
     fine = 0.02  # the orthophoto on a finer lattice, 1 cm off the truth's
     fx = -0.61 + (np.arange(70) + 0.5) * fine
@@ -196,7 +196,7 @@ def test_an_orthophoto_is_scored_against_the_truth_where_it_lies(evaluable_datas
     for name, moved in (("here", 0.0), ("east", 2 * step)):
         fxx, fyy = np.meshgrid(fx, fy)
         rgba = np.concatenate([blobs(fxx - moved, fyy), np.ones(fxx.shape + (1,))], -1)
-        layout.write_rgba(tmp_path / f"{name}.tif", np.round(255 * rgba).astype(np.uint8).transpose(2, 0, 1),
+        rasters.write_rgba(tmp_path / f"{name}.tif", np.round(255 * rgba).astype(np.uint8).transpose(2, 0, 1),
                           (fine, 0, -0.61, 0, -fine, 0.61), layout.LOCAL_CRS, name)
     here, east = (score_orthophoto(tmp_path / f"{n}.tif", data) for n in ("here", "east"))
     assert here["drawn"] == 1.0 and here["psnr"] > 35 and np.abs(here["shift_cells"]).max() < 0.1

@@ -15,7 +15,7 @@ from conftest import WATER, render_dataset, tiny_smoke
 from ragsplat import train
 from ragsplat.bench.synthetic import bed_scene, ring_cameras
 from ragsplat.cli.main import main
-from ragsplat.dataset import layout
+from ragsplat.dataset import layout, rasters
 from ragsplat.dataset.load import load_dataset
 from ragsplat.eval import ablation, metrics
 from ragsplat.eval.evaluate import evaluate_geometry, score_grid
@@ -208,7 +208,7 @@ def test_eval_scores_a_dem_against_the_truth(run, evaluable_dataset, tmp_path, m
     monkeypatch.setattr(metrics, "default_vgg16_path", lambda: tmp_path / "absent.pth")
     grid = load_dataset(evaluable_dataset, splits=(), ground_truth=True).ground_truth.grid
     for name, dz in (("exact", 0.0), ("raised", 0.15)):
-        layout.write_raster(tmp_path / f"{name}.tif", grid[:, :2], [(grid[:, 2] + dz, "bed")],
+        rasters.write_raster(tmp_path / f"{name}.tif", grid[:, :2], [(grid[:, 2] + dz, "bed")],
                             layout.GT_GRID_STEP)
         assert main(["eval", str(run), "--truth", str(evaluable_dataset), "--dem",
                      str(tmp_path / f"{name}.tif"),

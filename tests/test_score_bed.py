@@ -12,7 +12,7 @@ import pytest
 from rasterio.warp import transform
 
 from ragsplat.cli.main import main
-from ragsplat.dataset import layout
+from ragsplat.dataset import layout, rasters
 from ragsplat.dataset.load import load_dataset
 from ragsplat.eval.evaluate import score_grid
 from ragsplat.export import Bed, Georef, write_dem
@@ -184,7 +184,7 @@ def test_utm_files_and_another_crs_land_on_the_same_cells(utm_dataset, evaluable
     cx, cy = np.meshgrid(np.arange(lo[0], hi[0], 0.04), np.arange(lo[1], hi[1], 0.04))
     cells = np.column_stack([cx.ravel(), cy.ravel()])
     local_xy = np.column_stack(transform("EPSG:3857", "EPSG:32633", cells[:, 0], cells[:, 1])) - OFFSET[:2]
-    layout.write_raster(tmp_path / "plane.tif", cells, [(plane(local_xy) + OFFSET[2], "z")], 0.04,
+    rasters.write_raster(tmp_path / "plane.tif", cells, [(plane(local_xy) + OFFSET[2], "z")], 0.04,
                         crs="EPSG:3857")
     result = score(tmp_path / "plane.tif", utm_dataset)
     assert result["nodes_covered"] == len(nodes)

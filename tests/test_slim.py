@@ -13,7 +13,7 @@ import numpy as np
 from conftest import tiny_smoke
 
 from ragsplat.cli.main import main
-from ragsplat.dataset import colmap, layout
+from ragsplat.dataset import colmap, layout, rasters
 from ragsplat.dataset.load import load_dataset
 from ragsplat.eval import ablation
 from ragsplat.eval.references import SEEDLESS
@@ -86,6 +86,7 @@ import numpy as np
 import rasterio
 from ragsplat.eval.score import dem_points
 from ragsplat.dataset import layout
+from ragsplat.dataset import rasters
 from ragsplat.errors import DatasetError
 assert rasterio.__file__.startswith(sys.argv[1]), rasterio.__file__
 georef = layout.Georef()
@@ -93,7 +94,7 @@ assert georef.wkt() == layout.LOCAL_CRS
 xy = np.array([[0.0, 0.0], [0.05, 0.0], [0.05, 0.1]])
 path = sys.argv[2]
 bands = [(np.array([1.0, 2.0, np.nan]), "bed"), (np.array([3.0, 4.0, 5.0]), "tvu")]
-layout.write_raster(path, xy, bands, 0.05)
+rasters.write_raster(path, xy, bands, 0.05)
 try:
     dem_points(path, georef)
 except DatasetError as err:
@@ -110,7 +111,7 @@ except DatasetError as err:
 
     assert slim.main(["--unpack", str(tif)]) == 0
     direct = tmp_path / "direct.tif"
-    layout.write_raster(direct, np.array([[0.0, 0.0], [0.05, 0.0], [0.05, 0.1]]),
+    rasters.write_raster(direct, np.array([[0.0, 0.0], [0.05, 0.0], [0.05, 0.1]]),
                         [(np.array([1.0, 2.0, np.nan]), "bed"), (np.array([3.0, 4.0, 5.0]), "tvu")], 0.05)
     with rasterio.open(tif) as a, rasterio.open(direct) as b:
         assert (a.count, a.shape, a.transform, a.nodata, a.descriptions) == (

@@ -12,7 +12,7 @@ from conftest import channel_scene, survey_cameras
 
 from ragsplat.bench.synthetic import bed_scene, render_views, write_dataset
 from ragsplat.cli.main import main
-from ragsplat.dataset import layout
+from ragsplat.dataset import layout, photos
 from ragsplat.eval.poses import pose_errors
 from ragsplat.refraction import WaterSurface
 
@@ -40,7 +40,7 @@ def write_survey(root, seed: int = 0, targets_at_feet: bool = False):
     names = [f"{i:04d}.jpg" for i in range(len(views))]
     for name, v in zip(names, views):
         image = (np.clip(v["image"].numpy(), 0, 1) * 255 + 0.5).astype(np.uint8)
-        layout.write_jpeg(root / "images" / name, image, v["camera"].fx)
+        photos.write_jpeg(root / "images" / name, image, v["camera"].fx)
     centres = np.array([c.camera_center for c in cams])
     rng = np.random.default_rng(seed)
     layout.write_positions(root / "positions.csv", names,
@@ -156,7 +156,7 @@ def test_photos_finer_than_the_dem_needs_train_downscaled(survey, finished, tmp_
 def test_too_few_photos_registered(tmp_path, capsys):
     rng = np.random.default_rng(0)
     for k in range(4):  # noise: nothing matches
-        layout.write_jpeg(tmp_path / "images" / f"{k}.jpg",
+        photos.write_jpeg(tmp_path / "images" / f"{k}.jpg",
                           (rng.random((120, 160, 3)) * 255).astype(np.uint8), 140.0)
     layout.write_positions(tmp_path / "positions.csv", [f"{k}.jpg" for k in range(4)],
                            rng.normal(size=(4, 3)) + 10)
@@ -235,7 +235,7 @@ def test_an_unmeasured_level_comes_from_the_photos(tmp_path, capsys):
     views = render_views(channel_scene(4), cams, WATER)
     names = [f"{i:04d}.jpg" for i in range(len(views))]
     for name, v in zip(names, views):
-        layout.write_jpeg(tmp_path / "images" / name,
+        photos.write_jpeg(tmp_path / "images" / name,
                           (np.clip(v["image"].numpy(), 0, 1) * 255 + 0.5).astype(np.uint8), v["camera"].fx)
     centres = np.array([c.camera_center for c in cams])
     rng = np.random.default_rng(2)
@@ -280,7 +280,7 @@ def test_a_sloping_surface_from_the_edge_points(tmp_path, capsys):
     views = render_views(scene, cams, water)
     names = [f"{i:04d}.jpg" for i in range(len(views))]
     for name, v in zip(names, views):
-        layout.write_jpeg(tmp_path / "images" / name,
+        photos.write_jpeg(tmp_path / "images" / name,
                           (np.clip(v["image"].numpy(), 0, 1) * 255 + 0.5).astype(np.uint8), v["camera"].fx)
     rng = np.random.default_rng(1)
     centres = np.array([c.camera_center for c in cams])

@@ -1,5 +1,5 @@
 """Camera positions from the photos' own metadata (`survey.exif`): EXIF GPS and DJI's XMP written by
-`layout.write_jpeg` and read back, the conversion to UTM against the projection's definition, the zone
+`photos.write_jpeg` and read back, the conversion to UTM against the projection's definition, the zone
 chosen, a photo without GPS refused in one line, and `ragsplat survey PHOTOS` with no positions file on a
 small synthetic survey geotagged by the generator (`ragsplat.datagen.survey.write_survey`): RTK-fixed photos,
 and the same photos with consumer GPS (a bias per flight line), every camera kept."""
@@ -28,7 +28,7 @@ from ragsplat.datagen.survey import (
     gimbal_angles,
     write_survey,
 )
-from ragsplat.dataset import layout
+from ragsplat.dataset import layout, photos
 from ragsplat.errors import ConfigError, DatasetError
 from ragsplat.refraction import WaterSurface
 from ragsplat.survey import exif
@@ -42,7 +42,7 @@ def test_gps_and_dji_xmp_round_trip(tmp_path):
            "GimbalYawDegree": -153.2, "GimbalPitchDegree": -89.9, "FlightRollDegree": 1.5,
            "FlightYawDegree": -150.0, "FlightPitchDegree": -2.0, "RtkFlag": 50, "RtkStdLon": 0.011,
            "RtkStdLat": 0.014, "RtkStdHgt": 0.023}
-    layout.write_jpeg(path, IMAGE, 40.0, gps=(-33.912345678, -70.123456789, 241.3371), xmp=xmp)
+    photos.write_jpeg(path, IMAGE, 40.0, gps=(-33.912345678, -70.123456789, 241.3371), xmp=xmp)
     p = exif.read_photo(path)
     assert (p.name == "DJI_0001.JPG" and p.source == "EXIF GPS"
             and p.altitude_source == "DJI XMP AbsoluteAltitude")
@@ -60,7 +60,7 @@ def test_exif_gps_alone_and_xmp_as_elements(tmp_path):
     """No XMP: the height is the EXIF GPSAltitude (below sea level here), no RTK; DJI properties written as
     elements rather than attributes are read too."""
     path = tmp_path / "a.jpg"
-    layout.write_jpeg(path, IMAGE, 40.0, gps=(46.5, 13.25, -3.25))
+    photos.write_jpeg(path, IMAGE, 40.0, gps=(46.5, 13.25, -3.25))
     p = exif.read_photo(path)
     assert (p.lat, p.lon, p.altitude) == (pytest.approx(46.5), pytest.approx(13.25), pytest.approx(-3.25))
     assert (p.altitude_source == "EXIF GPSAltitude" and p.rtk_flag is None and not p.rtk_fixed
@@ -77,7 +77,7 @@ def test_exif_gps_alone_and_xmp_as_elements(tmp_path):
 
 def test_a_photo_without_gps_is_one_line_naming_it(tmp_path, capsys):
     for k in range(3):
-        layout.write_jpeg(tmp_path / "images" / f"IMG_{k}.JPG", IMAGE, 40.0,
+        photos.write_jpeg(tmp_path / "images" / f"IMG_{k}.JPG", IMAGE, 40.0,
                           gps=None if k == 1 else (46.0, 13.0, 200.0))
     with pytest.raises(DatasetError) as err:
         exif.read_photos(sorted((tmp_path / "images").iterdir()))
@@ -256,22 +256,22 @@ def test_the_generator_geotags_its_photos(geotagged):
     truth = np.array([c.camera_center for c in cams])
     rtk = layout.read_positions(root / layout.SURVEY_POSITIONS)
     for folder, tolerance in ((layout.SURVEY_IMAGES, 1e-3), (layout.SURVEY_IMAGES_GPS, None)):
-        photos = exif.read_photos(sorted((root / folder).iterdir()))
-        xyz, crs = exif.positions(photos)
+        tagged = exif.read_photos(sorted((root / folder).iterdir()))
+        xyz, crs = exif.positions(tagged)
         assert exif.crs_label(crs) == "EPSG:32633"
-        got = np.array([xyz[p.name] for p in photos]) - shift
+        got = np.array([xyz[p.name] for p in tagged]) - shift
         if tolerance:  # the positions.csv centres, to the millimetre
-            np.testing.assert_allclose(got, [rtk[p.name] for p in photos], atol=tolerance)
-            assert all(p.rtk_fixed and p.std_vertical == 0.008 for p in photos)
+            np.testing.assert_allclose(got, [rtk[p.name] for p in tagged], atol=tolerance)
+            assert all(p.rtk_fixed and p.std_vertical == 0.008 for p in tagged)
             # above the take-off point
-            assert photos[0].relative_altitude == pytest.approx(4.0 - 1.0, abs=0.05)
+            assert tagged[0].relative_altitude == pytest.approx(4.0 - 1.0, abs=0.05)
         else:  # each line off by its bias, plus scatter; the heights the barometer's, to millimetres here
-            assert all(p.rtk_flag is None for p in photos)
+            assert all(p.rtk_flag is None for p in tagged)
             off = np.linalg.norm((got - truth)[:, :2], axis=1)
             assert 0.1 < np.median(off) < 1.0
-            relative = np.array([p.relative_altitude for p in photos]) - (truth[:, 2] - 1.0)
+            relative = np.array([p.relative_altitude for p in tagged]) - (truth[:, 2] - 1.0)
             assert np.abs(relative).max() < 0.012 and np.abs(got[:, 2] - truth[:, 2]).max() > 0.1
-        nadir = np.array([p.gimbal for p in photos[:12]])
+        nadir = np.array([p.gimbal for p in tagged[:12]])
         assert np.abs(nadir[:, 1] + 90).max() < 2 and np.abs(nadir[:, 0]).max() < 8  # north-up, 2 deg noise
     record_bytes = (root / layout.SURVEY_RECORD).read_bytes()
     jpegs = {p: p.read_bytes() for folder in (layout.SURVEY_IMAGES, layout.SURVEY_IMAGES_GPS)
@@ -287,7 +287,7 @@ def test_the_generator_geotags_its_photos(geotagged):
     (root / layout.SURVEY_RECORD).write_text(json.dumps(old))
     for path in (root / layout.SURVEY_IMAGES_GPS).iterdir():
         path.unlink()
-    layout.write_jpeg(root / layout.SURVEY_IMAGES / "0000.jpg", IMAGE, 40.0)  # no GPS
+    photos.write_jpeg(root / layout.SURVEY_IMAGES / "0000.jpg", IMAGE, 40.0)  # no GPS
     assert not write_survey(root, poses, WaterSpec(), **again)
     assert json.loads((root / layout.SURVEY_RECORD).read_text()) == json.loads(record_bytes)
     assert {p: p.read_bytes() for p in jpegs} == jpegs

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from ragsplat.camera import Camera
-from ragsplat.dataset import layout
+from ragsplat.dataset import layout, photos
 from ragsplat.errors import DatasetError
 from ragsplat.refraction import WaterSurface, apparent_points
 from ragsplat.survey import bundle, georef
@@ -238,7 +238,7 @@ def test_jpeg_carries_its_focal_length_as_structure_from_motion_reads_it(tmp_pat
     import pycolmap
 
     image = (np.random.default_rng(0).random((120, 160, 3)) * 255).astype(np.uint8)
-    layout.write_jpeg(tmp_path / "images" / "a.jpg", image, focal_px=137.25)
+    photos.write_jpeg(tmp_path / "images" / "a.jpg", image, focal_px=137.25)
     pycolmap.extract_features(tmp_path / "db.db", tmp_path / "images", device=pycolmap.Device.cpu)
     with pycolmap.Database.open(tmp_path / "db.db") as db:
         (cam,) = db.read_all_cameras()

@@ -16,7 +16,7 @@ import torch
 from conftest import WATER, tiny_bed_run
 
 from ragsplat.cli.main import main
-from ragsplat.dataset import layout
+from ragsplat.dataset import layout, rasters
 from ragsplat.dataset.load import load_dataset
 from ragsplat.errors import ConfigError
 from ragsplat.eval.calibration import iho_shares
@@ -197,7 +197,7 @@ def banded_dem(path, truth, description=TVU_BAND, seed=0):
     depth = WATER.depth(grid)
     bands = [(grid[:, 2], "bed elevation"), (np.where(depth > 0, depth, np.nan), "water depth"),
              (tvu, description)]
-    layout.write_raster(path, grid[:, :2], bands, 0.05)
+    rasters.write_raster(path, grid[:, :2], bands, 0.05)
     return dz, tvu
 
 
@@ -418,7 +418,7 @@ def test_the_band_is_checked_at_the_dem_s_own_cells_not_read_between_them(evalua
     z = truth.grid[:, 2] + rng.normal(0.0, 0.02, len(xy))
     tvu = rng.uniform(0.01, 0.08, len(xy))
     bands = [(z, "bed elevation"), (WATER.depth(np.column_stack([xy, z])), "water depth"), (tvu, TVU_BAND)]
-    layout.write_raster(tmp_path / "off.tif", xy, bands, 0.05)
+    rasters.write_raster(tmp_path / "off.tif", xy, bands, 0.05)
     u = score_file(tmp_path / "off.tif", evaluable_dataset)[0]["uncertainty"]
     r = truth.region
     mine = ((xy[:, 0] <= r["xmax"] + 1e-6) & (xy[:, 1] <= r["ymax"] + 1e-6))  # the offset moves one edge out

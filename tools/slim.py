@@ -28,7 +28,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from ragsplat.dataset import layout
+from ragsplat.dataset import layout, rasters
 from ragsplat.dataset.colmap import STAMP, TRACKS, TRIANGULATED, triangulated_points
 from ragsplat.errors import DatasetError, RagsplatError
 from ragsplat.outputs import write_json
@@ -65,7 +65,7 @@ def slim_copy(src: Path, dst: Path) -> dict:
 
 
 # The rasterio a slim copy needs where rasterio is absent (`stand_ins/rasterio/`): what `layout.Georef.wkt`
-# and `layout.write_raster` call; reading a raster is refused (`ragsplat.eval.score.dem_points` then raises
+# and `rasters.write_raster` call; reading a raster is refused (`ragsplat.eval.score.dem_points` then raises
 # DatasetError).
 STAND_IN = Path(__file__).resolve().parent / "stand_ins" / "rasterio"
 
@@ -80,7 +80,7 @@ def write_stand_ins(folder: Path) -> Path:
 
 
 def unpack(path: Path) -> None:
-    """A raster the stand-in wrote (an .npz under a .tif's name) -> the GeoTIFF `layout.write_raster` writes
+    """A raster the stand-in wrote (an .npz under a .tif's name) -> the GeoTIFF `rasters.write_raster` writes
     where rasterio is, in place. Raises OSError where `path` is no such file."""
     import numpy as np
 
@@ -89,7 +89,7 @@ def unpack(path: Path) -> None:
             saved = {k: f[k] for k in f.files}
     except ValueError as err:
         raise OSError(f"{path}: not a raster of the rasterio stand-in ({err})") from None
-    layout.write_image(Path(path), saved["bands"], [str(text) for text in saved["descriptions"]],
+    rasters.write_image(Path(path), saved["bands"], [str(text) for text in saved["descriptions"]],
                 tuple(saved["transform"][:6]), str(saved["crs"]), float(saved["nodata"]))
 
 

@@ -24,7 +24,8 @@ DIR/
   scene/                     generator inputs and state: spec.json, geometry.npz, albedo.png, render log
 
 Every writer of a dataset (the Blender generator in `datagen`, the small in-memory scenes of
-`ragsplat.bench.synthetic`) writes through this module and every reader reads through
+`ragsplat.bench.synthetic`) writes through this module (its GeoTIFFs and world files through
+`dataset.rasters`, a survey's photos through `dataset.photos`) and every reader reads through
 `ragsplat.dataset.load`. numpy and OpenCV only, no torch: Blender's process imports it.
 """
 
@@ -194,82 +195,6 @@ def read_png(path: Path) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
-def write_jpeg(path: Path, image: np.ndarray, focal_px: float, quality: int = 95,
-               gps: tuple[float, float, float] | None = None, xmp: dict[str, object] | None = None) -> None:
-    """[H, W, 3] uint8 RGB as a JPEG whose EXIF gives the focal length as a camera does (FocalLength in mm
-    with FocalPlaneX/YResolution in pixels per mm, a nominal 0.01 mm pixel), which structure from motion
-    reads as its focal length prior. With `gps` (latitude, longitude in degrees, altitude in metres), also
-    the EXIF GPS block as a drone writes it (degrees, minutes, seconds to 1e-6 arc seconds; altitude to the
-    millimetre, GPSAltitudeRef 1 below zero); with `xmp` ({property: value}), an XMP packet of DJI's
-    `drone-dji` properties (e.g. AbsoluteAltitude, GimbalPitchDegree, RtkFlag; numbers written signed, as DJI
-    does) after the EXIF. Without either the bytes are those of a plain call."""
-    import io
-
-    from PIL import Image
-    from PIL.TiffImagePlugin import IFDRational
-
-    pitch_mm = 0.01
-    exif = Image.Exif()
-    exif[0x010F], exif[0x0110] = "ragsplat", "synthetic survey camera"  # Make, Model
-    sub = exif.get_ifd(0x8769)
-    sub[0x920A] = IFDRational(round(focal_px * pitch_mm * 1e6), 1_000_000)  # FocalLength (mm)
-    sub[0xA20E] = sub[0xA20F] = IFDRational(round(1e6 / pitch_mm), 1_000_000)  # FocalPlaneX/YResolution
-    sub[0xA210] = 4  # FocalPlaneResolutionUnit: millimetres
-    if gps is not None:
-        lat, lon, alt = (float(v) for v in gps)
-        block = exif.get_ifd(0x8825)
-        block[0x0000] = b"\x02\x03\x00\x00"  # GPSVersionID 2.3
-        block[0x0001], block[0x0002] = "N" if lat >= 0 else "S", _dms(lat)
-        block[0x0003], block[0x0004] = "E" if lon >= 0 else "W", _dms(lon)
-        block[0x0005] = b"\x01" if alt < 0 else b"\x00"  # GPSAltitudeRef: below / above sea level
-        block[0x0006] = IFDRational(round(abs(alt) * 1000), 1000)
-    buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(image)).save(buf, "JPEG", quality=quality, exif=exif)
-    data = buf.getvalue()
-    if xmp:
-        data = _with_app1(data, b"http://ns.adobe.com/xap/1.0/\x00" + _dji_xmp(xmp))
-    write_bytes(path, data)
-
-
-def _dms(degrees: float) -> tuple:
-    """EXIF (degrees, minutes, seconds) rationals of |degrees|, the seconds to 1e-6 arc seconds (3e-5 m)."""
-    from PIL.TiffImagePlugin import IFDRational
-
-    micro = round(abs(degrees) * 3600e6)  # whole micro arc seconds
-    d, rest = divmod(micro, 3600 * 10**6)
-    m, s = divmod(rest, 60 * 10**6)
-    return IFDRational(d, 1), IFDRational(m, 1), IFDRational(s, 10**6)
-
-
-def _dji_xmp(properties: dict[str, object]) -> bytes:
-    """An XMP packet with the `drone-dji` properties as attributes of one rdf:Description, as DJI writes
-    it."""
-    from xml.sax.saxutils import quoteattr
-
-    def text(value) -> str:
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            return str(value)
-        return str(value) if isinstance(value, int) else f"{value:+.6f}".rstrip("0").rstrip(".")
-
-    attrs = "".join(f"\n    drone-dji:{key}={quoteattr(text(value))}" for key, value in properties.items())
-    return ('<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>\n'
-            '<x:xmpmeta xmlns:x="adobe:ns:meta/">\n'
-            ' <rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">\n'
-            '  <rdf:Description rdf:about="DJI Meta Data"\n'
-            f'    xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/"{attrs}/>\n'
-            ' </rdf:RDF>\n</x:xmpmeta>\n<?xpacket end="w"?>').encode()
-
-
-def _with_app1(jpeg: bytes, payload: bytes) -> bytes:
-    """The JPEG with an APP1 segment holding `payload` after its leading application segments (JFIF, EXIF)."""
-    if len(payload) > 65533:
-        raise ValueError(f"an APP1 segment holds at most 65533 bytes, got {len(payload)}")
-    at = 2  # after SOI
-    while jpeg[at] == 0xFF and 0xE0 <= jpeg[at + 1] <= 0xEF:
-        at += 2 + int.from_bytes(jpeg[at + 2:at + 4], "big")
-    return jpeg[:at] + b"\xff\xe1" + (len(payload) + 2).to_bytes(2, "big") + payload + jpeg[at:]
-
-
 def write_positions(path: Path, names: list[str], xyz: np.ndarray) -> None:
     """`name,x,y,z` CSV (metres, millimetre precision) of camera centres or ground control points."""
     rows = "".join(f"{n},{x:.4f},{y:.4f},{z:.4f}\n" for n, (x, y, z) in zip(names, np.asarray(xyz, float)))
@@ -410,86 +335,6 @@ class Surface:
     def load(cls, path: Path) -> Surface:
         with np.load(path) as d:
             return cls(float(d["x0"]), float(d["cell"]), d["heights"])
-
-
-def write_elevation(path: Path, points: np.ndarray, step: float, nodata: float = NODATA) -> None:
-    """Grid points [N, 3] on a regular `step` lattice -> single-band float32 GeoTIFF of their heights
-    (`write_raster`)."""
-    write_raster(path, points[:, :2],
-                 [(points[:, 2], "bed elevation (m, z up, water plane at the scene's level)")],
-                 step, nodata=nodata)
-
-
-def raster(xy: np.ndarray, values: np.ndarray, step: float) -> tuple[np.ndarray, tuple[float, float]]:
-    """Values [N] at horizontal points xy [N, 2] on a regular `step` lattice -> image [H, W] float64 (row 0
-    is the northern edge, NaN where the lattice has no point) and (west, north), its outer corner."""
-    ij = np.round((xy - xy.min(0)) / step).astype(np.int64)  # [N, 2] column, row from south
-    width, height = ij.max(0) + 1
-    image = np.full((height, width), np.nan)
-    image[height - 1 - ij[:, 1], ij[:, 0]] = values
-    return image, (xy[:, 0].min() - step / 2, xy[:, 1].max() + step / 2)
-
-
-def write_raster(path: Path, xy: np.ndarray, bands: list[tuple[np.ndarray, str]], step: float,
-                 crs: str = LOCAL_CRS, nodata: float = NODATA) -> None:
-    """Values at horizontal points xy [N, 2] (coordinates in `crs`) on a regular `step` lattice -> float32
-    GeoTIFF with one band per (values [N], description), north up, pixel centres on the lattice nodes,
-    `nodata` where the lattice has no point or the value is NaN."""
-    images = [raster(xy, values, step) for values, _ in bands]
-    west, north = images[0][1]
-    stack = np.stack([np.where(np.isnan(image), nodata, image) for image, _ in images]).astype(np.float32)
-    write_image(path, stack, [description for _, description in bands], (step, 0.0, west, 0.0, -step, north),
-                crs, nodata)
-
-
-def write_image(path: Path, bands: np.ndarray, descriptions: list[str], transform: tuple, crs: str,
-                nodata: float | None, colours: tuple[str, ...] | None = None) -> None:
-    """Bands [B, H, W] (their dtype, `nodata` already in place; None: none) -> a deflated Cloud-Optimized
-    GeoTIFF (tiled, with overviews: GIS and web maps open a large one quickly), atomically; `transform`: the
-    affine's first six coefficients (a, b, c, d, e, f); `colours`: the bands' colour interpretations
-    (rasterio's ColorInterp names, e.g. red, green, blue, alpha), else GDAL's default."""
-    import rasterio
-    from rasterio.enums import ColorInterp
-    from rasterio.transform import Affine
-
-    with atomic_path(path) as tmp, rasterio.open(
-            tmp, "w", driver="COG", width=bands.shape[2], height=bands.shape[1], count=len(bands),
-            dtype=str(bands.dtype), crs=crs, transform=Affine(*transform), nodata=nodata,
-            compress="deflate", overviews="auto") as r:
-        for k, (image, description) in enumerate(zip(bands, descriptions), start=1):
-            r.write(image, k)
-            r.set_band_description(k, description)
-        if colours is not None:
-            r.colorinterp = [ColorInterp[c] for c in colours]
-
-
-RGBA = ("red", "green", "blue", "alpha")
-
-
-def write_rgba(path: Path, rgba: np.ndarray, transform: tuple, crs: str, what: str) -> None:
-    """An image [4, H, W] uint8 (red, green, blue, alpha: 0 where nothing is drawn) -> an RGBA
-    Cloud-Optimized GeoTIFF (`write_image`), each band described as `what` and its colour."""
-    write_image(path, rgba, [f"{what}: {c}" for c in RGBA], transform, crs, None, RGBA)
-
-
-def write_world_file(path: Path, step: float, west: float, north: float) -> None:
-    """An image's world file (ESRI's .pgw / .tfw, what GIS reads beside a PNG): the six lines A, D, B, E, C, F
-    of a north-up grid of `step` m pixels whose outer corner is (west, north); C, F name the first pixel's
-    centre."""
-    values = (step, 0.0, 0.0, -step, west + step / 2, north - step / 2)
-    with atomic_path(path) as tmp:
-        Path(tmp).write_text("".join(f"{v:.10f}\n" for v in values))
-
-
-def read_world_file(path: Path) -> tuple[float, float, float]:
-    """(step, west, north) of a north-up world file (`write_world_file`). Raises DatasetError otherwise."""
-    try:
-        a, d, b, e, c, f = (float(v) for v in Path(path).read_text().split())
-    except (OSError, ValueError):
-        raise DatasetError(f"{path}: not a world file (six numbers)") from None
-    if d or b or not a > 0 or abs(e + a) > 1e-9 * a:
-        raise DatasetError(f"{path}: not a north-up grid of square pixels")
-    return a, c - a / 2, f + a / 2
 
 
 def write_waterline(path: Path, lines: list[np.ndarray], level: float) -> None:
