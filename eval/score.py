@@ -23,8 +23,8 @@ from ragsplat.eval.ablation import CODE, PRESETS, TrainEval, extract_config
 from ragsplat.eval.evaluate import evaluate_fused, evaluate_geometry, evaluate_views, score_grid
 from ragsplat.eval.references import USES_GROUND_TRUTH, oracle_grids, start_extraction
 from ragsplat.eval.report import T2_COLUMNS, T3_COLUMNS, geometry_table, water_notes
-from ragsplat.export import load_model
 from ragsplat.outputs import source_digest, versions
+from ragsplat.runs import load_model
 
 # The short table: the ablation's CD and F1 columns (Table 2) and the wet and banks bias and errors (Table 3)
 COLUMNS = [c for c in T2_COLUMNS if c[0].startswith(("CD", "F1"))] + \

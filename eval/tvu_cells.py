@@ -7,7 +7,7 @@ is fitted and calibrated on (`python -m tools.fit_uncertainty`, docs/uncertainty
   the dataset's region: the DEM whose band 3 a surveyor reads), with the extraction's per-cell record
   (`surface.extract_surface(..., cells=True)`);
 - the features: `uncertainty.cell_features` of those cells from the run's training views through the water
-  the run ended with (`export.run_water`);
+  the run ended with (`runs.run_water`);
 - the errors: `evaluate.height_error` against the ground truth (predicted - true bed height);
 - only the wet cells (true depth > 0) are kept.
 
@@ -93,7 +93,8 @@ def run_cells(source: RunSource, level_sigma: float = 0.0, n_sigma: float = 0.0,
     frame), ConfigError (a preset without evaluation settings, an unknown bed)."""
     from ragsplat.dataset.load import load_dataset
     from ragsplat.eval.evaluate import height_error
-    from ragsplat.export import extract_bed, load_run, run_water
+    from ragsplat.export import extract_bed
+    from ragsplat.runs import load_run, run_water
     from ragsplat.surface import extract_surface, size_cap_m
     from ragsplat.train.config import TrainConfig
     from ragsplat.uncertainty import cell_features

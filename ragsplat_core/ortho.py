@@ -92,7 +92,7 @@ def ortho_tiles(grid: OrthoGrid, reference: float, relief: float) -> list[tuple[
 
 def bed_orthophoto(render, grid: OrthoGrid, reference: float, relief: float, samples: int = 1) -> np.ndarray:
     """RGBA [H, W, 4] float32 in [0, 1] of the orthographic view without the water: `render(camera)` -> (image
-    [h, w, 3], alpha [h, w, 1]) of a camera (a run's `export.Model.render` with interface=False) for each
+    [h, w, 3], alpha [h, w, 1]) of a camera (a run's `runs.Model.render` with interface=False) for each
     tile of `ortho_tiles`, on the grid refined `samples` times each way and averaged back to its cells (a
     cell's area, not its centre's Gaussians: a model trained on finer pixels than the grid's is sub-cell,
     and the rasterizer's 0.3 px dilation would widen it to the cell)."""

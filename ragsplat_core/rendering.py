@@ -4,7 +4,7 @@ image, alpha, z-depth and `meta` (tensors in, tensors out; no I/O).
 `view_gaussians` maps the true Gaussians to what the rasterizer takes (the RA-GS transform through the water
 per view, or the true ones), `rasterize_view` draws them as volumes or surfels, and `render_splats` adds the
 water's own light (its backscatter veil, the surface's reflection of the sky) as training renders it. The
-trainer, a finished run's renders (`export.Model`) and the evaluation all render through these.
+trainer, a finished run's renders (`runs.Model`) and the evaluation all render through these.
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ def render_splats(splats, camera: Camera, center: torch.Tensor, sh_degree: int, 
     point it renders is added to the image (`refraction.backscatter_veil`). `reflection`: [S, S, 3] the sky
     map the surface mirrors (`reflection.sky_radiance`, linear radiance), or None (nothing computed): each wet
     pixel becomes (1 - R) x the rest + R x the mirrored sky (`reflection.reflect`). The trainer and a
-    finished run's renders (`export.Model`) share it. `wet_degree`, `downwelling`: `view_gaussians`';
+    finished run's renders (`runs.Model`) share it. `wet_degree`, `downwelling`: `view_gaussians`';
     `surfel_depth`: `rasterize_surfels`' depth."""
     img, alpha, depth, meta = rasterize_view(view_gaussians(splats, center, sh_degree, water, flags, backend,
                                                             surfels, compiled, attenuation, wet_degree,

@@ -14,7 +14,6 @@ from ragsplat import rendering
 from ragsplat.cli.main import main
 from ragsplat.dataset import Dataset, load_dataset
 from ragsplat.errors import ConfigError
-from ragsplat.export import load_model
 from ragsplat.gaussians import SH_C0
 from ragsplat.refraction import (
     WATERLINE_BAND,
@@ -28,6 +27,7 @@ from ragsplat.refraction import (
     waterline_weight,
 )
 from ragsplat.rendering import rasterize_view, view_gaussians, visible_weights
+from ragsplat.runs import load_model
 from ragsplat.train import VARIANTS, TrainConfig, Trainer
 from ragsplat.train import trainer as train_mod
 from ragsplat.train.config import ATTENUATION_RANGE, DOWNWELLING
@@ -576,7 +576,7 @@ def test_wet_sh_degree_is_a_degree():
 
 
 def test_training_and_a_finished_run_s_renders_use_the_config_s_wet_degree(turbid, monkeypatch):
-    from ragsplat.export import Model
+    from ragsplat.runs import Model
 
     seen = []
     real = rendering.view_gaussians

@@ -15,7 +15,6 @@ from ragsplat import rendering
 from ragsplat.cli.main import main
 from ragsplat.dataset import Dataset, load_dataset
 from ragsplat.errors import ConfigError
-from ragsplat.export import load_model
 from ragsplat.refraction import (
     WaterSurface,
     add_backscatter,
@@ -26,6 +25,7 @@ from ragsplat.refraction import (
     srgb_to_linear,
     water_paths,
 )
+from ragsplat.runs import load_model
 from ragsplat.train import VARIANTS, TrainConfig, Trainer
 from ragsplat.train.config import BACKSCATTER_RANGE, VEIL_RANGE
 

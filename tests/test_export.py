@@ -26,7 +26,6 @@ from ragsplat.export import (
     Georef,
     extract_bed,
     hillshade,
-    load_run,
     sample_count,
     write_dem,
     write_las,
@@ -34,6 +33,7 @@ from ragsplat.export import (
 )
 from ragsplat.ply import save_ply
 from ragsplat.refraction import WaterSurface
+from ragsplat.runs import load_run
 from ragsplat.train import preset_config
 
 REGION = {"xmin": -0.8, "xmax": 0.8, "ymin": -0.8, "ymax": 0.8}

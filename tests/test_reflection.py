@@ -13,7 +13,6 @@ from conftest import killed_and_resumed, water_bed, water_bed_config
 from ragsplat import rendering
 from ragsplat.dataset import Dataset, load_dataset
 from ragsplat.errors import ConfigError
-from ragsplat.export import load_model
 from ragsplat.reflection import (
     SKY_SIZE,
     add_reflection,
@@ -24,6 +23,7 @@ from ragsplat.reflection import (
     surface_reflection,
 )
 from ragsplat.refraction import WaterSurface, linear_to_srgb, plane_frame, srgb_to_linear
+from ragsplat.runs import load_model
 from ragsplat.train import VARIANTS, TrainConfig, Trainer
 from ragsplat.train.config import SKY_RANGE, WATER_TERMS
 
@@ -290,7 +290,7 @@ def test_sky_stays_in_its_range(skyward_views):
 
 
 def test_a_finished_run_renders_with_its_sky(evaluable_dataset, tmp_path):
-    """config.json's `reflection_final` is what `export.Model` (`ragsplat render`) renders with: the trainer's
+    """config.json's `reflection_final` is what `runs.Model` (`ragsplat render`) renders with: the trainer's
     renders, bit for bit."""
     cfg = water_bed_config(VARIANT, init_count=200)
     run = tmp_path / "run"

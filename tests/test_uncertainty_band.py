@@ -21,8 +21,9 @@ from ragsplat.dataset.load import load_dataset
 from ragsplat.errors import ConfigError
 from ragsplat.eval.calibration import iho_shares
 from ragsplat.eval.evaluate import height_error
-from ragsplat.export import TVU_BAND, extract_bed, load_run, run_water, write_dem, write_las
+from ragsplat.export import TVU_BAND, extract_bed, write_dem, write_las
 from ragsplat.ply import save_ply
+from ragsplat.runs import load_run, run_water
 from ragsplat.survey import tiles
 from ragsplat.survey.stages import base, products, tiled
 from ragsplat.uncertainty import FEATURES, UncertaintyModel, cell_features, tvu95

@@ -25,9 +25,9 @@ import torch
 
 from ragsplat.dataset import load_dataset
 from ragsplat.dataset.layout import NO_HIT, read_depth
-from ragsplat.export import load_model
 from ragsplat.gaussians import SH_C0
 from ragsplat.refraction import apparent_points, srgb_to_linear
+from ragsplat.runs import load_model
 from ragsplat.surface import ExtractConfig
 from ragsplat.train.trainer import albedo_trend, image_shares
 

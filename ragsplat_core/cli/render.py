@@ -2,7 +2,7 @@
 DIR]`.
 
 Renders a finished training run at the camera poses of its dataset, without retraining
-(`ragsplat.export.Model`): through the water as trained (`--wet`), the true Gaussians without the
+(`ragsplat.runs.Model`): through the water as trained (`--wet`), the true Gaussians without the
 interface (`--dry`: the bed as if drained), or the z-depth of the dry render (`--depth`: EXR in metres and a
 colour PNG). Writes NAME.png (and NAME.exr) per view into --out (default RUN/renders/KIND).
 """
@@ -39,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ragsplat.cli.progress import bar
     from ragsplat.dataset.load import SPLITS
-    from ragsplat.export import load_model, render_views, select_views
+    from ragsplat.runs import load_model, render_views, select_views
 
     model, ds = load_model(args.run, args.data, SPLITS if args.split == "all" else (args.split,))
     views = select_views(ds, args.view, args.split)

@@ -25,7 +25,7 @@ c_b, own Adam on their logs, clamped to `VEIL_RANGE` and `BACKSCATTER_RANGE`; th
 `rendering.render_splats`) and the sky the surface mirrors (`trainer.reflection`: a map of linear radiance,
 own Adam on its log, clamped to `SKY_RANGE`; Fresnel-weighted over the wet pixels, `rendering.render_splats`),
 each only where its variant has it, saved in the checkpoint and in config.json (`attenuation_final`,
-`backscatter_final`, `reflection_final`: what `export.Model` renders with). A view with a mask trains on its
+`backscatter_final`, `reflection_final`: what `runs.Model` renders with). A view with a mask trains on its
 used pixels only.
 """
 
