@@ -10,8 +10,9 @@ import pytest
 
 from ragsplat.camera import Camera
 from ragsplat.datagen import conditions, flight
+from ragsplat.datagen.assets import FAR, scene_geometry
 from ragsplat.datagen.bed import ground_truth, height_at, make_bed
-from ragsplat.datagen.build import FAR, _geometry, render_job, scene_metadata
+from ragsplat.datagen.build import render_job, scene_metadata
 from ragsplat.datagen.spec import CLEAR_RIVER, PRESETS, SceneSpec, preset, validate, with_conditions
 from ragsplat.errors import SpecError
 
@@ -112,7 +113,7 @@ def test_ideal_presets_carry_no_trace_of_the_conditions(name, tmp_path):
     assert not any(getattr(o.material, "reflect", False) or o.wet_only for o in job.objects)
     assert [o.name for o in job.objects] == ["bed", "floor"] + (["water"] if spec.water else [])
     if name == "smoke":
-        geo = _geometry(spec, make_bed(spec))
+        geo = scene_geometry(spec, make_bed(spec))
         assert set(geo) == {"bed_verts", "bed_tris", "bed_uv", "floor_verts", "floor_tris", "floor_uv",
                             "water_verts", "water_tris"}
         assert len(geo["water_verts"]) == 4

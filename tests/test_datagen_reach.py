@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from ragsplat.datagen import flight
+from ragsplat.datagen.assets import scene_geometry
 from ragsplat.datagen.bed import ground_truth, make_bed, waterline
-from ragsplat.datagen.build import _geometry, null_models
+from ragsplat.datagen.build import null_models
 from ragsplat.datagen.spec import preset
 
 
@@ -47,7 +48,7 @@ def test_waterline_runs_along_both_banks(smoke):
 
 def test_floor_continues_the_border_cross_section(smoke):
     spec, bed = smoke
-    geo = _geometry(spec, bed)
+    geo = scene_geometry(spec, bed)
     fv = geo["floor_verts"]
     # every floor vertex lies on the border cross-section or on the land beyond it
     k = bed.mesh_heights.shape[0]
