@@ -180,6 +180,19 @@ def test_a_tiled_survey_gives_one_cell_per_tile_and_seams_that_agree(survey, fin
     dz = np.array([ours[k] - theirs[k] for k in common])
     spread = math.sqrt(np.mean(dz**2))
     assert report["overlap"] and all(p["rms_m"] < 2 * spread + 0.01 for p in report["overlap"])
+    # the tiles' orthophotos merged on the merged DEM's lattice, drawn over its cells
+    import rasterio
+
+    from ragsplat.dataset.layout import NODATA
+
+    with rasterio.open(out / "dem.tif") as dem, rasterio.open(out / "ortho_bed.tif") as ortho:
+        assert ortho.crs == dem.crs and ortho.res == dem.res
+        cols, rows = ~ortho.transform * (dem.transform.c, dem.transform.f)
+        assert abs(cols - round(cols)) < 1e-6 and abs(rows - round(rows)) < 1e-6  # one lattice
+        covered = dem.read(1) != NODATA
+        r0, c0 = round(rows), round(cols)
+        alpha = ortho.read(4)[r0:r0 + dem.height, c0:c0 + dem.width]
+        assert alpha.shape == covered.shape and (alpha[covered] > 0).mean() > 0.9
 
 
 def test_a_tile_s_gaussian_budget_is_for_the_ground_its_photos_see(tiled):
