@@ -241,9 +241,13 @@ def _water(out: Path, rec, n: float) -> dict | None:
         ax.set_title("the points about the water (below it: the bed seen through the water, refraction taken "
                      "out)", fontsize=9)
         src = figure_uri(fig)
+    from ragsplat.survey.stages.water import level_sigma
+
     est = w.get("estimated")
     by = None if est is None else ("from the shoreline" if est.get("by") == "shoreline"
                                    else "by the adjustment through the water")
+    if est is not None:
+        by += f", ± {100 * level_sigma(est)[0]:.1f} cm (1 sigma)"
     return {"described": w.get("described"), "by": by,
             "estimated": est, "below": w.get("points_below"), "above": w.get("points_above"), "src": src}
 
