@@ -12,8 +12,9 @@ import pytest
 
 from ragsplat.cli import dataset as cli
 from ragsplat.datagen import flight
+from ragsplat.datagen.assets import write_bed_assets
 from ragsplat.datagen.bed import make_bed, world_waterline
-from ragsplat.datagen.build import _write_bed_assets, null_models, render_job
+from ragsplat.datagen.build import null_models, render_job
 from ragsplat.datagen.spec import PRESETS, SceneSpec, preset, validate, with_slope
 from ragsplat.datagen.survey import EDGE_POINTS, SurveyNoise, _write_edge, edge_points
 from ragsplat.dataset import layout
@@ -89,7 +90,7 @@ def built(tmp_path_factory):
         root = tmp_path_factory.mktemp(name)
         (root / "scene").mkdir()
         (root / "gt").mkdir()
-        _write_bed_assets(preset(name), root)
+        write_bed_assets(preset(name), root)
         out[name] = root
     return out
 
