@@ -46,4 +46,5 @@ def test_the_report_opens_in_chromium_with_every_map_drawn(finished, chromium, t
     image = layout.read_png(shot)
     inked = (image < 200).any(-1).mean()
     colours = len(np.unique(image.reshape(-1, 3), axis=0))
-    assert inked > 0.15 and colours > 2000, f"{100 * inked:.0f} % inked, {colours} colours: a blank page?"
+    # a page of text alone inks a few per cent in a few hundred colours
+    assert inked > 0.05 and colours > 2000, f"{100 * inked:.0f} % inked, {colours} colours: a blank page?"
