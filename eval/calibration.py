@@ -210,10 +210,9 @@ def reliability_figure(tvu95, err, seeds=None, title: str = ""):
     """A matplotlib figure: left, the observed coverage of the central p intervals (|e| <= z_p sigma) against
     p, pooled (black) and per seed (thin); right, RMSE against RMV in the ENCE's bins (log-log), both against
     the diagonal of a calibrated uncertainty. The caller saves or shows it."""
-    import matplotlib
+    from ragsplat.pages import pyplot
 
-    matplotlib.use("Agg")  # files only, no display
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     sigma, err = np.asarray(tvu95, float) / Z95, np.asarray(err, float)
     levels = np.linspace(0.05, 0.99, 48)

@@ -268,10 +268,9 @@ def error_vs_time(curves: dict[str, list[list[dict]]], path: str | Path, title: 
     "psnr_refr", "psnr_dry", "f1": {...}}); `time_s` is training time only (evaluation
     pauses the clock). `lines[name]` = {"1%": f1, "3%": f1} draws a reference row as a black horizontal line,
     dashed its own way."""
-    import matplotlib
+    from ragsplat.pages import pyplot
 
-    matplotlib.use("Agg")  # files only, no display
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, axes = plt.subplots(1, 4, figsize=(19, 4.2), constrained_layout=True)
     colors = {v: plt.cm.tab10(i % 10) for i, v in enumerate(curves)}
@@ -313,10 +312,9 @@ def depth_error_map(grid: np.ndarray, truth, path: str | Path, title: str = "") 
     """A map of dz = predicted - true bed height (cm) at each reconstructed cell (diverging colours,
     symmetric at 5 % of the maximum depth, saturating beyond), grey where nothing was reconstructed, the
     ground truth's wet cells outlined by their extent; with a colour bar."""
-    import matplotlib
+    from ragsplat.pages import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     from ragsplat.eval.evaluate import height_error
 

@@ -96,10 +96,9 @@ def table(rows: list[dict]) -> str:
 def figure(rows: list[dict], path: Path) -> Path:
     """F1 at 1 % and 3 % of depth against the Secchi-like depth (log axis; clear water drawn at the right
     edge), the methods and the best reference, bars the training seeds' standard deviation."""
-    import matplotlib
+    from ragsplat.pages import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     finite = [r["secchi_like_depth_m"][GREEN] for r in rows if r["secchi_like_depth_m"][GREEN] is not None]
     clear = 2 * max(finite) if finite else 1.0

@@ -133,9 +133,8 @@ def write_orthophotos(model: Model, views: list[View], bed: Bed, ortho: Path | N
     (alpha 0 where nothing is drawn): `ortho`, the trained bed rendered straight down without the water
     (`ortho.bed_orthophoto`, the far pinhole over the bed's median height and its relief, each cell the
     average of renders at about the photos' ground sample distance `gsd`, m), drawn over the area the bed
-    covers, its holes included; `apparent`, the
-    `views`' images mosaicked as a refraction-blind orthomosaic does (`ortho.apparent_mosaic`). Returns the
-    grid."""
+    covers, its holes included; `apparent`, the `views`' images mosaicked as a refraction-blind orthomosaic
+    does (`ortho.apparent_mosaic`). Returns the grid."""
     from scipy.ndimage import binary_fill_holes
 
     height, corner = rasters.raster(bed.grid[:, :2], bed.grid[:, 2], bed.resolution)  # [H, W], NaN: no cell
@@ -394,18 +393,10 @@ def hillshade(z: np.ndarray, step: float, azimuth: float = 315.0, altitude: floa
     return np.clip(np.einsum("khw,k->hw", normal, sun) / np.linalg.norm(normal, axis=0), 0, 1)
 
 
-def write_png(path: Path, bed: Bed) -> None:
-    """Water depth in colour, with a colour bar, over a hillshade of the bed (emerged ground in grey)."""
-    import matplotlib
-
-    matplotlib.use("Agg")  # files only, no display
-    import matplotlib.pyplot as plt
-
-    xy, step = bed.absolute()[:, :2], bed.resolution
-    height, (west, north) = rasters.raster(xy, bed.absolute()[:, 2], step)
-    depth, _ = rasters.raster(xy, bed.depth(), step)
-    extent = (west, west + height.shape[1] * step, north - height.shape[0] * step, north)
-    fig, ax = plt.subplots(figsize=(7, 5.5), constrained_layout=True)
+def draw_depth(fig, ax, height: np.ndarray, depth: np.ndarray, step: float, extent) -> np.ndarray:
+    """The depth map on `ax` of `fig`: water depth [H, W] (NaN: none) in colour, with a colour bar, over a
+    hillshade of the heights [H, W], `step` m cells over `extent` (west, east, south, north); returns the wet
+    cells' depths."""
     ax.imshow(hillshade(height, step), cmap="gray", vmin=0, vmax=1, extent=extent)
     wet = depth[np.isfinite(depth)]
     im = ax.imshow(depth, cmap="viridis_r", alpha=0.65, extent=extent, vmin=0,
@@ -413,6 +404,21 @@ def write_png(path: Path, bed: Bed) -> None:
     fig.colorbar(im, ax=ax, label="water depth (m); grey: emerged ground", shrink=0.85)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
+    return wet
+
+
+def write_png(path: Path, bed: Bed) -> None:
+    """Water depth in colour, with a colour bar, over a hillshade of the bed (emerged ground in grey)."""
+    from ragsplat.pages import pyplot
+
+    plt = pyplot()
+
+    xy, step = bed.absolute()[:, :2], bed.resolution
+    height, (west, north) = rasters.raster(xy, bed.absolute()[:, 2], step)
+    depth, _ = rasters.raster(xy, bed.depth(), step)
+    extent = (west, west + height.shape[1] * step, north - height.shape[0] * step, north)
+    fig, ax = plt.subplots(figsize=(7, 5.5), constrained_layout=True)
+    draw_depth(fig, ax, height, depth, step, extent)
     ax.set_title(f"water depth over a hillshade of the bed, {step:g} m cells")
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100, format="png")

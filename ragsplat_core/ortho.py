@@ -153,11 +153,9 @@ def apparent_mosaic(photos: list[tuple[Camera, np.ndarray]], grid: OrthoGrid, be
 
 
 def _project(cam: Camera, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(pixel coordinates [P, 2] with centres at i + 0.5, in front and inside the image [P] bool)."""
-    pc = points @ cam.R.T + cam.t  # [P, 3]
-    z = pc[:, 2]
+    """(`Camera.project`'s pixels [P, 2], centres at i + 0.5; in front and inside the image [P] bool)."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        uv = np.column_stack([cam.fx * pc[:, 0] / z + cam.cx, cam.fy * pc[:, 1] / z + cam.cy])
+        uv, z = cam.project(points)
     inside = (z > 0) & (uv[:, 0] >= 0.5) & (uv[:, 0] <= cam.width - 0.5) & (uv[:, 1] >= 0.5) \
         & (uv[:, 1] <= cam.height - 0.5)
     return uv, inside

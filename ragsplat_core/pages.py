@@ -17,7 +17,8 @@ IMAGES_LOADED = "images"
 
 
 def pyplot():
-    """matplotlib's pyplot drawing to files only (no display)."""
+    """matplotlib's pyplot drawing to files only (no display): every figure the project draws goes through
+    it."""
     import matplotlib
 
     matplotlib.use("Agg")

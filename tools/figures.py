@@ -17,10 +17,9 @@ from ragsplat.outputs import atomic_path
 def write_figures(data: Path, out: Path, view: str | None = None) -> list[Path]:
     """`OUT/<preset>_views.png` (view `view`, default the first 20-degree oblique: wet | dry) and
     `OUT/<preset>_ground_truth.png` (bed height relative to the water, waterline, evaluated region)."""
-    import matplotlib
+    from ragsplat.pages import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     data, out = Path(data), Path(out)
     tf = json.loads((data / layout.TRANSFORMS).read_text())

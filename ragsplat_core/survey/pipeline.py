@@ -70,7 +70,7 @@ def run(cfg: SurveyConfig, progress: Progress | None = None, cluster=None) -> li
         return []
     products = train_and_export(survey, water, stamps, progress, cluster)
     t0 = time.perf_counter()
-    report = write_report(survey.cfg.out, progress.said)
+    report = write_report(survey.cfg.out, progress.said, len(survey.photos))
     progress.say("report", f"{report}", t0)
     return [*products, report]
 

@@ -96,7 +96,7 @@ def _cameras(model: Path) -> tuple[dict[str, np.ndarray], dict[str, float], int,
 
 def _maps(out: Path, centres: dict[str, np.ndarray]) -> list[dict]:
     """The map figures: [{title, src, note}]."""
-    from ragsplat.export import hillshade
+    from ragsplat.export import draw_depth
 
     plt = pyplot()
     dem = _read(out / "dem.tif")
@@ -126,11 +126,8 @@ def _maps(out: Path, centres: dict[str, np.ndarray]) -> list[dict]:
                                 "photos gives (each cell from the nearest photo, at the apparent bed's "
                                 "height)."})
     fig, ax = plt.subplots(figsize=(8, 6), constrained_layout=True)
-    ax.imshow(hillshade(height, step), cmap="gray", vmin=0, vmax=1, extent=ext)
-    wet = depth[np.isfinite(depth)]
+    wet = draw_depth(fig, ax, height, depth, step, ext)
     if len(wet):
-        im = ax.imshow(depth, cmap="viridis_r", alpha=0.7, extent=ext, vmin=0, vmax=float(wet.max()))
-        fig.colorbar(im, ax=ax, label="water depth (m)", shrink=0.85)
         levels = np.linspace(0, float(wet.max()), DEPTH_CONTOURS + 2)[1:-1]
         if len(levels) and levels[-1] > levels[0]:
             x = np.linspace(ext[0] + step / 2, ext[1] - step / 2, depth.shape[1])
@@ -144,9 +141,7 @@ def _maps(out: Path, centres: dict[str, np.ndarray]) -> list[dict]:
         ax.legend(loc="upper right", fontsize=8)
     ax.set_xlim(ext[0], ext[1])
     ax.set_ylim(ext[2], ext[3])
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_title(f"water depth over a hillshade of the bed, {step:g} m cells; grey: emerged ground")
+    ax.set_title(f"water depth over a hillshade of the bed, {step:g} m cells, and the cameras")
     figures.append({"title": "Depth", "src": figure_uri(fig),
                     "note": f"{int(np.isfinite(height).sum())} cells, {len(wet)} under water"
                             + (f", deepest {wet.max():.2f} m" if len(wet) else "") + "."})
@@ -194,7 +189,7 @@ def _bars(labels: list[str], values: list[np.ndarray], names: list[str], ylabel:
     return figure_uri(fig)
 
 
-def _structure(out: Path, errors: dict[str, float], points: int, photos: int) -> dict:
+def _structure(errors: dict[str, float], points: int, photos: int) -> dict:
     names = sorted(errors)
     values = np.array([errors[n] for n in names])
     return {"registered": len(names), "photos": photos, "points": points,
@@ -252,8 +247,9 @@ def _water(out: Path, rec, n: float) -> dict | None:
             "estimated": est, "below": w.get("points_below"), "above": w.get("points_above"), "src": src}
 
 
-def write_report(out: Path, said: list[Said]) -> Path:
-    """RUN/report.html of the survey in `out`, with the lines it said (`Recorder.said`). Returns its path."""
+def write_report(out: Path, said: list[Said], photos: int) -> Path:
+    """RUN/report.html of the survey in `out` of `photos` photos, with the lines it said (`Recorder.said`).
+    Returns its path."""
     from ragsplat.outputs import versions
 
     out = Path(out)
@@ -261,12 +257,10 @@ def write_report(out: Path, said: list[Said]) -> Path:
     model = out / "model"
     centres, errors, points, rec = (_cameras(model) if (model / "images.txt").is_file()
                                     or (model / "images.bin").is_file() else ({}, {}, 0, None))
-    photos = len([p for p in Path(survey.get("images", "")).iterdir() if p.is_file()]) \
-        if survey.get("images") and Path(survey["images"]).is_dir() else len(errors)
     return write_page(out / REPORT, "survey.html.j2",
                       title=f"ragsplat survey: {survey.get('images', out)}",
                       out=str(out), settings=survey, maps=_maps(out, centres),
-                      structure=_structure(out, errors, points, photos) if errors else None,
+                      structure=_structure(errors, points, photos) if errors else None,
                       georef=_georef(out),
                       water=_water(out, rec, float(survey["n"])) if "n" in survey else None,
                       said=[asdict(s) for s in said], versions=versions("torch", "pycolmap"))
