@@ -70,14 +70,12 @@ def on_grid(path: Path, offset, step: float, west: float, north: float, shape) -
     return out
 
 
-def wet_cells(root: Path, step: float, west: float, north: float, shape) -> np.ndarray:
-    """[H, W] bool: the grid's cells whose exact bed lies under the dataset's water."""
-    from ragsplat.dataset.load import load_dataset
-
-    ds = load_dataset(root, splits=())
+def wet_cells(ds, step: float, west: float, north: float, shape) -> np.ndarray:
+    """[H, W] bool: the grid's cells whose exact bed lies under the water of the dataset `ds` (a
+    `load.Dataset`)."""
     if ds.water is None:
-        raise DatasetError(f"{root}: a dry scene has no wet cells")
-    surface = layout.Surface.load(Path(root) / layout.GT_SURFACE)
+        raise DatasetError(f"{ds.root}: a dry scene has no wet cells")
+    surface = layout.Surface.load(Path(ds.root) / layout.GT_SURFACE)
     x = west + (np.arange(shape[1]) + 0.5) * step
     y = north - (np.arange(shape[0]) + 0.5) * step
     xx, yy = np.meshgrid(x, y)
@@ -152,14 +150,15 @@ def score_orthophoto(path: Path, root: Path, wet: bool = True) -> dict:
     from ragsplat.eval.bed_file import geodetic, survey_geotags
 
     truth, step, west, north = read_truth(root)
-    offset = np.asarray(load_dataset(root, splits=()).georef.offset, dtype=np.float64)
+    ds = load_dataset(root, splits=())
+    offset = np.asarray(ds.georef.offset, dtype=np.float64)
     with rasterio.open(path) as r:
         crs = r.crs
     geotags = survey_geotags(root)
     if not offset.any() and geodetic(crs) and geotags is not None:
         offset = np.asarray(geotags.offset, dtype=np.float64)
     ortho = on_grid(path, offset, step, west, north, truth.shape[:2])
-    region = wet_cells(root, step, west, north, truth.shape[:2]) if wet else np.ones(truth.shape[:2], bool)
+    region = wet_cells(ds, step, west, north, truth.shape[:2]) if wet else np.ones(truth.shape[:2], bool)
     cells = region & (ortho[..., 3] > 0)
     drawn = cells.sum() / max(region.sum(), 1)
     if drawn < MIN_DRAWN:
