@@ -190,15 +190,21 @@ class Camera:
 
 
 def ground_sample_distance(cameras, level: float) -> float | None:
-    """Metres per pixel at the plane z = `level` (the water surface): per camera, the z-depth where its
-    optical axis meets the plane over fx; the median over the cameras that look down onto it from above
-    (None when none does). Refraction is left out: the bed below looks farther, by at most d / n."""
-    per_view = []
-    for cam in cameras:
-        height, down = cam.camera_center[2] - level, -cam.R[2, 2]  # R[2] = the optical axis in the world
-        if height > 0 and down > 0:
-            per_view.append(height / down / cam.fx)
-    return float(np.median(per_view)) if per_view else None
+    """Metres per pixel at the plane z = `level` (the water surface) of `cameras` (`sample_distance`)."""
+    if not cameras:
+        return None
+    return sample_distance(np.array([c.R for c in cameras]), np.array([c.camera_center for c in cameras]),
+                           np.array([c.fx for c in cameras]), level)
+
+
+def sample_distance(R: np.ndarray, centres: np.ndarray, fx: np.ndarray, level: float) -> float | None:
+    """Metres per pixel at the plane z = `level` of the cameras R [V, 3, 3] (world -> camera), centres [V, 3]
+    and focal lengths fx [V] (px): per camera, the z-depth where its optical axis meets the plane over fx;
+    the median over the cameras that look down onto it from above (None when none does). Refraction is left
+    out: the bed below looks farther, by at most d / n."""
+    height, down = centres[:, 2] - level, -R[:, 2, 2]  # R[2] = the optical axis in the world
+    seen = (height > 0) & (down > 0)
+    return float(np.median(height[seen] / down[seen] / fx[seen])) if seen.any() else None
 
 
 def _torch_stack(tensors, dim):

@@ -133,21 +133,27 @@ def test_sizes_are_refused_before_any_work(survey, finished, tmp_path, capsys, m
 
 
 def test_photos_finer_than_the_dem_needs_train_downscaled(survey, finished, tmp_path, capsys):
-    """Two pixels a DEM cell where that halves the pixels at least: the tests' 240 px photos of 1.92 cm (4 m
-    up, a focal of 207.8 px) for a 10 cm DEM train at 96 px; for the default 5 cm they would keep 59 % and
+    """Two pixels a DEM cell where that halves the pixels at least, the pixel's size taken at the water from
+    the adjusted cameras: the tests' 240 px photos (4 m over the water, obliques 4.4 m along their axis, a
+    focal of 207.8 px: 1.9 cm) for a 10 cm DEM train at 96 px; for the default 5 cm they would keep 60 % and
     stay; a --max-size given stays."""
-    from ragsplat.survey.stages.inputs import dem_size
+    from ragsplat.survey.stages.training import dem_size
 
     assert dem_size(4000, 0.0171, 0.05) == 2736  # a 12 MP consumer photo 40 m up: 47 % of its pixels
-    assert dem_size(240, 4 / 207.846, 0.05) is None and dem_size(256, 0.0233, 0.05) is None  # small's
+    assert dem_size(240, 0.02, 0.05) is None and dem_size(256, 0.0232, 0.05) is None  # small's
+    assert "downscaled" not in finished[1]
     out = tmp_path / "run"
     reuse_sfm(finished, out)
-    assert main(args(survey, out, "--resolution", "0.1", "--stop-after", "sfm")) == 0
-    assert "for a DEM of 10 cm cells: training on them downscaled to at most 96 px" in capsys.readouterr().err
+    assert main(args(survey, out, "--resolution", "0.1")) == 0
+    err = capsys.readouterr().err
+    assert "cm a pixel at the water for a DEM of 10 cm cells: training on them downscaled to at most 96 px" \
+        in err
     assert json.loads((out / "survey.json").read_text())["max_size"] == 96
+    assert max(json.loads((out / "data" / "transforms.json").read_text())["frames"][0][k]
+               for k in ("w", "h")) == 96
     given = tmp_path / "given"
     reuse_sfm(finished, given)
-    assert main(args(survey, given, "--resolution", "0.1", "--max-size", "200", "--stop-after", "sfm")) == 0
+    assert main(args(survey, given, "--resolution", "0.1", "--max-size", "200")) == 0
     assert "DEM of" not in capsys.readouterr().err
     assert json.loads((given / "survey.json").read_text())["max_size"] == 200
     assert json.loads((finished[0] / "survey.json").read_text())["max_size"] is None

@@ -43,7 +43,7 @@ from ragsplat.survey.stages.inputs import check_inputs
 from ragsplat.survey.stages.products import export
 from ragsplat.survey.stages.structure import structure_from_motion
 from ragsplat.survey.stages.tiled import plan_tiles, train_tiles
-from ragsplat.survey.stages.training import train_one
+from ragsplat.survey.stages.training import train_one, training_size
 from ragsplat.survey.stages.water import adjust_through_water
 
 
@@ -76,13 +76,14 @@ def run(cfg: SurveyConfig, progress: Progress | None = None, cluster=None) -> li
 
 
 def train_and_export(survey: Survey, water: Water, stamps: Stamps, progress: Progress, cluster) -> list[Path]:
-    """Stage 4: the DEM's size checked over the model's points, then one training and its export
-    (`train_one`, `export`), or the tiles' (`train_tiles`) where the survey is larger than a tile."""
+    """Stage 4: the DEM's size checked over the model's points, the photos' size chosen (`training_size`),
+    then one training and its export (`train_one`, `export`), or the tiles' (`train_tiles`) where the survey
+    is larger than a tile."""
     import numpy as np
 
     from ragsplat.export import sample_count
 
-    cfg = survey.cfg
+    cfg = training_size(survey, water, progress)
     lo, hi = water.extent
     sample_count(lo, hi, cfg.resolution)  # the DEM's size over the model's points, before training
     products = [cfg.out / name for name in PRODUCTS]

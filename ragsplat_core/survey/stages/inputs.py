@@ -4,7 +4,6 @@ frame (positions, ground control, the photos' EXIF GPS), the water as given, and
 
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -19,16 +18,6 @@ if TYPE_CHECKING:
     from ragsplat.survey.water import EdgeFit
 
 from ragsplat.survey.stages.base import AUTO, RTK_SIGMA
-
-# Photos finer than the DEM needs train downscaled to this many pixels across a DEM cell: two samples a
-# cell resolve it, and the training's time goes with the pixels (OpenDroneMap's default dense cloud,
-# --pc-quality medium, likewise works on photos at half their size). A downscale that would keep more than
-# DEM_KEEP of the pixels is not made: it would save little time for the detail it loses.
-DEM_SAMPLES = 2
-
-
-DEM_KEEP = 0.5
-
 
 IMAGE_MEMORY = 0.4  # the training's images (uint8) may take this share of the machine's memory
 
@@ -80,6 +69,7 @@ class Survey:
     """A survey's inputs, read and checked before any work."""
 
     cfg: SurveyConfig  # resolved: the CRS from the photos, the --max-size that fits
+    given_size: int | None  # the --max-size asked for (None: the survey chooses, `training.training_size`)
     photos: list[Path]
     where: Positions
     given: GivenWater
@@ -102,7 +92,7 @@ def check_inputs(cfg: SurveyConfig, progress: Progress) -> Survey:
     import numpy as np
 
     from ragsplat.errors import DatasetError
-    from ragsplat.outputs import claim, write_json
+    from ragsplat.outputs import claim
 
     if not cfg.images.is_dir():
         raise DatasetError(f"{cfg.images}: no such folder of photos")
@@ -122,15 +112,22 @@ def check_inputs(cfg: SurveyConfig, progress: Progress) -> Survey:
     if where.positions is not None and given.surface is not None:
         check_above(given.surface, np.array([where.positions[n] for n in where.located]))
     sized = where.located if where.positions else where.control
-    cfg = _check_sizes(cfg, progress, photos, np.array([where.frame[n] for n in sized]), given.surface,
-                       where.tagged)
+    given_size = cfg.max_size
+    cfg = _check_sizes(cfg, progress, photos, np.array([where.frame[n] for n in sized]), given.surface)
     claim(cfg.out, "survey run")
-    write_json(cfg.out / "survey.json",
-               {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()})
+    write_config(cfg)
     # a local origin (whole metres): UTM-sized coordinates keep millimetres in every float64 step
     origin = np.round(np.mean(list(where.frame.values()), axis=0))
     water = None if given.surface is None else given.surface.shifted(origin)
-    return Survey(cfg, photos, where, given, origin, water)
+    return Survey(cfg, given_size, photos, where, given, origin, water)
+
+
+def write_config(cfg: SurveyConfig) -> None:
+    """RUN/survey.json: the config as resolved."""
+    from ragsplat.outputs import write_json
+
+    write_json(cfg.out / "survey.json",
+               {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()})
 
 
 def locate(cfg: SurveyConfig, photos: list[Path], progress: Progress) -> tuple[SurveyConfig, Positions]:
@@ -257,12 +254,10 @@ def check_above(water, centres) -> None:
                           f"{float(water.height(centres[top, :2])):g} m there)")
 
 
-def _check_sizes(cfg: SurveyConfig, progress: Progress, photos: list[Path], centres, surface,
-                 tagged: list[PhotoPosition] | None = None) -> SurveyConfig:
+def _check_sizes(cfg: SurveyConfig, progress: Progress, photos: list[Path], centres, surface) -> SurveyConfig:
     """Every size refusal before any work, each in one line with advice that works: the training's images
     must fit `IMAGE_MEMORY` of this machine's memory (without --max-size, the largest that fits is chosen,
-    said and returned in the config; smaller still where the photos are finer than the DEM needs,
-    `dem_size`), and the DEM's grid over the cameras' footprints must pass
+    said and returned in the config), and the DEM's grid over the cameras' footprints must pass
     `export.sample_count` at --resolution (the area is known only after structure from motion; here its lower
     bound: the cameras' extent, grown by each one's nadir footprint where the water level is given)."""
 
@@ -287,17 +282,7 @@ def _check_sizes(cfg: SurveyConfig, progress: Progress, photos: list[Path], cent
     from ragsplat.survey.exif import focal_pixels
 
     focal = focal_pixels(photos[0])
-    # the cameras' height above the water: the given surface's, else the barometer's above the take-off
-    above = float(np.median(-surface.depth(centres))) if surface is not None else None
-    heights = [p.relative_altitude for p in tagged or () if p.relative_altitude]
-    height = above if above is not None else float(np.median(heights)) if heights else None
-    if cfg.max_size is None and height and focal:
-        size = dem_size(int(longest.max()), height / focal, cfg.resolution)
-        if size is not None:
-            cfg = replace(cfg, max_size=size)
-            progress.say("check", f"photos of about {100 * height / focal:.1f} cm a pixel for a DEM of "
-                         f"{100 * cfg.resolution:g} cm cells: training on them downscaled to at most "
-                         f"{size} px ({DEM_SAMPLES} pixels a cell; --max-size to choose)")
+    above = float(np.median(-surface.depth(centres))) if surface is not None else None  # over the water
     budget = IMAGE_MEMORY * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     if image_bytes(cfg.max_size) > budget:
         fits = int(longest.max() * (budget / image_bytes(None)) ** 0.5) // 16 * 16  # bytes go as size^2
@@ -319,11 +304,3 @@ def _check_sizes(cfg: SurveyConfig, progress: Progress, photos: list[Path], cent
         lo, hi = lo - max(reach, 0.0), hi + max(reach, 0.0)
     sample_count(lo, hi, cfg.resolution)  # ConfigError with the resolution that passes
     return cfg
-
-
-def dem_size(longest: int, gsd: float, resolution: float) -> int | None:
-    """The longest side (px, a multiple of 16) to train photos of `longest` px at `gsd` (m a pixel) with for
-    a DEM of `resolution` (m), `DEM_SAMPLES` pixels across a cell; None where that would keep more than
-    `DEM_KEEP` of their pixels."""
-    scale = gsd * DEM_SAMPLES / resolution
-    return None if scale * scale > DEM_KEEP else max(16, math.ceil(longest * scale / 16) * 16)

@@ -4,6 +4,7 @@ gets (`survey_training`: the Gaussian budget for its area, the scene scale, the 
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -15,6 +16,7 @@ if TYPE_CHECKING:
 
     from ragsplat.dataset.load import Dataset
     from ragsplat.survey.stages.base import Progress, SurveyConfig
+    from ragsplat.survey.stages.inputs import Survey
     from ragsplat.survey.stages.water import Water
 
 from ragsplat.survey.stages.base import points_box
@@ -41,6 +43,55 @@ COARSE_GSD = 0.033
 # (`small`'s 4.6 m are 198; both keep their own). Larger tiles trained at it like the stretch
 # (docs/lab/performance.md).
 SCENE_SCALE_GSD = 426
+
+
+# Photos finer than the DEM needs train downscaled to this many pixels across a DEM cell: two samples a
+# cell resolve it, and the training's time goes with the pixels (OpenDroneMap's default dense cloud,
+# --pc-quality medium, likewise works on photos at half their size). A downscale that would keep more than
+# DEM_KEEP of the pixels is not made: it would save little time for the detail it loses.
+DEM_SAMPLES = 2
+
+
+DEM_KEEP = 0.5
+
+
+def training_size(survey: Survey, water: Water, progress: Progress) -> SurveyConfig:
+    """The survey's config with the size its photos train at: without --max-size, at most `dem_size` where
+    the photos are finer than the DEM needs, their ground sample distance taken at the water from the
+    adjusted cameras (a barometer's heights are above the take-off, not the water); RUN/survey.json
+    rewritten where that changes the size."""
+    import numpy as np
+
+    from ragsplat.camera import sample_distance
+    from ragsplat.dataset.colmap import read_model
+    from ragsplat.survey import sfm
+    from ragsplat.survey.stages.inputs import write_config
+
+    cfg = survey.cfg
+    if survey.given_size is not None:
+        return cfg
+    rec = read_model(water.model)
+    _, _, R, centres, K = sfm.cameras(rec)
+    level = float(water.surface.height(np.median(centres[:, :2], axis=0)[None])[0])
+    gsd = sample_distance(R, centres, K[:, 0], level)
+    longest = max(max(cam.width, cam.height) for cam in rec.cameras.values())
+    size = None if gsd is None else dem_size(longest, gsd, cfg.resolution)
+    if size is None or (cfg.max_size is not None and cfg.max_size <= size):
+        return cfg
+    cfg = replace(cfg, max_size=size)
+    write_config(cfg)
+    progress.say("train", f"photos of {100 * gsd:.2f} cm a pixel at the water for a DEM of "
+                 f"{100 * cfg.resolution:g} cm cells: training on them downscaled to at most {size} px "
+                 f"({DEM_SAMPLES} pixels a cell; --max-size to choose)")
+    return cfg
+
+
+def dem_size(longest: int, gsd: float, resolution: float) -> int | None:
+    """The longest side (px, a multiple of 16) to train photos of `longest` px at `gsd` (m a pixel) with for
+    a DEM of `resolution` (m), `DEM_SAMPLES` pixels across a cell; None where that would keep more than
+    `DEM_KEEP` of their pixels."""
+    scale = gsd * DEM_SAMPLES / resolution
+    return None if scale * scale > DEM_KEEP else max(16, math.ceil(longest * scale / 16) * 16)
 
 
 def train_one(cfg: SurveyConfig, water: Water, area: float, progress: Progress) -> Path:
