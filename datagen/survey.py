@@ -144,7 +144,7 @@ def geo_record(train, names: list[str], water, seed: int, noise: SurveyNoise,
                origin: GeoOrigin = GeoOrigin(), gps: ConsumerGPS = ConsumerGPS(), lens: bool = True) -> dict:
     """survey.json's "geo": the origin, its UTM zone and the scene's frame in it, and how the folders of
     geotagged photos were made (each flight line's consumer-GPS bias; with `lens`, the lens photos')."""
-    from ragsplat.survey import exif
+    from ragsplat.dataset import exif
 
     epsg = exif.utm_epsg(origin.lat, origin.lon)
     e0, n0, _ = exif.to_metric(origin.lat, origin.lon, origin.height, f"EPSG:{epsg}")[0]
@@ -178,7 +178,7 @@ def write_geotags(root: Path, train, names: list[str], water, seed: int, noise: 
     no RTK tags; the RelativeAltitude its barometer's, the true height plus a drift and scatter), and with
     `lens` into `survey/images-lens/`: the photos rendered through a lens with radial distortion (`LENS`;
     the dataset's images/lens/), with the RTK tags. Returns survey.json's "geo" (`geo_record`)."""
-    from ragsplat.survey import exif
+    from ragsplat.dataset import exif
 
     record = geo_record(train, names, water, seed, noise, origin, gps, lens)
     crs, shift = record["crs"], np.array(record["origin_metric"])
@@ -270,7 +270,7 @@ def gimbal_angles(cameras, shift: np.ndarray, crs: str) -> np.ndarray:
     the ellipsoid)."""
     from pyproj import Geod
 
-    from ragsplat.survey import exif
+    from ragsplat.dataset import exif
 
     R = np.array([c.R for c in cameras])  # rows: right, down, forward in the world
     forward, up, right = R[:, 2], -R[:, 1], R[:, 0]

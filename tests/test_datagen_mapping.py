@@ -12,7 +12,7 @@ from ragsplat.datagen import flight
 from ragsplat.datagen.bed import ground_truth, make_bed, waterline
 from ragsplat.datagen.spec import CAMERAS, SceneSpec, ShoreSpec, SpecError, preset, validate
 from ragsplat.datagen.survey import GeoOrigin, edge_points, flight_lines, gimbal_angles
-from ragsplat.survey import exif
+from ragsplat.dataset import exif
 
 MAPPING = ["lake-mapping", "river-mapping", "smoke-lake-mapping", "smoke-river-mapping"]
 

@@ -1,4 +1,4 @@
-"""Camera positions from the photos' own metadata (`survey.exif`): EXIF GPS and DJI's XMP written by
+"""Camera positions from the photos' own metadata (`dataset.exif`): EXIF GPS and DJI's XMP written by
 `photos.write_jpeg` and read back, the conversion to UTM against the projection's definition, the zone
 chosen, a photo without GPS refused in one line, and `ragsplat survey PHOTOS` with no positions file on a
 small synthetic survey geotagged by the generator (`ragsplat.datagen.survey.write_survey`): RTK-fixed photos,
@@ -28,10 +28,9 @@ from ragsplat.datagen.survey import (
     gimbal_angles,
     write_survey,
 )
-from ragsplat.dataset import layout, photos
+from ragsplat.dataset import exif, layout, photos
 from ragsplat.errors import ConfigError, DatasetError
 from ragsplat.refraction import WaterSurface
-from ragsplat.survey import exif
 
 IMAGE = (np.random.default_rng(0).random((36, 48, 3)) * 255).astype(np.uint8)
 

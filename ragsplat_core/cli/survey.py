@@ -2,7 +2,7 @@
 --water-level Z | --water-surface EDGE.csv --out RUN [--crs EPSG:N] [--masks DIR] [--tile-size M] [--jobs N |
 --scheduler ADDRESS]`: from the drone's photos to a DEM, by the stages of `ragsplat.survey.pipeline`
 (which says each), every stage cached in RUN and skipped by a rerun whose inputs are the same. Without
---positions or --gcp the camera positions come from the photos' own metadata (`survey.exif`: EXIF GPS, DJI's
+--positions or --gcp the camera positions come from the photos' own metadata (`dataset.exif`: EXIF GPS, DJI's
 XMP with its RTK flag and accuracies), converted to the UTM zone of their mean position (or --crs), in which
 the products are then written. A survey larger than a tile trains its tiles as Dask tasks: on --jobs local
 worker processes, or on an existing cluster (--scheduler). With --uncertainty MODEL.json (a fitted model,

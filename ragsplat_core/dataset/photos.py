@@ -1,5 +1,5 @@
 """A survey's photos as a drone writes them: JPEG with the focal length in EXIF, GPS tags and DJI's XMP
-(gimbal, flight angles, relative altitude, RTK flag and accuracies). Reading them back is `survey.exif`'s.
+(gimbal, flight angles, relative altitude, RTK flag and accuracies). Reading them back is `dataset.exif`'s.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ parses arguments). Before any work, everything that can be refused is (`check_in
 1. structure from motion (`structure_from_motion`, `survey.sfm`: pycolmap SIFT, every pair matched, or each
    photo with its spatial neighbours above `sfm.EXHAUSTIVE_MAX` photos, incremental mapping) -> RUN/sfm/;
 2. georeferencing (`georeference`): the similarity that takes the model's camera centres to the RTK
-   positions (given, or from the photos' EXIF GPS and DJI XMP, `survey.exif`), or the ground control points
+   positions (given, or from the photos' EXIF GPS and DJI XMP, `dataset.exif`), or the ground control points
    triangulated from their pixels to their surveyed positions, robust to a few wrong ones (`survey.georef`)
    -> RUN/georef.json;
 3. the water (`adjust_through_water`): one level, or the surface fitted to the water's edge points

@@ -13,7 +13,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ragsplat.survey.exif import BAROMETER_SIGMA, CONSUMER_SIGMA
+from ragsplat.dataset.exif import BAROMETER_SIGMA, CONSUMER_SIGMA
 from ragsplat.train.config import INIT
 
 AUTO = "auto"

@@ -174,7 +174,7 @@ def _georef_report(survey: Survey, pairs: Correspondences, sim: Similarity, inli
 
 
 def _noise_model(tagged, sigma: dict, labels: list[str]) -> dict:
-    """georef.json's account of the noise model of positions from the photos (`survey.exif.sigmas`)."""
+    """georef.json's account of the noise model of positions from the photos (`dataset.exif.sigmas`)."""
     import numpy as np
 
     used = set(labels)

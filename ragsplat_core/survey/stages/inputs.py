@@ -12,8 +12,8 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     import numpy as np
 
+    from ragsplat.dataset.exif import PhotoPosition
     from ragsplat.refraction import WaterSurface
-    from ragsplat.survey.exif import PhotoPosition
     from ragsplat.survey.stages.base import Progress, SurveyConfig
     from ragsplat.survey.water import EdgeFit
 
@@ -143,7 +143,7 @@ def locate(cfg: SurveyConfig, photos: list[Path], progress: Progress) -> tuple[S
         positions, control = layout.read_positions(cfg.positions), None
         known, source = positions, cfg.positions
     elif cfg.gcp is None:  # the positions from the photos' EXIF GPS and DJI XMP
-        from ragsplat.survey import exif
+        from ragsplat.dataset import exif
 
         if cfg.gcp_pixels is not None:
             raise ConfigError("--gcp-pixels needs --gcp (the targets' surveyed positions)")
@@ -279,7 +279,7 @@ def _check_sizes(cfg: SurveyConfig, progress: Progress, photos: list[Path], cent
         scale = np.minimum(1.0, max_size / longest) if max_size else 1.0
         return float((3 * np.prod(sizes, 1) * scale * scale).sum())
 
-    from ragsplat.survey.exif import focal_pixels
+    from ragsplat.dataset.exif import focal_pixels
 
     focal = focal_pixels(photos[0])
     above = float(np.median(-surface.depth(centres))) if surface is not None else None  # over the water
