@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ragsplat.dataset import layout, rasters
+from ragsplat.dataset import layout
 from ragsplat.errors import ConfigError, DatasetError
 from ragsplat.eval import metrics
 from ragsplat.eval.evaluate import (
@@ -69,9 +69,10 @@ from ragsplat.eval.references import (
     start_extraction,
     track_grids,
 )
-from ragsplat.eval.report import depth_error_map, jsonable, write_outputs
-from ragsplat.fusion import FuseConfig, height_mesh
-from ragsplat.outputs import claim, source_digest, versions, write_json
+from ragsplat.eval.report import jsonable, write_outputs
+from ragsplat.eval.rows import cached_row, claim_out, row_dir, save_row, slug, start_row
+from ragsplat.fusion import FuseConfig
+from ragsplat.outputs import source_digest, versions, write_json
 from ragsplat.refraction import WaterSurface
 from ragsplat.surface import EXTRACT_TUNING, ExtractConfig, size_cap_m
 from ragsplat.train.config import FIELD_TUNING, INIT, LONG_TUNING, SURFELS, TUNING, VARIANTS, TrainConfig
@@ -100,7 +101,7 @@ PRESETS["long"] = replace(PRESETS["small"], name="long")
 CODE = ("ragsplat_core", "eval")  # the sources whose digest stamps results.json
 # The sources a row's numbers come from, whose digest is part of every row key: training, extraction and
 # scoring (the references' own code joins a reference row's key; the tables are written anew every run).
-ROW_CODE = ("ragsplat_core", "eval/ablation.py", "eval/evaluate.py", "eval/metrics.py")
+ROW_CODE = ("ragsplat_core", "eval/ablation.py", "eval/rows.py", "eval/evaluate.py", "eval/metrics.py")
 # The protocol's reach seeds (dataset seeds of `small`): hyperparameters and the references' settings chosen
 # on the development reach; the evaluation reach measured after every tuning round until the presets were
 # frozen (so partly a validation set); the untouched reach rendered and measured once, with the presets
@@ -219,78 +220,6 @@ def eval_steps(iterations: int, checkpoints: int, reset_every: int = 0, reset_st
 
 
 # ---------------------------------------------------------------- rows on disk
-
-
-def slug(name: str) -> str:
-    return name.replace(" ", "-")
-
-
-def row_dir(out: Path, name: str, seed: int | None) -> Path:
-    return out / slug(name) if seed is None else out / slug(name) / f"seed{seed}"
-
-
-def claim_out(out: Path) -> None:
-    """Make `out` an ablation's directory, or check that it is one (`claim`)."""
-    claim(out, "ablation", legacy=("results.json", "*/row.json", "*/seed*/row.json", "*/ckpt.pt"))
-
-
-def cached_row(folder: Path, key: dict, log: Callable[[str], None]) -> dict | None:
-    """The finished row in `folder` when it was made under `key`, else None (a stale one is reported)."""
-    path = folder / "row.json"
-    if not path.is_file():
-        return None
-    try:
-        row = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        log(f"{path}: unreadable; recomputing")
-        return None
-    old, key = row.get("key") or {}, jsonable(key)  # compared as JSON reads it back (tuples are lists there)
-    if old != key:
-        changed = sorted(k for k in set(old) | set(key) if old.get(k) != key.get(k))
-        log(f"{path}: made with another {', '.join(changed)}; recomputing")
-        return None
-    return row
-
-
-def start_row(folder: Path, key: dict) -> None:
-    """Before training: a checkpoint left by a killed run resumes only under the same key."""
-    claim(folder, "train run", legacy=("ckpt.pt", "key.json"))  # the trainer's folder, marked before key.json
-    kpath = folder / "key.json"
-    if kpath.is_file():
-        try:
-            same = json.loads(kpath.read_text()) == jsonable(key)
-        except (OSError, json.JSONDecodeError):
-            same = False
-        if not same:
-            for name in ("ckpt.pt", "curve.json", "row.json"):
-                (folder / name).unlink(missing_ok=True)
-    write_json(kpath, jsonable(key), indent=1)
-
-
-def save_row(folder: Path, row: dict, grid: np.ndarray, truth, fused: np.ndarray | None = None) -> dict:
-    """row.json (atomic: a kill never leaves a half-written row that looks finished) plus the extracted bed
-    as an array, a height GeoTIFF (nodata where nothing was reconstructed) and the depth-error map; the same
-    for the fused bed when given (`*_fused`), with its triangle mesh as a PLY."""
-    folder.mkdir(parents=True, exist_ok=True)
-    outputs = {}
-    for suffix, bed in (("", grid), ("_fused", fused)):
-        if bed is None:
-            continue
-        np.save(folder / f"bed{suffix}.npy", bed)
-        outputs[f"bed{suffix}"] = str(folder / f"bed{suffix}.npy")
-        if len(bed):
-            rasters.write_elevation(folder / f"bed{suffix}.tif", bed, layout.GT_GRID_STEP)
-            title = f"{row['name']} seed {row['seed']}" + (", fused" if suffix else "")
-            depth_error_map(bed, truth, folder / f"depth_error{suffix}.png", title=title)
-            outputs.update({f"geotiff{suffix}": str(folder / f"bed{suffix}.tif"),
-                            f"depth_error{suffix}": str(folder / f"depth_error{suffix}.png")})
-        if suffix and len(bed):
-            layout.write_ply(folder / "bed_fused.ply", *height_mesh(bed, layout.GT_GRID_STEP),
-                             comment="ragsplat fused bed: height grid as triangles (m, z up)")
-            outputs["mesh_fused"] = str(folder / "bed_fused.ply")
-    row = {**row, "outputs": {**row.get("outputs", {}), **outputs}}
-    write_json(folder / "row.json", jsonable(row), indent=1)
-    return row
 
 
 # ---------------------------------------------------------------- the run

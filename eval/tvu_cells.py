@@ -162,8 +162,8 @@ def band_rows(out: Path, data: Path, rows: dict[str, list[dict]], model, log=lam
     extraction and the cells' view geometry per row), not kept in row.json: the model is not part of a row's
     key. Returns what results.json records of the model. `run_ablation(band=...)` calls it."""
     from ragsplat.dataset import rasters
-    from ragsplat.eval.ablation import row_dir
     from ragsplat.eval.calibration import calibration_report
+    from ragsplat.eval.rows import row_dir
     from ragsplat.export import TVU_BAND
     from ragsplat.train.config import VARIANTS
     from ragsplat.uncertainty import tvu95

@@ -12,6 +12,7 @@ from ragsplat.eval import ablation, references
 from ragsplat.eval.ablation import run_ablation
 from ragsplat.eval.evaluate import evaluate_fused, evaluate_geometry, evaluate_views, score_grid
 from ragsplat.eval.report import load_published, table1, table2, table3, table4, write_outputs
+from ragsplat.eval.rows import start_row
 from ragsplat.fusion import FuseConfig
 from ragsplat.refraction import WaterSurface
 from ragsplat.train.config import VARIANTS, preset_config
@@ -202,11 +203,11 @@ def test_rows_are_reused_only_under_their_key(tmp_path):
 def test_a_stale_checkpoint_is_not_resumed(tmp_path):
     folder = tmp_path / "full" / "seed0"
     folder.mkdir(parents=True)
-    ablation.start_row(folder, {"dataset": "aaaa"})
+    start_row(folder, {"dataset": "aaaa"})
     (folder / "ckpt.pt").write_bytes(b"trained on aaaa")
-    ablation.start_row(folder, {"dataset": "aaaa"})
+    start_row(folder, {"dataset": "aaaa"})
     assert (folder / "ckpt.pt").exists()  # same key: the killed run resumes
-    ablation.start_row(folder, {"dataset": "bbbb"})
+    start_row(folder, {"dataset": "bbbb"})
     assert not (folder / "ckpt.pt").exists()
 
 

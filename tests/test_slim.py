@@ -15,8 +15,8 @@ from conftest import tiny_smoke
 from ragsplat.cli.main import main
 from ragsplat.dataset import colmap, layout, rasters
 from ragsplat.dataset.load import load_dataset
-from ragsplat.eval import ablation
 from ragsplat.eval.references import SEEDLESS
+from ragsplat.eval.rows import slug
 from tools import slim
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -62,7 +62,7 @@ def test_a_slim_copy_scores_a_row_as_the_whole_dataset(evaluable_dataset, tmp_pa
         out = tmp_path / f"runs-{name}"
         assert main(["ablation", "--data", str(root), "--out", str(out), "--preset", "smoke", "--variants",
                      "full", "--seeds", "0", "--init", "grid", "--jobs", "1", "--no-download"]) == 0
-        rows[name] = {row: json.loads((out / ablation.slug(row) / "row.json").read_text())
+        rows[name] = {row: json.loads((out / slug(row) / "row.json").read_text())
                       for row in ("full/seed0", *SEEDLESS)}
     for row in SEEDLESS:  # the tracks' references (TINs) and the oracle plane
         assert rows["slim"][row]["geometry"] == rows["whole"][row]["geometry"], row

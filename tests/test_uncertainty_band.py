@@ -355,9 +355,9 @@ def test_the_protocol_check_is_a_config_error(evaluable_dataset, tmp_path):
 def test_the_ablation_writes_each_trained_row_s_band_and_table3_reports_it(evaluable_dataset, tmp_path):
     from dataclasses import replace
 
-    from ragsplat.eval.ablation import row_dir
     from ragsplat.eval.calibration import coverage
     from ragsplat.eval.report import table3
+    from ragsplat.eval.rows import row_dir
     from ragsplat.eval.tvu_cells import band_rows, check_held_out, run_cells, run_source
     from ragsplat.uncertainty import Z95
 

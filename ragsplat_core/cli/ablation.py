@@ -106,7 +106,8 @@ def run_rows(args: argparse.Namespace, fingerprint: str, code: str, check) -> No
     (each row keeps its last checkpoint). A task that fails raises JobFailed naming its row and log."""
     from ragsplat.cli.cluster import client as dask_client
     from ragsplat.cli.progress import bar
-    from ragsplat.eval.ablation import RowJob, claim_out, row_log, row_order, train_row, visible_gpus
+    from ragsplat.eval.ablation import RowJob, row_log, row_order, train_row, visible_gpus
+    from ragsplat.eval.rows import claim_out
     from ragsplat.scheduling import submitted
 
     claim_out(args.out)
