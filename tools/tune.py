@@ -21,7 +21,8 @@ import numpy as np
 import torch
 
 from ragsplat.errors import ConfigError
-from ragsplat.eval.ablation import PRESETS, TrainEval, extract_config, save_row, scene_conditions, start_row
+from ragsplat.eval.ablation import PRESETS, TrainEval, extract_config, scene_conditions
+from ragsplat.eval.rows import save_row, start_row
 from ragsplat.outputs import claim, versions, write_json
 from ragsplat.train.settings import PARAMS, WORDS, parse, typed, with_value
 
