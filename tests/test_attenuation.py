@@ -29,9 +29,9 @@ from ragsplat.refraction import (
 from ragsplat.rendering import rasterize_view, view_gaussians, visible_weights
 from ragsplat.runs import load_model
 from ragsplat.train import VARIANTS, TrainConfig, Trainer
-from ragsplat.train import trainer as train_mod
+from ragsplat.train import albedo as albedo_mod
+from ragsplat.train.albedo import albedo_trend
 from ragsplat.train.config import ATTENUATION_RANGE, DOWNWELLING
-from ragsplat.train.trainer import albedo_trend
 
 f64 = torch.float64
 CAM = torch.tensor([1.0, -2.0, 30.0], dtype=f64)
@@ -289,8 +289,12 @@ def test_the_colours_trend_with_depth_goes_into_the_attenuation(tmp_path):
     assert bool((found[False] < 0.5).all()), found
 
 
+def detrend(tr):  # the transfer as after the trainer's step
+    tr.albedo.transfer(tr.splats, tr.water, tr.terms["attenuation"], tr.step)
+
+
 def test_detrending_keeps_a_nadir_render_and_leaves_no_trend(turbid):
-    """One `_detrend_albedo`: c rises by -b / (1 + k) per channel, and each submerged colour times the
+    """One `AlbedoTransfer.transfer`: c rises by -b / (1 + k) per channel, and each submerged colour times the
     nadir dimming exp(-c (1 + k) d) is what it was (to round-off); the colours' trend is then 0 (to round-off,
     as the coefficients stay inside the range); above the water nothing changes."""
     tr = Trainer(_cfg(iterations=1, detrend_albedo=True, downwelling=DOWNWELLING), turbid)
@@ -302,7 +306,7 @@ def test_detrending_keeps_a_nadir_render_and_leaves_no_trend(turbid):
         tr.splats["sh0"][:, 0] = (linear_to_srgb(0.3 * torch.exp(-0.5 * depth.clamp(min=0))[:, None]
                                                  * torch.tensor([1.0, 0.8, 0.6])) - 0.5) / SH_C0
     before, c0 = tr.splats["sh0"].detach().clone(), tr.attenuation
-    tr._detrend_albedo()
+    detrend(tr)
     k = 1 + DOWNWELLING
     wet = depth > 0
     c1 = tr.attenuation
@@ -336,7 +340,7 @@ def test_a_faint_haze_at_depth_does_not_count(turbid):
                 tr.splats["sh0"][deep, 0] = (0.9 - 0.5) / SH_C0
                 opacity = torch.full_like(depth[deep], ExtractConfig.min_opacity / 2)
                 tr.splats["opacities"][deep] = torch.log(opacity / (1 - opacity))
-        tr._detrend_albedo()
+        detrend(tr)
         return tr.attenuation
 
     torch.testing.assert_close(transfer(True), transfer(False), rtol=0.05, atol=0)
@@ -385,8 +389,8 @@ def test_gaussians_hidden_under_the_bed_do_not_count(turbid):
             tr.splats["sh0"][:n, 0] = (linear_to_srgb(colour) - 0.5) / SH_C0
             tr.splats["sh0"][n:n + m, 0] = ((linear_to_srgb(under) - 0.5) / SH_C0)[:, None]
             if by_opacity:
-                tr._visible_weights = lambda: torch.sigmoid(tr.splats["opacities"])
-            tr._detrend_albedo()
+                tr.albedo.shares = lambda: torch.sigmoid(tr.splats["opacities"])
+            detrend(tr)
         return tr.attenuation - 0.1  # the rise from the start
 
     skin = transfer(False)
@@ -399,11 +403,11 @@ def test_the_transfer_runs_every_step_and_takes_the_weights_every_trend_every(tu
     """The weights are taken on the first step of every `TREND_EVERY` and again once the strategy has replaced
     the Gaussians; the transfer runs after every step."""
     taken, moved = [], []
-    monkeypatch.setattr(train_mod, "TREND_EVERY", 2)
+    monkeypatch.setattr(albedo_mod, "TREND_EVERY", 2)
     tr = Trainer(_cfg(iterations=6, detrend_albedo=True, downwelling=DOWNWELLING), turbid)
-    visible, detrend = tr._visible_weights, tr._detrend_albedo
-    monkeypatch.setattr(tr, "_visible_weights", lambda: taken.append(tr.step) or visible())
-    monkeypatch.setattr(tr, "_detrend_albedo", lambda: moved.append(tr.step) or detrend())
+    shares, transfer = tr.albedo.shares, tr.albedo.transfer
+    monkeypatch.setattr(tr.albedo, "shares", lambda: taken.append(tr.step) or shares())
+    monkeypatch.setattr(tr.albedo, "transfer", lambda *a: moved.append(tr.step) or transfer(*a))
     for _ in range(3):
         tr.train_step()
     new = torch.nn.Parameter(tr.splats["means"].detach().clone())  # replaced, as a refinement does
@@ -451,7 +455,7 @@ def test_coefficients_are_trained_and_resumed(turbid, tmp_path):
 def test_a_run_with_the_transfer_resumes_as_the_uninterrupted_one(tmp_path, monkeypatch):
     """Killed after 4 steps and resumed from step 3 (a multiple of `TREND_EVERY`, here 3), the run takes the
     weights on the same steps and ends where the uninterrupted one does, bit for bit (the same process)."""
-    monkeypatch.setattr(train_mod, "TREND_EVERY", 3)
+    monkeypatch.setattr(albedo_mod, "TREND_EVERY", 3)
     ds, points = _sloping_bed((0.6, 0.4, 0.3))
     np.save(tmp_path / "bed.npy", points)
     cfg = _cfg(iterations=7, checkpoint_every=3, init="points", init_points=str(tmp_path / "bed.npy"),
@@ -470,7 +474,7 @@ def test_variants_without_the_term_have_none_and_call_the_transform_as_before(tu
     real = rendering.refract_gaussians
     monkeypatch.setattr(rendering, "refract_gaussians", lambda *a, **k: calls.append(k) or real(*a, **k))
     plain = Trainer(_cfg(variant="2dgs+full", iterations=1), turbid)
-    assert plain.log_attenuation is None and plain.attenuation_opt is None and plain.attenuation is None
+    assert "attenuation" not in plain.terms and plain.attenuation is None
     plain.train()
     assert calls == [{**VARIANTS["2dgs+full"], "covariances": False}]
     assert plain.stats()["attenuation"] is None
@@ -480,7 +484,7 @@ def test_variants_without_the_term_have_none_and_call_the_transform_as_before(tu
     assert (VARIANTS[VARIANT] == VARIANTS["2dgs+full"] and _cfg().surfels
             and _cfg().water_terms == ("attenuation",))
     dry = Dataset(Path("mem"), None, turbid.views, turbid.bed)  # no water, nothing to attenuate
-    assert Trainer(_cfg(), dry).log_attenuation is None
+    assert Trainer(_cfg(), dry).terms == {}
 
 
 def test_coefficients_stay_in_natural_waters_range(turbid):

@@ -201,7 +201,7 @@ def test_backscatter_is_trained_and_resumed(turbid, tmp_path):
     want = {"veil": [float(b) for b in a.backscatter[0]],
             "coefficients": [float(c) for c in a.backscatter[1]]}
     assert stats["backscatter"] == want and not torch.equal(a.backscatter, START)
-    assert stats["attenuation"] is None and a.log_attenuation is None  # this variant has the veil alone
+    assert stats["attenuation"] is None and "attenuation" not in a.terms  # this variant has the veil alone
     meta = json.loads((tmp_path / "a/config.json").read_text())
     assert meta["backscatter"] == {"veil": [0.05] * 3, "coefficients": [0.1] * 3}
     assert meta["backscatter_final"] == want and meta["config"]["water_terms"] == ["backscatter"]
@@ -219,16 +219,16 @@ def test_variants_without_the_term_compute_no_veil(turbid, monkeypatch):
     monkeypatch.setattr(rendering, "pixel_water_paths", lambda *a: calls.append(1) or real(*a))
     for variant in ("2dgs+full", "2dgs+full+attenuation"):
         plain = Trainer(_cfg(variant=variant, iterations=1), turbid)
-        assert plain.log_backscatter is None and plain.backscatter_opt is None and plain.backscatter is None
+        assert "backscatter" not in plain.terms and plain.backscatter is None
         plain.train()
         assert not calls and plain.stats()["backscatter"] is None
     both = Trainer(_cfg(variant="2dgs+full+water", iterations=1), turbid)
     both.train()
-    assert calls == [1] and both.log_attenuation is not None and both.log_backscatter is not None
+    assert calls == [1] and {"attenuation", "backscatter"} <= set(both.terms)
     assert (VARIANTS[VARIANT] == VARIANTS["2dgs+full"] and _cfg().surfels
             and _cfg().water_terms == ("backscatter",))
     dry = Dataset(Path("mem"), None, turbid.views, turbid.bed)  # no water, no veil
-    assert Trainer(_cfg(), dry).log_backscatter is None
+    assert Trainer(_cfg(), dry).terms == {}
 
 
 def test_backscatter_stays_in_natural_waters_range(turbid):

@@ -265,17 +265,17 @@ def test_variants_without_the_term_compute_no_reflection(skyward_views, monkeypa
     monkeypatch.setattr(rendering, "surface_reflection", lambda *a: calls.append(1) or real(*a))
     for variant in ("2dgs+full", "2dgs+full+attenuation", "2dgs+full+backscatter"):
         plain = Trainer(_cfg(variant=variant, iterations=1), skyward_views)
-        assert plain.log_sky is None and plain.sky_opt is None and plain.reflection is None
+        assert "reflection" not in plain.terms and plain.reflection is None
         plain.train()
         assert not calls and plain.stats()["reflection"] is None
     every = Trainer(_cfg(variant="2dgs+full+water", iterations=1), skyward_views)
     every.train()
-    assert calls == [1] and None not in (every.log_attenuation, every.log_backscatter, every.log_sky)
+    assert calls == [1] and list(every.terms) == ["attenuation", "backscatter", "reflection"]
     assert WATER_TERMS["2dgs+full+water"] == ("attenuation", "backscatter", "reflection")
     assert VARIANTS[VARIANT] == VARIANTS["2dgs+full"] and _cfg().surfels
     assert _cfg().water_terms == ("reflection",)
     dry = Dataset(Path("mem"), None, skyward_views.views, skyward_views.bed)  # no water, nothing mirrored
-    assert Trainer(_cfg(), dry).log_sky is None
+    assert Trainer(_cfg(), dry).terms == {}
 
 
 def test_sky_stays_in_its_range(skyward_views):

@@ -236,7 +236,7 @@ def test_surfel_geometry_terms_switch_on_after_their_fractions(wet):
     cam, center = tr.views[0].camera, tr.centers[0]
     with torch.no_grad():
         _, _, depth, meta = tr._render(cam, center, True, tr.water)
-        terms = [float(tr._surfel_loss(cam, depth, meta, None, step)) for step in (3, 4, 7)]
+        terms = [float(train_mod.surfel_loss(cfg, cam, depth, meta, None, step)) for step in (3, 4, 7)]
     assert terms[0] == 0 and terms[1] > 0 and terms[2] > terms[1]
 
 

@@ -17,6 +17,7 @@ from ragsplat.rasterize import rasterize
 from ragsplat.refraction import WaterSurface, refract_gaussians
 from ragsplat.train import Trainer, preset_config
 from ragsplat.train.strategy import DensifyConfig
+from ragsplat.train.trainer import rippled
 
 LEVEL, N, DEPTH = 0.2, 1.33, 1.0  # a level off zero, so nothing passes by reading 0 for it
 NO_DENSIFY = DensifyConfig(refine_start_iter=10**6, refine_stop_iter=10**6, reset_every=10**6)
@@ -278,8 +279,8 @@ def test_a_rippled_view_moves_what_it_shows(wet):
     tr = Trainer(_cfg(), wet, view_ripples=tilted)
     flat = Trainer(_cfg(), wet)
     i = [v.name for v in wet.views].index("0000")
-    water = tr._water(False)
-    shown = tr._rippled(i, water)["means"]
+    water = tr.water
+    shown = rippled(tr.splats, tr.centers[i], water, lambda xy: tilted("0000", xy))["means"]
     moved = (shown - tr.splats["means"]).detach()
     wet_ones = water.depth(tr.splats["means"]) > 0
     # a facet rising along +x turns the rays towards +x (an oblique ray a little across too): the photo
@@ -291,7 +292,8 @@ def test_a_rippled_view_moves_what_it_shows(wet):
     a = math.atan(0.05)
     nadir = water.depth(tr.splats["means"])[wet_ones] * math.tan(a - math.asin(math.sin(a) / N))
     assert (-moved[wet_ones, 0] > 0.5 * nadir).all() and (-moved[wet_ones, 0] < 2 * nadir).all()
-    other = tr._rippled((i + 1) % len(wet.views), water)["means"]
+    j = (i + 1) % len(wet.views)
+    other = rippled(tr.splats, tr.centers[j], water, lambda xy: tilted(wet.views[j].name, xy))["means"]
     assert torch.equal(other, tr.splats["means"])  # a flat view renders the Gaussians as they are
     assert torch.equal(flat.splats["means"], tr.splats["means"])
 

@@ -9,8 +9,8 @@ scene's extinction, so that rate over c is the metres of path per metre of depth
 view's and the daylight's (`TrainConfig.downwelling` k is the second).
 
 A run: its c against the scene's, and the trend with depth of its opaque submerged Gaussians' degree-0
-colours (`trainer.albedo_trend`) counted by opacity and by their share of the images
-(`trainer.image_shares` over the training views, as the trainer counts them), with
+colours (`train.albedo.albedo_trend`) counted by opacity and by their share of the images
+(`train.albedo.image_shares` over the training views, as the trainer counts them), with
 the c each would give if moved into it (c - b / (1 + k)).
 """
 
@@ -29,7 +29,7 @@ from ragsplat.gaussians import SH_C0
 from ragsplat.refraction import apparent_points, srgb_to_linear
 from ragsplat.runs import load_model
 from ragsplat.surface import ExtractConfig
-from ragsplat.train.trainer import albedo_trend, image_shares
+from ragsplat.train.albedo import albedo_trend, image_shares
 
 BIN = 0.2  # metres of depth
 

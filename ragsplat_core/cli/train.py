@@ -127,7 +127,7 @@ def _import(args: argparse.Namespace, overrides: dict) -> Path:
     from ragsplat.errors import ConfigError
     from ragsplat.outputs import claim
     from ragsplat.refraction import WaterSurface
-    from ragsplat.train.trainer import CHECKPOINT
+    from ragsplat.train.checkpoint import CHECKPOINT
 
     missing = [flag for flag, value in (("--images", args.images), ("--water-level", args.water_level))
                if value is None]

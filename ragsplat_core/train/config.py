@@ -165,7 +165,7 @@ class TrainConfig:
     lr_attenuation: float = 1e-2
     # With the attenuation: the daylight's path down to a submerged Gaussian per metre of its depth
     # (`refract_gaussians`' downwelling; `DOWNWELLING` with the detrending), and the Gaussians' colours kept
-    # from trending with depth (`Trainer._detrend_albedo`, after every step). A colour may absorb any
+    # from trending with depth (`train.albedo.AlbedoTransfer`, after every step). A colour may absorb any
     # depth-wise dimming, and then the coefficients are not identified (3-9 % of the scene's on the field
     # reach without this): a bed's stones and sand do not darken with depth, the water does (SeaThru's too).
     # Off by default: on the field reach at twice its turbidity the transfer drove green's c to the range's
