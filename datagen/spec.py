@@ -102,7 +102,7 @@ class ShoreSpec:
 
 @dataclass(frozen=True)
 class WaterSpec:
-    """The water surface z = level + slope[0] x + slope[1] y (`ragsplat.refraction.WaterSurface`'s
+    """The water surface z = level + slope[0] x + slope[1] y (`ragsplat.water_surface.WaterSurface`'s
     meaning): a flat plane by default; a river falling by a fraction S downstream (+x) has slope (-S, 0).
     The whole scene falls with it (`ragsplat.datagen.bed.shear`), so the depths are those of the flat
     scene."""

@@ -73,10 +73,10 @@ from ragsplat.eval.report import jsonable, write_outputs
 from ragsplat.eval.rows import cached_row, claim_out, row_dir, save_row, slug, start_row
 from ragsplat.fusion import FuseConfig
 from ragsplat.outputs import source_digest, versions, write_json
-from ragsplat.refraction import WaterSurface
 from ragsplat.surface import EXTRACT_TUNING, ExtractConfig, size_cap_m
 from ragsplat.train.config import FIELD_TUNING, INIT, LONG_TUNING, SURFELS, TUNING, VARIANTS, TrainConfig
 from ragsplat.train.defaults import JOBS
+from ragsplat.water_surface import WaterSurface
 
 
 @dataclass(frozen=True)

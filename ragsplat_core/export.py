@@ -29,11 +29,11 @@ from ragsplat.dataset.load import View
 from ragsplat.errors import ConfigError, OutputError
 from ragsplat.ortho import OrthoGrid, apparent_mosaic, bed_orthophoto, rgba_bytes
 from ragsplat.outputs import atomic_path
-from ragsplat.refraction import WaterSurface
 from ragsplat.runs import Model, activated_dict, load_model, read_run, run_water
 from ragsplat.surface import ExtractConfig, extract_surface, extract_surface_blocks, max_scale, size_cap_m
 from ragsplat.train.config import TrainConfig
 from ragsplat.uncertainty import UncertaintyModel, cell_features, tvu95
+from ragsplat.water_surface import WaterSurface
 
 TVU_BAND = "tvu95"  # the DEM band's description and the LAS extra dimension's name of the cells' TVU95
 BATHYMETRIC, GROUND = 40, 2  # ASPRS classes (LAS 1.4 R15): submerged bed ("bathymetric point"), emerged

@@ -30,7 +30,7 @@ PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
 
 
 class Water(Protocol):
-    """What `init_points` reads of a `refraction.WaterSurface` (named by its shape, because refraction
+    """What `init_points` reads of a `water_surface.WaterSurface` (named by its shape, because refraction
     imports this module)."""
 
     n: float

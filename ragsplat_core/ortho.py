@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ragsplat.camera import Camera
-from ragsplat.refraction import WaterSurface
+from ragsplat.water_surface import WaterSurface
 
 # The orthographic view's largest displacement of a point off its cell, in cells: a far pinhole's parallax.
 ORTHO_PARALLAX = 0.1

@@ -26,7 +26,8 @@ from __future__ import annotations
 
 import torch
 
-from ragsplat.refraction import GRAZING_COS, WaterSurface, linear_to_srgb, srgb_to_linear, upward_normals
+from ragsplat.refraction import GRAZING_COS, linear_to_srgb, srgb_to_linear, upward_normals
+from ragsplat.water_surface import WaterSurface
 
 # Texels per side of the sky map. A map, not spherical harmonics: what the water mirrors is a smooth sky
 # gradient plus the sun's glint, which ripples of a few mm widen into a lobe of some 10-20 degrees (the

@@ -26,8 +26,8 @@ reach the points, the camera, the water level and n.
 
 A river's surface slopes: `WaterSurface.slope` makes it the tilted plane z = level + sx x + sy y. Refraction
 depends on the interface's normal alone, so the tilted transform is the flat one in the plane's own frame,
-exactly: rotate the world so that the normal is +z, transform, rotate back (`plane_frame`). Gradients reach
-the slope through the rotation as they reach the level.
+exactly: rotate the world so that the normal is +z, transform, rotate back (`water_surface.plane_frame`).
+Gradients reach the slope through the rotation as they reach the level.
 
 Water absorbs along the light's path: from P to the interface the bent ray runs L = d /
 cos(theta_w) in the water. With t = r alpha = tan(theta_a), sin(theta_w) = t / (n sqrt(1 + t^2)), so
@@ -49,14 +49,12 @@ the apparent depth d' = d n^2 / D^3 inverts in closed form along that ray: L = d
 from __future__ import annotations
 
 import functools
-import itertools
-import math
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 
 from ragsplat.gaussians import covariance
+from ragsplat.water_surface import WaterSurface, frames, into_frame, out_of_frame
 
 SCALE_MODES = ("none", "isotropic", "determinant", "anisotropic")
 # Gaussians whose centre lies less than this below the level blend from their true state (at the level) to
@@ -85,7 +83,7 @@ def opacity_factor(means, water: WaterSurface):
     apply their thresholds to what is rendered through it."""
     # the depth along the surface's normal (its frames'), as the transform blends
     if water.tilted or water.curved:
-        return _fade(waterline_weight(-_into(*_frames(water, means), means)[:, 2]), water.n)
+        return _fade(waterline_weight(-into_frame(*frames(water, means), means)[:, 2]), water.n)
     level = torch.as_tensor(water.level, dtype=means.dtype, device=means.device)
     return _fade(waterline_weight(level - means[:, 2]), water.n)
 
@@ -97,198 +95,6 @@ def srgb_to_linear(c):
 
 def linear_to_srgb(c):
     return torch.where(c <= 0.0031308, 12.92 * c, 1.055 * c.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
-
-
-def _lib(x):  # the array library of x: torch for tensors, numpy otherwise
-    if torch.is_tensor(x):
-        return torch
-    import numpy
-
-    return numpy
-
-
-@dataclass(frozen=True)
-class Profile:
-    """Heights added to a surface's plane along a reach's main axis: r(s) at s = (xy - origin) . direction,
-    through the knots (stations [K] increasing, offsets [K]) by a C1 cubic Hermite curve (Catmull-Rom
-    tangents, one-sided at the ends), flat beyond the ends. A river's surface steps down its riffles and
-    lies nearly level over its pools: the plane takes the mean fall, the profile the rest."""
-
-    origin: tuple[float, float]
-    direction: tuple[float, float]  # unit, in the xy plane
-    stations: tuple[float, ...]
-    offsets: tuple[float, ...]
-
-    def __post_init__(self):
-        for name in ("origin", "direction", "stations", "offsets"):
-            object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
-        s, u = self.stations, self.direction
-        if not (len(s) == len(self.offsets) >= 2 and all(b > a for a, b in itertools.pairwise(s))
-                and all(math.isfinite(v) for v in (*s, *self.offsets, *self.origin, *u))
-                and abs(math.hypot(*u) - 1) < 1e-9):
-            raise ValueError("a water profile needs >= 2 increasing stations, as many finite offsets and a "
-                             "unit direction")
-
-    def _knots(self, like):
-        lib = _lib(like)
-        if lib is torch:
-            return (torch.tensor(self.stations, dtype=like.dtype, device=like.device),
-                    torch.tensor(self.offsets, dtype=like.dtype, device=like.device))
-        return lib.asarray(self.stations), lib.asarray(self.offsets)
-
-    def along(self, xy):  # [...] the station of horizontal points xy [..., 2]
-        return ((xy[..., 0] - self.origin[0]) * self.direction[0]
-                + (xy[..., 1] - self.origin[1]) * self.direction[1])
-
-    def value_and_slope(self, s):
-        """(r(s), dr/ds) at stations s [...] (tensors or numpy arrays)."""
-        lib = _lib(s)
-        ks, kr = self._knots(s)
-        K = len(self.stations)
-        dr = (kr[1:] - kr[:-1]) / (ks[1:] - ks[:-1])  # [K-1] the chords' slopes
-        tangent = lib.concatenate([dr[:1], (dr[1:] + dr[:-1]) / 2, dr[-1:]])  # [K] Catmull-Rom at the knots
-        inside = (s >= ks[0]) & (s <= ks[-1])
-        clipped = lib.clip(s, ks[0], ks[-1]) if lib is not torch else s.clamp(ks[0], ks[-1])
-        i = lib.searchsorted(ks, clipped, side="right") if lib is not torch else \
-            torch.searchsorted(ks, clipped.contiguous(), right=True)
-        i = (i - 1).clip(0, K - 2) if lib is not torch else (i - 1).clamp(0, K - 2)
-        h = ks[i + 1] - ks[i]
-        t = (clipped - ks[i]) / h
-        t2, t3 = t * t, t * t * t
-        value = (2 * t3 - 3 * t2 + 1) * kr[i] + (t3 - 2 * t2 + t) * h * tangent[i] \
-            + (-2 * t3 + 3 * t2) * kr[i + 1] + (t3 - t2) * h * tangent[i + 1]
-        slope = ((6 * t2 - 6 * t) * kr[i] + (3 * t2 - 4 * t + 1) * h * tangent[i]
-                 + (-6 * t2 + 6 * t) * kr[i + 1] + (3 * t2 - 2 * t) * h * tangent[i + 1]) / h
-        return value, slope * inside
-
-    def shifted(self, offset_xy) -> Profile:
-        return Profile((self.origin[0] - offset_xy[0], self.origin[1] - offset_xy[1]), self.direction,
-                       self.stations, self.offsets)
-
-
-@dataclass(frozen=True)
-class WaterSurface:
-    """The water surface z = level + slope[0] x + slope[1] y (world metres; `level` is its height at x = y =
-    0) with refractive index n relative to air: a horizontal plane by default, a tilted one for a river whose
-    surface falls along the reach (slope = (dz/dx, dz/dy): a 1 % fall along +x is (-0.01, 0)), plus, for a
-    surface that curves along the reach, a `profile` (`Profile`) added to the plane.
-
-    `level`, `n` and `slope` may be tensors that require grad (0-d; slope [2]), for calibrating them.
-    """
-
-    level: float = 0.0
-    n: float = 1.33
-    slope: tuple[float, float] = (0.0, 0.0)
-    profile: Profile | None = None
-
-    def __post_init__(self):
-        if isinstance(self.slope, list):  # as JSON gives it; a tuple keeps the dataclass hashable
-            object.__setattr__(self, "slope", tuple(self.slope))
-        if isinstance(self.profile, dict):
-            object.__setattr__(self, "profile", Profile(**self.profile))
-        if not math.isfinite(_value(self.level)):
-            raise ValueError(f"water level must be finite, got {self.level}")
-        if not (math.isfinite(_value(self.n)) and _value(self.n) >= 1.0):
-            raise ValueError(f"refractive index must be finite and >= 1, got {self.n}")
-        sx, sy = (_value(v) for v in self.slope)
-        if not (math.isfinite(sx) and math.isfinite(sy) and math.hypot(sx, sy) < 1):
-            raise ValueError(f"water surface slope must be finite and under 1 (45 degrees), got {self.slope}")
-
-    @property
-    def is_identity(self) -> bool:
-        """True when refraction is exactly the identity: n == 1 and nothing asks for its gradient."""
-        return _value(self.n) == 1.0 and not (torch.is_tensor(self.n) and self.n.requires_grad)
-
-    @property
-    def tilted(self) -> bool:
-        """False for the horizontal plane z = level (a zero slope that nothing asks the gradient of), which
-        keeps today's transform and its arithmetic exactly."""
-        return (torch.is_tensor(self.slope) and self.slope.requires_grad
-                or any(_value(v) != 0 for v in self.slope))
-
-    @property
-    def curved(self) -> bool:
-        """A surface with a profile along the reach: refracted through the tangent plane above each point."""
-        return self.profile is not None
-
-    def height(self, xy):
-        """[...] surface height at horizontal points xy [..., 2] (tensors or numpy arrays)."""
-        if not (self.tilted or self.curved):
-            return self.level + 0 * xy[..., 0]
-        z = self.level + self.slope[0] * xy[..., 0] + self.slope[1] * xy[..., 1]
-        return z if self.profile is None else z + self.profile.value_and_slope(self.profile.along(xy))[0]
-
-    def gradient(self, xy):
-        """[..., 2] (dz/dx, dz/dy) of the surface at horizontal points xy [..., 2]."""
-        lib = _lib(xy)
-        g = lib.stack([self.slope[0] + 0 * xy[..., 0], self.slope[1] + 0 * xy[..., 1]], -1)
-        if self.profile is None:
-            return g
-        ds = self.profile.value_and_slope(self.profile.along(xy))[1]
-        return g + ds[..., None] * lib.asarray(self.profile.direction) if lib is not torch else \
-            g + ds[..., None] * torch.tensor(self.profile.direction, dtype=xy.dtype, device=xy.device)
-
-    def depth(self, points):
-        """[...] vertical depth of points [..., 3] below the surface (negative above it): height - z."""
-        if not (self.tilted or self.curved):
-            return self.level - points[..., 2]
-        return self.height(points[..., :2]) - points[..., 2]
-
-    def shifted(self, offset) -> WaterSurface:
-        """The same surface in a frame whose origin lies at `offset` [3] of this one (x_new = x - offset)."""
-        ox, oy, oz = (float(v) for v in offset)
-        sx, sy = (_value(v) for v in self.slope)
-        return WaterSurface(_value(self.level) + sx * ox + sy * oy - oz, _value(self.n), (sx, sy),
-                            None if self.profile is None else self.profile.shifted((ox, oy)))
-
-
-def plane_frame(water: WaterSurface, like):
-    """(R [3, 3], p0 [3]) of a tilted surface's own frame: q = R (p - p0) puts the surface at q_z = 0 with
-    its normal along +z. R is the smallest rotation taking the normal to +z (Rodrigues), p0 the surface
-    point above the origin; both carry gradients to level and slope. `like`: a tensor for dtype and device."""
-    kw = {"dtype": like.dtype, "device": like.device}
-    sx, sy = (torch.as_tensor(v, **kw) for v in water.slope)
-    zero = torch.zeros((), **kw)
-    return _rotations(sx, sy), torch.stack([zero, zero, torch.as_tensor(water.level, **kw)])
-
-
-def _rotations(sx, sy):
-    """[..., 3, 3] the smallest rotations taking the upward normals of planes with gradients (sx, sy) [...] to
-    +z (Rodrigues: v = normal x e_z, R = I + [v]x + [v]x^2 / (1 + normal . e_z))."""
-    norm = torch.sqrt(1 + sx * sx + sy * sy)
-    nx, ny, nz = -sx / norm, -sy / norm, 1 / norm  # the upward unit normal
-    zero = torch.zeros_like(nx)
-    vx = torch.stack([torch.stack([zero, zero, -nx], -1), torch.stack([zero, zero, -ny], -1),
-                      torch.stack([nx, ny, zero], -1)], -2)
-    eye = torch.eye(3, dtype=nx.dtype, device=nx.device)
-    return eye + vx + vx @ vx / (1 + nz)[..., None, None]
-
-
-def _tangent_frames(water: WaterSurface, points):
-    """(R [N, 3, 3], p0 [N, 3]): the frame of the tangent plane of a curved surface above each of points
-    [N, 3] (p0 the surface point straight above, R its normal to +z)."""
-    xy = points[:, :2]
-    g = water.gradient(xy)
-    return _rotations(g[:, 0], g[:, 1]), torch.cat([xy, water.height(xy)[:, None]], -1)
-
-
-def _frames(water: WaterSurface, points):
-    """(R, p0) of a tilted or curved surface's own frame: one plane's (R [3, 3], p0 [3]), or the tangent
-    plane's above each of points [N, 3] (R [N, 3, 3], p0 [N, 3]). In it the flat transform applies
-    (`_into`)."""
-    return _tangent_frames(water, points) if water.curved else plane_frame(water, points)
-
-
-def _into(R, p0, x):  # [..., 3] world -> the frame(s): R (x - p0); R [3, 3] or one per row
-    return (R @ (x - p0)[..., None])[..., 0]
-
-
-def _out_of(R, p0, q):  # the frame(s) -> world: R^T q + p0
-    return (R.transpose(-1, -2) @ q[..., None])[..., 0] + p0
-
-
-def _value(x) -> float:
-    return float(x.detach()) if torch.is_tensor(x) else float(x)
 
 
 # Halley steps after the lower-bound start: measured over the stability domain (`ragsplat bench
@@ -378,8 +184,8 @@ def water_paths(points, camera_center, water: WaterSurface, steps: int | None = 
     _check_camera(camera_center, water)
     C = torch.as_tensor(camera_center, dtype=points.dtype, device=points.device)
     if water.tilted or water.curved:  # a length is the same in any frame
-        R, p0 = _frames(water, points)
-        points, C, water = _into(R, p0, points), _into(R, p0, C), _flat_in_plane(water)
+        R, p0 = frames(water, points)
+        points, C, water = into_frame(R, p0, points), into_frame(R, p0, C), _flat_in_plane(water)
     wet = _submerged(points, water)
     loc = _local(points[wet], C[wet] if C.dim() == 2 else C, water)  # C [N, 3]: a curved surface's frames
     L = _path_lengths(loc, solve_alpha(loc.r2, loc.d, loc.H, loc.n, steps))
@@ -512,12 +318,13 @@ def apparent_points(points, camera_center, water: WaterSurface, steps: int | Non
 
 def _apparent_in_frames(points, centers, water: WaterSurface, steps):
     """Apparent points [N, 3] under a tilted or curved surface: the flat transform in its frame(s)
-    (`_frames`), each point seen from centers [3] or its own [N, 3]; points above the surface stay exactly as
+    (`frames`), each point seen from centers [3] or its own [N, 3]; points above the surface stay exactly as
     they are."""
-    R, p0 = _frames(water, points)
-    local = _into(R, p0, points)
-    moved = apparent_points_each(local, _into(R, p0, centers).expand_as(local), _flat_in_plane(water), steps)
-    return torch.where((local[:, 2] < 0)[:, None], _out_of(R, p0, moved), points)
+    R, p0 = frames(water, points)
+    local = into_frame(R, p0, points)
+    moved = apparent_points_each(local, into_frame(R, p0, centers).expand_as(local), _flat_in_plane(water),
+                                 steps)
+    return torch.where((local[:, 2] < 0)[:, None], out_of_frame(R, p0, moved), points)
 
 
 def apparent_points_each(points, centers, water: WaterSurface, steps: int | None = None):
@@ -588,10 +395,10 @@ def apparent_jacobian(points, camera_center, water: WaterSurface, steps: int | N
     if water.is_identity:
         return J
     if water.tilted or water.curved:  # J_world = R^T J_frame R (a curved surface: its tangent planes')
-        R, p0 = _frames(water, points)
-        C = _into(R, p0, torch.as_tensor(camera_center, dtype=points.dtype, device=points.device))
+        R, p0 = frames(water, points)
+        C = into_frame(R, p0, torch.as_tensor(camera_center, dtype=points.dtype, device=points.device))
         return (R.transpose(-1, -2)
-                @ apparent_jacobian(_into(R, p0, points), C, _flat_in_plane(water), steps) @ R)
+                @ apparent_jacobian(into_frame(R, p0, points), C, _flat_in_plane(water), steps) @ R)
     wet = _submerged(points, water)
     per_row = torch.is_tensor(camera_center) and camera_center.dim() == 2  # a curved surface's frames
     loc = _local(points[wet], camera_center[wet] if per_row else camera_center, water)
@@ -660,7 +467,7 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
         # the geometry is the identity: absorb only
         position, scale, opacity, color = False, "none", False, False
     if water.tilted or water.curved:
-        return _refract_in_frames(*_frames(water, means), means, scales, quats, opacities, colors,
+        return _refract_in_frames(*frames(water, means), means, scales, quats, opacities, colors,
                                   camera_center, water, position, scale, opacity, color, steps, covars,
                                   attenuation, downwelling)
     wet = _submerged(means, water)
@@ -711,7 +518,7 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
 
 def _refract_in_frames(R, p0, means, scales, quats, opacities, colors, camera_center, water, position, scale,
                        opacity, color, steps, covars, attenuation, downwelling) -> ApparentGaussians:
-    """`refract_gaussians` under a tilted or curved surface, in its frame(s) (`_frames`): the flat transform
+    """`refract_gaussians` under a tilted or curved surface, in its frame(s) (`frames`): the flat transform
     there, positions and Jacobians rotated back (J_world = R^T J_frame R; covariances J Sigma J^T in the
     world). The isotropic and determinant scale factors are the frame's (the determinant is the same in any
     frame).
@@ -721,13 +528,13 @@ def _refract_in_frames(R, p0, means, scales, quats, opacities, colors, camera_ce
     + the air leg's share), where the surface departs from that tangent plane by about curvature x offset^2 /
     2 (tests/test_water_surface.py measures it against a ray trace by Fermat's principle). Its Jacobians are
     the planes' (the plane's own motion with the point is left out of them, not of the gradients)."""
-    local = _into(R, p0, means)
-    C = _into(R, p0, torch.as_tensor(camera_center, dtype=means.dtype, device=means.device))
+    local = into_frame(R, p0, means)
+    C = into_frame(R, p0, torch.as_tensor(camera_center, dtype=means.dtype, device=means.device))
     out = refract_gaussians(local, scales, quats, opacities, colors, C, _flat_in_plane(water), position,
                             scale, opacity, color, steps, covariances=False, attenuation=attenuation,
                             downwelling=downwelling)
     if position:  # rows above the surface keep their coordinates exactly, not rotated there and back
-        means = torch.where((local[:, 2] < 0)[:, None], _out_of(R, p0, out.means), means)
+        means = torch.where((local[:, 2] < 0)[:, None], out_of_frame(R, p0, out.means), means)
     jacobians = None
     if scale == "anisotropic":
         jacobians = R.transpose(-1, -2) @ out.jacobians @ R

@@ -18,7 +18,6 @@ from ragsplat.rasterize_surfels import rasterize_surfels
 from ragsplat.reflection import reflect, sky_radiance, surface_reflection
 from ragsplat.refraction import (
     ApparentGaussians,
-    WaterSurface,
     backscatter_veil,
     compiled_refract_gaussians,
     linear_to_srgb,
@@ -28,6 +27,7 @@ from ragsplat.refraction import (
     srgb_to_linear,
     waterline_weight,
 )
+from ragsplat.water_surface import WaterSurface
 
 
 def view_gaussians(splats, center: torch.Tensor, sh_degree: int, water: WaterSurface | None,

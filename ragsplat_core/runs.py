@@ -20,7 +20,6 @@ from ragsplat.gaussians import activated
 from ragsplat.outputs import claim
 from ragsplat.ply import load_ply
 from ragsplat.rasterize import choose_backend
-from ragsplat.refraction import WaterSurface
 from ragsplat.rendering import (
     backscatter_tensor,
     fades_opacity,
@@ -30,6 +29,7 @@ from ragsplat.rendering import (
 )
 from ragsplat.train.config import TrainConfig
 from ragsplat.train.trainer import PLY
+from ragsplat.water_surface import WaterSurface
 
 
 def load_run(run: Path, data: Path | None = None) -> tuple[dict, Dataset, int]:

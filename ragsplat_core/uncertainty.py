@@ -42,7 +42,8 @@ import numpy as np
 import torch
 
 from ragsplat.errors import ConfigError
-from ragsplat.refraction import WaterSurface, apparent_jacobian, apparent_points
+from ragsplat.refraction import apparent_jacobian, apparent_points
+from ragsplat.water_surface import WaterSurface
 
 Z95 = 1.959963984540054  # the standard normal's 97.5 % quantile: a 95 % two-sided interval is +-Z95 sigma
 GEOMETRY_CAP = 1.0  # m per pixel: the geometry feature of a cell no two views triangulate

@@ -13,7 +13,7 @@ from ragsplat import train
 from ragsplat.bench.synthetic import bed_scene, render_views, ring_cameras, write_dataset
 from ragsplat.dataset import layout
 from ragsplat.eval import metrics
-from ragsplat.refraction import WaterSurface
+from ragsplat.water_surface import WaterSurface
 
 WATER = WaterSurface(0.0, 1.33)
 

@@ -17,10 +17,7 @@ from ragsplat.errors import ConfigError
 from ragsplat.gaussians import SH_C0
 from ragsplat.refraction import (
     WATERLINE_BAND,
-    Profile,
-    WaterSurface,
     linear_to_srgb,
-    plane_frame,
     refract_gaussians,
     srgb_to_linear,
     water_paths,
@@ -32,6 +29,7 @@ from ragsplat.train import VARIANTS, TrainConfig, Trainer
 from ragsplat.train import albedo as albedo_mod
 from ragsplat.train.albedo import albedo_trend
 from ragsplat.train.config import ATTENUATION_RANGE, DOWNWELLING
+from ragsplat.water_surface import Profile, WaterSurface, plane_frame
 
 f64 = torch.float64
 CAM = torch.tensor([1.0, -2.0, 30.0], dtype=f64)

@@ -16,18 +16,17 @@ from ragsplat.cli.main import main
 from ragsplat.dataset import Dataset, load_dataset
 from ragsplat.errors import ConfigError
 from ragsplat.refraction import (
-    WaterSurface,
     add_backscatter,
     apparent_points,
     linear_to_srgb,
     pixel_water_paths,
-    plane_frame,
     srgb_to_linear,
     water_paths,
 )
 from ragsplat.runs import load_model
 from ragsplat.train import VARIANTS, TrainConfig, Trainer
 from ragsplat.train.config import BACKSCATTER_RANGE, VEIL_RANGE
+from ragsplat.water_surface import WaterSurface, plane_frame
 
 f64 = torch.float64
 CAM = torch.tensor([1.0, -2.0, 30.0], dtype=f64)

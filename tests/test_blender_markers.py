@@ -24,7 +24,8 @@ from ragsplat.datagen.job import (
     SceneObject,
     Task,
 )
-from ragsplat.refraction import WaterSurface, apparent_points
+from ragsplat.refraction import apparent_points
+from ragsplat.water_surface import WaterSurface
 
 pytestmark = pytest.mark.blender
 

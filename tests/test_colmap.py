@@ -16,7 +16,7 @@ from ragsplat.cli.main import main
 from ragsplat.dataset.colmap import IMPORT, POINTS, import_colmap
 from ragsplat.dataset.load import load_dataset
 from ragsplat.errors import DatasetError
-from ragsplat.refraction import WaterSurface
+from ragsplat.water_surface import WaterSurface
 
 DOWN = np.diag([1.0, -1.0, -1.0])  # world -> camera of a nadir camera (x right = east, looking down -z)
 

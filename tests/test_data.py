@@ -9,7 +9,7 @@ from ragsplat.camera import Camera
 from ragsplat.dataset import load_dataset
 from ragsplat.dataset.layout import read_png
 from ragsplat.errors import DatasetError, RagsplatError
-from ragsplat.refraction import WaterSurface
+from ragsplat.water_surface import WaterSurface
 
 W, H = 12, 8
 

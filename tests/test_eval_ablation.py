@@ -14,8 +14,8 @@ from ragsplat.eval.evaluate import evaluate_fused, evaluate_geometry, evaluate_v
 from ragsplat.eval.report import load_published, table1, table2, table3, table4, write_outputs
 from ragsplat.eval.rows import start_row
 from ragsplat.fusion import FuseConfig
-from ragsplat.refraction import WaterSurface
 from ragsplat.train.config import VARIANTS, preset_config
+from ragsplat.water_surface import WaterSurface
 
 WATER = WaterSurface(0.0, 1.33)
 

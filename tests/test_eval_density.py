@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from ragsplat.camera import Camera
-from ragsplat.refraction import WaterSurface
+from ragsplat.water_surface import WaterSurface
 from tools.density import BINS, breakdown, in_bin, relief, summary, views_seeing
 
 N, H, D = 1.33, 10.0, 2.0  # index, camera height over the level, depth of the test points

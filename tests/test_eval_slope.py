@@ -25,7 +25,8 @@ from ragsplat.eval.bed_file import read_bed
 from ragsplat.eval.evaluate import score_grid
 from ragsplat.eval.references import depth_times_n, dietrich, dietrich_grid
 from ragsplat.export import Bed, Georef, write_dem
-from ragsplat.refraction import WaterSurface, apparent_points
+from ragsplat.refraction import apparent_points
+from ragsplat.water_surface import WaterSurface
 
 N = 1.33
 SLOPE = (-0.05, 0.02)  # steeper than a river's 0.1-1 %, so that a wrong level shows at a few metres

@@ -32,9 +32,9 @@ from ragsplat.export import (
     write_ply,
 )
 from ragsplat.ply import save_ply
-from ragsplat.refraction import WaterSurface
 from ragsplat.runs import load_run
 from ragsplat.train import preset_config
+from ragsplat.water_surface import WaterSurface
 
 REGION = {"xmin": -0.8, "xmax": 0.8, "ymin": -0.8, "ymax": 0.8}
 

@@ -14,7 +14,7 @@ from ragsplat.gaussians import (
     sh_degree,
 )
 from ragsplat.raster.backends import backend
-from ragsplat.refraction import WaterSurface
+from ragsplat.water_surface import WaterSurface
 
 
 def _sphere(n=6_000):

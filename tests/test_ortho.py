@@ -28,8 +28,8 @@ from ragsplat.ortho import (
     mosaic_height,
     ortho_tiles,
 )
-from ragsplat.refraction import WaterSurface
 from ragsplat.rendering import render_splats
+from ragsplat.water_surface import WaterSurface
 
 GRID = OrthoGrid(west=-3.0, north=2.0, step=0.05, width=1100, height=700)  # several tiles each way
 

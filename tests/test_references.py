@@ -9,8 +9,9 @@ import pytest
 import torch
 
 from ragsplat.eval.references import dietrich
-from ragsplat.refraction import WaterSurface, apparent_points
+from ragsplat.refraction import apparent_points
 from ragsplat.tracks import fill_gaps, gap_nodes, tin, track_filter
+from ragsplat.water_surface import WaterSurface
 
 N = 1.33
 

@@ -22,10 +22,11 @@ from ragsplat.reflection import (
     sky_radiance,
     surface_reflection,
 )
-from ragsplat.refraction import WaterSurface, linear_to_srgb, plane_frame, srgb_to_linear
+from ragsplat.refraction import linear_to_srgb, srgb_to_linear
 from ragsplat.runs import load_model
 from ragsplat.train import VARIANTS, TrainConfig, Trainer
 from ragsplat.train.config import SKY_RANGE, WATER_TERMS
+from ragsplat.water_surface import WaterSurface, plane_frame
 
 f64 = torch.float64
 CAM = torch.tensor([1.0, -2.0, 30.0], dtype=f64)

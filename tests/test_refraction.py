@@ -10,7 +10,6 @@ import pytest
 import torch
 
 from ragsplat.refraction import (
-    WaterSurface,
     apparent_jacobian,
     apparent_points,
     compiled_refract_gaussians,
@@ -18,6 +17,7 @@ from ragsplat.refraction import (
     facet_offsets,
     refract_gaussians,
 )
+from ragsplat.water_surface import WaterSurface
 
 f64 = torch.float64
 CAM = torch.tensor([1.0, -2.0, 30.0], dtype=f64)

@@ -16,7 +16,7 @@ from ragsplat.dataset import layout, rasters
 from ragsplat.dataset.load import load_dataset
 from ragsplat.eval.evaluate import score_grid
 from ragsplat.export import Bed, Georef, write_dem
-from ragsplat.refraction import WaterSurface
+from ragsplat.water_surface import WaterSurface
 
 OFFSET = (500_000.012, 5_000_000.037, 100.0)  # not on multiples of the 5 cm cells
 WATER = WaterSurface(0.0, 1.33)  # the evaluable dataset's (conftest)

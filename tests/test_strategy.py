@@ -190,7 +190,8 @@ def test_pruning_and_resets_test_the_rendered_opacity():
     below the rasterizer's 1/255, so it gets no gradient. With the water's opacity factor the strategy prunes
     it (and a dry Gaussian of the same opacity stays); a reset leaves every Gaussian rendering at
     2 x prune_opa, submerged or not."""
-    from ragsplat.refraction import WaterSurface, opacity_factor
+    from ragsplat.refraction import opacity_factor
+    from ragsplat.water_surface import WaterSurface
 
     water = WaterSurface(level=0.0, n=1.33)
     params, opts = _setup()  # a 4 x 4 grid at z = -1: submerged

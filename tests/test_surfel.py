@@ -12,7 +12,8 @@ from ragsplat.errors import ConfigError
 from ragsplat.gaussians import quat_to_rotmat, surfel_tangents
 from ragsplat.rasterize import gsplat_available
 from ragsplat.rasterize_surfels import depth_normals, rasterize_surfels
-from ragsplat.refraction import WaterSurface, apparent_jacobian, apparent_points
+from ragsplat.refraction import apparent_jacobian, apparent_points
+from ragsplat.water_surface import WaterSurface
 
 NADIR_R = np.diag([1.0, -1.0, -1.0])  # looks down world -z; camera x = world x, camera y = world -y
 BACKENDS = ["torch", "cpu"]

@@ -14,7 +14,7 @@ from ragsplat.bench.synthetic import bed_scene, render_views, write_dataset
 from ragsplat.cli.main import main
 from ragsplat.dataset import layout, photos
 from ragsplat.eval.poses import pose_errors
-from ragsplat.refraction import WaterSurface
+from ragsplat.water_surface import WaterSurface
 
 WATER = WaterSurface(0.0, 1.33)
 

@@ -30,7 +30,7 @@ from ragsplat.datagen.survey import (
 )
 from ragsplat.dataset import exif, layout, photos
 from ragsplat.errors import ConfigError, DatasetError
-from ragsplat.refraction import WaterSurface
+from ragsplat.water_surface import WaterSurface
 
 IMAGE = (np.random.default_rng(0).random((36, 48, 3)) * 255).astype(np.uint8)
 

@@ -13,8 +13,9 @@ import torch
 from ragsplat.camera import Camera
 from ragsplat.dataset import layout, photos
 from ragsplat.errors import DatasetError
-from ragsplat.refraction import WaterSurface, apparent_points
+from ragsplat.refraction import apparent_points
 from ragsplat.survey import bundle, georef
+from ragsplat.water_surface import WaterSurface
 
 WATER = WaterSurface(0.0, 1.33)
 

@@ -16,9 +16,9 @@ from test_survey import args, finished, survey  # noqa: F401 (fixtures)
 
 from ragsplat.camera import Camera
 from ragsplat.cli.main import main
-from ragsplat.refraction import WaterSurface
 from ragsplat.survey import tiles
 from ragsplat.survey.stages.training import seen_area
+from ragsplat.water_surface import WaterSurface
 
 
 def test_a_nadir_footprint_is_the_field_of_view_at_the_water():
@@ -101,9 +101,9 @@ def test_a_survey_that_one_worker_trains_is_one_tile(survey, finished, monkeypat
     the size is obeyed."""
     from dataclasses import replace
 
-    from ragsplat.refraction import WaterSurface
     from ragsplat.survey.stages import tiled
     from ragsplat.survey.stages.base import SurveyConfig
+    from ragsplat.water_surface import WaterSurface
 
     out = finished[0]
     lo, hi = np.array(json.loads((out / "water.json").read_text())["extent_m"])

@@ -71,7 +71,7 @@ def test_a_riffle_is_a_profile_and_a_plane_stays_a_plane():
     z = 50.0 - 0.01 * x + step + rng.normal(0, 0.005, len(x))
     fit = fit_edge(np.column_stack([x, y, z]))
     assert fit.kind == "profile" and fit.profile is not None
-    from ragsplat.refraction import WaterSurface
+    from ragsplat.water_surface import WaterSurface
 
     surface = WaterSurface(fit.level, 1.33, fit.slope, fit.profile)
     xs = np.column_stack([np.linspace(-35, 35, 71), np.zeros(71)])
@@ -118,8 +118,8 @@ def test_ground_that_does_not_bend_at_the_water_gives_no_shoreline(kind):
 def test_a_poorly_determined_level_is_taken_from_a_surer_shoreline():
     from types import SimpleNamespace
 
-    from ragsplat.refraction import WaterSurface
     from ragsplat.survey.stages.water import LEVEL_WARN, _by_shoreline, level_sigma
+    from ragsplat.water_surface import WaterSurface
 
     points = shore()
     calls = []

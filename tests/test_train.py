@@ -18,11 +18,11 @@ from ragsplat.gaussians import activated, colors_for_view
 from ragsplat.ply import load_ply
 from ragsplat.rasterize import rasterize
 from ragsplat.rasterize_surfels import rasterize_surfels
-from ragsplat.refraction import WaterSurface
 from ragsplat.snell import footprint
 from ragsplat.train import VARIANTS, TrainConfig, Trainer, preset_config
 from ragsplat.train import trainer as train_mod
 from ragsplat.train.strategy import PAPER_ITERATIONS, DensifyConfig
+from ragsplat.water_surface import WaterSurface
 
 REGION = {"xmin": -0.8, "xmax": 0.8, "ymin": -0.8, "ymax": 0.8}
 

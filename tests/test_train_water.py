@@ -14,10 +14,11 @@ from ragsplat.dataset.load import View
 from ragsplat.errors import ConfigError
 from ragsplat.gaussians import PARAM_NAMES, activated, colors_for_view
 from ragsplat.rasterize import rasterize
-from ragsplat.refraction import WaterSurface, refract_gaussians
+from ragsplat.refraction import refract_gaussians
 from ragsplat.train import Trainer, preset_config
 from ragsplat.train.strategy import DensifyConfig
 from ragsplat.train.trainer import rippled
+from ragsplat.water_surface import WaterSurface
 
 LEVEL, N, DEPTH = 0.2, 1.33, 1.0  # a level off zero, so nothing passes by reading 0 for it
 NO_DENSIFY = DensifyConfig(refine_start_iter=10**6, refine_stop_iter=10**6, reset_every=10**6)

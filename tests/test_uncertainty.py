@@ -9,7 +9,7 @@ import torch
 
 from ragsplat.camera import Camera
 from ragsplat.errors import ConfigError
-from ragsplat.refraction import WaterSurface, apparent_points
+from ragsplat.refraction import apparent_points
 from ragsplat.surface import ExtractConfig, extract_surface, extract_surface_blocks
 from ragsplat.uncertainty import (
     GEOMETRY_CAP,
@@ -23,6 +23,7 @@ from ragsplat.uncertainty import (
     tvu95,
     view_geometry,
 )
+from ragsplat.water_surface import WaterSurface
 
 WATER = WaterSurface(0.0, 1.33)
 

@@ -2,7 +2,7 @@ import math
 
 import pytest
 
-from ragsplat.refraction import WaterSurface
+from ragsplat.water_surface import WaterSurface
 
 
 def test_defaults():

@@ -10,8 +10,6 @@ import torch
 
 from ragsplat.dataset.layout import water_json
 from ragsplat.refraction import (
-    Profile,
-    WaterSurface,
     apparent_jacobian,
     apparent_points,
     apparent_points_each,
@@ -19,6 +17,7 @@ from ragsplat.refraction import (
     opacity_factor,
     refract_gaussians,
 )
+from ragsplat.water_surface import Profile, WaterSurface
 
 f64 = torch.float64
 CAM = torch.tensor([1.0, -2.0, 12.0], dtype=f64)

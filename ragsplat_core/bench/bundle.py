@@ -20,8 +20,8 @@ def flight(columns: int, rows: int, spacing: float, points: int, seed: int = 0) 
     """The synthetic survey's tensors for `bundle.adjust` (truth and start): `columns` x `rows` photos
     `spacing` metres apart, `points` bed points 0.5-1.5 m under the water (z = 0) over the photos' area."""
     from ragsplat.camera import Camera
-    from ragsplat.refraction import WaterSurface
     from ragsplat.survey import bundle
+    from ragsplat.water_surface import WaterSurface
 
     rng = np.random.default_rng(seed)
     cams = [Camera.look_at([i * spacing, j * spacing, HEIGHT], [i * spacing, j * spacing, 0.0], WIDTH,

@@ -35,7 +35,7 @@ def disc_model(side: float, spacing: float) -> dict[str, torch.Tensor]:
 def bench_export(side: float, spacing: float, resolution: float, on_block=None) -> dict:
     """The figures of one export: cells, blocks, seconds, peak memory before and after, height error."""
     from ragsplat.export import BLOCK_SAMPLES, extract_bed
-    from ragsplat.refraction import WaterSurface
+    from ragsplat.water_surface import WaterSurface
 
     model = disc_model(side, spacing)
     before = peak_rss_gb()

@@ -23,7 +23,8 @@ import time
 import torch
 
 from ragsplat.bench.stability import REGIMES, apparent_from_tan_a, reference, sample
-from ragsplat.refraction import SOLVER_STEPS, WaterSurface, apparent_offsets, refract_gaussians
+from ragsplat.refraction import SOLVER_STEPS, apparent_offsets, refract_gaussians
+from ragsplat.water_surface import WaterSurface
 
 
 def _apparent_from_alpha(alpha, r2, d, H, n):  # -> r', d'

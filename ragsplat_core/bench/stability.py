@@ -15,7 +15,8 @@ from dataclasses import asdict, dataclass, field
 
 import torch
 
-from ragsplat.refraction import WaterSurface, apparent_jacobian, apparent_offsets, apparent_points
+from ragsplat.refraction import apparent_jacobian, apparent_offsets, apparent_points
+from ragsplat.water_surface import WaterSurface
 
 DOMAIN = {"r": (0.0, 1e3), "d": (1e-4, 100.0), "H": (0.1, 1e3), "n": (1.0, 1.6)}
 TARGETS = {"float64": 1e-10, "float32": 2e-6}

@@ -15,7 +15,7 @@ import torch
 from ragsplat.camera import Camera
 from ragsplat.dataset import layout
 from ragsplat.outputs import write_json
-from ragsplat.refraction import WaterSurface
+from ragsplat.water_surface import WaterSurface
 
 
 def write_dataset(root: str | Path, views: list[dict], water: WaterSurface | None,

@@ -28,7 +28,7 @@ import torch
 from ragsplat.bench.synthetic import bed_scene, render_views
 from ragsplat.camera import Camera
 from ragsplat.dataset.load import BedInfo, Dataset, View
-from ragsplat.refraction import WaterSurface
+from ragsplat.water_surface import WaterSurface
 
 SIZE = 256
 ALTITUDE = 4.0  # camera height above the water (m)

@@ -126,8 +126,8 @@ def _import(args: argparse.Namespace, overrides: dict) -> Path:
     from ragsplat.dataset.colmap import POINTS, import_colmap
     from ragsplat.errors import ConfigError
     from ragsplat.outputs import claim
-    from ragsplat.refraction import WaterSurface
     from ragsplat.train.checkpoint import CHECKPOINT
+    from ragsplat.water_surface import WaterSurface
 
     missing = [flag for flag, value in (("--images", args.images), ("--water-level", args.water_level))
                if value is None]

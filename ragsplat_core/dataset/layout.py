@@ -427,7 +427,7 @@ def water_json(water) -> dict | None:
     if any(slope):
         out["slope"] = slope
     profile = getattr(water, "profile", None)
-    if profile is not None:  # a surface curved along the reach: `refraction.Profile`
+    if profile is not None:  # a surface curved along the reach: `water_surface.Profile`
         out["profile"] = {k: list(getattr(profile, k))
                           for k in ("origin", "direction", "stations", "offsets")}
     return out

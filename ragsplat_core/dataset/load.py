@@ -21,7 +21,7 @@ import torch
 from ragsplat.camera import Camera, ground_sample_distance
 from ragsplat.dataset import layout
 from ragsplat.errors import ConfigError, DatasetError
-from ragsplat.refraction import WaterSurface
+from ragsplat.water_surface import WaterSurface
 
 SPLITS = ("train", "test")
 _POSE_TOL = 1e-4  # w2c and transform_matrix must describe the same pose (metres / unitless rotation)

@@ -32,7 +32,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ragsplat.refraction import WaterSurface, apparent_points_each
+from ragsplat.refraction import apparent_points_each
+from ragsplat.water_surface import WaterSurface, float_value
 
 
 def skew(w: torch.Tensor) -> torch.Tensor:  # [N, 3] -> [N, 3, 3]
@@ -112,7 +113,7 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
     sparse = 6 * len(C) + len(index) > DENSE_MAX if sparse is None else sparse
     problem = _Problem(C, intrinsics, len(points), point, image, pixels, water, index, prior_C, prior_sigma,
                        prior_points, point_sigma, pixel_sigma, huber, sparse)
-    start = [0.0, 0.0, 0.0] if water is None else [_value(water.level), *map(_value, water.slope)]
+    start = [0.0, 0.0, 0.0] if water is None else [float_value(water.level), *map(float_value, water.slope)]
     theta = torch.tensor(start, dtype=dt)
     theta = torch.cat([theta, torch.tensor([float(v) for v in lens], dtype=dt)])
     fit = _levenberg_marquardt(problem, _State(R, C, points, theta), iterations, tol, on_iteration)
@@ -421,10 +422,6 @@ class _System:
 FREE = ("level", "slope", "lens")
 PARAMETERS = ("level", "slope_x", "slope_y", "k1", "k2")  # the shared parameters `free` can adjust
 FD_STEP = (1e-5, 1e-7, 1e-7, 1e-7, 1e-7)  # central differences (m, m/m, and the lens's): float64, smooth
-
-
-def _value(x) -> float:
-    return float(x.detach()) if torch.is_tensor(x) else float(x)
 
 
 def _free_index(free: tuple[str, ...], water: WaterSurface | None) -> list[int]:

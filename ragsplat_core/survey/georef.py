@@ -72,7 +72,7 @@ def levelling(water) -> Similarity:
     water fixes it: a calm surface is level to within a river's fall (under 1 %)."""
     import torch
 
-    from ragsplat.refraction import plane_frame
+    from ragsplat.water_surface import plane_frame
 
     Q, p0 = (t.numpy() for t in plane_frame(water, torch.zeros((), dtype=torch.float64)))
     return Similarity(1.0, Q, p0 - Q @ p0)

@@ -218,7 +218,7 @@ def _water(out: Path, rec, n: float) -> dict | None:
     path = out / "water.json"
     if not path.is_file():
         return None
-    from ragsplat.refraction import WaterSurface
+    from ragsplat.water_surface import WaterSurface
 
     w = json.loads(path.read_text())
     surface = WaterSurface(**{**w["surface"], "n": n})

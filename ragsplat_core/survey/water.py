@@ -2,8 +2,8 @@
 
 A river's surface falls downstream (0.1-1 % on gravel-bed rivers), and the field's correction takes a water
 surface elevation per point for that reason (pyBathySfM interpolates it from such edge points). Here the
-points give one level, the tilted plane z = level + sx x + sy y (`refraction.WaterSurface`), or that plane
-and a profile along the reach's main axis (`refraction.Profile`: the medians of the plane's residuals in
+points give one level, the tilted plane z = level + sx x + sy y (`water_surface.WaterSurface`), or that plane
+and a profile along the reach's main axis (`water_surface.Profile`: the medians of the plane's residuals in
 stretches of at least `PROFILE_POINTS` points, a smooth curve through them), whichever the points support:
 each is fitted robustly (Huber weights on the residuals' MAD, the worst points out beyond 3.5 of it) and
 the model with the lowest Bayesian information criterion is kept, which asks a fall (a bend of the profile)
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ragsplat.errors import DatasetError
-from ragsplat.refraction import Profile
+from ragsplat.water_surface import Profile
 
 MIN_SIGMA = 0.002  # m: a scatter below this (RTK's own) is not taken as a fit better than RTK can measure
 OUTLIER = 3.5  # robust standard deviations

@@ -10,10 +10,11 @@ import torch
 
 from ragsplat.camera import Camera
 from ragsplat.gaussians import SH_C0
-from ragsplat.refraction import WaterSurface, linear_to_srgb, srgb_to_linear, waterline_weight
+from ragsplat.refraction import linear_to_srgb, srgb_to_linear, waterline_weight
 from ragsplat.rendering import view_gaussians, visible_weights
 from ragsplat.train.config import ATTENUATION_RANGE
 from ragsplat.train.water_terms import LogTerm
+from ragsplat.water_surface import WaterSurface
 
 # The least spread (standard deviation, m) of the submerged Gaussians' depths over which their colours' trend
 # with depth is taken for the water's: over a narrower range (a riffle, or a bed with one depth) the trend is

@@ -14,9 +14,9 @@ import torch
 from ragsplat.dataset.load import Dataset, View
 from ragsplat.errors import ConfigError, DatasetError
 from ragsplat.gaussians import init_grid, init_points
-from ragsplat.refraction import WaterSurface
 from ragsplat.snell import footprint
 from ragsplat.train.config import TrainConfig
+from ragsplat.water_surface import WaterSurface
 
 # No camera sees a bed deeper than this many times its height above the water through clear water (light,
 # not geometry, limits photogrammetric bathymetry to a few tens of metres).

@@ -45,7 +45,7 @@ from ragsplat.outputs import claim, versions, write_json
 from ragsplat.ply import save_ply
 from ragsplat.rasterize import choose_backend
 from ragsplat.rasterize_surfels import depth_normals
-from ragsplat.refraction import WaterSurface, facet_offsets, opacity_factor
+from ragsplat.refraction import facet_offsets, opacity_factor
 from ragsplat.rendering import fades_opacity, median_depth, render_splats
 from ragsplat.ssim import psnr, ssim, ssim_map
 from ragsplat.train.albedo import AlbedoTransfer, image_shares
@@ -54,6 +54,7 @@ from ragsplat.train.config import VARIANTS, TrainConfig
 from ragsplat.train.start import check_cameras_above, initial_splats, start_water
 from ragsplat.train.strategy import DefaultStrategy
 from ragsplat.train.water_terms import TERM_NAMES, CalibratedWater, water_terms
+from ragsplat.water_surface import WaterSurface
 
 PLY = "point_cloud.ply"
 # Kept as the third scale of a surfel so that code written for three axes (a split's offsets, the volume

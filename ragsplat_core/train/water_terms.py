@@ -14,9 +14,9 @@ from dataclasses import replace
 import torch
 
 from ragsplat.reflection import SKY_SIZE
-from ragsplat.refraction import WaterSurface
 from ragsplat.rendering import backscatter_json, reflection_json
 from ragsplat.train.config import ATTENUATION_RANGE, BACKSCATTER_RANGE, SKY_RANGE, VEIL_RANGE, TrainConfig
+from ragsplat.water_surface import WaterSurface
 
 # every term a variant can train, in the order they step and render_splats takes them
 TERM_NAMES = ("attenuation", "backscatter", "reflection")

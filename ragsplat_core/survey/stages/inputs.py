@@ -13,9 +13,9 @@ if TYPE_CHECKING:
     import numpy as np
 
     from ragsplat.dataset.exif import PhotoPosition
-    from ragsplat.refraction import WaterSurface
     from ragsplat.survey.stages.base import Progress, SurveyConfig
     from ragsplat.survey.water import EdgeFit
+    from ragsplat.water_surface import WaterSurface
 
 from ragsplat.survey.stages.base import AUTO, RTK_SIGMA
 
@@ -191,8 +191,8 @@ def water_as_given(cfg: SurveyConfig, where: Positions, progress: Progress) -> G
 
     from ragsplat.dataset import layout
     from ragsplat.errors import ConfigError
-    from ragsplat.refraction import WaterSurface
     from ragsplat.survey import water as water_fit
+    from ragsplat.water_surface import WaterSurface
 
     if cfg.water_surface is not None:
         edge_points = layout.read_points(cfg.water_surface)

@@ -132,7 +132,7 @@ def train_tile(job: TileJob) -> str:
 
     from ragsplat.export import export_run
     from ragsplat.outputs import atomic_path, write_json
-    from ragsplat.refraction import WaterSurface
+    from ragsplat.water_surface import WaterSurface
 
     folder = Path(job.folder)
     bed_path, stamp = folder / "bed.npy", folder / "key.txt"

@@ -17,12 +17,12 @@ if TYPE_CHECKING:
     import numpy as np
     import torch
 
-    from ragsplat.refraction import WaterSurface
     from ragsplat.survey.bundle import Bundle
     from ragsplat.survey.stages.base import Progress, Stamps
     from ragsplat.survey.stages.georeference import Georeferenced
     from ragsplat.survey.stages.inputs import Positions, Survey
     from ragsplat.survey.stages.structure import Structure
+    from ragsplat.water_surface import WaterSurface
 
 from ragsplat.survey.stages.base import AUTO, digest, fresh_folder, points_box
 from ragsplat.survey.stages.inputs import describe_surface
@@ -92,8 +92,8 @@ def adjust_through_water(survey: Survey, structure: Structure, geo: Georeference
 
     from ragsplat.dataset import layout
     from ragsplat.outputs import write_json
-    from ragsplat.refraction import WaterSurface
     from ragsplat.survey import sfm
+    from ragsplat.water_surface import WaterSurface
 
     cfg, water = survey.cfg, survey.water
     held_by = list(survey.rtk_sigma) if survey.where.sigma is None else geo.given  # one accuracy, or each's
@@ -198,9 +198,9 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
     (`georef.tilt_allowed`): then the level alone, the frame as the positions hold it."""
     import torch
 
-    from ragsplat.refraction import WaterSurface
     from ragsplat.survey import bundle, georef
     from ragsplat.survey import water as water_fit
+    from ragsplat.water_surface import WaterSurface
 
     cfg, trk, origin, P = survey.cfg, geo.tracks, survey.origin, problem.points
     start = water_fit.start_level(P[: len(trk.points)].numpy())
