@@ -219,16 +219,14 @@ def eval_steps(iterations: int, checkpoints: int, reset_every: int = 0, reset_st
     return sorted(steps - {0, iterations})
 
 
-# ---------------------------------------------------------------- rows on disk
-
-
 # ---------------------------------------------------------------- the run
 
 
 def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds: list[int], runner,
                  vgg16: str | None = None, download: bool = True,
                  log: Callable[[str], None] = lambda line: None, code: str | None = None,
-                 rows_only: bool = False, band: Callable | None = None) -> dict[str, list[dict]]:
+                 rows_only: bool = False, band: Callable | None = None,
+                 geotiffs: bool = True) -> dict[str, list[dict]]:
     """Rows for `variants` x `seeds` and the reference rows, reused from `out` when their key matches, else
     computed with `runner` (a `TrainEval`, or anything with its `truth`, `fingerprint`, `dataset_seed`, `gsd`,
     `config`, `initial` and `train`); then all outputs. Returns {name: [row per seed]}.
@@ -239,6 +237,8 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
     edit during a long run would otherwise key its rows to two versions of the code).
     `band`: with a fitted uncertainty model, `band(out, data, rows)` adds each trained row's TVU95 band before
     the tables are written and returns what results.json records of the model (`tvu_cells.band_rows`).
+    `geotiffs`: False writes no row's bed.tif (a machine without rasterio); a later run with it, reusing the
+    rows, writes them from their bed arrays (`rows.cached_row`).
     """
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
@@ -268,7 +268,7 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
         ecfg = extract_config(cfg, len(truth.nodes), runner.gsd)
         key = {**base, "train": cfg.to_dict(), "extract": ecfg.to_dict()}
         folder = row_dir(out, variant, seed)
-        row = cached_row(folder, key, log)
+        row = cached_row(folder, key, log, geotiffs)
         if row is not None:
             log(f"[{variant} seed {seed}] reusing the finished row in {folder}")
             return row
@@ -279,14 +279,14 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
                                         lpips_metric)
         row = {**row, "name": variant, "seed": seed, "key": key, "lpips_reason": lpips_reason or None,
                "timings": {**row.get("timings", {}), "row_total_s": time.perf_counter() - t0}}
-        return save_row(folder, row, grid, truth, fused)
+        return save_row(folder, row, grid, truth, fused, geotiffs)
 
     for seed in seeds:
         for variant in variants:
             rows.setdefault(variant, []).append(trained_row(seed, variant))
         if rows_only:
             continue
-        for name, row in reference_rows(out, runner, preset, seed, base, rows, log).items():
+        for name, row in reference_rows(out, runner, preset, seed, base, rows, log, geotiffs).items():
             rows.setdefault(name, []).append(row)
     if rows_only:
         return rows
@@ -314,8 +314,9 @@ def run_ablation(data: Path, out: Path, preset: str, variants: list[str], seeds:
 
 
 def reference_rows(out: Path, runner, preset: str, seed: int, base: dict, rows: dict[str, list[dict]],
-                   log) -> dict[str, dict]:
-    """The reference rows of one seed (the oracle plane, which has no seed, with the first)."""
+                   log, geotiffs: bool = True) -> dict[str, dict]:
+    """The reference rows of one seed (the oracle plane, which has no seed, with the first); `geotiffs` as
+    in `run_ablation`."""
     truth, found = runner.truth, {}
     base = {**base, "references_code": REFERENCES_CODE}
     cfg = runner.config("3dgs", preset, seed)  # the initialisation does not depend on the variant
@@ -354,12 +355,12 @@ def reference_rows(out: Path, runner, preset: str, seed: int, base: dict, rows: 
                 todo.append((name, row_dir(out, name, None), {**key, "reference": name},
                              lambda grid=grid: (score_grid(grid, truth), grid)))
     for name, folder, key, compute in todo:
-        row = cached_row(folder, key, log)
+        row = cached_row(folder, key, log, geotiffs)
         if row is None:
             geometry, grid = compute()
             row = save_row(folder, {"name": name, "seed": None if name in SEEDLESS else seed, "key": key,
                                     "geometry": geometry, "uses_ground_truth": name in USES_GROUND_TRUTH,
-                                    "extraction": EXTRACTION[name]}, grid, truth)
+                                    "extraction": EXTRACTION[name]}, grid, truth, geotiffs=geotiffs)
         found[name] = row
     return found
 
@@ -380,6 +381,7 @@ class RowJob:
     vgg16: str | None
     code: str  # the sources' digest when the command started: rows keyed to the code it started with
     gpus: tuple[str, ...] = ()  # local workers' GPUs, shared out (`worker_gpu`); none: the worker's own
+    geotiffs: bool = True  # as in `run_ablation`
 
 
 def row_order(variants: list[str], seeds: list[int]) -> list[tuple[str, int]]:
@@ -418,7 +420,8 @@ def train_row(job: RowJob, variant: str, seed: int) -> str:
         say = lambda line: print(line, file=f, flush=True)
         say(f"[{variant} seed {seed}] worker process {os.getpid()}")
         run_ablation(Path(job.data), Path(job.out), job.preset, [variant], [seed], _RUNNERS[spec],
-                     vgg16=job.vgg16, download=False, log=say, code=job.code, rows_only=True)
+                     vgg16=job.vgg16, download=False, log=say, code=job.code, rows_only=True,
+                     geotiffs=job.geotiffs)
     return str(path)
 
 

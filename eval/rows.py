@@ -1,6 +1,7 @@
 """An ablation row's folder (`row_dir`) and its cache: the finished row kept while its key is the same
 (`cached_row`), a killed training resumed only under the same key (`start_row`), and the row written with
-its beds, rasters and error maps (`save_row`)."""
+its beds, rasters and error maps (`save_row`). A row saved without its height GeoTIFFs (`geotiffs=False`: a
+machine without rasterio) gets them from its bed arrays when a run with them reuses it (`cached_row`)."""
 
 from __future__ import annotations
 
@@ -29,8 +30,9 @@ def claim_out(out: Path) -> None:
     claim(out, "ablation", legacy=("results.json", "*/row.json", "*/seed*/row.json", "*/ckpt.pt"))
 
 
-def cached_row(folder: Path, key: dict, log: Callable[[str], None]) -> dict | None:
-    """The finished row in `folder` when it was made under `key`, else None (a stale one is reported)."""
+def cached_row(folder: Path, key: dict, log: Callable[[str], None], geotiffs: bool = True) -> dict | None:
+    """The finished row in `folder` when it was made under `key`, else None (a stale one is reported).
+    `geotiffs`: a height GeoTIFF the row was saved without is written now from its bed array."""
     path = folder / "row.json"
     if not path.is_file():
         return None
@@ -44,6 +46,14 @@ def cached_row(folder: Path, key: dict, log: Callable[[str], None]) -> dict | No
         changed = sorted(k for k in set(old) | set(key) if old.get(k) != key.get(k))
         log(f"{path}: made with another {', '.join(changed)}; recomputing")
         return None
+    outputs = {}
+    for suffix in ("", "_fused"):  # a row brought back without its bed arrays gets none
+        bed = folder / f"bed{suffix}.npy"
+        if geotiffs and f"geotiff{suffix}" not in row.get("outputs", {}) and bed.is_file():
+            outputs.update(write_geotiff(folder, suffix, np.load(bed)))
+    if outputs:
+        row = {**row, "outputs": {**row.get("outputs", {}), **outputs}}
+        write_json(path, jsonable(row), indent=1)
     return row
 
 
@@ -62,10 +72,21 @@ def start_row(folder: Path, key: dict) -> None:
     write_json(kpath, jsonable(key), indent=1)
 
 
-def save_row(folder: Path, row: dict, grid: np.ndarray, truth, fused: np.ndarray | None = None) -> dict:
+def write_geotiff(folder: Path, suffix: str, bed: np.ndarray) -> dict:
+    """A row's bed grid [N, 3] as its height GeoTIFF `bed{suffix}.tif` (nodata where nothing was
+    reconstructed; none for an empty bed); returns the row's outputs entry for it."""
+    if not len(bed):
+        return {}
+    rasters.write_elevation(folder / f"bed{suffix}.tif", bed, layout.GT_GRID_STEP)
+    return {f"geotiff{suffix}": str(folder / f"bed{suffix}.tif")}
+
+
+def save_row(folder: Path, row: dict, grid: np.ndarray, truth, fused: np.ndarray | None = None,
+             geotiffs: bool = True) -> dict:
     """row.json (atomic: a kill never leaves a half-written row that looks finished) plus the extracted bed
-    as an array, a height GeoTIFF (nodata where nothing was reconstructed) and the depth-error map; the same
-    for the fused bed when given (`*_fused`), with its triangle mesh as a PLY."""
+    as an array, a height GeoTIFF (`write_geotiff`; not with `geotiffs` False, which needs no rasterio) and
+    the depth-error map; the same for the fused bed when given (`*_fused`), with its triangle mesh as a
+    PLY."""
     folder.mkdir(parents=True, exist_ok=True)
     outputs = {}
     for suffix, bed in (("", grid), ("_fused", fused)):
@@ -73,12 +94,12 @@ def save_row(folder: Path, row: dict, grid: np.ndarray, truth, fused: np.ndarray
             continue
         np.save(folder / f"bed{suffix}.npy", bed)
         outputs[f"bed{suffix}"] = str(folder / f"bed{suffix}.npy")
+        if geotiffs:
+            outputs.update(write_geotiff(folder, suffix, bed))
         if len(bed):
-            rasters.write_elevation(folder / f"bed{suffix}.tif", bed, layout.GT_GRID_STEP)
             title = f"{row['name']} seed {row['seed']}" + (", fused" if suffix else "")
             depth_error_map(bed, truth, folder / f"depth_error{suffix}.png", title=title)
-            outputs.update({f"geotiff{suffix}": str(folder / f"bed{suffix}.tif"),
-                            f"depth_error{suffix}": str(folder / f"depth_error{suffix}.png")})
+            outputs[f"depth_error{suffix}"] = str(folder / f"depth_error{suffix}.png")
         if suffix and len(bed):
             layout.write_ply(folder / "bed_fused.ply", *height_mesh(bed, layout.GT_GRID_STEP),
                              comment="ragsplat fused bed: height grid as triangles (m, z up)")

@@ -47,6 +47,7 @@ def test_all_runs_both_stages_and_exits_with_the_first_failure(tmp_path, tests_r
     # the ablation ran under what was left of the 300 s (the stand-in's tests take about no time)
     limit = next(int(c.split()[1]) for c in calls if c.startswith("timeout"))
     assert 290 <= limit <= 300
+    assert "--no-geotiffs" in next(c for c in calls if c.startswith("timeout"))  # no rasterio there
     out = tmp_path / "out"
     assert {"tests.log", "ablation.log", "rows.tar.gz"} <= {p.name for p in out.iterdir()}
     assert "ablation: " in (out / "ablation.log").read_text()

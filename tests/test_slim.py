@@ -1,9 +1,8 @@
 """`python -m tools.slim`: a dataset copy with only what the ablation reads scores a row exactly as the whole
-dataset does and never triangulates again; the rasterio stand-in serves what the ablation calls and refuses
-to read a raster."""
+dataset does and never triangulates again; on a machine without rasterio the ablation's rows are made with
+`--no-geotiffs`, and the same command where rasterio is writes their GeoTIFFs from the arrays."""
 
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -78,43 +77,55 @@ def test_a_slim_copy_scores_a_row_as_the_whole_dataset(evaluable_dataset, tmp_pa
     assert slim.main([str(tmp_path / "nothing"), str(tmp_path / "new")]) == 2
 
 
-def test_the_rasterio_stand_in_reads_none_and_its_rasters_unpack_to_the_geotiffs_rasterio_writes(tmp_path):
-    package = slim.write_stand_ins(tmp_path / "stand-ins")
-    script = """
+# rasterio absent: its import fails, as on a machine where it is not installed; the ablation as conftest's
+# `tiny_smoke` makes it
+BARE_ABLATION = """
 import sys
-import numpy as np
-import rasterio
-from ragsplat.eval.score import dem_points
-from ragsplat.dataset import layout
-from ragsplat.dataset import rasters
-from ragsplat.errors import DatasetError
-assert rasterio.__file__.startswith(sys.argv[1]), rasterio.__file__
-georef = layout.Georef()
-assert georef.wkt() == layout.LOCAL_CRS
-xy = np.array([[0.0, 0.0], [0.05, 0.0], [0.05, 0.1]])
-path = sys.argv[2]
-bands = [(np.array([1.0, 2.0, np.nan]), "bed"), (np.array([3.0, 4.0, 5.0]), "tvu")]
-rasters.write_raster(path, xy, bands, 0.05)
-try:
-    dem_points(path, georef)
-except DatasetError as err:
-    print("refused:", err)
+from pathlib import Path
+
+
+class NoRasterio:
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] == "rasterio":
+            raise ModuleNotFoundError(f"No module named {name!r}")
+
+
+sys.meta_path.insert(0, NoRasterio())
+sys.path.insert(0, sys.argv[1])
+import pytest
+from conftest import tiny_smoke
+
+from ragsplat.cli.main import main
+
+tiny_smoke(pytest.MonkeyPatch(), Path(sys.argv[2]))
+sys.exit(main(sys.argv[3:]))
 """
-    tif = tmp_path / "bed.tif"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(package.parent), str(ROOT)])}
-    done = subprocess.run([sys.executable, "-c", script, str(package), str(tif)], env=env,
-                          capture_output=True, text=True, cwd=tmp_path, check=False)
+
+
+def test_rows_made_without_rasterio_get_their_geotiffs_where_it_is(evaluable_dataset, tmp_path, monkeypatch):
+    monkeypatch.setattr(colmap, "triangulate", fake_tracks([]))
+    tiny_smoke(monkeypatch, tmp_path)
+    copy, out = tmp_path / "copy", tmp_path / "runs"
+    assert slim.main([str(evaluable_dataset), str(copy)]) == 0  # its tracks made, so none is made there
+    args = ["ablation", "--data", str(copy), "--out", str(out), "--preset", "smoke", "--variants", "full",
+            "--seeds", "0", "--init", "grid", "--jobs", "1", "--no-download"]
+    done = subprocess.run([sys.executable, "-c", BARE_ABLATION, str(ROOT / "tests"), str(tmp_path), *args,
+                           "--no-geotiffs"], capture_output=True, text=True, cwd=tmp_path, check=False)
     assert done.returncode == 0, done.stderr
-    assert "refused:" in done.stdout and "reads no raster" in done.stdout
-    # brought back here (rasterio): the same GeoTIFF as rasterio's own writer makes of the same bands
+    assert not list(out.rglob("*.tif")) and (out / "full/seed0/bed.npy").is_file()
+    bare = json.loads((out / "full/seed0/row.json").read_text())
+    assert "geotiff" not in bare["outputs"]
+
+    assert main(args) == 0  # here, with rasterio: the rows reused, their GeoTIFFs written
+    row = json.loads((out / "full/seed0/row.json").read_text())
+    assert row["geometry"] == bare["geometry"]
+    assert row["outputs"]["geotiff"] == str(out / "full/seed0/bed.tif")
+    direct = tmp_path / "direct.tif"
+    rasters.write_elevation(direct, np.load(out / "full/seed0/bed.npy"), layout.GT_GRID_STEP)
     import rasterio
 
-    assert slim.main(["--unpack", str(tif)]) == 0
-    direct = tmp_path / "direct.tif"
-    rasters.write_raster(direct, np.array([[0.0, 0.0], [0.05, 0.0], [0.05, 0.1]]),
-                        [(np.array([1.0, 2.0, np.nan]), "bed"), (np.array([3.0, 4.0, 5.0]), "tvu")], 0.05)
-    with rasterio.open(tif) as a, rasterio.open(direct) as b:
-        assert (a.count, a.shape, a.transform, a.nodata, a.descriptions) == (
-            b.count, b.shape, b.transform, b.nodata, b.descriptions)
-        assert a.crs == b.crs and np.array_equal(a.read(), b.read())
-    assert slim.main(["--unpack", str(direct)]) == 2  # a real GeoTIFF is no stand-in's file
+    with rasterio.open(out / "full/seed0/bed.tif") as a, rasterio.open(direct) as b:
+        assert (a.shape, a.transform, a.crs) == (b.shape, b.transform, b.crs)
+        assert np.array_equal(a.read(), b.read(), equal_nan=True)
+    for name in SEEDLESS:  # the references' rows too
+        assert (out / slug(name) / "bed.tif").is_file() or not len(np.load(out / slug(name) / "bed.npy"))

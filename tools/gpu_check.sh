@@ -81,7 +81,7 @@ ablation)
     # shellcheck disable=SC2086 (lists)
     timeout "${LIMIT_S:-540}" "$py" -m ragsplat.cli.main ablation --preset "${PRESET:-small}" \
         --data "$data" --out "$runs" --device "${DEVICE:-cuda}" --variants ${VARIANTS:-full 2dgs+full} \
-        --seeds ${SEEDS:-0 1 2} --no-download || rc=$?
+        --seeds ${SEEDS:-0 1 2} --no-download --no-geotiffs || rc=$?
     echo "ablation: ${SECONDS} s wall, exit ${rc}"
     (cd "$runs" && find . \( -name row.json -o -name '*.md' -o -name results.json -o -name '*.log' \
         -o -name error_vs_time.png \) -print0 | tar czf "$out/rows.tar.gz" --null -T -)

@@ -1,7 +1,7 @@
 """A slim copy of a dataset: what `ragsplat ablation` reads and nothing else, for a machine that cannot take
 the whole of it (the `small` reach is 228 MB; a lent GPU takes 64 MiB, its wheels included).
 
-`python -m tools.slim DATA OUT [--stand-ins DIR]` copies `transforms.json`, `scene.json`, `manifest.json`,
+`python -m tools.slim DATA OUT` copies `transforms.json`, `scene.json`, `manifest.json`,
 every frame's wet and dry image (and mask), the COLMAP text model, the cached tracks and the ground truth the
 scores read (`bed_grid.npy`, `bank_grid.npy`, `bed_surface.npz`, `waterline.json`; not the mesh, the depth
 EXRs or the elevation GeoTIFF). Every score of a row made from the copy equals the row made from the whole
@@ -13,12 +13,8 @@ is not bit-reproducible from one process to the next (docs/method.md), could sta
 points. The stamp may be carried over because the tracks are made from the wet images and the cameras alone,
 which the copy keeps byte for byte.
 
-`--stand-ins DIR` also copies a package `rasterio` (`tools/stand_ins/rasterio/`) into DIR for a machine
-without GDAL (rasterio's wheel is 39 MB): put DIR first on PYTHONPATH there. It parses no CRS (returns the
-text it is given) and its GeoTIFF writer writes the bands and the profile as a numpy .npz under the .tif's
-name; no score reads one (`--dem` does, and is refused). `python -m tools.slim --unpack FILE.tif ...` turns
-such files, brought back, into GeoTIFFs in place (here, with rasterio). Never install the stand-in beside a
-real rasterio."""
+A machine without rasterio (a lent GPU: its wheel is 39 MB) runs the ablation with `--no-geotiffs`: the rows
+keep their beds as arrays, and the same command run here, reusing them, writes their GeoTIFFs."""
 
 from __future__ import annotations
 
@@ -28,7 +24,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from ragsplat.dataset import layout, rasters
+from ragsplat.dataset import layout
 from ragsplat.dataset.colmap import STAMP, TRACKS, TRIANGULATED, triangulated_points
 from ragsplat.errors import DatasetError, RagsplatError
 from ragsplat.outputs import write_json
@@ -64,64 +60,19 @@ def slim_copy(src: Path, dst: Path) -> dict:
             "fingerprint": record["fingerprint"], "points": record["points"]}
 
 
-# The rasterio a slim copy needs where rasterio is absent (`stand_ins/rasterio/`): what `layout.Georef.wkt`
-# and `rasters.write_raster` call; reading a raster is refused (`ragsplat.eval.score.dem_points` then raises
-# DatasetError).
-STAND_IN = Path(__file__).resolve().parent / "stand_ins" / "rasterio"
-
-
-def write_stand_ins(folder: Path) -> Path:
-    """Copy the rasterio stand-in (`STAND_IN`) as a package into `folder`; returns the package's path."""
-    package = Path(folder) / "rasterio"
-    package.mkdir(parents=True, exist_ok=True)
-    for source in sorted(STAND_IN.glob("*.py")):
-        shutil.copyfile(source, package / source.name)
-    return package
-
-
-def unpack(path: Path) -> None:
-    """A raster the stand-in wrote (an .npz under a .tif's name) -> the GeoTIFF `rasters.write_raster` writes
-    where rasterio is, in place. Raises OSError where `path` is no such file."""
-    import numpy as np
-
-    try:
-        with np.load(path) as f:
-            saved = {k: f[k] for k in f.files}
-    except ValueError as err:
-        raise OSError(f"{path}: not a raster of the rasterio stand-in ({err})") from None
-    rasters.write_image(Path(path), saved["bands"], [str(text) for text in saved["descriptions"]],
-                tuple(saved["transform"][:6]), str(saved["crs"]), float(saved["nodata"]))
-
-
 def main(argv: list[str] | None = None) -> int:
-    if argv is None:
-        argv = sys.argv[1:]
-    if argv[:1] == ["--unpack"]:
-        try:
-            for name in argv[1:]:
-                unpack(Path(name))
-        except OSError as err:
-            print(f"error: {err}", file=sys.stderr)
-            return 2
-        print(f"{len(argv) - 1} GeoTIFFs written")
-        return 0
     parser = argparse.ArgumentParser(prog="python -m tools.slim", description=__doc__.split("\n\n")[0])
     parser.add_argument("data", type=Path, help="the dataset (its tracks are made there first if missing)")
     parser.add_argument("out", type=Path, help="a new folder for the copy")
-    parser.add_argument("--stand-ins", type=Path, metavar="DIR",
-                        help="also write a rasterio stand-in package into DIR (a machine without GDAL)")
     args = parser.parse_args(argv)
     try:
         made = slim_copy(args.data, args.out)
-        package = write_stand_ins(args.stand_ins) if args.stand_ins else None
     except (RagsplatError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     print(f"{args.out}: {made['files']} files, {made['bytes'] / 2**20:.1f} MiB, "
-          f"fingerprint {made['fingerprint']}, {made['points']} tracks"
-          + (f"; rasterio stand-in in {package}" if package else ""))
+          f"fingerprint {made['fingerprint']}, {made['points']} tracks")
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(main())

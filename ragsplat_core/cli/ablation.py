@@ -1,9 +1,9 @@
 """`ragsplat ablation --data DIR --out DIR [--preset smoke|small|paper] [--variants ...] [--seeds S ...]
-[--init ...] [--jobs N] [--one-level] [--uncertainty MODEL.json]`: every variant trained and evaluated per
-seed, the reference rows scored, Tables 1-3 printed (mean +- std over seeds) beside the paper's
-(`ragsplat.eval.ablation`, which also holds its own defaults; those it shares with `ragsplat survey` are
-`ragsplat.train.defaults`'). With a fitted uncertainty model each trained row also writes its TVU95 band and
-Table 3 reports its coverage and sharpness (`ragsplat.eval.tvu_cells.band_rows`).
+[--init ...] [--jobs N] [--one-level] [--uncertainty MODEL.json] [--no-geotiffs]`: every variant trained
+and evaluated per seed, the reference rows scored, Tables 1-3 printed (mean +- std over seeds) beside the
+paper's (`ragsplat.eval.ablation`, which also holds its own defaults; those it shares with `ragsplat
+survey` are `ragsplat.train.defaults`'). With a fitted uncertainty model each trained row also writes its
+TVU95 band and Table 3 reports its coverage and sharpness (`ragsplat.eval.tvu_cells.band_rows`).
 
 `--one-level` measures what a flat-water tool does on a sloping river: the method and every reference are
 given one level, the mean height of the dataset's surveyed water edge
@@ -27,7 +27,7 @@ from functools import partial
 from pathlib import Path
 
 from ragsplat.cli.args import count, dataset_dir, lpips_arguments, out_dir, positive_int
-from ragsplat.errors import RagsplatError
+from ragsplat.errors import ConfigError, RagsplatError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -69,6 +69,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "one ('small', clear water; 'small-field', field conditions): each trained row "
                              "writes its TVU95 band (tvu95.tif) and Table 3 reports its coverage and "
                              "sharpness (docs/uncertainty.md); refused on a dataset seed the model saw")
+    parser.add_argument("--no-geotiffs", action="store_true",
+                        help="write each row's bed as bed.npy without its height GeoTIFF bed.tif, for a "
+                             "machine without rasterio (a lent GPU); the same command run later where "
+                             "rasterio is reuses the rows and writes their GeoTIFFs")
 
 
 class JobFailed(RagsplatError):
@@ -115,7 +119,7 @@ def run_rows(args: argparse.Namespace, fingerprint: str, code: str, check) -> No
     # local workers share out the GPUs, worker k on GPU k mod their count; a cluster's own workers keep theirs
     gpus = () if args.scheduler else tuple(visible_gpus(args.device))
     job = RowJob(str(args.data), str(args.out), args.preset, args.init, args.one_level, args.device,
-                 args.vgg16, code, gpus)
+                 args.vgg16, code, gpus, not args.no_geotiffs)
     rows = row_order(args.variants, args.seeds)
     with dask_client(args.jobs, args.scheduler) as (client, where):
         print(f"training {len(rows)} row{'s' if len(rows) > 1 else ''} on {where}; each row's log: "
@@ -146,6 +150,9 @@ def run(args: argparse.Namespace) -> int:
 
     code = source_digest(*ROW_CODE)  # every row keyed to the code the command started with
     model = None if args.uncertainty is None else read_uncertainty(args.uncertainty)  # before any work
+    if model is not None and args.no_geotiffs:
+        raise ConfigError("--uncertainty writes each row's TVU95 band as a GeoTIFF; it cannot go with "
+                          "--no-geotiffs (run it where rasterio is, reusing the rows)")
     if args.jobs is None:
         args.jobs = default_jobs(args.device)
     with deferred_interrupts() as check:  # Ctrl-C: the trainer checkpoints its finished steps, then stops
@@ -160,5 +167,6 @@ def run(args: argparse.Namespace) -> int:
             run_rows(args, train_eval.fingerprint, code, check)
         run_ablation(args.data, args.out, args.preset, args.variants, args.seeds, train_eval,
                      vgg16=args.vgg16, download=not args.no_download, log=print, code=code,
-                     band=None if model is None else partial(band_rows, model=model, log=print))
+                     band=None if model is None else partial(band_rows, model=model, log=print),
+                     geotiffs=not args.no_geotiffs)
     return 0

@@ -89,7 +89,10 @@ class Georef:
     crs: str = LOCAL_CRS
 
     def __post_init__(self):
-        self.wkt()  # an unusable CRS is refused before any work
+        # an unusable CRS is refused before any work; the local one is this module's own text, so a rendered
+        # scene loads where rasterio is not installed
+        if self.crs != LOCAL_CRS:
+            self.wkt()
 
     def wkt(self) -> str:
         from rasterio.crs import CRS  # only here: Blender's process imports this module

@@ -1,6 +1,0 @@
-class CRSError(ValueError):
-    pass
-
-
-class RasterioIOError(OSError):
-    pass

@@ -1,2 +1,0 @@
-def Affine(*coefficients):
-    return tuple(coefficients)
