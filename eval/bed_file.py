@@ -21,6 +21,10 @@ Gridding, onto the ground truth's nodes (`GroundTruth.nodes`), so that every bed
   filter `tracks.track_filter` with the references' settings `TIN_FILTER` (switchable), then linear on their
   Delaunay triangulation (`tracks.tin`). Only the points within the filter's radius of the nodes are read.
 
+A survey run's product (a file in the folder of RUN/survey.json, RUN/water.json and RUN/model/) is scored
+beside the run's own points as a TIN, gridded as points are: the tracks adjusted through the water, what the
+run's photos give without training (`survey_tracks`).
+
 A file whose bed covers fewer than `MIN_COVER` of the truth's wet nodes is refused (DatasetError).
 
 A DEM with a TVU95 band (`ragsplat export --uncertainty`: described `export.TVU_BAND`, or the band named) is
@@ -41,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from ragsplat.errors import ConfigError, DatasetError
-from ragsplat.eval.references import TIN_FILTER, USES_GROUND_TRUTH, gridded, oracle_grids
+from ragsplat.eval.references import SURVEY_TRACKS, TIN_FILTER, USES_GROUND_TRUTH, gridded, oracle_grids
 
 KINDS = {".tif": "DEM", ".tiff": "DEM", ".las": "LAS", ".laz": "LAS", ".ply": "PLY", ".csv": "CSV"}
 MIN_COVER = 0.01  # of the ground truth's wet nodes: a bed covering fewer is another place or another frame
@@ -324,7 +328,7 @@ def _read_bed(path: Path, truth, georef, band: int = 1, depth: bool = False, des
             f"{MIN_COVER:.0%}): another place or frame? It spans x {x0:.2f}..{x1:.2f}, y {y0:.2f}..{y1:.2f} "
             f"({_label(file_crs)}), the truth x {lo[0]:.2f}..{hi[0]:.2f}, y {lo[1]:.2f}..{hi[1]:.2f} "
             f"({_label(CRS.from_user_input(georef.crs))})")
-    grid[:, 2] = truth.water.height(grid[:, :2]) - grid[:, 2] if depth else grid[:, 2] - frame.offset[2]
+    grid[:, 2] = _heights(grid, truth, frame, depth)
     if kind == "DEM":
         how = {"band": band, "cells": count,
                "gridding": "bilinear between cell centres, else the cell a node lies in"}
@@ -335,6 +339,32 @@ def _read_bed(path: Path, truth, georef, band: int = 1, depth: bool = False, des
                   "values": "depth" if depth else "elevation", "frame": frame.label, **how,
                   "nodes_covered": len(grid), "wet_nodes_covered": landed,
                   "wet_nodes": len(truth.grid)}, frame
+
+
+def _heights(grid: np.ndarray, truth, frame: Frame, depth: bool) -> np.ndarray:
+    """[G'] bed heights in the dataset's local frame of the values grid [G', 3] holds (`depth`: depths)."""
+    return truth.water.height(grid[:, :2]) - grid[:, 2] if depth else grid[:, 2] - frame.offset[2]
+
+
+def survey_tracks(path: Path, depth: bool) -> np.ndarray | None:
+    """[P, 3] the points of the survey run whose product `path` is (RUN/model/ beside RUN/survey.json and
+    RUN/water.json: the model adjusted through the water, each submerged point where refraction puts it) in
+    the run's frame, z as the file's values are (`depth`: below the run's water surface); None for a file no
+    survey run wrote."""
+    import json
+
+    from ragsplat.dataset.colmap import read_model
+    from ragsplat.water_surface import WaterSurface
+
+    run = Path(path).parent
+    if not ((run / "survey.json").is_file() and (run / "water.json").is_file() and (run / "model").is_dir()):
+        return None
+    rec = read_model(run / "model")
+    xyz = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
+    if depth:
+        surface = WaterSurface(**json.loads((run / "water.json").read_text())["surface"])
+        xyz[:, 2] = surface.height(xyz[:, :2]) - xyz[:, 2]
+    return xyz
 
 
 def tvu_band(path: Path, frame: Frame, truth, band: int, heights: int = 1, depth: bool = False) -> dict:
@@ -363,11 +393,12 @@ def score_file(path: Path, data: Path, references: bool = False,
                **read) -> tuple[dict, np.ndarray, object]:
     """The bed of the file `path` (`read_bed` with `read`) scored against the ground truth of the dataset
     `data` by `ragsplat.eval.evaluate.score_grid`, beside the reference rows that need no training: the oracle
-    planes (`references.oracle_grids`) and, with `references`, the tracks' grids (`TrainEval.track_grids`: it
-    triangulates a dataset without a cached triangulation, minutes). A DEM's TVU95 band (`tvu`, else the band
-    described `export.TVU_BAND` where it has one) is scored too, under "uncertainty" (`tvu_band`). Returns
-    (the result, the bed grid [G', 3], the ground truth). Raises as `read_bed`, and ConfigError for `tvu` of
-    a file that is no DEM or the band of the heights themselves."""
+    planes (`references.oracle_grids`), for a survey run's product the run's own tracks as a TIN
+    (`survey_tracks`, `references.SURVEY_TRACKS`) and, with `references`, the dataset's tracks' grids
+    (`TrainEval.track_grids`: it triangulates a dataset without a cached triangulation, minutes). A DEM's
+    TVU95 band (`tvu`, else the band described `export.TVU_BAND` where it has one) is scored too, under
+    "uncertainty" (`tvu_band`). Returns (the result, the bed grid [G', 3], the ground truth). Raises as
+    `read_bed`, and ConfigError for `tvu` of a file that is no DEM or the band of the heights themselves."""
     from ragsplat.dataset import layout
     from ragsplat.dataset.load import load_dataset
     from ragsplat.eval.ablation import dataset_seed
@@ -386,6 +417,12 @@ def score_file(path: Path, data: Path, references: bool = False,
         tvu = band_named(path, TVU_BAND)
         tvu = None if tvu == read.get("band", 1) else tvu  # scoring the band itself (--band K)
     rows = oracle_grids(truth)
+    tracks = survey_tracks(path, read.get("depth", False))
+    if tracks is not None:
+        near = np.column_stack([frame.to_local(tracks[:, :2]), tracks[:, 2]])
+        grid_tracks = points_grid(near, truth.nodes, despike=True)[0]
+        grid_tracks[:, 2] = _heights(grid_tracks, truth, frame, read.get("depth", False))
+        rows[SURVEY_TRACKS] = grid_tracks
     if references:
         from ragsplat.eval.ablation import TrainEval
 

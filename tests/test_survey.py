@@ -36,7 +36,14 @@ def write_survey(root, seed: int = 0, targets_at_feet: bool = False):
     views = render_views(scene, cams, WATER)
     for v in views:
         v["split"] = "train"
-    write_dataset(root / "truth", views, WATER)
+    # the truth scores a bed too: the central 4 x 3 m that every photo's neighbours see, bed_scene's surface
+    region = {"xmin": -2.0, "xmax": 2.0, "ymin": -1.5, "ymax": 1.5}
+    write_dataset(root / "truth", views, WATER, region, bed={"depth": 0.8, "size": 6.0})
+    x, y = np.meshgrid(np.arange(-40, 41) * 0.05, np.arange(-30, 31) * 0.05, indexing="ij")
+    x, y = x.ravel(), y.ravel()
+    z = -0.8 + 0.08 * np.sin(2.0 * x / 3.0) * np.cos(1.5 * y / 3.0)
+    (root / "truth" / "gt").mkdir()
+    layout.write_npy(root / "truth" / layout.GT_GRID, np.column_stack([x, y, z]))
     names = [f"{i:04d}.jpg" for i in range(len(views))]
     for name, v in zip(names, views):
         image = (np.clip(v["image"].numpy(), 0, 1) * 255 + 0.5).astype(np.uint8)
@@ -404,3 +411,28 @@ def test_a_survey_writes_its_orthophotos_and_a_report_on_one_page(finished):
     assert "src=\"http" not in page and "<link" not in page  # nothing to fetch: it opens offline
     assert "18 of 18 photos registered" in page and "similarity to 18 RTK positions" in page
     assert "[report]" in err and str(out / "report.html") in err
+
+
+def test_a_survey_dem_is_scored_beside_the_runs_own_tracks(survey, finished, tmp_path):
+    """`ragsplat score` of a survey's DEM adds the run's adjusted points as a TIN: the same row as those
+    points scored as a CSV file; a DEM outside a survey run gets no such row."""
+    from ragsplat.dataset.colmap import read_model
+    from ragsplat.eval.references import SURVEY_TRACKS
+
+    out, _ = finished
+    scores = tmp_path / "dem.json"
+    assert main(["score", str(out / "dem.tif"), "--truth", str(survey / "truth"), "--out", str(scores)]) == 0
+    row = json.loads(scores.read_text())["references"][SURVEY_TRACKS]
+    points = np.array([p.xyz for p in read_model(out / "model").points3D.values()])
+    np.savetxt(tmp_path / "tracks.csv", points, fmt="%.17g", delimiter=",", header="x,y,z", comments="")
+    assert main(["score", str(tmp_path / "tracks.csv"), "--truth", str(survey / "truth"), "--out",
+                 str(tmp_path / "tracks.json")]) == 0
+    alone = json.loads((tmp_path / "tracks.json").read_text())["geometry"]
+    assert row["n_pred"] == alone["n_pred"] > 0
+    for k in ("1%", "3%"):
+        assert row["f1"][k] == pytest.approx(alone["f1"][k], abs=1e-9)
+    assert row["survey"]["wet"]["rmse"] == pytest.approx(alone["survey"]["wet"]["rmse"], rel=1e-9)
+    shutil.copy(out / "dem.tif", tmp_path / "elsewhere.tif")
+    assert main(["score", str(tmp_path / "elsewhere.tif"), "--truth", str(survey / "truth"), "--out",
+                 str(tmp_path / "elsewhere.json")]) == 0
+    assert SURVEY_TRACKS not in json.loads((tmp_path / "elsewhere.json").read_text())["references"]

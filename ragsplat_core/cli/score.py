@@ -1,7 +1,8 @@
 """`ragsplat score FILE --truth DIR [--out FILE.json] [--band K] [--kind elevation|depth] [--crs CRS]
 [--no-filter] [--references] [--tvu-band K]`: any bed (a DEM GeoTIFF, LAS/LAZ, PLY or CSV points, from any
 software) on the ground truth's nodes, scored by the ablation's own measures (`ragsplat.eval.bed_file`);
-prints its row beside the reference rows that need no training, writes the scores as JSON and its error map
+prints its row beside the reference rows that need no training (for a survey's product also the run's own
+tracks through the water as a TIN), writes the scores as JSON and its error map
 as PNG.
 A DEM with a TVU95 band (`ragsplat export --uncertainty`, or --tvu-band K) also gets that band's calibration
 over the wet cells: coverage, median TVU95, z-score variance, IHO orders' shares (docs/uncertainty.md)."""

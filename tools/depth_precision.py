@@ -1,0 +1,81 @@
+"""What a flight's geometry allows: the first-order precision of a submerged bed point triangulated through
+the water from a dataset's training cameras, at the true bed (the ground truth's wet nodes, a random sample).
+Each camera whose image holds the point's apparent position adds J^T J, J the 2 x 3 Jacobian of its pixel
+with respect to the true point (the exact refraction, `refraction.apparent_points_each`, then the pinhole);
+sigma_z is the square root of the inverse's z entry, per pixel of image noise on every observation. Photos
+trained at a smaller size scale it by the size's ratio (--scale 0.5: 600 px of 1 200).
+
+    python -m tools.depth_precision DATA [--points 500] [--scale 1.0] [--seed 0]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+
+def sigma_z(points: np.ndarray, cams: list, water, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """([N] sigma_z (m per pixel of image noise; inf where fewer than two cameras see it), [N] how many
+    cameras see it) of true points [N, 3] under `water` (`WaterSurface`) from `cams` (`camera.Camera`, OpenCV
+    w2c), their images scaled by `scale`."""
+    import torch
+
+    from ragsplat.refraction import apparent_points_each
+
+    X = torch.tensor(points, dtype=torch.float64, requires_grad=True)  # [N, 3]
+    info, seen = torch.zeros(len(X), 3, 3, dtype=torch.float64), torch.zeros(len(X), dtype=torch.int64)
+    for cam in cams:
+        R, t = torch.tensor(cam.R, dtype=torch.float64), torch.tensor(cam.t, dtype=torch.float64)
+        centre = (-R.T @ t).expand(len(X), 3)
+        pc = apparent_points_each(X, centre, water) @ R.T + t  # [N, 3] camera frame
+        uv = torch.stack([scale * (cam.fx * pc[:, 0] / pc[:, 2] + cam.cx),
+                          scale * (cam.fy * pc[:, 1] / pc[:, 2] + cam.cy)], -1)  # [N, 2] scaled pixels
+        # the points are independent, so the gradient of a pixel coordinate's sum is each point's own row
+        J = torch.stack([torch.autograd.grad(uv[:, k].sum(), X, retain_graph=True)[0] for k in (0, 1)], 1)
+        inside = ((pc[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < scale * cam.width) & (uv[:, 1] >= 0)
+                  & (uv[:, 1] < scale * cam.height)).detach()
+        info[inside] += (J.transpose(1, 2) @ J)[inside]
+        seen += inside
+    sigma = np.full(len(X), np.inf)
+    ok = (seen >= 2).numpy()
+    sigma[ok] = torch.linalg.inv(info[ok])[:, 2, 2].sqrt().numpy()
+    return sigma, seen.numpy()
+
+
+def precision(data: Path, points: int = 500, scale: float = 1.0, seed: int = 0) -> dict:
+    """{"sigma_z_per_px_m": median and p90, "views": median, "depth_m": median, "points", ...} of `sigma_z`
+    at `points` wet nodes of `data`'s ground truth seen by at least two of its training cameras."""
+    from ragsplat.dataset.load import load_dataset
+
+    ds = load_dataset(data, splits=("train",), load_dry=False, ground_truth=True)
+    truth, cams = ds.ground_truth, [v.camera for v in ds.train]
+    depth = truth.water.height(truth.grid[:, :2]) - truth.grid[:, 2]
+    wet = np.flatnonzero(depth > 0)
+    pick = np.random.default_rng(seed).choice(wet, min(points, len(wet)), replace=False)
+    sigma, seen = sigma_z(truth.grid[pick], cams, truth.water, scale)
+    ok = np.isfinite(sigma)
+    s = sigma[ok]
+    return {"sigma_z_per_px_m": {"median": float(np.median(s)), "p90": float(np.percentile(s, 90))},
+            "views": float(np.median(seen[ok])), "depth_m": float(np.median(depth[pick][ok])),
+            "points": int(ok.sum()), "scale": scale, "cameras": len(cams)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("data", type=Path)
+    p.add_argument("--points", type=int, default=500)
+    p.add_argument("--scale", type=float, default=1.0)
+    p.add_argument("--seed", type=int, default=0)
+    a = p.parse_args(argv)
+    r = precision(a.data, a.points, a.scale, a.seed)
+    s = r["sigma_z_per_px_m"]
+    print(f"{r['points']} wet points (median depth {r['depth_m']:.2f} m) from {r['cameras']} cameras, median "
+          f"{r['views']:.0f} views each, images x {r['scale']:g}: sigma_z {100 * s['median']:.1f} cm per "
+          f"pixel of image noise (median; p90 {100 * s['p90']:.1f} cm)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
