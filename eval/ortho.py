@@ -3,15 +3,15 @@ seen straight down): PSNR and SSIM over the wet cells, and the shift between the
 
 The orthophoto (an RGBA GeoTIFF: `ragsplat export --ortho`, a survey's `ortho_bed.tif` or
 `ortho_apparent.tif`) is brought into the dataset's local frame (its georeference's offset taken off; a
-survey's of the synthetic photos, in their geotags' CRS, less the geotags' origin: `bed_file.survey_geotags`)
-and read at the truth's pixel centres, bilinearly between its own; a cell it does not draw (alpha 0 at any of
-the four) is left out. The wet cells are those whose exact bed (`layout.GT_SURFACE`) lies under the dataset's
-water. SSIM is `ragsplat.ssim`'s (11 px Gaussian window) over the image with the cells left out filled from
-the truth, averaged over the scored cells; the shift is the peak of the two grey images' cross-correlation
-over the scored cells' bounding box (their means taken off, the cells left out at 0, a Hann window; a parabola
-through the peak and its neighbours for the fraction), in cells, east and north positive: where the orthophoto
-draws the bed relative to where it is. (OpenCV's phase correlation, whose spectrum is whitened, came out up to
-a third of the shift short on such images.)
+survey's of the synthetic photos, in their geotags' CRS, less the geotags' origin:
+`score_file.survey_geotags`) and read at the truth's pixel centres, bilinearly between its own; a cell it does
+not draw (alpha 0 at any of the four) is left out. The wet cells are those whose exact bed
+(`layout.GT_SURFACE`) lies under the dataset's water. SSIM is `ragsplat.ssim`'s (11 px Gaussian window) over
+the image with the cells left out filled from the truth, averaged over the scored cells; the shift is the peak
+of the two grey images' cross-correlation over the scored cells' bounding box (their means taken off, the
+cells left out at 0, a Hann window; a parabola through the peak and its neighbours for the fraction), in
+cells, east and north positive: where the orthophoto draws the bed relative to where it is. (OpenCV's phase
+correlation, whose spectrum is whitened, came out up to a third of the shift short on such images.)
 """
 
 from __future__ import annotations
@@ -147,7 +147,7 @@ def score_orthophoto(path: Path, root: Path, wet: bool = True) -> dict:
     import rasterio
 
     from ragsplat.dataset.load import load_dataset
-    from ragsplat.eval.bed_file import geodetic, survey_geotags
+    from ragsplat.eval.score_file import geodetic, survey_geotags
 
     truth, step, west, north = read_truth(root)
     ds = load_dataset(root, splits=())

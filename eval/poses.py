@@ -21,7 +21,7 @@ def pose_errors(model: Path, truth: Path, similarity: dict | None = None) -> dic
     import pycolmap
 
     from ragsplat.dataset.load import load_dataset
-    from ragsplat.eval.bed_file import survey_geotags
+    from ragsplat.eval.score_file import survey_geotags
 
     views = load_dataset(truth, splits=("train", "test"), load_dry=False)
     cams = {Path(v.file_path).stem: v.camera for v in [*views.train, *views.test]}

@@ -2,7 +2,7 @@
 is fitted and calibrated on (`python -m tools.fit_uncertainty`, docs/uncertainty.md).
 
 - the bed (`BEDS`): the evaluation's (`ablation.extract_config` of the run's preset and seed, on the ground
-  truth's nodes inside its region: the bed `ragsplat eval` scores and the ablation writes as the row's
+  truth's nodes inside its region: the bed `ragsplat score` scores and the ablation writes as the row's
   bed.npy), or the product's (`export.extract_bed` at `ragsplat export`'s and the survey's default 5 cm over
   the dataset's region: the DEM whose band 3 a surveyor reads), with the extraction's per-cell record
   (`surface.extract_surface(..., cells=True)`);

@@ -40,7 +40,7 @@ BATHYMETRIC, GROUND = 40, 2  # ASPRS classes (LAS 1.4 R15): submerged bed ("bath
 LAS_SCALE = 0.001  # metres per integer step of the LAS coordinates
 # Extraction samples per cell of the DEM grid inside the region: the evaluation's rule
 # (`ragsplat.eval.ablation`'s `extract_config`: samples_per_cell x the ground-truth grid's nodes, 16 for every
-# preset but the CI's `smoke`), so that at the evaluation's 5 cm a run exports the bed `ragsplat eval` scores
+# preset but the CI's `smoke`), so that at the evaluation's 5 cm a run exports the bed `ragsplat score` scores
 # (on a reach its grid counts the wet nodes only; the export cannot know which are wet before extracting and
 # counts them all).
 SAMPLES_PER_CELL = 16

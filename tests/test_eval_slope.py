@@ -21,9 +21,9 @@ from ragsplat.dataset import layout
 from ragsplat.dataset.load import GroundTruth, load_dataset
 from ragsplat.errors import ConfigError, DatasetError
 from ragsplat.eval.ablation import EDGE_POINTS, TrainEval, one_level_water, run_ablation
-from ragsplat.eval.bed_file import read_bed
 from ragsplat.eval.evaluate import score_grid
 from ragsplat.eval.references import depth_times_n, dietrich, dietrich_grid
+from ragsplat.eval.score_file import read_bed
 from ragsplat.export import Bed, Georef, write_dem
 from ragsplat.refraction import apparent_points
 from ragsplat.water_surface import WaterSurface

@@ -162,7 +162,7 @@ def test_the_size_cap_follows_the_runs_surfel_depth(run, tmp_path, capsys):
 
 
 def test_export_extracts_the_bed_that_eval_scores(evaluable_dataset):
-    """At the evaluation's 5 cm the export samples as `ragsplat eval` does (`extract_config`: 16 per node of
+    """At the evaluation's 5 cm the export samples as `ragsplat score` does (`extract_config`: 16 per node of
     the ground-truth grid, 21 x 21 here, all under water): the same bed, cell for cell (the count by area of
     before, 6 400 per m^2, drew 6 400 samples instead of 7 056: other samples, other medians)."""
     ds = load_dataset(evaluable_dataset, splits=(), ground_truth=True)

@@ -251,7 +251,7 @@ def test_version_and_command_order(capsys):
     with pytest.raises(SystemExit) as done:
         main(["--version"])
     assert done.value.code == 0 and capsys.readouterr().out.startswith("ragsplat ")
-    assert list(COMMANDS) == ["dataset", "train", "render", "eval", "score", "ablation", "sweep", "export",
+    assert list(COMMANDS) == ["dataset", "train", "render", "score", "ablation", "sweep", "export",
                              "survey", "stability", "bench"]
 
 

@@ -1,4 +1,4 @@
-"""`ragsplat render` and `ragsplat eval` on a finished run, without retraining: renders equal to the
+"""`ragsplat render` and `ragsplat score RUN` on a finished run, without retraining: renders equal to the
 trainer's, files and sizes, z-depth as EXR; the scores equal to the ablation's row of the same run and to the
 library functions called directly; one-line errors."""
 
@@ -32,7 +32,7 @@ KEYS = {"run", "data", "dataset_fingerprint", "dataset_seed", "variant", "preset
 @pytest.fixture(scope="module")
 def ablated(evaluable_dataset, tmp_path_factory):
     """`ragsplat ablation` of the full variant, seed 0, with a 6-iteration smoke preset: its row folder is a
-    finished run, and its row.json holds the scores `ragsplat eval` must reproduce."""
+    finished run, and its row.json holds the scores `ragsplat score` must reproduce."""
     out = tmp_path_factory.mktemp("ablation")
     with pytest.MonkeyPatch.context() as mp:
         tiny_smoke(mp, out)
@@ -123,7 +123,7 @@ def test_eval_matches_the_ablation_and_the_library(run, ablated, evaluable_datas
                                                    monkeypatch, capsys):
     monkeypatch.setattr(metrics, "default_vgg16_path", lambda: tmp_path / "absent.pth")
     out = tmp_path / "scores.json"
-    assert main(["eval", str(run), "--out", str(out), "--no-download"]) == 0
+    assert main(["score", str(run), "--out", str(out), "--no-download"]) == 0
     printed = capsys.readouterr().out
     for text in ("LPIPS n/a", "| init |", "| oracle plane (uses GT) |", "| full (this run), volume |",
                  "| full (this run), fused |", f"wrote {out}",
@@ -151,10 +151,10 @@ def test_eval_matches_the_ablation_and_the_library(run, ablated, evaluable_datas
     assert res["geometry"] == json.loads(json.dumps(jsonable(geometry)))
     assert res["references"]["oracle plane"] == json.loads(
         json.dumps(jsonable(score_grid(oracle_grids(truth)["oracle plane"], truth))))
-    assert main(["eval", str(run), "--no-download"]) == 0  # the default place: RUN/eval.json
+    assert main(["score", str(run), "--no-download"]) == 0  # the default place: RUN/eval.json
     assert json.loads((run / "eval.json").read_text())["geometry"] == res["geometry"]
     # the volume bed's culls changed: recorded with its scores, and the same as the library's
-    assert main(["eval", str(run), "--no-download", "--min-opacity", "0.05", "--max-scale-gsd", "inf"]) == 0
+    assert main(["score", str(run), "--no-download", "--min-opacity", "0.05", "--max-scale-gsd", "inf"]) == 0
     loose = json.loads((run / "eval.json").read_text())["geometry"]
     cfg = replace(table, min_opacity=0.05, max_scale_gsd=math.inf)
     assert loose["extraction"]["config"] == {**res["geometry"]["extraction"]["config"], "min_opacity": 0.05,
@@ -169,9 +169,17 @@ def test_one_line_errors(run, tmp_path, capsys):
     one_line_error(capsys, "render", "no view 'nope' among the 7 views of")
     assert main(["render", str(run), "--view", "0000", "--split", "test", "--out", str(tmp_path / "r")]) == 2
     one_line_error(capsys, "render", "no view '0000' among the 2 test views of")
-    for command in ("render", "eval"):
-        assert main([command, str(empty), "--view", "all"][:2 if command == "eval" else 4]) == 2
+    for command in ("render", "score"):
+        assert main([command, str(empty), "--view", "all"][:2 if command == "score" else 4]) == 2
         one_line_error(capsys, command, "not a finished training run (no config.json")
+    # one scoring command: a run's options refused for a bed file and a file's for a run, in one line
+    assert main(["score", str(run), "--band", "2", "--references"]) == 2
+    one_line_error(capsys, "score", "--band, --references: for a bed file; ")
+    bed = tmp_path / "bed.tif"
+    assert main(["score", str(bed), "--truth", str(run), "--dem", str(bed), "--min-opacity", "0.1"]) == 2
+    one_line_error(capsys, "score", "--dem, --min-opacity: for a run's directory; ")
+    assert main(["score", str(bed)]) == 2
+    one_line_error(capsys, "score", "a bed file is scored against a dataset: add --truth DIR")
     mine = tmp_path / "mine"
     mine.mkdir()
     (mine / "photo.png").write_bytes(b"mine")
@@ -179,7 +187,7 @@ def test_one_line_errors(run, tmp_path, capsys):
     one_line_error(capsys, "render", "is not empty and was not written by ragsplat")
     assert not (tmp_path / "r").exists() and sorted(p.name for p in mine.iterdir()) == ["photo.png"]
     for argv, option in ((["render", str(run), "--view", "0000", "--wet", "--dry"], "--dry"),
-                         (["eval", str(run), "--out", str(tmp_path / "scores.txt")], "--out")):
+                         (["score", str(run), "--out", str(tmp_path / "scores.txt")], "--out")):
         with pytest.raises(SystemExit) as done:
             main(argv)
         assert done.value.code == 2 and option in capsys.readouterr().err.splitlines()[-1]
@@ -193,8 +201,8 @@ def test_eval_needs_ground_truth(tmp_path, capsys):
                  "--preset", "smoke",
                  "--iterations", "2", "--init-depth", "1.0", "--backend", "torch", "--no-progress"]) == 0
     capsys.readouterr()
-    assert main(["eval", str(tmp_path / "run"), "--no-download"]) == 2
-    one_line_error(capsys, "eval", f"{tmp_path / 'data' / layout.GT_GRID}: ground-truth bed grid is missing")
+    assert main(["score", str(tmp_path / "run"), "--no-download"]) == 2
+    one_line_error(capsys, "score", f"{tmp_path / 'data' / layout.GT_GRID}: ground-truth bed grid is missing")
     assert not (tmp_path / "run" / "eval.json").exists()
     assert main(["render", str(tmp_path / "run"), "--view", "0000"]) == 0  # rendering needs no ground truth
     shutil.rmtree(tmp_path / "data")
@@ -210,7 +218,7 @@ def test_eval_scores_a_dem_against_the_truth(run, evaluable_dataset, tmp_path, m
     for name, dz in (("exact", 0.0), ("raised", 0.15)):
         rasters.write_raster(tmp_path / f"{name}.tif", grid[:, :2], [(grid[:, 2] + dz, "bed")],
                             layout.GT_GRID_STEP)
-        assert main(["eval", str(run), "--truth", str(evaluable_dataset), "--dem",
+        assert main(["score", str(run), "--truth", str(evaluable_dataset), "--dem",
                      str(tmp_path / f"{name}.tif"),
                      "--out", str(tmp_path / f"{name}.json"), "--no-download"]) == 0
         dem = json.loads((tmp_path / f"{name}.json").read_text())["dem"]

@@ -233,7 +233,7 @@ def test_a_file_elsewhere_or_unknown_is_refused_in_one_line(evaluable_dataset, t
 def test_a_dem_off_the_truth_s_lattice_keeps_its_cells_at_a_hole_s_edge():
     from rasterio.transform import from_origin
 
-    from ragsplat.eval.bed_file import dem_at
+    from ragsplat.eval.score_file import dem_at
 
     values = np.arange(16, dtype=float).reshape(4, 4)  # cell (row r, col c) holds 4 r + c
     values[1, 1] = np.nan  # one empty cell

@@ -14,7 +14,7 @@ def test_the_extraction_holds_the_recorded_choices():
         assert {k: cfg[k] for k in chosen} == chosen
     assert EXTRACT_TUNING["dataset_seed"] == 1
     for step in ("min_opacity", "both", "despike", "fill"):
-        assert EXTRACT_TUNING[step]["commit"] and EXTRACT_TUNING[step]["command"].startswith("ragsplat eval")
+        assert EXTRACT_TUNING[step]["commit"] and EXTRACT_TUNING[step]["command"].startswith("ragsplat score")
 
 
 def test_a_record_is_a_new_dict_each_time():
@@ -79,3 +79,14 @@ def test_the_long_preset_is_small_with_its_recorded_depth_and_cap():
     surfels = replace(PRESETS["long"], variant="2dgs+full")
     assert size_cap_m(surfels) == math.inf and size_cap_m(replace(surfels, surfel_depth="ray")) == 0.14
     assert size_cap_m(replace(surfels, variant="full")) == 0.14  # 3D Gaussians: the depth does not touch them
+
+
+def test_a_record_s_choices_set_a_config_and_its_densification():
+    from ragsplat.train.config import TrainConfig, chosen, with_chosen
+
+    rec = {"chosen": {"lr_means": 0.002}, "stop": {"chosen": {"densify.refine_stop_iter": 7000}},
+           "other": {"chosen": {"ssim_lambda": 0.5}}}
+    assert chosen(rec, ("stop",)) == {"lr_means": 0.002, "densify.refine_stop_iter": 7000}
+    cfg = with_chosen(TrainConfig(), chosen(rec, ("stop", "other")))
+    assert (cfg.lr_means, cfg.ssim_lambda, cfg.densify.refine_stop_iter) == (0.002, 0.5, 7000)
+    assert cfg.densify.max_gaussians == TrainConfig().densify.max_gaussians

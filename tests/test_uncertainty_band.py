@@ -411,7 +411,7 @@ def test_the_band_is_checked_at_the_dem_s_own_cells_not_read_between_them(evalua
     """A DEM whose lattice is off the truth's nodes (as `ragsplat export`'s is; 2 of 5 cm, so that no centre
     is equally near two nodes): each covered cell in the region is checked against the bed at its own centre
     (here the nearest node's: this truth has no exact surface), its TVU95 as written (no interpolation)."""
-    from ragsplat.eval.bed_file import score_file
+    from ragsplat.eval.score_file import score_file
 
     truth = load_dataset(evaluable_dataset, splits=(), ground_truth=True).ground_truth
     rng = np.random.default_rng(1)

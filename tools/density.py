@@ -92,7 +92,7 @@ def by_place(dem: Path, data: Path, radius: float = 0.5) -> dict[str, list[dict]
     from ragsplat.dataset.layout import GT_GRID_STEP
     from ragsplat.eval.ablation import TrainEval
     from ragsplat.eval.references import despiked, track_grids
-    from ragsplat.eval.score import dem_points
+    from ragsplat.eval.score_run import dem_points
 
     runner = TrainEval(data)
     ds, truth = runner.ds, runner.truth

@@ -4,8 +4,8 @@
         [--truth RUN=DATA ...] [--features one geometry depth spread filled] [--bed evaluation|export]
 
 Each RUN is a finished training run (`ragsplat train`, an ablation row's seed<S>/ folder) whose dataset has
-its ground truth (as `ragsplat eval RUN` scores it; `--truth RUN=DATA`: another dataset's, in the same frame,
-as `ragsplat eval --truth`). Its wet cells (`ragsplat.eval.tvu_cells`: the evaluation's bed, or with --bed
+its ground truth (as `ragsplat score RUN` scores it; `--truth RUN=DATA`: another dataset's, in the same frame,
+as `ragsplat score --truth`). Its wet cells (`ragsplat.eval.tvu_cells`: the evaluation's bed, or with --bed
 export the DEM `ragsplat export` writes, its features, its errors) are pooled: the --fit runs' fit the weights
 (`uncertainty.fit`, Gaussian likelihood), the --calibrate runs' give the conformal scale
 (`uncertainty.calibrate`) so that the 95 % interval covers 95 % of their cells. Refused: a run on the

@@ -21,7 +21,7 @@ def frame_error(run: Path, truth: Path) -> dict:
     import pycolmap
 
     from ragsplat.dataset.load import load_dataset
-    from ragsplat.eval.bed_file import survey_geotags
+    from ragsplat.eval.score_file import survey_geotags
     from ragsplat.survey.georef import fit_similarity
 
     views = load_dataset(truth, splits=("train",), load_dry=False)

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ragsplat.eval.bed_file import score_file
 from ragsplat.eval.evaluate import height_error
+from ragsplat.eval.score_file import score_file
 from ragsplat.survey.tiles import inside
 
 

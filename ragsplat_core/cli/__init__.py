@@ -1,5 +1,5 @@
 """The command layer, the top of the import graph: the `ragsplat` entry point (`main`) and every subcommand,
-one module each (`dataset`, `train`, `render`, `score_run` (the `eval` command), `score`, `ablation`,
+one module each (`dataset`, `train`, `render`, `score` (a run or any bed file), `ablation`,
 `export`, `survey`, `stability`, `bench`); `main.COMMANDS` names only modules of this package.
 
 A command module defines `add_arguments(parser)` and `run(args) -> int`: it parses the arguments, calls

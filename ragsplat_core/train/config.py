@@ -322,34 +322,43 @@ LONG_TUNING = record("long")
 # lets a Gaussian travel at most about 0.3 m, less than the refraction shift it must follow (0.74 m at 3 m
 # depth).
 SHORT_LR_MEANS = 1.6e-3  # smoke (CI): a scale argument, not tuned
-SMALL_LR_MEANS = 5e-3  # the best F1 at 3 % of depth of the three tried (small.json, top level)
-# 2DGS's normal consistency at 0.05 smooths the bed's stones at this resolution: a fifth of it (small.json,
-# "surfel_terms").
-SMALL_LAMBDA_NORMAL = 0.01
-# The photometric loss weighs (1 - SSIM) at 0.8, not 3DGS's 0.2: the bed's fine relief shows in the images'
-# structure more than in their mean colour (small.json, "ssim_lambda").
-SMALL_SSIM_LAMBDA = 0.8
-# Densification stops at 30 % of the run, not 3DGS's half: the cap is reached early on this reach, and the
-# steps without cloning, pruning or opacity resets settle the bed (small.json, "refine_stop"). At the 30k
-# scale.
-SMALL_REFINE_STOP = 9_000
-# 3 000 steps, not 1 500: the surfel bed keeps sharpening, and 4 500 gain nothing more (small.json, "length").
-# Chosen for the best variant: `full` loses at 3 000, and keeps the same preset so that the rows differ by
-# their model alone.
-SMALL_ITERATIONS = 3000
+# `small` is built from its record as `small-field` and `long` are: the top level's choice (the position rate
+# of the three tried) and each step's, of which the reasons are these. "surfel_terms": 2DGS's normal
+# consistency at 0.05 smooths the bed's stones at this resolution, so a fifth of it. "ssim_lambda": (1 - SSIM)
+# weighed at 0.8, not 3DGS's 0.2, as the bed's fine relief shows in the images' structure more than in their
+# mean colour. "refine_stop": densification stops at 30 % of the run, not half: the cap is reached early, and
+# the steps without cloning, pruning or opacity resets settle the bed (at the 30k scale). "length": the surfel
+# bed keeps sharpening past 1 500 steps, and 4 500 gain nothing more; chosen for the best variant, and `full`
+# keeps the same preset so that the rows differ by their model alone. "surfel_depth": the ray's z.
+SMALL_STEPS = ("surfel_terms", "ssim_lambda", "refine_stop", "length", "surfel_depth")
+
+
+def chosen(rec: dict, steps: tuple[str, ...] = ()) -> dict:
+    """{field: value} a tuning record chose: its top level's "chosen" and each of its `steps`' ("densify.X"
+    for the `DensifyConfig`'s field X)."""
+    return {k: v for part in (rec, *(rec[s] for s in steps)) for k, v in part["chosen"].items()}
+
+
+def with_chosen(cfg: TrainConfig, values: dict) -> TrainConfig:
+    """`cfg` with the `chosen` values set (a "densify.X" one on its `DensifyConfig`)."""
+    densify = {k.split(".", 1)[1]: v for k, v in values.items() if k.startswith("densify.")}
+    top = {k: v for k, v in values.items() if not k.startswith("densify.")}
+    return replace(cfg, **top, densify=replace(cfg.densify, **densify))
+
+
 PRESETS: dict[str, TrainConfig] = {
     "smoke": TrainConfig(preset="smoke", iterations=150, init_count=1_500, sh_degree=1,
                          lr_means=SHORT_LR_MEANS, densify=DensifyConfig(max_gaussians=4_000)),
-    "small": TrainConfig(preset="small", iterations=SMALL_ITERATIONS, init_count=16_000,
-                         lr_means=SMALL_LR_MEANS,
-                         lambda_normal=SMALL_LAMBDA_NORMAL, ssim_lambda=SMALL_SSIM_LAMBDA,
-                         densify=DensifyConfig(max_gaussians=40_000, refine_stop_iter=SMALL_REFINE_STOP)),
+    "small": with_chosen(TrainConfig(preset="small", init_count=16_000,
+                                     densify=DensifyConfig(max_gaussians=40_000)),
+                         chosen(TUNING, SMALL_STEPS)),
     "paper": TrainConfig(preset="paper", iterations=30_000, init_count=40_000),
 }
 # small-field: 3 000 steps and the start's gaps filled from the tracks' TIN (small_field.json, top level); it
-# keeps 3DGS's densification stop: `SMALL_REFINE_STOP` gained nothing on its development seed ("refine_stop")
-PRESETS["small-field"] = replace(PRESETS["small"], preset="small-field", init="refracted",
-                                 densify=DensifyConfig(max_gaussians=40_000), **FIELD_TUNING["chosen"])
+# keeps 3DGS's densification stop: `small`'s gained nothing on its development seed ("refine_stop")
+PRESETS["small-field"] = with_chosen(replace(PRESETS["small"], preset="small-field", init="refracted",
+                                             densify=DensifyConfig(max_gaussians=40_000)),
+                                     chosen(FIELD_TUNING))
 # The `3dgs` row as its own field would train it: `small`'s size and length, but 3DGS's loss (SSIM
 # weight 0.2) and densification stop (half the run) instead of the values tuned for `2dgs+full`.
 PRESETS["small-3dgs"] = replace(PRESETS["small"], preset="small-3dgs", ssim_lambda=TrainConfig.ssim_lambda,
@@ -357,7 +366,7 @@ PRESETS["small-3dgs"] = replace(PRESETS["small"], preset="small-3dgs", ssim_lamb
 # long: `small` for a river survey's photos of a few centimetres a pixel (the long reach's 4.65 cm), whose
 # surfels take their centre's z (long.json: 8.5 points at 1 % of depth on its development stretch); the
 # extraction's size cap follows the depth (`surface.size_cap_m`). The survey's budget grows with its area.
-PRESETS["long"] = replace(PRESETS["small"], preset="long", **LONG_TUNING["chosen"])
+PRESETS["long"] = with_chosen(replace(PRESETS["small"], preset="long"), chosen(LONG_TUNING))
 
 
 def preset_config(name: str, **overrides) -> TrainConfig:

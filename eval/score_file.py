@@ -1,4 +1,5 @@
-"""Any bed a user brings, on the ground truth's nodes, scored as every row of the tables (`ragsplat score`).
+"""Any bed a user brings, on the ground truth's nodes, scored as every row of the tables (`ragsplat score
+FILE`).
 
 File kinds, by extension: a DEM GeoTIFF (.tif, .tiff; one band of bed elevation or water depth), LAS/LAZ, PLY
 (ascii or binary, a `vertex` element with x, y, z) and CSV points (a header naming x, y and z columns). A

@@ -1,4 +1,4 @@
-"""Score a finished training run against its dataset's ground truth without retraining (`ragsplat eval`).
+"""Score a finished training run against its dataset's ground truth without retraining (`ragsplat score RUN`).
 
 Everything comes from the ablation's own code: the dataset and ground truth as
 `ragsplat.eval.ablation.TrainEval` loads them, the extraction settings of the run's preset (`extract_config`,
@@ -82,11 +82,11 @@ def score_run(run: Path, data: Path | None = None, vgg16: str | None = None, dow
 
 
 def _score_dem(path: Path, georef, truth) -> dict:
-    """The DEM read at the ground truth's nodes as `ragsplat score` reads it (`bed_file.read_bed`: the same
+    """The DEM read at the ground truth's nodes as `ragsplat score` reads it (`score_file.read_bed`: the same
     cells as every row; a DEM's own cells off that lattice would add their horizontal offset to every F1
     distance) and scored like an extracted bed, its error map written beside it (NAME_error.png)."""
-    from ragsplat.eval.bed_file import read_bed
     from ragsplat.eval.report import depth_error_map
+    from ragsplat.eval.score_file import read_bed
 
     grid, _ = read_bed(path, truth, georef)
     figure = depth_error_map(grid, truth, Path(path).with_name(Path(path).stem + "_error.png"),
