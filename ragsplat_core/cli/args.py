@@ -101,6 +101,17 @@ def dataset_dir(text: str) -> Path:
     return path.parent if path.name == "transforms.json" and path.is_file() else path
 
 
+def config_option(parser, config, name: str, *flags: str, more: str = "", **kw) -> None:
+    """The option for the field `name` of the dataclass `config` (flag --name-with-dashes unless `flags`), its
+    default and help the field's (metadata "help", then `more`); `kw` as argparse's (type, metavar, ...)."""
+    from dataclasses import MISSING, fields
+
+    f = next(f for f in fields(config) if f.name == name)
+    if f.default is not MISSING and kw.get("action") != "store_true" and not kw.get("required"):
+        kw["default"] = f.default
+    parser.add_argument(*(flags or ("--" + name.replace("_", "-"),)), help=f.metadata["help"] + more, **kw)
+
+
 # what a command may change of the bed
 CULLS = ("min_opacity", "max_scale_gsd", "max_scale_m", "despike_radius", "despike_tol", "fill_gap_cells")
 

@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 from ragsplat.cli.args import (
+    config_option,
     count,
     cull_arguments,
     cull_overrides,
@@ -38,8 +39,6 @@ def level_or_auto(text: str) -> float | str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from dataclasses import fields
-
     from ragsplat.rasterize_surfels import DEPTHS
     from ragsplat.survey.stages.base import STAGES, SurveyConfig
     from ragsplat.survey.stages.tiled import TILE_GSD
@@ -47,90 +46,43 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ragsplat.train.config import PRESETS, VARIANTS
     from ragsplat.train.defaults import JOBS, SURVEY_VARIANTS, survey_variant
 
-    default = {f.name: f.default for f in fields(SurveyConfig)}  # each option's default is its field's
+    def option(group, name, *flags, **kw):  # each option's default and help are its field's
+        config_option(group, SurveyConfig, name, *flags, **kw)
 
-    parser.add_argument("images", type=Path, metavar="IMAGES",
-                        help="the folder of the survey's photos (JPEG/PNG)")
+    option(parser, "images", "images", type=Path, metavar="IMAGES")
     frame = parser.add_mutually_exclusive_group()
-    frame.add_argument("--positions", type=Path, metavar="CSV",
-                       help="camera centres as the drone's RTK recorded them: CSV with header name,x,y,z "
-                            "(image file name; metres, z up, the frame of the water level and the products); "
-                            "without --positions or --gcp the positions come from the photos' EXIF GPS and "
-                            "DJI XMP")
-    frame.add_argument("--gcp", type=Path, metavar="CSV",
-                       help="ground control points instead: CSV with header name,x,y,z (as surveyed), with "
-                            "--gcp-pixels")
-    parser.add_argument("--gcp-pixels", type=Path, metavar="CSV",
-                        help="where each target is in the photos: CSV with header image,name,u,v (pixels, "
-                             "the image's top-left corner at 0,0)")
-    parser.add_argument("--gcp-sigma", type=positive_float, default=default["gcp_sigma"], metavar="M",
-                        help="ground control accuracy, each axis (m; default %(default)s)")
+    option(frame, "positions", type=Path, metavar="CSV")
+    option(frame, "gcp", type=Path, metavar="CSV")
+    option(parser, "gcp_pixels", type=Path, metavar="CSV")
+    option(parser, "gcp_sigma", type=positive_float, metavar="M")
     surface = parser.add_mutually_exclusive_group()
-    surface.add_argument("--water-level", type=level_or_auto, default=default["water_level"],
-                         metavar="Z|auto",
-                         help="height of the calm, flat water surface in the positions' frame (m), or auto "
-                              "(the default without --water-surface): the level estimated from the photos, "
-                              "in the adjustment through the water")
-    surface.add_argument("--water-surface", type=Path, metavar="CSV",
-                         help="points on the water's edge as measured along both banks (RTK): CSV with "
-                              "header x,y,z, the positions' frame; a river's sloping surface is fitted to "
-                              "them")
-    parser.add_argument("--out", required=True, type=out_dir, help="run directory (a rerun resumes)")
-    parser.add_argument("--n", type=refractive_index, default=default["n"],
-                        help="refractive index of the water (%(default)s)")
-    parser.add_argument("--crs", metavar="CRS",
-                        help="the positions' CRS for the products, e.g. EPSG:32633; with positions from the "
-                             "photos the projected CRS (metres) they are converted to (default: the UTM zone "
-                             "of their mean position)")
-    parser.add_argument("--masks", type=Path, metavar="DIR",
-                        help="masks named <image name>.png, zero where pixels are left out of training")
-    parser.add_argument("--lens", choices=["radial", "pinhole"], default=default["lens"],
-                        help="radial: the lens's radial distortion k1, k2 estimated in the adjustment "
-                             "through the water (one lens for all photos) and the photos undistorted for "
-                             "training; pinhole: none (photos already undistorted); default %(default)s")
-    parser.add_argument("--no-water-adjustment", action="store_true",
-                        help="keep the pinhole structure-from-motion poses (only for comparison: through "
-                             "water they are tilted and the bed comes out too deep)")
-    parser.add_argument("--rtk-sigma", type=positive_float, nargs=2, metavar=("H", "V"),
-                        help="RTK position accuracy, horizontal and vertical (m; default 0.02 0.03, or with "
-                             "positions from the photos each RTK-fixed photo's own reported accuracy)")
-    parser.add_argument("--gps-sigma", type=positive_float, nargs=2, default=default["gps_sigma"],
-                        metavar=("H", "V"),
-                        help="accuracy of positions from the photos without RTK fix (consumer GPS), "
-                             "horizontal and vertical (m; default %(default)s)")
-    parser.add_argument("--barometer-sigma", type=positive_float, default=default["barometer_sigma"],
-                        metavar="M",
-                        help="accuracy of those photos' heights where they come from the drone's barometer "
-                             "(DJI RelativeAltitude, above the take-off point) (m; default %(default)s)")
-    parser.add_argument("--variant", choices=list(VARIANTS),
-                        help=f"(default: the preset's best, {survey_variant(default['preset'])}; "
-                             + "; ".join(f"with --preset {p} {v}" for p, v in SURVEY_VARIANTS.items()) + ")")
-    parser.add_argument("--init", default=default["init"], choices=["triangulated", "refracted"],
-                        help="(default: %(default)s)")
-    parser.add_argument("--preset", default=default["preset"], choices=list(PRESETS),
-                        help="training preset (%(default)s; long for river-scale photos of a few cm a "
-                             "pixel, whose surfels' centre z the default takes for them)")
-    parser.add_argument("--iterations", type=positive_int, help="override the preset's iteration count")
-    parser.add_argument("--surfel-depth", choices=DEPTHS,
-                        help="a surfel sample's z in training: where the pixel's ray meets it (ray) or its "
-                             "centre's (centre, as gsplat does on a GPU); default: the preset's, the "
-                             f"centre's for photos coarser than {100 * COARSE_GSD:g} cm a pixel")
-    parser.add_argument("--seed", type=count, default=default["seed"],
-                        help="training seed (default %(default)s)")
-    parser.add_argument("--resolution", type=positive_float, default=default["resolution"], metavar="M",
-                        help="DEM cell (%(default)s m)")
-    parser.add_argument("--max-size", type=positive_int, metavar="PX",
-                        help="downscale images for training so their longer side is at most PX pixels "
-                             "(default: full size, or two pixels a DEM cell where that halves the pixels, or "
-                             "the largest that fits the memory)")
-    parser.add_argument("--stop-after", choices=STAGES[:3], metavar="STAGE",
-                        help="stop after this stage (sfm, georef or water: the poses without training)")
-    parser.add_argument("--tile-size", type=positive_float, metavar="M",
-                        help="split a larger survey into tiles of at most M metres a side, each trained on "
-                             f"its own and their DEMs merged (default: {TILE_GSD:,} ground sample "
-                             "distances; a survey that fits is one tile)")
-    parser.add_argument("--tile-overlap", type=non_negative_float, metavar="M",
-                        help="each tile's overlap with its neighbours (m; default: a tenth of the side)")
+    option(surface, "water_level", type=level_or_auto, metavar="Z|auto")
+    option(surface, "water_surface", type=Path, metavar="CSV")
+    option(parser, "out", required=True, type=out_dir)
+    option(parser, "n", type=refractive_index)
+    option(parser, "crs", metavar="CRS")
+    option(parser, "masks", type=Path, metavar="DIR")
+    option(parser, "lens", choices=["radial", "pinhole"])
+    option(parser, "no_water_adjustment", action="store_true")
+    option(parser, "rtk_sigma", type=positive_float, nargs=2, metavar=("H", "V"))
+    option(parser, "gps_sigma", type=positive_float, nargs=2, metavar=("H", "V"))
+    option(parser, "barometer_sigma", type=positive_float, metavar="M")
+    option(parser, "variant", choices=list(VARIANTS),
+           more=f" (default: the preset's best, {survey_variant(SurveyConfig.preset)}; "
+                + "; ".join(f"with --preset {p} {v}" for p, v in SURVEY_VARIANTS.items()) + ")")
+    option(parser, "init", choices=["triangulated", "refracted"])
+    option(parser, "preset", choices=list(PRESETS))
+    option(parser, "iterations", type=positive_int)
+    option(parser, "surfel_depth", choices=DEPTHS,
+           more=f"; default: the preset's, the centre's for photos coarser than {100 * COARSE_GSD:g} cm a "
+                "pixel")
+    option(parser, "seed", type=count)
+    option(parser, "resolution", type=positive_float, metavar="M")
+    option(parser, "max_size", type=positive_int, metavar="PX")
+    option(parser, "stop_after", choices=STAGES[:3], metavar="STAGE")
+    option(parser, "tile_size", type=positive_float, metavar="M",
+           more=f" (default: {TILE_GSD:,} ground sample distances; a survey that fits is one tile)")
+    option(parser, "tile_overlap", type=non_negative_float, metavar="M")
     parser.add_argument("--jobs", type=positive_int, metavar="N",
                         help=f"train the tiles on N local Dask workers at once, each with cores / N threads "
                              f"(default: one per tile up to {2 * JOBS - 1} tiles, the cores shared, else "

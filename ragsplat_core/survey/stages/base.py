@@ -33,36 +33,77 @@ ORTHOS = PRODUCTS[3:]  # the orthophotos, each tile's in its folder, merged into
 
 @dataclass(frozen=True)
 class SurveyConfig:
-    """A survey run's inputs and settings (`ragsplat survey --help` says each); written resolved to
+    """A survey run's inputs and settings, each field's help in its metadata (`ragsplat survey` takes its
+    options' defaults and help from the fields; `%(default)s` expands to the default); written resolved to
     RUN/survey.json."""
 
-    images: Path
-    out: Path
-    positions: Path | None = None
-    gcp: Path | None = None
-    gcp_pixels: Path | None = None
-    gcp_sigma: float = 0.01
-    water_level: float | str = AUTO
-    water_surface: Path | None = None
-    n: float = 1.33
-    crs: str | None = None
-    masks: Path | None = None
-    lens: str = "radial"
-    no_water_adjustment: bool = False
-    rtk_sigma: tuple[float, float] | None = None
-    gps_sigma: tuple[float, float] = CONSUMER_SIGMA
-    barometer_sigma: float = BAROMETER_SIGMA
-    variant: str | None = None  # None: the preset's (`train.defaults.survey_variant`)
-    init: str = INIT
-    preset: str = "small"
-    iterations: int | None = None
-    surfel_depth: str | None = None  # None: the preset's (`TrainConfig.surfel_depth`)
-    seed: int = 0
-    resolution: float = 0.05
-    max_size: int | None = None
-    stop_after: str | None = None
-    tile_size: float | None = None  # m; None: TILE_GSD ground sample distances
-    tile_overlap: float | None = None  # m; None: TILE_OVERLAP of the side
+    images: Path = field(metadata={"help": "the folder of the survey's photos (JPEG/PNG)"})
+    out: Path = field(metadata={"help": "run directory (a rerun resumes)"})
+    positions: Path | None = field(default=None, metadata={"help": (
+        "camera centres as the drone's RTK recorded them: CSV with header name,x,y,z (image file name; "
+        "metres, z up, the frame of the water level and the products); without --positions or --gcp the "
+        "positions come from the photos' EXIF GPS and DJI XMP")})
+    gcp: Path | None = field(default=None, metadata={"help": (
+        "ground control points instead: CSV with header name,x,y,z (as surveyed), with --gcp-pixels")})
+    gcp_pixels: Path | None = field(default=None, metadata={"help": (
+        "where each target is in the photos: CSV with header image,name,u,v (pixels, the image's top-left "
+        "corner at 0,0)")})
+    gcp_sigma: float = field(default=0.01, metadata={"help": (
+        "ground control accuracy, each axis (m; default %(default)s)")})
+    water_level: float | str = field(default=AUTO, metadata={"help": (
+        "height of the calm, flat water surface in the positions' frame (m), or auto (the default without "
+        "--water-surface): the level estimated from the photos, in the adjustment through the water")})
+    water_surface: Path | None = field(default=None, metadata={"help": (
+        "points on the water's edge as measured along both banks (RTK): CSV with header x,y,z, the "
+        "positions' frame; a river's sloping surface is fitted to them")})
+    n: float = field(default=1.33, metadata={"help": "refractive index of the water (%(default)s)"})
+    crs: str | None = field(default=None, metadata={"help": (
+        "the positions' CRS for the products, e.g. EPSG:32633; with positions from the photos the "
+        "projected CRS (metres) they are converted to (default: the UTM zone of their mean position)")})
+    masks: Path | None = field(default=None, metadata={"help": (
+        "masks named <image name>.png, zero where pixels are left out of training")})
+    lens: str = field(default="radial", metadata={"help": (
+        "radial: the lens's radial distortion k1, k2 estimated in the adjustment through the water (one "
+        "lens for all photos) and the photos undistorted for training; pinhole: none (photos already "
+        "undistorted); default %(default)s")})
+    no_water_adjustment: bool = field(default=False, metadata={"help": (
+        "keep the pinhole structure-from-motion poses (only for comparison: through water they are tilted "
+        "and the bed comes out too deep)")})
+    rtk_sigma: tuple[float, float] | None = field(default=None, metadata={"help": (
+        f"RTK position accuracy, horizontal and vertical (m; default {RTK_SIGMA[0]:g} {RTK_SIGMA[1]:g}, or "
+        "with positions from the photos each RTK-fixed photo's own reported accuracy)")})
+    gps_sigma: tuple[float, float] = field(default=CONSUMER_SIGMA, metadata={"help": (
+        "accuracy of positions from the photos without RTK fix (consumer GPS), horizontal and vertical (m; "
+        "default %(default)s)")})
+    barometer_sigma: float = field(default=BAROMETER_SIGMA, metadata={"help": (
+        "accuracy of those photos' heights where they come from the drone's barometer (DJI "
+        "RelativeAltitude, above the take-off point) (m; default %(default)s)")})
+    # None: the preset's (`train.defaults.survey_variant`)
+    variant: str | None = field(default=None, metadata={"help": "the variant trained"})
+    init: str = field(default=INIT, metadata={"help": "the training's start (default: %(default)s)"})
+    preset: str = field(default="small", metadata={"help": (
+        "training preset (%(default)s; long for river-scale photos of a few cm a pixel, whose surfels' "
+        "centre z the default takes for them)")})
+    iterations: int | None = field(default=None, metadata={"help": "override the preset's iteration count"})
+    # None: the preset's (`TrainConfig.surfel_depth`)
+    surfel_depth: str | None = field(default=None, metadata={"help": (
+        "a surfel sample's z in training: where the pixel's ray meets it (ray) or its centre's (centre, as "
+        "gsplat does on a GPU)")})
+    seed: int = field(default=0, metadata={"help": "training seed (default %(default)s)"})
+    resolution: float = field(default=0.05, metadata={"help": "DEM cell (%(default)s m)"})
+    max_size: int | None = field(default=None, metadata={"help": (
+        "downscale images for training so their longer side is at most PX pixels (default: full size, or "
+        "two pixels a DEM cell where that halves the pixels, or the largest that fits the memory)")})
+    stop_after: str | None = field(default=None, metadata={"help": (
+        "stop after this stage (sfm, georef or water: the poses without training)")})
+    # m; None: TILE_GSD ground sample distances
+    tile_size: float | None = field(default=None, metadata={"help": (
+        "split a larger survey into tiles of at most M metres a side, each trained on its own and their "
+        "DEMs merged")})
+    # m; None: TILE_OVERLAP of the side
+    tile_overlap: float | None = field(default=None, metadata={"help": (
+        "each tile's overlap with its neighbours (m; default: a tenth of the side)")})
+    # the uncertainty band's and the culls' options are `ragsplat export`'s too (`cli.args`)
     uncertainty: Path | None = None  # a fitted `uncertainty.UncertaintyModel` (JSON): the DEM's band 3
     level_sigma: float | None = None  # m; None: the adjustment's where it estimated the level, else 0
     n_sigma: float = 0.0
