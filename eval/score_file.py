@@ -381,9 +381,10 @@ def tvu_band(path: Path, frame: Frame, truth, band: int, heights: int = 1, depth
     z = read_dem(path, heights)[0]
     rows, cols = np.nonzero(np.isfinite(tvu) & np.isfinite(z))
     xy = frame.to_local(np.column_stack(transform * (cols + 0.5, rows + 0.5)))
-    z = truth.water.height(xy) - z[rows, cols] if depth else z[rows, cols] - frame.offset[2]
+    cells = np.column_stack([xy, z[rows, cols]])
+    cells[:, 2] = _heights(cells, truth, frame, depth)
     inside = in_region(xy, truth.region, tol=1e-6)  # a centre computed a rounding error past an edge
-    dz, true_depth = height_error(np.column_stack([xy, z])[inside], truth)
+    dz, true_depth = height_error(cells[inside], truth)
     wet = true_depth > 0
     return {"band": band, "checked_at": "the DEM's own cells",
             **tvu_band_summary(tvu[rows, cols][inside][wet], dz[wet], true_depth[wet])}

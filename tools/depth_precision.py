@@ -1,7 +1,7 @@
 """What a flight's geometry allows: the first-order precision of a submerged bed point triangulated through
 the water from a dataset's training cameras, at the true bed (the ground truth's wet nodes, a random sample).
 Each camera whose image holds the point's apparent position adds J^T J, J the 2 x 3 Jacobian of its pixel
-with respect to the true point (the exact refraction, `refraction.apparent_points_each`, then the pinhole);
+with respect to the true point (the exact refraction, `refraction.apparent_points`, then the pinhole);
 sigma_z is the square root of the inverse's z entry, per pixel of image noise on every observation. Photos
 trained at a smaller size scale it by the size's ratio (--scale 0.5: 600 px of 1 200).
 
@@ -22,14 +22,13 @@ def sigma_z(points: np.ndarray, cams: list, water, scale: float = 1.0) -> tuple[
     w2c), their images scaled by `scale`."""
     import torch
 
-    from ragsplat.refraction import apparent_points_each
+    from ragsplat.refraction import apparent_points
 
     X = torch.tensor(points, dtype=torch.float64, requires_grad=True)  # [N, 3]
     info, seen = torch.zeros(len(X), 3, 3, dtype=torch.float64), torch.zeros(len(X), dtype=torch.int64)
     for cam in cams:
         R, t = torch.tensor(cam.R, dtype=torch.float64), torch.tensor(cam.t, dtype=torch.float64)
-        centre = (-R.T @ t).expand(len(X), 3)
-        pc = apparent_points_each(X, centre, water) @ R.T + t  # [N, 3] camera frame
+        pc = apparent_points(X, torch.tensor(cam.camera_center), water) @ R.T + t  # [N, 3] camera frame
         uv = torch.stack([scale * (cam.fx * pc[:, 0] / pc[:, 2] + cam.cx),
                           scale * (cam.fy * pc[:, 1] / pc[:, 2] + cam.cy)], -1)  # [N, 2] scaled pixels
         # the points are independent, so the gradient of a pixel coordinate's sum is each point's own row

@@ -19,6 +19,7 @@ import argparse
 from pathlib import Path
 
 from ragsplat.cli.args import (
+    CULLS,
     cull_arguments,
     cull_overrides,
     dataset_dir,
@@ -27,7 +28,7 @@ from ragsplat.cli.args import (
     positive_int,
 )
 
-RUN_ONLY = ("data", "dem", "vgg16", "no_download")  # with the culls (`cull_overrides`)
+RUN_ONLY = ("data", "dem", "vgg16", "no_download")  # and the culls (`CULLS`)
 FILE_ONLY = ("band", "kind", "crs", "no_filter", "tvu_band", "references")
 
 
@@ -73,7 +74,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _given(args: argparse.Namespace, names: tuple[str, ...]) -> list[str]:
-    return ["--" + n.replace("_", "-") for n in names if getattr(args, n) not in (None, False)]
+    """The flags of `names` given on the command line (a value, or a switch turned on; a 0 is a value)."""
+    return ["--" + n.replace("_", "-") for n in names if getattr(args, n) is not None and getattr(args, n)
+            is not False]
 
 
 def file_table(result: dict) -> str:
@@ -110,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
         if wrong:
             raise ConfigError(f"{', '.join(wrong)}: for a bed file; {args.path} is a run's directory")
         return _score_run(args)
-    wrong = _given(args, RUN_ONLY) + ["--" + k.replace("_", "-") for k in cull_overrides(args)]
+    wrong = _given(args, RUN_ONLY + CULLS)
     if wrong:
         raise ConfigError(f"{', '.join(wrong)}: for a run's directory; {args.path} is a file")
     if args.truth is None:
