@@ -69,10 +69,10 @@ from ragsplat.eval.references import (
     start_extraction,
     track_grids,
 )
-from ragsplat.eval.report import jsonable, write_outputs
+from ragsplat.eval.report import write_outputs
 from ragsplat.eval.rows import cached_row, claim_out, row_dir, save_row, slug, start_row
 from ragsplat.fusion import FuseConfig
-from ragsplat.outputs import source_digest, versions, write_json
+from ragsplat.outputs import jsonable, source_digest, versions, write_json
 from ragsplat.surface import EXTRACT_TUNING, ExtractConfig, size_cap_m
 from ragsplat.train.config import FIELD_TUNING, INIT, LONG_TUNING, SURFELS, TUNING, VARIANTS, TrainConfig
 from ragsplat.train.defaults import JOBS

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ragsplat.dataset.layout import GT_GRID_STEP
-from ragsplat.outputs import atomic_path, write_bytes, write_json
+from ragsplat.outputs import atomic_path, jsonable, write_bytes, write_json
 from ragsplat.scoring import IHO_ORDERS
 from ragsplat.train.config import VARIANTS
 
@@ -526,14 +526,3 @@ def report_page(out: Path, header: dict, tables: list[tuple[str, str]]) -> Path:
                       tables=[(name, markdown_blocks(text)) for name, text in tables if text], maps=maps)
 
 
-def jsonable(x):
-    """Non-finite floats -> None (strict JSON), numpy scalars -> Python numbers."""
-    if isinstance(x, dict):
-        return {str(k): jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [jsonable(v) for v in x]
-    if isinstance(x, (np.floating, np.integer)):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x

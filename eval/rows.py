@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from ragsplat.dataset import layout, rasters
-from ragsplat.eval.report import depth_error_map, jsonable
+from ragsplat.eval.report import depth_error_map
 from ragsplat.fusion import height_mesh
-from ragsplat.outputs import claim, write_json
+from ragsplat.outputs import Stamp, changed, claim, jsonable, write_json
 
 
 def slug(name: str) -> str:
@@ -41,10 +41,9 @@ def cached_row(folder: Path, key: dict, log: Callable[[str], None], geotiffs: bo
     except (OSError, json.JSONDecodeError):
         log(f"{path}: unreadable; recomputing")
         return None
-    old, key = row.get("key") or {}, jsonable(key)  # compared as JSON reads it back (tuples are lists there)
-    if old != key:
-        changed = sorted(k for k in set(old) | set(key) if old.get(k) != key.get(k))
-        log(f"{path}: made with another {', '.join(changed)}; recomputing")
+    stale = changed(row.get("key"), key)
+    if stale:
+        log(f"{path}: made with another {', '.join(stale)}; recomputing")
         return None
     outputs = {}
     for suffix in ("", "_fused"):  # a row brought back without its bed arrays gets none
@@ -60,16 +59,11 @@ def cached_row(folder: Path, key: dict, log: Callable[[str], None], geotiffs: bo
 def start_row(folder: Path, key: dict) -> None:
     """Before training: a checkpoint left by a killed run resumes only under the same key."""
     claim(folder, "train run", legacy=("ckpt.pt", "key.json"))  # the trainer's folder, marked before key.json
-    kpath = folder / "key.json"
-    if kpath.is_file():
-        try:
-            same = json.loads(kpath.read_text()) == jsonable(key)
-        except (OSError, json.JSONDecodeError):
-            same = False
-        if not same:
-            for name in ("ckpt.pt", "curve.json", "row.json"):
-                (folder / name).unlink(missing_ok=True)
-    write_json(kpath, jsonable(key), indent=1)
+    stamp = Stamp(folder / "key.json")
+    if stamp.path.is_file() and not stamp.holds(key):
+        for name in ("ckpt.pt", "curve.json", "row.json"):
+            (folder / name).unlink(missing_ok=True)
+    stamp.write(key)
 
 
 def write_geotiff(folder: Path, suffix: str, bed: np.ndarray) -> dict:

@@ -1,5 +1,5 @@
-"""What every file ragsplat writes shares: atomic writes, the provenance stamp, and the marker that says
-an output directory is ragsplat's.
+"""What every file ragsplat writes shares: atomic writes, the provenance stamp, the marker that says
+an output directory is ragsplat's, and the key a kept product was made with.
 
 Every result is written to a temporary sibling and renamed into place, so a killed run never leaves a
 half-written file that looks finished. numpy only (no torch): the dataset generator uses it too.
@@ -8,7 +8,9 @@ half-written file that looks finished. numpy only (no torch): the dataset genera
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
+import math
 import os
 import platform
 import subprocess
@@ -104,8 +106,6 @@ def source_digest(*dirs: str) -> str:
     ("ragsplat_core", "eval/evaluate.py"): the code version of a result, also outside git and with uncommitted
     edits. Each file counts under its source-tree path, read where its package is installed, so a checkout
     and a wheel of the same sources agree (a folder's digest leaves out the packages a wheel nests in it)."""
-    import hashlib
-
     h = hashlib.sha256()
     for d in dirs:
         folder, _, rest = d.partition("/")
@@ -151,3 +151,65 @@ def claim(out: Path, kind: str, legacy: tuple[str, ...] = ()) -> None:
     if out.is_dir() and any(out.iterdir()) and not any(any(out.glob(g)) for g in legacy):
         raise OutputError(f"{out} is not empty and was not written by ragsplat; choose an empty or new --out")
     write_json(marker, {"kind": kind})
+
+
+# ---------------------------------------------------------------- what a kept product was made with
+# One scheme for every cache: the survey's stages (RUN/stages.json), each tile's model and bed, each
+# ablation row, a COLMAP import. A key is the product's inputs as JSON holds them: settings as they are,
+# files by their content (`dataset.layout.file_digest`, a dataset's `fingerprint`, the code's
+# `source_digest`), a product made from another by that one's key or its `digest`. It is written once the
+# product is whole, so a kill leaves no key that looks finished, and the product is kept only while its key
+# compares equal as JSON reads it back (tuples come back as lists).
+
+
+def jsonable(x):
+    """JSON's own types: non-finite floats -> None (strict JSON), numpy scalars -> Python numbers, tuples
+    -> lists, paths -> strings."""
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if isinstance(x, Path):
+        return str(x)
+    if hasattr(x, "item") and getattr(x, "ndim", None) == 0:  # a numpy scalar (numpy is not imported here)
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def digest(*parts) -> str:
+    """16 hex digits of sha256 over `parts` as JSON (what JSON cannot hold, as its text): a key short enough
+    to name a product by."""
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def changed(old, key) -> list[str]:
+    """What differs between the key a product was made with (`old`; None: none recorded) and `key`: the names
+    of the inputs that changed where both are dicts, else ["key"]; [] when they are the same."""
+    key = jsonable(key)
+    if old == key:
+        return []
+    if isinstance(old, dict) and isinstance(key, dict):
+        return sorted(k for k in set(old) | set(key) if old.get(k) != key.get(k))
+    return ["key"]
+
+
+class Stamp:
+    """The file beside a product that holds the key it was made with."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+
+    def read(self):
+        """The recorded key; None when there is none or it cannot be read (the product is made again)."""
+        try:
+            return json.loads(self.path.read_text())
+        except (OSError, ValueError):
+            return None
+
+    def holds(self, key) -> bool:
+        return not changed(self.read(), key)
+
+    def write(self, key) -> None:
+        write_json(self.path, jsonable(key), indent=1)

@@ -20,7 +20,7 @@ from ragsplat.dataset.load import load_dataset
 from ragsplat.eval import ablation, metrics
 from ragsplat.eval.evaluate import evaluate_geometry, score_grid
 from ragsplat.eval.references import oracle_grids
-from ragsplat.eval.report import jsonable
+from ragsplat.outputs import jsonable
 from ragsplat.runs import load_model, load_run, write_render
 
 KEYS = {"run", "data", "dataset_fingerprint", "dataset_seed", "variant", "preset", "seed", "harness_preset",

@@ -98,8 +98,7 @@ def main(argv: list[str]) -> int:
     if len(argv) not in (1, 2):
         print("usage: python -m tools.tune_references DATA [OUT.json] [--bed BED.npy]", file=sys.stderr)
         return 2
-    from ragsplat.eval.report import jsonable
-    from ragsplat.outputs import write_json
+    from ragsplat.outputs import jsonable, write_json
 
     result = tune(Path(argv[0]), bed)
     tin_rows, die_rows = result["tin_filter"]["rows"], result["dietrich"]["rows"]

@@ -122,9 +122,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _score_run(args: argparse.Namespace) -> int:
-    from ragsplat.eval.report import jsonable
     from ragsplat.eval.score_run import score_run, table
-    from ragsplat.outputs import write_json
+    from ragsplat.outputs import jsonable, write_json
 
     result = score_run(args.path, args.data, args.vgg16, download=not args.no_download, log=print,
                        truth=args.truth, dem=args.dem, extract=cull_overrides(args))
@@ -138,9 +137,9 @@ def _score_run(args: argparse.Namespace) -> int:
 
 
 def _score_file(args: argparse.Namespace) -> int:
-    from ragsplat.eval.report import depth_error_map, jsonable, survey_notes
+    from ragsplat.eval.report import depth_error_map, survey_notes
     from ragsplat.eval.score_file import score_file
-    from ragsplat.outputs import write_json
+    from ragsplat.outputs import jsonable, write_json
 
     result, grid, truth = score_file(args.path, args.truth, args.references, log=print, tvu=args.tvu_band,
                                      band=args.band or 1, depth=args.kind == "depth",

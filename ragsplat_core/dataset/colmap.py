@@ -31,7 +31,7 @@ import numpy as np
 from ragsplat.camera import Camera
 from ragsplat.dataset import layout
 from ragsplat.errors import DatasetError
-from ragsplat.outputs import locked, write_bytes, write_json
+from ragsplat.outputs import changed, locked, write_bytes, write_json
 
 IMPORT = "import.json"  # what was imported and how (the rerun check)
 POINTS = "points3D.npy"  # [P, 6] float64: x, y, z (local frame), r, g, b in [0, 1]
@@ -246,9 +246,10 @@ def _reuse(out: Path, key: dict) -> Imported:
     """The import already in `out`, where it was made from the inputs `key`; DatasetError naming what
     changed where it was not."""
     done = json.loads((out / IMPORT).read_text())
-    changed = [k for k in key if done.get("key", {}).get(k) != key[k]]  # an older import's "model": unread
-    if changed:
-        raise DatasetError(f"{out} holds an import of other inputs ({', '.join(changed)} changed); use "
+    old = done.get("key", {})
+    stale = changed({k: old.get(k) for k in key}, key)  # an older import's other entries ("model"): unread
+    if stale:
+        raise DatasetError(f"{out} holds an import of other inputs ({', '.join(stale)} changed); use "
                            "another --out")
     return Imported(out, done["images"], done["cameras"], done["points"], done["undistorted"],
                     layout.Georef(tuple(done["georef"]["offset"]), done["georef"]["crs"]), True)

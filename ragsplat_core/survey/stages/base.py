@@ -6,7 +6,6 @@ key is unchanged and whose outputs are there is skipped), the key digest and the
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import shutil
 import time
@@ -14,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ragsplat.dataset.exif import BAROMETER_SIGMA, CONSUMER_SIGMA
+from ragsplat.outputs import changed, write_json
 from ragsplat.train.config import INIT
 
 AUTO = "auto"
@@ -152,13 +152,9 @@ class _Silent(contextlib.nullcontext):
         pass
 
 
-def digest(*parts) -> str:
-    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
 class Stamps:
-    """RUN/stages.json: the key each finished stage was made with; a stage whose key is unchanged is
-    skipped."""
+    """RUN/stages.json: the key each finished stage was made with (`outputs.digest` of its inputs, the stage
+    before it by its key); a stage whose key is unchanged is skipped."""
 
     def __init__(self, run: Path):
         self.path = run / "stages.json"
@@ -166,12 +162,10 @@ class Stamps:
 
     def done(self, stage: str, key: str, *outputs: Path) -> bool:
         """Whether `stage` was made with `key` and its `outputs` are still there."""
-        return self.keys.get(stage) == key and all(Path(o).exists() for o in outputs)
+        return not changed(self.keys.get(stage), key) and all(Path(o).exists() for o in outputs)
 
     def mark(self, stage: str, key: str) -> None:
         """Records `stage` as made with `key`; a new key makes every later stage stale."""
-        from ragsplat.outputs import write_json
-
         if self.keys.get(stage) == key:
             return
         self.keys = {**{s: k for s, k in self.keys.items() if STAGES.index(s) < STAGES.index(stage)},
@@ -180,8 +174,6 @@ class Stamps:
 
     def clear(self, stage: str) -> None:
         """Records `stage` and every later one as not made (a rerun makes them again)."""
-        from ragsplat.outputs import write_json
-
         self.keys = {s: k for s, k in self.keys.items() if STAGES.index(s) < STAGES.index(stage)}
         write_json(self.path, self.keys)
 

@@ -16,7 +16,7 @@ if TYPE_CHECKING:
     from ragsplat.survey.stages.inputs import Survey
     from ragsplat.survey.stages.structure import Structure
 
-from ragsplat.survey.stages.base import digest
+from ragsplat.outputs import digest
 from ragsplat.survey.stages.inputs import check_above
 
 

@@ -14,7 +14,7 @@ if TYPE_CHECKING:
     from ragsplat.survey.stages.base import Progress, Stamps, SurveyConfig
     from ragsplat.survey.stages.water import Water
 
-from ragsplat.survey.stages.base import digest
+from ragsplat.outputs import digest
 from ragsplat.survey.stages.water import level_sigma
 
 

@@ -13,7 +13,8 @@ if TYPE_CHECKING:
     from ragsplat.survey.stages.base import Progress, Stamps
     from ragsplat.survey.stages.inputs import Survey
 
-from ragsplat.survey.stages.base import digest, fresh_folder
+from ragsplat.outputs import digest
+from ragsplat.survey.stages.base import fresh_folder
 
 
 @dataclass(frozen=True)

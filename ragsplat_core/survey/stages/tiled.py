@@ -18,7 +18,8 @@ if TYPE_CHECKING:
     from ragsplat.survey.stages.water import Water
     from ragsplat.survey.tiles import Tile
 
-from ragsplat.survey.stages.base import ORTHOS, Progress, _Silent, digest, fresh_folder, line
+from ragsplat.outputs import Stamp, digest
+from ragsplat.survey.stages.base import ORTHOS, Progress, _Silent, fresh_folder, line
 from ragsplat.survey.stages.products import bed_key, tvu_words, uncertainty_kwargs, uncertainty_settings
 from ragsplat.survey.stages.training import train_survey
 
@@ -109,7 +110,7 @@ class TileJob:
     """One tile's training and bed, as a task (`train_tile`): picklable, paths as strings."""
 
     cfg: SurveyConfig
-    folder: str  # RUN/tiles/K: model/ (the tile's photos only), data/, train/, log.txt, bed.npy, key.txt
+    folder: str  # RUN/tiles/K: model/ (the tile's photos only), data/, train/, log.txt, bed.npy, key.json
     water: dict  # the surface (`layout.water_json`) in the CRS
     bounds: tuple[float, float, float, float]  # the tile's outer box in the CRS (+-inf: open)
     key: str
@@ -135,8 +136,8 @@ def train_tile(job: TileJob) -> str:
     from ragsplat.water_surface import WaterSurface
 
     folder = Path(job.folder)
-    bed_path, stamp = folder / "bed.npy", folder / "key.txt"
-    if bed_path.is_file() and stamp.is_file() and stamp.read_text() == job.bed_key:
+    bed_path, stamp = folder / "bed.npy", Stamp(folder / "key.json")
+    if bed_path.is_file() and stamp.holds(job.bed_key):
         return str(bed_path)
     surface = WaterSurface(**{**job.water, "n": job.cfg.n})
     t0 = time.perf_counter()
@@ -153,7 +154,7 @@ def train_tile(job: TileJob) -> str:
                                       "cells": len(bed.grid), "pid": os.getpid()})
     with atomic_path(bed_path) as tmp, open(tmp, "wb") as f:
         np.save(f, bed.absolute() if bed.tvu95 is None else np.column_stack([bed.absolute(), bed.tvu95]))
-    stamp.write_text(job.bed_key)
+    stamp.write(job.bed_key)
     return str(bed_path)
 
 
@@ -191,15 +192,15 @@ def _tile_beds(cfg: SurveyConfig, progress: Progress, cluster, model: Path, surf
     jobs = []
     for tile in tiling:
         folder = cfg.out / "tiles" / str(tile.index)
-        sub = folder / "model"
-        if not ((sub / "key.txt").is_file() and (sub / "key.txt").read_text() == key):
+        sub, stamp = folder / "model", Stamp(folder / "model" / "key.json")
+        if not stamp.holds(key):
             rec = pycolmap.Reconstruction(str(model))  # the survey's, the tile's other photos left out
             keep = set(tile.photos)
             for i in list(rec.reg_image_ids()):
                 if rec.images[i].name not in keep:
                     rec.deregister_frame(rec.images[i].frame_id)
             rec.write_text(str(fresh_folder(sub)))
-            (sub / "key.txt").write_text(key)
+            stamp.write(key)
         jobs.append(TileJob(cfg, str(folder), layout.water_json(surface), tile.outer, key, band))
     beds: list = [None] * len(jobs)
 

@@ -24,7 +24,8 @@ if TYPE_CHECKING:
     from ragsplat.survey.stages.structure import Structure
     from ragsplat.water_surface import WaterSurface
 
-from ragsplat.survey.stages.base import AUTO, digest, fresh_folder, points_box
+from ragsplat.outputs import digest
+from ragsplat.survey.stages.base import AUTO, fresh_folder, points_box
 from ragsplat.survey.stages.inputs import describe_surface
 
 # With the level free, points that cross it as it moves make the cost slightly rough: on `small` (seed 7) it
