@@ -48,7 +48,7 @@ test: install
 
 # Renders the synthetic riverbed (resumes: finished views are skipped).
 dataset: install
-	$(VENV)/bin/ragsplat dataset --preset $(PRESET) --out $(DATA) --seed $(SEED) $(if $(SHARD),--shard $(SHARD))
+	$(VENV)/bin/ragsplat generate --preset $(PRESET) --out $(DATA) --seed $(SEED) $(if $(SHARD),--shard $(SHARD))
 
 # The main job: dataset if missing, every variant trained and evaluated, tables beside the paper's.
 ablation: dataset

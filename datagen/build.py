@@ -96,7 +96,7 @@ def _prepare_out(spec: SceneSpec, out: Path) -> None:
             raise OutputError(f"{out} holds a dataset made with another spec or seed "
                               f"(see {saved}); choose another --out")
     elif any(out.iterdir()):
-        raise OutputError(f"{out} is not empty and holds no ragsplat dataset; choose an empty or new --out")
+        raise OutputError(f"{out} is not empty and holds no ragsplat generate; choose an empty or new --out")
     (out / "scene").mkdir(exist_ok=True)
     (out / "gt").mkdir(exist_ok=True)
     write_json(saved, spec.to_dict())
@@ -421,7 +421,7 @@ def shares_dry_passes(a: SceneSpec, b: SceneSpec) -> bool:
 def _link_dry_passes(spec: SceneSpec, source: Path, out: Path, poses) -> None:
     saved = source / "scene" / "spec.json"
     if not saved.is_file():
-        raise OutputError(f"{source} holds no ragsplat dataset to share dry images from")
+        raise OutputError(f"{source} holds no ragsplat generate to share dry images from")
     if not shares_dry_passes(spec, SceneSpec.from_dict(json.loads(saved.read_text()))):
         raise OutputError(f"{source} holds another scene (see {saved}): its dry images are not this one's")
     pairs = [(layout.output_path(source, kind, p.name), layout.output_path(out, kind, p.name))

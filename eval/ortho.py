@@ -32,12 +32,12 @@ SHIFT_BLOCK = 32
 
 def read_truth(root: Path) -> tuple[np.ndarray, float, float, float]:
     """(image [H, W, 3] float in [0, 1], step, west, north) of a dataset's orthographic truth. Raises
-    DatasetError where it has none (`ragsplat dataset` renders it; a dataset made before renders it on a
+    DatasetError where it has none (`ragsplat generate` renders it; a dataset made before renders it on a
     rerun)."""
     root = Path(root)
     png, world = root / layout.GT_ORTHO, root / layout.GT_ORTHO_WORLD
     if not png.is_file() or not world.is_file():
-        raise DatasetError(f"{root}: no orthographic truth ({layout.GT_ORTHO}); `ragsplat dataset` with the "
+        raise DatasetError(f"{root}: no orthographic truth ({layout.GT_ORTHO}); `ragsplat generate` with the "
                            "dataset's preset and seed renders it (one view)")
     step, west, north = rasters.read_world_file(world)
     return layout.read_png(png).astype(np.float64) / 255.0, step, west, north

@@ -1,5 +1,5 @@
 """The turbidity sweep's report: one reach rendered at several turbidities (the field water's
-coefficients scaled, `ragsplat dataset --turbidity T`), each level's ablation run as `ragsplat ablation` runs
+coefficients scaled, `ragsplat generate --turbidity T`), each level's ablation run as `ragsplat ablation` runs
 it (`ragsplat sweep` does both), then, from each level's results.json, the method's rows and the best
 reference's against the water's Secchi-like depth (`datagen.conditions.secchi_depth`, green channel, the one
 a Secchi disk is read in): sweep.json, sweep.md and sweep.png.

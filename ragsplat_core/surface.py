@@ -33,7 +33,7 @@ The evaluation scores the grid with `ragsplat.scoring.geometry_metrics` (`ragspl
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import torch
@@ -53,19 +53,27 @@ EXTRACT_TUNING = record("extract")
 class ExtractConfig:
     # the paper's 0.1 keeps faint Gaussians floating off the bed: 0.7, the best F1@3% that keeps 85 % of the
     # wet cells (tuning/extract.json, "min_opacity" and "both")
-    min_opacity: float = 0.7
+    min_opacity: float = field(default=0.7, metadata={"help": (
+        "only Gaussians at least this opaque make the bed (default: the evaluation's, chosen on the "
+        "development reach; lower it for a short or sparse run)")})
     # largest standard deviation, in ground sample distances: a Gaussian many pixels wide is not what the
     # views resolve and cannot place one cell's height, yet volume weighting gives it the most samples.
     # 6 as chosen with the opacity (tuning/extract.json, "both"; the paper: no limit). In pixels, not cells:
     # the DEM's cell is the user's choice.
-    max_scale_gsd: float = 6.0
+    max_scale_gsd: float = field(default=6.0, metadata={"help": (
+        "only Gaussians whose largest standard deviation is at most K ground sample distances of the views "
+        "(at the water surface) make the bed (default: the evaluation's, chosen on the development reach; "
+        "inf: no limit, needed for a dry scene)")})
     # ...and at most this many metres, but never below `RELIEF_FLOOR_GSD` pixels: a flat surfel wider than
     # the bed's relief cannot follow it, however coarse the pixels. 6 pixels are 14 cm on `small` (2.33 cm a
     # pixel, so this changes nothing there); on the long reach's development stretch (4.66 cm) the same 14
     # cm, 3 pixels, was the best of 2-12 pixels, and 6 pixels left a speckle of wide surfels 10-15 cm too
     # deep (tuning/extract.json, "long"). inf: the pixels alone. That is for surfels trained with the ray's z;
     # a run's extraction takes its own training's (`size_cap_m`).
-    max_scale_m: float = 0.14
+    max_scale_m: float = field(default=0.14, metadata={"help": (
+        "and at most M metres, where that is at least 3 ground sample distances (default: by the run's "
+        "surfel depth, chosen on the long reach's development stretch: 0.14 with the ray's, inf with the "
+        "centre's; inf: the ground sample distances alone)")})
     gsd: float | None = None  # metres per pixel (`Dataset.gsd`); needed when max_scale_gsd is finite
     n_samples: int = 200_000
     sigma_cut: float = 2.0
@@ -79,10 +87,16 @@ class ExtractConfig:
     # the least RMSE that takes spikes, not bed (tuning/extract.json, "despike"); the disc needs
     # `despike_min_neighbours` occupied cells to judge (a DEM cell of 1 m has only 4 within 1 m: nothing is
     # dropped there). despike_tol = inf: no despiking.
-    despike_radius: float = 1.0  # metres
-    despike_tol: float = 0.3  # metres
+    despike_radius: float = field(default=1.0, metadata={"help": (
+        "a DEM cell is compared with the median of the cells within M metres (default: the evaluation's, "
+        "chosen on the development reach)")})
+    despike_tol: float = field(default=0.3, metadata={"help": (
+        "and dropped when more than M metres from it (default: the evaluation's; inf: keep every cell)")})
     despike_min_neighbours: int = 8
-    fill_gap_cells: float = 1.0  # step 6: the best F1@1% (tuning/extract.json, "fill"); 0: off
+    # step 6: the best F1@1% (tuning/extract.json, "fill")
+    fill_gap_cells: float = field(default=1.0, metadata={"help": (
+        "fill the holes: an empty cell at most K cells from a filled one gets the linear interpolation of "
+        "the filled cells (default: the evaluation's, 0: none)")})
     seed: int = 0
 
     def to_dict(self) -> dict:

@@ -1,4 +1,4 @@
-"""End to end at smoke scale: `ragsplat dataset` writes the contracted layout; dry z-depth unprojects onto
+"""End to end at smoke scale: `ragsplat generate` writes the contracted layout; dry z-depth unprojects onto
 the exported bed mesh; reruns resume, shards split and merge, bad output directories are refused."""
 
 import json
@@ -20,7 +20,7 @@ pytestmark = pytest.mark.blender
 @pytest.fixture(scope="module")
 def smoke(tmp_path_factory):
     out = tmp_path_factory.mktemp("data") / "smoke"
-    assert main(["dataset", "--preset", "smoke", "--out", str(out), "--quiet"]) == 0
+    assert main(["generate", "--preset", "smoke", "--out", str(out), "--quiet"]) == 0
     return out
 
 
@@ -170,7 +170,7 @@ def test_rerun_resumes_and_shards_merge(smoke, tmp_path):
     copy = tmp_path / "copy"
     shutil.copytree(smoke, copy)
     before = {p: p.stat().st_mtime_ns for p in copy.rglob("*.png")}
-    assert main(["dataset", "--preset", "smoke", "--out", str(copy), "--quiet"]) == 0
+    assert main(["generate", "--preset", "smoke", "--out", str(copy), "--quiet"]) == 0
     assert {p: p.stat().st_mtime_ns for p in copy.rglob("*.png")} == before  # nothing re-rendered
     original = (copy / "transforms.json").read_text()
     # Lose two views and the merged metadata (as after a kill); shard 0/2 owns view 2, shard 1/2 view 1.
@@ -179,11 +179,11 @@ def test_rerun_resumes_and_shards_merge(smoke, tmp_path):
                   copy / "gt" / "depth" / f"{name}.exr"):
             p.unlink()
     (copy / "transforms.json").unlink()
-    assert main(["dataset", "--preset", "smoke", "--out", str(copy), "--shard", "0/2", "--quiet"]) == 0
+    assert main(["generate", "--preset", "smoke", "--out", str(copy), "--shard", "0/2", "--quiet"]) == 0
     assert ((copy / "images" / "wet" / "0002.png").exists()
             and not (copy / "images" / "wet" / "0001.png").exists())
     assert not (copy / "transforms.json").exists()  # incomplete: no merge yet
-    assert main(["dataset", "--preset", "smoke", "--out", str(copy), "--shard", "1/2", "--quiet"]) == 0
+    assert main(["generate", "--preset", "smoke", "--out", str(copy), "--shard", "1/2", "--quiet"]) == 0
     assert (copy / "transforms.json").read_text() == original
     for name in ("0001", "0002"):  # re-rendered bit-identically (same renderer, seed and machine as `smoke`)
         assert (copy / "images" / "wet" / f"{name}.png").read_bytes() == \
@@ -197,7 +197,7 @@ def test_rerun_renders_damaged_files_again(smoke, tmp_path, capsys):
     png, exr = copy / "images" / "wet" / "0003.png", copy / "gt" / "depth" / "0004.exr"
     png.write_bytes(png.read_bytes()[:100])  # truncated
     exr.write_bytes(b"\0" * exr.stat().st_size)  # same size, garbage: only the manifest's hash can tell
-    assert main(["dataset", "--preset", "smoke", "--out", str(copy), "--quiet"]) == 0
+    assert main(["generate", "--preset", "smoke", "--out", str(copy), "--quiet"]) == 0
     assert "2 damaged files rendered again" in capsys.readouterr().out
     for p in (png, exr):  # the same renderer, seed and machine as `smoke`: the same bytes
         assert p.read_bytes() == (smoke / p.relative_to(copy)).read_bytes()
@@ -209,19 +209,19 @@ def test_refuses_foreign_or_mismatched_output(smoke, tmp_path, capsys):
     foreign = tmp_path / "foreign"
     foreign.mkdir()
     (foreign / "keep.txt").write_text("mine")
-    assert main(["dataset", "--preset", "smoke", "--out", str(foreign)]) == 2
+    assert main(["generate", "--preset", "smoke", "--out", str(foreign)]) == 2
     assert [p.name for p in foreign.iterdir()] == ["keep.txt"]
-    assert main(["dataset", "--preset", "smoke", "--seed", "5", "--out", str(smoke)]) == 2
+    assert main(["generate", "--preset", "smoke", "--seed", "5", "--out", str(smoke)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 2 and all(line.startswith("ragsplat dataset: error:") for line in err)
+    assert len(err) == 2 and all(line.startswith("ragsplat generate: error:") for line in err)
     with pytest.raises(SystemExit) as bad_shard:  # argparse: usage and exit 2
-        main(["dataset", "--preset", "smoke", "--out", str(tmp_path / "x"), "--shard", "2/2"])
+        main(["generate", "--preset", "smoke", "--out", str(tmp_path / "x"), "--shard", "2/2"])
     assert bad_shard.value.code == 2
 
 
 def test_dry_scene_renders_only_dry_passes(tmp_path):
     out = tmp_path / "dry"
-    assert main(["dataset", "--preset", "smoke", "--no-water", "--out", str(out), "--quiet"]) == 0
+    assert main(["generate", "--preset", "smoke", "--no-water", "--out", str(out), "--quiet"]) == 0
     assert not (out / "images" / "wet").exists()
     tf = json.loads((out / "transforms.json").read_text())
     assert tf["water"] is None and all(f["file_path"].startswith("images/dry/") for f in tf["frames"])
@@ -231,7 +231,7 @@ def test_dry_scene_renders_only_dry_passes(tmp_path):
 def test_radiance_scale_switch(tmp_path):
     out = tmp_path / "bright"
     # One view (shard 0 of 17) is enough: without the 1/n^2 colour, wet and dry are about equally bright.
-    assert main(["dataset", "--preset", "smoke", "--no-radiance-scale", "--shard", "0/17", "--out", str(out),
+    assert main(["generate", "--preset", "smoke", "--no-radiance-scale", "--shard", "0/17", "--out", str(out),
                  "--quiet"]) == 0
     wet = cv2.imread(str(out / "images" / "wet" / "0000.png")).astype(float).mean()
     dry = cv2.imread(str(out / "images" / "dry" / "0000.png")).astype(float).mean()
@@ -249,7 +249,7 @@ def test_sigint_keeps_only_whole_files_and_the_rerun_completes(smoke, tmp_path):
     # A shell's background job ignores SIGINT and children inherit that: the command gets Python's default
     start = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
              "sys.argv[0] = 'ragsplat'; runpy.run_module('ragsplat.cli.main', run_name='__main__')")
-    cmd = [sys.executable, "-c", start, "dataset", "--preset", "smoke", "--out", str(out), "--quiet"]
+    cmd = [sys.executable, "-c", start, "generate", "--preset", "smoke", "--out", str(out), "--quiet"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120
     # the first finished image: most of the render is still ahead (a later signal can miss a fast render)
@@ -258,11 +258,11 @@ def test_sigint_keeps_only_whole_files_and_the_rerun_completes(smoke, tmp_path):
     proc.send_signal(signal.SIGINT)
     err = proc.communicate(timeout=120)[1].strip().splitlines()
     assert proc.returncode == 130 and len(err) == 1, err
-    assert (err[0] == "ragsplat dataset: interrupted; finished files are kept, rerun the same command to "
+    assert (err[0] == "ragsplat generate: interrupted; finished files are kept, rerun the same command to "
                       "resume")
     assert (not list(out.rglob("*.tmp")) and not list(out.rglob("*.render"))
             and not list(out.glob("scene/job.*")))
-    assert main(["dataset", "--preset", "smoke", "--out", str(out), "--quiet"]) == 0
+    assert main(["generate", "--preset", "smoke", "--out", str(out), "--quiet"]) == 0
     for p in out.glob("images/*/*.png"):
         assert p.read_bytes() == (smoke / p.relative_to(out)).read_bytes()
 
@@ -277,7 +277,7 @@ def test_a_killed_renderer_and_a_full_disk_are_one_line_and_the_rerun_completes(
     from ragsplat.datagen import build
 
     out = tmp_path / "data"
-    argv = ["dataset", "--preset", "smoke", "--out", str(out), "--quiet"]
+    argv = ["generate", "--preset", "smoke", "--out", str(out), "--quiet"]
     real_popen = subprocess.Popen
 
     def oom_killed(cmd, **kw):  # the Blender child dies as the kernel's OOM killer would kill it
@@ -348,7 +348,7 @@ def test_a_rerun_that_renders_nothing_keeps_the_fingerprint(smoke, tmp_path, cap
     scene["versions"]["git_commit"] = "an older commit"  # rendered by another version of the code
     (out / "scene.json").write_text(json.dumps(scene, indent=2) + "\n")
     before = fingerprint(out)
-    assert main(["dataset", "--preset", "smoke", "--out", str(out), "--quiet"]) == 0
+    assert main(["generate", "--preset", "smoke", "--out", str(out), "--quiet"]) == 0
     assert "nothing to render" in capsys.readouterr().out
     assert fingerprint(out) == before  # the rows keyed on it stay valid
     assert json.loads((out / "scene.json").read_text())["versions"]["git_commit"] == "an older commit"
@@ -358,7 +358,7 @@ def test_smoke_long_renders_a_survey_along_the_reach(tmp_path):
     """The strips flight over a sloping reach, without the lens photos (`RenderSpec.lens`): complete, and its
     survey holds the training photos, the edge along both banks and no images-lens/ (about 20 s)."""
     out = tmp_path / "smoke-long"
-    assert main(["dataset", "--preset", "smoke-long", "--out", str(out), "--quiet"]) == 0
+    assert main(["generate", "--preset", "smoke-long", "--out", str(out), "--quiet"]) == 0
     tf = json.loads((out / "transforms.json").read_text())
     scene = json.loads((out / "scene.json").read_text())
     train = [f for f in tf["frames"] if f["split"] == "train"]
@@ -383,7 +383,7 @@ def test_a_stretch_is_a_small_dataset_that_the_whole_one_resumes_from(tmp_path, 
     from ragsplat.datagen.spec import preset
 
     out = tmp_path / "smoke-long"
-    argv = ["dataset", "--preset", "smoke-long", "--out", str(out), "--quiet"]
+    argv = ["generate", "--preset", "smoke-long", "--out", str(out), "--quiet"]
     assert main([*argv, "--stretch", "5", "100"]) == 2 and not out.exists()  # beyond the evaluated reach
     assert main([*argv, "--stretch", "-2", "2"]) == 0
     root = out / "stretch_-2_2"

@@ -22,7 +22,7 @@ SLOPE = (-0.01, 0.0)
 @pytest.fixture(scope="module")
 def smoke_slope(tmp_path_factory):
     out = tmp_path_factory.mktemp("data") / "smoke-slope"
-    assert main(["dataset", "--preset", "smoke-slope", "--out", str(out), "--quiet"]) == 0
+    assert main(["generate", "--preset", "smoke-slope", "--out", str(out), "--quiet"]) == 0
     return out
 
 

@@ -33,7 +33,7 @@ def test_a_source_of_another_scene_is_refused(tmp_path):
     write_json(other / "scene" / "spec.json", level_spec("smoke-field", 1, 0.0).to_dict())
     with pytest.raises(OutputError, match="another scene"):
         generate(level_spec("smoke-field", 0, 2.0), tmp_path / "level", share=other)
-    with pytest.raises(OutputError, match="no ragsplat dataset"):
+    with pytest.raises(OutputError, match="no ragsplat generate"):
         generate(level_spec("smoke-field", 0, 2.0), tmp_path / "level2", share=tmp_path / "none")
 
 

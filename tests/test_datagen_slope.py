@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from ragsplat.cli import dataset as cli
+from ragsplat.cli import generate as cli
 from ragsplat.datagen import flight
 from ragsplat.datagen.assets import write_bed_assets
 from ragsplat.datagen.bed import make_bed, world_waterline

@@ -216,7 +216,7 @@ def test_code_names_no_issue():
 
 
 def test_data_contract_and_generator_import_without_torch():
-    code = ("import sys; import ragsplat.datagen.build, ragsplat.cli.dataset, ragsplat.dataset.layout, "
+    code = ("import sys; import ragsplat.datagen.build, ragsplat.cli.generate, ragsplat.dataset.layout, "
             "ragsplat.datagen.job; "
             "import ragsplat; ragsplat.dataset; "
             "assert 'torch' not in sys.modules, 'torch was imported'")
@@ -251,7 +251,7 @@ def test_version_and_command_order(capsys):
     with pytest.raises(SystemExit) as done:
         main(["--version"])
     assert done.value.code == 0 and capsys.readouterr().out.startswith("ragsplat ")
-    assert list(COMMANDS) == ["dataset", "train", "render", "score", "ablation", "sweep", "export",
+    assert list(COMMANDS) == ["generate", "train", "render", "score", "ablation", "sweep", "export",
                              "survey", "stability", "bench"]
 
 
@@ -270,7 +270,7 @@ def test_library_error_is_one_line_and_exit_2(tmp_path, capsys):
     (["bench", "train-step", "--counts", "0"], "--counts"),
     (["bench", "train-step", "--steps", "0"], "--steps"),
     (["stability", "--cases", "0"], "--cases"),
-    (["dataset", "--out", "d", "--seed", "-5"], "--seed"),
+    (["generate", "--out", "d", "--seed", "-5"], "--seed"),
     (["train", "--data", "d", "--out", "r", "--iterations", "0"], "--iterations"),
     (["train", "--data", "d", "--out", "r", "--init-depth", "1e400"], "--init-depth"),
     (["train", "--data", "d", "--out", "r", "--backend", "tpu"], "--backend"),

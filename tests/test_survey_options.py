@@ -31,3 +31,33 @@ def test_no_option_builds_the_config_s_defaults():
     args = parser().parse_args(["photos", "--out", "run"])
     given = {f.name: getattr(args, f.name) for f in fields(SurveyConfig) if f.name != "culls"}
     assert SurveyConfig(**given) == SurveyConfig(images=Path("photos"), out=Path("run"))
+
+
+def test_train_and_the_culls_take_their_help_from_their_configs(tmp_path):
+    """`ragsplat train`'s options for TrainConfig's fields and every command's culls (ExtractConfig's): the
+    field's help; unset, None, so the preset's (the run's, the evaluation's) value holds."""
+    from ragsplat.cli import train
+    from ragsplat.cli.args import CULLS, cull_arguments
+    from ragsplat.surface import ExtractConfig
+    from ragsplat.train.config import TrainConfig
+
+    p = argparse.ArgumentParser(prog="ragsplat train")
+    train.add_arguments(p)
+    actions = {a.dest: a for a in p._actions}
+    helped = [f for f in fields(TrainConfig) if "help" in f.metadata]
+    assert len(helped) >= 17
+    for f in helped:
+        assert actions[f.name].help.startswith(f.metadata["help"]), f.name
+    args = p.parse_args(["--data", str(tmp_path), "--out", str(tmp_path / "run")])
+    given = {f.name for f in helped if getattr(args, f.name) is not None}
+    assert given == {"variant", "preset", "seed"}  # the rest: the preset's
+    assert (args.variant, args.preset, args.seed) == (TrainConfig.variant, TrainConfig.preset, 0)
+    assert p.parse_args(["--data", str(tmp_path), "--out", "r", "--n", "1.34"]).water_n == 1.34
+
+    p = argparse.ArgumentParser()
+    cull_arguments(p)
+    actions = {a.dest: a for a in p._actions}
+    for f in fields(ExtractConfig):
+        assert (f.name in CULLS) == ("help" in f.metadata), f.name
+        if f.name in CULLS:
+            assert actions[f.name].help == f.metadata["help"] and actions[f.name].default is None

@@ -1,6 +1,6 @@
 """The null-model table of the README: `python -m tools.nulls [PRESET:SEEDS ...]` (e.g. small:0,1,2).
 
-The same scores `ragsplat dataset` writes into scene.json (`build.null_models`), computed from the
+The same scores `ragsplat generate` writes into scene.json (`build.null_models`), computed from the
 heightfield alone, without rendering: a flat plane at the median height of the submerged ground truth
 (and at its mean depth), F1 in % at 1 % / 3 % of the maximum depth and at 10 / 30 cm.
 """

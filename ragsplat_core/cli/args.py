@@ -103,44 +103,31 @@ def dataset_dir(text: str) -> Path:
 
 def config_option(parser, config, name: str, *flags: str, more: str = "", **kw) -> None:
     """The option for the field `name` of the dataclass `config` (flag --name-with-dashes unless `flags`), its
-    default and help the field's (metadata "help", then `more`); `kw` as argparse's (type, metavar, ...)."""
+    help the field's (metadata "help", then `more`), its default the field's unless `kw` gives one; `kw` as
+    argparse's (type, metavar, ...)."""
     from dataclasses import MISSING, fields
 
     f = next(f for f in fields(config) if f.name == name)
     if f.default is not MISSING and kw.get("action") != "store_true" and not kw.get("required"):
-        kw["default"] = f.default
+        kw.setdefault("default", f.default)
+    if flags and flags[0].startswith("-"):  # an option under another flag still sets the field
+        kw.setdefault("dest", name)
     parser.add_argument(*(flags or ("--" + name.replace("_", "-"),)), help=f.metadata["help"] + more, **kw)
 
 
-# what a command may change of the bed
-CULLS = ("min_opacity", "max_scale_gsd", "max_scale_m", "despike_radius", "despike_tol", "fill_gap_cells")
+# what a command may change of the bed: each `ExtractConfig` field, its argument type and metavar
+CULLS = {"min_opacity": (positive_float, "A"), "max_scale_gsd": (limit, "K"), "max_scale_m": (limit, "M"),
+         "despike_radius": (positive_float, "M"), "despike_tol": (limit, "M"),
+         "fill_gap_cells": (non_negative_float, "K")}
 
 
 def cull_arguments(parser: argparse.ArgumentParser) -> None:
-    """--min-opacity, --max-scale-gsd, --max-scale-m, --despike-radius, --despike-tol and --fill-gap-cells:
-    the volume bed's culls and hole filling (`ExtractConfig`); read them back with `cull_overrides`."""
-    parser.add_argument("--min-opacity", type=positive_float, metavar="A",
-                        help="only Gaussians at least this opaque make the bed (default: the evaluation's, "
-                             "chosen on the development reach; lower it for a short or sparse run)")
-    parser.add_argument("--max-scale-gsd", type=limit, metavar="K",
-                        help="only Gaussians whose largest standard deviation is at most K ground sample "
-                             "distances of the views (at the water surface) make the bed (default: the "
-                             "evaluation's, chosen on the development reach; inf: no limit, needed for a dry "
-                             "scene)")
-    parser.add_argument("--max-scale-m", type=limit, metavar="M",
-                        help="and at most M metres, where that is at least 3 ground sample distances "
-                             "(default: by the run's surfel depth, chosen on the long reach's development "
-                             "stretch: 0.14 with the ray's, inf with the centre's; inf: the ground sample "
-                             "distances alone)")
-    parser.add_argument("--despike-radius", type=positive_float, metavar="M",
-                        help="a DEM cell is compared with the median of the cells within M metres (default: "
-                             "the evaluation's, chosen on the development reach)")
-    parser.add_argument("--despike-tol", type=limit, metavar="M",
-                        help="and dropped when more than M metres from it (default: the evaluation's; inf: "
-                             "keep every cell)")
-    parser.add_argument("--fill-gap-cells", type=non_negative_float, metavar="K",
-                        help="fill the holes: an empty cell at most K cells from a filled one gets the "
-                             "linear interpolation of the filled cells (default: the evaluation's, 0: none)")
+    """An option for each of `CULLS`, help from its field (unset: the run's or the evaluation's value); read
+    them back with `cull_overrides`."""
+    from ragsplat.surface import ExtractConfig
+
+    for name, (kind, metavar) in CULLS.items():
+        config_option(parser, ExtractConfig, name, type=kind, metavar=metavar, default=None)
 
 
 def cull_overrides(args: argparse.Namespace) -> dict:

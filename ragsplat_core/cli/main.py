@@ -19,7 +19,7 @@ from ragsplat.threads import openmp_waits
 # name -> (its module, one line of help), in workflow order: make data, train, look at and score a run, the
 # ablation, export; then the diagnostics. Every command is a module of this package (`cli/__init__.py`).
 COMMANDS: dict[str, tuple[str, str]] = {
-    "dataset": ("ragsplat.cli.dataset",
+    "generate": ("ragsplat.cli.generate",
                 "render the synthetic riverbed dataset (Blender Cycles, resumable, shardable)"),
     "train": ("ragsplat.cli.train", "train one RA-GS variant on a dataset directory (resumable)"),
     "render": ("ragsplat.cli.render",

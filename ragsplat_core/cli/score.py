@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
         if wrong:
             raise ConfigError(f"{', '.join(wrong)}: for a bed file; {args.path} is a run's directory")
         return _score_run(args)
-    wrong = _given(args, RUN_ONLY + CULLS)
+    wrong = _given(args, RUN_ONLY + tuple(CULLS))
     if wrong:
         raise ConfigError(f"{', '.join(wrong)}: for a run's directory; {args.path} is a file")
     if args.truth is None:

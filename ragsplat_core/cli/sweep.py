@@ -1,6 +1,6 @@
 """`ragsplat sweep --data DIR --out DIR [--turbidity T ...] [--preset small-field] [--seed S] [--variants ...]
 [--seeds S ...] [--jobs N | --scheduler ADDRESS]`: the turbidity sweep. Each level is the dataset of
-`ragsplat dataset --preset PRESET --seed S --turbidity T --out DIR/turbidity-T` less its lens photos
+`ragsplat generate --preset PRESET --seed S --turbidity T --out DIR/turbidity-T` less its lens photos
 (rendered once, resumable; the dry and depth images, which never see the water, rendered at the first level
 only and linked into the others) and `ragsplat ablation --data DIR/turbidity-T --out OUT/turbidity-T` (its
 rows and every reference, resumable), then
@@ -55,7 +55,7 @@ def level_spec(name: str, seed: int, turbidity: float):
 
 
 def run(args: argparse.Namespace) -> int:
-    from ragsplat.cli.dataset import render_progress
+    from ragsplat.cli.generate import render_progress
     from ragsplat.cli.main import command
     from ragsplat.datagen.build import generate
     from ragsplat.eval.sweep import level_name, report

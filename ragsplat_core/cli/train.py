@@ -13,9 +13,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import fields
 from pathlib import Path
 
 from ragsplat.cli.args import (
+    config_option,
     count,
     dataset_dir,
     finite_float,
@@ -30,7 +32,7 @@ from ragsplat.errors import TrainingDiverged
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ragsplat.rasterize import BACKENDS
     from ragsplat.rasterize_surfels import DEPTHS
-    from ragsplat.train.config import INITS, PRESETS, VARIANTS
+    from ragsplat.train.config import INITS, PRESETS, VARIANTS, TrainConfig
 
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--data", type=dataset_dir, help="dataset directory (transforms.json, images/)")
@@ -44,45 +46,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     survey.add_argument("--crs", metavar="CRS", help="the model's CRS for the products, e.g. EPSG:32633")
     survey.add_argument("--max-size", type=positive_int, metavar="PX",
                         help="downscale images so their longer side is at most PX pixels")
-    parser.add_argument("--variant", default="full", choices=list(VARIANTS), help="refraction correction")
+    def option(name, *flags, **kw):  # each option's help is its field's; unset: the preset's value
+        config_option(parser, TrainConfig, name, *flags, **{"default": None, **kw})
+
+    option("variant", choices=list(VARIANTS), default=TrainConfig.variant)
     parser.add_argument("--out", required=True, type=out_dir,
                         help="output directory (resumes if it holds a checkpoint)")
-    parser.add_argument("--preset", default="small", choices=list(PRESETS), help="training preset")
-    parser.add_argument("--seed", type=count, default=0, help="random seed (written into config.json)")
-    parser.add_argument("--iterations", type=positive_int, help="override the preset's iteration count")
-    parser.add_argument("--surfel-depth", choices=DEPTHS,
-                        help="a surfel sample's z: where the pixel's ray meets it (ray, the preset's) or its "
-                             "centre's (centre, as gsplat does on a GPU)")
-    parser.add_argument("--init", choices=list(INITS),
-                        help="initialisation (default: the preset's, grid; with --colmap: the model's "
-                             "points, else triangulated)")
-    parser.add_argument("--init-depth", type=positive_float, help="grid depth below the water level (m); "
-                        "default: scene.json spec.bed.depth")
-    parser.add_argument("--init-count", type=positive_int, metavar="N",
-                        help="start from at most N points (a seeded random subset; default: the preset's "
-                             "cap)")
-    parser.add_argument("--init-fill", type=finite_float, metavar="M",
-                        help="fill the gaps of a point start from its TIN: grid nodes M metres apart with no "
-                             "point within M; 0: the points alone (default: the preset's)")
-    parser.add_argument("--init-points", metavar="FILE.npy", help="point cloud [N, 3] or [N, 6] (xyz, rgb in "
-                        "[0, 1]) for --init points; submerged depths are multiplied by n")
-    parser.add_argument("--water-level", type=finite_float, metavar="Z",
-                        help="height of the calm water surface (m, the model's frame, z up): required with "
-                        "--colmap; with --data it replaces the dataset's")
-    parser.add_argument("--n", type=refractive_index, dest="water_n", metavar="N",
-                        help="refractive index of the water (>= 1); default: the dataset's, else 1.33")
-    parser.add_argument("--optimize-water", choices=["level", "level+n"],
-                        help="calibrate the water level (and n) from the images, starting from the values "
-                        "above, once the first half of the run has settled the Gaussians (experimental: on "
-                        "the small reach it did not correct a level 10 cm off; see README)")
-    parser.add_argument("--checkpoint-every", type=count, metavar="N",
-                        help="write a checkpoint every N steps (default: every 10 %% of the run; 0: only at "
-                             "the end)")
-    parser.add_argument("--backend", choices=list(BACKENDS), help="rasterizer backend (default: auto)")
-    parser.add_argument("--device", help="torch device (default: CUDA when available, else CPU)")
-    parser.add_argument("--compile-refraction", action="store_true", default=None,
-                        help="fuse the refraction transform's small ops with torch.compile (for a GPU, where "
-                             "they are launch-bound; compiles first)")
+    option("preset", choices=list(PRESETS), default=TrainConfig.preset)
+    option("seed", type=count, default=TrainConfig.seed)
+    option("iterations", type=positive_int)
+    option("surfel_depth", choices=DEPTHS)
+    option("init", choices=list(INITS), more="; with --colmap: the model's points, else triangulated")
+    option("init_depth", type=positive_float)
+    option("init_count", type=positive_int, metavar="N")
+    option("init_fill", type=finite_float, metavar="M")
+    option("init_points", metavar="FILE.npy")
+    option("water_level", type=finite_float, metavar="Z", more="; required with --colmap")
+    option("water_n", "--n", type=refractive_index, metavar="N")
+    option("optimize_water", choices=["level", "level+n"])
+    option("checkpoint_every", type=count, metavar="N")
+    option("backend", choices=list(BACKENDS))
+    option("device")
+    option("compile_refraction", action="store_true")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -90,13 +75,11 @@ def run(args: argparse.Namespace) -> int:
     from ragsplat.cli.progress import deferred_interrupts, training_bar
     from ragsplat.dataset.load import load_dataset
     from ragsplat.train import Trainer, preset_config
+    from ragsplat.train.config import TrainConfig
 
-    overrides = {"variant": args.variant, "seed": args.seed}
-    for key in ("iterations", "init", "init_depth", "init_count", "init_fill", "init_points", "water_level",
-                "water_n", "optimize_water", "checkpoint_every", "backend", "device", "compile_refraction",
-                "surfel_depth"):
-        if getattr(args, key) is not None:
-            overrides[key] = getattr(args, key)
+    # every TrainConfig field this command has an option for, where given
+    overrides = {f.name: getattr(args, f.name) for f in fields(TrainConfig)
+                 if f.name != "preset" and getattr(args, f.name, None) is not None}
     data = args.data if args.colmap is None else _import(args, overrides)
     cfg = preset_config(args.preset, **overrides)
     ds = load_dataset(data, splits=("train",), load_dry=False)

@@ -81,21 +81,29 @@ INITS = ("grid", "points", "triangulated", "refracted")
 
 @dataclass(frozen=True)
 class TrainConfig:
-    variant: str = "full"
-    preset: str = "small"
-    seed: int = 0
-    iterations: int = 1500
+    variant: str = field(default="full", metadata={"help": "refraction correction"})
+    preset: str = field(default="small", metadata={"help": "training preset"})
+    seed: int = field(default=0, metadata={"help": "random seed (written into config.json)"})
+    iterations: int = field(default=1500, metadata={"help": "override the preset's iteration count"})
     # initialisation: "grid" (the paper: a horizontal grid at the bed depth), "points" (a point cloud file) or
     # "triangulated" (points triangulated from the training images with their known poses, pycolmap, depths
     # below the water x n) or "refracted" (the same tracks intersected along rays bent at the water)
-    init: str = "grid"
-    init_depth: float | None = None  # grid depth below the water level (m); None: scene.json spec.bed.depth
+    init: str = field(default="grid", metadata={"help": (
+        "initialisation: grid (a plane at --init-depth), points (--init-points), triangulated or refracted "
+        "(tracks triangulated from the photos, with or without the water's bend); default: the preset's, "
+        "grid")})
+    init_depth: float | None = field(default=None, metadata={"help": (
+        "grid depth below the water level (m); default: scene.json spec.bed.depth")})
     # grid Gaussians (approximately: a square grid over the views' footprint), or at most this many points
-    init_count: int = 10_000
-    init_points: str | None = None  # .npy [N, 3] or [N, 6] (xyz, rgb in [0, 1]) for init="points"
-    # a point start's gaps filled from its TIN (`tracks.fill_gaps`): grid nodes at this spacing (m) with no
-    # point within it; 0: the points alone
-    init_fill: float = 0.0
+    init_count: int = field(default=10_000, metadata={"help": (
+        "start from at most N points (a seeded random subset; default: the preset's cap)")})
+    init_points: str | None = field(default=None, metadata={"help": (
+        "point cloud [N, 3] or [N, 6] (xyz, rgb in [0, 1]) for --init points; submerged depths are "
+        "multiplied by n")})
+    # a point start's gaps filled from its TIN (`tracks.fill_gaps`)
+    init_fill: float = field(default=0.0, metadata={"help": (
+        "fill the gaps of a point start from its TIN: grid nodes M metres apart with no point within M; 0: "
+        "the points alone (default: the preset's)")})
     init_opacity: float = 0.1
     sh_degree: int = 3
     sh_degree_every: int = 1000  # raise the active SH degree by one every this many iterations (at 30k)
@@ -124,7 +132,9 @@ class TrainConfig:
     # it (2DGS), or "centre", its centre's z, as gsplat composites it (on CUDA always). The ray's on `small`
     # (1.5 points ahead at 1 % of depth), the centre's on the long reach's 4.65 cm pixels (8.5 ahead, the
     # `long` preset): tuning/small.json and tuning/long.json, "surfel_depth"; docs/lab/performance.md
-    surfel_depth: str = "ray"
+    surfel_depth: str = field(default="ray", metadata={"help": (
+        "a surfel sample's z: where the pixel's ray meets it (ray, the preset's) or its centre's (centre, as "
+        "gsplat does on a GPU)")})
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     # The length (m) that scales the position rate and the densification's size thresholds (clone or split at
     # `densify.grow_scale3d` of it, prune above `prune_scale3d`); None: 3DGS's, 1.1 x the largest distance of
@@ -133,21 +143,30 @@ class TrainConfig:
     # three).
     scene_scale: float | None = None
     densify: DensifyConfig = field(default_factory=DensifyConfig)  # at 30k iterations; scaled to `iterations`
-    backend: str = "auto"
-    device: str = "auto"  # "auto": CUDA when available, else CPU
+    backend: str = field(default="auto", metadata={"help": "rasterizer backend (default: auto)"})
+    device: str = field(default="auto", metadata={"help": (
+        "torch device (default: CUDA when available, else CPU)")})
     # The refraction transform through torch.compile (`compiled_refract_gaussians`): fewer kernel launches on
     # a GPU, where the eager transform is launch-bound; a compile at the start. Not yet timed on a GPU.
-    compile_refraction: bool = False
-    checkpoint_every: int | None = None  # None: every 10 % of the run; 0: only at the end (and on interrupt)
+    compile_refraction: bool = field(default=False, metadata={"help": (
+        "fuse the refraction transform's small ops with torch.compile (for a GPU, where they are "
+        "launch-bound; compiles first)")})
+    checkpoint_every: int | None = field(default=None, metadata={"help": (
+        "write a checkpoint every N steps (default: every 10 %% of the run; 0: only at the end)")})
     # The water plane: the dataset's unless overridden (on a dataset without water, water_level adds one with
     # water_n or 1.33). optimize_water calibrates it from the images: "level" or "level+n", each with its
     # own Adam step size (Adam moves a parameter by about its lr per step).
-    water_level: float | None = None  # metres, the model's frame (a sloping surface's height at x = y = 0)
-    water_n: float | None = None
+    water_level: float | None = field(default=None, metadata={"help": (
+        "height of the calm water surface (m, the model's frame, z up; a sloping surface's at x = y = 0): "
+        "replaces the dataset's")})
+    water_n: float | None = field(default=None, metadata={"help": (
+        "refractive index of the water (>= 1); default: the dataset's, else 1.33")})
     # (dz/dx, dz/dy) of a sloping surface; (0, 0) makes a sloping dataset's water one level
     # (a flat-water tool)
     water_slope: tuple[float, float] | None = None
-    optimize_water: str = "none"  # "none" | "level" | "level+n"
+    optimize_water: str = field(default="none", metadata={"help": (
+        "calibrate the water level (and n) from the images, starting from the values above, once the first "
+        "half of the run has settled the Gaussians (experimental: see docs/method.md)")})
     # Absolute metres, not x camera extent as the means: how far the level is off is set by how it was
     # measured (a GNSS point on the waterline, a few cm to dm), not by how wide the survey is.
     lr_water_level: float = 1e-3

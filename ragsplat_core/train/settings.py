@@ -4,10 +4,10 @@ and switches (the variant and preset excepted: the tools' own options)."""
 
 from __future__ import annotations
 
-from dataclasses import fields, replace
+from dataclasses import fields
 
 from ragsplat.errors import ConfigError
-from ragsplat.train.config import DensifyConfig, TrainConfig
+from ragsplat.train.config import DensifyConfig, TrainConfig, with_chosen
 
 NUMBERS = ("float", "int", "float | None", "int | None")  # None: what the run derives (e.g. scene_scale)
 # The word-valued choices (the config checks their values) and the switches (`detrend_albedo=true`).
@@ -39,12 +39,12 @@ def switch(value: str) -> bool:
     return value == "true"
 
 
-def with_value(cfg: TrainConfig | DensifyConfig, param: str,
-               value: str | float) -> TrainConfig | DensifyConfig:
-    """`cfg` with `param` (a field, or densify.FIELD) set to `value` (cast to the field's type)."""
-    if param.startswith("densify."):
-        return replace(cfg, densify=with_value(cfg.densify, param.split(".", 1)[1], value))
-    kind = {f.name: f.type for f in fields(cfg)}[param]
+def with_value(cfg: TrainConfig, param: str, value: str | float) -> TrainConfig:
+    """`cfg` with `param` (a field, or densify.FIELD) set to `value`, cast to the field's type
+    (`config.with_chosen`)."""
+    nested, _, name = param.rpartition(".")
+    owner = DensifyConfig if nested == "densify" else TrainConfig
+    kind = {f.name: f.type for f in fields(owner)}[name]
     cast = {"int": lambda v: int(float(v)), "float": float, "str": str,
             "bool": switch}[kind.removesuffix(" | None")]
-    return replace(cfg, **{param: cast(value)})
+    return with_chosen(cfg, {param: cast(value)})

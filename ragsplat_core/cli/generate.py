@@ -1,4 +1,4 @@
-"""`ragsplat dataset`: render the synthetic riverbed benchmark (resumable, shardable)."""
+"""`ragsplat generate`: render the synthetic riverbed benchmark (resumable, shardable)."""
 
 from __future__ import annotations
 
