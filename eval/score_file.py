@@ -392,14 +392,15 @@ def tvu_band(path: Path, frame: Frame, truth, band: int, heights: int = 1, depth
 
 def score_file(path: Path, data: Path, references: bool = False,
                log: Callable[[str], None] = lambda line: None, tvu: int | None = None,
-               **read) -> tuple[dict, np.ndarray, object]:
+               **read) -> tuple[dict, np.ndarray, object, dict]:
     """The bed of the file `path` (`read_bed` with `read`) scored against the ground truth of the dataset
     `data` by `ragsplat.eval.evaluate.score_grid`, beside the reference rows that need no training: the oracle
     planes (`references.oracle_grids`), for a survey run's product the run's own tracks as a TIN
     (`survey_tracks`, `references.SURVEY_TRACKS`) and, with `references`, the dataset's tracks' grids
     (`TrainEval.track_grids`: it triangulates a dataset without a cached triangulation, minutes). A DEM's
     TVU95 band (`tvu`, else the band described `export.TVU_BAND` where it has one) is scored too, under
-    "uncertainty" (`tvu_band`). Returns (the result, the bed grid [G', 3], the ground truth). Raises as
+    "uncertainty" (`tvu_band`). Returns (the result, the bed grid [G', 3], the ground truth, the reference
+    rows' grids by name, each as the bed's). Raises as
     `read_bed`, and ConfigError for `tvu` of a file that is no DEM or the band of the heights themselves."""
     from ragsplat.dataset import layout
     from ragsplat.dataset.load import load_dataset
@@ -436,4 +437,4 @@ def score_file(path: Path, data: Path, references: bool = False,
             "references": {name: score_grid(g, truth) for name, g in rows.items()},
             "uses_ground_truth": list(USES_GROUND_TRUTH),
             **({} if tvu is None else {"uncertainty": tvu_band(path, frame, truth, tvu, read.get("band", 1),
-                                                               read.get("depth", False))})}, grid, truth
+                                                               read.get("depth", False))})}, grid, truth, rows

@@ -65,10 +65,9 @@ class ExtractConfig:
         "(at the water surface) make the bed (default: the evaluation's, chosen on the development reach; "
         "inf: no limit, needed for a dry scene)")})
     # ...and at most this many metres, but never below `RELIEF_FLOOR_GSD` pixels: a flat surfel wider than
-    # the bed's relief cannot follow it, however coarse the pixels. 6 pixels are 14 cm on `small` (2.33 cm a
-    # pixel, so this changes nothing there); on the long reach's development stretch (4.66 cm) the same 14
-    # cm, 3 pixels, was the best of 2-12 pixels, and 6 pixels left a speckle of wide surfels 10-15 cm too
-    # deep (tuning/extract.json, "long"). inf: the pixels alone. That is for surfels trained with the ray's z;
+    # the bed's relief cannot follow it, however coarse the pixels. On `small`'s pixels it changes nothing; on
+    # the long reach's coarser ones the pixels' cap alone left a speckle of wide surfels too deep
+    # (tuning/extract.json, "long"). inf: the pixels alone. That is for surfels trained with the ray's z;
     # a run's extraction takes its own training's (`size_cap_m`).
     max_scale_m: float = field(default=0.14, metadata={"help": (
         "and at most M metres, where that is at least 3 ground sample distances (default: by the run's "

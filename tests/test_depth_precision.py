@@ -38,3 +38,22 @@ def test_a_point_one_camera_sees_has_no_precision():
     sigma, seen = sigma_z(np.array([[0.0, 0.0, -DEPTH], [50.0, 0.0, -DEPTH]]), pair()[:1] + pair(5.0)[1:],
                           WaterSurface(0.0, 1.33))
     assert seen.tolist() == [2, 0] and np.isfinite(sigma[0]) and np.isinf(sigma[1])
+
+
+def test_views_are_the_footprint_through_the_water():
+    """A nadir camera's footprint: in air the pinhole's; under water the edge ray, bent toward the normal,
+    reaches H tan(theta_a) + d tan(theta_w) on the bed, sin(theta_a) = n sin(theta_w), and no further."""
+    from tools.depth_precision import views
+
+    cam = Camera.look_at((0.0, 0.0, H), (0.0, 0.0, 0.0), 400, 300, 60.0)
+    half = (cam.width / 2) / cam.fx  # tan of the half-angle across the width
+    ta = math.atan(half)
+    tw = math.asin(math.sin(ta) / 1.33)
+    edge = H * half + DEPTH * math.tan(tw)  # where the image's edge ray meets the bed at DEPTH
+    pts = np.array([[0.0, 0.0, -DEPTH], [0.99 * edge, 0.0, -DEPTH], [1.01 * edge, 0.0, -DEPTH],
+                    [0.0, 0.0, H + 1.0]])  # the last behind the camera
+    assert views(pts, [cam], WaterSurface(0.0, 1.33)).tolist() == [1, 1, 0, 0]
+    air = (H + DEPTH) * half  # without water: the pinhole's own footprint
+    assert views(np.array([[0.99 * air, 0, -DEPTH], [1.01 * air, 0, -DEPTH]]), [cam, cam],
+                 WaterSurface(0.0, 1.0)).tolist() == [2, 0]
+    assert edge < air  # bent toward the normal, the ray reaches less far on the bed

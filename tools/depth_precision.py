@@ -5,7 +5,12 @@ with respect to the true point (the exact refraction, `refraction.apparent_point
 sigma_z is the square root of the inverse's z entry, per pixel of image noise on every observation. Photos
 trained at a smaller size scale it by the size's ratio (--scale 0.5: 600 px of 1 200).
 
+With --bed, a bed file's error against the truth by how many of the cameras see each wet node (`by_views`):
+a survey product's beside the run's own tracks through the water as a TIN, read as `ragsplat score` reads
+them (--band and --kind as its).
+
     python -m tools.depth_precision DATA [--points 500] [--scale 1.0] [--seed 0]
+    python -m tools.depth_precision DATA --bed RUN/dem.tif [--band 2 --kind depth]
 """
 
 from __future__ import annotations
@@ -43,6 +48,61 @@ def sigma_z(points: np.ndarray, cams: list, water, scale: float = 1.0) -> tuple[
     return sigma, seen.numpy()
 
 
+def views(points: np.ndarray, cams: list, water, chunk: int = 500_000) -> np.ndarray:
+    """[N] how many of `cams` hold the apparent position of each true point [N, 3] under `water` in their
+    image."""
+    import torch
+
+    from ragsplat.refraction import apparent_points
+
+    seen = np.zeros(len(points), dtype=np.int64)
+    for cam in cams:
+        centre = torch.tensor(cam.camera_center, dtype=torch.float64)
+        for s in range(0, len(points), chunk):
+            with torch.no_grad():
+                app = apparent_points(torch.tensor(points[s:s + chunk], dtype=torch.float64), centre, water)
+            pc = app.numpy() @ np.asarray(cam.R).T + np.asarray(cam.t)  # [n, 3] camera frame
+            z = np.where(pc[:, 2] > 0, pc[:, 2], np.inf)
+            u, v = cam.fx * pc[:, 0] / z + cam.cx, cam.fy * pc[:, 1] / z + cam.cy
+            seen[s:s + chunk] += (pc[:, 2] > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    return seen
+
+
+BINS = ((0, 2), (3, 4), (5, 6), (7, 9), (10, None))  # views, inclusive
+
+
+def by_views(data: Path, bed: Path, **read) -> dict:
+    """{row: [{"views", "nodes", "cover", "bias_m", "rmse_m"} per `BINS`]} of the bed in the file `bed`
+    (`eval.score_file.score_file` with `read`) and, for a survey's product, the run's own tracks' TIN, on
+    `data`'s wet ground-truth nodes grouped by how many of its training cameras see them (`views`)."""
+    from scipy.spatial import cKDTree
+
+    from ragsplat.dataset.load import load_dataset
+    from ragsplat.eval.references import SURVEY_TRACKS
+    from ragsplat.eval.score_file import score_file
+
+    _, grid, truth, refs = score_file(bed, data, **read)
+    rows = {"bed": grid, **({SURVEY_TRACKS: refs[SURVEY_TRACKS]} if SURVEY_TRACKS in refs else {})}
+    cams = [v.camera for v in load_dataset(data, splits=("train",), load_dry=False).train]
+    wet = truth.grid[truth.water.height(truth.grid[:, :2]) > truth.grid[:, 2]]
+    seen = views(wet, cams, truth.water)
+    out = {}
+    for name, g in rows.items():
+        dist, at = cKDTree(g[:, :2]).query(wet[:, :2], distance_upper_bound=1e-3)
+        has = np.isfinite(dist)
+        dz = np.full(len(wet), np.nan)
+        dz[has] = g[at[has], 2] - wet[has, 2]
+        out[name] = []
+        for lo, hi in BINS:
+            pick = (seen >= lo) & (seen <= (np.inf if hi is None else hi))
+            d = dz[pick][np.isfinite(dz[pick])]
+            out[name].append({"views": f"{lo}-{hi}" if hi else f"{lo}+", "nodes": int(pick.sum()),
+                              "cover": float(len(d) / max(pick.sum(), 1)),
+                              "bias_m": float(d.mean()) if len(d) else None,
+                              "rmse_m": float(np.sqrt((d ** 2).mean())) if len(d) else None})
+    return out
+
+
 def precision(data: Path, points: int = 500, scale: float = 1.0, seed: int = 0) -> dict:
     """{"sigma_z_per_px_m": median and p90, "views": median, "depth_m": median, "points", ...} of `sigma_z`
     at `points` wet nodes of `data`'s ground truth seen by at least two of its training cameras."""
@@ -67,7 +127,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--points", type=int, default=500)
     p.add_argument("--scale", type=float, default=1.0)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--bed", type=Path, metavar="FILE", help="a bed file's error by views instead")
+    p.add_argument("--band", type=int, default=1, help="with --bed: a DEM's band")
+    p.add_argument("--kind", choices=["height", "depth"], default="height", help="with --bed: its values")
     a = p.parse_args(argv)
+    if a.bed is not None:
+        print("| row | views | wet nodes | cover (%) | bias (cm) | RMSE (cm) |\n|---|---|---|---|---|---|")
+        for name, bins in by_views(a.data, a.bed, band=a.band, depth=a.kind == "depth").items():
+            for b in bins:
+                bias, rmse = (("n/a" if b[k] is None else f"{100 * b[k]:{f}}") for k, f in
+                              (("bias_m", "+.1f"), ("rmse_m", ".1f")))
+                print(f"| {name} | {b['views']} | {b['nodes']} | {100 * b['cover']:.1f} | {bias} | {rmse} |")
+        return 0
     r = precision(a.data, a.points, a.scale, a.seed)
     s = r["sigma_z_per_px_m"]
     print(f"{r['points']} wet points (median depth {r['depth_m']:.2f} m) from {r['cameras']} cameras, median "

@@ -141,7 +141,7 @@ def _score_file(args: argparse.Namespace) -> int:
     from ragsplat.eval.score_file import score_file
     from ragsplat.outputs import jsonable, write_json
 
-    result, grid, truth = score_file(args.path, args.truth, args.references, log=print, tvu=args.tvu_band,
+    result, grid, truth, _ = score_file(args.path, args.truth, args.references, log=print, tvu=args.tvu_band,
                                      band=args.band or 1, depth=args.kind == "depth",
                                      despike=not args.no_filter, crs=args.crs)
     out = args.out if args.out is not None else args.path.with_name(args.path.stem + "_score.json")

@@ -184,7 +184,7 @@ def _resample(image: np.ndarray, used: np.ndarray, maps,
 
     valid = used.astype(np.float32)
     if maps is not None:  # Lanczos: the photos' one resampling keeps their detail (bilinear cost a survey
-        # through a barrel lens 3.2 points of F1 at 1 % of depth, docs/survey.md); its 8 x 8 support reads
+        # through a barrel lens at 1 % of depth, docs/survey.md); its 8 x 8 support reads
         # the image reflected beyond its edge, not black (`valid` masks what lies outside)
         image = cv2.remap(image, *maps, cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REFLECT_101)
         valid = cv2.remap(valid, *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
@@ -382,10 +382,10 @@ def triangulate(root: Path, work: Path) -> tuple[np.ndarray, np.ndarray, list[st
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     pycolmap.logging.minloglevel = int(pycolmap.logging.Level.ERROR.value)  # no progress chatter, errors only
-    # One thread and a fixed seed: with COLMAP's default threads the same images gave 5 241 or 5 251 points
-    # on the small reach. Still not bit-reproducible from one process to the next: the approximate matcher and
-    # the verification's RANSAC (its random_seed -1) draw their own: the `small` survey's photos and adjusted
-    # poses gave 5 155 points in 15 of 18 runs, 5 157 twice, 5 160 once (OMP_NUM_THREADS=1 did not help).
+    # One thread and a fixed seed: with COLMAP's default threads the same images gave different point counts.
+    # Still not bit-reproducible from one process to the next: the approximate matcher and the verification's
+    # RANSAC (its random_seed -1) draw their own, and a few runs in six differ by a few points
+    # (OMP_NUM_THREADS=1 did not help).
     # The result is cached per dataset, so the rows of one dataset share one set of tracks.
     pycolmap.set_random_seed(0)
     extraction, matching = pycolmap.FeatureExtractionOptions(), pycolmap.FeatureMatchingOptions()

@@ -129,18 +129,16 @@ class TrainConfig:
     distortion_from: float = 0.1
     normal_from: float = 0.23
     # The z those terms (and the rendered depth) give a surfel's sample: "ray", where the pixel's ray meets
-    # it (2DGS), or "centre", its centre's z, as gsplat composites it (on CUDA always). The ray's on `small`
-    # (1.5 points ahead at 1 % of depth), the centre's on the long reach's 4.65 cm pixels (8.5 ahead, the
-    # `long` preset): tuning/small.json and tuning/long.json, "surfel_depth"; docs/lab/performance.md
+    # it (2DGS), or "centre", its centre's z, as gsplat composites it (on CUDA always). The ray's is ahead on
+    # `small`'s fine pixels, the centre's on the long reach's coarser ones (the `long` preset):
+    # tuning/small.json and tuning/long.json, "surfel_depth"; docs/lab/performance.md
     surfel_depth: str = field(default="ray", metadata={"help": (
         "a surfel sample's z: where the pixel's ray meets it (ray, the preset's) or its centre's (centre, as "
         "gsplat does on a GPU)")})
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     # The length (m) that scales the position rate and the densification's size thresholds (clone or split at
     # `densify.grow_scale3d` of it, prune above `prune_scale3d`); None: 3DGS's, 1.1 x the largest distance of
-    # a training camera from their centre (`Dataset.camera_extent`). That grows with a survey tile's length:
-    # 4.6 m on `small`, 19.8 m on the long reach's development stretch, 55-57 m on its two tiles (48-55 m on
-    # three).
+    # a training camera from their centre (`Dataset.camera_extent`). That grows with a survey tile's length.
     scene_scale: float | None = None
     densify: DensifyConfig = field(default_factory=DensifyConfig)  # at 30k iterations; scaled to `iterations`
     backend: str = field(default="auto", metadata={"help": "rasterizer backend (default: auto)"})
@@ -173,8 +171,8 @@ class TrainConfig:
     lr_water_n: float = 1e-4  # water's n spans 1.33-1.34 with temperature and salinity
     # Fraction of the run before the water moves: while densification runs (to half the run) the Gaussians
     # are cloned, split, pruned and their opacities reset every 10 %, and a level moved against that
-    # half-built bed absorbs its depth errors (measured on the small reach with 0: a level 10 cm high rose
-    # to 20 cm while the bed was still the initial plane, and ended 16 cm high).
+    # half-built bed absorbs its depth errors (with 0 on the small reach a level set high rose further while
+    # the bed was still the initial plane: docs/method.md).
     water_warmup: float = 0.5
     # The attenuation coefficients (variants with "attenuation" in `WATER_TERMS`), trained as log c: the start
     # (1/m, every channel; a clear river's order) and the Adam rate in log c. Adam moves log c by about its lr
@@ -382,8 +380,8 @@ PRESETS["small-field"] = with_chosen(replace(PRESETS["small"], preset="small-fie
 # weight 0.2) and densification stop (half the run) instead of the values tuned for `2dgs+full`.
 PRESETS["small-3dgs"] = replace(PRESETS["small"], preset="small-3dgs", ssim_lambda=TrainConfig.ssim_lambda,
                                 densify=DensifyConfig(max_gaussians=40_000))
-# long: `small` for a river survey's photos of a few centimetres a pixel (the long reach's 4.65 cm), whose
-# surfels take their centre's z (long.json: 8.5 points at 1 % of depth on its development stretch); the
+# long: `small` for a river survey's photos of a few centimetres a pixel, whose surfels take their centre's
+# z (long.json, chosen on the long reach's development stretch); the
 # extraction's size cap follows the depth (`surface.size_cap_m`). The survey's budget grows with its area.
 PRESETS["long"] = with_chosen(replace(PRESETS["small"], preset="long"), chosen(LONG_TUNING))
 

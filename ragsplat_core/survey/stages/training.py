@@ -31,14 +31,14 @@ MAX_GAUSSIANS = 3_000_000
 
 
 # Photos coarser than this (m a pixel) train with the surfels' centre z where neither --surfel-depth nor the
-# preset chose it (the `long` preset's choice): the geometric mean of `small`'s 2.33 cm, where the ray's z is
-# right, and the long reach's 4.65 cm, where the centre's z was 8.5 points ahead at 1 % of depth
-# (tuning/small.json and long.json, "surfel_depth"). A consumer drone's mapping flight is such a survey.
+# preset chose it (the `long` preset's choice): the geometric mean of `small`'s pixel, where the ray's z is
+# right, and the long reach's, where the centre's z was ahead (tuning/small.json and long.json,
+# "surfel_depth"). A consumer drone's mapping flight is such a survey.
 COARSE_GSD = 0.033
 
 
 # 3DGS scales the position rate and the densification's sizes by the cameras' extent, which grows with a
-# tile's length (55-57 m on the long reach's two tiles). A survey trains at most at the scale the `long`
+# tile's length. A survey trains at most at the scale the `long`
 # preset was chosen at: its development stretch's 19.82 m at 4.654 cm, 426 ground sample distances
 # (`small`'s 4.6 m are 198; both keep their own). Larger tiles trained at it like the stretch
 # (docs/lab/performance.md).

@@ -34,8 +34,8 @@ LEVEL_TOL = 1e-7
 
 
 # An estimated level less certain than this is said to be poorly determined: on a flat bed with no dry ground
-# (a synthetic survey of 18 photos from 4 m) the level could move 0.5 m for 0.2 % of the cost while its
-# linearised uncertainty read 6.6 cm; on `small`, with banks and pools, it read 0.44 cm and was 0.3 cm off.
+# the level can move far for little cost while its linearised uncertainty reads a few centimetres; with banks
+# and pools it reads millimetres and is right to them (docs/survey.md, stage 3).
 LEVEL_WARN = 0.02
 
 
