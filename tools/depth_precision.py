@@ -21,6 +21,15 @@ from pathlib import Path
 import numpy as np
 
 
+def _pixels(cam, pc, scale: float = 1.0):
+    """(u [N], v [N], inside [N]) of camera-frame points pc [N, 3] (a tensor or an array): the pixel
+    coordinates in the image scaled by `scale`, and whether each lies in front of the camera and inside it."""
+    u = scale * (cam.fx * pc[:, 0] / pc[:, 2] + cam.cx)
+    v = scale * (cam.fy * pc[:, 1] / pc[:, 2] + cam.cy)
+    inside = (pc[:, 2] > 0) & (u >= 0) & (u < scale * cam.width) & (v >= 0) & (v < scale * cam.height)
+    return u, v, inside
+
+
 def sigma_z(points: np.ndarray, cams: list, water, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """([N] sigma_z (m per pixel of image noise; inf where fewer than two cameras see it), [N] how many
     cameras see it) of true points [N, 3] under `water` (`WaterSurface`) from `cams` (`camera.Camera`, OpenCV
@@ -34,12 +43,11 @@ def sigma_z(points: np.ndarray, cams: list, water, scale: float = 1.0) -> tuple[
     for cam in cams:
         R, t = torch.tensor(cam.R, dtype=torch.float64), torch.tensor(cam.t, dtype=torch.float64)
         pc = apparent_points(X, torch.tensor(cam.camera_center), water) @ R.T + t  # [N, 3] camera frame
-        uv = torch.stack([scale * (cam.fx * pc[:, 0] / pc[:, 2] + cam.cx),
-                          scale * (cam.fy * pc[:, 1] / pc[:, 2] + cam.cy)], -1)  # [N, 2] scaled pixels
+        u, v, inside = _pixels(cam, pc, scale)
+        uv = torch.stack([u, v], -1)  # [N, 2] scaled pixels
         # the points are independent, so the gradient of a pixel coordinate's sum is each point's own row
         J = torch.stack([torch.autograd.grad(uv[:, k].sum(), X, retain_graph=True)[0] for k in (0, 1)], 1)
-        inside = ((pc[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < scale * cam.width) & (uv[:, 1] >= 0)
-                  & (uv[:, 1] < scale * cam.height)).detach()
+        inside = inside.detach()
         info[inside] += (J.transpose(1, 2) @ J)[inside]
         seen += inside
     sigma = np.full(len(X), np.inf)
@@ -62,9 +70,8 @@ def views(points: np.ndarray, cams: list, water, chunk: int = 500_000) -> np.nda
             with torch.no_grad():
                 app = apparent_points(torch.tensor(points[s:s + chunk], dtype=torch.float64), centre, water)
             pc = app.numpy() @ np.asarray(cam.R).T + np.asarray(cam.t)  # [n, 3] camera frame
-            z = np.where(pc[:, 2] > 0, pc[:, 2], np.inf)
-            u, v = cam.fx * pc[:, 0] / z + cam.cx, cam.fy * pc[:, 1] / z + cam.cy
-            seen[s:s + chunk] += (pc[:, 2] > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+            with np.errstate(divide="ignore", invalid="ignore"):  # a point in the camera's plane: not inside
+                seen[s:s + chunk] += _pixels(cam, pc)[2]
     return seen
 
 

@@ -192,7 +192,8 @@ def _tile_beds(cfg: SurveyConfig, progress: Progress, cluster, model: Path, surf
     jobs = []
     for tile in tiling:
         folder = cfg.out / "tiles" / str(tile.index)
-        sub, stamp = folder / "model", Stamp(folder / "model" / "key.json")
+        sub = folder / "model"
+        stamp = Stamp(sub / "key.json")
         if not stamp.holds(key):
             rec = pycolmap.Reconstruction(str(model))  # the survey's, the tile's other photos left out
             keep = set(tile.photos)
