@@ -453,7 +453,7 @@ def test_consumer_gps_is_levelled_by_the_water_unless_the_barometer_holds_it(cha
     assert 0 < estimated["sigma_given_cameras_m"]["level"] < 0.02 < estimated["sigma_m"]["level"]
     assert tilt["given"] > 0.5 and tilt["auto"] < tilt["given"] + 0.1, tilt
     estimated = water["barometer"]["estimated"]
-    assert estimated["free"] == ["level"] and "levelled_deg" not in estimated
+    assert estimated["free"] == ["level"] and "levelled_deg" not in estimated and "fall" not in estimated
     assert estimated["frame"] == "held by the barometer's heights (decimetres)"
     # the frame's height is still the GPS's (metres): the level's sigma that matters is the model's
     from ragsplat.survey.stages.water import level_sigma

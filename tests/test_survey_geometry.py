@@ -94,16 +94,17 @@ def test_projection_is_the_pinhole_above_the_water_and_the_ra_gs_transform_below
     np.testing.assert_allclose(uv, [nadir.cx, nadir.cy], atol=1e-9)
 
 
-def scene(seed=0, points=1500, noise_px=0.3):
-    """Cameras at 30 m over a channel 3 m deep between dry banks; exact observations through the water."""
+def scene(seed=0, points=1500, noise_px=0.3, water=WATER):
+    """Cameras at 30 m over a channel 3 m deep between dry banks (falling with `water` where it slopes);
+    exact observations through the water."""
     rng = np.random.default_rng(seed)
     cams = cameras()
     xy = rng.uniform([-20, -14], [20, 14], size=(points, 2))
-    pts = np.column_stack([xy, 0.8 - 3.0 * np.exp(-(xy[:, 1] / 8) ** 2)])
+    pts = np.column_stack([xy, 0.8 - 3.0 * np.exp(-(xy[:, 1] / 8) ** 2) + water.height(xy)])
     obs = []
     for i, c in enumerate(cams):
         uv, depth = c.project(apparent_points(torch.tensor(pts), torch.tensor(c.camera_center),
-                                              WATER).numpy())
+                                              water).numpy())
         seen = (depth > 0) & (uv[:, 0] > 0) & (uv[:, 0] < c.width) & (uv[:, 1] > 0) & (uv[:, 1] < c.height)
         obs += [(p, i, *uv[p]) for p in np.nonzero(seen)[0]]
     obs = np.array(obs)
@@ -144,11 +145,11 @@ def test_jacobians_match_finite_differences():
                                        atol=1e-4)
 
 
-def started(points: int):
+def started(points: int, water=WATER):
     """`scene`'s survey, its cameras as tensors, and where an adjustment starts: the cameras turned by a
     degree (structure from motion's tilts) and moved 5 cm, the points 20 cm off, RTK positions 2 / 3 cm
     off."""
-    cams, pts, point, image, pixels = scene(points=points)
+    cams, pts, point, image, pixels = scene(points=points, water=water)
     R, C, K = stack(cams)
     rng = np.random.default_rng(3)
     R0 = bundle._rotate(R, torch.tensor(rng.normal(0, math.radians(1.0), (len(cams), 3))))
@@ -217,6 +218,40 @@ def test_the_adjustment_finds_an_unmeasured_water_surface():
     assert fixed.water is WATER and fixed.sigma is None
     with pytest.raises(ValueError, match="free parameters are"):
         bundle.adjust(R0, C0, K, P0, point, image, pixels, WATER, prior_C=rtk, free=("n",))
+
+
+@pytest.mark.parametrize("fall", [0.0, 0.02])
+def test_a_rivers_fall_is_kept_where_it_stands_clear_of_level_and_of_the_frames_tilt(fall, monkeypatch):
+    """In a frame the positions hold (RTK, 2 / 3 cm), the water's plane is tried with its slope free: a river
+    falling 2 % keeps it, within its sigmas of the truth; flat water keeps the level alone. A fall within
+    the tilt that the positions leave open, or steeper than water falls, is refused and recorded."""
+    from ragsplat.survey.stages import water as stage
+
+    truth = WaterSurface(0.0, 1.33, (-fall, 0.0))
+    cams, _pts, point, image, pixels, _R, _C, K, R0, C0, P0, rtk = started(700, truth)
+    adjusted = lambda free, level=0.3: bundle.adjust(R0, C0, K, P0, point, image, pixels,
+                                                      WaterSurface(level, 1.33), prior_C=rtk, free=free)
+    left_open = georef.tilt_allowed(rtk[:, :2].numpy(), np.full(len(cams), 0.03))
+    assert left_open < 0.005
+    estimated = {"relative_level": False}
+    fit = stage._with_fall(adjusted, estimated, dict, left_open)
+    trial = estimated["fall"]
+    assert trial["kept"] == (fall > 0) == (fit is not None) and trial["tilt_left_open"] == left_open
+    if fall:
+        assert estimated["free"] == ["level", "slope"] and fit.water.tilted
+        for name, got, want in zip(("slope_x", "slope_y"), fit.water.slope, truth.slope):
+            assert abs(got - want) < 3 * fit.sigma[name], (got, want, fit.sigma)
+        assert "; the water falls 2." in stage._say_fall(trial)
+        refused = {"relative_level": False}  # the positions' heights leave a 3 % tilt open
+        assert stage._with_fall(adjusted, refused, dict, 0.03) is None and not refused["fall"]["kept"]
+        assert "leave the frame's tilt open to 3.00 %" in stage._say_fall(refused["fall"])
+        monkeypatch.setattr(stage, "MAX_FALL", 0.01)  # water falling at most 1 %
+        refused = {"relative_level": False}
+        assert stage._with_fall(adjusted, refused, dict, left_open) is None and not refused["fall"]["kept"]
+        assert "steeper than water falls (1 %)" in stage._say_fall(refused["fall"])
+    else:
+        assert "free" not in estimated and trial["standard_deviations"] < stage.FALL_SIGNIFICANT
+        assert stage._say_fall(trial) == ""
 
 
 def test_positions_csv(tmp_path):

@@ -1,9 +1,9 @@
 """How well a survey's frame and water level came out against the synthetic truth, as a consumer-GPS survey
 is judged: its cameras (RUN/model, after the adjustment through the water) fitted to the true ones by a
 similarity, whose tilt (degrees), scale error and remaining centre error say what the positions left wrong;
-and the estimated level (RUN/water.json) carried through that similarity against the true surface, the
-error that the depths take. The absolute offset of a consumer GPS frame (metres) is left out: it moves the
-bed and the water alike.
+and the estimated surface (RUN/water.json) carried through that similarity against the true one: the
+level under the flight's middle and the slope (dz/dx, dz/dy), the errors that the depths take. The absolute
+offset of a consumer GPS frame (metres) is left out: it moves the bed and the water alike.
 
     python -m tools.frame_error RUN DATA          # DATA: the dataset (or its stretch) the photos came from
 """
@@ -37,16 +37,21 @@ def frame_error(run: Path, truth: Path) -> dict:
     fitted = fit.apply(model)
     tilt = float(np.degrees(np.arccos(np.clip(fit.R[2, 2], -1, 1))))
     water = json.loads((run / "water.json").read_text())["surface"]
-    level = float(water["level"]) - offset[2]
-    centre = np.array([*model[:, :2].mean(0), level])  # the level under the flight's middle
+    slope = np.asarray(water.get("slope", [0.0, 0.0]), float)  # the CRS's: level at CRS x = y = 0
+    middle = model[:, :2].mean(0)
+    level = float(water["level"]) + slope @ (middle + offset[:2]) - offset[2]
+    centre = np.array([*middle, level])  # the surface under the flight's middle
     scene = json.loads((truth / "scene.json").read_text())
     w = scene["water"]
     at = fit.apply(centre[None])[0]
-    true_level = w["level"] + sum(k * v for k, v in zip(w.get("slope", [0, 0]), at[:2]))
+    true_slope = np.asarray(w.get("slope", [0.0, 0.0]), float)
+    true_level = w["level"] + true_slope @ at[:2]
+    normal = fit.R @ np.array([-slope[0], -slope[1], 1.0])  # the surface's normal carried to the truth
     return {"photos": len(names), "tilt_deg": tilt, "scale_error": fit.scale - 1.0,
             "centre_rms_after_similarity_m": float(np.sqrt(((fitted - true) ** 2).sum(1).mean())),
             "centre_median_m": float(np.median(np.linalg.norm(model - true, axis=1))),
-            "level_error_m": float(at[2] - true_level)}
+            "level_error_m": float(at[2] - true_level),
+            "slope_error": (-normal[:2] / normal[2] - true_slope).tolist()}
 
 
 def main() -> None:

@@ -201,8 +201,9 @@ def water_as_given(cfg: SurveyConfig, where: Positions, progress: Progress) -> G
                     else f"the ground control ({cfg.gcp})", cfg.crs)
         edge = water_fit.fit_edge(edge_points)
         surface = WaterSurface(edge.level, cfg.n, edge.slope, edge.profile)
+        described = describe_surface(surface, edge_points[:, :2].mean(0))
         progress.say("check", f"water surface from {len(edge.residuals)} edge points: "
-                     f"{describe_surface(surface)}, rms {100 * edge.report()['rms_m']:.1f} cm, "
+                     f"{described}, rms {100 * edge.report()['rms_m']:.1f} cm, "
                      f"{int((~edge.inliers).sum())} left out")
         return GivenWater(surface, edge, edge_points)
     if cfg.water_level == AUTO:  # estimated in the adjustment through the water (stage 3)
@@ -214,15 +215,20 @@ def water_as_given(cfg: SurveyConfig, where: Positions, progress: Progress) -> G
     return GivenWater(WaterSurface(cfg.water_level, cfg.n))
 
 
-def describe_surface(water) -> str:
+def describe_surface(water, at=None) -> str:
+    """The surface in words; a sloping one's height at the horizontal point `at` [2] (CRS; default x = y = 0,
+    which in a projected CRS is far away)."""
     if not (water.tilted or water.curved):
         return f"level {water.level:g} m"
+    import numpy as np
+
+    xy = np.zeros(2) if at is None else np.asarray(at, float)
+    where = ("x = y = 0" if at is None else f"x, y = {xy[0]:.1f}, {xy[1]:.1f}")
+    height = f"{float(water.height(xy)):.3f} m at {where}"
+    fall = f"a plane falling {100 * (water.slope[0] ** 2 + water.slope[1] ** 2) ** 0.5:.2f} %"
     if water.curved:
-        return (f"a plane falling {100 * (water.slope[0] ** 2 + water.slope[1] ** 2) ** 0.5:.2f} % with a "
-                f"profile of {len(water.profile.stations)} stations along the reach ({water.level:.3f} m at "
-                "x = y = 0)")
-    return (f"a plane falling {100 * (water.slope[0] ** 2 + water.slope[1] ** 2) ** 0.5:.2f} % (slope "
-            f"{water.slope[0]:+.5f}, {water.slope[1]:+.5f}; {water.level:.3f} m at x = y = 0)")
+        return f"{fall} with a profile of {len(water.profile.stations)} stations along the reach ({height})"
+    return f"{fall} (slope {water.slope[0]:+.5f}, {water.slope[1]:+.5f}; {height})"
 
 
 def _check_near(points, frame, source: Path, what: str, crs: str | None) -> None:

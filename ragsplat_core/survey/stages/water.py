@@ -43,6 +43,13 @@ LEVEL_WARN = 0.02
 SHORE_SPAN = 0.2
 
 
+# In a frame the positions hold level, the water's plane is tried with its slope free too and kept where the
+# slope stands this many of its standard deviations from level and is no steeper than a river falls (m/m):
+# lowland rivers fall well under 1 %, a mountain stream's pools and riffles a few per cent on average.
+FALL_SIGNIFICANT = 4.0
+MAX_FALL = 0.03
+
+
 @dataclass(frozen=True)
 class Problem:
     """The adjustment through the water's unknowns and observations in the local frame: the georeferenced
@@ -196,7 +203,8 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
     """(the adjustment, the water (local frame), water.json's account of it) with the level free, started
     among the model's points; where the positions fix no tilt (consumer GPS) the slope too, and then the
     frame levelled by the water's plane, unless that plane tilts more than the positions' heights leave open
-    (`georef.tilt_allowed`): then the level alone, the frame as the positions hold it."""
+    (`georef.tilt_allowed`): then the level alone, the frame as the positions hold it. Where they hold it,
+    to centimetres, the water's fall as well where the photos show one (`_with_fall`)."""
     import torch
 
     from ragsplat.survey import bundle, georef
@@ -225,9 +233,7 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
                  "relative_level": survey.where.tagged is not None and not survey.where.rtk_fixed}
     water = adj.water
     if water.tilted:  # the frame levelled by the water's plane, unless the positions' heights forbid the turn
-        known = ~torch.isnan(problem.held["prior_C"][:, 0])
-        allowed = georef.tilt_allowed(problem.held["prior_C"][known, :2].numpy(),
-                                      problem.held["prior_sigma"][known, 2].numpy())
+        allowed = _tilt_left_open(problem)
         if math.hypot(*water.slope) > allowed:
             estimated["slope_refused"] = {"slope": list(water.slope), "allowed": allowed}
             adj = adjusted(("level",))
@@ -241,7 +247,51 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
         estimated["slope_before_levelling"] = list(water.slope)
         water = WaterSurface(water.level, cfg.n)
         return adj, water, estimated
+    if not estimated["relative_level"]:  # a frame held to centimetres: RTK, ground control, given positions
+        falling = _with_fall(adjusted, estimated, of_water, _tilt_left_open(problem))
+        if falling is not None:
+            return falling, falling.water, estimated
     return _by_shoreline(P[: len(trk.points)].numpy(), cfg.n, adj, estimated, adjusted)
+
+
+def _tilt_left_open(problem: Problem) -> float:
+    """The frame's tilt (rise over run) that what holds it leaves open (`georef.tilt_allowed`): the cameras'
+    heights at their accuracy, or the targets' at theirs."""
+    import numpy as np
+    import torch
+
+    from ragsplat.survey import georef
+
+    held = problem.held
+    if "prior_C" not in held:
+        rows, xyz = held["prior_points"]
+        return georef.tilt_allowed(xyz[:, :2].numpy(), np.full(len(rows), held["point_sigma"]))
+    known = ~torch.isnan(held["prior_C"][:, 0])
+    sigma = torch.as_tensor(held["prior_sigma"], dtype=held["prior_C"].dtype).expand_as(held["prior_C"])
+    return georef.tilt_allowed(held["prior_C"][known, :2].numpy(), sigma[known, 2].numpy())
+
+
+def _with_fall(adjusted, estimated: dict, of_water, allowed: float) -> Bundle | None:
+    """In a frame the positions hold level to centimetres, the adjustment again with the water's slope free
+    (`adjusted(free)`): kept, the frame as it is and the water a plane falling in it, where the slope stands
+    FALL_SIGNIFICANT standard deviations from level (each component by its own), more than the positions
+    leave the frame's tilt open (`allowed`: else the plane may be the frame's own tilt) and no more than
+    MAX_FALL; else None, the level alone. `estimated` records the trial either way. In a frame held by a
+    barometer the slope would follow its drift between flight lines; there level water holds the tilt
+    better, and a river's fall is levelled out of the frame with it."""
+    fit = adjusted(("level", "slope"))
+    slope = fit.water.slope
+    spread = (fit.sigma["slope_x"], fit.sigma["slope_y"])
+    trial = {"slope": list(slope), "sigma": list(spread),
+             "standard_deviations": math.hypot(slope[0] / spread[0], slope[1] / spread[1]),
+             "tilt_left_open": allowed, "kept": False}
+    fall = math.hypot(*slope)
+    if trial["standard_deviations"] < FALL_SIGNIFICANT or not allowed < fall <= MAX_FALL:
+        estimated["fall"] = trial
+        return None
+    estimated.update(free=["level", "slope"], fall={**trial, "kept": True}, sigma_m=of_water(fit.sigma),
+                     sigma_given_cameras_m=of_water(fit.sigma_given_cameras))
+    return fit
 
 
 def _by_shoreline(pinhole: np.ndarray, n: float, adj: Bundle, estimated: dict,
@@ -293,14 +343,16 @@ def _water_report(survey: Survey, fit: Adjusted) -> dict:
     given, origin, adj, P = survey.given, survey.origin, fit.bundle, fit.points
     z = -fit.water.depth(P.numpy())  # height above the surface
     above = z[z >= 0]
-    return {"surface": layout.water_json(fit.surface), "described": describe_surface(fit.surface),
+    extent = points_box(P.numpy()) + origin[:2]
+    return {"surface": layout.water_json(fit.surface),
+            "described": describe_surface(fit.surface, extent.mean(0)),
             **({} if fit.estimated is None else {"estimated": fit.estimated}),
             **({} if fit.lens is None else {"lens": fit.lens}),
             **({} if given.edge is None else {
                 "edge_fit": given.edge.report(),
                 "along_the_reach": water_fit.profile(P.numpy(), fit.water.height(P.numpy()[:, :2]),
                                                      given.edge_points - origin)}),
-            "extent_m": (points_box(P.numpy()) + origin[:2]).tolist(),
+            "extent_m": extent.tolist(),
             "points_above": int((z >= 0).sum()),
             "points_below": int((z < 0).sum()),
             "lowest_above_m": float(np.percentile(above, 1)) if len(above) else None,
@@ -308,6 +360,32 @@ def _water_report(survey: Survey, fit: Adjusted) -> dict:
             "rms_px": None if adj is None else float(adj.residuals.pow(2).mean().sqrt()),
             "iterations": None if adj is None else adj.iterations,
             **({} if fit.gcp_residual is None else {"gcp_residual_m": fit.gcp_residual})}
+
+
+def _level_here(surface: WaterSurface, check: dict) -> float:
+    """The surface's height at the centre of the model's points (CRS)."""
+    import numpy as np
+
+    return float(surface.height(np.asarray(check["extent_m"]).mean(0)))
+
+
+def _say_fall(fall: dict | None) -> str:
+    """The water's fall in words: kept, refused as steeper than water falls, or nothing where the photos
+    show none."""
+    if fall is None or (not fall["kept"] and fall["standard_deviations"] < FALL_SIGNIFICANT):
+        return ""
+    sx, sy = fall["slope"]
+    fall_, (ex, ey) = math.hypot(sx, sy), fall["sigma"]
+    per_cent, sigma = 100 * fall_, 100 * math.hypot(sx * ex, sy * ey) / fall_  # along the fall
+    if not fall["kept"]:
+        open_ = 100 * fall["tilt_left_open"]
+        why = (f"steeper than water falls ({100 * MAX_FALL:g} %)" if fall_ > MAX_FALL else
+               f"but the positions' heights leave the frame's tilt open to {open_:.2f} % (for a river's "
+               "fall: RTK geotags, ground control or --water-surface EDGE.csv)")
+        return f"; a plane falling {per_cent:.2f} % fits better, {why}: the level alone"
+    bearing = math.degrees(math.atan2(-sx, -sy)) % 360  # downhill, clockwise from north (+y)
+    return (f"; the water falls {per_cent:.3f} % (+- {sigma:.3f}) towards {bearing:.0f} degrees from north, "
+            "the frame held by the positions")
 
 
 def _say_water(progress: Progress, surface: WaterSurface, check: dict, t0: float) -> None:
@@ -319,7 +397,9 @@ def _say_water(progress: Progress, surface: WaterSurface, check: dict, t0: float
         progress.say("water", ("the level from the shoreline, where the model's ground bends into the water "
                                f"({est['shoreline']['straddling']} places)" if shore
                                else "the level estimated from the photos")
-                     + f": {surface.level:.3f} m +- {100 * sigma:.1f} cm (1 sigma"
+                     + f": {_level_here(surface, check):.3f} m"
+                     + (" at the survey's centre" if surface.tilted else "")
+                     + f" +- {100 * sigma:.1f} cm (1 sigma"
                      + ("" if not relative
                         else ", relative to the model; the frame's height is the GPS's")
                      + ")"
@@ -331,6 +411,7 @@ def _say_water(progress: Progress, surface: WaterSurface, check: dict, t0: float
                         "more than the positions' heights leave open ("
                         f"{math.degrees(math.atan(est['slope_refused']['allowed'])):.2f}): give photos with "
                         "the drone's barometric heights, ground control or --water-surface EDGE.csv")
+                     + _say_fall(est.get("fall"))
                      + ("" if not shore else "; through the water alone "
                         f"{100 * est['adjustment']['sigma_m']:.1f} cm")
                      + ("" if sigma <= LEVEL_WARN else "; poorly determined (a flat bed, little depth "
