@@ -2,8 +2,9 @@
 is judged: its cameras (RUN/model, after the adjustment through the water) fitted to the true ones by a
 similarity, whose tilt (degrees), scale error and remaining centre error say what the positions left wrong;
 and the estimated surface (RUN/water.json) carried through that similarity against the true one: the
-level under the flight's middle and the slope (dz/dx, dz/dy), the errors that the depths take. The absolute
-offset of a consumer GPS frame (metres) is left out: it moves the bed and the water alike.
+level under the flight's middle, the slope (dz/dx, dz/dy) and the surface's height over the true wet area
+(gt/bed_grid's points): the errors that the depths take. The absolute offset of a consumer GPS frame
+(metres) is left out: it moves the bed and the water alike.
 
     python -m tools.frame_error RUN DATA          # DATA: the dataset (or its stretch) the photos came from
 """
@@ -47,11 +48,17 @@ def frame_error(run: Path, truth: Path) -> dict:
     true_slope = np.asarray(w.get("slope", [0.0, 0.0]), float)
     true_level = w["level"] + true_slope @ at[:2]
     normal = fit.R @ np.array([-slope[0], -slope[1], 1.0])  # the surface's normal carried to the truth
+    carried = -normal[:2] / normal[2]
+    wet = np.load(truth / "gt" / "bed_grid.npy")[:, :2]
+    off = np.abs(at[2] + (wet - at[:2]) @ carried - (w["level"] + wet @ true_slope))
     return {"photos": len(names), "tilt_deg": tilt, "scale_error": fit.scale - 1.0,
             "centre_rms_after_similarity_m": float(np.sqrt(((fitted - true) ** 2).sum(1).mean())),
             "centre_median_m": float(np.median(np.linalg.norm(model - true, axis=1))),
             "level_error_m": float(at[2] - true_level),
-            "slope_error": (-normal[:2] / normal[2] - true_slope).tolist()}
+            "slope_error": (carried - true_slope).tolist(),
+            "surface_error_over_the_wet_area_m": {"median": float(np.median(off)),
+                                                  "p95": float(np.percentile(off, 95)),
+                                                  "max": float(off.max())}}
 
 
 def main() -> None:
