@@ -1,9 +1,10 @@
 """What SIFT costs a drone photo at each feature size: pycolmap's extraction of two synthetic 12 MP photos
 (4000 x 2250, a gravel-like texture at four scales) with `max_image_size` uncapped and at each cap, on the
 CPU with the given threads; prints a JSON line per size (seconds a photo, keypoints, the keypoints' largest
-x, which stays in the full photo's pixels).
+x, which stays in the full photo's pixels). `--first-octave 0` runs SIFT without pycolmap's doubling of the
+(scaled) photo; SIFT keeps the coarsest levels up to its 8 192 features, so the finest are the first dropped.
 
-    python -m tools.feature_cost --sizes -1 3200 2400 2048 --threads 2
+    python -m tools.feature_cost --sizes -1 3200 2400 2048 --threads 2 [--first-octave 0]
 """
 
 import argparse
@@ -31,6 +32,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[-1, 3200, 2400, 2048])
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--first-octave", type=int, default=-1)
     args = parser.parse_args()
 
     import cv2
@@ -48,12 +50,14 @@ def main() -> None:
             db = Path(tmp) / f"{size}.db"
             options = pycolmap.FeatureExtractionOptions()
             options.max_image_size, options.num_threads = size, args.threads
+            options.sift.first_octave = args.first_octave
             t0 = time.perf_counter()
             pycolmap.extract_features(db, images, names, extraction_options=options,
                                       device=pycolmap.Device.cpu)
             seconds = (time.perf_counter() - t0) / len(names)
             keypoints = pycolmap.Database.open(str(db)).read_keypoints(1)
-            print(json.dumps({"max_image_size": size, "threads": args.threads, "seconds_a_photo": seconds,
+            print(json.dumps({"max_image_size": size, "first_octave": args.first_octave,
+                              "threads": args.threads, "seconds_a_photo": seconds,
                               "keypoints": len(keypoints), "largest_x": float(keypoints[:, 0].max())}),
                   flush=True)
 
