@@ -367,19 +367,27 @@ def test_retrain_trains_and_exports_as_the_survey_does(finished, tmp_path):
 
 
 def test_features_at_a_capped_size_keep_the_photos_pixels(survey, tmp_path, monkeypatch):
-    """SIFT runs on photos scaled to `FEATURE_MAX_SIZE` on their longer side; the keypoints come back in the
-    full photo's pixels: capped at 160 px, the 240 x 180 photos still register, their tracks reach past 160
-    px and reproject to the photos' own pixels (the model's cameras are the photos' size)."""
+    """SIFT runs on photos scaled to `FEATURE_MAX_SIZE` on their longer side, not doubled where they are
+    larger than `DOUBLED_MAX`; the keypoints come back in the full photo's pixels: capped at 160 px, the 240 x
+    180 photos still register, their tracks reach past 160 px and reproject to the photos' own pixels (the
+    model's cameras are the photos' size)."""
     from ragsplat.survey import sfm
 
-    monkeypatch.setattr(sfm, "FEATURE_MAX_SIZE", 160)
     names = sorted(p.name for p in (survey / "images").iterdir())
+    assert sfm.first_octaves(survey / "images", names) == {-1: names}  # 240 px: doubled
+    monkeypatch.setattr(sfm, "DOUBLED_MAX", 200)
+    assert sfm.first_octaves(survey / "images", names) == {0: names}
+    undoubled = sfm.reconstruct(survey / "images", names, tmp_path / "undoubled")
+    assert undoubled.num_reg_images() == 18
+    monkeypatch.setattr(sfm, "DOUBLED_MAX", 240)
+    monkeypatch.setattr(sfm, "FEATURE_MAX_SIZE", 160)
     rec = sfm.reconstruct(survey / "images", names, tmp_path / "sfm")
     trk = sfm.tracks(rec)
     assert rec.num_reg_images() == 18 and rec.compute_mean_reprojection_error() < 1.0
     assert float(trk.pixels[:, 0].max()) > 200 and all(c.width == 240 for c in rec.cameras.values())
-    monkeypatch.setattr(sfm, "FEATURE_MAX_SIZE", 240)  # the photos' own size: more features, more points
-    assert sfm.reconstruct(survey / "images", names, tmp_path / "full").num_points3D() > 1.2 * len(trk.points)
+    monkeypatch.setattr(sfm, "FEATURE_MAX_SIZE", 240)  # the photos' own size, doubled: more points
+    full = sfm.reconstruct(survey / "images", names, tmp_path / "full").num_points3D()
+    assert full > 1.2 * len(trk.points) and full > 1.2 * undoubled.num_points3D()
 
 
 def test_the_library_runs_without_a_progress(survey, tmp_path):

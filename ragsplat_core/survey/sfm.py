@@ -29,11 +29,12 @@ from ragsplat.dataset.colmap import NEIGHBOURS, neighbour_pairs  # noqa: F401
 from ragsplat.errors import DatasetError
 
 CAMERA_MODEL = "SIMPLE_PINHOLE"  # one focal length, the principal point at the centre, no distortion
-# SIFT runs on each photo scaled to at most this many pixels on its longer side (OpenDroneMap's default
-# feature size), its keypoints scaled back to the photo's pixels. Uncapped, pycolmap's SIFT doubles the photo
-# first (its first octave is -1): a 12 MP drone photo then costs seconds to minutes on 2 cores
-# (docs/survey.md).
-FEATURE_MAX_SIZE = 2048
+# pycolmap's SIFT doubles a photo first (its first octave is -1), which finds the finest keypoints where a
+# small photo has few. A larger photo is scaled to at most FEATURE_MAX_SIZE pixels on its longer side
+# (COLMAP's own cap) and not doubled: SIFT keeps its coarsest levels up to 8 192 features, so a drone photo's
+# doubled levels cost most of the time and are dropped; its keypoints come back in the photo's pixels.
+DOUBLED_MAX = 2048
+FEATURE_MAX_SIZE = 3200
 # Every pair is matched up to this many photos (4 950 pairs, a few minutes on 2 cores); a larger survey
 # matches each photo with its NEIGHBOURS nearest by the positions (`colmap.neighbour_pairs`)
 EXHAUSTIVE_MAX = 100
@@ -65,9 +66,11 @@ def reconstruct(images: Path, names: list[str], work: Path, camera_model: str = 
     db = work / "database.db"
     t0 = time.perf_counter()
     with _counted(progress, "features", len(names), "photo", db, "descriptors"):
-        pycolmap.extract_features(db, images, names, camera_mode=pycolmap.CameraMode.AUTO,
-                                  reader_options=reader,
-                                  extraction_options=extraction, device=pycolmap.Device.cpu)
+        for first_octave, group in first_octaves(images, names).items():
+            extraction.sift.first_octave = first_octave
+            pycolmap.extract_features(db, images, group, camera_mode=pycolmap.CameraMode.AUTO,
+                                      reader_options=reader,
+                                      extraction_options=extraction, device=pycolmap.Device.cpu)
     t1 = time.perf_counter()
     count = len(names) * (len(names) - 1) // 2 if pairs is None else len(pairs)
     with _counted(progress, "matching (every pair)" if pairs is None else "matching (neighbours)", count,
@@ -104,6 +107,18 @@ def reconstruct(images: Path, names: list[str], work: Path, camera_model: str = 
         raise DatasetError(f"{images}: structure from motion registered only {registered} of {len(names)} "
                            "photos (too little overlap or texture, or photos of different places?)")
     return rec
+
+
+def first_octaves(images: Path, names: list[str]) -> dict[int, list[str]]:
+    """The photos `names` by the first octave SIFT starts them at: -1 (doubled) up to DOUBLED_MAX pixels on
+    the longer side, 0 beyond."""
+    from PIL import Image
+
+    groups: dict[int, list[str]] = {}
+    for name in names:
+        with Image.open(Path(images) / name) as photo:  # reads the header only
+            groups.setdefault(-1 if max(photo.size) <= DOUBLED_MAX else 0, []).append(name)
+    return groups
 
 
 # Counts a table's rows twice a second, printing each count. It runs in another process: SQLite's locks hold

@@ -37,7 +37,8 @@ def structure_from_motion(survey: Survey, stamps: Stamps, progress: Progress) ->
     from ragsplat.survey import sfm
 
     cfg, photos, names, positions = survey.cfg, survey.photos, survey.names, survey.where.positions
-    key = digest({p.name: layout.file_digest(p) for p in photos}, sfm.CAMERA_MODEL, sfm.FEATURE_MAX_SIZE)
+    key = digest({p.name: layout.file_digest(p) for p in photos}, sfm.CAMERA_MODEL, sfm.FEATURE_MAX_SIZE,
+                 sfm.DOUBLED_MAX)
     work = cfg.out / "sfm"
     t0 = time.perf_counter()
     if not stamps.done("sfm", key, work / "model"):
