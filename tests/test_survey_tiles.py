@@ -174,7 +174,10 @@ def test_a_tiled_survey_gives_one_cell_per_tile_and_seams_that_agree(survey, fin
     ours = {tuple(k): z for k, z in zip(np.round(xy / 0.05).astype(int), las.z)}
     theirs = {tuple(k): z for k, z in zip(np.round(np.column_stack([single.x, single.y]) / 0.05).astype(int),
                                           single.z)}
-    assert len(ours) > 0.9 * len(theirs)  # the tiles cover what one training covers
+    # the tiles cover what one training covers, every tile its share; the smoke trainings' cover is blobs
+    # whose count differs between machines and thread counts (docs/lab/history.md, the tiled survey's cover)
+    assert len(ours) > 0.7 * len(theirs)
+    assert min(report["cells"].values()) > 0.5 * len(ours) / len(report["cells"])
     # each seam's overlap agrees as well as two trainings of the whole survey (tiled and not) agree
     common = ours.keys() & theirs.keys()
     dz = np.array([ours[k] - theirs[k] for k in common])
