@@ -455,11 +455,11 @@ def test_consumer_gps_is_levelled_by_the_water_unless_the_barometer_holds_it(cha
     estimated = water["barometer"]["estimated"]
     assert estimated["free"] == ["level"] and "levelled_deg" not in estimated and "fall" not in estimated
     assert estimated["frame"] == "held by the barometer's heights (decimetres)"
-    # the frame's height is still the GPS's (metres): the level's sigma that matters is the model's
+    # the frame's height is still the GPS's (metres): the level's sigma that matters is relative to the bed
     from ragsplat.survey.stages.water import level_sigma
 
-    assert estimated["relative_level"] and level_sigma(estimated) == (
-        estimated["sigma_given_cameras_m"]["level"], True) and estimated["sigma_m"]["level"] > 0.02
+    assert estimated["relative_level"] and level_sigma(estimated) == (estimated["sigma_to_bed_m"], True)
+    assert 0 < estimated["sigma_to_bed_m"] < 0.05 < estimated["sigma_m"]["level"]
     assert tilt["barometer"] < 0.3, tilt  # 0.16 degrees measured, against 0.93 from the GPS heights
     estimated = water["held"]["estimated"]
     refused = estimated["slope_refused"]

@@ -234,7 +234,7 @@ def test_a_rivers_fall_is_kept_where_it_stands_clear_of_level_and_of_the_frames_
     left_open = georef.tilt_allowed(rtk[:, :2].numpy(), np.full(len(cams), 0.03))
     assert left_open < 0.005
     estimated = {"relative_level": False}
-    fit = stage._with_fall(adjusted, estimated, dict, left_open)
+    fit = stage._with_fall(adjusted, estimated, left_open)
     trial = estimated["fall"]
     assert trial["kept"] == (fall > 0) == (fit is not None) and trial["tilt_left_open"] == left_open
     if fall:
@@ -243,11 +243,11 @@ def test_a_rivers_fall_is_kept_where_it_stands_clear_of_level_and_of_the_frames_
             assert abs(got - want) < 3 * fit.sigma[name], (got, want, fit.sigma)
         assert "; the water falls 2." in stage._say_fall(trial)
         refused = {"relative_level": False}  # the positions' heights leave a 3 % tilt open
-        assert stage._with_fall(adjusted, refused, dict, 0.03) is None and not refused["fall"]["kept"]
+        assert stage._with_fall(adjusted, refused, 0.03) is None and not refused["fall"]["kept"]
         assert "leave the frame's tilt open to 3.00 %" in stage._say_fall(refused["fall"])
         monkeypatch.setattr(stage, "MAX_FALL", 0.01)  # water falling at most 1 %
         refused = {"relative_level": False}
-        assert stage._with_fall(adjusted, refused, dict, left_open) is None and not refused["fall"]["kept"]
+        assert stage._with_fall(adjusted, refused, left_open) is None and not refused["fall"]["kept"]
         assert "steeper than water falls (1 %)" in stage._say_fall(refused["fall"])
     else:
         assert "free" not in estimated and trial["standard_deviations"] < stage.FALL_SIGNIFICANT
@@ -323,3 +323,62 @@ def test_the_adjustment_estimates_a_lens_distortion_through_the_water():
     pin = bundle.adjust(R0, C0, K, P0, point, image, pixels, WATER, prior_C=rtk)
     assert (pin.residuals.pow(2).mean().sqrt() > 1.5 * got.residuals.pow(2).mean().sqrt()
             and pin.lens == (0.0, 0.0))
+
+
+def test_the_level_s_sigma_against_the_bed_is_the_full_covariance_s_and_the_spread_of_the_depths_offset():
+    """The level's standard deviation relative to the submerged points' mean height (the depths' common
+    offset), with loosely held heights (a barometer's 30 cm) and the lens free, so that cameras, points and
+    level trade: equal to f^T N^-1 f from the full normal matrix of every unknown (its Jacobian by central
+    differences of the residuals, nothing of the reduced system's), and the spread of that offset over
+    noise draws, where the level's sigma with the cameras held is well below it."""
+    cams, pts, point, image, exact = scene(points=300, noise_px=0.0)
+    R, C, K = stack(cams)
+    wet = pts[:, 2] < 0
+    sig = torch.tensor([1.0, 1.0, 0.3], dtype=torch.float64)
+    free = ("level", "lens")
+
+    def draw(seed):
+        rng = np.random.default_rng(seed)
+        pixels = exact + torch.tensor(rng.normal(0, 0.3, exact.shape))
+        prior = C + torch.tensor(rng.normal(size=C.shape)) * sig
+        got = bundle.adjust(R, C, K, pts, point, image, pixels, WaterSurface(0.0, 1.33), prior_C=prior,
+                            prior_sigma=tuple(sig.tolist()), free=free)
+        return got, pixels, prior
+
+    got, pixels, prior = draw(5)
+    assert got.sigma_level_to_bed > 1.5 * got.sigma_given_cameras["level"]
+    problem = bundle._Problem(C, K, len(pts), point, image, pixels, got.water, [0, 3, 4], prior, sig, None,
+                              0.01, 1.0, 2.0, False)
+    theta = torch.tensor([got.water.level, 0.0, 0.0, *got.lens], dtype=torch.float64)
+    n_img, n_pts = len(C), len(pts)
+
+    def residuals(x):  # every observation's and every prior's, at the adjusted state moved by x
+        turn, move = x[: 3 * n_img].reshape(-1, 3), x[3 * n_img: 6 * n_img].reshape(-1, 3)
+        P = got.points + x[6 * n_img: 6 * n_img + 3 * n_pts].reshape(-1, 3)
+        th = theta.clone()
+        th[[0, 3, 4]] += x[6 * n_img + 3 * n_pts:]
+        Cx = got.C + move
+        return torch.cat([problem.residual(bundle._rotate(got.R, turn), Cx, P, th).reshape(-1),
+                          ((Cx - prior) / sig).reshape(-1)])
+
+    size = 6 * n_img + 3 * n_pts + 3
+    r0 = residuals(torch.zeros(size, dtype=torch.float64))
+    steps = 1e-7 * torch.eye(size, dtype=torch.float64)
+    J = torch.stack([(residuals(e) - residuals(-e)) / 2e-7 for e in steps], 1)
+    m = 2 * len(point)
+    scale = float((r0[:m] ** 2).sum()) / (m - size)
+    f = torch.zeros(size, dtype=torch.float64)
+    f[6 * n_img + 3 * n_pts] = 1.0  # the level
+    below = torch.nonzero(got.water.depth(got.points) > 0)[:, 0]
+    f[6 * n_img + 3 * below + 2] = -1.0 / len(below)  # less the submerged points' mean height
+    dense = math.sqrt(float(f @ torch.linalg.solve(J.T @ J, f)) * scale)
+    assert got.sigma_level_to_bed == pytest.approx(dense, rel=1e-3)
+    # the offset's spread over noise draws (pixels and the heights' prior): the sigma against the bed, not
+    # the level's with the cameras held
+    errors, held = [], []
+    for seed in range(10, 16):
+        got = draw(seed)[0]
+        errors.append(got.water.level - float(got.points[wet, 2].mean()) + float(pts[wet, 2].mean()))
+        held.append(got.sigma_given_cameras["level"])
+    spread = math.sqrt(np.mean(np.square(errors)))
+    assert 0.6 < spread / dense < 1.6 and spread > 1.5 * max(held)

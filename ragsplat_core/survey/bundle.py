@@ -28,6 +28,7 @@ level and the points' depths trade against each other).
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass
 
 import torch
@@ -71,10 +72,13 @@ class Bundle:
     cost: float  # robust cost at the end (pixels^2 units, priors included)
     water: WaterSurface | None = None  # the surface, adjusted where `free` asked
     sigma: dict[str, float] | None = None  # standard deviation of each free parameter (m; slope: m/m)
-    # the same with the cameras held where they are: the surface relative to the model, what depths depend on
-    # (where the positions fix the frame only to metres, `sigma` is mostly the frame's own uncertainty)
+    # the same with the cameras held where they are (where the positions fix the frame only to metres,
+    # `sigma` is mostly the frame's own uncertainty; this one leaves out how the cameras trade with the level)
     sigma_given_cameras: dict[str, float] | None = None
     lens: tuple[float, float] = (0.0, 0.0)  # (k1, k2): adjusted where `free` asked
+    # the level's standard deviation relative to the submerged points' mean height (m; `_level_to_bed`): the
+    # depths' common offset, what they depend on, the cameras and the points free to trade with it
+    sigma_level_to_bed: float | None = None
 
 
 def _rotate(R: torch.Tensor, w: torch.Tensor) -> torch.Tensor:  # R [N, 3, 3] turned by w [N, 3] (radians)
@@ -117,10 +121,10 @@ def adjust(R: torch.Tensor, C: torch.Tensor, intrinsics: torch.Tensor, points: t
     theta = torch.tensor(start, dtype=dt)
     theta = torch.cat([theta, torch.tensor([float(v) for v in lens], dtype=dt)])
     fit = _levenberg_marquardt(problem, _State(R, C, points, theta), iterations, tol, on_iteration)
-    sigma, held = _sigmas(problem, fit) if len(index) else (None, None)
+    sigma, held, to_bed = _sigmas(problem, fit) if len(index) else (None, None, None)
     end = fit.state
     return Bundle(end.R, end.C, end.points, (fit.r * pixel_sigma).norm(dim=-1), fit.iterations, fit.cost,
-                  problem.surface(end.theta), sigma, held, problem.distortion(end.theta))
+                  problem.surface(end.theta), sigma, held, problem.distortion(end.theta), to_bed)
 
 
 @dataclass(frozen=True)
@@ -300,11 +304,13 @@ def _levenberg_marquardt(problem: _Problem, state: _State, iterations: int, tol:
     return _Fit(state, cost, r, it)
 
 
-def _sigmas(problem: _Problem, fit: _Fit) -> tuple[dict[str, float], dict[str, float]]:
+def _sigmas(problem: _Problem, fit: _Fit) -> tuple[dict[str, float], dict[str, float], float | None]:
     """The free parameters' standard deviations (`PARAMETERS`' names): from the undamped reduced system's
-    inverse, and with the cameras held (its S_gg block alone), both scaled by the residuals' variance."""
+    inverse, and with the cameras held (its S_gg block alone), both scaled by the residuals' variance; and,
+    with the level free, that of the level relative to the submerged points (`_level_to_bed`)."""
     r = fit.r
-    S, _, _ = problem.reduced(problem.normal_equations(fit.state, r), 0.0)
+    eq = problem.normal_equations(fit.state, r)
+    S, _, Vi = problem.reduced(eq, 0.0)
     w = _huber(r.norm(dim=-1), problem.huber)[1]
     dof = max(r.numel() - 6 * problem.n_img - 3 * problem.n_pts - len(problem.index), 1)
     scale = float((w * (r * r).sum(-1)).sum()) / dof
@@ -312,7 +318,36 @@ def _sigmas(problem: _Problem, fit: _Fit) -> tuple[dict[str, float], dict[str, f
     sigma = {n: float(v.clamp(min=0).sqrt()) for n, v in zip(names, S.marginal().diagonal() * scale)}
     held = {n: float(v.clamp(min=0).sqrt())
             for n, v in zip(names, torch.linalg.inv(S.Sgg).diagonal() * scale)}
-    return sigma, held
+    to_bed = _level_to_bed(problem, fit.state, eq, S, Vi)
+    return sigma, held, None if to_bed is None else math.sqrt(max(to_bed * scale, 0.0))
+
+
+def _level_to_bed(problem: _Problem, s: _State, eq: dict, S: _System, Vi: torch.Tensor) -> float | None:
+    """The variance (up to the residuals' scale) of the surface's height over the submerged points less their
+    mean height: the common offset of their depths, which neither the frame's height nor its drift between
+    cameras moves, where the level alone with the cameras held leaves out how the cameras and the points
+    trade with it (through a lens's distortion, loosely held heights). The points are eliminated from the
+    system, so the functional f = e_level . x - m . p (m: the submerged points' z, averaged) has the variance
+    a^T S^-1 a + m^T V^-1 m with a = e_level + B V^-1 m, B the cameras' and the parameters' coupling to the
+    points (the covariance of x and p back-substituted). None without the level free or submerged points."""
+    if 0 not in problem.index:
+        return None
+    surface = problem.surface(s.theta)
+    wet = torch.nonzero(surface.depth(s.points) > 0)[:, 0]
+    if not len(wet):
+        return None
+    dt, n_img = problem.dt, problem.n_img
+    m = torch.zeros(problem.n_pts, 3, dtype=dt, device=s.points.device)
+    m[wet, 2] = 1.0 / len(wet)
+    Vm = (Vi @ m[:, :, None])[..., 0]  # [P, 3]
+    a_c = torch.zeros(n_img, 6, dtype=dt, device=m.device).index_add_(
+        0, problem.image, (eq["W"] @ Vm[problem.point][:, :, None])[..., 0])
+    a_g = (eq["Wg"] @ Vm[:, :, None])[..., 0].sum(0)  # [G]
+    where = s.points[wet, :2].mean(0)  # the tilted plane's height at the submerged points' middle
+    a_g = a_g + torch.tensor([{0: 1.0, 1: float(where[0]), 2: float(where[1])}.get(j, 0.0)
+                              for j in problem.index], dtype=dt, device=m.device)
+    a = torch.cat([a_c.reshape(-1), a_g])
+    return float(a @ S.solve(a) + (m * Vm).sum())
 
 
 DENSE_MAX = 3000  # unknowns of the reduced system solved dense (500 cameras: a 72 MB matrix); more: sparse

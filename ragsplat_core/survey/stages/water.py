@@ -222,12 +222,7 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
                              on_iteration=step, **problem.held)
 
     adj = adjusted(free)
-
-    def of_water(sigma):  # the water's parameters' (the lens's go to "lens")
-        return {k: v for k, v in sigma.items() if k not in ("k1", "k2")}
-
-    estimated = {"free": list(free), "start_m": start + origin[2], "sigma_m": of_water(adj.sigma),
-                 "sigma_given_cameras_m": of_water(adj.sigma_given_cameras),
+    estimated = {"free": list(free), "start_m": start + origin[2], **_sigmas(adj),
                  "frame": "consumer GPS (metres)" if "slope" in free else _frame_holder(survey.where),
                  # the frame's height a consumer drone's, to metres: the level matters relative to the model
                  "relative_level": survey.where.tagged is not None and not survey.where.rtk_fixed}
@@ -237,8 +232,7 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
         if math.hypot(*water.slope) > allowed:
             estimated["slope_refused"] = {"slope": list(water.slope), "allowed": allowed}
             adj = adjusted(("level",))
-            estimated.update(free=["level"], sigma_m=of_water(adj.sigma),
-                             sigma_given_cameras_m=of_water(adj.sigma_given_cameras))
+            estimated.update(free=["level"], **_sigmas(adj))
             return _by_shoreline(P[: len(trk.points)].numpy(), cfg.n, adj, estimated, adjusted)
         level = georef.levelling(water)
         adj = replace(adj, R=adj.R @ torch.as_tensor(level.R.T), C=torch.as_tensor(level.apply(adj.C)),
@@ -248,7 +242,7 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
         water = WaterSurface(water.level, cfg.n)
         return adj, water, estimated
     if not estimated["relative_level"]:  # a frame held to centimetres: RTK, ground control, given positions
-        falling = _with_fall(adjusted, estimated, of_water, _tilt_left_open(problem))
+        falling = _with_fall(adjusted, estimated, _tilt_left_open(problem))
         if falling is not None:
             return falling, falling.water, estimated
     return _by_shoreline(P[: len(trk.points)].numpy(), cfg.n, adj, estimated, adjusted)
@@ -271,7 +265,17 @@ def _tilt_left_open(problem: Problem) -> float:
     return georef.tilt_allowed(held["prior_C"][known, :2].numpy(), sigma[known, 2].numpy())
 
 
-def _with_fall(adjusted, estimated: dict, of_water, allowed: float) -> Bundle | None:
+def _sigmas(adj: Bundle) -> dict:
+    """water.json's standard deviations of the adjustment `adj`'s water (the lens's go to "lens"): its own,
+    with the cameras held, and the level's relative to the submerged points (the depths' common offset)."""
+    def of_water(sigma):
+        return {k: v for k, v in sigma.items() if k not in ("k1", "k2")}
+
+    return {"sigma_m": of_water(adj.sigma), "sigma_given_cameras_m": of_water(adj.sigma_given_cameras),
+            "sigma_to_bed_m": adj.sigma_level_to_bed}
+
+
+def _with_fall(adjusted, estimated: dict, allowed: float) -> Bundle | None:
     """In a frame the positions hold level to centimetres, the adjustment again with the water's slope free
     (`adjusted(free)`): kept, the frame as it is and the water a plane falling in it, where the slope stands
     FALL_SIGNIFICANT standard deviations from level (each component by its own), more than the positions
@@ -289,8 +293,7 @@ def _with_fall(adjusted, estimated: dict, of_water, allowed: float) -> Bundle | 
     if trial["standard_deviations"] < FALL_SIGNIFICANT or not allowed < fall <= MAX_FALL:
         estimated["fall"] = trial
         return None
-    estimated.update(free=["level", "slope"], fall={**trial, "kept": True}, sigma_m=of_water(fit.sigma),
-                     sigma_given_cameras_m=of_water(fit.sigma_given_cameras))
+    estimated.update(free=["level", "slope"], fall={**trial, "kept": True}, **_sigmas(fit))
     return fit
 
 
@@ -312,17 +315,22 @@ def _by_shoreline(pinhole: np.ndarray, n: float, adj: Bundle, estimated: dict,
     from_photos = {"level": adj.water.level, "sigma_m": sigma}
     adj = adjusted((), shore.level)
     estimated.update(by="shoreline", shoreline=shore.report(), adjustment=from_photos,
-                     sigma_m={"level": shore.sigma}, sigma_given_cameras_m={"level": shore.sigma})
+                     sigma_m={"level": shore.sigma}, sigma_given_cameras_m={"level": shore.sigma},
+                     sigma_to_bed_m=shore.sigma)
     return adj, adj.water, estimated
 
 
 def level_sigma(est: dict) -> tuple[float, bool]:
     """(the estimated level's standard deviation that the depths feel, whether it is relative to the model)
     from water.json's "estimated": in a frame whose height is a consumer drone's (GPS or barometer, held to
-    metres), the level's uncertainty with the cameras held; else its own. A record without
-    "relative_level" is one whose frame was consumer GPS exactly when the slope was free."""
+    metres), the level's relative to the submerged points, the depths' common offset (a record without it:
+    the level's with the cameras held); else its own. A record without "relative_level" is one whose frame
+    was consumer GPS exactly when the slope was free."""
     relative = est.get("relative_level", "slope" in est["free"])
-    return float(est["sigma_given_cameras_m" if relative else "sigma_m"]["level"]), relative
+    if not relative:
+        return float(est["sigma_m"]["level"]), False
+    to_bed = est.get("sigma_to_bed_m")
+    return float(est["sigma_given_cameras_m"]["level"] if to_bed is None else to_bed), True
 
 
 def _frame_holder(where: Positions) -> str:
@@ -390,7 +398,7 @@ def _say_fall(fall: dict | None) -> str:
 
 def _say_water(progress: Progress, surface: WaterSurface, check: dict, t0: float) -> None:
     """Stage 3's lines: the estimated level and its uncertainty, the points around the surface, the fit."""
-    if "estimated" in check:  # in a frame held only to metres, its uncertainty relative to the model matters
+    if "estimated" in check:  # in a frame held only to metres, its uncertainty relative to the bed matters
         est = check["estimated"]
         sigma, relative = level_sigma(est)
         shore = est.get("by") == "shoreline"
@@ -401,7 +409,7 @@ def _say_water(progress: Progress, surface: WaterSurface, check: dict, t0: float
                      + (" at the survey's centre" if surface.tilted else "")
                      + f" +- {100 * sigma:.1f} cm (1 sigma"
                      + ("" if not relative
-                        else ", relative to the model; the frame's height is the GPS's")
+                        else ", relative to the bed; the frame's height is the GPS's")
                      + ")"
                      + ("" if "levelled_deg" not in est else
                         f"; the frame levelled by the water's plane, {est['levelled_deg']:.2f} degrees")
