@@ -23,14 +23,14 @@ _GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z; its own i
 _ORTHO_TOL = 1e-6
 
 
-def _as_like(array: np.ndarray, like):
-    """`array` in the container, dtype and device of `like` (numpy or torch)."""
+def _as_like(camera: Camera, name: str, like):
+    """The camera's `name` (e.g. "R") in the container, dtype and device of `like` (numpy or torch)."""
+    array = getattr(camera, name)
     if isinstance(like, np.ndarray):
         return array.astype(like.dtype if like.dtype.kind == "f" else np.float64)
     import torch  # only when a tensor was passed in
 
-    dtype = like.dtype if like.is_floating_point() else torch.float64
-    return torch.tensor(array, dtype=dtype, device=like.device)
+    return camera.tensor(name, like.dtype if like.is_floating_point() else torch.float64, like.device)
 
 
 def _check_rotation(R: np.ndarray) -> None:
@@ -127,6 +127,25 @@ class Camera:
         R = np.stack([x, y, z])
         return cls.from_fov(width, height, fov_x_deg, R, -R @ eye)
 
+    def __getstate__(self):  # pickled without the device copies (`tensor`)
+        return {k: v for k, v in self.__dict__.items() if k != "_tensors"}
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+
+    def tensor(self, name: str, dtype, device):
+        """The camera's `name` ("R", "t", "K", "w2c" or "camera_center") as a tensor of `dtype` on `device`,
+        made there once and kept: a copy from the host to a GPU waits for every kernel queued before it, so
+        a training step that made its view's matrices anew would wait for the device several times a step.
+        Read only (shared by every caller)."""
+        import torch  # only when a tensor is asked for
+
+        cache = self.__dict__.setdefault("_tensors", {})  # frozen: the fields cannot change under it
+        key = (name, dtype, torch.device(device))
+        if key not in cache:
+            cache[key] = torch.tensor(getattr(self, name), dtype=dtype, device=device)
+        return cache[key]
+
     # ---- derived quantities -------------------------------------------------------------------------
     @property
     def K(self) -> np.ndarray:  # [3, 3]
@@ -157,7 +176,7 @@ class Camera:
     # ---- mapping points ------------------------------------------------------------------------------
     def to_camera(self, points):
         """World points [N, 3] -> camera-frame points [N, 3] (OpenCV axes)."""
-        return points @ _as_like(self.R, points).T + _as_like(self.t, points)
+        return points @ _as_like(self, "R", points).T + _as_like(self, "t", points)
 
     def project(self, points):
         """World points [N, 3] -> (pixels [N, 2] as continuous (u, v), z-depth [N]).
@@ -177,7 +196,7 @@ class Camera:
         y = (pixels[..., 1] - self.cy) / self.fy * depth
         stack = np.stack if isinstance(pixels, np.ndarray) else _torch_stack
         pc = stack([x, y, depth], -1)
-        return (pc - _as_like(self.t, pc)) @ _as_like(self.R, pc)
+        return (pc - _as_like(self, "t", pc)) @ _as_like(self, "R", pc)
 
     def to_dict(self) -> dict:
         return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy, "cx": self.cx,

@@ -93,7 +93,7 @@ def depth_normals(depth: torch.Tensor, camera: Camera) -> torch.Tensor:
     p = camera.unproject(torch.stack([u, v], -1), depth)  # [H, W, 3]
     n = torch.cross(p[1:-1, 2:] - p[1:-1, :-2], p[2:, 1:-1] - p[:-2, 1:-1], dim=-1)  # [H-2, W-2, 3]
     n = torch.nn.functional.normalize(n, dim=-1)
-    view = p[1:-1, 1:-1] - torch.as_tensor(camera.camera_center, dtype=depth.dtype, device=depth.device)
+    view = p[1:-1, 1:-1] - camera.tensor("camera_center", depth.dtype, depth.device)
     n = torch.where(((n * view).sum(-1, keepdim=True) > 0), -n, n)
     ok = (depth[1:-1, 2:] > 0) & (depth[1:-1, :-2] > 0) & (depth[2:, 1:-1] > 0) & (depth[:-2, 1:-1] > 0)
     return torch.nn.functional.pad(n * ok[..., None], (0, 0, 1, 1, 1, 1))

@@ -73,8 +73,18 @@ def waterline_weight(d):
     return t * t * t * (t * (6 * t - 15) + 10)
 
 
+def _scalar(x, like, dtype=None):
+    """A number or 0-d tensor `x` as a tensor of `like`'s device and `dtype` (`like`'s when None): a tensor
+    is converted, a number filled there (`torch.as_tensor` of a number copies it from the host, which waits
+    for the device's queue)."""
+    dtype = like.dtype if dtype is None else dtype
+    if torch.is_tensor(x):
+        return x.to(dtype=dtype, device=like.device)
+    return torch.full((), float(x), dtype=dtype, device=like.device)
+
+
 def _fade(w, n):  # [M] the factor on opacity and radiance: 1 at the level, 1 / n^2 below the band
-    return torch.lerp(torch.ones_like(w), 1 / torch.as_tensor(n, dtype=w.dtype, device=w.device) ** 2, w)
+    return torch.lerp(torch.ones_like(w), 1 / _scalar(n, w) ** 2, w)
 
 
 def opacity_factor(means, water: WaterSurface):
@@ -84,7 +94,7 @@ def opacity_factor(means, water: WaterSurface):
     # the depth along the surface's normal (its frames'), as the transform blends
     if water.tilted or water.curved:
         return _fade(waterline_weight(-into_frame(*frames(water, means), means)[:, 2]), water.n)
-    level = torch.as_tensor(water.level, dtype=means.dtype, device=means.device)
+    level = _scalar(water.level, means)
     return _fade(waterline_weight(level - means[:, 2]), water.n)
 
 
@@ -109,8 +119,8 @@ def solve_alpha(r2, d, H, n, steps: int | None = None):
     """
     dtype = torch.result_type(r2, d)
     steps = SOLVER_STEPS.get(dtype, 4) if steps is None else steps
-    n = torch.as_tensor(n, dtype=dtype, device=r2.device)
-    H = torch.as_tensor(H, dtype=dtype, device=r2.device)
+    n = _scalar(n, r2, dtype)
+    H = _scalar(H, r2, dtype)
     with torch.no_grad():
         r2_, d_, H_, n_ = r2.detach(), d.detach(), H.detach(), n.detach()
         n2, m2 = n_ * n_, (n_ - 1) * (n_ + 1)  # not n^2 - 1: cancellation near n = 1
@@ -161,8 +171,8 @@ class _Local(NamedTuple):
 
 
 def _local(points, camera_center, water) -> _Local:
-    level = torch.as_tensor(water.level, dtype=points.dtype, device=points.device)
-    n = torch.as_tensor(water.n, dtype=points.dtype, device=points.device)
+    level = _scalar(water.level, points)
+    n = _scalar(water.n, points)
     C = torch.as_tensor(camera_center, dtype=points.dtype, device=points.device)
     v = points[:, :2] - C[..., :2]  # C [3], or [M, 3]: a camera per point (the curved surface's own frames)
     return _Local(v, (v * v).sum(-1), level - points[:, 2], C[..., 2] - level, n, C[..., :2], level)
@@ -253,7 +263,7 @@ def pixel_water_paths(rays, depth, camera_center, water: WaterSurface):
     # [...] cos(theta_a) to the normal; the floor keeps a ray that never meets the water (d' < 0, also where
     # nothing is rendered: P' = C) finite in value and gradient, and no bed is seen within 0.06 deg of grazing
     cos = (down / torch.linalg.vector_norm(rays, dim=-1)).clamp(min=GRAZING_COS)
-    n = torch.as_tensor(water.n, dtype=rays.dtype, device=rays.device)
+    n = _scalar(water.n, rays)
     # clamps, not wheres: fewer ops
     return d_app.clamp(min=0) * ((n - 1) * (n + 1) + cos * cos) / (n * cos**3)
 
@@ -296,7 +306,7 @@ def _flat_in_plane(water: WaterSurface) -> WaterSurface:  # a tilted surface in 
 
 
 def _submerged(points, water):  # [N] bool
-    return points[:, 2] < torch.as_tensor(water.level, dtype=points.dtype, device=points.device)
+    return points[:, 2] < _scalar(water.level, points)
 
 
 def apparent_points(points, camera_center, water: WaterSurface, steps: int | None = None):
@@ -334,12 +344,12 @@ def apparent_points_each(points, centers, water: WaterSurface, steps: int | None
         return points.clone()
     if water.tilted or water.curved:
         return _apparent_in_frames(points, centers, water, steps)
-    level = torch.as_tensor(water.level, dtype=points.dtype, device=points.device)
+    level = _scalar(water.level, points)
     wet = points[:, 2] < level
     C = centers[wet]
     v = points[wet, :2] - C[:, :2]
     rho, d_app = apparent_offsets((v * v).sum(-1), level - points[wet, 2], C[:, 2] - level,
-                                  torch.as_tensor(water.n, dtype=points.dtype, device=points.device), steps)
+                                  _scalar(water.n, points), steps)
     return points.index_put((wet,), torch.cat([C[:, :2] + rho[:, None] * v, (level - d_app)[:, None]], -1))
 
 
@@ -438,7 +448,8 @@ class ApparentGaussians(NamedTuple):
 def refract_gaussians(means, scales, quats, opacities, colors, camera_center, water: WaterSurface,
                       position: bool = True, scale: str = "isotropic", opacity: bool = True,
                       color: bool = False, steps: int | None = None, covariances: bool = True,
-                      attenuation: torch.Tensor | None = None, downwelling: float = 0.0) -> ApparentGaussians:
+                      attenuation: torch.Tensor | None = None, downwelling: float = 0.0,
+                      check_camera: bool = True) -> ApparentGaussians:
     """Map true Gaussians to the apparent ones one camera sees through the water (RA-GS, per view).
 
     means [N, 3], scales [N, 3] (linear), quats [N, 4] (wxyz), opacities [N] in [0, 1], colors [N, ...]
@@ -453,10 +464,13 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
     path (`water_paths`), which tends to 0 at the level and needs no blend; at n = 1 it alone applies.
     `downwelling` k (with `attenuation`): the daylight's path down to the Gaussian per metre of its depth d;
     the radiance is then times exp(-c (L + k d)) (module docstring).
+    `check_camera`: a ValueError where the camera is not above the surface; False for a caller that has
+    checked it (the check reads the centre back from the device, which waits for the device's queue).
     """
     if scale not in SCALE_MODES:
         raise ValueError(f"scale must be one of {SCALE_MODES}, got {scale!r}")
-    _check_camera(camera_center, water)
+    if check_camera:
+        _check_camera(camera_center, water)
     covars = jacobians = None
     if scale == "anisotropic":
         covars = covariance(quats, scales) if covariances else None
@@ -480,7 +494,7 @@ def refract_gaussians(means, scales, quats, opacities, colors, camera_center, wa
     def take(full):
         return full if all_wet else full.index_select(0, rows)
 
-    level = torch.as_tensor(water.level, dtype=means.dtype, device=means.device)
+    level = _scalar(water.level, means)
     w = waterline_weight(level - take(means)[:, 2])  # [M]
     if position or scale != "none" or attenuation is not None:
         per_row = torch.is_tensor(camera_center) and camera_center.dim() == 2  # a curved surface's frames

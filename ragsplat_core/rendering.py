@@ -33,7 +33,8 @@ from ragsplat.water_surface import WaterSurface
 def view_gaussians(splats, center: torch.Tensor, sh_degree: int, water: WaterSurface | None,
                    flags: dict | None, backend: str = "torch", surfels: bool = False,
                    compiled: bool = False, attenuation: torch.Tensor | None = None,
-                   wet_degree: int = 3, downwelling: float = 0.0) -> ApparentGaussians:
+                   wet_degree: int = 3, downwelling: float = 0.0,
+                   check_camera: bool = True) -> ApparentGaussians:
     """The Gaussians as the rasterizer takes them for the camera at `center` [3]: the true ones (`flags`
     None) or the apparent ones through `water` (RA-GS, `flags` of `refract_gaussians`). With the `cpu`
     backend (what "auto" means on CPU) the view colours come from its SH kernel. `surfels`: no apparent
@@ -42,7 +43,8 @@ def view_gaussians(splats, center: torch.Tensor, sh_degree: int, water: WaterSur
     (1/m) or None, passed to the transform only when given (a variant without it calls it as before), with
     its `downwelling`.
     `wet_degree`: the most SH degree of a Gaussian under `water` (`TrainConfig.wet_sh_degree`), its colour
-    blended from the full degree's to that one's across the water line as the refraction is; 3: no cap."""
+    blended from the full degree's to that one's across the water line as the refraction is; 3: no cap.
+    `check_camera`: `refract_gaussians`' (False: the caller has checked the camera above the water)."""
     scales, quats, opac = activated(splats)
     colors_of = choose_backend(backend, splats["means"].device).colors
     colors = colors_of(splats, center, sh_degree)  # [N, 3]
@@ -54,7 +56,7 @@ def view_gaussians(splats, center: torch.Tensor, sh_degree: int, water: WaterSur
     transform = compiled_refract_gaussians() if compiled else refract_gaussians
     terms = {} if attenuation is None else {"attenuation": attenuation, "downwelling": downwelling}
     return transform(splats["means"], scales, quats, opac, colors, center, water, **flags,
-                     covariances=not surfels, **terms)
+                     covariances=not surfels, check_camera=check_camera, **terms)
 
 
 def render_splats(splats, camera: Camera, center: torch.Tensor, sh_degree: int, water: WaterSurface | None,
@@ -62,18 +64,18 @@ def render_splats(splats, camera: Camera, center: torch.Tensor, sh_degree: int, 
                   compiled: bool = False,
                   attenuation: torch.Tensor | None = None, backscatter: torch.Tensor | None = None,
                   reflection: torch.Tensor | None = None, wet_degree: int = 3, surfel_depth: str = "ray",
-                  downwelling: float = 0.0):
+                  downwelling: float = 0.0, check_camera: bool = True):
     """(image [H,W,3], alpha [H,W,1], depth [H,W,1], meta) of `camera` (centre `center` [3]) as training
     renders it (`view_gaussians`, then `rasterize_view`). `backscatter`: [2, 3] the water's veil B_inf and its
     coefficients c_b (1/m), or None (nothing computed): the veil along each pixel's path in `water` to the
     point it renders is added to the image (`refraction.backscatter_veil`). `reflection`: [S, S, 3] the sky
     map the surface mirrors (`reflection.sky_radiance`, linear radiance), or None (nothing computed): each wet
     pixel becomes (1 - R) x the rest + R x the mirrored sky (`reflection.reflect`). The trainer and a
-    finished run's renders (`runs.Model`) share it. `wet_degree`, `downwelling`: `view_gaussians`';
-    `surfel_depth`: `rasterize_surfels`' depth."""
+    finished run's renders (`runs.Model`) share it. `wet_degree`, `downwelling`, `check_camera`:
+    `view_gaussians`'; `surfel_depth`: `rasterize_surfels`' depth."""
     img, alpha, depth, meta = rasterize_view(view_gaussians(splats, center, sh_degree, water, flags, backend,
                                                             surfels, compiled, attenuation, wet_degree,
-                                                            downwelling),
+                                                            downwelling, check_camera),
                                              camera, surfels, background, backend, depth=surfel_depth)
     if backscatter is not None or reflection is not None:
         rays = pixel_rays(camera, depth)  # [H, W, 3]
@@ -95,7 +97,7 @@ def pixel_rays(camera: Camera, like: torch.Tensor) -> torch.Tensor:
     kw = {"dtype": like.dtype, "device": like.device}
     x = (torch.arange(camera.width, **kw) + 0.5 - camera.cx) / camera.fx  # [W]
     y = (torch.arange(camera.height, **kw) + 0.5 - camera.cy) / camera.fy  # [H]
-    R = torch.tensor(camera.R, **kw)
+    R = camera.tensor("R", like.dtype, like.device)
     return x[None, :, None] * R[0] + y[:, None, None] * R[1] + R[2]
 
 

@@ -173,10 +173,11 @@ def test_variant_3dgs_skips_refraction(wet, monkeypatch):
     Trainer(_cfg(variant="3dgs", iterations=2), wet).train()
     assert calls == []
     Trainer(_cfg(variant="position+opacity", iterations=2), wet).train()
-    assert calls == [{**VARIANTS["position+opacity"], "covariances": True}] * 2
+    # the trainer checks its cameras above the water itself, at the start and after each move of it
+    assert calls == [{**VARIANTS["position+opacity"], "covariances": True, "check_camera": False}] * 2
     calls.clear()  # surfels take the refracted tangents, never apparent covariances
     Trainer(_cfg(variant="2dgs+full", iterations=1), wet).train()
-    assert calls == [{**VARIANTS["2dgs+full"], "covariances": False}]
+    assert calls == [{**VARIANTS["2dgs+full"], "covariances": False, "check_camera": False}]
 
 
 @pytest.mark.parametrize("variant", ["full", "full+color", "full+anisotropic"])
@@ -530,3 +531,49 @@ def test_refracted_init_intersects_the_tracks_through_the_water(tmp_path, monkey
                         lambda root, work: (np.concatenate([straight, dry]), np.array(obs), names))
     means = Trainer(_cfg(init="refracted"), ds).splats["means"].detach().double().numpy()
     np.testing.assert_allclose(means, np.concatenate([true, dry[:, :3]]), atol=1e-5)
+
+
+class _HostReads(torch.overrides.TorchFunctionMode):
+    """Where the code reads a value back from the tensors' device or copies one there from the host: on a
+    GPU each of these waits for every kernel queued before it. Counted by (what, file:line) of the innermost
+    ragsplat frame; the rasterizer's reference kernels (which gsplat replaces on a GPU) are left out."""
+
+    READS = frozenset({"__bool__", "__float__", "__int__", "__index__", "item", "tolist", "numpy", "cpu",
+                       "nonzero"})
+
+    def __init__(self):
+        super().__init__()
+        self.sites: dict[tuple[str, str], int] = {}
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        name = getattr(func, "__name__", "")
+        copy = name in ("tensor", "as_tensor") and "device" in kwargs and not torch.is_tensor(args[0])
+        if name in self.READS or copy:
+            import traceback
+
+            frames = [f for f in traceback.extract_stack()[:-1] if "ragsplat" in f.filename
+                      and "/tests/" not in f.filename]
+            # the view order is drawn on the host on every device (a CPU generator)
+            if frames and frames[-1].name != "_next_view" and not any(
+                    k in frames[-1].filename for k in ("reference/project", "reference/composite",
+                                                       "reference/surfel_composite")):
+                key = (name, f"{frames[-1].filename.rsplit('/', 1)[-1]}:{frames[-1].name}")
+                self.sites[key] = self.sites.get(key, 0) + 1
+        return func(*args, **kwargs)
+
+
+@pytest.mark.parametrize("variant", ["full", "2dgs+full"])
+def test_a_training_step_reads_the_device_twice(wet, variant):
+    """A step between refinements waits for the device at two places only: the one read of its loss,
+    PSNR and finiteness checks, and the search of the submerged rows; the views' matrices are copied to the
+    device once, not per step (`Camera.tensor`)."""
+    tr = Trainer(_cfg(variant=variant, iterations=20, backend="torch"), wet)
+    for _ in range(len(tr.views)):  # every view once: its matrices made on the device
+        tr.train_step()
+    reads = _HostReads()
+    with reads:
+        for _ in range(4):
+            tr.train_step()
+    assert reads.sites == {("tolist", "trainer.py:_check_before_step"): 4,
+                           ("__bool__", "refraction.py:_wet_rows"): 4}

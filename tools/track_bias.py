@@ -5,7 +5,15 @@ truth's (gt/bed_grid.npy, gt/bank_grid.npy) at the same place. The cameras, the 
 take no part: an offset left is in the keypoints (or the render). Printed as JSON: the dry and the
 submerged tracks' mean and median height error (m), the submerged ones by true depth.
 
+With --synthetic, the same for SIFT alone: a flat bed of random texture DEPTH under a calm surface,
+ray-traced here (numpy: Snell at the surface, the texture sampled bilinearly, 3 x 3 samples a pixel) into
+four nadir photos of a mapping flight's geometry (the river-mapping twin's 1200 x 900 px, 81 degrees, 80 /
+70 % overlap), and once more in air at the same depth; pycolmap's SIFT (doubled, as the survey runs photos
+of this size) matches every pair and each match is triangulated with the true cameras: no renderer, frame
+or level involved. With --cycles the photos of that bed come from the benchmark's renderer instead.
+
     python -m tools.track_bias RUN DATA [--tracks 4000]   # DATA: the dataset (or stretch) of the photos
+    python -m tools.track_bias --synthetic [--cycles] [--altitude 30] [--depth 1.5] [--work DIR]
 """
 
 from __future__ import annotations
@@ -13,12 +21,15 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
 NEAR = 0.03  # m: a track counts where a truth node lies this close to it
 WET = 0.1  # m: submerged tracks at least this deep, clear of the waterline's mixed neighbours
+W, H, FOV, N, SUPERSAMPLE = 1200, 900, 81.0, 1.33, 3  # the river-mapping twin's photos
+TEXEL, HALF = 0.01, 32.0  # m: the texture's grid and half its extent
 
 
 def _observations(rec, names, points):
@@ -60,7 +71,8 @@ def triangulate(start, track, camera, xy, cams, water, iterations: int = 8):
         Jt = J.transpose(1, 2)
         JtJ = torch.zeros(len(X), 3, 3, dtype=X.dtype).index_add_(0, track, Jt @ J)
         Jtr = torch.zeros(len(X), 3, dtype=X.dtype).index_add_(0, track, (Jt @ r[:, :, None])[..., 0])
-        X = X - torch.linalg.solve(JtJ, Jtr)
+        # damped: a wrong match's point may run where its rays barely constrain it (sorted out by the caller)
+        X = X - torch.linalg.solve(JtJ + 1e-9 * torch.eye(3, dtype=X.dtype), torch.nan_to_num(Jtr))
     return X.numpy()
 
 
@@ -117,14 +129,159 @@ def track_bias(run: Path, truth: Path, tracks: int = 4000) -> dict:
         out[kind] = row
     return out
 
+def bed_texture(seed: int = 1) -> np.ndarray:
+    """[n, n] grey values in [0, 1]: white noise blurred to about 3 cm, a stony bed's scale of detail."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    n = int(2 * HALF / TEXEL)
+    tex = ndimage.gaussian_filter(rng.random((n, n), dtype=np.float32), 3.0)
+    return np.clip(0.5 + 0.18 * (tex - tex.mean()) / tex.std(), 0, 1)
+
+
+def render(cam, tex: np.ndarray, depth: float, water: bool) -> np.ndarray:
+    """[H, W] uint8 photo of the bed at z = -depth, through the surface z = 0 (index N) or in air."""
+    from scipy import ndimage
+
+    j, i = np.meshgrid((np.arange(W * SUPERSAMPLE) + 0.5) / SUPERSAMPLE,
+                       (np.arange(H * SUPERSAMPLE) + 0.5) / SUPERSAMPLE)
+    d = np.stack([(j - cam.cx) / cam.fx, (i - cam.cy) / cam.fy, np.ones_like(j)], -1) @ cam.R  # world rays
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    C = cam.camera_center
+    if water:
+        P = C + (-C[2] / d[..., 2])[..., None] * d  # on the surface
+        cos_i, eta = -d[..., 2], 1 / N
+        bend = eta * cos_i - np.sqrt(1 - eta ** 2 * (1 - cos_i ** 2))
+        d = eta * d + bend[..., None] * np.array([0, 0, 1.0])
+    else:
+        P = C
+    B = P + ((-depth - P[..., 2]) / d[..., 2])[..., None] * d
+    u, v = (B[..., 0] + HALF) / TEXEL - 0.5, (B[..., 1] + HALF) / TEXEL - 0.5
+    img = ndimage.map_coordinates(tex, [v.ravel(), u.ravel()], order=1).reshape(u.shape)
+    img = img.reshape(H, SUPERSAMPLE, W, SUPERSAMPLE).mean((1, 3))
+    return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+def matches(work: Path, cams, images) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(track [K], camera [K], keypoints [K, 2]) of every pair's verified SIFT matches, two views a track."""
+    import cv2
+    import pycolmap
+
+    (work / "img").mkdir(parents=True, exist_ok=True)
+    for k, img in enumerate(images):
+        cv2.imwrite(str(work / "img" / f"{k}.png"), img)
+    db = work / "database.db"
+    db.unlink(missing_ok=True)
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.first_octave = -1
+    c = cams[0]
+    reader = pycolmap.ImageReaderOptions(camera_model="PINHOLE", camera_params=f"{c.fx},{c.fy},{c.cx},{c.cy}")
+    pycolmap.extract_features(db, work / "img", camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                              extraction_options=extraction)
+    pycolmap.match_exhaustive(db)
+    data = pycolmap.Database.open(str(db))
+    photo = {im.image_id: int(Path(im.name).stem) for im in data.read_all_images()}
+    ids = sorted(photo)
+    track, camera, xy = [], [], []
+    for a, ia in enumerate(ids):
+        for ib in ids[a + 1:]:
+            pairs = data.read_two_view_geometry(ia, ib).inlier_matches
+            if pairs is None or not len(pairs):
+                continue
+            ka, kb = data.read_keypoints(ia)[:, :2], data.read_keypoints(ib)[:, :2]
+            first = len(track) // 2
+            track += np.repeat(np.arange(first, first + len(pairs)), 2).tolist()
+            camera += [photo[ia], photo[ib]] * len(pairs)
+            xy += np.stack([ka[pairs[:, 0]], kb[pairs[:, 1]]], 1).reshape(-1, 2).tolist()
+    data.close()
+    return np.array(track), np.array(camera), np.array(xy)
+
+
+def render_cycles(work: Path, cams, tex: np.ndarray, depth: float, samples: int = 16) -> dict[bool, list]:
+    """{through the water: [H, W] uint8 photos} of the same bed rendered by the benchmark's Cycles renderer
+    (`ragsplat.datagen.build.run_blender`): the texture as the bed's albedo under the default sun, the
+    surface a `Refraction` plane; the "wet" pass, and the "dry" one that leaves the water out."""
+    import cv2
+
+    from ragsplat.datagen.build import run_blender
+    from ragsplat.datagen.job import (
+        Intrinsics,
+        Refraction,
+        RenderJob,
+        RenderSettings,
+        SceneObject,
+        Task,
+        Texture,
+    )
+    from ragsplat.datagen.spec import LightSpec
+
+    work.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(work / "bed.png"), (np.clip(tex[::-1], 0, 1) * 255 + 0.5).astype(np.uint8))  # rows: +y up
+    corners = np.array([[-HALF, -HALF], [HALF, -HALF], [HALF, HALF], [-HALF, HALF]])
+    far = 100 * HALF
+    np.savez(work / "geometry.npz", bed_verts=np.column_stack([corners, np.full(4, -depth)]),
+             bed_tris=np.array([[0, 1, 2], [0, 2, 3]]), bed_uv=(corners + HALF) / (2 * HALF),
+             water_verts=np.column_stack([corners / HALF * far, np.zeros(4)]),
+             water_tris=np.array([[0, 1, 2], [0, 2, 3]]))
+    c = cams[0]
+    job = RenderJob(geometry=str(work / "geometry.npz"),
+                    objects=(SceneObject("bed", Texture(str(work / "bed.png"))),
+                             SceneObject("water", Refraction(N, 1.0))),
+                    water="water", light=LightSpec(),
+                    render=RenderSettings(samples=samples, device="CPU", threads=0, seed=0, filter_width=1.5,
+                                          depth_filter=0.01, exposure=0.0),
+                    camera=Intrinsics(c.width, c.height, c.fx, c.fy, c.cx, c.cy),
+                    tasks=tuple(Task(kind, f"{kind}{k}", cam.c2w_gl, str(work / f"{kind}{k}.png"))
+                                for kind in ("wet", "dry") for k, cam in enumerate(cams)))
+    run_blender(job, work)
+    return {wet: [cv2.imread(str(work / f"{'wet' if wet else 'dry'}{k}.png"), cv2.IMREAD_GRAYSCALE)
+                  for k in range(len(cams))] for wet in (True, False)}
+
+
+def sift_through_water(work: Path, altitude: float = 30.0, depth: float = 1.5, cycles: bool = False) -> dict:
+    from ragsplat.camera import Camera
+    from ragsplat.water_surface import WaterSurface
+
+    # 80 % forward and 70 % side overlap of these photos' footprint at this altitude
+    across = 2 * altitude * np.tan(np.radians(FOV / 2))  # the footprint along the photo's width
+    fx, fy = 0.2 * across, 0.3 * across * H / W
+    cams = [Camera.look_at([x, y, altitude], [x, y, 0.0], W, H, FOV)
+            for x in (-fx / 2, fx / 2) for y in (-fy / 2, fy / 2)]
+    tex = bed_texture()
+    out = {"altitude_m": altitude, "depth_m": depth, "renderer": "Cycles" if cycles else "numpy"}
+    photos = render_cycles(work / "cycles", cams, tex, depth) if cycles else None
+    for kind, water in (("through_water", True), ("in_air", False)):
+        images = photos[water] if cycles else [render(c, tex, depth, water) for c in cams]
+        track, camera, xy = matches(work / kind, cams, images)
+        start = np.tile([0.0, 0.0, -depth], (int(track.max()) + 1, 1))
+        surface = WaterSurface(0.0, N) if water else None
+        X = triangulate(start, track, camera, xy, cams, surface, 1)  # one step from the bed's depth
+        X = triangulate(X, track, camera, xy, cams, surface, 10)
+        err = X[:, 2] + depth
+        err = err[np.abs(err) < 0.3]  # a wrong match's height says nothing of a bias
+        out[kind] = {"matches": len(err), "mean_m": float(err.mean()), "median_m": float(np.median(err))}
+    return out
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("run", type=Path)
-    parser.add_argument("data", type=Path)
+    parser.add_argument("run", type=Path, nargs="?")
+    parser.add_argument("data", type=Path, nargs="?")
     parser.add_argument("--tracks", type=int, default=4000, help="tracks of each kind (the model's first)")
+    parser.add_argument("--synthetic", action="store_true", help="SIFT on a ray-traced bed instead of a run")
+    parser.add_argument("--altitude", type=float, default=30.0, help="with --synthetic (m)")
+    parser.add_argument("--depth", type=float, default=1.5, help="with --synthetic (m)")
+    parser.add_argument("--cycles", action="store_true", help="with --synthetic: the photos by Cycles")
+    parser.add_argument("--work", type=Path, help="with --synthetic: keep the photos here")
     args = parser.parse_args()
-    print(json.dumps(track_bias(args.run, args.data, args.tracks), indent=1))
+    if args.synthetic:
+        with tempfile.TemporaryDirectory() as tmp:
+            found = sift_through_water(args.work or Path(tmp), args.altitude, args.depth, args.cycles)
+        print(json.dumps(found, indent=1))
+    elif args.run is None or args.data is None:
+        parser.error("RUN and DATA, or --synthetic")
+    else:
+        print(json.dumps(track_bias(args.run, args.data, args.tracks), indent=1))
 
 
 if __name__ == "__main__":

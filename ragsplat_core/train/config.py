@@ -369,7 +369,11 @@ PRESETS: dict[str, TrainConfig] = {
     "small": with_chosen(TrainConfig(preset="small", init_count=16_000,
                                      densify=DensifyConfig(max_gaussians=40_000)),
                          chosen(TUNING, SMALL_STEPS)),
-    "paper": TrainConfig(preset="paper", iterations=30_000, init_count=40_000),
+    # 3DGS's unbounded growth keeps adding Gaussians on `small`'s photos, and time to each step, for as long
+    # as it densifies (docs/lab/performance.md, "On a GPU"); the cap, five times `small`'s, was set before
+    # any run with it, not tuned
+    "paper": TrainConfig(preset="paper", iterations=30_000, init_count=40_000,
+                         densify=DensifyConfig(max_gaussians=200_000)),
 }
 # small-field: 3 000 steps and the start's gaps filled from the tracks' TIN (small_field.json, top level); it
 # keeps 3DGS's densification stop: `small`'s gained nothing on its development seed ("refine_stop")

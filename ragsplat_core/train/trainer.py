@@ -156,12 +156,14 @@ class Trainer:
 
     # ---- rendering ----------------------------------------------------------------------------------
     def _render(self, camera: Camera, center: torch.Tensor, interface: bool, water: WaterSurface | None,
-                splats: dict | None = None):  # splats: the Gaussians to render, self.splats when None
+                splats: dict | None = None, check_camera: bool = True):
+        # splats: the Gaussians to render, self.splats when None; check_camera: `render_splats`'
         optics = [self.terms[k].log.exp() if interface and k in self.terms else None for k in TERM_NAMES]
         return render_splats(self.splats if splats is None else splats, camera, center, self.active_sh_degree,
                              water, self.flags if interface else None, self.cfg.surfels, self.background,
                              self.cfg.backend, self.cfg.compile_refraction, *optics,
-                             self.cfg.wet_sh_degree, self.cfg.surfel_depth, self.cfg.downwelling)
+                             self.cfg.wet_sh_degree, self.cfg.surfel_depth, self.cfg.downwelling,
+                             check_camera)
 
     def render(self, camera: Camera, interface: bool = True):
         """(image [H,W,3], alpha [H,W,1], depth [H,W,1]) of `camera`, no gradients.
@@ -199,27 +201,16 @@ class Trainer:
         water = self.calibrated.surface(calibrate)
         shown = None if self.view_ripples is None else rippled(
             self.splats, self.centers[i], water, lambda xy: self.view_ripples(self.views[i].name, xy))
-        img, _, depth, info = self._render(cam, self.centers[i], True, water, shown)
+        # the training cameras are checked above the water at the start and after each move of it
+        img, _, depth, info = self._render(cam, self.centers[i], True, water, shown, check_camera=False)
         loss = photometric_loss(img, gt, mask, self.cfg.ssim_lambda)
         if self.cfg.surfels:
             loss = loss + surfel_loss(self.cfg, cam, depth, info, mask, step)
-        if not torch.isfinite(loss):
-            cause = nonfinite_report(self.splats, self._water_named())
-            raise TrainingDiverged(f"iteration {step}: loss is {float(loss.detach())} (view "
-                                   f"{self.views[i].name}); {cause}")
         info.update(width=cam.width, height=cam.height)
         self.strategy.step_pre_backward(self.splats, self.optimizers, self.strat_state, step, info)
         loss.backward()
-        # one reduction per tensor: a sum is finite only if every element is (gradients and parameters are
-        # far too small to overflow float32 when added up)
-        for name, p in (*self.splats.items(), *self._water_named()):
-            if p.grad is not None and not torch.isfinite(p.grad.sum()):
-                # a bad parameter poisons the others' gradients: name it
-                cause = nonfinite_report(self.splats, self._water_named())
-                raise TrainingDiverged(f"iteration {step}: "
-                                       + (f"{cause} before the optimizer step" if cause else
-                                          f"non-finite gradient of parameter '{name}' "
-                                          f"({int((~torch.isfinite(p.grad)).sum())} values)"))
+        shown = (img.detach(), gt) if mask is None else (img.detach()[mask], gt[mask])
+        self._check_before_step(step, loss, psnr(*shown), self.views[i].name)
         self.optimizers["means"].param_groups[0]["lr"] = self.means_lr(step)
         for opt in self.optimizers.values():
             opt.step()
@@ -231,14 +222,38 @@ class Trainer:
         if calibrate:
             self.calibrated.step()
             check_cameras_above(self.views, self.water, TrainingDiverged)  # a level that rose above them
-        bad = nonfinite_report(self.splats, self._water_named())
-        if bad:
-            raise TrainingDiverged(f"iteration {step}: {bad} after the optimizer step")
         self.strategy.step_post_backward(self.splats, self.optimizers, self.strat_state, step, info)
         self._flatten_surfels()  # a split divides all three scales
-        shown = (img.detach(), gt) if mask is None else (img.detach()[mask], gt[mask])
-        self.last = {"loss": float(loss.detach()), "psnr": float(psnr(*shown)), "n": self.num_gaussians}
         return self.last
+
+    def _check_before_step(self, step: int, loss: torch.Tensor, psnr_db: torch.Tensor, view: str) -> None:
+        """TrainingDiverged where the loss, a gradient or a parameter (as the last step left it) is not
+        finite; else the step's loss and PSNR into `self.last`. One read from the device for all of it: each
+        read waits for the device's queue. One sum per tensor: a sum is finite only if every element is
+        (gradients and parameters are far too small to overflow float32 when added up)."""
+        named = [*self.splats.items(), *self._water_named()]
+        sums = [t for _, p in named for t in ((p.grad if p.grad is not None else p.new_zeros(())).sum(),
+                                               p.detach().sum())]
+        values = torch.stack([x.detach().float() for x in (loss, psnr_db, *sums)])
+        loss_value, psnr_value, *read = values.tolist()
+        if all(math.isfinite(x) for x in (loss_value, *read)):
+            self.last = {"loss": loss_value, "psnr": psnr_value, "n": self.num_gaussians}
+            return
+        cause = nonfinite_report(self.splats, self._water_named())
+        if not math.isfinite(loss_value):
+            raise TrainingDiverged(f"iteration {step}: loss is {loss_value} (view {view}); {cause}")
+        if cause:  # a bad parameter poisons the others' gradients: name it
+            raise TrainingDiverged(f"iteration {step}: {cause} before the optimizer step")
+        name, p = next((name, p) for k, (name, p) in enumerate(named) if not math.isfinite(read[2 * k]))
+        raise TrainingDiverged(f"iteration {step}: non-finite gradient of parameter '{name}' "
+                               f"({int((~torch.isfinite(p.grad)).sum())} values)")
+
+    def _check_after_step(self) -> None:
+        """TrainingDiverged where the last optimizer step left a parameter non-finite (the next step's check
+        would find it; a checkpoint or the end comes first)."""
+        bad = nonfinite_report(self.splats, self._water_named())
+        if bad:
+            raise TrainingDiverged(f"iteration {self.step}: {bad} after the optimizer step")
 
     def _flatten_surfels(self) -> None:
         """The third axis of a surfel is its normal: no thickness, no gradient. Kept at `SURFEL_THICKNESS`
@@ -280,15 +295,19 @@ class Trainer:
                 self.step_seconds.append(dt)
                 if on_step is not None:
                     on_step(self)
+                due = self.out is not None and every and self.step % every == 0
+                if self.step in marks or due:
+                    self._check_after_step()  # before an evaluation or a checkpoint reads the parameters
                 if self.step in marks and self.step < cfg.iterations:
                     for cb in callbacks:
                         cb(self, self.step)
-                if self.out is not None and every and self.step % every == 0:
+                if due:
                     self.save_checkpoint()
         except KeyboardInterrupt:
             if self.out is not None and not in_step:  # a step cut in half would save a half-updated state
                 self.save_checkpoint()
             raise
+        self._check_after_step()
         if self.out is not None:
             self.save_checkpoint()
             save_ply(self.out / PLY, self.splats)

@@ -17,8 +17,8 @@ def render(means, quats, scales, opacities, colors, camera: Camera, background, 
     from gsplat import rasterization
 
     dtype, device = means.dtype, means.device
-    viewmat = torch.tensor(camera.w2c, dtype=torch.float32, device=device)[None]  # [1, 4, 4]
-    K = torch.tensor(camera.K, dtype=torch.float32, device=device)[None]  # [1, 3, 3]
+    viewmat = camera.tensor("w2c", torch.float32, device)[None]  # [1, 4, 4]
+    K = camera.tensor("K", torch.float32, device)[None]  # [1, 3, 3]
     renders, alphas, info = rasterization(
         means.float(), _f32(quats), _f32(scales), opacities.float(), colors.float(), viewmat, K, camera.width,
         camera.height, near_plane=NEAR, eps2d=EPS2D, packed=False, tile_size=TILE,

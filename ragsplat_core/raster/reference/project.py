@@ -44,8 +44,8 @@ class Projected(NamedTuple):
 def project(means: torch.Tensor, covars: torch.Tensor, opacities: torch.Tensor, camera: Camera) -> Projected:
     """EWA-project Gaussians (means [N, 3], world covariances [N, 3, 3], opacities [N]) into `camera`."""
     dtype, device = means.dtype, means.device
-    R = torch.tensor(camera.R, dtype=dtype, device=device)
-    tc = torch.tensor(camera.t, dtype=dtype, device=device)
+    R = camera.tensor("R", dtype, device)
+    tc = camera.tensor("t", dtype, device)
     pc = means @ R.T + tc  # [N, 3]
     x, y, z = pc.unbind(-1)
     front = z >= NEAR

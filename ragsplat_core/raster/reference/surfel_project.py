@@ -65,8 +65,8 @@ def project_surfels(means: torch.Tensor, tangents: torch.Tensor, opacities: torc
     """Project surfels (means [N, 3], scaled world tangents [N, 3, 2], opacities [N]) into `camera`;
     `transforms`: also gsplat's ray transforms (see the module notes)."""
     dtype, device = means.dtype, means.device
-    R = torch.tensor(camera.R, dtype=dtype, device=device)
-    tc = torch.tensor(camera.t, dtype=dtype, device=device)
+    R = camera.tensor("R", dtype, device)
+    tc = camera.tensor("t", dtype, device)
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     pc = means @ R.T + tc  # [N, 3]
     front = pc[:, 2] >= NEAR
@@ -85,7 +85,7 @@ def project_surfels(means: torch.Tensor, tangents: torch.Tensor, opacities: torc
                         n[:, 1] / fy, (n * rc).sum(-1)], -1)  # [N, 7]
     T = None
     if transforms:
-        K = torch.tensor(camera.K, dtype=dtype, device=device)
+        K = camera.tensor("K", dtype, device)
         T = K @ torch.stack([a, b, p], -1)  # [N, 3, 3]
         # placed at means2d: `shift` is zero, and its two terms cancel in every gradient but means2d's own,
         # which becomes the translation of the surfel's whole image on the screen, as the twins' dx = px -
@@ -94,7 +94,7 @@ def project_surfels(means: torch.Tensor, tangents: torch.Tensor, opacities: torc
         T = T + torch.cat([shift[:, :, None] * T[:, 2:3], torch.zeros_like(T[:, :1])], 1)
 
     normals = torch.nn.functional.normalize(torch.linalg.cross(tangents[..., 0], tangents[..., 1]), dim=-1)
-    centre = torch.tensor(camera.camera_center, dtype=dtype, device=device)
+    centre = camera.tensor("camera_center", dtype, device)
     with torch.no_grad():
         facing = torch.where((normals * (centre - means)).sum(-1) < 0, -1.0, 1.0).to(dtype)
     normals = normals * facing[:, None]  # [N, 3]
