@@ -130,9 +130,6 @@ class Camera:
     def __getstate__(self):  # pickled without the device copies (`tensor`)
         return {k: v for k, v in self.__dict__.items() if k != "_tensors"}
 
-    def __setstate__(self, state):
-        self.__dict__.update(state)
-
     def tensor(self, name: str, dtype, device):
         """The camera's `name` ("R", "t", "K", "w2c" or "camera_center") as a tensor of `dtype` on `device`,
         made there once and kept: a copy from the host to a GPU waits for every kernel queued before it, so
