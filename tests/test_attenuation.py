@@ -474,11 +474,12 @@ def test_variants_without_the_term_have_none_and_call_the_transform_as_before(tu
     plain = Trainer(_cfg(variant="2dgs+full", iterations=1), turbid)
     assert "attenuation" not in plain.terms and plain.attenuation is None
     plain.train()
-    assert calls == [{**VARIANTS["2dgs+full"], "covariances": False}]
+    assert calls == [{**VARIANTS["2dgs+full"], "covariances": False, "check_camera": False}]
     assert plain.stats()["attenuation"] is None
     calls.clear()
     Trainer(_cfg(iterations=1), turbid).train()
-    assert set(calls[0]) == {*VARIANTS["2dgs+full"], "covariances", "attenuation", "downwelling"}
+    assert set(calls[0]) == {*VARIANTS["2dgs+full"], "covariances", "attenuation", "downwelling",
+                            "check_camera"}
     assert (VARIANTS[VARIANT] == VARIANTS["2dgs+full"] and _cfg().surfels
             and _cfg().water_terms == ("attenuation",))
     dry = Dataset(Path("mem"), None, turbid.views, turbid.bed)  # no water, nothing to attenuate
