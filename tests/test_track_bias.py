@@ -30,3 +30,29 @@ def test_tracks_projected_through_the_water_triangulate_back_to_where_they_were(
     dry = points + [0.0, 0.0, 3.5]  # above the surface: the air's pinhole
     xy_dry = np.array([cams[j].project(dry[k][None])[0][0] for k, j in zip(track, camera)])
     assert np.abs(triangulate(dry + 0.1, track, camera, xy_dry, cams, None) - dry).max() < 1e-5
+
+
+def test_matches_read_photo_files_as_they_read_arrays(tmp_path):
+    """A twin's photos go in as its files (the renderer's PNG, the survey's JPEG) and come out matched as the
+    same pixels given as arrays."""
+    import cv2
+    from scipy import ndimage
+
+    from tools.track_bias import matches
+
+    rng = np.random.default_rng(3)
+    tex = ndimage.gaussian_filter(rng.random((260, 400)), 2.0)
+    tex = (255 * (tex - tex.min()) / np.ptp(tex)).astype(np.uint8)
+    images = [tex[:240, :360], tex[12:252, 30:390]]  # the second 30 px right and 12 px down
+    files = []
+    for k, img in enumerate(images):
+        files.append(tmp_path / f"photo{k}.png")
+        cv2.imwrite(str(files[-1]), img)
+    cams = [Camera.look_at([0.0, 0.0, 30.0], [0.0, 0.0, 0.0], 360, 240, 60.0)] * 2
+    from_arrays = matches(tmp_path / "arrays", cams, images)
+    from_files = matches(tmp_path / "files", cams, files)
+    assert len(from_arrays[0]) > 100
+    for a, b in zip(from_arrays, from_files):
+        np.testing.assert_array_equal(a, b)
+    shift = from_arrays[2][1::2] - from_arrays[2][0::2]  # the second view's keypoint less the first's
+    assert np.abs(np.median(shift, 0) - [-30.0, -12.0]).max() < 0.1

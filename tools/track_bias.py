@@ -12,8 +12,15 @@ four nadir photos of a mapping flight's geometry (the river-mapping twin's 1200 
 of this size) matches every pair and each match is triangulated with the true cameras: no renderer, frame
 or level involved. With --cycles the photos of that bed come from the benchmark's renderer instead.
 
+With --in-air, the twin's own bed with and without its water: the photos PHOTOS of the stretch DATA are
+rendered again without the water (the "dry" pass, from the scene the stretch was cut from), both sets are
+SIFT-matched pair by pair and triangulated with the true cameras, through the true surface and in air; the
+points over the river (true depth over 10 cm) and over the banks against the exact mesh (gt/bed_surface.npz).
+What the river's points are off in air is the bed's relief and texture, not the water.
+
     python -m tools.track_bias RUN DATA [--tracks 4000]   # DATA: the dataset (or stretch) of the photos
     python -m tools.track_bias --synthetic [--cycles] [--altitude 30] [--depth 1.5] [--work DIR]
+    python -m tools.track_bias --in-air DATA [--photos 0004,0005,0006,0013,0014,0015] [--work DIR]
 """
 
 from __future__ import annotations
@@ -80,6 +87,7 @@ def track_bias(run: Path, truth: Path, tracks: int = 4000) -> dict:
     import pycolmap
     from scipy.spatial import cKDTree
 
+    from ragsplat.dataset.layout import GT_SURFACE, Surface
     from ragsplat.dataset.load import load_dataset
     from ragsplat.eval.score_file import survey_geotags
     from ragsplat.survey.georef import fit_similarity
@@ -99,6 +107,7 @@ def track_bias(run: Path, truth: Path, tracks: int = 4000) -> dict:
     w = json.loads((truth / "scene.json").read_text())["water"]
     water = WaterSurface(w["level"], w["n"], tuple(w.get("slope", (0.0, 0.0))))
     slope = np.asarray(w.get("slope", [0.0, 0.0]), float)
+    exact = Surface.load(truth / GT_SURFACE) if (truth / GT_SURFACE).exists() else None
     out = {}
     for kind, grid in (("dry", "bank_grid.npy"), ("submerged", "bed_grid.npy")):
         truth_z = np.load(truth / "gt" / grid)
@@ -120,6 +129,9 @@ def track_bias(run: Path, truth: Path, tracks: int = 4000) -> dict:
         ok = dist < NEAR
         err = X[ok, 2] - truth_z[near[ok], 2]
         row = {"tracks": int(ok.sum()), "mean_m": float(err.mean()), "median_m": float(np.median(err))}
+        if exact is not None:  # the mesh's own height under each point, not the nearest node's
+            off = X[ok, 2] - exact.height_at(X[ok, :2])
+            row |= {"mean_to_mesh_m": float(off.mean()), "median_to_mesh_m": float(np.median(off))}
         if kind == "submerged":
             depth = w["level"] + X[ok, :2] @ slope - truth_z[near[ok], 2]
             bands = [WET, 0.5, 1.0, 2.0, np.inf]
@@ -163,13 +175,19 @@ def render(cam, tex: np.ndarray, depth: float, water: bool) -> np.ndarray:
 
 
 def matches(work: Path, cams, images) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(track [K], camera [K], keypoints [K, 2]) of every pair's verified SIFT matches, two views a track."""
+    """(track [K], camera [K], keypoints [K, 2]) of every pair's verified SIFT matches, two views a track;
+    `images`: [H, W] uint8 arrays or photo files, one for each of `cams`, in order."""
+    import shutil
+
     import cv2
     import pycolmap
 
     (work / "img").mkdir(parents=True, exist_ok=True)
     for k, img in enumerate(images):
-        cv2.imwrite(str(work / "img" / f"{k}.png"), img)
+        if isinstance(img, Path):
+            shutil.copy(img, work / "img" / f"{k}{img.suffix}")
+        else:
+            cv2.imwrite(str(work / "img" / f"{k}.png"), img)
     db = work / "database.db"
     db.unlink(missing_ok=True)
     extraction = pycolmap.FeatureExtractionOptions()
@@ -263,6 +281,49 @@ def sift_through_water(work: Path, altitude: float = 30.0, depth: float = 1.5, c
     return out
 
 
+def bed_in_air(work: Path, data: Path, photos: list[str]) -> dict:
+    """{"through_water", "in_air": {"river", "bank": {points, mean_m, median_m}}} of the stretch `data`'s
+    photos `photos`, the second set rendered again without the water (see the module docstring)."""
+    from ragsplat.datagen.build import render_job, run_blender
+    from ragsplat.datagen.job import Task
+    from ragsplat.datagen.spec import SceneSpec
+    from ragsplat.dataset.layout import GT_SURFACE, Surface
+    from ragsplat.dataset.load import load_dataset
+    from ragsplat.water_surface import WaterSurface
+
+    scene = json.loads((data / "scene.json").read_text())
+    source = Path(scene["stretch"]["of"]) if "stretch" in scene else data
+    spec = SceneSpec.from_dict(json.loads((source / "scene" / "spec.json").read_text()))
+    views = {Path(v.file_path).stem: v for v in load_dataset(data, splits=("train",), load_dry=False).train}
+    cams = [views[p].camera for p in photos]
+    dry = work / "dry"
+    dry.mkdir(parents=True, exist_ok=True)
+    run_blender(render_job(spec, source, cams[0], [Task("dry", p, c.c2w_gl, str(dry / f"{p}.png"))
+                                                   for p, c in zip(photos, cams)]), dry)
+    w = scene["water"]
+    water = WaterSurface(w["level"], w["n"], tuple(w.get("slope", (0.0, 0.0))))
+    slope = np.asarray(w.get("slope", [0.0, 0.0]), float)
+    mesh = Surface.load(data / GT_SURFACE)
+    out = {"photos": photos}
+    for kind, files in (("through_water", [data / views[p].file_path for p in photos]),
+                        ("in_air", [dry / f"{p}.png" for p in photos])):
+        track, camera, xy = matches(work / kind, cams, files)
+        X = triangulate(np.tile([0.0, 0.0, w["level"]], (int(track.max()) + 1, 1)), track, camera, xy, cams,
+                        None, 10)
+        if kind == "through_water":  # from the classical depth-times-n correction of the pinhole point
+            surface = w["level"] + X[:, :2] @ slope
+            X[:, 2] = np.where(X[:, 2] < surface, surface - (surface - X[:, 2]) * w["n"], X[:, 2])
+            X = triangulate(X, track, camera, xy, cams, water, 1)
+            X = triangulate(X, track, camera, xy, cams, water, 10)
+        truth = mesh.height_at(X[:, :2])
+        depth, err = w["level"] + X[:, :2] @ slope - truth, X[:, 2] - truth
+        ok = np.abs(err) < 0.3  # a wrong match's height says nothing of a bias
+        out[kind] = {region: {"points": int(sel.sum()), "mean_m": float(err[sel].mean()),
+                              "median_m": float(np.median(err[sel]))}
+                     for region, sel in (("river", ok & (depth > WET)), ("bank", ok & (depth < -0.05)))}
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("run", type=Path, nargs="?")
@@ -272,9 +333,15 @@ def main() -> None:
     parser.add_argument("--altitude", type=float, default=30.0, help="with --synthetic (m)")
     parser.add_argument("--depth", type=float, default=1.5, help="with --synthetic (m)")
     parser.add_argument("--cycles", action="store_true", help="with --synthetic: the photos by Cycles")
-    parser.add_argument("--work", type=Path, help="with --synthetic: keep the photos here")
+    parser.add_argument("--work", type=Path, help="with --synthetic or --in-air: keep the photos here")
+    parser.add_argument("--in-air", type=Path, metavar="DATA", help="the bed with and without the water")
+    parser.add_argument("--photos", default="0004,0005,0006,0013,0014,0015", help="with --in-air")
     args = parser.parse_args()
-    if args.synthetic:
+    if args.in_air is not None:
+        with tempfile.TemporaryDirectory() as tmp:
+            found = bed_in_air(args.work or Path(tmp), args.in_air, args.photos.split(","))
+        print(json.dumps(found, indent=1))
+    elif args.synthetic:
         with tempfile.TemporaryDirectory() as tmp:
             found = sift_through_water(args.work or Path(tmp), args.altitude, args.depth, args.cycles)
         print(json.dumps(found, indent=1))
