@@ -106,7 +106,6 @@ def track_bias(run: Path, truth: Path, tracks: int = 4000) -> dict:
                          np.array([by_name[Path(rec.images[i].name).stem].camera_center for i in seen]))
     w = json.loads((truth / "scene.json").read_text())["water"]
     water = WaterSurface(w["level"], w["n"], tuple(w.get("slope", (0.0, 0.0))))
-    slope = np.asarray(w.get("slope", [0.0, 0.0]), float)
     exact = Surface.load(truth / GT_SURFACE) if (truth / GT_SURFACE).exists() else None
     out = {}
     for kind, grid in (("dry", "bank_grid.npy"), ("submerged", "bed_grid.npy")):
@@ -118,7 +117,7 @@ def track_bias(run: Path, truth: Path, tracks: int = 4000) -> dict:
         dist, near = tree.query(start[:, :2])
         keep = dist < NEAR
         if kind == "submerged":
-            keep &= w["level"] + start[:, :2] @ slope - truth_z[near, 2] > WET
+            keep &= water.height(start[:, :2]) - truth_z[near, 2] > WET
         rows = np.flatnonzero(keep)[:tracks]
         if not len(rows):
             continue
@@ -133,7 +132,7 @@ def track_bias(run: Path, truth: Path, tracks: int = 4000) -> dict:
             off = X[ok, 2] - exact.height_at(X[ok, :2])
             row |= {"mean_to_mesh_m": float(off.mean()), "median_to_mesh_m": float(np.median(off))}
         if kind == "submerged":
-            depth = w["level"] + X[ok, :2] @ slope - truth_z[near[ok], 2]
+            depth = water.height(X[ok, :2]) - truth_z[near[ok], 2]
             bands = [WET, 0.5, 1.0, 2.0, np.inf]
             row["mean_by_true_depth_m"] = {f"{lo:g}-{hi:g} m": float(err[(depth >= lo) & (depth < hi)].mean())
                                            for lo, hi in itertools.pairwise(bands)
@@ -302,7 +301,6 @@ def bed_in_air(work: Path, data: Path, photos: list[str]) -> dict:
                                                    for p, c in zip(photos, cams)]), dry)
     w = scene["water"]
     water = WaterSurface(w["level"], w["n"], tuple(w.get("slope", (0.0, 0.0))))
-    slope = np.asarray(w.get("slope", [0.0, 0.0]), float)
     mesh = Surface.load(data / GT_SURFACE)
     out = {"photos": photos}
     for kind, files in (("through_water", [data / views[p].file_path for p in photos]),
@@ -311,12 +309,12 @@ def bed_in_air(work: Path, data: Path, photos: list[str]) -> dict:
         X = triangulate(np.tile([0.0, 0.0, w["level"]], (int(track.max()) + 1, 1)), track, camera, xy, cams,
                         None, 10)
         if kind == "through_water":  # from the classical depth-times-n correction of the pinhole point
-            surface = w["level"] + X[:, :2] @ slope
+            surface = water.height(X[:, :2])
             X[:, 2] = np.where(X[:, 2] < surface, surface - (surface - X[:, 2]) * w["n"], X[:, 2])
             X = triangulate(X, track, camera, xy, cams, water, 1)
             X = triangulate(X, track, camera, xy, cams, water, 10)
         truth = mesh.height_at(X[:, :2])
-        depth, err = w["level"] + X[:, :2] @ slope - truth, X[:, 2] - truth
+        depth, err = water.height(X[:, :2]) - truth, X[:, 2] - truth
         ok = np.abs(err) < 0.3  # a wrong match's height says nothing of a bias
         out[kind] = {region: {"points": int(sel.sum()), "mean_m": float(err[sel].mean()),
                               "median_m": float(np.median(err[sel]))}
@@ -337,13 +335,11 @@ def main() -> None:
     parser.add_argument("--in-air", type=Path, metavar="DATA", help="the bed with and without the water")
     parser.add_argument("--photos", default="0004,0005,0006,0013,0014,0015", help="with --in-air")
     args = parser.parse_args()
-    if args.in_air is not None:
+    if args.in_air is not None or args.synthetic:
         with tempfile.TemporaryDirectory() as tmp:
-            found = bed_in_air(args.work or Path(tmp), args.in_air, args.photos.split(","))
-        print(json.dumps(found, indent=1))
-    elif args.synthetic:
-        with tempfile.TemporaryDirectory() as tmp:
-            found = sift_through_water(args.work or Path(tmp), args.altitude, args.depth, args.cycles)
+            work = args.work or Path(tmp)
+            found = (bed_in_air(work, args.in_air, args.photos.split(",")) if args.in_air is not None
+                     else sift_through_water(work, args.altitude, args.depth, args.cycles))
         print(json.dumps(found, indent=1))
     elif args.run is None or args.data is None:
         parser.error("RUN and DATA, or --synthetic")
