@@ -198,7 +198,7 @@ def matches(work: Path, cams, images) -> tuple[np.ndarray, np.ndarray, np.ndarra
     pycolmap.match_exhaustive(db)
     data = pycolmap.Database.open(str(db))
     photo = {im.image_id: int(Path(im.name).stem) for im in data.read_all_images()}
-    ids = sorted(photo)
+    ids = sorted(photo, key=photo.get)  # the extraction's threads number the photos in any order
     track, camera, xy = [], [], []
     for a, ia in enumerate(ids):
         for ib in ids[a + 1:]:
@@ -206,6 +206,8 @@ def matches(work: Path, cams, images) -> tuple[np.ndarray, np.ndarray, np.ndarra
             if pairs is None or not len(pairs):
                 continue
             ka, kb = data.read_keypoints(ia)[:, :2], data.read_keypoints(ib)[:, :2]
+            # the extraction's threads also order each photo's keypoints in any order: the pairs by pixel
+            pairs = pairs[np.lexsort((*kb[pairs[:, 1]].T[::-1], *ka[pairs[:, 0]].T[::-1]))]
             first = len(track) // 2
             track += np.repeat(np.arange(first, first + len(pairs)), 2).tolist()
             camera += [photo[ia], photo[ib]] * len(pairs)
