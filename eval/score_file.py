@@ -24,7 +24,8 @@ Gridding, onto the ground truth's nodes (`GroundTruth.nodes`), so that every bed
 
 A survey run's product (a file in the folder of RUN/survey.json, RUN/water.json and RUN/model/) is scored
 beside the run's own points as a TIN, gridded as points are: the tracks adjusted through the water, what the
-run's photos give without training (`survey_tracks`).
+run's photos give without training, and the field's practice without ragsplat: the pinhole model's depths
+times n (`survey_tracks`).
 
 A file whose bed covers fewer than `MIN_COVER` of the truth's wet nodes is refused (DatasetError).
 
@@ -46,7 +47,14 @@ from pathlib import Path
 import numpy as np
 
 from ragsplat.errors import ConfigError, DatasetError
-from ragsplat.eval.references import SURVEY_TRACKS, TIN_FILTER, USES_GROUND_TRUTH, gridded, oracle_grids
+from ragsplat.eval.references import (
+    SURVEY_PINHOLE,
+    SURVEY_TRACKS,
+    TIN_FILTER,
+    USES_GROUND_TRUTH,
+    gridded,
+    oracle_grids,
+)
 
 KINDS = {".tif": "DEM", ".tiff": "DEM", ".las": "LAS", ".laz": "LAS", ".ply": "PLY", ".csv": "CSV"}
 MIN_COVER = 0.01  # of the ground truth's wet nodes: a bed covering fewer is another place or another frame
@@ -347,11 +355,13 @@ def _heights(grid: np.ndarray, truth, frame: Frame, depth: bool) -> np.ndarray:
     return truth.water.height(grid[:, :2]) - grid[:, 2] if depth else grid[:, 2] - frame.offset[2]
 
 
-def survey_tracks(path: Path, depth: bool) -> np.ndarray | None:
-    """[P, 3] the points of the survey run whose product `path` is (RUN/model/ beside RUN/survey.json and
-    RUN/water.json: the model adjusted through the water, each submerged point where refraction puts it) in
-    the run's frame, z as the file's values are (`depth`: below the run's water surface); None for a file no
-    survey run wrote."""
+def survey_tracks(path: Path, depth: bool) -> dict[str, np.ndarray]:
+    """{row name: [P, 3] points} of the survey run whose product `path` is (RUN/model/ beside RUN/survey.json
+    and RUN/water.json) in the run's frame, z as the file's values are (`depth`: below the run's water
+    surface): `SURVEY_TRACKS`, the model adjusted through the water, each submerged point where refraction
+    puts it; `SURVEY_PINHOLE`, the field's practice without ragsplat, the structure from motion's pinhole
+    model (RUN/sfm/model) put in the frame by the same georeferencing (RUN/georef.json) and each point's depth
+    below the same surface times n. Empty for a file no survey run wrote."""
     import json
 
     from ragsplat.dataset.colmap import read_model
@@ -359,13 +369,23 @@ def survey_tracks(path: Path, depth: bool) -> np.ndarray | None:
 
     run = Path(path).parent
     if not ((run / "survey.json").is_file() and (run / "water.json").is_file() and (run / "model").is_dir()):
-        return None
-    rec = read_model(run / "model")
-    xyz = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
+        return {}
+    surface = WaterSurface(**json.loads((run / "water.json").read_text())["surface"])
+
+    def points(model: Path) -> np.ndarray:
+        return np.array([p.xyz for p in read_model(model).points3D.values()], dtype=np.float64).reshape(-1, 3)
+
+    rows = {SURVEY_TRACKS: points(run / "model")}
+    if (run / "georef.json").is_file() and (run / "sfm" / "model").is_dir():
+        sim = json.loads((run / "georef.json").read_text())
+        seen = sim["scale"] * points(run / "sfm" / "model") @ np.array(sim["R"]).T + sim["t"]
+        below = surface.height(seen[:, :2]) - seen[:, 2]
+        seen[:, 2] -= np.where(below > 0, (surface.n - 1) * below, 0.0)  # the depth seen, times n
+        rows[SURVEY_PINHOLE] = seen
     if depth:
-        surface = WaterSurface(**json.loads((run / "water.json").read_text())["surface"])
-        xyz[:, 2] = surface.height(xyz[:, :2]) - xyz[:, 2]
-    return xyz
+        for xyz in rows.values():
+            xyz[:, 2] = surface.height(xyz[:, :2]) - xyz[:, 2]
+    return rows
 
 
 def tvu_band(path: Path, frame: Frame, truth, band: int, heights: int = 1, depth: bool = False) -> dict:
@@ -395,8 +415,8 @@ def score_file(path: Path, data: Path, references: bool = False,
                **read) -> tuple[dict, np.ndarray, object, dict]:
     """The bed of the file `path` (`read_bed` with `read`) scored against the ground truth of the dataset
     `data` by `ragsplat.eval.evaluate.score_grid`, beside the reference rows that need no training: the oracle
-    planes (`references.oracle_grids`), for a survey run's product the run's own tracks as a TIN
-    (`survey_tracks`, `references.SURVEY_TRACKS`) and, with `references`, the dataset's tracks' grids
+    planes (`references.oracle_grids`), for a survey run's product the run's own tracks and its
+    pinhole model's depths x n as TINs (`survey_tracks`) and, with `references`, the dataset's tracks' grids
     (`TrainEval.track_grids`: it triangulates a dataset without a cached triangulation, minutes). A DEM's
     TVU95 band (`tvu`, else the band described `export.TVU_BAND` where it has one) is scored too, under
     "uncertainty" (`tvu_band`). Returns (the result, the bed grid [G', 3], the ground truth, the reference
@@ -420,12 +440,11 @@ def score_file(path: Path, data: Path, references: bool = False,
         tvu = band_named(path, TVU_BAND)
         tvu = None if tvu == read.get("band", 1) else tvu  # scoring the band itself (--band K)
     rows = oracle_grids(truth)
-    tracks = survey_tracks(path, read.get("depth", False))
-    if tracks is not None:
-        near = np.column_stack([frame.to_local(tracks[:, :2]), tracks[:, 2]])
-        grid_tracks = points_grid(near, truth.nodes, despike=True)[0]
-        grid_tracks[:, 2] = _heights(grid_tracks, truth, frame, read.get("depth", False))
-        rows[SURVEY_TRACKS] = grid_tracks
+    for name, points in survey_tracks(path, read.get("depth", False)).items():
+        near = np.column_stack([frame.to_local(points[:, :2]), points[:, 2]])
+        grid_points = points_grid(near, truth.nodes, despike=True)[0]
+        grid_points[:, 2] = _heights(grid_points, truth, frame, read.get("depth", False))
+        rows[name] = grid_points
     if references:
         from ragsplat.eval.ablation import TrainEval
 

@@ -422,10 +422,12 @@ def test_a_survey_writes_its_orthophotos_and_a_report_on_one_page(finished):
 
 
 def test_a_survey_dem_is_scored_beside_the_runs_own_tracks(survey, finished, tmp_path):
-    """`ragsplat score` of a survey's DEM adds the run's adjusted points as a TIN: the same row as those
-    points scored as a CSV file; a DEM outside a survey run gets no such row."""
+    """`ragsplat score` of a survey's DEM adds the run's adjusted points as a TIN, and its pinhole model's
+    depths x n: each the same row as those points scored as a CSV file; a DEM outside a survey run gets
+    neither."""
     from ragsplat.dataset.colmap import read_model
-    from ragsplat.eval.references import SURVEY_TRACKS
+    from ragsplat.eval.references import SURVEY_PINHOLE, SURVEY_TRACKS
+    from ragsplat.water_surface import WaterSurface
 
     out, _ = finished
     scores = tmp_path / "dem.json"
@@ -440,7 +442,22 @@ def test_a_survey_dem_is_scored_beside_the_runs_own_tracks(survey, finished, tmp
     for k in ("1%", "3%"):
         assert row["f1"][k] == pytest.approx(alone["f1"][k], abs=1e-9)
     assert row["survey"]["wet"]["rmse"] == pytest.approx(alone["survey"]["wet"]["rmse"], rel=1e-9)
+    # the field's practice: the pinhole model in the run's frame, each depth below its surface times n
+    sim, surface = json.loads((out / "georef.json").read_text()), json.loads((out / "water.json").read_text())
+    seen = np.array([p.xyz for p in read_model(out / "sfm" / "model").points3D.values()])
+    seen = sim["scale"] * seen @ np.array(sim["R"]).T + sim["t"]
+    level = WaterSurface(**surface["surface"]).height(seen[:, :2])
+    n = surface["surface"]["n"]
+    seen[:, 2] = np.where(seen[:, 2] < level, level - n * (level - seen[:, 2]), seen[:, 2])
+    np.savetxt(tmp_path / "pinhole.csv", seen, fmt="%.17g", delimiter=",", header="x,y,z", comments="")
+    assert main(["score", str(tmp_path / "pinhole.csv"), "--truth", str(survey / "truth"), "--out",
+                 str(tmp_path / "pinhole.json")]) == 0
+    pinhole = json.loads((tmp_path / "pinhole.json").read_text())["geometry"]
+    row = json.loads(scores.read_text())["references"][SURVEY_PINHOLE]
+    assert row["n_pred"] == pinhole["n_pred"] > 0
+    assert row["survey"]["wet"]["rmse"] == pytest.approx(pinhole["survey"]["wet"]["rmse"], rel=1e-9)
     shutil.copy(out / "dem.tif", tmp_path / "elsewhere.tif")
     assert main(["score", str(tmp_path / "elsewhere.tif"), "--truth", str(survey / "truth"), "--out",
                  str(tmp_path / "elsewhere.json")]) == 0
-    assert SURVEY_TRACKS not in json.loads((tmp_path / "elsewhere.json").read_text())["references"]
+    elsewhere = json.loads((tmp_path / "elsewhere.json").read_text())["references"]
+    assert SURVEY_TRACKS not in elsewhere and SURVEY_PINHOLE not in elsewhere

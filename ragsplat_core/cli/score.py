@@ -6,11 +6,11 @@ truth by the ablation's own measures, beside the reference rows that need no tra
   the reference answers, written as JSON (default RUN/eval.json); [--data DIR] [--truth DIR] [--dem FILE.tif]
   and the volume bed's culls [--min-opacity A] [--max-scale-gsd K] ... [--vgg16 PATH] [--no-download].
 - FILE, any bed (a DEM GeoTIFF, LAS/LAZ, PLY or CSV points, from any software) on the ground truth's nodes
-  (`ragsplat.eval.score_file`), for a survey's product also beside the run's own tracks through the water as
-  a TIN; --truth DIR [--band K] [--kind elevation|depth] [--crs CRS] [--no-filter] [--references]
-  [--tvu-band K]; the scores as JSON and its error map as PNG. A DEM with a TVU95 band (`ragsplat export
-  --uncertainty`, or --tvu-band K) also gets that band's calibration over the wet cells: coverage, median
-  TVU95, z-score variance, IHO orders' shares (docs/uncertainty.md).
+  (`ragsplat.eval.score_file`), for a survey's product also beside the run's own tracks through the water and
+  its pinhole model's depths x n as TINs; --truth DIR [--band K] [--kind elevation|depth] [--crs CRS]
+  [--no-filter] [--references] [--tvu-band K]; the scores as JSON and its error map as PNG. A DEM with a
+  TVU95 band (`ragsplat export --uncertainty`, or --tvu-band K) also gets that band's calibration over the
+  wet cells: coverage, median TVU95, z-score variance, IHO orders' shares (docs/uncertainty.md).
 """
 
 from __future__ import annotations
