@@ -51,18 +51,17 @@ NOT_IN_TABLES = ("init",)
 ORACLES = ("oracle plane", "oracle median plane")
 SEEDLESS = (*ORACLES, "triangulation (refracted)", "dietrich (tracks)", "triangulation x n")  # no training
 USES_GROUND_TRUTH = ORACLES
-# Where each reference's height grid comes from, as the tables label it (no fused variant: 3dgs x n
-# corrects the 3dgs row's volume bed, init is the untrained start).
-EXTRACTION = {"init": "volume", "3dgs x n": "volume", "oracle plane": "-", "oracle median plane": "-",
-              "triangulation (refracted)": "TIN", "triangulation x n": "TIN", "dietrich (tracks)": "TIN",
-              "dietrich (3dgs)": "volume", "survey's tracks (refracted)": "TIN",
-              "survey's pinhole model x n": "TIN"}
 # A survey run's own tracks, adjusted through the water (`ragsplat score` of a survey's product): the
 # refracted triangulation from the photos alone, beside the run's trained bed.
 SURVEY_TRACKS = "survey's tracks (refracted)"
 # and the field's practice from the same photos: the run's pinhole structure from motion, georeferenced as the
 # run is, each depth below the run's water surface times n.
 SURVEY_PINHOLE = "survey's pinhole model x n"
+# Where each reference's height grid comes from, as the tables label it (no fused variant: 3dgs x n
+# corrects the 3dgs row's volume bed, init is the untrained start).
+EXTRACTION = {"init": "volume", "3dgs x n": "volume", "oracle plane": "-", "oracle median plane": "-",
+              "triangulation (refracted)": "TIN", "triangulation x n": "TIN", "dietrich (tracks)": "TIN",
+              "dietrich (3dgs)": "volume", SURVEY_TRACKS: "TIN", SURVEY_PINHOLE: "TIN"}
 # The references' own settings, chosen on the development reach by the method's rule (`python -m
 # tools.tune_references data/small-dev`; the figures in docs/lab/history.md, "The references' settings"): the
 # tracks' outlier filter before the TIN (`tracks.track_filter`), and Dietrich's per-camera angle filter and

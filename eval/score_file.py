@@ -25,7 +25,7 @@ Gridding, onto the ground truth's nodes (`GroundTruth.nodes`), so that every bed
 A survey run's product (a file in the folder of RUN/survey.json, RUN/water.json and RUN/model/) is scored
 beside the run's own points as a TIN, gridded as points are: the tracks adjusted through the water, what the
 run's photos give without training, and the field's practice without ragsplat: the pinhole model's depths
-times n (`survey_tracks`).
+times n (`survey_points`).
 
 A file whose bed covers fewer than `MIN_COVER` of the truth's wet nodes is refused (DatasetError).
 
@@ -52,6 +52,7 @@ from ragsplat.eval.references import (
     SURVEY_TRACKS,
     TIN_FILTER,
     USES_GROUND_TRUTH,
+    depth_times_n,
     gridded,
     oracle_grids,
 )
@@ -355,7 +356,7 @@ def _heights(grid: np.ndarray, truth, frame: Frame, depth: bool) -> np.ndarray:
     return truth.water.height(grid[:, :2]) - grid[:, 2] if depth else grid[:, 2] - frame.offset[2]
 
 
-def survey_tracks(path: Path, depth: bool) -> dict[str, np.ndarray]:
+def survey_points(path: Path, depth: bool) -> dict[str, np.ndarray]:
     """{row name: [P, 3] points} of the survey run whose product `path` is (RUN/model/ beside RUN/survey.json
     and RUN/water.json) in the run's frame, z as the file's values are (`depth`: below the run's water
     surface): `SURVEY_TRACKS`, the model adjusted through the water, each submerged point where refraction
@@ -365,6 +366,7 @@ def survey_tracks(path: Path, depth: bool) -> dict[str, np.ndarray]:
     import json
 
     from ragsplat.dataset.colmap import read_model
+    from ragsplat.survey.georef import Similarity
     from ragsplat.water_surface import WaterSurface
 
     run = Path(path).parent
@@ -378,10 +380,8 @@ def survey_tracks(path: Path, depth: bool) -> dict[str, np.ndarray]:
     rows = {SURVEY_TRACKS: points(run / "model")}
     if (run / "georef.json").is_file() and (run / "sfm" / "model").is_dir():
         sim = json.loads((run / "georef.json").read_text())
-        seen = sim["scale"] * points(run / "sfm" / "model") @ np.array(sim["R"]).T + sim["t"]
-        below = surface.height(seen[:, :2]) - seen[:, 2]
-        seen[:, 2] -= np.where(below > 0, (surface.n - 1) * below, 0.0)  # the depth seen, times n
-        rows[SURVEY_PINHOLE] = seen
+        sim = Similarity(sim["scale"], np.array(sim["R"]), np.array(sim["t"]))
+        rows[SURVEY_PINHOLE] = depth_times_n(sim.apply(points(run / "sfm" / "model")), surface)
     if depth:
         for xyz in rows.values():
             xyz[:, 2] = surface.height(xyz[:, :2]) - xyz[:, 2]
@@ -416,7 +416,7 @@ def score_file(path: Path, data: Path, references: bool = False,
     """The bed of the file `path` (`read_bed` with `read`) scored against the ground truth of the dataset
     `data` by `ragsplat.eval.evaluate.score_grid`, beside the reference rows that need no training: the oracle
     planes (`references.oracle_grids`), for a survey run's product the run's own tracks and its
-    pinhole model's depths x n as TINs (`survey_tracks`) and, with `references`, the dataset's tracks' grids
+    pinhole model's depths x n as TINs (`survey_points`) and, with `references`, the dataset's tracks' grids
     (`TrainEval.track_grids`: it triangulates a dataset without a cached triangulation, minutes). A DEM's
     TVU95 band (`tvu`, else the band described `export.TVU_BAND` where it has one) is scored too, under
     "uncertainty" (`tvu_band`). Returns (the result, the bed grid [G', 3], the ground truth, the reference
@@ -440,7 +440,7 @@ def score_file(path: Path, data: Path, references: bool = False,
         tvu = band_named(path, TVU_BAND)
         tvu = None if tvu == read.get("band", 1) else tvu  # scoring the band itself (--band K)
     rows = oracle_grids(truth)
-    for name, points in survey_tracks(path, read.get("depth", False)).items():
+    for name, points in survey_points(path, read.get("depth", False)).items():
         near = np.column_stack([frame.to_local(points[:, :2]), points[:, 2]])
         grid_points = points_grid(near, truth.nodes, despike=True)[0]
         grid_points[:, 2] = _heights(grid_points, truth, frame, read.get("depth", False))
