@@ -71,17 +71,70 @@ def water_rays(camera, pixels: np.ndarray, water) -> tuple[np.ndarray, np.ndarra
 
 
 def closest_points(origins: np.ndarray, dirs: np.ndarray, group: np.ndarray, count: int,
-                   min_angle: float = math.radians(1.0)) -> np.ndarray:
+                   min_angle: float = math.radians(1.0), weights: np.ndarray | None = None) -> np.ndarray:
     """[count, 3] least-squares intersection of the lines (origins [M, 3], unit dirs [M, 3]) of each group
-    (group [M] in 0..count-1): the point that minimises the sum of squared distances to its lines. A group
-    whose lines span less than `min_angle` (or fewer than two lines) is ill-posed: NaN."""
+    (group [M] in 0..count-1): the point that minimises the sum of squared distances to its lines, each
+    squared distance times its line's weight (`weights` [M] >= 0; default 1). A group whose lines of
+    positive weight span less than `min_angle` (or fewer than two such lines) is ill-posed: NaN."""
+    w = np.ones(len(dirs)) if weights is None else np.asarray(weights, dtype=np.float64)
     P = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]  # [M, 3, 3] projectors across each line
-    A, b = np.zeros((count, 3, 3)), np.zeros((count, 3))
-    np.add.at(A, group, P)
-    np.add.at(b, group, np.einsum("mij,mj->mi", P, origins))
-    lines = np.bincount(group, minlength=count)
+    A, b, spread = np.zeros((count, 3, 3)), np.zeros((count, 3)), np.zeros((count, 3, 3))
+    np.add.at(A, group, w[:, None, None] * P)
+    np.add.at(b, group, w[:, None] * np.einsum("mij,mj->mi", P, origins))
+    np.add.at(spread, group[w > 0], P[w > 0])
+    lines = np.bincount(group[w > 0], minlength=count)
     # The smallest eigenvalue of sum(I - d d^T) / m is about sin^2 of the spread of the directions.
-    ok = (lines >= 2) & (np.linalg.eigvalsh(A)[:, 0] >= np.maximum(lines, 1) * math.sin(min_angle) ** 2 / 2)
+    floor = np.maximum(lines, 1) * math.sin(min_angle) ** 2 / 2
+    ok = (lines >= 2) & (np.linalg.eigvalsh(spread)[:, 0] >= floor)
+    ok &= np.linalg.eigvalsh(A)[:, 0] > 0  # weights may leave a well-spread group singular all the same
     out = np.full((count, 3), np.nan)
     out[ok] = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
     return out
+
+
+def angular_residuals(points: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
+                      group: np.ndarray) -> np.ndarray:
+    """[M] the angle (rad) at each line's origin between the line (origins [M, 3], unit dirs [M, 3]) and
+    its group's point (points [count, 3], group [M]); over pi / 2 for a point behind the origin, NaN for a
+    NaN point."""
+    v = points[group] - origins
+    along = np.einsum("mi,mi->m", v, dirs)
+    across = np.linalg.norm(v - along[:, None] * dirs, axis=1)
+    return np.arctan2(across, along)
+
+
+def robust_closest_points(origins: np.ndarray, dirs: np.ndarray, group: np.ndarray, count: int,
+                          min_angle: float = math.radians(1.0), iterations: int = 5,
+                          cut: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+    """(points [count, 3], each group's robust angular spread [count], rad) of the lines of each group as
+    `closest_points` intersects them, but weighted for noise in the lines' angles rather than in their
+    distances, and robust to lines that belong elsewhere (iteratively reweighted least squares):
+
+    - a line's squared distance to the point is divided by the squared length along it from its origin, so
+      each line counts by its angular error: a ray bent by a ripple misses the bed by its angle times its
+      path in the water, and a long oblique path would otherwise weigh more the more it misses;
+    - that angular error is weighted by Cauchy's function, its scale `cut` times the median absolute
+      angular residual of all lines (their common noise), so a line several times off counts little.
+
+    The spread is the weighted rms of a group's angular residuals (NaN where its point is). NaN points as
+    `closest_points`'s; a group whose lines all lose their weight is NaN too."""
+    points = closest_points(origins, dirs, group, count, min_angle)
+    for _ in range(iterations):
+        angle = angular_residuals(points, origins, dirs, group)
+        finite = np.isfinite(angle)
+        if not finite.any():
+            break
+        scale = cut * max(float(np.median(angle[finite])), 1e-12)
+        along = np.einsum("mi,mi->m", points[group] - origins, dirs)
+        w = np.where(finite & (along > 0), 1.0 / (1.0 + (angle / scale) ** 2), 0.0)
+        w /= np.where(w > 0, np.maximum(along, 1e-9) ** 2, 1.0)
+        points = closest_points(origins, dirs, group, count, min_angle, weights=w)
+    angle = angular_residuals(points, origins, dirs, group)
+    finite = np.isfinite(angle)
+    scale = cut * max(float(np.median(angle[finite])), 1e-12) if finite.any() else 1.0
+    w = np.where(finite, 1.0 / (1.0 + (np.nan_to_num(angle) / scale) ** 2), 0.0)
+    total = np.bincount(group, weights=w, minlength=count)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        spread = np.sqrt(np.bincount(group, weights=w * np.nan_to_num(angle) ** 2, minlength=count) / total)
+    spread[~np.isfinite(points).all(1)] = np.nan
+    return points, spread

@@ -359,6 +359,42 @@ def test_water_rays_bend_by_snell_and_meet_at_the_true_point():
     assert np.isnan(closest_points(origins[:1], dirs[:1], np.array([0]), 1)).all()
 
 
+def test_robust_intersection_is_exact_on_exact_rays_and_ignores_a_ray_that_belongs_elsewhere():
+    """`snell.robust_closest_points`: rays bent through the water from a true point meet at it with no
+    spread; a zero weight drops a line from `closest_points`; one ray of a track aimed a metre off (a wrong
+    match) pulls the least-squares point by centimetres and the robust one by far less."""
+    from ragsplat.camera import Camera
+    from ragsplat.snell import closest_points, robust_closest_points, water_rays
+
+    rng = np.random.default_rng(3)
+    cams = [Camera.look_at([x, y, 4.5], [0.0, 0.0, -1.0], 64, 48, 60.0)
+            for x, y in rng.uniform(-1.5, 1.5, (8, 2))]
+    true = np.array([[0.3, -0.2, -1.0], [-0.4, 0.5, -2.5], [0.1, 0.1, -1.8]])
+    rays = []
+    for cam in cams:
+        seen = apparent_points(torch.from_numpy(true), torch.from_numpy(cam.camera_center), WATER).numpy()
+        rays.append(water_rays(cam, cam.project(seen)[0], WATER))
+    origins, dirs = (np.concatenate(r) for r in zip(*rays))
+    group = np.tile(np.arange(3), len(cams))
+    points, spread = robust_closest_points(origins, dirs, group, 3)
+    np.testing.assert_allclose(points, true, atol=1e-9)
+    assert (spread < 1e-9).all()
+    # a small angular scatter on every ray (the ripples), one ray of the first track sent a metre off
+    noisy = dirs + rng.normal(0, 2e-3, dirs.shape)
+    wrong = true[0] + [1.0, 0.0, 0.0] - origins[0]
+    noisy[0] = wrong
+    noisy /= np.linalg.norm(noisy, axis=1, keepdims=True)
+    weights = np.ones(len(dirs))
+    weights[0] = 0.0
+    np.testing.assert_allclose(closest_points(origins, noisy, group, 3, weights=weights)[1:],
+                               closest_points(origins[1:], noisy[1:], group[1:], 3)[1:], atol=1e-12)
+    plain = closest_points(origins, noisy, group, 3)
+    robust, spread = robust_closest_points(origins, noisy, group, 3)
+    plain_miss, robust_miss = (np.linalg.norm(p[0] - true[0]) for p in (plain, robust))
+    assert plain_miss > 0.05 and robust_miss < plain_miss / 4
+    assert spread[0] < 0.02  # the wrong ray weighs little in the track's spread too
+
+
 @pytest.mark.parametrize("flags", [{"scale": "isotropic", "color": True},  # `full` (+ colour)
                                    {"scale": "anisotropic", "covariances": False},  # `2dgs+full`'s tangents
                                    # and the water's attenuation
