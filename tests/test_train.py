@@ -529,8 +529,12 @@ def test_refracted_init_intersects_the_tracks_through_the_water(tmp_path, monkey
     dry = np.array([[0.0, 0.0, 0.1, 0.5, 0.5, 0.5]])
     monkeypatch.setattr(colmap, "triangulate",
                         lambda root, work: (np.concatenate([straight, dry]), np.array(obs), names))
-    means = Trainer(_cfg(init="refracted"), ds).splats["means"].detach().double().numpy()
-    np.testing.assert_allclose(means, np.concatenate([true, dry[:, :3]]), atol=1e-5)
+    for robust in (False, True):  # exact rays: the robust intersection meets them there too
+        means = Trainer(_cfg(init="refracted", init_robust=robust), ds).splats["means"]
+        means = means.detach().double().numpy()
+        np.testing.assert_allclose(means, np.concatenate([true, dry[:, :3]]), atol=1e-5)
+    with pytest.raises(ValueError, match="init_robust"):
+        _cfg(init="triangulated", init_robust=True)
 
 
 class _HostReads(torch.overrides.TorchFunctionMode):

@@ -61,6 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     option("init_count", type=positive_int, metavar="N")
     option("init_fill", type=finite_float, metavar="M")
     option("init_points", metavar="FILE.npy")
+    option("init_robust", action="store_true")
     option("water_level", type=finite_float, metavar="Z", more="; required with --colmap")
     option("water_n", "--n", type=refractive_index, metavar="N")
     option("optimize_water", choices=["level", "level+n"])

@@ -475,17 +475,18 @@ def triangulated_points(root: Path, fingerprint: str) -> Path:
     return path
 
 
-def refracted_points(root: Path, fingerprint: str, cameras: dict, water) -> np.ndarray:
+def refracted_points(root: Path, fingerprint: str, cameras: dict, water, robust: bool = False) -> np.ndarray:
     """[P', 6] the dataset's triangulated tracks intersected through the water instead of along straight rays:
     each observation's ray is bent at the plane (`snell.water_rays`) and the point is the least-squares
-    intersection of its track's rays in the water (`snell.closest_points`). A straight-ray point at or
-    above the level is on dry ground and kept as it is (refraction only lifts submerged points); a
-    submerged track whose rays span less than 1 degree is dropped. `cameras`: image name -> Camera.
+    intersection of its track's rays in the water (`snell.closest_points`; `robust`: weighted by the rays'
+    angles and robust to strays, `snell.robust_closest_points`). A straight-ray point at or above the level
+    is on dry ground and kept as it is (refraction only lifts submerged points); a submerged track whose rays
+    span less than 1 degree is dropped. `cameras`: image name -> Camera.
 
     Why: the field's depth x n is exact only at nadir; with oblique views through 2-3 m of water the points
     x n come out too high (development reach: median +33 cm where the bed is 2-4 m deep, +4 cm under 1 m;
     these: under 1 cm), and training does not pull a bed that far down."""
-    from ragsplat.snell import closest_points, water_rays
+    from ragsplat.snell import closest_points, robust_closest_points, water_rays
 
     path = triangulated_points(root, fingerprint)
     pts = np.load(path)
@@ -498,7 +499,8 @@ def refracted_points(root: Path, fingerprint: str, cameras: dict, water) -> np.n
         origins[rows], dirs[rows] = water_rays(cameras[name], obs[rows, 2:], water)
     wet = water.depth(pts[:, :3]) > 0
     use = wet[point] & np.isfinite(origins).all(1)
-    xyz = closest_points(origins[use], dirs[use], point[use], len(pts))
+    xyz = (robust_closest_points(origins[use], dirs[use], point[use], len(pts))[0] if robust
+           else closest_points(origins[use], dirs[use], point[use], len(pts)))
     out = pts.copy()
     out[wet, :3] = xyz[wet]
     return out[np.isfinite(out).all(1)]

@@ -104,6 +104,9 @@ class TrainConfig:
     init_fill: float = field(default=0.0, metadata={"help": (
         "fill the gaps of a point start from its TIN: grid nodes M metres apart with no point within M; 0: "
         "the points alone (default: the preset's)")})
+    init_robust: bool = field(default=False, metadata={"help": (
+        "with --init refracted: intersect each track's bent rays weighted by their angles and robustly "
+        "(snell.robust_closest_points), not by plain least squares")})
     init_opacity: float = 0.1
     sh_degree: int = 3
     sh_degree_every: int = 1000  # raise the active SH degree by one every this many iterations (at 30k)
@@ -223,6 +226,9 @@ class TrainConfig:
             raise ConfigError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
         if not (math.isfinite(self.init_fill) and self.init_fill >= 0):
             raise ConfigError(f"init_fill is a spacing in metres and must be >= 0, got {self.init_fill}")
+        if self.init_robust and self.init != "refracted":
+            raise ConfigError("init_robust is how init='refracted' intersects its rays; init is "
+                              f"{self.init!r}")
         if self.init_fill > 0 and self.init == "grid":
             raise ConfigError("init_fill fills the gaps between a start's points; init='grid' has none "
                               "(--init-fill 0)")

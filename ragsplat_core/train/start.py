@@ -96,7 +96,8 @@ def _from_points(cfg: TrainConfig, ds: Dataset, water: WaterSurface | None) -> t
     if cfg.init == "refracted":
         if water is None:
             raise ConfigError("init='refracted' intersects rays through the water: the dataset has none")
-        arr = refracted_points(ds.root, ds.fingerprint, {v.file_path: v.camera for v in ds.train}, water)
+        arr = refracted_points(ds.root, ds.fingerprint, {v.file_path: v.camera for v in ds.train}, water,
+                               robust=cfg.init_robust)
     else:
         source = triangulated_points(ds.root, ds.fingerprint) \
             if cfg.init == "triangulated" else Path(cfg.init_points)
