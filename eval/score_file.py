@@ -358,11 +358,15 @@ def _heights(grid: np.ndarray, truth, frame: Frame, depth: bool) -> np.ndarray:
 
 def survey_points(path: Path, depth: bool) -> dict[str, np.ndarray]:
     """{row name: [P, 3] points} of the survey run whose product `path` is (RUN/model/ beside RUN/survey.json
-    and RUN/water.json) in the run's frame, z as the file's values are (`depth`: below the run's water
+    and RUN/water.json) in the run's frame, z as the file's values are (`depth`: below the row's water
     surface): `SURVEY_TRACKS`, the model adjusted through the water, each submerged point where refraction
-    puts it; `SURVEY_PINHOLE`, the field's practice without ragsplat, the structure from motion's pinhole
-    model (RUN/sfm/model) put in the frame by the same georeferencing (RUN/georef.json) and each point's depth
-    below the same surface times n. Empty for a file no survey run wrote."""
+    puts it, below the run's surface; `SURVEY_PINHOLE`, the field's practice without ragsplat, the structure
+    from motion's pinhole model (RUN/sfm/model) put in the frame by the same georeferencing (RUN/georef.json)
+    and each point's depth below the water times n, the water at the pinhole model's own shore
+    (`shore_offset`: a pinhole model of wet photos is bent, its dry land not where the adjusted model's is,
+    and a surveyor measures the level in the model the depths come from). Empty for a file no survey run
+    wrote."""
+    import dataclasses
     import json
 
     from ragsplat.dataset.colmap import read_model
@@ -373,19 +377,38 @@ def survey_points(path: Path, depth: bool) -> dict[str, np.ndarray]:
     if not ((run / "survey.json").is_file() and (run / "water.json").is_file() and (run / "model").is_dir()):
         return {}
     surface = WaterSurface(**json.loads((run / "water.json").read_text())["surface"])
-
-    def points(model: Path) -> np.ndarray:
-        return np.array([p.xyz for p in read_model(model).points3D.values()], dtype=np.float64).reshape(-1, 3)
-
-    rows = {SURVEY_TRACKS: points(run / "model")}
+    model = read_model(run / "model").points3D
+    tracks = {pid: np.asarray(p.xyz, dtype=np.float64) for pid, p in model.items()}
+    rows = {SURVEY_TRACKS: (np.array(list(tracks.values())).reshape(-1, 3), surface)}
     if (run / "georef.json").is_file() and (run / "sfm" / "model").is_dir():
         sim = json.loads((run / "georef.json").read_text())
         sim = Similarity(sim["scale"], np.array(sim["R"]), np.array(sim["t"]))
-        rows[SURVEY_PINHOLE] = depth_times_n(sim.apply(points(run / "sfm" / "model")), surface)
-    if depth:
-        for xyz in rows.values():
-            xyz[:, 2] = surface.height(xyz[:, :2]) - xyz[:, 2]
-    return rows
+        pinhole = read_model(run / "sfm" / "model").points3D
+        ids = sorted(pinhole)
+        xyz = sim.apply(np.array([pinhole[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3))
+        shared = np.array([i in tracks for i in ids], dtype=bool)
+        same = np.array([tracks[i] for i in np.asarray(ids)[shared]]).reshape(-1, 3)
+        offset = shore_offset(xyz[shared], same, surface)
+        own = dataclasses.replace(surface, level=float(surface.level) + offset)
+        rows[SURVEY_PINHOLE] = (depth_times_n(xyz, own), own)
+    out = {}
+    for name, (xyz, water) in rows.items():
+        if depth:
+            xyz[:, 2] = water.height(xyz[:, :2]) - xyz[:, 2]
+        out[name] = xyz
+    return out
+
+
+SHORE_BAND = 0.5  # metres above the water: the shore a level is read off, dry but not yet the banks' slope
+
+
+def shore_offset(pinhole: np.ndarray, adjusted: np.ndarray, surface) -> float:
+    """The height (m) of the water's edge in a pinhole model less in the model adjusted through the water: the
+    median height difference of the same points [P, 3] in each (`pinhole`, `adjusted`: row by row) that lie
+    dry within `SHORE_BAND` above `surface` in the adjusted one; 0 where there are none."""
+    above = adjusted[:, 2] - surface.height(adjusted[:, :2])
+    shore = (above > 0) & (above < SHORE_BAND)
+    return float(np.median(pinhole[shore, 2] - adjusted[shore, 2])) if shore.any() else 0.0
 
 
 def tvu_band(path: Path, frame: Frame, truth, band: int, heights: int = 1, depth: bool = False) -> dict:
