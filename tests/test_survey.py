@@ -421,6 +421,23 @@ def test_a_survey_writes_its_orthophotos_and_a_report_on_one_page(finished):
     assert "[report]" in err and str(out / "report.html") in err
 
 
+def test_the_pinhole_models_water_is_read_at_its_own_shore():
+    """`score_file.shore_offset`: the median height difference of the same dry points just above the water
+    (a bent pinhole model's shore sits lower or higher than the adjusted model's); the banks higher up and
+    the bed do not count; no shore points: no offset."""
+    from ragsplat.eval.score_file import shore_offset
+    from ragsplat.water_surface import WaterSurface
+
+    water = WaterSurface(level=2.0, n=1.33)
+    rng = np.random.default_rng(0)
+    adjusted = np.column_stack([rng.uniform(0, 10, (300, 2)), rng.uniform(0.5, 3.5, 300)])
+    pinhole = adjusted.copy()
+    pinhole[:, 2] += np.where(adjusted[:, 2] < 2.0, 0.4, np.where(adjusted[:, 2] < 2.5, -0.2, 1.0))
+    assert shore_offset(pinhole, adjusted, water) == pytest.approx(-0.2, abs=1e-12)
+    low = adjusted[:, 2] < 2.0
+    assert shore_offset(pinhole[low], adjusted[low], water) == 0.0
+
+
 def test_a_survey_dem_is_scored_beside_the_runs_own_tracks(survey, finished, tmp_path):
     """`ragsplat score` of a survey's DEM adds the run's adjusted points as a TIN, and its pinhole model's
     depths x n: each the same row as those points scored as a CSV file; a DEM outside a survey run gets
@@ -442,11 +459,19 @@ def test_a_survey_dem_is_scored_beside_the_runs_own_tracks(survey, finished, tmp
     for k in ("1%", "3%"):
         assert row["f1"][k] == pytest.approx(alone["f1"][k], abs=1e-9)
     assert row["survey"]["wet"]["rmse"] == pytest.approx(alone["survey"]["wet"]["rmse"], rel=1e-9)
-    # the field's practice: the pinhole model in the run's frame, each depth below its surface times n
+    # the field's practice: the pinhole model in the run's frame, each depth below the water at its own shore
+    # (the same points' median height difference within half a metre above the run's surface) times n
     sim, surface = json.loads((out / "georef.json").read_text()), json.loads((out / "water.json").read_text())
-    seen = np.array([p.xyz for p in read_model(out / "sfm" / "model").points3D.values()])
+    adjusted = read_model(out / "model").points3D
+    pinhole = read_model(out / "sfm" / "model").points3D
+    ids = sorted(pinhole)
+    seen = np.array([pinhole[i].xyz for i in ids])
     seen = sim["scale"] * seen @ np.array(sim["R"]).T + sim["t"]
-    level = WaterSurface(**surface["surface"]).height(seen[:, :2])
+    water = WaterSurface(**surface["surface"])
+    shore = [(k, adjusted[i].xyz) for k, i in enumerate(ids)
+             if i in adjusted and 0 < adjusted[i].xyz[2] - water.height(adjusted[i].xyz[None, :2])[0] < 0.5]
+    offset = float(np.median([seen[k, 2] - xyz[2] for k, xyz in shore])) if shore else 0.0
+    level = water.height(seen[:, :2]) + offset
     n = surface["surface"]["n"]
     seen[:, 2] = np.where(seen[:, 2] < level, level - n * (level - seen[:, 2]), seen[:, 2])
     np.savetxt(tmp_path / "pinhole.csv", seen, fmt="%.17g", delimiter=",", header="x,y,z", comments="")
