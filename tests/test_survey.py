@@ -415,7 +415,9 @@ def test_a_survey_writes_its_orthophotos_and_a_report_on_one_page(finished):
             assert (r.read(4)[covered] > 0).mean() > 0.9, name
     assert "[ortho] the bed without the water and the photos' mosaic" in err
     page = (out / "report.html").read_text()
-    assert page.count('src="data:image/png;base64,') >= 6  # orthophotos, depth, cover, SfM, georef, water
+    # orthophotos, depth, cover, overlap, SfM, georef and the water
+    assert page.count('src="data:image/png;base64,') >= 7
+    assert "<b>Overlap.</b> median" in page and "cells are seen by fewer than 5" in page
     assert "src=\"http" not in page and "<link" not in page  # nothing to fetch: it opens offline
     assert "18 of 18 photos registered" in page and "similarity to 18 RTK positions" in page
     assert "[report]" in err and str(out / "report.html") in err

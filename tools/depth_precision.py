@@ -56,34 +56,24 @@ def sigma_z(points: np.ndarray, cams: list, water, scale: float = 1.0) -> tuple[
     return sigma, seen.numpy()
 
 
-def views(points: np.ndarray, cams: list, water, chunk: int = 500_000) -> np.ndarray:
-    """[N] how many of `cams` hold the apparent position of each true point [N, 3] under `water` in their
-    image."""
-    import torch
+def views(points: np.ndarray, cams: list, water) -> np.ndarray:
+    """[N] how many of `cams` (`camera.Camera`) hold the apparent position of each true point [N, 3] under
+    `water` in their image (`camera.views_through_water`)."""
+    from ragsplat.camera import views_through_water
 
-    from ragsplat.refraction import apparent_points
-
-    seen = np.zeros(len(points), dtype=np.int64)
-    for cam in cams:
-        centre = torch.tensor(cam.camera_center, dtype=torch.float64)
-        for s in range(0, len(points), chunk):
-            with torch.no_grad():
-                app = apparent_points(torch.tensor(points[s:s + chunk], dtype=torch.float64), centre, water)
-            pc = app.numpy() @ np.asarray(cam.R).T + np.asarray(cam.t)  # [n, 3] camera frame
-            with np.errstate(divide="ignore", invalid="ignore"):  # a point in the camera's plane: not inside
-                seen[s:s + chunk] += _pixels(cam, pc)[2]
-    return seen
-
-
-BINS = ((0, 2), (3, 4), (5, 6), (7, 9), (10, None))  # views, inclusive
+    return views_through_water(points, np.array([c.R for c in cams]),
+                               np.array([c.camera_center for c in cams]),
+                               np.array([[c.fx, c.fy, c.cx, c.cy] for c in cams]),
+                               np.array([[c.width, c.height] for c in cams]), water)
 
 
 def by_views(data: Path, bed: Path, **read) -> dict:
-    """{row: [{"views", "nodes", "cover", "bias_m", "rmse_m"} per `BINS`]} of the bed in the file `bed`
-    (`eval.score_file.score_file` with `read`) and, for a survey's product, the run's own tracks' TIN, on
-    `data`'s wet ground-truth nodes grouped by how many of its training cameras see them (`views`)."""
+    """{row: [{"views", "nodes", "cover", "bias_m", "rmse_m"} per `camera.VIEW_BINS`]} of the bed in the file
+    `bed` (`eval.score_file.score_file` with `read`) and, for a survey's product, the run's own tracks' TIN,
+    on `data`'s wet ground-truth nodes grouped by how many of its training cameras see them (`views`)."""
     from scipy.spatial import cKDTree
 
+    from ragsplat.camera import VIEW_BINS
     from ragsplat.dataset.load import load_dataset
     from ragsplat.eval.references import SURVEY_TRACKS
     from ragsplat.eval.score_file import score_file
@@ -100,7 +90,7 @@ def by_views(data: Path, bed: Path, **read) -> dict:
         dz = np.full(len(wet), np.nan)
         dz[has] = g[at[has], 2] - wet[has, 2]
         out[name] = []
-        for lo, hi in BINS:
+        for lo, hi in VIEW_BINS:
             pick = (seen >= lo) & (seen <= (np.inf if hi is None else hi))
             d = dz[pick][np.isfinite(dz[pick])]
             out[name].append({"views": f"{lo}-{hi}" if hi else f"{lo}+", "nodes": int(pick.sum()),

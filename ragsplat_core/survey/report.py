@@ -2,8 +2,9 @@
 offline), as a photogrammetry package's processing report gives it.
 
 Maps: the bed orthophoto (the trained bed without the water) beside the photos' mosaic through it; the water
-depth with a colour bar and contours over a hillshade, the cameras on it; the DEM's cover and its holes; the
-TVU95 band where the DEM has one. Then the structure from motion (registered photos, points, each photo's
+depth with a colour bar and contours over a hillshade, the cameras on it; the DEM's cover and its holes; how
+many photos see the bed at each cell (through the water where it is submerged); the TVU95 band where the DEM
+has one. Then the structure from motion (registered photos, points, each photo's
 reprojection error), the georeference (each position's residual), the water (how its level was found and
 how sure, the model's points' heights about it) and every line the command said, with each stage's seconds
 and the process's peak memory when it said it. Every section reads what its stage wrote (RUN/*.json, the
@@ -17,6 +18,7 @@ import json
 import resource
 import time
 from dataclasses import asdict, dataclass
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +27,8 @@ from ragsplat.pages import figure_uri, pyplot, write_page
 
 REPORT = "report.html"
 DEPTH_CONTOURS = 8  # about this many contour lines over the depth range
+OVERLAP_CELLS = 250_000  # the overlap map's cells at most: the DEM's taken at a stride
+FEW_VIEWS = 5  # fewer photos than this see a cell: a nadir grid's depths there are the least sure
 
 
 @dataclass(frozen=True)
@@ -94,8 +98,8 @@ def _cameras(model: Path) -> tuple[dict[str, np.ndarray], dict[str, float], int,
     return centres, errors, len(rec.points3D), rec
 
 
-def _maps(out: Path, centres: dict[str, np.ndarray]) -> list[dict]:
-    """The map figures: [{title, src, note}]."""
+def _maps(out: Path, centres: dict[str, np.ndarray], rec=None, surface=None) -> list[dict]:
+    """The map figures: [{title, src, note}]; the overlap map with the model `rec` and the water `surface`."""
     from ragsplat.export import draw_depth
 
     plt = pyplot()
@@ -162,6 +166,8 @@ def _maps(out: Path, centres: dict[str, np.ndarray]) -> list[dict]:
         figures.append({"title": "Cover and holes", "src": figure_uri(fig),
                         "note": f"{100 * covered.sum() / inside.sum():.1f} % of the area the DEM encloses is "
                                 f"covered; {int(holes.sum())} cells are holes."})
+    if covered.any() and rec is not None and surface is not None:
+        figures.append(_overlap(height, extent, ext, rec, surface))
     if bands.shape[0] > 2:
         tvu = bands[2]
         fig, ax = plt.subplots(figsize=(8, 6), constrained_layout=True)
@@ -171,6 +177,49 @@ def _maps(out: Path, centres: dict[str, np.ndarray]) -> list[dict]:
         figures.append({"title": "TVU95", "src": figure_uri(fig),
                         "note": f"median {100 * np.nanmedian(tvu):.1f} cm over the covered cells."})
     return figures
+
+
+def _overlap(height: np.ndarray, extent, ext, rec, surface) -> dict:
+    """The overlap map: how many of the model's registered photos see the bed at the DEM's cells (the bed
+    heights `height` [H, W] over `extent`, taken at a stride to at most `OVERLAP_CELLS`), a submerged cell
+    at its apparent position through `surface`, as `camera.views_through_water` counts them."""
+    from matplotlib.colors import BoundaryNorm, ListedColormap
+
+    from ragsplat.camera import VIEW_BINS, views_through_water
+    from ragsplat.survey import sfm
+
+    plt = pyplot()
+    stride = max(1, int(np.ceil(np.sqrt(height.size / OVERLAP_CELLS))))
+    z = height[::stride, ::stride]
+    step = (extent[1] - extent[0]) / height.shape[1]
+    rows, cols = np.nonzero(np.isfinite(z))
+    x = extent[0] + (cols * stride + 0.5) * step
+    y = extent[3] - (rows * stride + 0.5) * step
+    points = np.column_stack([x, y, z[rows, cols]])
+    ids, _, R, centres, K = sfm.cameras(rec)
+    sizes = np.array([[rec.images[i].camera.width, rec.images[i].camera.height] for i in ids]).reshape(-1, 2)
+    seen = views_through_water(points, R, centres, K, sizes, surface)
+    grid = np.full(z.shape, np.nan)
+    grid[rows, cols] = seen
+    edges = [lo for lo, _ in VIEW_BINS] + [VIEW_BINS[-1][0] + 1]
+    colours = ListedColormap(["#c0392b", "#e67e22", "#f1c40f", "#7dcea0", "#1e8449"][:len(VIEW_BINS)])
+    fig, ax = plt.subplots(figsize=(8, 6), constrained_layout=True)
+    im = ax.imshow(np.minimum(grid, edges[-1] - 0.5), cmap=colours,
+                   norm=BoundaryNorm(np.array(edges) - 0.5, colours.N), extent=ext)
+    bar = fig.colorbar(im, ax=ax, shrink=0.85, label="photos that see the bed")
+    bar.set_ticks([(a + b) / 2 - 0.5 for a, b in pairwise(edges)],
+                  labels=[f"{lo}-{hi}" if hi else f"{lo}+" for lo, hi in VIEW_BINS])
+    ax.set_title("overlap: photos that see the bed (through the water where it is submerged)")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    wet = points[:, 2] < surface.height(points[:, :2])
+    few = seen < FEW_VIEWS
+    note = (f"median {np.median(seen):.0f} photos a cell; {100 * few.mean():.1f} % of the cells are seen by "
+            f"fewer than {FEW_VIEWS}")
+    if wet.any():
+        note += (f", {100 * few[wet].mean():.1f} % of those under water, where a nadir flight's depths are "
+                 f"the least sure (obliques or more overlap see them from more photos)")
+    return {"title": "Overlap", "src": figure_uri(fig), "note": note + "."}
 
 
 def _bars(labels: list[str], values: list[np.ndarray], names: list[str], ylabel: str, title: str) -> str:
@@ -214,14 +263,20 @@ def _georef(out: Path) -> dict | None:
             "scale_uncertainty": g.get("scale_uncertainty"), "src": src}
 
 
+def _surface(out: Path, n: float):
+    """The run's water surface (`WaterSurface`, RUN/water.json's, of index `n`), or None without one."""
+    from ragsplat.water_surface import WaterSurface
+
+    path = out / "water.json"
+    return WaterSurface(**{**json.loads(path.read_text())["surface"], "n": n}) if path.is_file() else None
+
+
 def _water(out: Path, rec, n: float) -> dict | None:
     path = out / "water.json"
     if not path.is_file():
         return None
-    from ragsplat.water_surface import WaterSurface
-
     w = json.loads(path.read_text())
-    surface = WaterSurface(**{**w["surface"], "n": n})
+    surface = _surface(out, n)
     src = None
     if rec is not None and len(rec.points3D):
         plt = pyplot()
@@ -257,9 +312,10 @@ def write_report(out: Path, said: list[Said], photos: int) -> Path:
     model = out / "model"
     centres, errors, points, rec = (_cameras(model) if (model / "images.txt").is_file()
                                     or (model / "images.bin").is_file() else ({}, {}, 0, None))
+    surface = _surface(out, float(survey["n"])) if "n" in survey else None
     return write_page(out / REPORT, "survey.html.j2",
                       title=f"ragsplat survey: {survey.get('images', out)}",
-                      out=str(out), settings=survey, maps=_maps(out, centres),
+                      out=str(out), settings=survey, maps=_maps(out, centres, rec, surface),
                       structure=_structure(errors, points, photos) if errors else None,
                       georef=_georef(out),
                       water=_water(out, rec, float(survey["n"])) if "n" in survey else None,
