@@ -22,8 +22,6 @@ Extraction (the paper's Section 3, "Geometry Extraction"):
    the occupied cells within `despike_radius` is dropped (`despike`). Floaters that are opaque and small
    enough to pass steps 1-3 gather in patches of a few tens of cells metres above or below the bed; the
    point filter keeps them because each patch is a plane of its own;
-5b. where `hole_opacity` is below `min_opacity`, steps 1-5 again with that opacity (as many samples a cubic
-   metre of the Gaussians kept), and each cell the first pass left empty takes the second's height there;
 6. hole filling, as a surveyor grids a DEM (`fill_gap_cells`, 1 by default; 0: off): every empty cell
    whose nearest occupied cell is at most that many cells away gets the height of the occupied cells'
    linear (Delaunay) interpolation (`fill_holes`). Where deep Gaussians were culled or sampled thinly the
@@ -94,11 +92,6 @@ class ExtractConfig:
     despike_tol: float = field(default=0.3, metadata={"help": (
         "and dropped when more than M metres from it (default: the evaluation's; inf: keep every cell)")})
     despike_min_neighbours: int = 8
-    # step 5b: in turbid water the deep bed's contrast fades and its surfels train fainter than the culls
-    # allow, so its cells come out empty where fainter Gaussians do lie on the bed
-    hole_opacity: float = field(default=1.0, metadata={"help": (
-        "the cells the opaque Gaussians leave empty take the height that Gaussians at least A opaque give "
-        "them, extracted again as the bed is (default: none, any A at least --min-opacity)")})
     # step 6: the best F1@1% (tuning/extract.json, "fill")
     fill_gap_cells: float = field(default=1.0, metadata={"help": (
         "fill the holes: an empty cell at most K cells from a filled one gets the linear interpolation of "
@@ -355,63 +348,30 @@ def extract_surface(means, scales, quats, opacities, cfg: ExtractConfig = Extrac
     node of the grid, the filtered samples' count and height spread in its cell (`cell_spread`) and whether
     step 6 filled it (the uncertainty's features, `ragsplat.uncertainty`); the grid is the same.
     """
+    pts, kept = sample_gaussians(means, scales, quats, opacities, cfg, region, rng=rng)
+    if window is not None:
+        pts = pts[((pts[:, :2] >= window[0]) & (pts[:, :2] <= window[1])).all(1)]
+    mask = plane_filter(pts, cfg)
     if origin is None:
         origin = (region["xmin"], region["ymin"]) if region is not None else (0.0, 0.0)
     origin = (float(origin[0]), float(origin[1]))
-    grid, pts, samples, kept, spikes = _despiked_grid(means, scales, quats, opacities, cfg, region, origin,
-                                                      rng, window)
-    faint = np.zeros((0, 3))
-    if cfg.hole_opacity < cfg.min_opacity:
-        s, o = _np(scales), _np(opacities).reshape(-1)
-        wide = replace(cfg, min_opacity=cfg.hole_opacity)
-        volume = [np.prod(s[culled(s, o, _np(means), c, region)], axis=1).sum() for c in (cfg, wide)]
-        n = round(cfg.n_samples * volume[1] / volume[0]) if volume[0] > 0 else cfg.n_samples
-        again = np.random.default_rng([cfg.seed, 1]) if rng is None else rng
-        wide = replace(wide, n_samples=n)
-        second, faint_pts, drawn, _, _ = _despiked_grid(means, scales, quats, opacities, wide, region, origin,
-                                                        again, window)
-        taken = {tuple(k) for k in _nodes(grid, cfg.cell, origin)}
-        faint = second[[tuple(k) not in taken for k in _nodes(second, cfg.cell, origin)]]
-        ij = _nodes(faint_pts, cfg.cell, origin, round_half_up=True)
-        empty = {tuple(k) for k in _nodes(faint, cfg.cell, origin)}
-        pts = np.vstack([pts, faint_pts[[tuple(k) in empty for k in ij]]])
-        samples += drawn
-    grid = np.vstack([grid, faint])
+    grid = grid_median(pts[mask], cfg.cell, origin)
+    smooth = despike(grid, cfg.cell, cfg.despike_radius, cfg.despike_tol, cfg.despike_min_neighbours)
+    spikes = int((~smooth).sum())
+    # before the crop, so that cells at the region's edge have their neighbours outside it
+    grid = grid[smooth]
     if region is not None:
         grid = grid[in_region(grid, region, tol=1e-6 * cfg.cell)]
     extracted = len(grid)
     grid = fill_holes(grid, cfg.cell, origin, cfg.fill_gap_cells)
-    stats = {"gaussians": len(kept), "gaussians_sampled": int(kept.sum()), "samples": samples,
-             "samples_after_filter": len(pts), "grid_spikes": spikes,
-             "grid_faint": int(in_region(faint, region, tol=1e-6 * cfg.cell).sum()) if region is not None
-             else len(faint), "grid_filled": len(grid) - extracted, "grid_points": len(grid),
+    stats = {"gaussians": len(kept), "gaussians_sampled": int(kept.sum()), "samples": len(pts),
+             "samples_after_filter": int(mask.sum()), "grid_spikes": spikes,
+             "grid_filled": len(grid) - extracted, "grid_points": len(grid),
              "config": cfg.to_dict(), "grid_origin": list(origin)}
     if cells:
-        count, spread = cell_spread(pts, grid, cfg.cell, origin)
+        count, spread = cell_spread(pts[mask], grid, cfg.cell, origin)
         stats["cells"] = {"samples": count, "spread": spread, "filled": np.arange(len(grid)) >= extracted}
     return grid, stats
-
-
-def _nodes(points: np.ndarray, cell: float, origin: tuple[float, float], round_half_up: bool = False
-           ) -> np.ndarray:
-    """[M, 2] int grid indices of `points` [M, >= 2]: of a grid's nodes, or (`round_half_up`) of the cell
-    `grid_median` bins a sample into."""
-    q = (points[:, :2] - np.asarray(origin)) / cell
-    return (np.floor(q + 0.5) if round_half_up else np.rint(q)).astype(np.int64)
-
-
-def _despiked_grid(means, scales, quats, opacities, cfg, region, origin, rng, window):
-    """Steps 1-5 before the crop: (grid [G, 3], the filtered samples [M, 3], the number of samples drawn,
-    the sampled mask [N], the number of spikes dropped)."""
-    pts, kept = sample_gaussians(means, scales, quats, opacities, cfg, region, rng=rng)
-    if window is not None:
-        pts = pts[((pts[:, :2] >= window[0]) & (pts[:, :2] <= window[1])).all(1)]
-    drawn = len(pts)
-    pts = pts[plane_filter(pts, cfg)]
-    grid = grid_median(pts, cfg.cell, origin)
-    smooth = despike(grid, cfg.cell, cfg.despike_radius, cfg.despike_tol, cfg.despike_min_neighbours)
-    # before the crop, so that cells at the region's edge have their neighbours outside it
-    return grid[smooth], pts, drawn, kept, int((~smooth).sum())
 
 
 def cell_spread(points: np.ndarray, grid: np.ndarray, cell: float, origin: tuple[float, float]

@@ -237,35 +237,6 @@ def test_extraction_despikes_a_floater_patch():
     assert fstats["grid_filled"] > 0 and np.abs(filled[:, 2] + 1).max() < 0.01  # the hole's rim, at the bed
 
 
-def test_cells_the_opaque_bed_leaves_empty_take_the_faint_gaussians_height():
-    # the bed z = -1 of opaque discs, but a 0.5 m square of it faint (opacity 0.4, as a deep bed in turbid
-    # water trains) and a faint patch floating 1 m above the opaque bed: at the usual cull the square is a
-    # hole; with the faint tier its cells come back at the bed, and the opaque cells keep their own heights
-    # (the floaters over them too are not taken)
-    step = 0.05
-    bed = plane_grid(40, 40, step, z=-1.0)
-    deep = (np.abs(bed[:, 0] - 1.0) < 0.25) & (np.abs(bed[:, 1] - 1.0) < 0.25)
-    floaters = plane_grid(6, 6, step, z=0.0) + [0.3, 0.3, 0.0]
-    means = np.vstack([bed, floaters])
-    n = len(means)
-    scales, quats = np.tile([0.03, 0.03, 0.003], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1))
-    opac = np.concatenate([np.where(deep, 0.4, 0.9), np.full(len(floaters), 0.4)])
-    region = {"xmin": 0.2, "xmax": 1.7, "ymin": 0.2, "ymax": 1.7}
-    cfg = ExtractConfig(n_samples=40_000, gsd=0.025, fill_gap_cells=0.0)
-    opaque, stats = extract_surface(means, scales, quats, opac, cfg, region)
-    inside = (np.abs(opaque[:, 0] - 1.0) < 0.17) & (np.abs(opaque[:, 1] - 1.0) < 0.17)  # the rim has samples
-    assert not inside.any() and stats["grid_faint"] == 0
-    same, _ = extract_surface(means, scales, quats, opac, replace(cfg, hole_opacity=0.7), region)
-    assert np.array_equal(same, opaque)  # at the cull's own opacity there is no second tier
-    grid, stats = extract_surface(means, scales, quats, opac, replace(cfg, hole_opacity=0.3), region,
-                                  cells=True)
-    assert np.array_equal(grid[:len(opaque)], opaque)
-    faint = grid[len(opaque):]
-    assert stats["grid_faint"] == len(faint) >= 49 and np.abs(faint[:, 2] + 1).max() < 0.01
-    assert ((np.abs(faint[:, 0] - 1.0) < 0.26) & (np.abs(faint[:, 1] - 1.0) < 0.26)).all()
-    assert (stats["cells"]["samples"][len(opaque):] > 0).all()  # the faint cells' own samples
-
-
 def test_wide_gaussians_are_not_sampled():
     # small thin discs tiling the plane z = -1 and one opaque disc (sigma 0.5 m = 10 cells) 30 cm above them,
     # tilted by 10 degrees: by volume it takes most samples and wins the median of many cells it covers;

@@ -118,7 +118,7 @@ def config_option(parser, config, name: str, *flags: str, more: str = "", **kw) 
 # what a command may change of the bed: each `ExtractConfig` field, its argument type and metavar
 CULLS = {"min_opacity": (positive_float, "A"), "max_scale_gsd": (limit, "K"), "max_scale_m": (limit, "M"),
          "despike_radius": (positive_float, "M"), "despike_tol": (limit, "M"),
-         "hole_opacity": (positive_float, "A"), "fill_gap_cells": (non_negative_float, "K")}
+         "fill_gap_cells": (non_negative_float, "K")}
 
 
 def cull_arguments(parser: argparse.ArgumentParser) -> None:
