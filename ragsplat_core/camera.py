@@ -228,31 +228,3 @@ def _torch_stack(tensors, dim):
 
     return torch.stack(tensors, dim)
 
-
-VIEW_BINS = ((0, 2), (3, 4), (5, 6), (7, 9), (10, None))  # photos that see a point, inclusive classes
-
-
-def views_through_water(points: np.ndarray, R: np.ndarray, centres: np.ndarray, K: np.ndarray,
-                        sizes: np.ndarray, water, chunk: int = 500_000) -> np.ndarray:
-    """[N] how many of the pinhole cameras R [V, 3, 3] (world -> camera), centres [V, 3], intrinsics K [V, 4]
-    (fx, fy, cx, cy) and image sizes [V, 2] (width, height) hold each true point [N, 3] in their image, a
-    submerged point at its apparent position through `water` (`WaterSurface`; exact refraction), a dry one
-    where it is. A camera not above the surface sees nothing."""
-    import torch
-
-    from ragsplat.refraction import apparent_points
-
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    seen = np.zeros(len(points), dtype=np.int64)
-    for Rv, C, (fx, fy, cx, cy), (w, h) in zip(R, centres, K, sizes):
-        if C[2] <= float(water.height(np.asarray(C[None, :2]))[0]):
-            continue
-        centre = torch.as_tensor(C, dtype=torch.float64)
-        for s in range(0, len(points), chunk):
-            with torch.no_grad():
-                app = apparent_points(torch.as_tensor(points[s:s + chunk]), centre, water).numpy()
-            pc = (app - C) @ np.asarray(Rv).T  # [n, 3] camera frame
-            with np.errstate(divide="ignore", invalid="ignore"):  # a point in the camera's plane: not inside
-                u, v = fx * pc[:, 0] / pc[:, 2] + cx, fy * pc[:, 1] / pc[:, 2] + cy
-                seen[s:s + chunk] += (pc[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    return seen

@@ -152,7 +152,7 @@ def test_views_through_water_count_a_submerged_point_where_the_bent_ray_reaches_
     m out, where a straight ray reaches 12 m. A bed point between the two is counted with n = 1 and not
     through the water; a dry point 0.5 m up inside the 9.5 m the edge ray reaches there is counted; a camera
     under the water counts nothing."""
-    from ragsplat.camera import views_through_water
+    from ragsplat.refraction import views_through_water
     from ragsplat.water_surface import WaterSurface
 
     cam = nadir()

@@ -58,8 +58,8 @@ def sigma_z(points: np.ndarray, cams: list, water, scale: float = 1.0) -> tuple[
 
 def views(points: np.ndarray, cams: list, water) -> np.ndarray:
     """[N] how many of `cams` (`camera.Camera`) hold the apparent position of each true point [N, 3] under
-    `water` in their image (`camera.views_through_water`)."""
-    from ragsplat.camera import views_through_water
+    `water` in their image (`refraction.views_through_water`)."""
+    from ragsplat.refraction import views_through_water
 
     return views_through_water(points, np.array([c.R for c in cams]),
                                np.array([c.camera_center for c in cams]),
@@ -68,15 +68,15 @@ def views(points: np.ndarray, cams: list, water) -> np.ndarray:
 
 
 def by_views(data: Path, bed: Path, **read) -> dict:
-    """{row: [{"views", "nodes", "cover", "bias_m", "rmse_m"} per `camera.VIEW_BINS`]} of the bed in the file
-    `bed` (`eval.score_file.score_file` with `read`) and, for a survey's product, the run's own tracks' TIN,
-    on `data`'s wet ground-truth nodes grouped by how many of its training cameras see them (`views`)."""
+    """{row: [{"views", "nodes", "cover", "bias_m", "rmse_m"} per `refraction.VIEW_BINS`]} of the bed in the
+    file `bed` (`eval.score_file.score_file` with `read`) and, for a survey's product, the run's own tracks'
+    TIN, on `data`'s wet ground-truth nodes grouped by how many of its training cameras see them (`views`)."""
     from scipy.spatial import cKDTree
 
-    from ragsplat.camera import VIEW_BINS
     from ragsplat.dataset.load import load_dataset
     from ragsplat.eval.references import SURVEY_TRACKS
     from ragsplat.eval.score_file import score_file
+    from ragsplat.refraction import VIEW_BINS
 
     _, grid, truth, refs = score_file(bed, data, **read)
     rows = {"bed": grid, **({SURVEY_TRACKS: refs[SURVEY_TRACKS]} if SURVEY_TRACKS in refs else {})}

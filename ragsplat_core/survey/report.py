@@ -182,10 +182,10 @@ def _maps(out: Path, centres: dict[str, np.ndarray], rec=None, surface=None) -> 
 def _overlap(height: np.ndarray, extent, ext, rec, surface) -> dict:
     """The overlap map: how many of the model's registered photos see the bed at the DEM's cells (the bed
     heights `height` [H, W] over `extent`, taken at a stride to at most `OVERLAP_CELLS`), a submerged cell
-    at its apparent position through `surface`, as `camera.views_through_water` counts them."""
+    at its apparent position through `surface`, as `refraction.views_through_water` counts them."""
     from matplotlib.colors import BoundaryNorm, ListedColormap
 
-    from ragsplat.camera import VIEW_BINS, views_through_water
+    from ragsplat.refraction import VIEW_BINS, views_through_water
     from ragsplat.survey import sfm
 
     plt = pyplot()
