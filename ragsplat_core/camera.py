@@ -227,4 +227,3 @@ def _torch_stack(tensors, dim):
     import torch
 
     return torch.stack(tensors, dim)
-

@@ -145,28 +145,3 @@ def test_bad_intrinsics_raise():
     with pytest.raises(ValueError, match="up"):
         Camera.look_at([0, 0, 10.0], [0, 0, 0.0], 64, 64, 70.0, up=(0, 0, 1.0))
 
-
-def test_views_through_water_count_a_submerged_point_where_the_bent_ray_reaches_it():
-    """A nadir camera 10 m above water of index 1.33 with a 90 degree view: its image's edge ray meets the
-    surface at 10 m from the axis and bends towards the normal, so 2 m under water it reaches 10 + 2 tan(tw)
-    m out, where a straight ray reaches 12 m. A bed point between the two is counted with n = 1 and not
-    through the water; a dry point 0.5 m up inside the 9.5 m the edge ray reaches there is counted; a camera
-    under the water counts nothing."""
-    from ragsplat.refraction import views_through_water
-    from ragsplat.water_surface import WaterSurface
-
-    cam = nadir()
-    R, C = cam.R[None], cam.camera_center[None]
-    K, sizes = np.array([[cam.fx, cam.fy, cam.cx, cam.cy]]), np.array([[cam.width, cam.height]])
-    reach = 10.0 + 2.0 * math.tan(math.asin(math.sin(math.radians(45.0)) / 1.33))
-    points = np.array([[0.0, 0.0, -2.0], [reach - 0.05, 0.0, -2.0], [reach + 0.05, 0.0, -2.0],
-                       [11.5, 0.0, -2.0], [9.3, 0.0, 0.5]])
-    water = WaterSurface(level=0.0, n=1.33)
-    assert views_through_water(points, R, C, K, sizes, water).tolist() == [1, 1, 0, 0, 1]
-    straight = WaterSurface(level=0.0, n=1.0)
-    assert views_through_water(points, R, C, K, sizes, straight).tolist() == [1, 1, 1, 1, 1]
-    high = WaterSurface(level=20.0, n=1.33)
-    assert views_through_water(points, R, C, K, sizes, high).tolist() == [0] * 5
-    two = views_through_water(points, np.concatenate([R, R]), np.concatenate([C, C + [30.0, 0, 0]]),
-                              np.concatenate([K, K]), np.concatenate([sizes, sizes]), water)
-    assert two.tolist() == [1, 1, 0, 0, 1]

@@ -515,3 +515,30 @@ def test_the_ray_through_a_tilted_facet_lands_by_snell_at_the_points_depth():
 def test_facet_offsets_refuse_a_tilted_surface():
     with pytest.raises(ValueError, match="horizontal"):
         facet_offsets(random_points(3), CAM, WaterSurface(WATER.level, 1.33, (0.01, 0.0)), _tilt([0.0, 0.0]))
+
+
+def test_views_through_water_count_a_submerged_point_where_the_bent_ray_reaches_it():
+    """A nadir camera 10 m above water of index 1.33 with a 90 degree view: its image's edge ray meets the
+    surface at 10 m from the axis and bends towards the normal, so 2 m under water it reaches 10 + 2 tan(tw)
+    m out, where a straight ray reaches 12 m. A bed point between the two is counted with n = 1 and not
+    through the water; a dry point 0.5 m up inside the 9.5 m the edge ray reaches there is counted; a camera
+    under the water counts nothing."""
+    from ragsplat.camera import Camera
+    from ragsplat.refraction import views_through_water
+
+    down = np.diag([1.0, -1.0, -1.0])  # camera x = world x, camera y = world -y, looks down world -z
+    cam = Camera.from_fov(64, 64, 90.0, down, -down @ np.array([0.0, 0.0, 10.0]))
+    R, C = cam.R[None], cam.camera_center[None]
+    K, sizes = np.array([[cam.fx, cam.fy, cam.cx, cam.cy]]), np.array([[cam.width, cam.height]])
+    reach = 10.0 + 2.0 * math.tan(math.asin(math.sin(math.radians(45.0)) / 1.33))
+    points = np.array([[0.0, 0.0, -2.0], [reach - 0.05, 0.0, -2.0], [reach + 0.05, 0.0, -2.0],
+                       [11.5, 0.0, -2.0], [9.3, 0.0, 0.5]])
+    water = WaterSurface(level=0.0, n=1.33)
+    assert views_through_water(points, R, C, K, sizes, water).tolist() == [1, 1, 0, 0, 1]
+    straight = WaterSurface(level=0.0, n=1.0)
+    assert views_through_water(points, R, C, K, sizes, straight).tolist() == [1, 1, 1, 1, 1]
+    high = WaterSurface(level=20.0, n=1.33)
+    assert views_through_water(points, R, C, K, sizes, high).tolist() == [0] * 5
+    two = views_through_water(points, np.concatenate([R, R]), np.concatenate([C, C + [30.0, 0, 0]]),
+                              np.concatenate([K, K]), np.concatenate([sizes, sizes]), water)
+    assert two.tolist() == [1, 1, 0, 0, 1]

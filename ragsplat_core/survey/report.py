@@ -271,12 +271,11 @@ def _surface(out: Path, n: float):
     return WaterSurface(**{**json.loads(path.read_text())["surface"], "n": n}) if path.is_file() else None
 
 
-def _water(out: Path, rec, n: float) -> dict | None:
-    path = out / "water.json"
-    if not path.is_file():
+def _water(out: Path, rec, surface) -> dict | None:
+    """The water's section, of RUN/water.json and its `surface` (`_surface`); None without one."""
+    if surface is None:
         return None
-    w = json.loads(path.read_text())
-    surface = _surface(out, n)
+    w = json.loads((out / "water.json").read_text())
     src = None
     if rec is not None and len(rec.points3D):
         plt = pyplot()
@@ -318,5 +317,5 @@ def write_report(out: Path, said: list[Said], photos: int) -> Path:
                       out=str(out), settings=survey, maps=_maps(out, centres, rec, surface),
                       structure=_structure(errors, points, photos) if errors else None,
                       georef=_georef(out),
-                      water=_water(out, rec, float(survey["n"])) if "n" in survey else None,
+                      water=_water(out, rec, surface),
                       said=[asdict(s) for s in said], versions=versions("torch", "pycolmap"))
