@@ -508,6 +508,54 @@ def test_a_lens_distortion_is_estimated_from_the_photos(geotagged, tmp_path, cap
 
     cams = pycolmap.Reconstruction(str(out / "model")).cameras.values()
     assert all(c.model == pycolmap.CameraModelId.RADIAL and c.params[3] == lens["k1"] for c in cams)
+    assert "nadir_only" not in lens  # six obliques at 30 degrees
+
+    # that lens held on the nadir photos alone (`--lens WATER.json`): as it was, said where from
+    nadir = tmp_path / "nadir"
+    nadir.mkdir()
+    for photo in sorted((root / layout.SURVEY_IMAGES_LENS).iterdir())[:12]:
+        shutil.copy(photo, nadir / photo.name)
+    held = tmp_path / "held"
+    argv = survey_args(root, layout.SURVEY_IMAGES_LENS, held, "--lens", str(out / "water.json"))
+    argv[1], argv[argv.index("--stop-after") + 1] = str(nadir), "water"
+    assert main(argv) == 0, capsys.readouterr().err
+    said = capsys.readouterr().err
+    assert f"k1 {lens['k1']:+.4f}, k2 {lens['k2']:+.4f}, held from {out / 'water.json'}" in said
+    again = json.loads((held / "water.json").read_text())["lens"]
+    assert (again["k1"], again["k2"], again["held"]) == (lens["k1"], lens["k2"], str(out / "water.json"))
+    assert "sigma" not in again and "nadir_only" not in again
+    cams = pycolmap.Reconstruction(str(held / "model")).cameras.values()
+    assert all(c.model == pycolmap.CameraModelId.RADIAL and tuple(c.params[3:]) == (lens["k1"], lens["k2"])
+               for c in cams)
+
+
+def test_a_lens_estimated_from_nadir_photos_alone_is_said_to_be_open_to_doming():
+    """Cameras all within `NADIR_ONLY_DEG` of straight down: the line says the lens and a dome trade, and
+    what separates them."""
+    from scipy.spatial.transform import Rotation
+
+    from ragsplat.survey.stages import water
+
+    down = np.diag([1.0, -1.0, -1.0])  # cam_from_world of a camera looking straight down
+    tilted = lambda deg: Rotation.from_euler("x", deg, degrees=True).as_matrix() @ down
+    R = torch.as_tensor(np.stack([down, tilted(4.0), tilted(-7.0)]))
+    assert water._off_nadir_deg(R) == pytest.approx(7.0)
+    assert water._off_nadir_deg(torch.as_tensor(np.stack([down, tilted(20.0)]))) == pytest.approx(20.0)
+    said = water._say_lens({"k1": -0.01, "k2": 0.001, "nadir_only": {"off_nadir_max_deg": 7.0}})
+    assert "within 7 degrees of nadir" in said and "fly obliques" in said and "--lens WATER.json" in said
+
+
+def test_a_lens_file_is_read_or_refused(tmp_path):
+    from ragsplat.survey.stages.inputs import read_lens
+
+    (tmp_path / "water.json").write_text(json.dumps({"surface": {}, "lens": {"k1": -0.08, "k2": 0.02}}))
+    (tmp_path / "lens.json").write_text(json.dumps({"k1": 0.01, "k2": 0}))
+    assert read_lens(tmp_path / "water.json") == (-0.08, 0.02)
+    assert read_lens(tmp_path / "lens.json") == (0.01, 0.0)
+    for text in ('{"surface": {}}', "[1, 2]", "not json", '{"k1": "x", "k2": 0}', '{"k1": NaN, "k2": 0}'):
+        (tmp_path / "bad.json").write_text(text)
+        with pytest.raises(ConfigError, match="bad.json"):
+            read_lens(tmp_path / "bad.json")
 
 
 def test_neighbour_pairs_each_photo_with_its_nearest():

@@ -38,6 +38,12 @@ def level_or_auto(text: str) -> float | str:
     return AUTO if text.strip().lower() == AUTO else finite_float(text)
 
 
+def lens_or_file(text: str) -> str:
+    if text in ("radial", "pinhole") or Path(text).is_file():
+        return text
+    raise argparse.ArgumentTypeError(f"{text}: radial, pinhole or a calibration file (JSON with k1, k2)")
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ragsplat.rasterize_surfels import DEPTHS
     from ragsplat.survey.stages.base import STAGES, SurveyConfig
@@ -62,7 +68,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     option(parser, "n", type=refractive_index)
     option(parser, "crs", metavar="CRS")
     option(parser, "masks", type=Path, metavar="DIR")
-    option(parser, "lens", choices=["radial", "pinhole"])
+    option(parser, "lens", type=lens_or_file, metavar="radial|pinhole|FILE")
     option(parser, "no_water_adjustment", action="store_true")
     option(parser, "rtk_sigma", type=positive_float, nargs=2, metavar=("H", "V"))
     option(parser, "gps_sigma", type=positive_float, nargs=2, metavar=("H", "V"))

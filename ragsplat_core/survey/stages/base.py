@@ -65,7 +65,10 @@ class SurveyConfig:
     lens: str = field(default="radial", metadata={"help": (
         "radial: the lens's radial distortion k1, k2 estimated in the adjustment through the water (one "
         "lens for all photos) and the photos undistorted for training; pinhole: none (photos already "
-        "undistorted); default %(default)s")})
+        "undistorted); FILE: the lens calibrated before and held, a survey's water.json (a flight of the "
+        "same camera with obliques or ground control) or JSON with k1 and k2 (COLMAP's RADIAL, OpenCV's "
+        "in normalised coordinates); a nadir-only flight cannot tell a lens from a dome in its frame; "
+        "default %(default)s")})
     no_water_adjustment: bool = field(default=False, metadata={"help": (
         "keep the pinhole structure-from-motion poses (only for comparison: through water they are tilted "
         "and the bed comes out too deep)")})

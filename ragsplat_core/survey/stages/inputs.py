@@ -4,6 +4,8 @@ frame (positions, ground control, the photos' EXIF GPS), the water as given, and
 
 from __future__ import annotations
 
+import json
+import math
 import os
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -75,6 +77,7 @@ class Survey:
     given: GivenWater
     origin: np.ndarray  # [3] the local frame's origin in the CRS (whole metres)
     water: WaterSurface | None  # the given surface in the local frame
+    held_lens: tuple[float, float] | None = None  # (k1, k2) calibrated before (--lens FILE), held
 
     @property
     def names(self) -> list[str]:
@@ -107,6 +110,7 @@ def check_inputs(cfg: SurveyConfig, progress: Progress) -> Survey:
         from ragsplat.export import read_uncertainty
 
         read_uncertainty(cfg.uncertainty)  # ConfigError before any work
+    held_lens = None if cfg.lens in ("radial", "pinhole") else read_lens(Path(cfg.lens))
     cfg, where = locate(cfg, photos, progress)
     given = water_as_given(cfg, where, progress)
     if where.positions is not None and given.surface is not None:
@@ -119,7 +123,24 @@ def check_inputs(cfg: SurveyConfig, progress: Progress) -> Survey:
     # a local origin (whole metres): UTM-sized coordinates keep millimetres in every float64 step
     origin = np.round(np.mean(list(where.frame.values()), axis=0))
     water = None if given.surface is None else given.surface.shifted(origin)
-    return Survey(cfg, given_size, photos, where, given, origin, water)
+    return Survey(cfg, given_size, photos, where, given, origin, water, held_lens)
+
+
+def read_lens(path: Path) -> tuple[float, float]:
+    """(k1, k2) of a lens calibrated before: a survey's water.json (its "lens") or JSON with "k1" and "k2"
+    (COLMAP's RADIAL; OpenCV's k1, k2 are the same, in normalised coordinates). ConfigError otherwise."""
+    from ragsplat.errors import ConfigError
+
+    try:
+        record = json.loads(path.read_text())
+        lens = record.get("lens", record)
+        k = float(lens["k1"]), float(lens["k2"])
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
+        raise ConfigError(f"{path}: not a lens (JSON with k1 and k2, or a survey's water.json with its lens; "
+                          f"{type(e).__name__}: {e})") from None
+    if not all(math.isfinite(v) for v in k):
+        raise ConfigError(f"{path}: k1, k2 must be finite, got {k}")
+    return k
 
 
 def write_config(cfg: SurveyConfig) -> None:

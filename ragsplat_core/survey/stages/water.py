@@ -39,6 +39,12 @@ LEVEL_TOL = 1e-7
 LEVEL_WARN = 0.02
 
 
+# A lens estimated from photos that all look within this of straight down (degrees), with no ground control,
+# is said to be open to doming: in a parallel nadir network a radial distortion error and a curved frame
+# reproject alike (James and Robson, 2014), and only oblique views or control separate them.
+NADIR_ONLY_DEG = 10.0
+
+
 # Such a level is looked for at the shoreline within 3 of its sigmas, at least this far (m).
 SHORE_SPAN = 0.2
 
@@ -106,7 +112,7 @@ def adjust_through_water(survey: Survey, structure: Structure, geo: Georeference
     cfg, water = survey.cfg, survey.water
     held_by = list(survey.rtk_sigma) if survey.where.sigma is None else geo.given  # one accuracy, or each's
     key = digest(geo.key, layout.water_json(water) if water is not None else [AUTO, cfg.n],
-                  cfg.no_water_adjustment, held_by, cfg.gcp_sigma, cfg.lens)
+                  cfg.no_water_adjustment, held_by, cfg.gcp_sigma, cfg.lens, survey.held_lens)
     model = cfg.out / "model"
     t0 = time.perf_counter()
     if not stamps.done("water", key, model, cfg.out / "water.json"):
@@ -183,11 +189,17 @@ def _adjust(survey: Survey, geo: Georeferenced, problem: Problem, progress: Prog
             else:
                 adj = bundle.adjust(R, C, trk.intrinsics, P, problem.point, problem.image, problem.pixels,
                                     water, free=lens, tol=LEVEL_TOL if lens else 1e-9, on_iteration=step,
-                                    **problem.held)
-            if lens:
+                                    lens=survey.held_lens or (0.0, 0.0), **problem.held)
+            if lens or survey.held_lens:
                 lens_record = {"model": "RADIAL (COLMAP): x (1 + k1 r^2 + k2 r^4), normalised coordinates",
-                               "k1": adj.lens[0], "k2": adj.lens[1],
-                               "sigma": {k: adj.sigma[k] for k in ("k1", "k2")}}
+                               "k1": adj.lens[0], "k2": adj.lens[1]}
+            if lens:
+                lens_record["sigma"] = {k: adj.sigma[k] for k in ("k1", "k2")}
+                off = _off_nadir_deg(adj.R)
+                if off < NADIR_ONLY_DEG and problem.gcp_rows is None:
+                    lens_record["nadir_only"] = {"off_nadir_max_deg": off}
+            elif survey.held_lens:
+                lens_record["held"] = cfg.lens
         R, C, P = adj.R, adj.C, adj.points
     gcp_residual = None
     if problem.gcp_rows is not None:
@@ -219,7 +231,7 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
     def adjusted(free: tuple[str, ...], level: float = start) -> Bundle:
         return bundle.adjust(problem.R, problem.C, trk.intrinsics, P, problem.point, problem.image,
                              problem.pixels, WaterSurface(level, cfg.n), free=free + lens, tol=LEVEL_TOL,
-                             on_iteration=step, **problem.held)
+                             on_iteration=step, lens=survey.held_lens or (0.0, 0.0), **problem.held)
 
     adj = adjusted(free)
     estimated = {"free": list(free), "start_m": start + origin[2], **_sigmas(adj),
@@ -340,6 +352,25 @@ def _frame_holder(where: Positions) -> str:
     return "held by the positions"
 
 
+def _say_lens(lens: dict) -> str:
+    said = (f"; the lens's distortion k1 {lens['k1']:+.4f}, k2 {lens['k2']:+.4f}"
+            + (f", held from {lens['held']}" if "held" in lens else ""))
+    if "nadir_only" in lens:
+        off = lens["nadir_only"]["off_nadir_max_deg"]
+        said += (f" (estimated from photos within {off:.0f} degrees of nadir and no ground control, where "
+                 "a lens's distortion and a dome in the frame trade: fly obliques, give ground control, or "
+                 "hold a lens calibrated before with --lens WATER.json of such a flight, or --lens pinhole "
+                 "for photos without distortion)")
+    return said
+
+
+def _off_nadir_deg(R) -> float:
+    """The largest angle (degrees) between a camera's optical axis and straight down, over cameras
+    R [I, 3, 3] (cam_from_world)."""
+    down = -R[:, 2, 2]  # the cosine of each: the optical axis is R^T e_z, its z component R[:, 2, 2]
+    return math.degrees(math.acos(max(-1.0, min(1.0, float(down.min())))))
+
+
 def _water_report(survey: Survey, fit: Adjusted) -> dict:
     """RUN/water.json: the surface, how the points lie around it, the adjustment's fit, and the estimated
     water, lens and targets' residuals where there are."""
@@ -432,5 +463,4 @@ def _say_water(progress: Progress, surface: WaterSurface, check: dict, t0: float
                  + ("" if lowest is None else f" (the lowest 1 % within {100 * lowest:.1f} cm of it)")
                  + ("" if check["rms_px"] is None
                     else f"; reprojection error {check['rms_px']:.2f} px after the adjustment")
-                 + ("" if "lens" not in check else f"; the lens's distortion k1 {check['lens']['k1']:+.4f}, "
-                    f"k2 {check['lens']['k2']:+.4f}"), t0)
+                 + ("" if "lens" not in check else _say_lens(check["lens"])), t0)
