@@ -528,6 +528,18 @@ def test_a_lens_distortion_is_estimated_from_the_photos(geotagged, tmp_path, cap
     assert all(c.model == pycolmap.CameraModelId.RADIAL and tuple(c.params[3:]) == (lens["k1"], lens["k2"])
                for c in cams)
 
+    # estimated from those nadir photos instead: said to be open to doming (the structure from motion reused)
+    estimated = tmp_path / "estimated"
+    shutil.copytree(held / "sfm", estimated / "sfm")
+    for name in (".ragsplat", "stages.json"):
+        shutil.copy(held / name, estimated / name)
+    argv[argv.index("--out") + 1] = str(estimated)
+    del argv[argv.index("--lens"): argv.index("--lens") + 2]
+    assert main(argv) == 0, capsys.readouterr().err
+    assert "degrees of nadir and no ground control" in capsys.readouterr().err
+    nadir_only = json.loads((estimated / "water.json").read_text())["lens"]["nadir_only"]
+    assert nadir_only["off_nadir_max_deg"] < 3  # rendered looking straight down
+
 
 def test_a_lens_estimated_from_nadir_photos_alone_is_said_to_be_open_to_doming():
     """Cameras all within `NADIR_ONLY_DEG` of straight down: the line says the lens and a dome trade, and
