@@ -39,7 +39,9 @@ def level_or_auto(text: str) -> float | str:
 
 
 def lens_or_file(text: str) -> str:
-    if text in ("radial", "pinhole") or Path(text).is_file():
+    from ragsplat.survey.stages.base import LENSES
+
+    if text in LENSES or Path(text).is_file():
         return text
     raise argparse.ArgumentTypeError(f"{text}: radial, pinhole or a calibration file (JSON with k1, k2)")
 

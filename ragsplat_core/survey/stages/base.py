@@ -25,6 +25,9 @@ STAGES = ("sfm", "georef", "water", "train", "export")
 RTK_SIGMA = (0.02, 0.03)  # an RTK drone's camera centre, horizontal and vertical (m)
 
 
+LENSES = ("radial", "pinhole")  # --lens by name; anything else is a calibration file
+
+
 PRODUCTS = ("dem.tif", "bed.laz", "depth.png", "ortho_bed.tif", "ortho_apparent.tif")
 
 
@@ -67,8 +70,8 @@ class SurveyConfig:
         "lens for all photos) and the photos undistorted for training; pinhole: none (photos already "
         "undistorted); FILE: the lens calibrated before and held, a survey's water.json (a flight of the "
         "same camera with obliques or ground control) or JSON with k1 and k2 (COLMAP's RADIAL, OpenCV's "
-        "in normalised coordinates); a nadir-only flight cannot tell a lens from a dome in its frame; "
-        "default %(default)s")})
+        "in normalised coordinates); from a nadir-only flight an estimate can trade with a dome in the "
+        "frame; default %(default)s")})
     no_water_adjustment: bool = field(default=False, metadata={"help": (
         "keep the pinhole structure-from-motion poses (only for comparison: through water they are tilted "
         "and the bed comes out too deep)")})

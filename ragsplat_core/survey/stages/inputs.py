@@ -19,7 +19,7 @@ if TYPE_CHECKING:
     from ragsplat.survey.water import EdgeFit
     from ragsplat.water_surface import WaterSurface
 
-from ragsplat.survey.stages.base import AUTO, RTK_SIGMA
+from ragsplat.survey.stages.base import AUTO, LENSES, RTK_SIGMA
 
 IMAGE_MEMORY = 0.4  # the training's images (uint8) may take this share of the machine's memory
 
@@ -87,6 +87,12 @@ class Survey:
     def rtk_sigma(self) -> tuple[float, float]:
         return self.cfg.rtk_sigma or RTK_SIGMA
 
+    @property
+    def lens(self) -> tuple[float, float]:
+        """(k1, k2) the adjustment holds the lens at, or starts its estimate from: none unless calibrated
+        before."""
+        return self.held_lens or (0.0, 0.0)
+
 
 def check_inputs(cfg: SurveyConfig, progress: Progress) -> Survey:
     """Everything that can be refused, refused before any work: the photos, what fixes their frame
@@ -110,7 +116,7 @@ def check_inputs(cfg: SurveyConfig, progress: Progress) -> Survey:
         from ragsplat.export import read_uncertainty
 
         read_uncertainty(cfg.uncertainty)  # ConfigError before any work
-    held_lens = None if cfg.lens in ("radial", "pinhole") else read_lens(Path(cfg.lens))
+    held_lens = None if cfg.lens in LENSES else read_lens(Path(cfg.lens))
     cfg, where = locate(cfg, photos, progress)
     given = water_as_given(cfg, where, progress)
     if where.positions is not None and given.surface is not None:

@@ -189,7 +189,7 @@ def _adjust(survey: Survey, geo: Georeferenced, problem: Problem, progress: Prog
             else:
                 adj = bundle.adjust(R, C, trk.intrinsics, P, problem.point, problem.image, problem.pixels,
                                     water, free=lens, tol=LEVEL_TOL if lens else 1e-9, on_iteration=step,
-                                    lens=survey.held_lens or (0.0, 0.0), **problem.held)
+                                    lens=survey.lens, **problem.held)
             if lens or survey.held_lens:
                 lens_record = {"model": "RADIAL (COLMAP): x (1 + k1 r^2 + k2 r^4), normalised coordinates",
                                "k1": adj.lens[0], "k2": adj.lens[1]}
@@ -231,7 +231,7 @@ def _estimate_water(survey: Survey, geo: Georeferenced, problem: Problem, lens: 
     def adjusted(free: tuple[str, ...], level: float = start) -> Bundle:
         return bundle.adjust(problem.R, problem.C, trk.intrinsics, P, problem.point, problem.image,
                              problem.pixels, WaterSurface(level, cfg.n), free=free + lens, tol=LEVEL_TOL,
-                             on_iteration=step, lens=survey.held_lens or (0.0, 0.0), **problem.held)
+                             on_iteration=step, lens=survey.lens, **problem.held)
 
     adj = adjusted(free)
     estimated = {"free": list(free), "start_m": start + origin[2], **_sigmas(adj),
