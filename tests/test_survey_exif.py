@@ -554,7 +554,7 @@ def test_a_lens_estimated_from_nadir_photos_alone_is_said_to_be_open_to_doming()
     assert water._off_nadir_deg(R) == pytest.approx(7.0)
     assert water._off_nadir_deg(torch.as_tensor(np.stack([down, tilted(20.0)]))) == pytest.approx(20.0)
     said = water._say_lens({"k1": -0.01, "k2": 0.001, "nadir_only": {"off_nadir_max_deg": 7.0}})
-    assert "within 7 degrees of nadir" in said and "fly obliques" in said and "--lens WATER.json" in said
+    assert "within 7.0 degrees of nadir" in said and "fly obliques" in said and "--lens WATER.json" in said
 
 
 def test_a_lens_file_is_read_or_refused(tmp_path):

@@ -357,7 +357,7 @@ def _say_lens(lens: dict) -> str:
             + (f", held from {lens['held']}" if "held" in lens else ""))
     if "nadir_only" in lens:
         off = lens["nadir_only"]["off_nadir_max_deg"]
-        said += (f" (estimated from photos within {off:.0f} degrees of nadir and no ground control, where "
+        said += (f" (estimated from photos within {off:.1f} degrees of nadir and no ground control, where "
                  "a lens's distortion and a dome in the frame trade: fly obliques, give ground control, or "
                  "hold a lens calibrated before with --lens WATER.json of such a flight, or --lens pinhole "
                  "for photos without distortion)")
