@@ -43,8 +43,10 @@ $(VENV)/.installed: pyproject.toml
 	$(PY) -m pip install --quiet -e ".[dev]"
 	touch $@
 
+# One worker process a core, at most four (a Blender render or a training each), a test file to one worker so
+# that its fixtures are made once.
 test: install
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile
 
 # Renders the synthetic riverbed (resumes: finished views are skipped).
 dataset: install

@@ -9,6 +9,12 @@ import os
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
 
+def cores_share(processes: int) -> str:
+    """Each thread count of `THREAD_VARIABLES` for one of `processes` processes that share this machine's
+    cores (at least one)."""
+    return str(max(1, (os.cpu_count() or 1) // processes))
+
+
 def openmp_waits() -> None:
     """How OpenMP threads (torch's and numba's, one libgomp) wait between parallel regions; it only takes
     effect if called before torch is imported, and the user's own setting wins. Spinning long (libgomp's

@@ -3,11 +3,20 @@
 Tests that start Blender carry the `blender` marker (`pytest -m "not blender"` skips them)."""
 
 import math
+import os
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from ragsplat.threads import THREAD_VARIABLES, cores_share
+
+# Under pytest-xdist (`make test`) each worker process takes its share of the cores, set before torch and
+# numba load: a threading library that takes every core in each of several processes slows them all.
+if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
+    for name in THREAD_VARIABLES:
+        os.environ.setdefault(name, cores_share(int(os.environ["PYTEST_XDIST_WORKER_COUNT"])))
 
 from ragsplat import train
 from ragsplat.bench.synthetic import bed_scene, render_views, ring_cameras, write_dataset

@@ -5,7 +5,7 @@ nannies)."""
 import os
 
 from ragsplat.cli.cluster import QUIET_WORKERS, client
-from ragsplat.threads import THREAD_VARIABLES
+from ragsplat.threads import THREAD_VARIABLES, cores_share
 
 
 def _worker_settings(names):
@@ -26,3 +26,10 @@ def test_local_workers_run_with_the_thread_counts_and_the_quiet_callbacks():
     for config, env in seen.values():
         assert config == QUIET_WORKERS
         assert env == {v: threads for v in THREAD_VARIABLES}
+
+
+def test_processes_sharing_the_cores_get_one_thread_at_least():
+    cores = os.cpu_count() or 1
+    assert cores_share(1) == str(cores)
+    assert cores_share(2) == str(max(1, cores // 2))
+    assert cores_share(4 * cores) == "1"

@@ -28,13 +28,13 @@ def client(jobs: int, scheduler: str | None = None):
     import dask
     from dask.distributed import Client, LocalCluster
 
-    from ragsplat.threads import THREAD_VARIABLES
+    from ragsplat.threads import THREAD_VARIABLES, cores_share
 
     if scheduler:
         with Client(scheduler) as c:
             yield c, f"the Dask cluster at {scheduler}"
         return
-    threads = str(max(1, (os.cpu_count() or 1) // jobs))
+    threads = cores_share(jobs)
     saved = dict(os.environ)
     try:
         with dask.config.set({**QUIET_WORKERS, "distributed.nanny.pre-spawn-environ": {
