@@ -14,9 +14,10 @@ from ragsplat.threads import THREAD_VARIABLES, cores_share
 
 # Under pytest-xdist (`make test`) each worker process takes its share of the cores, set before torch and
 # numba load: a threading library that takes every core in each of several processes slows them all.
-if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
+WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+if WORKERS > 1:
     for name in THREAD_VARIABLES:
-        os.environ.setdefault(name, cores_share(int(os.environ["PYTEST_XDIST_WORKER_COUNT"])))
+        os.environ.setdefault(name, cores_share(WORKERS))
 
 from ragsplat import train
 from ragsplat.bench.synthetic import bed_scene, render_views, ring_cameras, write_dataset
