@@ -43,6 +43,20 @@ def test_the_presets_hold_the_recorded_choices():
     assert TUNING["dataset_seed"] == FIELD_TUNING["dataset_seed"] == 1
 
 
+def test_the_field_cap_is_the_recorded_rules_choice():
+    from statistics import mean
+
+    from ragsplat.train.config import FIELD_TUNING, PRESETS
+
+    rec = FIELD_TUNING["max_gaussians"]
+    f1_3 = rec["columns"].index("F1@3% (%)")
+    by_cap = {int(k.split()[0]): mean(s[f1_3] for s in v.values()) for k, v in rec["tried"].items()}
+    assert PRESETS["small-field"].densify.max_gaussians == rec["chosen"]["densify.max_gaussians"]
+    assert max(by_cap, key=by_cap.get) == rec["chosen"]["densify.max_gaussians"]
+    assert PRESETS["small"].densify.max_gaussians in by_cap and rec["commit"] and rec["variant"]
+    assert "python -m tools.tune" in rec["command"]
+
+
 def test_the_field_survey_trains_the_recorded_water_terms():
     from ragsplat.train.config import FIELD_TUNING, PRESETS, VARIANTS
     from ragsplat.train.defaults import survey_variant

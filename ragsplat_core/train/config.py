@@ -382,10 +382,12 @@ PRESETS: dict[str, TrainConfig] = {
                          densify=DensifyConfig(max_gaussians=200_000)),
 }
 # small-field: 3 000 steps and the start's gaps filled from the tracks' TIN (small_field.json, top level); it
-# keeps 3DGS's densification stop: `small`'s gained nothing on its development seed ("refine_stop")
+# keeps 3DGS's densification stop: `small`'s gained nothing on its development seed ("refine_stop"). Its cap
+# is larger than `small`'s ("max_gaussians"): at `small`'s every run ends at the cap, and the bed that turbid
+# water leaves faint at depth is the part left without surfels.
 PRESETS["small-field"] = with_chosen(replace(PRESETS["small"], preset="small-field", init="refracted",
-                                             densify=DensifyConfig(max_gaussians=40_000)),
-                                     chosen(FIELD_TUNING))
+                                             densify=DensifyConfig()),
+                                     chosen(FIELD_TUNING, ("max_gaussians",)))
 # The `3dgs` row as its own field would train it: `small`'s size and length, but 3DGS's loss (SSIM
 # weight 0.2) and densification stop (half the run) instead of the values tuned for `2dgs+full`.
 PRESETS["small-3dgs"] = replace(PRESETS["small"], preset="small-3dgs", ssim_lambda=TrainConfig.ssim_lambda,
