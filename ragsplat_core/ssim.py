@@ -33,10 +33,8 @@ def channels_first(img: torch.Tensor) -> torch.Tensor:
     raise ValueError(f"expected an image [H, W, 3] or [B, 3, H, W], got {tuple(img.shape)}")
 
 
-def ssim_map(img1: torch.Tensor, img2: torch.Tensor, c2: float = C2) -> torch.Tensor:
-    """Per-pixel SSIM, [B, 3, H, W], for inputs [H,W,3] (treated as B=1) or [B,3,H,W] in [0, 1]. `c2`: the
-    contrast-structure term's constant; a local variance well below it hardly moves the map, so a smaller
-    one lets faint texture count (the training loss's `ssim_k2`), the evaluation keeps 3DGS's."""
+def ssim_map(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
+    """Per-pixel SSIM, [B, 3, H, W], for inputs [H,W,3] (treated as B=1) or [B,3,H,W] in [0, 1]."""
     if img1.shape != img2.shape:
         raise ValueError(f"ssim: shapes differ: {tuple(img1.shape)} vs {tuple(img2.shape)}")
     a, b = channels_first(img1), channels_first(img2)
@@ -52,16 +50,15 @@ def ssim_map(img1: torch.Tensor, img2: torch.Tensor, c2: float = C2) -> torch.Te
     mu1, mu2, e11, e22, e12 = x.split(ch, dim=1)
     mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
     var1, var2, cov = e11 - mu1_sq, e22 - mu2_sq, e12 - mu12
-    return ((2 * mu12 + C1) * (2 * cov + c2)) / ((mu1_sq + mu2_sq + C1) * (var1 + var2 + c2))
+    return ((2 * mu12 + C1) * (2 * cov + C2)) / ((mu1_sq + mu2_sq + C1) * (var1 + var2 + C2))
 
 
-def ssim(img1: torch.Tensor, img2: torch.Tensor, c2: float = C2) -> torch.Tensor:
-    """Mean SSIM (scalar tensor, differentiable) of two images [H,W,3] or [B,3,H,W] in [0, 1] (`c2` as in
-    `ssim_map`).
+def ssim(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
+    """Mean SSIM (scalar tensor, differentiable) of two images [H,W,3] or [B,3,H,W] in [0, 1].
 
     For a batch the mean runs over the batch too (as in the 3DGS loss).
     """
-    return ssim_map(img1, img2, c2).mean()
+    return ssim_map(img1, img2).mean()
 
 
 def psnr(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:

@@ -3,7 +3,7 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from ragsplat.ssim import C2, ssim, ssim_map
+from ragsplat.ssim import ssim, ssim_map
 
 PAD = 5  # half the 11-tap window: beyond it the zero padding of 3DGS and skimage's reflection differ
 
@@ -77,16 +77,3 @@ def test_matches_the_2d_window_of_3dgs_everywhere():
     assert torch.allclose(ssim_map(a, b), ref, rtol=0, atol=1e-12)
     two = ssim_map(torch.cat([a, b]), torch.cat([b, a]))  # a batch of two
     assert torch.allclose(two[0], ref[0], atol=1e-12) and torch.allclose(two[1], ref[0], atol=1e-12)
-
-
-def test_a_smaller_contrast_constant_sees_faint_texture():
-    # texture of standard deviation 0.01 on grey (a bed deep under turbid water) against the flat grey:
-    # 3DGS's C2 (K2 0.03, variance 9e-4) hides most of the difference; with K2 0.0075 the loss's 1 - SSIM
-    # is several times larger (the zero-padded border is the same in both)
-    g = torch.Generator().manual_seed(0)
-    faint = (0.3 + 0.01 * torch.randn(32, 32, 3, generator=g, dtype=torch.float64)).clamp(0, 1)
-    flat = torch.full_like(faint, 0.3)
-    plain, sharp = 1 - float(ssim(faint, flat)), 1 - float(ssim(faint, flat, c2=0.0075**2))
-    assert plain < 0.1 and sharp > 4 * plain
-    a, b = (torch.from_numpy(x) for x in _pair(4, 16, 16))
-    assert float(ssim(a, b, c2=C2)) == float(ssim(a, b))

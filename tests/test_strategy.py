@@ -157,21 +157,6 @@ def test_strategy_cap_and_reset_and_stop():
                                      _info(20, torch.ones(20, 2, dtype=torch.float64))) == {})
 
 
-def test_growth_per_refinement_is_a_fraction_of_the_count_strongest_first():
-    params, opts = _setup()
-    cfg = DensifyConfig(refine_start_iter=0, refine_every=1, reset_every=100, refine_stop_iter=50,
-                        grow_grad2d=0.0, grow_scale3d=100.0, prune_opa=0.001, grow_fraction=0.1)
-    strat = DefaultStrategy(cfg)
-    state = strat.initialize_state()
-    grads = torch.zeros(16, 2, dtype=torch.float64)
-    grads[:, 0] = torch.arange(16, dtype=torch.float64) + 1.0
-    before = params["means"].detach().clone()
-    out = strat.step_post_backward(params, opts, state, 1, _info(16, grads))
-    assert out["cloned"] == 2 and params["means"].shape[0] == 18  # ceil(0.1 x 16), not all 16
-    assert torch.equal(params["means"].detach()[16:], before[[14, 15]])  # the two largest gradients
-    _check_consistent(params, opts)
-
-
 def test_never_prunes_everything():
     params, opts = _setup()
     with torch.no_grad():

@@ -124,10 +124,6 @@ class TrainConfig:
     lr_sh0: float = 2.5e-3
     lr_shN: float = 2.5e-3 / 20
     ssim_lambda: float = 0.2
-    # The loss's SSIM contrast constant, C2 = ssim_k2^2 (3DGS's 0.03 for images in [0, 1]): where the local
-    # standard deviation is well under ssim_k2 the contrast-structure term hardly moves, and a bed seen
-    # through turbid water keeps little more than that.
-    ssim_k2: float = 0.03
     # Surfel variants only, 2DGS's two geometry terms: depth distortion (sum w_i w_j |z_i - z_j| per pixel, in
     # metres here; 2DGS weighs an NDC-mapped depth) and normal consistency (1 - rendered normal . normal of
     # the rendered depth map), each switched on after a fraction of the run (2DGS: 3k and 7k of 30k).

@@ -45,11 +45,6 @@ class DensifyConfig:
     refine_every: int = 100
     split_samples: int = 2
     max_gaussians: int = 0  # 0: unbounded; else growth stops at this count (highest gradients first)
-    # The most Gaussians one refinement may add, as a fraction of the current count (highest gradients first;
-    # 0: no limit, 3DGS). A start of small Gaussians is above the gradient threshold nearly everywhere, so
-    # without it the first refinements spend the whole `max_gaussians` budget where the crude start's
-    # gradients are largest (the bright, high-contrast bed), before the faint bed's error has been seen.
-    grow_fraction: float = 0.0
 
     def scaled(self, iterations: int, min_refine_every: int = 10) -> DensifyConfig:
         """The same schedule stretched to `iterations` (refinement at least every `min_refine_every` steps,
@@ -216,11 +211,8 @@ class DefaultStrategy:
         cfg = self.cfg
         avg = state["grad2d"] / state["count"].clamp_min(1)
         high = avg > cfg.grow_grad2d
-        n = params["means"].shape[0]
-        rooms = ([cfg.max_gaussians - n] if cfg.max_gaussians else []) + \
-            ([max(1, math.ceil(cfg.grow_fraction * n))] if cfg.grow_fraction > 0 else [])
-        if rooms:
-            room = min(rooms)
+        if cfg.max_gaussians:
+            room = cfg.max_gaussians - params["means"].shape[0]
             if room <= 0:
                 return 0, 0
             if int(high.sum()) > room:  # keep the strongest candidates (a split adds one net Gaussian too)

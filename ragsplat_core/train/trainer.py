@@ -203,7 +203,7 @@ class Trainer:
             self.splats, self.centers[i], water, lambda xy: self.view_ripples(self.views[i].name, xy))
         # the training cameras are checked above the water at the start and after each move of it
         img, _, depth, info = self._render(cam, self.centers[i], True, water, shown, check_camera=False)
-        loss = photometric_loss(img, gt, mask, self.cfg.ssim_lambda, self.cfg.ssim_k2)
+        loss = photometric_loss(img, gt, mask, self.cfg.ssim_lambda)
         if self.cfg.surfels:
             loss = loss + surfel_loss(self.cfg, cam, depth, info, mask, step)
         info.update(width=cam.width, height=cam.height)
@@ -395,16 +395,14 @@ def torch_device(cfg: TrainConfig) -> torch.device:
     return device
 
 
-def photometric_loss(img, gt, mask, lam: float, k2: float = 0.03) -> torch.Tensor:
+def photometric_loss(img, gt, mask, lam: float) -> torch.Tensor:
     """3DGS's loss, (1 - lam) L1 + lam (1 - SSIM), of img [H, W, 3] against gt over mask [H, W] (None: every
-    pixel); SSIM's contrast constant is k2^2 (3DGS's 0.03). SSIM windows straddle the mask's edge: both
-    images are zeroed outside it, so neither the unused target pixels nor the render there reach the loss,
-    and the map is averaged where used."""
+    pixel). SSIM windows straddle the mask's edge: both images are zeroed outside it, so neither the unused
+    target pixels nor the render there reach the loss, and the map is averaged where used."""
     if mask is None:
-        return (1 - lam) * torch.abs(img - gt).mean() + lam * (1 - ssim(img, gt, k2 * k2))
+        return (1 - lam) * torch.abs(img - gt).mean() + lam * (1 - ssim(img, gt))
     both = [torch.where(mask[..., None], x, 0.0) for x in (img, gt)]
-    structure = ssim_map(*both, k2 * k2)[0][:, mask].mean()
-    return (1 - lam) * torch.abs(img - gt)[mask].mean() + lam * (1 - structure)
+    return (1 - lam) * torch.abs(img - gt)[mask].mean() + lam * (1 - ssim_map(*both)[0][:, mask].mean())
 
 
 def surfel_loss(c: TrainConfig, cam: Camera, depth, info: dict, mask, step: int):
