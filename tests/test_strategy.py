@@ -7,7 +7,6 @@ from ragsplat.gaussians import init_grid, quat_to_rotmat
 from ragsplat.train.strategy import (
     DefaultStrategy,
     DensifyConfig,
-    cell_counts,
     duplicate,
     remove,
     reset_opacity,
@@ -156,34 +155,6 @@ def test_strategy_cap_and_reset_and_stop():
     assert float(torch.sigmoid(params["opacities"].detach()).max()) <= 0.002 + 1e-12
     assert (strat.step_post_backward(params, opts, state, 5,
                                      _info(20, torch.ones(20, 2, dtype=torch.float64))) == {})
-
-
-def test_cell_counts_count_the_gaussians_sharing_a_horizontal_cell():
-    means = torch.tensor([[0.1, 0.1, -1.0], [0.4, 0.2, -3.0], [0.6, 0.1, -1.0], [-0.1, 0.1, 0.0]])
-    assert cell_counts(means, 0.5).tolist() == [2.0, 2.0, 1.0, 1.0]  # heights do not matter
-    assert cell_counts(means, 10.0).tolist() == [3.0, 3.0, 3.0, 1.0]  # -0.1 is in the cell left of 0
-
-
-def test_where_the_cap_binds_growth_goes_to_thinly_covered_cells_first():
-    grads = torch.zeros(16, 2, dtype=torch.float64)
-    grads[:, 0] = 1.0
-    grads[:8, 0] = 2.0  # the crowded cell's Gaussians have the largest gradients
-    grown = {}
-    for cell in (0.0, 1.0):
-        params, opts = _setup()
-        with torch.no_grad():
-            params["means"][:8, :2] = 0.5  # eight Gaussians crowd one 1 m cell; the other eight have one each
-        cfg = DensifyConfig(refine_start_iter=0, refine_every=1, reset_every=100, refine_stop_iter=50,
-                            grow_grad2d=0.0, grow_scale3d=100.0, prune_opa=0.001, max_gaussians=18,
-                            crowd_cell=cell)
-        strat = DefaultStrategy(cfg)
-        before = params["means"].detach().clone()
-        out = strat.step_post_backward(params, opts, strat.initialize_state(), 1, _info(16, grads))
-        assert out["cloned"] == 2 and params["means"].shape[0] == 18
-        _check_consistent(params, opts)
-        grown[cell] = [int(torch.nonzero((before == m).all(-1))[0]) for m in params["means"].detach()[16:]]
-    assert all(i < 8 for i in grown[0.0])  # by the gradient alone: the crowded cell
-    assert all(i >= 8 for i in grown[1.0])  # by gradient over crowding (2 / 8 < 1 / 1): the lone ones
 
 
 def test_never_prunes_everything():

@@ -45,11 +45,6 @@ class DensifyConfig:
     refine_every: int = 100
     split_samples: int = 2
     max_gaussians: int = 0  # 0: unbounded; else growth stops at this count (highest gradients first)
-    # Where `max_gaussians` binds, the candidates are ranked by their mean gradient over the number of
-    # Gaussians in their square horizontal cell of this side (m; 0: by the gradient alone, 3DGS). A faint
-    # bed's gradients rank below a bright bed's everywhere, so by the gradient alone the budget goes where the
-    # bed is already densely covered and a faint bed keeps its holes.
-    crowd_cell: float = 0.0
 
     def scaled(self, iterations: int, min_refine_every: int = 10) -> DensifyConfig:
         """The same schedule stretched to `iterations` (refinement at least every `min_refine_every` steps,
@@ -87,14 +82,6 @@ def _filter_state(state: dict, keep: torch.Tensor, grow: int = 0) -> None:
         v = state.get(key)
         if v is not None:
             state[key] = torch.cat([v[keep], v.new_zeros(grow)])
-
-
-def cell_counts(means: torch.Tensor, cell: float) -> torch.Tensor:
-    """[N] how many of the Gaussians `means` [N, 3] share each one's square horizontal cell of side `cell`
-    (m; cells aligned on the origin)."""
-    ij = torch.floor(means[:, :2] / cell).long()  # [N, 2]
-    _, inverse, counts = torch.unique(ij, dim=0, return_inverse=True, return_counts=True)
-    return counts[inverse].to(means.dtype)
 
 
 @torch.no_grad()
@@ -229,8 +216,7 @@ class DefaultStrategy:
             if room <= 0:
                 return 0, 0
             if int(high.sum()) > room:  # keep the strongest candidates (a split adds one net Gaussian too)
-                rank = avg if cfg.crowd_cell <= 0 else avg / cell_counts(params["means"], cfg.crowd_cell)
-                top = torch.topk(torch.where(high, rank, torch.zeros_like(rank)), room).indices
+                top = torch.topk(torch.where(high, avg, torch.zeros_like(avg)), room).indices
                 high = torch.zeros_like(high)
                 high[top] = True
         small = torch.exp(params["scales"]).max(-1).values <= cfg.grow_scale3d * state["scene_scale"]
