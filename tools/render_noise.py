@@ -30,26 +30,22 @@ import numpy as np
 
 from ragsplat.datagen import flight
 from ragsplat.datagen.build import _task, render_job, run_blender
-from ragsplat.datagen.spec import SceneSpec, preset
+from ragsplat.datagen.spec import SceneSpec
 from ragsplat.dataset import layout
 
 CHANNELS = ("red", "green", "blue")
 
 
 def thirds(root: Path) -> list[tuple[float, float]]:
-    """The evaluation's depth bands (`eval.evaluate`): thirds of the reach's deepest water, metres."""
+    """The evaluation's depth bands (`eval.evaluate`), (lo, hi] metres: thirds of the reach's deepest water,
+    the last one open below."""
     deepest = json.loads((root / layout.SCENE).read_text())["null_models"]["max_depth_m"]
-    return [(k * deepest / 3, (k + 1) * deepest / 3) for k in range(3)]
+    return [(k * deepest / 3, (k + 1) * deepest / 3 if k < 2 else np.inf) for k in range(3)]
 
 
 def dataset_spec(root: Path) -> SceneSpec:
-    """The spec the dataset was rendered from: its preset at its seed (checked against scene.json)."""
-    scene = json.loads((root / layout.SCENE).read_text())
-    spec = preset(scene["spec"]["preset"], scene["spec"]["seed"])
-    if spec.render.samples != scene["spec"]["render"]["samples"]:
-        raise SystemExit(f"{root}: rendered at {scene['spec']['render']['samples']} samples, the preset now "
-                         f"asks {spec.render.samples}")
-    return spec
+    """The spec the dataset was rendered from, as `ragsplat generate` saved it."""
+    return SceneSpec.from_dict(json.loads((root / "scene" / "spec.json").read_text()))
 
 
 def water_depth(pose, root: Path, level: float) -> np.ndarray:
@@ -84,14 +80,15 @@ def table(sums: dict, channel: int, bands: list[tuple[float, float]]) -> str:
               "| SNR |"),
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for (lo, hi), s in zip(bands, sums["thirds"]):
+        band = f"{lo:.3g}-{hi:.3g} m" if np.isfinite(hi) else f"over {lo:.3g} m"
         n = s["n"]
         if n == 0:
-            lines.append(f"| {lo:g}-{hi:g} m | 0 | | | | | | | |")
+            lines.append(f"| {band} | 0 | | | | | | | |")
             continue
         m = {k: v[channel] / n for k, v in s.items() if k != "n"}
         noise, hnoise = np.sqrt(m["diff2"]), np.sqrt(m["hdiff2"])
         texture, dry = np.sqrt(max(m["cov"], 0.0)), np.sqrt(m["dry2"])
-        lines.append(f"| {lo:g}-{hi:g} m | {n} | {m['mean']:.1f} | {noise:.2f} | {hnoise:.2f} | "
+        lines.append(f"| {band} | {n} | {m['mean']:.1f} | {noise:.2f} | {hnoise:.2f} | "
                      f"{texture:.2f} | {dry:.2f} | {texture / dry:.2f} | {texture / hnoise:.2f} |")
     return "\n".join(lines)
 
@@ -113,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     level, bands = spec.level, thirds(root)
     train = [p for p in flight.plan(spec) if p.split == "train"]
     depths = {p.name: water_depth(p, root, level) for p in train}
-    deep = sorted(train, key=lambda p: -np.sum(depths[p.name] >= bands[-1][0]))[:args.views]
+    deep = sorted(train, key=lambda p: -np.sum(depths[p.name] > bands[-1][0]))[:args.views]
     samples = args.samples or spec.render.samples
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -142,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
             fig = band_figures(read_rgb(a[p.name]), read_rgb(b[p.name]), dry, args.sigma)
             d = depths[p.name]
             for (lo, hi), s in zip(bands, sums["thirds"]):
-                inside = (d >= lo) & (d < hi)
+                inside = (d > lo) & (d <= hi)
                 s["n"] += int(inside.sum())
                 for k in keys:
                     s[k] += fig[k][inside].sum(0)

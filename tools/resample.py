@@ -17,9 +17,10 @@ from pathlib import Path
 
 from ragsplat.datagen import flight
 from ragsplat.datagen.build import _task, render_job, run_blender
-from ragsplat.datagen.spec import preset
+from ragsplat.datagen.spec import SceneSpec
 from ragsplat.dataset import layout
 from ragsplat.dataset.colmap import STAMP, TRACKS, TRIANGULATED
+from ragsplat.outputs import write_json
 
 TRIANGULATION = "colmap/triangulation"  # the triangulation's scratch folder (`colmap.triangulate`)
 
@@ -30,8 +31,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("out", type=Path)
     parser.add_argument("samples", type=int)
     args = parser.parse_args(argv)
-    scene = json.loads((args.data / layout.SCENE).read_text())
-    spec = preset(scene["spec"]["preset"], scene["spec"]["seed"])
+    spec = SceneSpec.from_dict(json.loads((args.data / "scene" / "spec.json").read_text()))
     skip = {args.data / p for p in (TRIANGULATED, TRACKS, STAMP, TRIANGULATION)}
     shutil.copytree(args.data, args.out, ignore=lambda d, names: [n for n in names if Path(d) / n in skip],
                     dirs_exist_ok=True)
@@ -39,9 +39,10 @@ def main(argv: list[str] | None = None) -> int:
     tasks = [_task(spec, "wet", p, layout.output_path(args.out, "wet", p.name)) for p in train]
     job = render_job(spec, args.out, train[0].camera, tasks)
     run_blender(replace(job, render=replace(job.render, samples=args.samples)), args.out / "scene")
+    scene = json.loads((args.out / layout.SCENE).read_text())
     scene["resampled"] = {"from": str(args.data), "train_wet_samples": args.samples,
                           "views": [p.name for p in train]}
-    (args.out / layout.SCENE).write_text(json.dumps(scene, indent=1))
+    write_json(args.out / layout.SCENE, scene)
     return 0
 
 
